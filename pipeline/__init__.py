@@ -1,0 +1,1 @@
+"""The compute: pure functions and kernels, no sockets (see DESIGN.md)."""
