@@ -1,0 +1,96 @@
+"""Per-frame input and output of the pipeline (DESIGN.md, "Pipeline interface")."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class FrameInput:
+    """One RGB-D frame.
+
+    color: (H, W, 3) uint8, RGB order, sRGB-encoded.
+    depth: (H, W) float32, metres along the optical axis; 0 or NaN = missing.
+    timestamp: seconds (sender clock).
+    pose: optional (4, 4) camera-to-world (world_from_cam); when given, tracking is skipped.
+    panorama: optional equirectangular LDR uint8 image for the 360-degree path.
+    """
+
+    color: np.ndarray
+    depth: np.ndarray
+    timestamp: float = 0.0
+    pose: np.ndarray | None = None
+    panorama: np.ndarray | None = None
+
+
+@dataclass
+class Confidence:
+    """What the data could constrain in one light estimate.
+
+    samples: pixels used in the least-squares fit; condition_number: of the (unregularised,
+    column-scaled) normal matrix; bands_estimated: SH bands solved for (the rest are zero);
+    value: overall confidence in [0, 1] (0 = no estimate possible).
+    """
+
+    samples: int = 0
+    condition_number: float = float("inf")
+    bands_estimated: int = 0
+    value: float = 0.0
+    reason: str = ""
+
+    def to_dict(self) -> dict:
+        cond = self.condition_number
+        return {
+            "samples": int(self.samples),
+            # JSON has no infinity: a system that could not be set up reports null
+            "condition_number": float(cond) if np.isfinite(cond) else None,
+            "bands_estimated": int(self.bands_estimated),
+            "value": float(self.value),
+            "reason": self.reason,
+        }
+
+
+@dataclass
+class FrameResult:
+    """Lighting estimated from one frame.
+
+    sh: (L*L,) radiance SH of the distant light, luminance, in the WORLD frame
+        (arlight.pipeline.sh conventions: orthonormal, no Condon-Shortley phase).
+    sh_camera: the same light in the camera frame of this frame.
+    sh_rgb: optional (3, L*L) per linear RGB channel, world frame.
+    dominant_direction_world / _camera: unit vectors towards the light (zeros if none).
+    intensity: radiance of the dominant light lobe (arbitrary units, camera exposure).
+    pose: (4, 4) camera-to-world used for this frame.
+    """
+
+    timestamp: float
+    sh: np.ndarray
+    sh_camera: np.ndarray
+    dominant_direction_world: np.ndarray
+    dominant_direction_camera: np.ndarray
+    intensity: float
+    confidence: Confidence
+    pose: np.ndarray
+    sh_rgb: np.ndarray | None = None
+    composite: np.ndarray | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    diagnostics: dict = field(default_factory=dict)
+
+    def to_json_dict(self) -> dict:
+        """Plain JSON-serialisable record (one line of results.jsonl)."""
+        out = {
+            "timestamp": float(self.timestamp),
+            "sh": [float(x) for x in self.sh],
+            "sh_camera": [float(x) for x in self.sh_camera],
+            "dominant_direction_camera": [float(x) for x in self.dominant_direction_camera],
+            "dominant_direction_world": [float(x) for x in self.dominant_direction_world],
+            "intensity": float(self.intensity),
+            "confidence": self.confidence.to_dict(),
+            "pose": np.asarray(self.pose, dtype=float).tolist(),
+            "timings_ms": {k: round(float(v), 3) for k, v in self.timings_ms.items()},
+        }
+        if self.sh_rgb is not None:
+            out["sh_rgb"] = np.asarray(self.sh_rgb, dtype=float).tolist()
+        return out
