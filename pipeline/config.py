@@ -36,6 +36,7 @@ class Config:
     aux_buffers: bool = True
     aux_resolution: int = 128  # pixels per side of each orthographic buffer
     aux_extent_m: float = 4.0  # side of the square each buffer covers, metres
+    aux_update_interval: int = 5  # re-render the auxiliary buffers every n frames
 
     # D' merge (eq. 1-3)
     merge_window: int = 20  # k
