@@ -130,7 +130,8 @@ def project_samples(directions: np.ndarray, values: np.ndarray, solid_angles: np
     basis = sh_basis(directions, bands).reshape(-1, bands * bands)
     w = np.asarray(solid_angles, dtype=np.float64).reshape(-1)
     v = np.asarray(values, dtype=np.float64).reshape(w.shape[0], -1)
-    return ((v * w[:, None]).T @ basis).squeeze(0) if v.shape[1] == 1 else (v * w[:, None]).T @ basis
+    coeffs = (v * w[:, None]).T @ basis
+    return coeffs[0] if v.shape[1] == 1 else coeffs
 
 
 def directional_light(direction: np.ndarray, intensity: float, bands: int) -> np.ndarray:
