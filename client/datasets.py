@@ -32,8 +32,9 @@ Supported layouts (`RgbdSequence.format`):
   (`SEVEN_SCENES_COLOR_FROM_DEPTH`, the LIRIS calibration also used by DSAC*/ACE's
   "calibrated depth"). It is not this device's own calibration (none was published), so
   expect residual misalignment of a few pixels at depth edges. The returned camera is the
-  colour camera; the poses are those of the file (KinectFusion's, i.e. of the depth
-  camera, whose optical centre is ~2.6 cm from the colour camera's).
+  colour camera, and so are the poses: world_from_color = world_from_depth (the file's
+  KinectFusion pose, tracked with the depth camera) @ inv(SEVEN_SCENES_COLOR_FROM_DEPTH),
+  so fused depth stays consistent (the world frame is the file's).
 - "pair": one colour image + one depth image (`open_pair`, or `open_sequence` on a colour
   image whose name holds color/colour/rgb with a partner holding depth, or on a folder
   holding exactly one such pair). Depth encodings: see `DEPTH_ENCODINGS`. NYU raw depth is
@@ -511,7 +512,7 @@ def _infer_encoding(color_path: Path, depth_path: Path) -> str:
 
 def _common_prefix_name(a: Path, b: Path) -> str:
     prefix = ""
-    for x, y in zip(a.stem, b.stem):
+    for x, y in zip(a.stem, b.stem, strict=False):
         if x != y:
             break
         prefix += x
@@ -833,7 +834,7 @@ def _open_redwood(folder: Path, color_dir: Path, depth_encoding: str | None, use
     if all(c.stem in depth_by_stem for c in colors):
         pairs = [(c, depth_by_stem[c.stem]) for c in colors]
     elif len(colors) == len(depths):
-        pairs = list(zip(colors, depths))
+        pairs = list(zip(colors, depths, strict=True))
         _note(notes, f"{folder}: colour and depth file names differ; paired in sorted order",
               logging.INFO)
     else:
@@ -929,10 +930,13 @@ def _open_seven_scenes(folder: Path, depth_encoding: str | None, use_poses: bool
         except (OSError, ValueError) as exc:
             raise DatasetError(f"{intr}: cannot read a 3x3 intrinsic matrix ({exc})") from exc
     else:
-        k = SEVEN_SCENES_DEPTH_K
-        _note(notes, f"{folder}: no camera-intrinsics.txt; using the 7-Scenes depth camera "
-                     "defaults fx = fy = 585, cx = 320, cy = 240")
+        k = None
     first_depth = _read_image(frames[0][2], cv2.IMREAD_UNCHANGED, "depth image")
+    if k is None:  # defaults are for 640x480: scale them to the depth image
+        s = first_depth.shape[1] / 640.0
+        k = SEVEN_SCENES_DEPTH_K * np.array([[s, 1.0, s], [1.0, s, s], [1.0, 1.0, 1.0]])
+        _note(notes, f"{folder}: no camera-intrinsics.txt; using the 7-Scenes depth camera "
+                     "defaults fx = fy = 585, cx = 320, cy = 240 (at 640x480, scaled)")
     first_color = read_color(frames[0][1])
     try:
         depth_camera = PinholeCamera.from_matrix(k, first_depth.shape[1], first_depth.shape[0])
@@ -945,7 +949,8 @@ def _open_seven_scenes(folder: Path, depth_encoding: str | None, use_poses: bool
     registration = _Registration(depth_camera, SEVEN_SCENES_COLOR_FROM_DEPTH)
     _note(notes, "7-Scenes depth is not registered to colour: reprojected into the colour "
                  f"camera (fx = fy = {camera.fx:g}) with a generic Kinect v1 depth-to-colour "
-                 "calibration; expect a few pixels of residual misalignment at edges",
+                 "calibration (poses moved to the colour camera too); expect a few pixels of "
+                 "residual misalignment at depth edges",
           logging.INFO)
 
     has_poses = all(f[3].is_file() for f in frames)
@@ -956,8 +961,11 @@ def _open_seven_scenes(folder: Path, depth_encoding: str | None, use_poses: bool
                                "frame-NNNNNN.pose.txt files; open it with use_poses=False")
         if max_frames is not None:  # read only the poses that will be used
             frames, records = frames[:max_frames], records[:max_frames]
-        kept = [_FrameRecord(r.color_path, r.depth_path, r.timestamp_s, _read_matrix_file(f[3]))
-                for r, f in zip(records, frames) if f[3].is_file()]
+        # the files hold world_from_depth-camera; the frames are in the colour camera
+        depth_from_color = np.linalg.inv(SEVEN_SCENES_COLOR_FROM_DEPTH)
+        kept = [_FrameRecord(r.color_path, r.depth_path, r.timestamp_s,
+                             _read_matrix_file(f[3]) @ depth_from_color)
+                for r, f in zip(records, frames, strict=True) if f[3].is_file()]
         if len(kept) < len(records):
             _note(notes, f"{folder}: {len(records) - len(kept)} frames have no pose.txt; skipped")
         records = kept
