@@ -54,13 +54,15 @@ class Config:
     sh_bands: int = 4  # L: L*L coefficients
     rt_directions: int = 64  # N jittered directions on the sphere
     rt_radius_m: float = 0.5  # largest sample displacement along a direction
+    rt_steps: int = 1  # samples along each direction (1 = the paper's single SSDO sample)
     rt_subsample: int = 1  # image-space sub-sampling (fast: 4)
     visibility: bool = True  # False: K = 1 everywhere (the no-visibility baseline)
 
     # Light estimation (section 5.2)
     regularization: float = 1e-3  # Tikhonov weight, relative to the mean diagonal of T^T T
     min_samples: int = 200  # fewer valid pixels: no estimate (confidence 0)
-    robust_iterations: int = 3  # IRLS re-weighting passes (0 = plain least squares)
+    robust_iterations: int = 8  # IRLS / albedo alternation passes (0 = plain least squares)
+    albedo_segments: bool = True  # one unknown albedo per material segment (beyond the paper)
     temporal_half_life_frames: float = 2.0  # exponential filter; light changes pass in ~3 frames
     change_reset_deg: float = 35.0  # a jump larger than this resets the temporal filter
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel

@@ -1,0 +1,200 @@
+"""Least-squares light estimation T l = I_c (section 5.2 of seeds/000), made robust.
+
+T holds one SH transfer vector per valid pixel (world frame), I_c the pixel's linear
+luminance. Beyond the paper's plain least squares:
+
+* the colour image is linearised (sRGB decode) before fitting: the model is linear in
+  radiance, and 8-bit sRGB is not;
+* clipped and near-black pixels are left out;
+* Tikhonov regularisation grows with the band (l(l+1)), so directions of the light that
+  the observed normals cannot constrain are damped towards zero rather than invented;
+  the number of bands is also cut back while the column-scaled normal matrix is too
+  ill-conditioned, and the conditioning is reported;
+* iteratively re-weighted least squares (Huber weights on the relative residual) so
+  that pixels whose albedo or geometry breaks the model do not pull the solution.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from arlight.pipeline import sh
+from arlight.pipeline.config import Config
+from arlight.pipeline.frames import Confidence
+
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+CLIP_LEVEL = 0.98  # linear value above which a channel is treated as clipped
+DARK_LEVEL = 0.004  # linear luminance below which a pixel carries only noise
+MAX_CONDITION = 1e5  # of the column-scaled normal matrix; above it, drop the top band
+
+
+def srgb_to_linear(color_u8: np.ndarray) -> np.ndarray:
+    """8-bit sRGB -> linear [0, 1] float32 (IEC 61966-2-1), via a 256-entry table."""
+    c = np.arange(256, dtype=np.float64) / 255.0
+    table = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    return table[np.asarray(color_u8, dtype=np.uint8)]
+
+
+@dataclass
+class LightEstimate:
+    """sh: (C,) luminance radiance SH (frame of T); sh_rgb: (3, C) or None."""
+
+    sh: np.ndarray
+    confidence: Confidence
+    sh_rgb: np.ndarray | None = None
+    residual_rel: float = float("nan")
+
+
+def _band_penalty(bands: int) -> np.ndarray:
+    per_band = np.array([max(1.0, l * (l + 1.0)) for l in range(bands)])
+    return np.repeat(per_band, [2 * l + 1 for l in range(bands)])
+
+
+def _condition(gram: np.ndarray) -> float:
+    d = np.sqrt(np.maximum(np.diag(gram), 1e-300))
+    scaled = gram / d[:, None] / d[None, :]
+    ev = np.linalg.eigvalsh(scaled)
+    return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
+
+
+def choose_bands(transfer: np.ndarray, weights: np.ndarray, max_bands: int) -> tuple[int, float]:
+    """Largest band count whose (column-scaled) normal matrix has condition <= MAX_CONDITION."""
+    gram = (transfer * weights[:, None]).T @ transfer
+    cond = float("inf")
+    for bands in range(max_bands, 0, -1):
+        n = bands * bands
+        cond = _condition(gram[:n, :n])
+        if cond <= MAX_CONDITION:
+            return bands, cond
+    return 1, cond
+
+
+def solve_regularised(transfer: np.ndarray, target: np.ndarray, weights: np.ndarray,
+                      bands: int, regularization: float) -> np.ndarray:
+    """argmin_l sum w (T l - I)^2 + lambda * mean(diag) * sum_z (l(l+1) l_z)^2."""
+    n = bands * bands
+    t = transfer[:, :n]
+    gram = (t * weights[:, None]).T @ t
+    rhs = (t * weights[:, None]).T @ target
+    scale = float(np.mean(np.diag(gram))) or 1.0
+    penalty = regularization * scale * _band_penalty(bands) ** 2
+    return np.linalg.solve(gram + np.diag(penalty), rhs)
+
+
+def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Config,
+                   segments: np.ndarray | None = None) -> LightEstimate:
+    """Solve T l = I for the distant light.
+
+    transfer: (M, C) SH transfer per pixel; color_linear: (M, 3) linear RGB of those pixels;
+    segments: optional (M,) integer material label per pixel. With labels, each material
+    gets its own unknown albedo a_g and the model is I = a_g T l, solved by alternating
+    between l and the a_g (the paper assumes one grey albedo everywhere).
+    Returns an estimate with zero coefficients and confidence 0 when too few usable pixels.
+    """
+    n_coeffs = config.sh_bands ** 2
+    t = np.asarray(transfer, dtype=np.float64).reshape(-1, n_coeffs)
+    rgb = np.asarray(color_linear, dtype=np.float64).reshape(-1, 3)
+    lum = rgb @ LUMA
+    usable = (np.all(np.isfinite(t), axis=1) & np.isfinite(lum) & (rgb.max(axis=1) < CLIP_LEVEL)
+              & (lum > DARK_LEVEL) & (t[:, 0] > 1e-6))
+    t, lum, rgb = t[usable], lum[usable], rgb[usable]
+    labels = None
+    if segments is not None:
+        _, labels = np.unique(np.asarray(segments).reshape(-1)[usable], return_inverse=True)
+    if len(lum) < config.min_samples:
+        return LightEstimate(np.zeros(n_coeffs), Confidence(
+            samples=len(lum), reason=f"{len(lum)} usable pixels < min_samples "
+                                     f"{config.min_samples}"),
+            np.zeros((3, n_coeffs)) if config.estimate_rgb else None)
+
+    weights = np.ones(len(lum))
+    bands, cond = choose_bands(t, weights, config.sh_bands)
+    coeffs = solve_regularised(t, lum, weights, bands, config.regularization)
+    albedo = np.ones(len(lum))
+    for _ in range(config.robust_iterations):
+        if labels is not None:
+            albedo = _segment_albedo(t[:, : bands * bands] @ coeffs, lum, labels, weights)
+        pred = albedo * (t[:, : bands * bands] @ coeffs)
+        rel = (pred - lum) / np.maximum(lum, DARK_LEVEL)
+        sigma = 1.4826 * np.median(np.abs(rel - np.median(rel))) + 1e-6
+        a = np.abs(rel) / (1.345 * sigma)
+        weights = np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))  # Huber
+        coeffs = solve_regularised(t * albedo[:, None], lum, weights, bands,
+                                   config.regularization)
+    pred = albedo * (t[:, : bands * bands] @ coeffs)
+    residual = float(np.sqrt(np.average(((pred - lum) / np.maximum(lum, DARK_LEVEL)) ** 2,
+                                        weights=weights)))
+
+    full = np.zeros(n_coeffs)
+    full[: bands * bands] = coeffs
+    sh_rgb = None
+    if config.estimate_rgb:
+        sh_rgb = np.zeros((3, n_coeffs))
+        for ch in range(3):
+            sh_rgb[ch, : bands * bands] = solve_regularised(t * albedo[:, None], rgb[:, ch],
+                                                            weights, bands,
+                                                            config.regularization)
+    value = _confidence_value(len(lum), cond, bands, residual)
+    return LightEstimate(full, Confidence(len(lum), cond, bands, value), sh_rgb, residual)
+
+
+def _segment_albedo(shading: np.ndarray, lum: np.ndarray, labels: np.ndarray,
+                    weights: np.ndarray) -> np.ndarray:
+    """Per-pixel albedo of its segment, a_g = argmin sum_g w (a_g s - I)^2, normalised so the
+    sample-weighted mean is 1 (the light keeps the overall scale)."""
+    n = labels.max() + 1
+    num = np.bincount(labels, weights * shading * lum, minlength=n)
+    den = np.bincount(labels, weights * shading * shading, minlength=n)
+    a = np.where(den > 1e-12, num / np.maximum(den, 1e-12), 1.0)
+    a = np.clip(a, 1e-3, None)
+    per_pixel = a[labels]
+    return per_pixel / max(float(np.mean(per_pixel)), 1e-6)
+
+
+def _confidence_value(samples: int, cond: float, bands: int, residual_rel: float) -> float:
+    """Heuristic [0, 1]: enough samples, a well-posed system, a model that fits."""
+    if samples == 0 or not np.isfinite(cond):
+        return 0.0
+    s = min(1.0, samples / 5000.0)
+    c = 1.0 / (1.0 + math.log10(max(cond, 1.0)) / 5.0)
+    b = 1.0 if bands >= 2 else 0.3  # without band 1 there is no direction
+    r = 1.0 / (1.0 + (residual_rel / 0.3) ** 2) if np.isfinite(residual_rel) else 0.0
+    return float(np.clip(s * c * b * r, 0.0, 1.0))
+
+
+class TemporalFilter:
+    """Exponential smoothing of world-frame SH that still follows a real light change.
+
+    Each frame blends in the new estimate with weight 1 - 0.5^(1 / half_life) (scaled by
+    its confidence); when the dominant direction jumps by more than `change_reset_deg` for
+    two frames in a row, the filter restarts from the new light (a switched lamp).
+    """
+
+    def __init__(self, half_life_frames: float, change_reset_deg: float) -> None:
+        self.alpha = 1.0 - 0.5 ** (1.0 / max(half_life_frames, 1e-6))
+        self.reset_cos = math.cos(math.radians(change_reset_deg))
+        self.state: np.ndarray | None = None
+        self.pending_jump = 0
+
+    def update(self, coeffs: np.ndarray, confidence: float) -> np.ndarray:
+        c = np.asarray(coeffs, dtype=np.float64)
+        if confidence <= 0.0:
+            return self.state.copy() if self.state is not None else c
+        if self.state is None:
+            self.state = c.copy()
+            return self.state.copy()
+        d_new, d_old = sh.dominant_direction(c), sh.dominant_direction(self.state)
+        if np.any(d_new) and np.any(d_old) and float(d_new @ d_old) < self.reset_cos:
+            self.pending_jump += 1
+            if self.pending_jump >= 2:
+                self.state = c.copy()
+                self.pending_jump = 0
+                return self.state.copy()
+        else:
+            self.pending_jump = 0
+        a = self.alpha * min(1.0, max(confidence, 0.2) / 0.5)
+        self.state = (1.0 - a) * self.state + a * c
+        return self.state.copy()

@@ -1,0 +1,251 @@
+"""Image-space radiance transfer into per-pixel SH (section 5.1, eq. 6-9 of seeds/000).
+
+For a visible surface point x with normal n, N jittered directions w_j are tested with
+SSDO: the sample y_j = x + r_j w_j is projected into the main geometry buffer (the
+filtered depth G_r) and into the auxiliary orthographic buffers; where a buffer's surface
+s_j lies in front of y_j the direction is (partly) blocked, with the continuous visibility
+
+    t_j = (s_j - x) / |s_j - x|                                  (eq. 7)
+    K(x, w_j) = min(chi, 1 - t_j . w_j) / chi                     (eq. 8)
+    chi = cos(median angle between Delaunay neighbours / 2)       (eq. 9)
+
+and the transfer vector is T_z(x) = sum_j K_j max(0, w_j . n) Y_z(w_j) 4 pi / N (eq. 6
+without the albedo, which the light estimate absorbs). Geometry is in the CAMERA frame;
+the SH basis is evaluated on the directions rotated into the WORLD frame, so T (and the
+light solved from it) is in world coordinates. Random sample distances r_j are drawn per
+position in a 2 x 2 pixel block (interleaved sampling), seeded from the config.
+
+The per-pixel logic is written once (`register_jitable`) and driven by a parallel CPU
+loop; a plain NumPy version (`transfer_reference`) is kept as the test oracle.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numba.extending import register_jitable
+from scipy.spatial import ConvexHull
+
+from arlight.pipeline import sh
+from arlight.pipeline.camera import PinholeCamera
+from arlight.pipeline.config import Config
+
+
+@dataclass(frozen=True)
+class SamplingPattern:
+    """Directions (N, 3) unit, camera frame; radii (2, 2, N, steps) metres; chi of eq. 9."""
+
+    directions: np.ndarray
+    radii: np.ndarray
+    chi: float
+
+
+def jittered_directions(n: int, rng: np.random.Generator) -> np.ndarray:
+    """`n` unit directions: a Fibonacci lattice with each point jittered within its cell."""
+    base = sh.fibonacci_sphere(n)
+    cell = math.sqrt(4.0 * math.pi / n)  # typical neighbour spacing, radians
+    jitter = rng.normal(scale=0.25 * cell, size=(n, 3))
+    jitter -= (jitter * base).sum(axis=1, keepdims=True) * base  # tangent to the sphere
+    d = base + jitter
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def visibility_threshold(directions: np.ndarray) -> float:
+    """chi of eq. 9: cos of half the median angle between neighbours of the spherical
+    Delaunay triangulation (the convex hull of points on the unit sphere)."""
+    hull = ConvexHull(directions)
+    edges = set()
+    for a, b, c in hull.simplices:
+        for i, j in ((a, b), (b, c), (a, c)):
+            edges.add((min(i, j), max(i, j)))
+    idx = np.array(sorted(edges))
+    cosines = np.clip((directions[idx[:, 0]] * directions[idx[:, 1]]).sum(axis=1), -1.0, 1.0)
+    return float(math.cos(np.median(np.arccos(cosines)) / 2.0))
+
+
+def make_sampling_pattern(config: Config) -> SamplingPattern:
+    rng = np.random.default_rng(config.seed)
+    dirs = jittered_directions(config.rt_directions, rng)
+    steps = config.rt_steps
+    # one random distance per direction and 2x2 block position; with several steps per
+    # direction the distances are stratified in (0, radius]
+    u = rng.random((2, 2, config.rt_directions, steps))
+    radii = (np.arange(steps) + u) / steps * config.rt_radius_m
+    return SamplingPattern(dirs, radii.astype(np.float64), visibility_threshold(dirs))
+
+
+@dataclass
+class AuxBufferArrays:
+    """Auxiliary orthographic buffers packed for the kernel.
+
+    depth (B, R, R) float32 metres along each buffer's +z (0 = none); buffer_from_cam
+    (B, 3, 4) rigid transforms; pixel_size (B,) metres per pixel.
+    """
+
+    depth: np.ndarray
+    buffer_from_cam: np.ndarray
+    pixel_size: np.ndarray
+
+    @classmethod
+    def empty(cls) -> AuxBufferArrays:
+        return cls(np.zeros((0, 1, 1), np.float32), np.zeros((0, 3, 4)), np.zeros(0))
+
+    @classmethod
+    def from_buffers(cls, buffers, world_from_cam: np.ndarray) -> AuxBufferArrays:
+        """From `OrthoBuffer`s (world_from_buffer, depth_m, pixel_size_m) of one size."""
+        if not buffers:
+            return cls.empty()
+        depth = np.stack([b.depth_m for b in buffers]).astype(np.float32)
+        b_from_c = np.stack([(np.linalg.inv(b.world_from_buffer) @ world_from_cam)[:3]
+                             for b in buffers])
+        pix = np.array([b.pixel_size_m for b in buffers], dtype=np.float64)
+        return cls(depth, b_from_c, pix)
+
+
+@register_jitable
+def _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi):
+    """K of eq. 7-8 for an occluding surface point s seen from x towards direction w."""
+    tx, ty, tz = sx - px, sy - py, sz - pz
+    norm = math.sqrt(tx * tx + ty * ty + tz * tz)
+    if norm < 1e-9:
+        return 1.0
+    cos_tw = (tx * wx + ty * wy + tz * wz) / norm
+    return min(chi, 1.0 - cos_tw) / chi
+
+
+@register_jitable
+def _visibility(px, py, pz, wx, wy, wz, radius, depth, fx, fy, cx, cy,
+                aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel):
+    """Continuous visibility K in [0, 1] of one sample y = x + radius * w."""
+    yx, yy, yz = px + radius * wx, py + radius * wy, pz + radius * wz
+    k = 1.0
+    h, w = depth.shape
+    if yz > 1e-6:
+        u = int(round(fx * yx / yz + cx))
+        v = int(round(fy * yy / yz + cy))
+        if 0 <= u < w and 0 <= v < h:
+            sz = depth[v, u]
+            if sz > 0.0 and sz < yz - (bias_abs + bias_rel * yz):
+                sx = (u - cx) / fx * sz
+                sy = (v - cy) / fy * sz
+                k = min(k, _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi))
+    for b in range(aux_depth.shape[0]):
+        m = aux_from_cam[b]
+        bx = m[0, 0] * yx + m[0, 1] * yy + m[0, 2] * yz + m[0, 3]
+        by = m[1, 0] * yx + m[1, 1] * yy + m[1, 2] * yz + m[1, 3]
+        bz = m[2, 0] * yx + m[2, 1] * yy + m[2, 2] * yz + m[2, 3]
+        r = aux_depth.shape[1]
+        half = 0.5 * (r - 1)
+        ub = int(round(bx / aux_pix[b] + half))
+        vb = int(round(by / aux_pix[b] + half))
+        if 0 <= ub < r and 0 <= vb < r:
+            sd = aux_depth[b, vb, ub]
+            if sd > 0.0 and sd < bz - (bias_abs + bias_rel * 0.5 * sd):
+                # surface point in the buffer frame -> camera frame (inverse of a rigid map)
+                qx = (ub - half) * aux_pix[b] - m[0, 3]
+                qy = (vb - half) * aux_pix[b] - m[1, 3]
+                qz = sd - m[2, 3]
+                sx = m[0, 0] * qx + m[1, 0] * qy + m[2, 0] * qz
+                sy = m[0, 1] * qx + m[1, 1] * qy + m[2, 1] * qz
+                sz = m[0, 2] * qx + m[1, 2] * qy + m[2, 2] * qz
+                k = min(k, _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi))
+    return k
+
+
+@register_jitable
+def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii,
+                    aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel, use_visibility,
+                    out):
+    """Fill out (C,) with the SH transfer vector of pixel (ui, vi); False if invalid."""
+    for c in range(out.shape[0]):
+        out[c] = 0.0
+    pz = points[vi, ui, 2]
+    nx, ny, nz = normals[vi, ui, 0], normals[vi, ui, 1], normals[vi, ui, 2]
+    if not (pz > 0.0) or (nx == 0.0 and ny == 0.0 and nz == 0.0):
+        return False
+    px, py = points[vi, ui, 0], points[vi, ui, 1]
+    n_dirs = dirs.shape[0]
+    weight = 4.0 * math.pi / n_dirs
+    steps = radii.shape[3]
+    for j in range(n_dirs):
+        wx, wy, wz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+        cos_n = wx * nx + wy * ny + wz * nz
+        if cos_n <= 0.0:
+            continue
+        k = 1.0
+        if use_visibility:
+            for s in range(steps):
+                k = min(k, _visibility(px, py, pz, wx, wy, wz, radii[vi % 2, ui % 2, j, s],
+                                       depth, fx, fy, cx, cy, aux_depth, aux_from_cam,
+                                       aux_pix, chi, bias_abs, bias_rel))
+        f = k * cos_n * weight
+        if f > 0.0:
+            for c in range(out.shape[0]):
+                out[c] += f * ysh[j, c]
+    return True
+
+
+@numba.njit(parallel=True, cache=True)
+def _transfer_cpu(points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
+                  aux_from_cam, aux_pix, chi, bias_abs, bias_rel, use_visibility, step,
+                  transfer, valid):
+    hs, ws = valid.shape
+    h, w = depth.shape
+    for i in numba.prange(hs):
+        vi = min(i * step + step // 2, h - 1)
+        for jj in range(ws):
+            ui = min(jj * step + step // 2, w - 1)
+            valid[i, jj] = _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy,
+                                           dirs, ysh, radii, aux_depth, aux_from_cam, aux_pix,
+                                           chi, bias_abs, bias_rel, use_visibility,
+                                           transfer[i, jj])
+
+
+@dataclass
+class TransferResult:
+    """Per-pixel SH transfer on the (sub-sampled) grid.
+
+    transfer: (Hs, Ws, C) float32, world-frame SH; valid: (Hs, Ws) bool;
+    pixel_u, pixel_v: (Ws,), (Hs,) full-resolution pixel coordinates of the grid.
+    """
+
+    transfer: np.ndarray
+    valid: np.ndarray
+    pixel_u: np.ndarray
+    pixel_v: np.ndarray
+
+
+# Depth-test bias: a sample counts as behind a surface only beyond this margin (metres,
+# absolute + relative to depth), against sensor noise and quantisation.
+BIAS_ABS_M = 0.01
+BIAS_REL = 0.01
+
+
+def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: PinholeCamera,
+                     world_from_cam: np.ndarray, pattern: SamplingPattern,
+                     aux: AuxBufferArrays | None, config: Config) -> TransferResult:
+    """SH radiance transfer for every `config.rt_subsample`-th pixel (section 5.1).
+
+    points_cam: (H, W, 3) float32 camera-frame points of the filtered depth (z = 0 missing);
+    normals_cam: (H, W, 3) unit normals, camera frame, zeros where unknown.
+    """
+    h, w = points_cam.shape[:2]
+    step = config.rt_subsample
+    hs, ws = (h + step - 1) // step, (w + step - 1) // step
+    dirs_world = pattern.directions @ np.asarray(world_from_cam, np.float64)[:3, :3].T
+    ysh = sh.sh_basis(dirs_world, config.sh_bands)
+    aux = aux if aux is not None else AuxBufferArrays.empty()
+    transfer = np.zeros((hs, ws, ysh.shape[1]), np.float64)
+    valid = np.zeros((hs, ws), np.bool_)
+    points = np.ascontiguousarray(points_cam, dtype=np.float32)
+    depth = np.ascontiguousarray(points[..., 2])
+    _transfer_cpu(points, np.ascontiguousarray(normals_cam, dtype=np.float32), depth,
+                  camera.fx, camera.fy, camera.cx, camera.cy, pattern.directions, ysh,
+                  pattern.radii, aux.depth, aux.buffer_from_cam, aux.pixel_size, pattern.chi,
+                  BIAS_ABS_M, BIAS_REL, config.visibility, step, transfer, valid)
+    u = np.minimum(np.arange(ws) * step + step // 2, w - 1)
+    v = np.minimum(np.arange(hs) * step + step // 2, h - 1)
+    return TransferResult(transfer.astype(np.float32), valid, u, v)
