@@ -391,9 +391,10 @@ class TestValidation:
                 df.median_depth(d)
         with pytest.raises(ValueError, match="intensity: expected finite"):
             df.joint_bilateral_median(dc, _flat(4, 5, np.nan))
-        with pytest.raises(ValueError, match="window: expected an integer >= 1"):
-            df.merge_depth(dc, dc, grey, window=0)
-        with pytest.raises(ValueError, match="subsample: expected an integer >= 1"):
+        for window in (0, df.MAX_WINDOW + 1):
+            with pytest.raises(ValueError, match=r"window: expected an integer in 1\.\.64"):
+                df.merge_depth(dc, dc, grey, window=window)
+        with pytest.raises(ValueError, match="subsample: expected an integer in 1"):
             df.joint_bilateral_median(dc, grey, subsample=2.5)
         with pytest.raises(ValueError, match="depth_threshold_m: expected a finite"):
             df.merge_depth(dc, dc, grey, depth_threshold_m=float("nan"))
