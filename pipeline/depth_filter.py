@@ -41,9 +41,10 @@ fallback). Both backends select the same float32 samples with the same float32 c
 so the depth passes agree bit for bit; normals agree to float32 rounding (~1e-6).
 
 Medians inside the kernels use a scratch buffer (``np.empty`` per row on the CPU,
-``cuda.local.array`` per thread on the GPU) and Wirth's in-place selection (O(n) on average,
-no recursion), since D' may need the median of up to k*k = 400 samples, where an insertion
-sort costs O(n^2).
+``cuda.local.array`` per thread on the GPU): an insertion sort for up to 32 samples (D''
+and D'''), Wirth's in-place selection above (a D' hole may need the median of up to
+k*k = 400 samples; O(n) on average, no recursion). A D' hole stops scanning its window as
+soon as the volume-agreeing majority is certain, whatever the remaining rows hold.
 
 Slow NumPy references (``_*_reference``) mirror each kernel and serve as test oracles only.
 """
