@@ -126,8 +126,6 @@ def _may_hit(centre: np.ndarray, radius: float, origins: np.ndarray,
     c = _dot(oc, oc) - np.float32(radius * radius)
     disc = b * b - c
     may = (disc >= 0) & ((b < 0) | (c < 0))
-    if may.shape != (dirs.shape[1],) and origins.shape[1] == 1 and dirs.shape[1] == 1:
-        return np.arange(1) if bool(may) else np.arange(0)
     return np.flatnonzero(np.broadcast_to(may, (max(origins.shape[1], dirs.shape[1]),)))
 
 
@@ -408,16 +406,24 @@ def ambient_occlusion(points: np.ndarray, normals: np.ndarray,
     return 1.0 - np.minimum(hidden, np.float32(0.8))
 
 
-def _cast(origin: np.ndarray, dirs: np.ndarray,
+def _cast(origin: np.ndarray, dirs: np.ndarray, t_ground: np.ndarray,
           objects: tuple[Primitive, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """First hit of rays (3, N) from one origin (3, 1): t (N,) (inf = nothing) and id (N,)
-    (-1 sky, 0 ground, 1 + k object k)."""
-    with np.errstate(divide="ignore"):
-        t = np.where(dirs[1] < 0, -origin[1] / dirs[1], np.float32(np.inf))
-    ids = np.where(np.isfinite(t), 0, -1).astype(np.int16)
+    """First hit of rays (3, N) from one origin (3, 1) given their ground hits t_ground (N,)
+    float64: t (N,) float64 (inf = nothing) and id (N,) (-1 sky, 0 ground, 1 + k object k)."""
+    ids = np.where(np.isfinite(t_ground), 0, -1).astype(np.int16)
     t_obj, k_obj = _intersect_all(origin, dirs, objects)
-    closer = t_obj < t
-    return np.where(closer, t_obj, t), np.where(closer, k_obj + 1, ids).astype(np.int16)
+    closer = t_obj < t_ground
+    return np.where(closer, t_obj, t_ground), np.where(closer, k_obj + 1, ids).astype(np.int16)
+
+
+def _ground_hits(world_from_cam: np.ndarray, rays_cam: np.ndarray) -> np.ndarray:
+    """Ray parameter (N,) float64 where camera rays (3, N) meet y = 0, inf above the horizon.
+
+    In float64: near the horizon the float32 direction would cost centimetres of depth.
+    """
+    dirs_y = world_from_cam[1, :3] @ rays_cam
+    with np.errstate(divide="ignore"):
+        return np.where(dirs_y < 0, -world_from_cam[1, 3] / dirs_y, np.inf)
 
 
 def _surface(points: np.ndarray, ids: np.ndarray, t: np.ndarray,
@@ -468,10 +474,11 @@ def render_frame(camera: PinholeCamera, world_from_cam: np.ndarray, lighting: Li
     pose = np.asarray(world_from_cam, np.float64)
     dirs = pose[:3, :3].astype(np.float32) @ rays_cam
     origin = pose[:3, 3:4].astype(np.float32)
-    t, ids = _cast(origin, dirs, objects)
+    t, ids = _cast(origin, dirs, _ground_hits(pose, rays_cam), objects)
 
     # every pixel is shaded as a surface (sky pixels at the camera), then the sky overwrites
-    t_hit = np.where(ids >= 0, t, np.float32(0.0))
+    t_hit64 = np.where(ids >= 0, t, 0.0)
+    t_hit = t_hit64.astype(np.float32)
     points = origin + t_hit * dirs
     normals, albedo = _surface(points, ids, t_hit, objects)
     radiance = _shade(points, normals, albedo, ids, lighting, objects)
@@ -479,7 +486,7 @@ def render_frame(camera: PinholeCamera, world_from_cam: np.ndarray, lighting: Li
     radiance[:, sky] = lighting.sky_radiance(dirs[:, sky].T).T
 
     shape = (camera.height, camera.width)
-    depth = (t_hit * rays_cam[2]).reshape(shape)
+    depth = (t_hit64 * rays_cam[2]).astype(np.float32).reshape(shape)
     return np.ascontiguousarray(radiance.T).reshape(shape + (3,)), depth
 
 
