@@ -2,9 +2,14 @@
 
 Scene (world frame as in ``../shared/data/synthetic``: right-handed, metres, +Y up, ground
 plane y = 0): an infinite Lambertian ground with a mild procedural texture (albedo +-15 %,
-soft checker plus smooth noise, faded out beyond ~6 m against aliasing) and four objects
-standing on it within 0.5 m of the origin (:data:`SCENE_OBJECTS`: a white sphere, a small grey
-sphere, a red yawed box, a tall grey box; sizes 0.16-0.36 m).
+soft checker plus smooth noise, faded out from 4 to 8 m against aliasing) and four objects
+standing on it within 0.55 m of the origin (:data:`SCENE_OBJECTS`: a white sphere, a small
+grey sphere, a red yawed box, a tall grey box; sizes 0.16-0.36 m).
+
+Camera: Kinect-v1 pinhole (``PinholeCamera.kinect_v1``), OpenCV axes, on an orbit of radius
+2 m at 1 m height looking at (0, 0.2, 0), sweeping 75 degrees over the sequence from 70
+degrees round (about +Y) from the sun's azimuth; a strip of sky shows above the horizon.
+Poses are camera-to-world (``world_from_cam``), timestamps 1000 + i / 30 s.
 
 Lighting (:class:`Lighting`), a distant environment over the WHOLE sphere of directions w:
 
@@ -15,8 +20,8 @@ Lighting (:class:`Lighting`), a distant environment over the WHOLE sphere of dir
   closed form (:meth:`Lighting.sky_sh_rgb`; tests check it against numerical projection).
 * sun: a delta light from ``sun_direction`` (elevation 30-50 degrees, azimuth from the seed)
   with integrated radiance ``sun_rgb`` (the irradiance it gives a surface facing it). Its SH
-  is ``sh.directional_light``; it carries ~80 % of the first-band energy, so the dominant
-  direction lies between sun and zenith, a few degrees from the sun.
+  is ``sh.directional_light``; it makes ~5/6 of the first band's length, so the dominant
+  direction lies between sun and zenith, 3-6 degrees from the sun.
 
 Ground truth: ``sh_world`` is the luminance (0.2126 R + 0.7152 G + 0.0722 B) SH of that full
 environment, sky (exact) + sun (delta, truncated to bands 0..3), world frame, arlight basis
@@ -36,8 +41,9 @@ with the exposure fixed per sequence so that sunlit ground of mean albedo is mid
 linear), plus Gaussian noise (sigma 1.5/255) before rounding to uint8 when ``sensor_noise``.
 Sensor depth (``sensor_noise``): Kinect-v1-like z + N(0, sigma(z)^2) with
 sigma(z) = 0.0012 + 0.0019 (z - 0.4)^2, a one-pixel band removed along depth jumps, ~1 %
-random dropouts, 0 outside 0.4-4.0 m, quantised to 1/5000 m. Clean depth is kept in
-``depth_gt`` (float, unquantised). Everything is deterministic from ``seed``.
+random dropouts, 0 outside 0.4-4.0 m, quantised to 1/5000 m. Clean depth (float32,
+unquantised, unlimited range) is kept in ``depth_gt`` and is the frames' depth when
+``sensor_noise`` is off. Everything is deterministic from ``seed``.
 """
 
 from __future__ import annotations
