@@ -54,6 +54,7 @@ class Config:
     sh_bands: int = 4  # L: L*L coefficients
     rt_directions: int = 64  # N jittered directions on the sphere
     rt_radius_m: float = 0.5  # largest sample displacement along a direction
+    rt_thickness_m: float = 0.3  # a sample further than this behind a surface is not occluded
     rt_steps: int = 1  # samples along each direction (1 = the paper's single SSDO sample)
     rt_subsample: int = 1  # image-space sub-sampling (fast: 4)
     visibility: bool = True  # False: K = 1 everywhere (the no-visibility baseline)

@@ -118,7 +118,7 @@ def _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi):
 
 @register_jitable
 def _visibility(px, py, pz, wx, wy, wz, radius, depth, fx, fy, cx, cy,
-                aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel):
+                aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness):
     """Continuous visibility K in [0, 1] of one sample y = x + radius * w."""
     yx, yy, yz = px + radius * wx, py + radius * wy, pz + radius * wz
     k = 1.0
@@ -128,7 +128,7 @@ def _visibility(px, py, pz, wx, wy, wz, radius, depth, fx, fy, cx, cy,
         v = int(round(fy * yy / yz + cy))
         if 0 <= u < w and 0 <= v < h:
             sz = depth[v, u]
-            if sz > 0.0 and sz < yz - (bias_abs + bias_rel * yz):
+            if sz > 0.0 and sz < yz - (bias_abs + bias_rel * yz) and sz > yz - thickness:
                 sx = (u - cx) / fx * sz
                 sy = (v - cy) / fy * sz
                 k = min(k, _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi))
@@ -143,7 +143,7 @@ def _visibility(px, py, pz, wx, wy, wz, radius, depth, fx, fy, cx, cy,
         vb = int(round(by / aux_pix[b] + half))
         if 0 <= ub < r and 0 <= vb < r:
             sd = aux_depth[b, vb, ub]
-            if sd > 0.0 and sd < bz - (bias_abs + bias_rel * 0.5 * sd):
+            if sd > 0.0 and sd < bz - (bias_abs + bias_rel * 0.5 * sd) and sd > bz - thickness:
                 # surface point in the buffer frame -> camera frame (inverse of a rigid map)
                 qx = (ub - half) * aux_pix[b] - m[0, 3]
                 qy = (vb - half) * aux_pix[b] - m[1, 3]
@@ -157,8 +157,8 @@ def _visibility(px, py, pz, wx, wy, wz, radius, depth, fx, fy, cx, cy,
 
 @register_jitable
 def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii,
-                    aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel, use_visibility,
-                    out):
+                    aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness,
+                    use_visibility, out):
     """Fill out (C,) with the SH transfer vector of pixel (ui, vi); False if invalid."""
     for c in range(out.shape[0]):
         out[c] = 0.0
@@ -180,7 +180,7 @@ def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, r
             for s in range(steps):
                 k = min(k, _visibility(px, py, pz, wx, wy, wz, radii[vi % 2, ui % 2, j, s],
                                        depth, fx, fy, cx, cy, aux_depth, aux_from_cam,
-                                       aux_pix, chi, bias_abs, bias_rel))
+                                       aux_pix, chi, bias_abs, bias_rel, thickness))
         f = k * cos_n * weight
         if f > 0.0:
             for c in range(out.shape[0]):
@@ -190,8 +190,8 @@ def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, r
 
 @numba.njit(parallel=True, cache=True)
 def _transfer_cpu(points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
-                  aux_from_cam, aux_pix, chi, bias_abs, bias_rel, use_visibility, step,
-                  transfer, valid):
+                  aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness, use_visibility,
+                  step, transfer, valid):
     hs, ws = valid.shape
     h, w = depth.shape
     for i in numba.prange(hs):
@@ -200,8 +200,8 @@ def _transfer_cpu(points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_
             ui = min(jj * step + step // 2, w - 1)
             valid[i, jj] = _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy,
                                            dirs, ysh, radii, aux_depth, aux_from_cam, aux_pix,
-                                           chi, bias_abs, bias_rel, use_visibility,
-                                           transfer[i, jj])
+                                           chi, bias_abs, bias_rel, thickness,
+                                           use_visibility, transfer[i, jj])
 
 
 @dataclass
@@ -245,7 +245,8 @@ def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: Pi
     _transfer_cpu(points, np.ascontiguousarray(normals_cam, dtype=np.float32), depth,
                   camera.fx, camera.fy, camera.cx, camera.cy, pattern.directions, ysh,
                   pattern.radii, aux.depth, aux.buffer_from_cam, aux.pixel_size, pattern.chi,
-                  BIAS_ABS_M, BIAS_REL, config.visibility, step, transfer, valid)
+                  BIAS_ABS_M, BIAS_REL, config.rt_thickness_m, config.visibility, step,
+                  transfer, valid)
     u = np.minimum(np.arange(ws) * step + step // 2, w - 1)
     v = np.minimum(np.arange(hs) * step + step // 2, h - 1)
     return TransferResult(transfer.astype(np.float32), valid, u, v)
