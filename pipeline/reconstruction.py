@@ -1,0 +1,557 @@
+"""Reconstruct and Surface stages: the volume V, G_v = (D_v, N_v) and the auxiliary buffers.
+
+Section 4 of the image-space illumination paper (seeds/000): the static scene is fused into a
+TSDF volume V (sparse Open3D ``VoxelBlockGrid``, tensor API, on ``Config.device``), the camera
+is tracked frame-to-model against V (projective point-to-plane ICP, Open3D's multi-scale RGB-D
+odometry), and V is ray-cast into the current view to give the geometry buffer
+``G_v = (D_v, N_v)``. Section 5.1 adds orthographic geometry buffers extracted from V: left,
+right and top of the camera frustum, and one seen from the dominant light.
+
+Frames and units: metres; camera axes are OpenCV (x right, y down, z forward); poses are
+``world_from_cam`` (camera-to-world) 4x4 float64. The world frame is the first frame's camera
+frame unless poses are supplied.
+
+Orthographic buffers are rendered by z-buffer splatting of the TSDF's zero crossings, sampled
+every `aux_stride()` voxels (about half a buffer pixel apart), keeping only surfaces seen from
+their front (free) side, so a wall seen from behind is transparent. (Ray casting V with a
+distant telephoto pinhole was tried and rejected: Open3D's ray caster skips empty blocks in
+whole-block steps and so jumps over thin TSDF bands seen at other angles than the fusing
+camera's, leaving striped holes.)
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+import open3d.core as o3c
+
+from arlight.pipeline.camera import PinholeCamera
+from arlight.pipeline.config import Config
+
+# Frame-to-model tracking (projective point-to-plane ICP, coarse to fine: 3 pyramid levels).
+TRACKING_ITERATIONS = (6, 3, 1)  # Open3D's t.pipelines.slam defaults
+TRACKING_MIN_FITNESS = 0.05  # fewer inlier correspondences per pixel than this: failure
+TRACKING_MAX_STEP_M = 0.3  # a larger jump between consecutive frames is a failure
+TRACKING_MAX_STEP_RAD = np.deg2rad(30.0)
+TRACKING_MIN_VALID_PIXELS = 100  # fewer valid depth pixels (input or model): not tracked
+
+# Ray casting: voxels seen fewer times than this are not surface (ramped up over the first
+# frames, as Open3D's slam.Model does, so the first frame already gives D_v).
+WEIGHT_THRESHOLD = 3.0
+
+# Auxiliary buffers: centre at the median of D_v along the optical axis (this when D_v is empty)
+AUX_FALLBACK_CENTRE_DEPTH_M = 1.5
+AUX_NAMES = ("left", "right", "top", "light")
+
+_MIN_WEIGHT = 1.0
+
+
+@dataclass
+class OrthoBuffer:
+    """An orthographic depth image of the volume V (section 5.1's auxiliary geometry buffers).
+
+    world_from_buffer: (4, 4) float64. Buffer frame: x right, y down, z = viewing direction;
+        origin at the centre of the image plane.
+    depth_m: (R, R) float32, distance along +z from the image plane to the first surface seen
+        from its front side; 0 = no surface.
+    pixel_size_m: metres per pixel; the centre of pixel (u, v) (column, row) is at
+        x = (u - (R - 1) / 2) * pixel_size_m, y = (v - (R - 1) / 2) * pixel_size_m.
+    name: "left", "right", "top" or "light".
+    """
+
+    world_from_buffer: np.ndarray
+    depth_m: np.ndarray
+    pixel_size_m: float
+    name: str
+
+    @property
+    def resolution(self) -> int:
+        return int(self.depth_m.shape[0])
+
+    def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (..., 2) as (u, v), float, and depth (...,) along +z of points.
+
+        Round (u, v) to the nearest integer to index ``depth_m[v, u]``; a point is hidden from
+        this buffer's direction where its depth exceeds the stored depth.
+        """
+        p = np.asarray(points_world, dtype=np.float64)
+        buffer_from_world = np.linalg.inv(self.world_from_buffer)
+        q = p @ buffer_from_world[:3, :3].T + buffer_from_world[:3, 3]
+        half = (self.resolution - 1) / 2.0
+        uv = q[..., :2] / self.pixel_size_m + half
+        return uv, q[..., 2]
+
+
+@dataclass
+class SurfaceOutput:
+    """Per-frame output of the Reconstruct and Surface stages.
+
+    pose: (4, 4) float64 world_from_cam used for this frame.
+    depth_volume_m: (H, W) float32, D_v: V ray-cast into the current view, metres along the
+        optical axis, 0 = no surface.
+    normals_volume: (H, W, 3) float32, N_v: unit outward surface normals of V in the CAMERA
+        frame (pointing towards the free side), zeros where D_v is 0.
+    aux_buffers: the auxiliary orthographic buffers (empty if disabled or V is not used).
+    tracking_ok: False when the frame could not be tracked (the previous pose was kept and the
+        frame was not fused into V).
+    timings_ms: {"Reconstruct": track + integrate, "Surface": ray cast + aux buffers}.
+    """
+
+    pose: np.ndarray
+    depth_volume_m: np.ndarray
+    normals_volume: np.ndarray
+    aux_buffers: list[OrthoBuffer]
+    tracking_ok: bool
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+def render_orthographic(points_world: np.ndarray, world_from_buffer: np.ndarray,
+                        resolution: int, pixel_size_m: float,
+                        max_depth_m: float = np.inf) -> np.ndarray:
+    """Z-buffer splatting of a point set into an orthographic depth image (NumPy).
+
+    points_world: (N, 3) metres. world_from_buffer: (4, 4), buffer frame as in OrthoBuffer.
+    Each point lands in its nearest pixel; the smallest depth in (0, max_depth_m] wins.
+    Returns (resolution, resolution) float32 depth along the buffer's +z, 0 = empty.
+    """
+    p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    buffer_from_world = np.linalg.inv(np.asarray(world_from_buffer, dtype=np.float64))
+    q = p @ buffer_from_world[:3, :3].T + buffer_from_world[:3, 3]
+    half = (resolution - 1) / 2.0
+    u = np.rint(q[:, 0] / pixel_size_m + half)
+    v = np.rint(q[:, 1] / pixel_size_m + half)
+    z = q[:, 2]
+    keep = ((u >= 0) & (u < resolution) & (v >= 0) & (v < resolution) & (z > 0)
+            & (z <= max_depth_m))
+    flat = v[keep].astype(np.int64) * resolution + u[keep].astype(np.int64)
+    zbuf = np.full(resolution * resolution, np.inf)
+    np.minimum.at(zbuf, flat, z[keep])
+    zbuf[~np.isfinite(zbuf)] = 0.0
+    return zbuf.reshape(resolution, resolution).astype(np.float32)
+
+
+def aux_buffer_poses(world_from_cam: np.ndarray, centre_depth_m: float, extent_m: float,
+                     light_direction_world: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """world_from_buffer of each auxiliary buffer, centred on a point in front of the camera.
+
+    The covered region is a cube of side extent_m centred at the camera position plus
+    centre_depth_m along the optical axis; each buffer's image plane is the cube face on the
+    side the buffer looks from, so all surface in the cube lies in front of it (depth in
+    [0, extent_m]). Relative to the camera:
+      left:  looks along camera +x from its left;  x = -z_cam, y = +y_cam
+      right: looks along camera -x from its right; x = +z_cam, y = +y_cam
+      top:   looks along camera +y (down in the image) from above; x = +x_cam, y = -z_cam
+      light: looks along -light_direction_world (from the light towards the scene); y is the
+             camera's y made perpendicular (the camera's x if the light is along y).
+    """
+    pose = np.asarray(world_from_cam, dtype=np.float64)
+    rot = pose[:3, :3]
+    ex, ey, ez = rot[:, 0], rot[:, 1], rot[:, 2]
+    centre = pose[:3, 3] + ez * centre_depth_m
+    axes: dict[str, tuple[np.ndarray, np.ndarray]] = {  # name -> (y axis, z axis) in world
+        "left": (ey, ex),
+        "right": (ey, -ex),
+        "top": (-ez, ey),
+    }
+    if light_direction_world is not None:
+        z = -np.asarray(light_direction_world, dtype=np.float64).reshape(3)
+        z = z / np.linalg.norm(z)
+        helper = ey if abs(float(ey @ z)) < 0.9 else ex
+        y = helper - (helper @ z) * z
+        axes["light"] = (y / np.linalg.norm(y), z)
+    poses = {}
+    for name, (y, z) in axes.items():
+        t = np.eye(4)
+        t[:3, 0] = np.cross(y, z)
+        t[:3, 1] = y
+        t[:3, 2] = z
+        t[:3, 3] = centre - z * (extent_m / 2.0)
+        poses[name] = t
+    return poses
+
+
+def _check_pose(pose: np.ndarray | None, name: str) -> np.ndarray | None:
+    if pose is None:
+        return None
+    p = np.asarray(pose, dtype=np.float64)
+    if p.shape != (4, 4):
+        raise ValueError(f"{name} must have shape (4, 4), got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} must be finite")
+    return p
+
+
+def _rotation_angle(rot: np.ndarray) -> float:
+    return float(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+class VolumeReconstruction:
+    """One session's volume V: tracking, TSDF fusion, ray casting and auxiliary buffers.
+
+    config: volume parameters (voxel size config.voxel_size_m, sparse blocks of
+        config.block_resolution^3 voxels with an initial hash-map capacity of
+        config.block_count blocks, which grows when exceeded; TSDF truncation
+        config.sdf_trunc_voxels voxels; depth range config.depth_min_m..depth_max_m).
+    camera: intrinsics of the depth images (registered to colour).
+    """
+
+    def __init__(self, config: Config, camera: PinholeCamera):
+        self.config = config
+        self.camera = camera
+        self.device = o3c.Device(config.device)
+        if self.device.get_type() == o3c.Device.DeviceType.CUDA and not o3c.cuda.is_available():
+            raise RuntimeError(
+                f"config.device is {config.device!r} but this Open3D build has no CUDA device; "
+                "use device='CPU:0'")
+        self._intrinsic = o3c.Tensor(camera.matrix, o3c.float64)  # stays on the host
+        # Open3D's integration reads the depth pixel a voxel projects into by truncating its
+        # projected coordinates, i.e. half a pixel to the upper left of the nearest one;
+        # integrating with the principal point moved by +0.5 px makes that the nearest pixel
+        # (without it the fused surface, and every tracked pose, is offset by ~z / (2 f)).
+        k_integrate = camera.matrix.copy()
+        k_integrate[:2, 2] += 0.5
+        self._intrinsic_integrate = o3c.Tensor(k_integrate, o3c.float64)
+        self._no_color = o3d.t.geometry.Image(
+            o3c.Tensor.zeros((camera.height, camera.width, 1), o3c.uint8, self.device))
+        self._criteria = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n)
+                          for n in TRACKING_ITERATIONS]
+        self._loss = o3d.t.pipelines.odometry.OdometryLossParams(
+            depth_outlier_trunc=config.tracking_depth_diff_m,
+            depth_huber_delta=config.tracking_depth_diff_m * 0.7)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the volume, the pose and the cached buffers (a new session)."""
+        c = self.config
+        self._grid = o3d.t.geometry.VoxelBlockGrid(
+            attr_names=["tsdf", "weight"], attr_dtypes=[o3c.float32, o3c.float32],
+            attr_channels=[[1], [1]], voxel_size=c.voxel_size_m,
+            block_resolution=c.block_resolution, block_count=c.block_count,
+            device=self.device)
+        self.pose = np.eye(4)  # world_from_cam of the latest frame
+        self.frame_index = 0  # frames processed
+        self.frames_integrated = 0
+        self._model_depth: o3c.Tensor | None = None  # D_v of the previous frame, on device
+        self._aux_cache: list[OrthoBuffer] = []
+        self._aux_age = 0  # frames since the aux buffers were rendered
+
+    @property
+    def voxel_grid(self) -> o3d.t.geometry.VoxelBlockGrid:
+        """The TSDF volume V ("tsdf" and "weight" per voxel), e.g. to export a mesh."""
+        return self._grid
+
+    @property
+    def num_blocks(self) -> int:
+        """Voxel blocks allocated in V so far (memory: block_resolution^3 * 8 bytes each)."""
+        return int(self._grid.hashmap().size())
+
+    # ---------------------------------------------------------------- per frame
+    def process(self, color_rgb_u8: np.ndarray, depth_m: np.ndarray, pose: np.ndarray | None,
+                light_direction_world: np.ndarray | None = None) -> SurfaceOutput:
+        """Track (unless pose is given), fuse the frame into V, ray-cast G_v and aux buffers.
+
+        color_rgb_u8: (H, W, 3) uint8 RGB (validated; only depth is fused into V).
+        depth_m: (H, W) float32 metres along the optical axis, 0 or NaN = missing.
+        pose: (4, 4) world_from_cam, or None to track frame-to-model (the first frame then
+            gets the identity: the world frame is the first camera frame).
+        light_direction_world: unit vector towards the dominant light, or None (no "light"
+            buffer).
+        """
+        cam = self.camera
+        depth = np.asarray(depth_m)
+        if depth.shape != (cam.height, cam.width):
+            raise ValueError(f"depth_m must have shape ({cam.height}, {cam.width}), "
+                             f"got {depth.shape}")
+        color = np.asarray(color_rgb_u8)
+        if color.shape != (cam.height, cam.width, 3):
+            raise ValueError(f"color_rgb_u8 must have shape ({cam.height}, {cam.width}, 3), "
+                             f"got {color.shape}")
+        pose = _check_pose(pose, "pose")
+        light = None
+        if light_direction_world is not None:
+            light = np.asarray(light_direction_world, dtype=np.float64).reshape(-1)
+            if light.shape != (3,) or not np.all(np.isfinite(light)) or not np.any(light):
+                raise ValueError("light_direction_world must be a finite non-zero 3-vector, "
+                                 f"got {light_direction_world!r}")
+
+        c = self.config
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(depth) & (depth >= c.depth_min_m) & (depth <= c.depth_max_m)
+        depth_clean = np.where(valid, depth, 0.0).astype(np.float32)
+        n_valid = int(np.count_nonzero(valid))
+
+        t0 = time.perf_counter()
+        tracking_ok = True
+        if not c.use_volume:
+            if pose is not None:
+                self.pose = pose
+            tracking_ok = pose is not None or self.frame_index == 0
+            self.frame_index += 1
+            h, w = cam.height, cam.width
+            return SurfaceOutput(self.pose.copy(), np.zeros((h, w), np.float32),
+                                 np.zeros((h, w, 3), np.float32), [], tracking_ok,
+                                 {"Reconstruct": 0.0, "Surface": 0.0})
+
+        depth_image = o3d.t.geometry.Image(o3c.Tensor(depth_clean).to(self.device))
+        volume_empty = self.num_blocks == 0
+        if pose is not None:
+            self.pose = pose
+        elif self.frame_index > 0 and not volume_empty:
+            tracking_ok = self._track(depth_image, n_valid)
+        integrate = tracking_ok and n_valid > 0
+        if integrate:
+            integrate = self._integrate(depth_image)
+        self._sync()
+        t1 = time.perf_counter()
+
+        depth_v, normals_v = self._ray_cast_view()
+        aux = self._aux_buffers(depth_v, light)
+        self._sync()
+        t2 = time.perf_counter()
+
+        self.frame_index += 1
+        return SurfaceOutput(
+            pose=self.pose.copy(), depth_volume_m=depth_v, normals_volume=normals_v,
+            aux_buffers=aux, tracking_ok=tracking_ok,
+            timings_ms={"Reconstruct": (t1 - t0) * 1e3, "Surface": (t2 - t1) * 1e3})
+
+    # ---------------------------------------------------------------- stages
+    def _sync(self) -> None:
+        if self.device.get_type() == o3c.Device.DeviceType.CUDA:
+            o3c.cuda.synchronize(self.device)
+
+    def _track(self, depth_image: o3d.t.geometry.Image, n_valid: int) -> bool:
+        """Frame-to-model ICP against the previous frame's D_v; updates self.pose on success."""
+        model = self._model_depth
+        if model is None or n_valid < TRACKING_MIN_VALID_PIXELS:
+            return False
+        if int((model > 0).to(o3c.int64).sum().item()) < TRACKING_MIN_VALID_PIXELS:
+            return False
+        odometry = o3d.t.pipelines.odometry
+        try:
+            # point-to-plane odometry reads depth only; the colour slot holds a placeholder
+            result = odometry.rgbd_odometry_multi_scale(
+                o3d.t.geometry.RGBDImage(self._no_color, depth_image),
+                o3d.t.geometry.RGBDImage(self._no_color, o3d.t.geometry.Image(model)),
+                self._intrinsic, o3c.Tensor(np.eye(4)), 1.0, self.config.depth_max_m,
+                self._criteria, odometry.Method.PointToPlane, self._loss)
+        except RuntimeError:
+            return False
+        prev_from_cur = result.transformation.numpy()
+        if (not np.all(np.isfinite(prev_from_cur)) or result.fitness < TRACKING_MIN_FITNESS
+                or np.linalg.norm(prev_from_cur[:3, 3]) > TRACKING_MAX_STEP_M
+                or _rotation_angle(prev_from_cur[:3, :3]) > TRACKING_MAX_STEP_RAD):
+            return False
+        self.pose = self.pose @ prev_from_cur
+        return True
+
+    def _integrate(self, depth_image: o3d.t.geometry.Image) -> bool:
+        c = self.config
+        extrinsic = o3c.Tensor(np.linalg.inv(self.pose))
+        try:
+            blocks = self._grid.compute_unique_block_coordinates(
+                depth_image, self._intrinsic, extrinsic, 1.0, c.depth_max_m, c.sdf_trunc_voxels)
+            self._grid.integrate(blocks, depth_image, self._intrinsic_integrate, extrinsic,
+                                 1.0, c.depth_max_m, c.sdf_trunc_voxels)
+        except RuntimeError:  # Open3D aborts when no block is touched (nothing in range)
+            return False
+        self.frames_integrated += 1
+        return True
+
+    def _weight_threshold(self) -> float:
+        return max(_MIN_WEIGHT, min(float(self.frames_integrated), WEIGHT_THRESHOLD))
+
+    def _active_blocks(self) -> o3c.Tensor:
+        hashmap = self._grid.hashmap()
+        return hashmap.key_tensor()[hashmap.active_buf_indices().to(o3c.int64)]
+
+    def _ray_cast_view(self) -> tuple[np.ndarray, np.ndarray]:
+        """D_v (H, W) and N_v (H, W, 3) of V at self.pose; D_v also stays on the device as the
+        model frame the next frame is tracked against.
+
+        Open3D's ray caster finds the zero crossing of the TSDF sampled at the voxel corner
+        below each ray step (nearest-neighbour), which is off by up to a voxel depending on
+        how the surface lies in the grid (a bias that frame-to-model tracking turns into a
+        pose offset). One Newton step on the trilinearly interpolated TSDF around that hit,
+        along the ray, moves it onto the interpolated surface (exact for planar patches);
+        hits whose 8 surrounding voxels are not all observed keep the ray caster's depth.
+        """
+        cam, c = self.camera, self.config
+        h, w = cam.height, cam.width
+        depth = np.zeros((h, w), np.float32)
+        normals = np.zeros((h, w, 3), np.float32)
+        self._model_depth = None
+        if self.num_blocks == 0:
+            return depth, normals
+        # Open3D warns while it grows its range-map buffer; that is expected, not a problem
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            result = self._grid.ray_cast(
+                self._active_blocks(), self._intrinsic, o3c.Tensor(np.linalg.inv(self.pose)),
+                w, h, ["depth", "normal", "index", "mask", "interp_ratio"], 1.0,
+                c.depth_min_m, c.depth_max_m, self._weight_threshold(), c.sdf_trunc_voxels)
+        raw = result["depth"].cpu().numpy()[..., 0]
+        hit = np.isfinite(raw) & (raw > 0)
+        v_px, u_px = np.nonzero(hit)
+        t = raw[hit].astype(np.float64)
+        mask = result["mask"].cpu().numpy()[hit]  # (N, 8), corner k = dx + 2 dy + 4 dz
+        ratio = result["interp_ratio"].cpu().numpy()[hit].astype(np.float64)
+        tsdf_attr = self._grid.attribute("tsdf")
+        if self.device.get_type() == o3c.Device.DeviceType.CPU:
+            corner = tsdf_attr.numpy().reshape(-1)[result["index"].numpy()[hit]]
+        else:
+            index = result["index"].reshape((-1,))
+            corner = tsdf_attr.reshape((-1,))[index].reshape((h, w, 8)).cpu().numpy()[hit]
+        full = mask.all(axis=1)
+        values = np.where(mask, corner, 0.0).reshape(-1, 2, 2, 2)  # [n, dz, dy, dx]
+        # fractional position of the hit in its cell, from the trilinear weights
+        fx, fy, fz = (ratio[:, [1, 3, 5, 7]].sum(1), ratio[:, [2, 3, 6, 7]].sum(1),
+                      ratio[:, [4, 5, 6, 7]].sum(1))
+        wx, wy, wz = (np.stack([1 - f, f], axis=1) for f in (fx, fy, fz))
+        phi = np.sum(ratio * values.reshape(-1, 8), axis=1)
+        grad = np.stack([  # d(tsdf)/d(voxel) along world x, y, z
+            np.einsum("nzy,nz,ny->n", values[..., 1] - values[..., 0], wz, wy),
+            np.einsum("nzx,nz,nx->n", values[:, :, 1] - values[:, :, 0], wz, wx),
+            np.einsum("nyx,ny,nx->n", values[:, 1] - values[:, 0], wy, wx)], axis=1)
+        rays_cam = np.stack([(u_px - cam.cx) / cam.fx, (v_px - cam.cy) / cam.fy,
+                             np.ones_like(t)], axis=1)
+        rays_world = rays_cam @ self.pose[:3, :3].T  # per metre of depth
+        slope = np.sum(grad * rays_world, axis=1) / c.voxel_size_m  # d(tsdf)/d(depth)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = -phi / slope
+        ok = full & (slope < 0) & (np.abs(step) <= 2.0 * c.voxel_size_m)
+        t[ok] += step[ok]
+        depth[hit] = t
+        # Open3D's ray caster returns the negated TSDF gradient (pointing into the surface)
+        normals_np = -result["normal"].cpu().numpy()
+        normals[hit] = normals_np[hit]
+        normals[~np.all(np.isfinite(normals), axis=-1)] = 0.0
+        self._model_depth = o3c.Tensor(depth, device=self.device)
+        return depth, normals
+
+    def _aux_buffers(self, depth_v: np.ndarray, light: np.ndarray | None) -> list[OrthoBuffer]:
+        c = self.config
+        if not c.aux_buffers:
+            return []
+        names = [b.name for b in self._aux_cache]
+        stale = (not self._aux_cache or self._aux_age >= c.aux_update_interval - 1
+                 or ("light" in names) != (light is not None))
+        if not stale:
+            self._aux_age += 1
+            return list(self._aux_cache)
+        valid = depth_v[depth_v > 0]
+        centre = float(np.median(valid)) if valid.size else AUX_FALLBACK_CENTRE_DEPTH_M
+        poses = aux_buffer_poses(self.pose, centre, c.aux_extent_m, light)
+        pixel = c.aux_extent_m / c.aux_resolution
+        points, gradients = self.surface_points(self.aux_stride())
+        buffers = []
+        for name in AUX_NAMES:
+            if name not in poses:
+                continue
+            world_from_buffer = poses[name]
+            # only surfaces seen from their front: the TSDF decreases along the view direction
+            front = gradients @ world_from_buffer[:3, 2] < 0
+            depth = render_orthographic(points[front], world_from_buffer, c.aux_resolution,
+                                        pixel, max_depth_m=c.aux_extent_m)
+            buffers.append(OrthoBuffer(world_from_buffer, depth, pixel, name))
+        self._aux_cache = buffers
+        self._aux_age = 0
+        return list(buffers)
+
+    def aux_stride(self) -> int:
+        """Voxel step of the surface samples for the auxiliary buffers.
+
+        The largest divisor of block_resolution with samples at most half an aux pixel apart
+        and at most the truncation distance apart (so a sign change of the TSDF between two
+        samples is always seen with both samples inside the band).
+        """
+        c = self.config
+        pixel = c.aux_extent_m / c.aux_resolution
+        limit = min(0.5 * pixel / c.voxel_size_m, c.sdf_trunc_voxels)
+        return max([d for d in range(1, c.block_resolution + 1)
+                    if c.block_resolution % d == 0 and d <= limit], default=1)
+
+    def surface_points(self, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Zero crossings of the TSDF of V, on the voxel grid sub-sampled every `stride` voxels.
+
+        Returns world points (M, 3) float32, metres, and TSDF gradients (M, 3) float32 at the
+        lower sample of each crossing (unnormalised, pointing towards free space; zero
+        components where a neighbour sample is unobserved). Crossings are searched along x, y
+        and z between consecutive samples of weight >= the ray-casting weight threshold,
+        across block borders, and placed by linear interpolation, as Open3D's
+        VoxelBlockGrid.extract_point_cloud does at stride 1; a stride > 1 reads stride^3
+        fewer voxels.
+        """
+        c = self.config
+        r = c.block_resolution
+        if stride < 1 or r % stride:
+            raise ValueError(f"stride must divide block_resolution={r}, got {stride}")
+        empty = np.zeros((0, 3), np.float32)
+        hashmap = self._grid.hashmap()
+        buf = hashmap.active_buf_indices().to(o3c.int64)
+        if buf.shape[0] == 0:
+            return empty, empty
+        keys_t = hashmap.key_tensor()[buf]
+        keys = keys_t.cpu().numpy().astype(np.int64)  # (N, 3) block coordinates x, y, z
+        tsdf_attr = self._grid.attribute("tsdf")  # (capacity, r, r, r, 1): block, z, y, x
+        weight_attr = self._grid.attribute("weight")
+        threshold = self._weight_threshold()
+        sub = slice(None, None, stride)
+
+        on_cpu = self.device.get_type() == o3c.Device.DeviceType.CPU
+        if on_cpu:  # zero-copy views; NumPy gathers blocks far faster than Open3D on the CPU
+            tsdf_np, weight_np = tsdf_attr.numpy(), weight_attr.numpy()
+
+        def read(index: o3c.Tensor, axis: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+            """Sub-sampled tsdf and validity of blocks; only the first layer along `axis`."""
+            key: list = [slice(None), sub, sub, sub, 0]
+            if axis is not None:
+                key[axis] = 0
+            if on_cpu:
+                rows = index.numpy()
+                t, w = tsdf_np[rows][tuple(key)], weight_np[rows][tuple(key)]
+            else:
+                t = tsdf_attr[index][tuple(key)].cpu().numpy()
+                w = weight_attr[index][tuple(key)].cpu().numpy()
+            return t, w >= threshold
+
+        tsdf, valid = read(buf)  # (N, m, m, m), array axes: block, z, y, x
+        n, m = tsdf.shape[0], r // stride
+        # values of the next sample along x, y, z (array axes 3, 2, 1), across block borders
+        nxt, nxt_valid = [], []
+        for k in range(3):
+            axis = 3 - k
+            shifted = keys.copy()
+            shifted[:, k] += 1
+            nb_buf, found = hashmap.find(o3c.Tensor(shifted.astype(np.int32), o3c.int32,
+                                                    self.device))
+            found_np = found.cpu().numpy()
+            layer = np.zeros((n, m, m), np.float32)
+            layer_valid = np.zeros((n, m, m), bool)
+            if found_np.any():
+                t, v = read(nb_buf.to(o3c.int64)[found], axis)
+                layer[found_np], layer_valid[found_np] = t, v
+            rest = [slice(None)] * 4
+            rest[axis] = slice(1, None)
+            nxt.append(np.concatenate([tsdf[tuple(rest)], np.expand_dims(layer, axis)], axis))
+            nxt_valid.append(np.concatenate([valid[tuple(rest)],
+                                             np.expand_dims(layer_valid, axis)], axis))
+        # sample index (z, y, x) in a block -> voxel offset (x, y, z) of the sample
+        iz, iy, ix = np.meshgrid(*(np.arange(m) * stride,) * 3, indexing="ij")
+        points, gradients = [], []
+        for k in range(3):
+            b, z, y, x = np.nonzero(valid & nxt_valid[k] & (tsdf * nxt[k] < 0))
+            a = tsdf[b, z, y, x]
+            ratio = a / (a - nxt[k][b, z, y, x])
+            voxel = (keys[b] * r + np.stack([ix[z, y, x], iy[z, y, x], iz[z, y, x]], -1)
+                     ).astype(np.float64)
+            voxel[:, k] += stride * ratio
+            points.append(voxel * c.voxel_size_m)
+            # forward differences at the lower sample (0 where a neighbour is unobserved)
+            gradients.append(np.stack(
+                [np.where(nxt_valid[j][b, z, y, x], nxt[j][b, z, y, x] - a, 0.0)
+                 for j in range(3)], -1))
+        return (np.concatenate(points).astype(np.float32),
+                np.concatenate(gradients).astype(np.float32))
