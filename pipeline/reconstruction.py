@@ -33,7 +33,9 @@ from arlight.pipeline.config import Config
 
 # Frame-to-model tracking (projective point-to-plane ICP, coarse to fine: 3 pyramid levels).
 TRACKING_ITERATIONS = (6, 3, 1)  # Open3D's t.pipelines.slam defaults
-TRACKING_MIN_FITNESS = 0.05  # fewer inlier correspondences per pixel than this: failure
+# fewer ICP inliers than this fraction of the valid input depth pixels: failure (a good
+# frame has 0.8-1; a 30 cm / 6 degree jump of 7-Scenes frames that ICP cannot bridge, 0.2)
+TRACKING_MIN_INLIER_FRACTION = 0.3
 TRACKING_MAX_STEP_M = 0.3  # a larger jump between consecutive frames is a failure
 TRACKING_MAX_STEP_RAD = np.deg2rad(30.0)
 TRACKING_MIN_VALID_PIXELS = 100  # fewer valid depth pixels (input or model): not tracked
@@ -218,9 +220,9 @@ class VolumeReconstruction:
             o3c.Tensor.zeros((camera.height, camera.width, 1), o3c.uint8, self.device))
         self._criteria = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n)
                           for n in TRACKING_ITERATIONS]
-        self._loss = o3d.t.pipelines.odometry.OdometryLossParams(
+        self._loss = o3d.t.pipelines.odometry.OdometryLossParams(  # Open3D's 7 cm : 5 cm
             depth_outlier_trunc=config.tracking_depth_diff_m,
-            depth_huber_delta=config.tracking_depth_diff_m * 0.7)
+            depth_huber_delta=config.tracking_depth_diff_m * 5.0 / 7.0)
         self.reset()
 
     def reset(self) -> None:
@@ -255,8 +257,11 @@ class VolumeReconstruction:
 
         color_rgb_u8: (H, W, 3) uint8 RGB (validated; only depth is fused into V).
         depth_m: (H, W) float32 metres along the optical axis, 0 or NaN = missing.
-        pose: (4, 4) world_from_cam, or None to track frame-to-model (the first frame then
-            gets the identity: the world frame is the first camera frame).
+        pose: (4, 4) world_from_cam, or None to track frame-to-model against the previous
+            frame's D_v (the first frame gets the identity: the world frame is the first
+            camera frame; while V is still empty, frames keep the current pose and start the
+            map). A frame that cannot be tracked (too little depth, ICP failure, implausible
+            jump) keeps the previous pose, is not fused, and reports tracking_ok False.
         light_direction_world: unit vector towards the dominant light, or None (no "light"
             buffer).
         """
@@ -278,11 +283,6 @@ class VolumeReconstruction:
                                  f"got {light_direction_world!r}")
 
         c = self.config
-        with np.errstate(invalid="ignore"):
-            valid = np.isfinite(depth) & (depth >= c.depth_min_m) & (depth <= c.depth_max_m)
-        depth_clean = np.where(valid, depth, 0.0).astype(np.float32)
-        n_valid = int(np.count_nonzero(valid))
-
         t0 = time.perf_counter()
         tracking_ok = True
         if not c.use_volume:
@@ -295,15 +295,18 @@ class VolumeReconstruction:
                                  np.zeros((h, w, 3), np.float32), [], tracking_ok,
                                  {"Reconstruct": 0.0, "Surface": 0.0})
 
-        depth_image = o3d.t.geometry.Image(o3c.Tensor(depth_clean).to(self.device))
-        volume_empty = self.num_blocks == 0
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(depth) & (depth >= c.depth_min_m) & (depth <= c.depth_max_m)
+        n_valid = int(np.count_nonzero(valid))
+        depth_image = o3d.t.geometry.Image(
+            o3c.Tensor(np.where(valid, depth, 0.0).astype(np.float32), device=self.device))
         if pose is not None:
             self.pose = pose
-        elif self.frame_index > 0 and not volume_empty:
+        elif self.frame_index > 0 and self.num_blocks > 0:
             tracking_ok = self._track(depth_image, n_valid)
-        integrate = tracking_ok and n_valid > 0
-        if integrate:
-            integrate = self._integrate(depth_image)
+        # (pose None and V still empty: this frame starts the map at the current pose)
+        if tracking_ok and n_valid > 0:
+            self._integrate(depth_image)
         self._sync()
         t1 = time.perf_counter()
 
@@ -341,7 +344,10 @@ class VolumeReconstruction:
         except RuntimeError:
             return False
         prev_from_cur = result.transformation.numpy()
-        if (not np.all(np.isfinite(prev_from_cur)) or result.fitness < TRACKING_MIN_FITNESS
+        # Open3D's fitness is inliers per image pixel; relate it to the pixels with depth
+        inlier_fraction = result.fitness * self.camera.width * self.camera.height / n_valid
+        if (not np.all(np.isfinite(prev_from_cur))
+                or inlier_fraction < TRACKING_MIN_INLIER_FRACTION
                 or np.linalg.norm(prev_from_cur[:3, 3]) > TRACKING_MAX_STEP_M
                 or _rotation_angle(prev_from_cur[:3, :3]) > TRACKING_MAX_STEP_RAD):
             return False
@@ -436,7 +442,7 @@ class VolumeReconstruction:
         if not c.aux_buffers:
             return []
         names = [b.name for b in self._aux_cache]
-        stale = (not self._aux_cache or self._aux_age >= c.aux_update_interval - 1
+        stale = (not self._aux_cache or self._aux_age + 1 >= max(1, c.aux_update_interval)
                  or ("light" in names) != (light is not None))
         if not stale:
             self._aux_age += 1
