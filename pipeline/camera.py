@@ -68,7 +68,7 @@ class PinholeCamera:
         return np.stack([z * u[None, :], z * v[:, None], z], axis=-1)
 
     def project(self, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel coordinates (..., 2) as (u, v) and depth z (...,) of camera-frame points (..., 3)."""
+        """Pixel coordinates (..., 2) as (u, v) and depth z (...,) of camera points (..., 3)."""
         p = np.asarray(points_cam, dtype=np.float64)
         z = p[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):

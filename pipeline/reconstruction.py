@@ -21,12 +21,16 @@ camera's, leaving striped holes.)
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
+from numba import prange
+from numba.extending import register_jitable
 
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
@@ -188,6 +192,104 @@ def _check_pose(pose: np.ndarray | None, name: str) -> np.ndarray | None:
 
 def _rotation_angle(rot: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+# ------------------------------------------------------------------ ray-cast refinement
+# Open3D's ray caster finds the zero crossing of the TSDF sampled at the voxel corner below
+# each ray step (nearest neighbour), which is off by up to a voxel depending on how the
+# surface lies in the grid; frame-to-model tracking turns that bias into a pose offset. One
+# Newton step on the trilinearly interpolated TSDF of the hit's cell, along the ray, puts the
+# hit on the interpolated surface (exact for planar patches). Per-pixel logic written once
+# (register_jitable) for the CPU driver below; a numba.cuda driver can reuse it.
+
+REFINE_MAX_STEP_VOXELS = 2.0  # a larger Newton step is not trusted: the raw hit is kept
+
+
+@register_jitable
+def _refine_pixel(t, source, index, mask, ratio, y, x, d0, d1, d2, voxel, max_step):
+    """Refined depth and unnormalised TSDF gradient (world, per voxel) at pixel (y, x).
+
+    Corner k = dx + 2 dy + 4 dz of the hit's cell has the value source[index[y, x, k]] and
+    the trilinear weight ratio[y, x, k]; (d0, d1, d2) is the world ray per metre of depth.
+    Unobserved corners (mask False) are left out of the gradient, as Open3D's normals do,
+    and disable the depth step."""
+    fx = ratio[y, x, 1] + ratio[y, x, 3] + ratio[y, x, 5] + ratio[y, x, 7]
+    fy = ratio[y, x, 2] + ratio[y, x, 3] + ratio[y, x, 6] + ratio[y, x, 7]
+    fz = ratio[y, x, 4] + ratio[y, x, 5] + ratio[y, x, 6] + ratio[y, x, 7]
+    phi = 0.0
+    gx = 0.0
+    gy = 0.0
+    gz = 0.0
+    complete = True
+    for k in range(8):
+        if not mask[y, x, k]:
+            complete = False
+            continue
+        value = source[index[y, x, k]]
+        bx = k & 1
+        by = (k >> 1) & 1
+        bz = (k >> 2) & 1
+        wx = fx if bx == 1 else 1.0 - fx
+        wy = fy if by == 1 else 1.0 - fy
+        wz = fz if bz == 1 else 1.0 - fz
+        phi += ratio[y, x, k] * value
+        gx += (2 * bx - 1) * wy * wz * value
+        gy += (2 * by - 1) * wx * wz * value
+        gz += (2 * bz - 1) * wx * wy * value
+    if complete:
+        slope = (gx * d0 + gy * d1 + gz * d2) / voxel  # d(tsdf) / d(depth)
+        if slope < 0.0:
+            step = -phi / slope
+            if abs(step) <= max_step:
+                t = t + step
+    return t, gx, gy, gz
+
+
+@numba.njit(parallel=True, cache=True)
+def _refine_cpu(raw, source, index, mask, ratio, rot, fx, fy, cx, cy, voxel, max_step,
+                depth, normals):
+    h, w = raw.shape
+    for row in prange(h):
+        y = np.int64(row)
+        for x in range(w):
+            t = raw[y, x]
+            if not t > 0.0:  # no hit (0) or NaN
+                continue
+            rx = (x - cx) / fx
+            ry = (y - cy) / fy
+            d0 = rot[0, 0] * rx + rot[0, 1] * ry + rot[0, 2]
+            d1 = rot[1, 0] * rx + rot[1, 1] * ry + rot[1, 2]
+            d2 = rot[2, 0] * rx + rot[2, 1] * ry + rot[2, 2]
+            t, gx, gy, gz = _refine_pixel(t, source, index, mask, ratio, y, x, d0, d1, d2,
+                                          voxel, max_step)
+            depth[y, x] = t
+            norm = math.sqrt(gx * gx + gy * gy + gz * gz)
+            if norm > 0.0:
+                for i in range(3):  # camera frame: rot^T g
+                    normals[y, x, i] = (rot[0, i] * gx + rot[1, i] * gy + rot[2, i] * gz) / norm
+
+
+def refine_ray_cast(raw_depth_m: np.ndarray, source: np.ndarray, index: np.ndarray,
+                    mask: np.ndarray, ratio: np.ndarray, world_from_cam: np.ndarray,
+                    camera: PinholeCamera, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """D_v and N_v from Open3D's ray cast ("depth", "index", "mask", "interp_ratio").
+
+    raw_depth_m: (H, W) depth of the ray caster, 0 = no hit. source: the TSDF values indexed
+    by index (H, W, 8) int64 (corner k = dx + 2 dy + 4 dz of the hit's cell); mask (H, W, 8)
+    bool: the corner is observed; ratio (H, W, 8): trilinear weights of the hit.
+    Returns depth (H, W) float32 metres (0 = none) and unit outward normals (H, W, 3)
+    float32 in the camera frame (zeros where none).
+    """
+    h, w = raw_depth_m.shape
+    depth = np.zeros((h, w), np.float32)
+    normals = np.zeros((h, w, 3), np.float32)
+    _refine_cpu(np.ascontiguousarray(raw_depth_m, np.float32),
+                np.ascontiguousarray(source, np.float32), np.ascontiguousarray(index, np.int64),
+                np.ascontiguousarray(mask, np.bool_), np.ascontiguousarray(ratio, np.float32),
+                np.ascontiguousarray(world_from_cam[:3, :3], np.float64), float(camera.fx),
+                float(camera.fy), float(camera.cx), float(camera.cy), float(voxel_size_m),
+                REFINE_MAX_STEP_VOXELS * voxel_size_m, depth, normals)
+    return depth, normals
 
 
 class VolumeReconstruction:
@@ -376,64 +478,28 @@ class VolumeReconstruction:
 
     def _ray_cast_view(self) -> tuple[np.ndarray, np.ndarray]:
         """D_v (H, W) and N_v (H, W, 3) of V at self.pose; D_v also stays on the device as the
-        model frame the next frame is tracked against.
-
-        Open3D's ray caster finds the zero crossing of the TSDF sampled at the voxel corner
-        below each ray step (nearest-neighbour), which is off by up to a voxel depending on
-        how the surface lies in the grid (a bias that frame-to-model tracking turns into a
-        pose offset). One Newton step on the trilinearly interpolated TSDF around that hit,
-        along the ray, moves it onto the interpolated surface (exact for planar patches);
-        hits whose 8 surrounding voxels are not all observed keep the ray caster's depth.
-        """
+        model frame the next frame is tracked against (see :func:`refine_ray_cast`)."""
         cam, c = self.camera, self.config
         h, w = cam.height, cam.width
-        depth = np.zeros((h, w), np.float32)
-        normals = np.zeros((h, w, 3), np.float32)
         self._model_depth = None
         if self.num_blocks == 0:
-            return depth, normals
+            return np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32)
         # Open3D warns while it grows its range-map buffer; that is expected, not a problem
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             result = self._grid.ray_cast(
                 self._active_blocks(), self._intrinsic, o3c.Tensor(np.linalg.inv(self.pose)),
-                w, h, ["depth", "normal", "index", "mask", "interp_ratio"], 1.0,
-                c.depth_min_m, c.depth_max_m, self._weight_threshold(), c.sdf_trunc_voxels)
-        raw = result["depth"].cpu().numpy()[..., 0]
-        hit = np.isfinite(raw) & (raw > 0)
-        v_px, u_px = np.nonzero(hit)
-        t = raw[hit].astype(np.float64)
-        mask = result["mask"].cpu().numpy()[hit]  # (N, 8), corner k = dx + 2 dy + 4 dz
-        ratio = result["interp_ratio"].cpu().numpy()[hit].astype(np.float64)
-        tsdf_attr = self._grid.attribute("tsdf")
+                w, h, ["depth", "index", "mask", "interp_ratio"], 1.0, c.depth_min_m,
+                c.depth_max_m, self._weight_threshold(), c.sdf_trunc_voxels)
+        tsdf = self._grid.attribute("tsdf")
         if self.device.get_type() == o3c.Device.DeviceType.CPU:
-            corner = tsdf_attr.numpy().reshape(-1)[result["index"].numpy()[hit]]
-        else:
-            index = result["index"].reshape((-1,))
-            corner = tsdf_attr.reshape((-1,))[index].reshape((h, w, 8)).cpu().numpy()[hit]
-        full = mask.all(axis=1)
-        values = np.where(mask, corner, 0.0).reshape(-1, 2, 2, 2)  # [n, dz, dy, dx]
-        # fractional position of the hit in its cell, from the trilinear weights
-        fx, fy, fz = (ratio[:, [1, 3, 5, 7]].sum(1), ratio[:, [2, 3, 6, 7]].sum(1),
-                      ratio[:, [4, 5, 6, 7]].sum(1))
-        wx, wy, wz = (np.stack([1 - f, f], axis=1) for f in (fx, fy, fz))
-        phi = np.sum(ratio * values.reshape(-1, 8), axis=1)
-        grad = np.stack([  # d(tsdf)/d(voxel) along world x, y, z
-            np.einsum("nzy,nz,ny->n", values[..., 1] - values[..., 0], wz, wy),
-            np.einsum("nzx,nz,nx->n", values[:, :, 1] - values[:, :, 0], wz, wx),
-            np.einsum("nyx,ny,nx->n", values[:, 1] - values[:, 0], wy, wx)], axis=1)
-        rays_cam = np.stack([(u_px - cam.cx) / cam.fx, (v_px - cam.cy) / cam.fy,
-                             np.ones_like(t)], axis=1)
-        rays_world = rays_cam @ self.pose[:3, :3].T  # per metre of depth
-        slope = np.sum(grad * rays_world, axis=1) / c.voxel_size_m  # d(tsdf)/d(depth)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            step = -phi / slope
-        ok = full & (slope < 0) & (np.abs(step) <= 2.0 * c.voxel_size_m)
-        t[ok] += step[ok]
-        depth[hit] = t
-        # Open3D's ray caster returns the negated TSDF gradient (pointing into the surface)
-        normals_np = -result["normal"].cpu().numpy()
-        normals[hit] = normals_np[hit]
-        normals[~np.all(np.isfinite(normals), axis=-1)] = 0.0
+            source, index = tsdf.numpy().reshape(-1), result["index"].numpy()
+        else:  # gather the 8 corner values on the device; only they travel to the host
+            source = tsdf.reshape((-1,))[result["index"].reshape((-1,))].cpu().numpy()
+            index = np.arange(h * w * 8, dtype=np.int64).reshape(h, w, 8)
+        depth, normals = refine_ray_cast(
+            result["depth"].cpu().numpy()[..., 0], source, index,
+            result["mask"].cpu().numpy(), result["interp_ratio"].cpu().numpy(), self.pose,
+            cam, c.voxel_size_m)
         self._model_depth = o3c.Tensor(depth, device=self.device)
         return depth, normals
 

@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# Set up everything arlight needs on a fresh Debian/Ubuntu machine (idempotent, quick when done):
+# the system libraries Open3D loads, a virtual environment in .venv, and arlight installed
+# into it in editable mode with its test tools.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PYTHON=${PYTHON:-python3}
+if ! command -v "$PYTHON" >/dev/null; then
+  echo "arlight: python3 (>= 3.10) is required: apt-get install python3 python3-venv" >&2; exit 1
+fi
+if ! "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 10))'; then
+  echo "arlight: Python >= 3.10 is required, found $("$PYTHON" --version)" >&2; exit 1
+fi
+
+# Open3D's wheel loads libusb-1.0, libGL/libEGL and libgomp at import time.
+need=()
+for lib in libusb-1.0.so.0 libGL.so.1 libEGL.so.1 libgomp.so.1; do
+  ldconfig -p 2>/dev/null | grep -q "$lib" || need+=("$lib")
+done
+if [ ${#need[@]} -gt 0 ] || ! "$PYTHON" -c 'import venv, ensurepip' 2>/dev/null; then
+  pkgs="libusb-1.0-0 libgl1 libegl1 libgomp1 python3-venv"
+  if [ "$(id -u)" = 0 ]; then SUDO=""; elif sudo -n true 2>/dev/null; then SUDO="sudo -n"; else
+    echo "arlight: missing system libraries (${need[*]}); run: sudo apt-get install $pkgs" >&2
+    exit 1
+  fi
+  echo "arlight: installing system packages: $pkgs" >&2
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq $pkgs >/dev/null
+fi
+
+stamp=.venv/.arlight-installed
+want=$(cat pyproject.toml | sha1sum | cut -d' ' -f1)
+if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  echo "arlight: creating .venv and installing dependencies (first run takes a few minutes)" >&2
+  "$PYTHON" -m venv .venv
+  .venv/bin/python -m pip install -q --upgrade pip
+  .venv/bin/python -m pip install -q -e ".[test]"
+  echo "$want" > "$stamp"
+fi
