@@ -1,0 +1,296 @@
+"""Light estimation T l = I (section 5.2 of seeds/000) and its temporal filter.
+
+Synthetic transfer: random unit normals on the sphere with the visibility-free transfer
+A_l Y_lm(n) (what radiance transfer gives without occlusion), and I = T l_true. Recovery with
+and without noise, per-segment albedo, outliers, a single plane (rank-deficient), too few
+samples, clipped and NaN pixels, RGB, the sRGB decode, and the temporal filter.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from arlight.pipeline import light_estimation as le
+from arlight.pipeline import sh
+from arlight.pipeline.config import Config
+
+LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
+LIGHT_DIR = (0.3, -0.8, 0.5)
+
+
+def _unit(v):
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v)
+
+
+def _light(direction=LIGHT_DIR, intensity=0.6, ambient=0.3):
+    """Radiance SH (16,): a delta light of `intensity` plus a constant `ambient` term."""
+    coeffs = sh.directional_light(_unit(direction), intensity, 4)
+    coeffs[0] += ambient
+    return coeffs
+
+
+def _synthetic(m=3000, seed=0):
+    """Random unit normals (m, 3) and their visibility-free transfer (m, 16)."""
+    rng = np.random.default_rng(seed)
+    n = rng.normal(size=(m, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return n, sh.sh_basis(n, 4) * LAMBERT_PER_COEFF
+
+
+def _grey(intensity):
+    return np.repeat(np.asarray(intensity, dtype=np.float64)[:, None], 3, axis=1)
+
+
+def _angle_deg(a, b):
+    da, db = sh.dominant_direction(a), sh.dominant_direction(b)
+    return math.degrees(math.acos(np.clip(float(da @ db), -1.0, 1.0)))
+
+
+class TestSrgb:
+    def test_known_values(self):
+        lin = le.srgb_to_linear(np.array([0, 10, 128, 255], np.uint8))
+        assert lin.dtype == np.float32
+        np.testing.assert_allclose(lin, [0.0, 10 / 255 / 12.92, 0.21586050, 1.0], rtol=1e-6,
+                                   atol=1e-9)
+
+    def test_monotonic_and_shape_kept(self):
+        img = np.arange(256, dtype=np.uint8).reshape(16, 16)[..., None].repeat(3, axis=2)
+        lin = le.srgb_to_linear(img)
+        assert lin.shape == (16, 16, 3)
+        assert np.all(np.diff(lin[..., 0].reshape(-1)) > 0)
+
+
+class TestRecovery:
+    def test_exact_data(self):
+        _, t = _synthetic()
+        light = _light()
+        est = le.estimate_light(t, _grey(t @ light), Config())
+        assert _angle_deg(est.sh, light) < 1.0
+        # A_3 = 0: band 3 is invisible to a diffuse surface and is not invented
+        assert est.confidence.bands_estimated == 3
+        np.testing.assert_array_equal(est.sh[9:], 0.0)
+        np.testing.assert_allclose(est.sh[:4], light[:4], rtol=0.02, atol=2e-3)
+        assert est.confidence.samples == 3000 and est.confidence.value > 0
+        assert est.confidence.condition_number < 10
+        assert est.sh_rgb is None
+
+    @pytest.mark.parametrize("seed", [1, 2])
+    def test_noisy_data(self, seed):
+        _, t = _synthetic(seed=seed)
+        light = _light((-0.2, 0.4, 0.9))
+        rng = np.random.default_rng(seed + 10)
+        noisy = (t @ light) * (1.0 + 0.05 * rng.normal(size=len(t))) + 0.005 * rng.normal(
+            size=len(t))
+        est = le.estimate_light(t, _grey(noisy), Config())
+        assert _angle_deg(est.sh, light) < 1.0
+        assert np.all(np.isfinite(est.sh)) and est.residual_rel < 0.2
+
+    def test_frame_follows_transfer(self):
+        # T in a rotated frame gives the light in that frame
+        _, t = _synthetic()
+        light = _light()
+        rot = sh.rotation_matrix(np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]), 4)
+        est = le.estimate_light(t @ rot.T, _grey(t @ light), Config())
+        # T' l' = T l with T' = T R^T  <=>  l' = R l
+        assert _angle_deg(est.sh, rot @ light) < 1.0
+
+
+class TestAlbedoSegments:
+    ALBEDO = np.array([0.2, 0.5, 0.8])
+
+    def test_segments_recover_direction(self):
+        # three materials on three latitude bands of the normals (top, middle, bottom of
+        # an object): the unknown albedo is correlated with the normal, as in real scenes
+        n, t = _synthetic()
+        light = _light()
+        segments = np.digitize(n[:, 2], [-1 / 3, 1 / 3])
+        color = _grey((t @ light) * self.ALBEDO[segments])
+        with_segments = le.estimate_light(t, color, Config(), segments=segments)
+        without = le.estimate_light(t, color, Config())
+        assert _angle_deg(with_segments.sh, light) < 3.0
+        assert _angle_deg(without.sh, light) > 10.0
+        assert with_segments.residual_rel < without.residual_rel
+
+    @pytest.mark.parametrize("layout", ["azimuth", "latitude", "x"])
+    @pytest.mark.parametrize("direction", [LIGHT_DIR, (-0.5, 0.5, -0.7)])
+    def test_alternation_converges_to_exact_solution(self, layout, direction):
+        # the model I = a_g T l is identifiable: with many alternations and almost no
+        # regularisation the exact light comes back for any layout
+        n, t = _synthetic()
+        light = _light(direction)
+        segments = {"azimuth": np.digitize(np.arctan2(n[:, 1], n[:, 0]), [-1.05, 1.05]),
+                    "latitude": np.digitize(n[:, 2], [-1 / 3, 1 / 3]),
+                    "x": np.digitize(n[:, 0], [-1 / 3, 1 / 3])}[layout]
+        color = _grey((t @ light) * self.ALBEDO[segments])
+        cfg = Config(robust_iterations=60, regularization=1e-6)
+        est = le.estimate_light(t, color, cfg, segments=segments)
+        assert _angle_deg(est.sh, light) < 0.5
+
+    @pytest.mark.xfail(strict=True, reason="known limitation: with the default 8 alternations "
+                       "and regularization 1e-3 the albedo alternation stops (or converges) "
+                       "several degrees off for some segment layouts")
+    def test_default_config_any_layout(self):
+        n, t = _synthetic()
+        light = _light()
+        segments = np.digitize(np.arctan2(n[:, 1], n[:, 0]), [-1.05, 1.05])
+        color = _grey((t @ light) * self.ALBEDO[segments])
+        est = le.estimate_light(t, color, Config(), segments=segments)
+        assert _angle_deg(est.sh, light) < 3.0
+
+
+class TestOutliers:
+    def _data(self):
+        n, t = _synthetic()
+        light = _light(intensity=0.2, ambient=0.1)  # dim enough that 3x is not clipped
+        return n, t, light, t @ light
+
+    def test_robust_beats_plain_least_squares(self):
+        _, t, light, clean = self._data()
+        bad = clean.copy()
+        idx = np.random.default_rng(3).choice(len(bad), len(bad) // 10, replace=False)
+        bad[idx] *= 3.0
+        assert bad.max() < le.CLIP_LEVEL  # the outliers are not simply clipped away
+        robust = le.estimate_light(t, _grey(bad), Config())
+        plain = le.estimate_light(t, _grey(bad), Config(robust_iterations=0))
+        assert robust.confidence.samples == plain.confidence.samples == len(bad)
+        e_robust, e_plain = _angle_deg(robust.sh, light), _angle_deg(plain.sh, light)
+        assert e_robust < e_plain and e_robust < 1.5
+        # the scale comes back too: band 0 near the truth, not inflated by the outliers
+        assert robust.sh[0] == pytest.approx(light[0], rel=0.05)
+        assert abs(robust.sh[0] - light[0]) < abs(plain.sh[0] - light[0])
+
+    @pytest.mark.xfail(strict=True, reason="known limitation: Huber weights on the residual "
+                       "relative to the observed luminance barely down-weight a bright "
+                       "cluster (x3 gives |rel| <= 2/3), while dark inliers get large "
+                       "relative residuals; robust ends up worse than plain least squares")
+    def test_clustered_outliers(self):
+        n, t, light, clean = self._data()
+        bad = clean.copy()
+        idx = np.argsort(-(n @ _unit([-0.6, 0.2, 0.3])))[: len(bad) // 10]  # one bright patch
+        bad[idx] *= 3.0
+        robust = le.estimate_light(t, _grey(bad), Config())
+        plain = le.estimate_light(t, _grey(bad), Config(robust_iterations=0))
+        assert _angle_deg(robust.sh, light) < _angle_deg(plain.sh, light)
+
+
+class TestDegenerate:
+    def test_single_plane_rank_deficient(self):
+        # every pixel has the same normal: only one combination of coefficients is seen
+        m = 1000
+        t = np.repeat(sh.sh_basis(_unit([0.0, -1.0, 0.2]), 4)[None] * LAMBERT_PER_COEFF, m, 0)
+        light = _light()
+        rng = np.random.default_rng(0)
+        color = _grey((t @ light) * (1.0 + 0.01 * rng.normal(size=m)))
+        est = le.estimate_light(t, color, Config(estimate_rgb=True))
+        conf = est.confidence
+        assert conf.bands_estimated < 4 or conf.condition_number > le.MAX_CONDITION
+        assert conf.bands_estimated == 1  # no band-1 direction is invented from one normal
+        assert np.all(np.isfinite(est.sh)) and np.all(np.isfinite(est.sh_rgb))
+        assert np.isfinite(conf.value) and 0.0 <= conf.value <= 1.0
+        assert np.isfinite(est.residual_rel)
+        np.testing.assert_array_equal(sh.dominant_direction(est.sh), 0.0)
+
+    @pytest.mark.parametrize("rgb", [False, True])
+    def test_too_few_samples(self, rgb):
+        _, t = _synthetic(m=150)
+        est = le.estimate_light(t, _grey(t @ _light()), Config(min_samples=200,
+                                                               estimate_rgb=rgb))
+        assert est.confidence.value == 0.0 and est.confidence.samples == 150
+        assert "min_samples" in est.confidence.reason
+        np.testing.assert_array_equal(est.sh, np.zeros(16))
+        if rgb:
+            np.testing.assert_array_equal(est.sh_rgb, np.zeros((3, 16)))
+        else:
+            assert est.sh_rgb is None
+
+    def test_empty_input(self):
+        est = le.estimate_light(np.zeros((0, 16)), np.zeros((0, 3)), Config())
+        assert est.confidence.value == 0.0 and est.confidence.samples == 0
+        assert np.all(est.sh == 0)
+
+    def test_clipped_dark_and_nan_pixels_excluded(self):
+        _, t = _synthetic(m=2000)
+        light = _light()
+        color = _grey(t @ light)
+        rng = np.random.default_rng(1)
+        bad_t = rng.normal(size=(400, 16))
+        bad_color = rng.uniform(0.1, 0.9, (400, 3))
+        bad_color[:100, 0] = 0.99  # one clipped channel
+        bad_color[100:150] = np.nan
+        bad_color[150:200, 1] = np.inf
+        bad_t[200:250, 5] = np.nan
+        bad_color[250:300] = 0.001  # too dark to carry signal
+        bad_t[300:] = 0.0  # no transfer (fully occluded)
+        order = rng.permutation(2400)
+        t_all = np.concatenate([t, bad_t])[order]
+        color_all = np.concatenate([color, bad_color])[order]
+        cfg = Config(estimate_rgb=True)
+        mixed = le.estimate_light(t_all, color_all, cfg)
+        clean = le.estimate_light(t, color, cfg)
+        assert mixed.confidence.samples == 2000
+        np.testing.assert_allclose(mixed.sh, clean.sh, rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(mixed.sh_rgb, clean.sh_rgb, rtol=1e-8, atol=1e-10)
+        assert _angle_deg(mixed.sh, light) < 1.0
+
+
+class TestRgb:
+    def test_rgb_channels_and_luminance(self):
+        _, t = _synthetic()
+        base = _light(intensity=0.5, ambient=0.25)
+        warm = np.stack([1.0 * base, 0.85 * base, 0.6 * base])
+        warm[2, 0] += 0.05  # a bluish ambient
+        color = t @ warm.T
+        est = le.estimate_light(t, color, Config(estimate_rgb=True))
+        assert est.sh_rgb.shape == (3, 16)
+        np.testing.assert_allclose(le.LUMA @ est.sh_rgb, est.sh, atol=1e-9)
+        for ch in range(3):
+            assert _angle_deg(est.sh_rgb[ch], warm[ch]) < 1.0
+            assert est.sh_rgb[ch, 0] == pytest.approx(warm[ch, 0], rel=0.02)
+
+
+class TestTemporalFilter:
+    OLD = _light((0.0, 0.0, 1.0))
+    NEW = _light((1.0, 0.0, 0.0))  # 90 degrees away
+
+    def _filter(self):
+        cfg = Config()
+        return le.TemporalFilter(cfg.temporal_half_life_frames, cfg.change_reset_deg)
+
+    def test_constant_input_converges_immediately(self):
+        f = self._filter()
+        for _ in range(4):
+            np.testing.assert_allclose(f.update(self.OLD, 0.8), self.OLD, atol=1e-12)
+
+    def test_follows_a_light_change_within_three_frames(self):
+        f = self._filter()
+        for _ in range(5):
+            f.update(self.OLD, 0.8)
+        for _ in range(3):
+            state = f.update(self.NEW, 0.8)
+        assert _angle_deg(state, self.NEW) < 10.0
+
+    def test_single_outlier_frame_does_not_reset(self):
+        f = self._filter()
+        for _ in range(5):
+            f.update(self.OLD, 0.8)
+        after_outlier = f.update(self.NEW, 0.8)
+        assert _angle_deg(after_outlier, self.OLD) < 30.0
+        assert _angle_deg(after_outlier, self.OLD) < _angle_deg(after_outlier, self.NEW)
+        for _ in range(3):
+            state = f.update(self.OLD, 0.8)
+        assert _angle_deg(state, self.OLD) < 10.0
+
+    def test_zero_confidence_keeps_state(self):
+        f = self._filter()
+        unset = f.update(self.NEW, 0.0)  # nothing to keep yet: passes through, stores nothing
+        np.testing.assert_array_equal(unset, self.NEW)
+        assert f.state is None
+        f.update(self.OLD, 0.8)
+        for _ in range(3):
+            kept = f.update(self.NEW, 0.0)
+            np.testing.assert_array_equal(kept, self.OLD)
+        np.testing.assert_array_equal(f.state, self.OLD)
+        kept[0] = 123.0  # a copy is returned, the state is not aliased
+        assert f.state[0] != 123.0

@@ -1,0 +1,326 @@
+"""Radiance transfer (section 5.1, eq. 6-9 of seeds/000): SSDO visibility into per-pixel SH.
+
+The threshold chi of eq. 9 against nearest-neighbour angles, the jittered sampling, K of
+eq. 8 at its ends, the Numba kernel against the NumPy oracle (main and auxiliary buffers),
+the visibility-free transfer against the clamped-cosine convolution, a wall shadowing the
+floor, image-space sub-sampling, and the extremes (1x1, all-missing depth).
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from arlight.pipeline import radiance_transfer as rt
+from arlight.pipeline import sh
+from arlight.pipeline.camera import PinholeCamera
+from arlight.pipeline.config import Config
+
+LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
+
+
+def _random_rotation(rng):
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] *= -1
+    return q
+
+
+def _small_camera(w=12, h=9):
+    return PinholeCamera(w, h, 10.0, 10.0, (w - 1) / 2.0, (h - 1) / 2.0)
+
+
+def _random_scene(seed, w=12, h=9):
+    """Rough random depth (0.8..1.6 m, so samples of 0.5 m hit it) with holes, random normals
+    facing the camera (some unknown = 0), a random camera pose."""
+    rng = np.random.default_rng(seed)
+    camera = _small_camera(w, h)
+    depth = rng.uniform(0.8, 1.6, (h, w)).astype(np.float32)
+    depth[rng.random((h, w)) < 0.15] = 0
+    normals = rng.normal(size=(h, w, 3))
+    normals[..., 2] -= 1.5
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals[rng.random((h, w)) < 0.1] = 0
+    world_from_cam = np.eye(4)
+    world_from_cam[:3, :3] = _random_rotation(rng)
+    world_from_cam[:3, 3] = rng.normal(size=3)
+    return camera, camera.unproject(depth), normals.astype(np.float32), world_from_cam
+
+
+def _hand_made_aux(seed, resolution=16, pixel_size_m=0.1):
+    """Two orthographic buffers around the random scene: one above it looking down the
+    camera's +y, one on its +x side looking along -x; random depth (1..2 m) with holes."""
+    rng = np.random.default_rng(seed)
+    top = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # rows: buffer x, y, z in camera
+    side = np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])
+    buffer_from_cam = []
+    for rot, origin_cam in ((top, [0.0, -1.5, 1.2]), (side, [1.5, 0.0, 1.2])):
+        m = np.zeros((3, 4))
+        m[:, :3] = rot
+        m[:, 3] = -rot @ np.array(origin_cam)
+        buffer_from_cam.append(m)
+    depth = rng.uniform(1.0, 2.0, (2, resolution, resolution)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] = 0
+    return rt.AuxBufferArrays(depth, np.stack(buffer_from_cam), np.full(2, pixel_size_m))
+
+
+def _angle_deg(a, b):
+    return math.degrees(math.acos(np.clip(np.dot(a, b), -1.0, 1.0)))
+
+
+class TestVisibilityThreshold:
+    """chi of eq. 9."""
+
+    def test_octahedron_exact(self):
+        # Delaunay edges of +-x, +-y, +-z are all 90 degrees apart: chi = cos(45 deg)
+        dirs = np.vstack([np.eye(3), -np.eye(3)])
+        assert rt.visibility_threshold(dirs) == pytest.approx(math.cos(math.pi / 4), abs=1e-12)
+
+    @pytest.mark.parametrize("n", [64, 512])
+    def test_fibonacci_matches_nearest_neighbour_angles(self, n):
+        # independent estimate: each point of a near-uniform set has about 6 Delaunay
+        # neighbours, so the median of the 6 smallest angles per point ~ median edge angle
+        dirs = sh.fibonacci_sphere(n)
+        angles = np.arccos(np.clip(dirs @ dirs.T, -1.0, 1.0))
+        np.fill_diagonal(angles, np.inf)
+        median_nn = np.median(np.sort(angles, axis=1)[:, :6])
+        chi = rt.visibility_threshold(dirs)
+        assert 2.0 * math.acos(chi) == pytest.approx(median_nn, rel=0.1)
+        assert chi == pytest.approx(math.cos(median_nn / 2.0), abs=2e-3)
+
+    def test_more_directions_tighter_threshold(self):
+        chis = [rt.visibility_threshold(sh.fibonacci_sphere(n)) for n in (16, 64, 256)]
+        assert 0.0 < chis[0] < chis[1] < chis[2] < 1.0
+
+
+class TestSampling:
+    def test_jittered_directions_unit_and_deterministic(self):
+        a = rt.jittered_directions(64, np.random.default_rng(7))
+        b = rt.jittered_directions(64, np.random.default_rng(7))
+        c = rt.jittered_directions(64, np.random.default_rng(8))
+        assert a.shape == (64, 3)
+        np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1.0, atol=1e-12)
+        np.testing.assert_array_equal(a, b)
+        assert not np.allclose(a, c)
+        # jittered within its cell: each stays near its Fibonacci point
+        base = sh.fibonacci_sphere(64)
+        cell = math.sqrt(4.0 * math.pi / 64)
+        assert np.arccos(np.clip((a * base).sum(axis=1), -1, 1)).max() < 1.5 * cell
+
+    def test_pattern_deterministic_per_seed(self):
+        cfg = Config(rt_directions=32, rt_steps=3, rt_radius_m=0.4, seed=3)
+        p, q = rt.make_sampling_pattern(cfg), rt.make_sampling_pattern(cfg)
+        np.testing.assert_array_equal(p.directions, q.directions)
+        np.testing.assert_array_equal(p.radii, q.radii)
+        assert p.chi == q.chi == rt.visibility_threshold(p.directions)
+        other = rt.make_sampling_pattern(cfg.replace(seed=4))
+        assert not np.allclose(p.directions, other.directions)
+
+    def test_radii_stratified_within_radius(self):
+        cfg = Config(rt_directions=32, rt_steps=3, rt_radius_m=0.4)
+        radii = rt.make_sampling_pattern(cfg).radii
+        assert radii.shape == (2, 2, 32, 3)
+        assert radii.min() > 0.0 and radii.max() <= 0.4
+        for s in range(3):  # step s draws from (s, s + 1] / steps * radius
+            assert np.all(radii[..., s] >= s / 3 * 0.4)
+            assert np.all(radii[..., s] <= (s + 1) / 3 * 0.4)
+
+
+class TestOcclusionK:
+    """K of eq. 7-8, in the kernel's helper and the oracle's."""
+
+    CHI = 0.97
+
+    def _both(self, x, s, w):
+        k_kernel = rt._occlusion(*x, *(x + w), *s, *w, self.CHI)
+        k_ref = rt._occlusion_reference(np.array(x), np.array(s), np.array(w), self.CHI)
+        assert k_kernel == pytest.approx(k_ref, abs=1e-12)
+        return k_kernel
+
+    def test_occluder_along_w_blocks_fully(self):
+        w = np.array([0.0, 0.6, 0.8])
+        assert self._both(np.zeros(3), 0.3 * w, w) == pytest.approx(0.0, abs=1e-12)
+
+    def test_perpendicular_occluder_does_not_block(self):
+        w = np.array([0.0, 0.0, 1.0])
+        assert self._both(np.zeros(3), np.array([0.2, 0.0, 0.0]), w) == pytest.approx(1.0)
+
+    def test_rises_with_angle(self):
+        w = np.array([0.0, 0.0, 1.0])
+        k = [self._both(np.zeros(3), np.array([math.sin(a), 0.0, math.cos(a)]), w)
+             for a in np.radians([0, 20, 40, 60, 89])]
+        assert np.all(np.diff(k) > 0)
+        assert k[3] == pytest.approx((1 - math.cos(math.radians(60))) / self.CHI)
+
+    def test_coincident_points_not_occluded(self):
+        x = np.array([0.1, 0.2, 1.0])
+        assert self._both(x, x.copy(), np.array([0.0, 0.0, 1.0])) == 1.0
+
+
+class TestKernelAgainstReference:
+    @pytest.mark.parametrize("seed, step, steps", [(0, 1, 1), (1, 1, 2), (2, 2, 2)])
+    @pytest.mark.parametrize("with_aux", [False, True])
+    def test_random_scene_with_holes(self, seed, step, steps, with_aux):
+        camera, points, normals, world_from_cam = _random_scene(seed)
+        aux = _hand_made_aux(seed) if with_aux else None
+        cfg = Config(rt_directions=32, rt_steps=steps, rt_subsample=step, seed=seed)
+        pattern = rt.make_sampling_pattern(cfg)
+        fast = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, aux, cfg)
+        ref = rt.transfer_reference(points, normals, camera, world_from_cam, pattern, aux, cfg)
+        np.testing.assert_array_equal(fast.valid, ref.valid)
+        np.testing.assert_array_equal(fast.pixel_u, ref.pixel_u)
+        np.testing.assert_array_equal(fast.pixel_v, ref.pixel_v)
+        assert fast.transfer.dtype == np.float32 and fast.transfer.shape[-1] == 16
+        np.testing.assert_allclose(fast.transfer, ref.transfer, atol=1e-4)
+        # holes are invalid with zero transfer, and the scene really occludes something
+        assert 0 < fast.valid.sum() < fast.valid.size
+        assert np.all(fast.transfer[~fast.valid] == 0)
+        free = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, aux,
+                                   cfg.replace(visibility=False))
+        assert (free.transfer[..., 0] - fast.transfer[..., 0])[fast.valid].mean() > 0.05
+
+    def test_aux_buffers_add_occlusion(self):
+        camera, points, normals, world_from_cam = _random_scene(0)
+        cfg = Config(rt_directions=32)
+        pattern = rt.make_sampling_pattern(cfg)
+        main_only = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
+                                        cfg)
+        with_aux = rt.compute_transfer(points, normals, camera, world_from_cam, pattern,
+                                       _hand_made_aux(0), cfg)
+        dc_drop = (main_only.transfer[..., 0] - with_aux.transfer[..., 0])[main_only.valid]
+        assert np.all(dc_drop >= -1e-6) and dc_drop.mean() > 0.05
+
+
+class TestVisibilityFree:
+    """visibility=False: T(n) is the clamped-cosine transfer A_l Y_lm(n) (by quadrature)."""
+
+    def test_plane_facing_camera_is_lambert_convolution(self):
+        camera = _small_camera()
+        points = camera.unproject(np.full((9, 12), 1.0, np.float32))
+        normals = np.zeros_like(points)
+        normals[..., 2] = -1.0
+        world_from_cam = np.eye(4)
+        world_from_cam[:3, :3] = _random_rotation(np.random.default_rng(3))
+        cfg = Config(rt_directions=512, visibility=False)
+        res = rt.compute_transfer(points, normals, camera, world_from_cam,
+                                  rt.make_sampling_pattern(cfg), None, cfg)
+        assert res.valid.all()
+        t = res.transfer.reshape(-1, 16)
+        np.testing.assert_allclose(t, t[:1].repeat(len(t), axis=0), atol=1e-6)
+        n_world = world_from_cam[:3, :3] @ np.array([0.0, 0.0, -1.0])
+        expected = LAMBERT_PER_COEFF * sh.sh_basis(n_world, 4)
+        np.testing.assert_allclose(t[0], expected, atol=0.03)
+        # T . l reproduces the irradiance of l at the normal
+        rng = np.random.default_rng(4)
+        for _ in range(5):
+            light = rng.normal(size=16)
+            irradiance = sh.evaluate(sh.irradiance_from_radiance(light), n_world[None])[0]
+            assert float(t[0] @ light) == pytest.approx(irradiance,
+                                                        abs=0.02 * np.linalg.norm(light))
+
+
+def _floor_and_wall(w=64, h=48, wall_y=0.5, wall_height=0.5):
+    """Analytic depth of a floor z_w = 0 with a wall y_w = wall_y (0 <= z_w <= wall_height)
+    facing a camera at (0, -1.6, 1.2) that looks down at (0, 0.2, 0).
+
+    Returns camera, points (H, W, 3), normals (camera frame), world_from_cam, world points,
+    wall mask.
+    """
+    camera = PinholeCamera(w, h, 50.0, 50.0, (w - 1) / 2.0, (h - 1) / 2.0)
+    eye = np.array([0.0, -1.6, 1.2])
+    forward = np.array([0.0, 0.2, 0.0]) - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    world_from_cam = np.eye(4)
+    world_from_cam[:3, :3] = np.stack([right, down, forward], axis=1)
+    world_from_cam[:3, 3] = eye
+    rays = camera.unproject(np.ones((h, w), np.float32)).astype(np.float64)  # z = 1
+    d = rays @ world_from_cam[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_floor = np.where(d[..., 2] < 0, -eye[2] / d[..., 2], np.inf)
+        t_wall = np.where(d[..., 1] > 0, (wall_y - eye[1]) / d[..., 1], np.inf)
+    z_wall = eye[2] + t_wall * d[..., 2]
+    on_wall = (z_wall >= 0) & (z_wall <= wall_height) & (t_wall < t_floor)
+    t = np.where(on_wall, t_wall, t_floor)
+    depth = np.where(np.isfinite(t), t, 0.0).astype(np.float32)
+    n_world = np.where(on_wall[..., None], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0])
+    normals = (n_world @ world_from_cam[:3, :3]).astype(np.float32)  # R^T n per pixel
+    normals[depth == 0] = 0
+    world = eye + depth[..., None] * d
+    return camera, camera.unproject(depth), normals, world_from_cam, world, on_wall
+
+
+class TestOccluder:
+    def test_wall_shadows_the_floor_next_to_it(self):
+        camera, points, normals, world_from_cam, world, on_wall = _floor_and_wall()
+        cfg = Config(rt_directions=64, rt_steps=2)
+        res = rt.compute_transfer(points, normals, camera, world_from_cam,
+                                  rt.make_sampling_pattern(cfg), None, cfg)
+        floor = ~on_wall & res.valid
+        central = np.abs(world[..., 0]) < 0.4
+        near = floor & central & (world[..., 1] > 0.3) & (world[..., 1] < 0.45)
+        far = floor & central & (world[..., 1] > -0.8) & (world[..., 1] < -0.5)
+        assert near.sum() >= 10 and far.sum() >= 10
+        t_near, t_far = res.transfer[near].mean(axis=0), res.transfer[far].mean(axis=0)
+        # far from the wall the floor sees the whole upper hemisphere: A_0 Y_00
+        assert t_far[0] == pytest.approx(LAMBERT_PER_COEFF[0] * sh.sh_basis(
+            np.array([0.0, 0.0, 1.0]), 1)[0], rel=0.05)
+        assert t_near[0] < 0.9 * t_far[0]
+        # the wall (+y_w) blocks directions towards it: band 1 tilts to -y_w, away from it
+        d_near, d_far = sh.dominant_direction(t_near), sh.dominant_direction(t_far)
+        assert d_near[1] < -0.15
+        assert abs(d_far[1]) < 0.05 and d_far[2] > 0.99
+        assert _angle_deg(d_far, [0.0, 0.0, 1.0]) < 5.0
+
+
+class TestSubsampling:
+    def test_grid_shape_and_pixels(self):
+        camera, points, normals, world_from_cam = _random_scene(5, w=13, h=10)
+        cfg = Config(rt_directions=16, rt_subsample=4)
+        pattern = rt.make_sampling_pattern(cfg)
+        sub = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, cfg)
+        assert sub.transfer.shape == (math.ceil(10 / 4), math.ceil(13 / 4), 16)
+        assert sub.valid.shape == (3, 4)
+        np.testing.assert_array_equal(sub.pixel_u, [2, 6, 10, 12])  # last clamped to W - 1
+        np.testing.assert_array_equal(sub.pixel_v, [2, 6, 9])
+        # each grid cell is the full-resolution transfer of its pixel (same 2x2 radii)
+        full = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
+                                   cfg.replace(rt_subsample=1))
+        grid = np.ix_(sub.pixel_v, sub.pixel_u)
+        np.testing.assert_array_equal(sub.valid, full.valid[grid])
+        np.testing.assert_allclose(sub.transfer, full.transfer[grid], atol=1e-6)
+
+
+class TestExtremes:
+    @pytest.mark.parametrize("step", [1, 4])
+    def test_one_pixel_image(self, step):
+        camera = PinholeCamera(1, 1, 1.0, 1.0, 0.0, 0.0)
+        cfg = Config(rt_directions=16, rt_subsample=step)
+        pattern = rt.make_sampling_pattern(cfg)
+        normal = np.array([[[0.0, 0.0, -1.0]]], np.float32)
+        missing = rt.compute_transfer(camera.unproject(np.zeros((1, 1), np.float32)), normal,
+                                      camera, np.eye(4), pattern, None, cfg)
+        assert missing.transfer.shape == (1, 1, 16) and not missing.valid.any()
+        assert np.all(missing.transfer == 0)
+        present = rt.compute_transfer(camera.unproject(np.ones((1, 1), np.float32)), normal,
+                                      camera, np.eye(4), pattern, None, cfg)
+        assert present.valid.all() and np.all(np.isfinite(present.transfer))
+        assert present.transfer[0, 0, 0] > 0
+
+    @pytest.mark.parametrize("fill", [0.0, np.nan])
+    def test_all_missing_depth(self, fill):
+        camera = _small_camera()
+        depth = np.full((9, 12), fill, np.float32)
+        points = camera.unproject(depth)
+        normals = np.zeros((9, 12, 3), np.float32)
+        normals[..., 2] = -1.0  # even with normals, no depth means no transfer
+        cfg = Config(rt_directions=16)
+        pattern = rt.make_sampling_pattern(cfg)
+        aux = _hand_made_aux(0)
+        for fn in (rt.compute_transfer, rt.transfer_reference):
+            res = fn(points, normals, camera, np.eye(4), pattern, aux, cfg)
+            assert not res.valid.any()
+            assert np.all(res.transfer == 0)
