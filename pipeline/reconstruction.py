@@ -372,10 +372,13 @@ class VolumeReconstruction:
         if depth.shape != (cam.height, cam.width):
             raise ValueError(f"depth_m must have shape ({cam.height}, {cam.width}), "
                              f"got {depth.shape}")
+        if not np.issubdtype(depth.dtype, np.floating):
+            raise ValueError(f"depth_m must be floating-point metres, got dtype {depth.dtype} "
+                             "(convert uint16 depth with its depth_scale first)")
         color = np.asarray(color_rgb_u8)
-        if color.shape != (cam.height, cam.width, 3):
-            raise ValueError(f"color_rgb_u8 must have shape ({cam.height}, {cam.width}, 3), "
-                             f"got {color.shape}")
+        if color.shape != (cam.height, cam.width, 3) or color.dtype != np.uint8:
+            raise ValueError(f"color_rgb_u8 must be uint8 of shape ({cam.height}, {cam.width}, "
+                             f"3), got {color.dtype} {color.shape}")
         pose = _check_pose(pose, "pose")
         light = None
         if light_direction_world is not None:

@@ -497,6 +497,8 @@ class TestBadInput:
 
     @pytest.mark.parametrize("field, kwargs, match", [
         ("depth", {"depth_m": np.zeros((10, 10), np.float32)}, "depth_m"),
+        ("depth", {"depth_m": np.zeros((CAMERA.height, CAMERA.width), np.uint16)}, "depth_m"),
+        ("color", {"color_rgb_u8": np.zeros((CAMERA.height, CAMERA.width, 3))}, "color_rgb_u8"),
         ("color", {"color_rgb_u8": np.zeros((10, 10, 3), np.uint8)}, "color_rgb_u8"),
         ("pose", {"pose": np.eye(3)}, "pose"),
         ("pose", {"pose": np.full((4, 4), np.nan)}, "pose"),
