@@ -498,7 +498,7 @@ class VolumeReconstruction:
             source, index = tsdf.numpy().reshape(-1), result["index"].numpy()
         else:  # gather the 8 corner values on the device; only they travel to the host
             source = tsdf.reshape((-1,))[result["index"].reshape((-1,))].cpu().numpy()
-            index = np.arange(h * w * 8, dtype=np.int64).reshape(h, w, 8)
+            index = np.arange(h * w * 8, dtype=np.int64).reshape(h, w, 8)  # into `source`
         depth, normals = refine_ray_cast(
             result["depth"].cpu().numpy()[..., 0], source, index,
             result["mask"].cpu().numpy(), result["interp_ratio"].cpu().numpy(), self.pose,

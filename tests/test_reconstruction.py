@@ -7,6 +7,8 @@ depth maps are ray-cast in NumPy, so every expected value is known exactly.
 import numpy as np
 import open3d.core as o3c
 import pytest
+from scipy.ndimage import maximum_filter, minimum_filter
+from scipy.spatial import cKDTree
 
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
@@ -93,8 +95,6 @@ def make_pose(rot: np.ndarray, position) -> np.ndarray:
 
 def smooth_mask(depth: np.ndarray, normals: np.ndarray, radius: int = 2) -> np.ndarray:
     """Pixels whose (2 radius + 1)^2 neighbourhood has no depth or normal discontinuity."""
-    from scipy.ndimage import maximum_filter, minimum_filter
-
     size = 2 * radius + 1
     ok = minimum_filter(depth, size) > 0
     ok &= (maximum_filter(depth, size) - minimum_filter(depth, size)) < 0.05
@@ -446,8 +446,6 @@ class TestSurfacePoints:
         np.testing.assert_allclose(points[order], expected[np.lexsort(expected.T)], atol=1e-5)
         # gradients point to free space, as Open3D's normals do
         g = gradients / np.linalg.norm(gradients, axis=1, keepdims=True)
-        from scipy.spatial import cKDTree
-
         _, nearest = cKDTree(expected).query(points)
         assert np.median(np.sum(g * oracle.point.normals.numpy()[nearest], axis=1)) > 0.95
 
@@ -455,8 +453,6 @@ class TestSurfacePoints:
         recon, _ = fused
         fine, _ = recon.surface_points(1)
         coarse, _ = recon.surface_points(2)
-        from scipy.spatial import cKDTree
-
         dist, _ = cKDTree(fine).query(coarse)
         assert len(coarse) < len(fine) / 2
         assert np.percentile(dist, 99) < recon.config.voxel_size_m
