@@ -22,7 +22,10 @@ camera's, leaving striped holes.)
 from __future__ import annotations
 
 import math
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 
 import numba
@@ -190,6 +193,34 @@ def _check_pose(pose: np.ndarray | None, name: str) -> np.ndarray | None:
     return p
 
 
+_single_thread_lock = threading.Lock()
+_single_thread_users = 0
+_saved_max_threads = 0
+
+
+@contextmanager
+def _open3d_single_thread() -> Iterator[None]:
+    """Run Open3D on one CPU thread inside the block (process-wide, re-entrant across threads).
+
+    Open3D's odometry sums its normal equations with a TBB parallel reduction whose order
+    depends on thread scheduling, so the same frames could give poses differing by ~1e-5 m;
+    one thread makes tracking, and so the whole session, deterministic (DESIGN.md). While
+    any session tracks, other Open3D calls in the process also run on one thread."""
+    global _single_thread_users, _saved_max_threads
+    with _single_thread_lock:
+        if _single_thread_users == 0:
+            _saved_max_threads = o3d.utility.get_max_threads()
+            o3d.utility.set_max_threads(1)
+        _single_thread_users += 1
+    try:
+        yield
+    finally:
+        with _single_thread_lock:
+            _single_thread_users -= 1
+            if _single_thread_users == 0:
+                o3d.utility.set_max_threads(_saved_max_threads)
+
+
 def _rotation_angle(rot: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)))
 
@@ -335,12 +366,42 @@ class VolumeReconstruction:
             attr_channels=[[1], [1]], voxel_size=c.voxel_size_m,
             block_resolution=c.block_resolution, block_count=c.block_count,
             device=self.device)
+        self._reserve_range_map()
         self.pose = np.eye(4)  # world_from_cam of the latest frame
         self.frame_index = 0  # frames processed
         self.frames_integrated = 0
         self._model_depth: o3c.Tensor | None = None  # D_v of the previous frame, on device
         self._aux_cache: list[OrthoBuffer] = []
         self._aux_age = 0  # frames since the aux buffers were rendered
+
+    def _reserve_range_map(self) -> None:
+        """Grow Open3D's ray-casting fragment buffer once, up front, to config.block_count.
+
+        VoxelBlockGrid.ray_cast keeps a buffer of range-map fragments (about one per block in
+        view) and, when a cast needs more than it holds, drops one fragment of that cast (which
+        one depends on thread timing: holes in D_v that differ from run to run) and enlarges
+        the buffer for the next call. Casting once against block_count placeholder blocks in
+        front of the camera (not inserted into V) sizes it so that this does not happen while
+        fewer blocks are in view.
+        """
+        cam, c = self.camera, self.config
+        block_m = c.voxel_size_m * c.block_resolution
+        # one layer of blocks filling the view, far enough to hold block_count of them (one
+        # thin layer keeps the cast itself short: every ray stops after a block or two)
+        view = (cam.width / cam.fx) * (cam.height / cam.fy)
+        z = int(np.ceil(np.sqrt(c.block_count / view))) + 2
+        zc = (z + 0.5) * block_m
+        xs = np.arange(np.floor(-cam.cx / cam.fx * zc / block_m),
+                       np.ceil((cam.width - 1 - cam.cx) / cam.fx * zc / block_m))
+        ys = np.arange(np.floor(-cam.cy / cam.fy * zc / block_m),
+                       np.ceil((cam.height - 1 - cam.cy) / cam.fy * zc / block_m))
+        gx, gy = np.meshgrid(xs, ys)
+        keys = o3c.Tensor(np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], axis=1)
+                          .astype(np.int32), o3c.int32, self.device)
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            self._grid.ray_cast(keys, self._intrinsic, o3c.Tensor(np.eye(4)), cam.width,
+                                cam.height, ["depth"], 1.0, c.depth_min_m, 2.0 * zc + 1.0,
+                                1.0, c.sdf_trunc_voxels)
 
     @property
     def voxel_grid(self) -> o3d.t.geometry.VoxelBlockGrid:
@@ -439,13 +500,15 @@ class VolumeReconstruction:
         if int((model > 0).to(o3c.int64).sum().item()) < TRACKING_MIN_VALID_PIXELS:
             return False
         odometry = o3d.t.pipelines.odometry
+        on_cpu = self.device.get_type() == o3c.Device.DeviceType.CPU
         try:
             # point-to-plane odometry reads depth only; the colour slot holds a placeholder
-            result = odometry.rgbd_odometry_multi_scale(
-                o3d.t.geometry.RGBDImage(self._no_color, depth_image),
-                o3d.t.geometry.RGBDImage(self._no_color, o3d.t.geometry.Image(model)),
-                self._intrinsic, o3c.Tensor(np.eye(4)), 1.0, self.config.depth_max_m,
-                self._criteria, odometry.Method.PointToPlane, self._loss)
+            with _open3d_single_thread() if on_cpu else nullcontext():
+                result = odometry.rgbd_odometry_multi_scale(
+                    o3d.t.geometry.RGBDImage(self._no_color, depth_image),
+                    o3d.t.geometry.RGBDImage(self._no_color, o3d.t.geometry.Image(model)),
+                    self._intrinsic, o3c.Tensor(np.eye(4)), 1.0, self.config.depth_max_m,
+                    self._criteria, odometry.Method.PointToPlane, self._loss)
         except RuntimeError:
             return False
         prev_from_cur = result.transformation.numpy()
