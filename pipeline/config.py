@@ -49,6 +49,7 @@ class Config:
     # D''' median (eq. 5)
     denoise: bool = True
     denoise_window: int = 2  # k
+    normal_window: int = 15  # box window (pixels) over depth before normals (1 = raw depth)
 
     # Radiance transfer (section 5.1)
     sh_bands: int = 4  # L: L*L coefficients
@@ -56,6 +57,9 @@ class Config:
     rt_radius_m: float = 0.5  # largest sample displacement along a direction
     rt_thickness_m: float = 0.3  # a sample further than this behind a surface is not occluded
     rt_steps: int = 1  # samples along each direction (1 = the paper's single SSDO sample)
+    # eq. 8 as printed, K = min(chi, 1 - t.w) / chi ("paper"), or K ramping over the
+    # half-angle between neighbouring directions, min(1 - chi, 1 - t.w) / (1 - chi) ("half")
+    rt_visibility_ramp: str = "paper"
     rt_subsample: int = 1  # image-space sub-sampling (fast: 4)
     visibility: bool = True  # False: K = 1 everywhere (the no-visibility baseline)
 
@@ -75,6 +79,10 @@ class Config:
             raise ValueError(f"sh_bands must be in 1..12, got {self.sh_bands}")
         if self.rt_directions < 4:
             raise ValueError(f"rt_directions must be >= 4, got {self.rt_directions}")
+        if self.min_samples < 1:
+            raise ValueError(f"min_samples must be >= 1, got {self.min_samples}")
+        if self.rt_steps < 1:
+            raise ValueError(f"rt_steps must be >= 1, got {self.rt_steps}")
         if self.rt_subsample < 1:
             raise ValueError(f"rt_subsample must be >= 1, got {self.rt_subsample}")
         if self.volume_resolution < 8:

@@ -118,7 +118,9 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
         if labels is not None:
             albedo = _segment_albedo(t[:, : bands * bands] @ coeffs, lum, labels, weights)
         pred = albedo * (t[:, : bands * bands] @ coeffs)
-        rel = (pred - lum) / np.maximum(lum, DARK_LEVEL)
+        # relative to the prediction, not the observation: a wrongly bright patch then has
+        # a large residual and a correct dark pixel a small one
+        rel = (pred - lum) / np.maximum(pred, DARK_LEVEL)
         sigma = 1.4826 * np.median(np.abs(rel - np.median(rel))) + 1e-6
         a = np.abs(rel) / (1.345 * sigma)
         weights = np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))  # Huber

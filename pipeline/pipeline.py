@@ -10,6 +10,7 @@ import logging
 import time
 from contextlib import contextmanager
 
+import cv2
 import numpy as np
 
 from arlight.pipeline import sh
@@ -77,6 +78,26 @@ def validate_frame(frame: FrameInput, camera: PinholeCamera) -> tuple[np.ndarray
     return color, depth
 
 
+def smooth_depth_for_normals(depth_m: np.ndarray, window: int) -> np.ndarray:
+    """Validity-weighted box mean of depth over `window` pixels, for normals only.
+
+    One-pixel differences of sensor depth give normals that are mostly noise (Kinect noise at
+    2-3 m is as large as the pixel footprint), and least squares on such normals explains
+    albedo texture as shading. Pixels whose mean departs from their own depth by > 3 % (depth
+    edges) are left out (0).
+    """
+    if window <= 1:
+        return depth_m
+    valid = (depth_m > 0).astype(np.float32)
+    num = cv2.boxFilter(depth_m, -1, (window, window), normalize=False,
+                        borderType=cv2.BORDER_CONSTANT)
+    den = cv2.boxFilter(valid, -1, (window, window), normalize=False,
+                        borderType=cv2.BORDER_CONSTANT)
+    mean = np.where(den > 0, num / np.maximum(den, 1e-6), 0.0)
+    keep = (depth_m > 0) & (np.abs(mean - depth_m) < 0.03 * depth_m)
+    return np.where(keep, mean, 0.0).astype(np.float32)
+
+
 class Pipeline:
     """Holds one session's state (volume, pose, temporal filter); see DESIGN.md.
 
@@ -133,7 +154,8 @@ class Pipeline:
 
         with stage("DynGeo"):
             depth_filtered, _ = filter_depth(depth, depth_volume, intensity, self.config)
-            normals = normals_from_depth(depth_filtered, self.camera)
+            normals = normals_from_depth(
+                smooth_depth_for_normals(depth_filtered, self.config.normal_window), self.camera)
             points = self.camera.unproject(depth_filtered)
 
         with stage("RadTransfer"):

@@ -77,6 +77,17 @@ def make_sampling_pattern(config: Config) -> SamplingPattern:
     return SamplingPattern(dirs, radii.astype(np.float64), visibility_threshold(dirs))
 
 
+def visibility_ramp(pattern: SamplingPattern, config: Config) -> float:
+    """The threshold c of K = min(c, 1 - t.w) / c: chi as printed in eq. 8 ("paper"), or
+    1 - chi so K ramps over half the neighbour angle ("half")."""
+    if config.rt_visibility_ramp == "paper":
+        return pattern.chi
+    if config.rt_visibility_ramp == "half":
+        return 1.0 - pattern.chi
+    raise ValueError(f"rt_visibility_ramp must be 'paper' or 'half', got "
+                     f"{config.rt_visibility_ramp!r}")
+
+
 @dataclass
 class AuxBufferArrays:
     """Auxiliary orthographic buffers packed for the kernel.
@@ -113,7 +124,7 @@ def _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi):
     if norm < 1e-9:
         return 1.0
     cos_tw = (tx * wx + ty * wy + tz * wz) / norm
-    return min(chi, 1.0 - cos_tw) / chi
+    return min(chi, 1.0 - cos_tw) / chi if chi > 0.0 else 1.0
 
 
 @register_jitable
@@ -244,7 +255,8 @@ def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: Pi
     depth = np.ascontiguousarray(points[..., 2])
     _transfer_cpu(points, np.ascontiguousarray(normals_cam, dtype=np.float32), depth,
                   camera.fx, camera.fy, camera.cx, camera.cy, pattern.directions, ysh,
-                  pattern.radii, aux.depth, aux.buffer_from_cam, aux.pixel_size, pattern.chi,
+                  pattern.radii, aux.depth, aux.buffer_from_cam, aux.pixel_size,
+                  visibility_ramp(pattern, config),
                   BIAS_ABS_M, BIAS_REL, config.rt_thickness_m, config.visibility, step,
                   transfer, valid)
     u = np.minimum(np.arange(ws) * step + step // 2, w - 1)
@@ -331,6 +343,7 @@ def transfer_reference(points_cam: np.ndarray, normals_cam: np.ndarray, camera: 
                     for s in range(pattern.radii.shape[3]):
                         radius = float(pattern.radii[vi % 2, ui % 2, j, s])
                         k = min(k, _visibility_reference(x, wdir, radius, depth, camera, aux,
-                                                         pattern.chi, config.rt_thickness_m))
+                                                         visibility_ramp(pattern, config),
+                                                         config.rt_thickness_m))
                 transfer[i, jj] += k * cos_n * weight * ysh[j]
     return TransferResult(transfer.astype(np.float32), valid, u_grid, v_grid)

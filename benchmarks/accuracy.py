@@ -1,0 +1,93 @@
+"""Accuracy of the dominant light direction against ground truth (../shared/data/synthetic).
+
+For every sequence: run the Pipeline over all frames with the ground-truth poses and report
+the median and 90th percentile of the angular error of dominant_direction_camera against
+lighting_gt.json, for `full`, `fast` and the no-visibility baseline (K = 1, else `full`).
+
+    .venv/bin/python benchmarks/accuracy.py [--configs full fast baseline] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from arlight.client.datasets import open_sequence
+from arlight.pipeline.config import Config
+from arlight.pipeline.pipeline import Pipeline
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
+CONFIGS = {
+    "full": lambda **kw: Config.from_preset("full", **kw),
+    "fast": lambda **kw: Config.from_preset("fast", **kw),
+    "baseline": lambda **kw: Config.from_preset("full", visibility=False, **kw),
+}
+
+
+def angle_deg(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    na, nb = np.linalg.norm(a), np.linalg.norm(b)
+    if na == 0 or nb == 0:
+        return 180.0  # no estimate counts as the worst error
+    return math.degrees(math.acos(float(np.clip(a @ b / (na * nb), -1, 1))))
+
+
+def evaluate_sequence(folder: Path, config: Config, max_frames: int | None = None) -> np.ndarray:
+    """Per-frame angular errors (degrees) of dominant_direction_camera."""
+    seq = open_sequence(folder, use_poses=True, max_frames=max_frames)
+    truth = json.loads((folder / "lighting_gt.json").read_text())["frames"]
+    pipeline = Pipeline(config, seq.camera)
+    errors = []
+    for i, frame in enumerate(seq.frames):
+        result = pipeline.process(frame)
+        errors.append(angle_deg(result.dominant_direction_camera,
+                                truth[i]["dominant_dir_camera"]))
+    return np.array(errors)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    parser.add_argument("--sequences", nargs="*", help="names (default: all)")
+    parser.add_argument("--max-frames", type=int)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a Config field for every configuration")
+    parser.add_argument("--json", help="write the table as JSON")
+    args = parser.parse_args(argv)
+    if not DATA.is_dir():
+        print(f"no ground-truth data at {DATA}", file=sys.stderr)
+        return 2
+    overrides = {}
+    for kv in args.set:
+        k, v = kv.split("=", 1)
+        overrides[k] = json.loads(v) if v not in ("True", "False") else v == "True"
+    seqs = sorted(p for p in DATA.iterdir() if (p / "lighting_gt.json").exists())
+    if args.sequences:
+        seqs = [p for p in seqs if p.name in args.sequences]
+    table = {}
+    print(f"{'sequence':34s}" + "".join(f"{c + ' med/p90':>20s}" for c in args.configs))
+    for folder in seqs:
+        row = {}
+        for name in args.configs:
+            t0 = time.perf_counter()
+            e = evaluate_sequence(folder, CONFIGS[name](**overrides), args.max_frames)
+            row[name] = {"median_deg": float(np.median(e)), "p90_deg": float(np.percentile(e, 90)),
+                         "per_frame_deg": [round(float(x), 2) for x in e],
+                         "seconds": time.perf_counter() - t0}
+        table[folder.name] = row
+        print(f"{folder.name:34s}" + "".join(
+            f"{row[c]['median_deg']:>12.1f} /{row[c]['p90_deg']:>6.1f}" for c in args.configs),
+            flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(table, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
