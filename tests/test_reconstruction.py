@@ -463,6 +463,22 @@ class TestSurfacePoints:
             recon.surface_points(3)
 
 
+class TestDeterminism:
+    def test_same_frames_same_results(self):
+        """DESIGN.md: the same frames give the same results (tracking included)."""
+        runs = []
+        for _ in range(2):
+            recon = VolumeReconstruction(config(aux_update_interval=2), CAMERA)
+            runs.append([recon.process(COLOR, render_scene(CAMERA, p)[0], None, LIGHT)
+                         for p in POSES])
+        for a, b in zip(*runs, strict=True):
+            np.testing.assert_array_equal(a.pose, b.pose)
+            np.testing.assert_array_equal(a.depth_volume_m, b.depth_volume_m)
+            np.testing.assert_array_equal(a.normals_volume, b.normals_volume)
+            for x, y in zip(a.aux_buffers, b.aux_buffers, strict=True):
+                np.testing.assert_array_equal(x.depth_m, y.depth_m)
+
+
 # ------------------------------------------------------------------ robustness
 class TestBadInput:
     @pytest.mark.parametrize("fill", [0.0, np.nan])
