@@ -161,11 +161,8 @@ class TestOutliers:
         assert robust.sh[0] == pytest.approx(light[0], rel=0.05)
         assert abs(robust.sh[0] - light[0]) < abs(plain.sh[0] - light[0])
 
-    @pytest.mark.xfail(strict=True, reason="known limitation: Huber weights on the residual "
-                       "relative to the observed luminance barely down-weight a bright "
-                       "cluster (x3 gives |rel| <= 2/3), while dark inliers get large "
-                       "relative residuals; robust ends up worse than plain least squares")
     def test_clustered_outliers(self):
+        """A bright patch (x3) is down-weighted: residuals are relative to the prediction."""
         n, t, light, clean = self._data()
         bad = clean.copy()
         idx = np.argsort(-(n @ _unit([-0.6, 0.2, 0.3])))[: len(bad) // 10]  # one bright patch

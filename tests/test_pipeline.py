@@ -53,7 +53,7 @@ class TestProcess:
         degrees of the truth (measured: 59). Accuracy proper is measured and pinned on
         ../shared/data (test_accuracy.py)."""
         pipe = Pipeline(Config.from_preset("full", **SMALL), clean_sequence.camera)
-        for i, frame in enumerate(clean_sequence.frames):
+        for frame in clean_sequence.frames:
             result = pipe.process(frame)
         assert result.dominant_direction_world[1] > 0.2
         assert _angle(result.dominant_direction_world,
