@@ -51,6 +51,11 @@ TRACKING_MIN_VALID_PIXELS = 100  # fewer valid depth pixels (input or model): no
 # frames, as Open3D's slam.Model does, so the first frame already gives D_v).
 WEIGHT_THRESHOLD = 3.0
 
+# Open3D's ray-casting range map: one entry per 8 x 8 pixels (its default)
+RANGE_MAP_DOWN_FACTOR = 8
+# Open3D's VoxelBlockGrid.compute_unique_block_coordinates(depth) looks at every 4th pixel
+BLOCK_TOUCH_STRIDE = 4
+
 # Auxiliary buffers: centre at the median of D_v along the optical axis (this when D_v is empty)
 AUX_FALLBACK_CENTRE_DEPTH_M = 1.5
 AUX_NAMES = ("left", "right", "top", "light")
@@ -219,6 +224,19 @@ def _open3d_single_thread() -> Iterator[None]:
             _single_thread_users -= 1
             if _single_thread_users == 0:
                 o3d.utility.set_max_threads(_saved_max_threads)
+
+
+def _padded(size: int) -> int:
+    """`size` rounded up to a multiple of RANGE_MAP_DOWN_FACTOR.
+
+    Open3D's ray caster reads its range map (one entry per RANGE_MAP_DOWN_FACTOR^2 pixels)
+    at pixel // factor but sizes it size // factor: the last rows or columns of an image
+    whose size is not a multiple read past its end, and the cast then returns holes or never
+    finishes (seen with 80x60 and 112x84 images). Casting a padded image and cropping it
+    avoids that; the principal point stays where it is.
+    """
+    f = RANGE_MAP_DOWN_FACTOR
+    return -(-size // f) * f
 
 
 def _rotation_angle(rot: np.ndarray) -> float:
@@ -399,9 +417,10 @@ class VolumeReconstruction:
         keys = o3c.Tensor(np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], axis=1)
                           .astype(np.int32), o3c.int32, self.device)
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            self._grid.ray_cast(keys, self._intrinsic, o3c.Tensor(np.eye(4)), cam.width,
-                                cam.height, ["depth"], 1.0, c.depth_min_m, 2.0 * zc + 1.0,
-                                1.0, c.sdf_trunc_voxels)
+            self._grid.ray_cast(keys, self._intrinsic, o3c.Tensor(np.eye(4)),
+                                _padded(cam.width), _padded(cam.height), ["depth"], 1.0,
+                                c.depth_min_m, 2.0 * zc + 1.0, 1.0, c.sdf_trunc_voxels,
+                                RANGE_MAP_DOWN_FACTOR)
 
     @property
     def voxel_grid(self) -> o3d.t.geometry.VoxelBlockGrid:
@@ -464,15 +483,15 @@ class VolumeReconstruction:
         with np.errstate(invalid="ignore"):
             valid = np.isfinite(depth) & (depth >= c.depth_min_m) & (depth <= c.depth_max_m)
         n_valid = int(np.count_nonzero(valid))
-        depth_image = o3d.t.geometry.Image(
-            o3c.Tensor(np.where(valid, depth, 0.0).astype(np.float32), device=self.device))
+        depth_clean = np.where(valid, depth, 0.0).astype(np.float32)
+        depth_image = o3d.t.geometry.Image(o3c.Tensor(depth_clean, device=self.device))
         if pose is not None:
             self.pose = pose
         elif self.frame_index > 0 and self.num_blocks > 0:
             tracking_ok = self._track(depth_image, n_valid)
         # (pose None and V still empty: this frame starts the map at the current pose)
         if tracking_ok and n_valid > 0:
-            self._integrate(depth_image)
+            self._integrate(depth_clean)
         self._sync()
         t1 = time.perf_counter()
 
@@ -522,16 +541,39 @@ class VolumeReconstruction:
         self.pose = self.pose @ prev_from_cur
         return True
 
-    def _integrate(self, depth_image: o3d.t.geometry.Image) -> bool:
-        c = self.config
+    def _integrate(self, depth_m: np.ndarray) -> bool:
+        """Fuse depth (H, W) float32 metres (0 = missing) into V at self.pose."""
+        c, cam = self.config, self.camera
         extrinsic = o3c.Tensor(np.linalg.inv(self.pose))
-        try:
-            blocks = self._grid.compute_unique_block_coordinates(
-                depth_image, self._intrinsic, extrinsic, 1.0, c.depth_max_m, c.sdf_trunc_voxels)
-            self._grid.integrate(blocks, depth_image, self._intrinsic_integrate, extrinsic,
-                                 1.0, c.depth_max_m, c.sdf_trunc_voxels)
-        except RuntimeError:  # Open3D aborts when no block is touched (nothing in range)
+        depth_image = o3d.t.geometry.Image(o3c.Tensor(depth_m, device=self.device))
+        # Open3D allocates blocks around pixels (s i, s j), i < H // s, j < W // s (stride
+        # s = BLOCK_TOUCH_STRIDE), so the last rows and columns can be left without blocks;
+        # a second pass over the image cropped and zero-padded to put them on that grid
+        # covers them.
+        s = BLOCK_TOUCH_STRIDE
+        sy, sx = (cam.height - 1) % s, (cam.width - 1) % s
+        k_shifted = cam.matrix.copy()
+        k_shifted[0, 2] -= sx
+        k_shifted[1, 2] -= sy
+        shifted = np.pad(depth_m[sy:, sx:], ((0, s), (0, s)))
+        passes = [(depth_image, self._intrinsic),
+                  (o3d.t.geometry.Image(o3c.Tensor(shifted, device=self.device)),
+                   o3c.Tensor(k_shifted))]
+        found = []
+        for image, intrinsic in passes:
+            try:
+                found.append(self._grid.compute_unique_block_coordinates(
+                    image, intrinsic, extrinsic, 1.0, c.depth_max_m, c.sdf_trunc_voxels))
+            except RuntimeError:  # Open3D aborts when no block is touched (nothing in range)
+                pass
+        if not found:
             return False
+        blocks = found[0]
+        if len(found) > 1:
+            keys = np.unique(np.concatenate([b.cpu().numpy() for b in found]), axis=0)
+            blocks = o3c.Tensor(keys.astype(np.int32), o3c.int32, self.device)
+        self._grid.integrate(blocks, depth_image, self._intrinsic_integrate, extrinsic, 1.0,
+                             c.depth_max_m, c.sdf_trunc_voxels)
         self.frames_integrated += 1
         return True
 
@@ -550,22 +592,24 @@ class VolumeReconstruction:
         self._model_depth = None
         if self.num_blocks == 0:
             return np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32)
+        hp, wp = _padded(h), _padded(w)
         # Open3D warns while it grows its range-map buffer; that is expected, not a problem
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             result = self._grid.ray_cast(
                 self._active_blocks(), self._intrinsic, o3c.Tensor(np.linalg.inv(self.pose)),
-                w, h, ["depth", "index", "mask", "interp_ratio"], 1.0, c.depth_min_m,
-                c.depth_max_m, self._weight_threshold(), c.sdf_trunc_voxels)
+                wp, hp, ["depth", "index", "mask", "interp_ratio"], 1.0, c.depth_min_m,
+                c.depth_max_m, self._weight_threshold(), c.sdf_trunc_voxels,
+                RANGE_MAP_DOWN_FACTOR)
         tsdf = self._grid.attribute("tsdf")
         if self.device.get_type() == o3c.Device.DeviceType.CPU:
-            source, index = tsdf.numpy().reshape(-1), result["index"].numpy()
+            source, index = tsdf.numpy().reshape(-1), result["index"].numpy()[:h, :w]
         else:  # gather the 8 corner values on the device; only they travel to the host
             source = tsdf.reshape((-1,))[result["index"].reshape((-1,))].cpu().numpy()
-            index = np.arange(h * w * 8, dtype=np.int64).reshape(h, w, 8)  # into `source`
+            index = np.arange(hp * wp * 8, dtype=np.int64).reshape(hp, wp, 8)[:h, :w]
         depth, normals = refine_ray_cast(
-            result["depth"].cpu().numpy()[..., 0], source, index,
-            result["mask"].cpu().numpy(), result["interp_ratio"].cpu().numpy(), self.pose,
-            cam, c.voxel_size_m)
+            result["depth"].cpu().numpy()[:h, :w, 0], source, index,
+            result["mask"].cpu().numpy()[:h, :w], result["interp_ratio"].cpu().numpy()[:h, :w],
+            self.pose, cam, c.voxel_size_m)
         self._model_depth = o3c.Tensor(depth, device=self.device)
         return depth, normals
 

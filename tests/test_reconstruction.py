@@ -524,6 +524,21 @@ class TestBadInput:
         with pytest.raises(ValueError, match=match):
             recon.process(**args)
 
+    @pytest.mark.parametrize("size", [(100, 75), (81, 61), (320, 240)])
+    def test_image_borders_reach_the_volume(self, size):
+        """Open3D samples every 4th pixel to allocate blocks and reads its ray-casting range
+        map past its end for sizes that are not multiples of 8 (holes, or a hang); the last
+        rows and columns must still get D_v."""
+        camera = PinholeCamera.kinect_v1(*size)
+        recon = VolumeReconstruction(config(aux_buffers=False), camera)
+        plane = np.full((size[1], size[0]), 1.5, np.float32)  # facing the camera
+        for _ in range(2):
+            out = recon.process(np.zeros((size[1], size[0], 3), np.uint8), plane, np.eye(4))
+        valid = out.depth_volume_m > 0
+        assert valid[1:-1, 1:-1].mean() > 0.95
+        assert valid[-3:-1, 1:-1].mean() > 0.9 and valid[1:-1, -3:-1].mean() > 0.9
+        assert np.abs(out.depth_volume_m[valid] - 1.5).max() < 0.25 * recon.config.voxel_size_m
+
     def test_without_volume(self):
         recon = VolumeReconstruction(config(use_volume=False), CAMERA)
         out = recon.process(COLOR, render_scene(CAMERA, POSES[1])[0], POSES[1])
