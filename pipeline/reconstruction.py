@@ -17,6 +17,20 @@ their front (free) side, so a wall seen from behind is transparent. (Ray casting
 distant telephoto pinhole was tried and rejected: Open3D's ray caster skips empty blocks in
 whole-block steps and so jumps over thin TSDF bands seen at other angles than the fusing
 camera's, leaving striped holes.)
+
+Open3D 0.20 behaviours this module corrects or avoids, each measured on exact synthetic
+depth (tests/test_reconstruction.py):
+- integration reads the depth pixel by truncating the projected coordinates (a half-pixel
+  shift of the fused surface, hence of every tracked pose): integrate with cx, cy + 0.5;
+- the ray caster samples the TSDF at the voxel corner below each step (surface off by up to a
+  voxel): one Newton step on the trilinear TSDF (`refine_ray_cast`, a Numba kernel);
+- block allocation looks at every 4th pixel only (last rows/columns lose their blocks): a
+  second, shifted pass;
+- the ray caster's range map overruns for image sizes that are not multiples of 8 (holes or
+  a hang): cast a padded image;
+- its fragment buffer drops a fragment whenever it grows (holes that vary from run to run):
+  reserve it once per session;
+- odometry sums with a TBB reduction (poses vary by ~1e-5 m run to run): track on one thread.
 """
 
 from __future__ import annotations
@@ -59,8 +73,6 @@ BLOCK_TOUCH_STRIDE = 4
 # Auxiliary buffers: centre at the median of D_v along the optical axis (this when D_v is empty)
 AUX_FALLBACK_CENTRE_DEPTH_M = 1.5
 AUX_NAMES = ("left", "right", "top", "light")
-
-_MIN_WEIGHT = 1.0
 
 
 @dataclass
@@ -348,7 +360,11 @@ class VolumeReconstruction:
         config.block_resolution^3 voxels with an initial hash-map capacity of
         config.block_count blocks, which grows when exceeded; TSDF truncation
         config.sdf_trunc_voxels voxels; depth range config.depth_min_m..depth_max_m).
+        V is not clipped to a volume_size_m cube: that size only sets the voxel size, and
+        V extends wherever depth within depth_max_m is seen (see num_blocks).
     camera: intrinsics of the depth images (registered to colour).
+
+    One instance per session; not safe to call from several threads at once.
     """
 
     def __init__(self, config: Config, camera: PinholeCamera):
@@ -578,7 +594,7 @@ class VolumeReconstruction:
         return True
 
     def _weight_threshold(self) -> float:
-        return max(_MIN_WEIGHT, min(float(self.frames_integrated), WEIGHT_THRESHOLD))
+        return max(1.0, min(float(self.frames_integrated), WEIGHT_THRESHOLD))
 
     def _active_blocks(self) -> o3c.Tensor:
         hashmap = self._grid.hashmap()
