@@ -19,10 +19,10 @@ from accuracy import DATA, evaluate_sequence  # noqa: E402
 
 # measured median (degrees) + margin
 PINNED_MEDIAN_DEG = {
-    "dev_a_static_venice": 30.6 + 3.0,
-    "dev_b_dynamic_potsdamer": 8.8 + 3.0,
-    "dev_c_lightswitch_forest_kiara": 14.1 + 3.0,
-    "dev_d_indoor_warehouse": 6.9 + 3.0,
+    "dev_a_static_venice": 30.6 + 5.0,
+    "dev_b_dynamic_potsdamer": 8.8 + 5.0,
+    "dev_c_lightswitch_forest_kiara": 14.1 + 5.0,
+    "dev_d_indoor_warehouse": 6.9 + 5.0,
 }
 
 pytestmark = pytest.mark.skipif(not DATA.is_dir(),
