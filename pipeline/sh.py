@@ -234,6 +234,15 @@ def irradiance_from_radiance(coeffs: np.ndarray) -> np.ndarray:
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0])
 
 
+def _first_three_bands(sh_rgb: np.ndarray, rotation: np.ndarray | None) -> np.ndarray:
+    """(3, 9) bands 0..2 of (3, n >= 9) RGB coefficients, optionally rotated."""
+    c = np.asarray(sh_rgb, dtype=np.float64)
+    if c.ndim != 2 or c.shape[0] != 3 or c.shape[1] < 9:
+        raise ValueError(f"sh_rgb must have shape (3, >=9), got {c.shape}")
+    c = c[:, :9]
+    return rotate(c, rotation) if rotation is not None else c
+
+
 def to_arcore_27(sh_rgb: np.ndarray, rotation: np.ndarray | None = None) -> list[float]:
     """ARCore `environmentalHdrAmbientSphericalHarmonics` layout: 27 floats.
 
@@ -244,13 +253,7 @@ def to_arcore_27(sh_rgb: np.ndarray, rotation: np.ndarray | None = None) -> list
     to rotate the light into that frame first, e.g. ``GL_FROM_CV @ R_cam_world`` for the
     current camera's OpenGL frame.
     """
-    c = np.asarray(sh_rgb, dtype=np.float64)
-    if c.ndim != 2 or c.shape[0] != 3 or c.shape[1] < 9:
-        raise ValueError(f"sh_rgb must have shape (3, >=9), got {c.shape}")
-    c = c[:, :9]
-    if rotation is not None:
-        c = rotate(c, rotation)
-    return [float(v) for v in c.T.reshape(-1)]
+    return [float(v) for v in _first_three_bands(sh_rgb, rotation).T.reshape(-1)]
 
 
 def to_planar_27(sh_rgb: np.ndarray, rotation: np.ndarray | None = None) -> list[float]:
@@ -259,10 +262,4 @@ def to_planar_27(sh_rgb: np.ndarray, rotation: np.ndarray | None = None) -> list
     Same basis, order, units (raw radiance) and optional frame rotation as
     :func:`to_arcore_27`; only the memory layout differs (one plane per colour channel).
     """
-    c = np.asarray(sh_rgb, dtype=np.float64)
-    if c.ndim != 2 or c.shape[0] != 3 or c.shape[1] < 9:
-        raise ValueError(f"sh_rgb must have shape (3, >=9), got {c.shape}")
-    c = c[:, :9]
-    if rotation is not None:
-        c = rotate(c, rotation)
-    return [float(v) for v in c.reshape(-1)]
+    return [float(v) for v in _first_three_bands(sh_rgb, rotation).reshape(-1)]
