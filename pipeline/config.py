@@ -61,6 +61,7 @@ class Config:
     # half-angle between neighbouring directions, min(1 - chi, 1 - t.w) / (1 - chi) ("half")
     rt_visibility_ramp: str = "paper"
     rt_subsample: int = 1  # image-space sub-sampling (fast: 4)
+    rt_upsample: bool = True  # sub-sampled transfer interpolated back to every pixel
     visibility: bool = True  # False: K = 1 everywhere (the no-visibility baseline)
 
     # Light estimation (section 5.2)

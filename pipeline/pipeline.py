@@ -28,6 +28,7 @@ from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
     compute_transfer,
     make_sampling_pattern,
+    upsample_transfer,
 )
 from arlight.pipeline.segmentation import material_segments
 
@@ -162,6 +163,9 @@ class Pipeline:
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
             transfer = compute_transfer(points, normals, self.camera, pose, self.pattern, aux,
                                         self.config)
+            if self.config.rt_upsample and self.config.rt_subsample > 1:
+                has_geometry = (depth_filtered > 0) & np.any(normals != 0, axis=2)
+                transfer = upsample_transfer(transfer, has_geometry)
 
         with stage("LightEst"):
             estimate = self._estimate(transfer, color_linear, depth_filtered)

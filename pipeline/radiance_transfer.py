@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numba
 import numpy as np
 from numba.extending import register_jitable
@@ -262,6 +263,31 @@ def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: Pi
     u = np.minimum(np.arange(ws) * step + step // 2, w - 1)
     v = np.minimum(np.arange(hs) * step + step // 2, h - 1)
     return TransferResult(transfer.astype(np.float32), valid, u, v)
+
+
+def upsample_transfer(result: TransferResult, valid_full: np.ndarray) -> TransferResult:
+    """Sub-sampled transfer -> every pixel of the image ("OursFast": up-sampling in image
+    space), by normalised bilinear interpolation between the valid grid points.
+
+    valid_full: (H, W) bool, pixels with geometry (depth and normal). A pixel is kept when
+    all grid points around it are valid, so no transfer is borrowed across a hole or a
+    depth edge the grid saw. Identity when the grid is already full resolution.
+    """
+    h, w = valid_full.shape
+    hs, ws = result.valid.shape
+    if hs == h and ws == w:
+        return result
+    # fractional grid index of every pixel (exact also for the clamped last row/column)
+    map_u = np.interp(np.arange(w), result.pixel_u, np.arange(ws)).astype(np.float32)
+    map_v = np.interp(np.arange(h), result.pixel_v, np.arange(hs)).astype(np.float32)
+    map_x = np.ascontiguousarray(np.broadcast_to(map_u[None, :], (h, w)))
+    map_y = np.ascontiguousarray(np.broadcast_to(map_v[:, None], (h, w)))
+    weight = result.valid.astype(np.float32)
+    num = cv2.remap(result.transfer * weight[..., None], map_x, map_y, cv2.INTER_LINEAR)
+    den = cv2.remap(weight, map_x, map_y, cv2.INTER_LINEAR)
+    keep = valid_full & (den > 0.999)
+    transfer = np.where(keep[..., None], num / np.maximum(den, 1e-6)[..., None], 0.0)
+    return TransferResult(transfer.astype(np.float32), keep, np.arange(w), np.arange(h))
 
 
 def _occlusion_reference(x: np.ndarray, s: np.ndarray, w: np.ndarray, chi: float) -> float:

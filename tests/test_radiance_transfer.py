@@ -324,3 +324,35 @@ class TestExtremes:
             res = fn(points, normals, camera, np.eye(4), pattern, aux, cfg)
             assert not res.valid.any()
             assert np.all(res.transfer == 0)
+
+
+class TestUpsampling:
+    def _grid(self, valid: np.ndarray) -> rt.TransferResult:
+        """A 3 x 4 grid over a 10 x 13 image whose transfer is linear in the pixel position."""
+        u, v = np.array([2, 6, 10, 12]), np.array([2, 6, 9])
+        uu, vv = np.meshgrid(u, v)
+        transfer = np.stack([uu, vv, uu + 2 * vv], axis=-1).astype(np.float32)
+        return rt.TransferResult(transfer, valid, u, v)
+
+    def test_linear_field_is_reproduced_between_grid_points(self):
+        up = rt.upsample_transfer(self._grid(np.ones((3, 4), bool)), np.ones((10, 13), bool))
+        assert up.transfer.shape == (10, 13, 3) and up.valid.all()
+        uu, vv = np.meshgrid(np.arange(13), np.arange(10))
+        inside = (uu >= 2) & (vv >= 2)  # beyond the first grid point the field is clamped
+        np.testing.assert_allclose(up.transfer[..., 0][inside], uu[inside], atol=1e-4)
+        np.testing.assert_allclose(up.transfer[..., 1][inside], vv[inside], atol=1e-4)
+
+    def test_invalid_grid_point_and_missing_geometry_are_not_interpolated(self):
+        valid = np.ones((3, 4), bool)
+        valid[1, 1] = False  # grid pixel (u=6, v=6)
+        geometry = np.ones((10, 13), bool)
+        geometry[0, 0] = False
+        up = rt.upsample_transfer(self._grid(valid), geometry)
+        assert not up.valid[6, 6] and not up.valid[4, 4] and not up.valid[0, 0]
+        assert up.valid[6, 11] and up.valid[9, 0]
+        assert np.all(up.transfer[~up.valid] == 0)
+
+    def test_full_resolution_grid_is_returned_unchanged(self):
+        full = rt.TransferResult(np.ones((4, 5, 2), np.float32), np.ones((4, 5), bool),
+                                 np.arange(5), np.arange(4))
+        assert rt.upsample_transfer(full, np.ones((4, 5), bool)) is full
