@@ -11,7 +11,7 @@ non-zero value written, starting at 0), ``zigzag(d) = (d << 1) ^ (d >> 31)``, an
 a non-negative integer as 4-bit nibbles, least significant 3 data bits first, the nibble's
 high bit set when more nibbles follow. Nibbles fill 32-bit words from the most significant
 nibble down; each full word is stored little-endian; the last word is padded with zero
-nibbles. This is the unsigned variant used by ROS ``compressed_depth_image_transport``.
+nibbles (a decoder rejects anything after the last pixel but zero padding). This is the unsigned variant used by ROS ``compressed_depth_image_transport``.
 
 The payload carries no size: width and height travel in the message's image descriptor, and
 the decoder writes exactly ``width * height`` pixels, checking every read against the
@@ -28,14 +28,14 @@ RVL_OK = 0
 RVL_TRUNCATED = 1  # ran out of words before all pixels were decoded
 RVL_RUN_OVERFLOW = 2  # a run is longer than the pixels left
 RVL_BAD_VALUE = 3  # a decoded non-zero value is 0 or outside 0..65535
-RVL_TRAILING = 4  # words left over after the last pixel
+RVL_TRAILING = 4  # words, or non-zero nibbles, left over after the last pixel
 RVL_VLE_TOO_LONG = 5  # a variable-length integer of more than 11 nibbles (33 bits)
 
 RVL_STATUS_TEXT = {
     RVL_TRUNCATED: "payload ends before all pixels are decoded",
     RVL_RUN_OVERFLOW: "a run is longer than the pixels left",
     RVL_BAD_VALUE: "a non-zero run decodes to 0 or to a value outside 0..65535",
-    RVL_TRAILING: "bytes left over after the last pixel",
+    RVL_TRAILING: "data left over after the last pixel (padding nibbles must be 0)",
     RVL_VLE_TOO_LONG: "a variable-length integer is longer than 11 nibbles",
 }
 
@@ -167,7 +167,7 @@ def _decode(words: np.ndarray, out: np.ndarray) -> int:  # pragma: no cover - co
                     out[written + j] = current
                     previous = current
                 written += value
-    if pos != nw:
+    if pos != nw or word != 0:  # whole words left, or non-zero nibbles after the last pixel
         return RVL_TRAILING
     return RVL_OK
 

@@ -1,0 +1,140 @@
+"""Regenerate the golden vectors of the wire protocol: tests/golden/protocol_v1/*.bin.
+
+Each file is a container (SPEC.md, "Container") holding one encoded message built by
+vectors() below from fixed, hand-made values (8 x 6 images). tests/test_protocols.py checks
+that encode() still reproduces every file byte for byte (JPEG excepted: its bytes depend on
+the libjpeg build, so the JPEG vector is pinned by decoding the stored file) and that
+decode() of each stored file gives the message below.
+
+Run only after a deliberate format change (and bump PROTOCOL_VERSION if old peers can no
+longer read the new bytes):
+
+    .venv/bin/python tests/golden/make_protocol_vectors.py
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from arlight.protocols import (
+    Bye,
+    CameraCalibration,
+    Credit,
+    Error,
+    Frame,
+    Heartbeat,
+    Hello,
+    Result,
+    SessionConfig,
+    Welcome,
+    encode,
+    write_container,
+)
+
+OUT = Path(__file__).resolve().parent / "protocol_v1"
+JPEG_VECTORS = ("frame_jpeg_zstd",)  # pinned by decoding, not by re-encoding
+
+
+def color_8x6() -> np.ndarray:
+    """(6, 8, 3) uint8 RGB: a smooth gradient (JPEG-friendly), one saturated pixel."""
+    y, x = np.mgrid[0:6, 0:8]
+    rgb = np.stack([x * 30 + 10, y * 40 + 20, 200 - x * 10 - y * 10], axis=-1).astype(np.uint8)
+    rgb[0, 0] = (255, 255, 255)
+    return rgb
+
+
+def depth_8x6() -> np.ndarray:
+    """(6, 8) uint16 millimetres: a slanted plane with holes (0) and one 65535 pixel."""
+    y, x = np.mgrid[0:6, 0:8]
+    d = (1000 + 37 * x + 101 * y).astype(np.uint16)
+    d[0, 0:3] = 0  # zero run at the start
+    d[2, 5] = 0
+    d[3, :] = 0  # a whole missing row
+    d[5, 7] = 65535  # saturated / invalid marker of some sensors
+    return d
+
+
+def panorama_16x8() -> np.ndarray:
+    y, x = np.mgrid[0:8, 0:16]
+    return np.stack([x * 16, y * 32, (x + y) * 8], axis=-1).astype(np.uint8)
+
+
+def pose() -> np.ndarray:
+    c, s = np.cos(0.5), np.sin(0.5)
+    return np.array(
+        [[c, 0.0, s, 0.25], [0.0, 1.0, 0.0, -0.5], [-s, 0.0, c, 1.5], [0.0, 0.0, 0.0, 1.0]]
+    )
+
+
+def vectors() -> dict[str, object]:
+    cal = CameraCalibration(8, 6, 5.25, 5.5, 3.5, 2.5, "plumb_bob", (0.1, -0.05, 0.0, 0.0, 0.01))
+    rgb, depth = color_8x6(), depth_8x6()
+    sh = [0.5 - 0.03125 * i for i in range(16)]
+    return {
+        "hello": Hello(
+            1,
+            SessionConfig(
+                session="golden-1",
+                client_name="golden vectors",
+                role="capture",
+                calibration=cal,
+                depth_scale=5000.0,
+                preset="fast",
+                overrides={"sh_bands": 3, "sigma": 0.5, "visibility": False, "note": "x"},
+                virtual_scene="bunny.ply",
+                mode="lossless",
+                want_composite=True,
+            ),
+        ),
+        "hello_display": Hello(1, SessionConfig(session="golden-1", role="display")),
+        "welcome": Welcome(1, "golden-1", 8, 1.0, "arlight"),
+        "frame_raw_raw": Frame(7, 1234.5, rgb, depth, pose(), None, "raw", "raw"),
+        "frame_png_zstd": Frame(8, 1234.75, rgb, depth, None, panorama_16x8(), "png", "zstd"),
+        "frame_png_png": Frame(9, 1235.0, rgb, depth, pose(), None, "png", "png"),
+        "frame_raw_rvl": Frame(10, 1235.25, rgb, depth, None, None, "raw", "rvl"),
+        "frame_jpeg_zstd": Frame(11, 1235.5, rgb, depth, pose(), None, "jpeg", "zstd", 95),
+        "result": Result(
+            seq=7,
+            timestamp=1234.5,
+            sh=sh,
+            sh_rgb=[sh, [x * 0.5 for x in sh], [x * 0.25 for x in sh]],
+            dominant_direction_camera=[0.0, -0.6, 0.8],
+            dominant_direction_world=[0.6, -0.8, 0.0],
+            intensity=2.5,
+            confidence={"samples": 1200, "condition": 12.5, "bands": 4, "unconstrained": []},
+            pose=pose().tolist(),
+            timings_ms={"reconstruct": 3.5, "light_estimation": 0.75},
+            frames_received=8,
+            frames_processed=7,
+            frames_dropped=1,
+            server_receive_time=100.25,
+            server_finish_time=100.5,
+            composite=rgb,
+            composite_codec="png",
+        ),
+        "result_no_composite": Result(
+            7, 1234.5, sh, None, [0.0, 0.0, 1.0], [0.0, 0.0, 1.0], 0.0,
+            {"condition": float("inf")}, np.eye(4).tolist(), {}, 1, 0, 1, 5.0, 5.0,
+        ),
+        "credit": Credit(4),
+        "error": Error("bad_field", "depth is 8 x 6, colour 4 x 3: they must agree",
+                       "frame.depth", 12),
+        "heartbeat": Heartbeat(100.125),
+        "bye": Bye("end of recording"),
+    }
+
+
+def main() -> int:
+    OUT.mkdir(parents=True, exist_ok=True)
+    for name, msg in vectors().items():
+        path = OUT / f"{name}.bin"
+        path.write_bytes(write_container([encode(msg)]))
+        print(f"{path.relative_to(OUT.parents[2])}: {path.stat().st_size} bytes")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
