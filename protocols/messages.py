@@ -448,6 +448,27 @@ def _write_calibration(c: CameraCalibration) -> dict:
     }
 
 
+def _read_overrides(v: Any, name: str) -> dict[str, bool | int | float | str]:
+    """Config overrides: <= 256 entries, name -> bool, int, finite float or str <= 4096."""
+    if type(v) is not dict:
+        raise ProtocolError("bad_field", f"expected a map, got {_tn(v)}", name)
+    if len(v) > 256:
+        raise ProtocolError("bad_field", f"{len(v)} entries, at most 256", name)
+    out: dict[str, bool | int | float | str] = {}
+    for k, x in v.items():
+        key = _str(k, f"{name} key", 64, _KEY_RE)
+        if type(x) not in (bool, int, float, str):
+            raise ProtocolError(
+                "bad_field", f"expected bool, int, float or string, got {_tn(x)}", f"{name}.{key}"
+            )
+        if type(x) is float and not math.isfinite(x):
+            raise ProtocolError("bad_field", f"{x} is not finite", f"{name}.{key}")
+        if type(x) is str and len(x) > 4096:
+            raise ProtocolError("bad_field", "string longer than 4096 characters", f"{name}.{key}")
+        out[key] = x
+    return out
+
+
 def _read_hello(h: _Map, v: int, images: _Images) -> Hello:
     c = h.map("config")
     session = c.str("session", 64, _NAME_RE)
@@ -461,16 +482,7 @@ def _read_hello(h: _Map, v: int, images: _Images) -> Hello:
     if depth_scale <= 0:
         raise ProtocolError("bad_field", "must be > 0", c.f("depth_scale"))
     preset = c.str("preset", 64, _NAME_RE)
-    overrides = _plain_map(c.raw("overrides"), c.f("overrides"), depth=4)
-    for key, value in overrides.items():
-        if type(value) not in (bool, int, float, str):
-            raise ProtocolError(
-                "bad_field",
-                f"expected bool, int, float or string, got {_tn(value)}",
-                f"{c.f('overrides')}.{key}",
-            )
-        if type(value) is float and not math.isfinite(value):
-            raise ProtocolError("bad_field", f"{value} is not finite", f"{c.f('overrides')}.{key}")
+    overrides = _read_overrides(c.raw("overrides"), c.f("overrides"))
     virtual_scene = c.str("virtual_scene", 1024, nullable=True)
     mode = c.str("mode", choices=MODES)
     want_composite = c.bool("want_composite")

@@ -11,7 +11,8 @@ non-zero value written, starting at 0), ``zigzag(d) = (d << 1) ^ (d >> 31)``, an
 a non-negative integer as 4-bit nibbles, least significant 3 data bits first, the nibble's
 high bit set when more nibbles follow. Nibbles fill 32-bit words from the most significant
 nibble down; each full word is stored little-endian; the last word is padded with zero
-nibbles (a decoder rejects anything after the last pixel but zero padding). This is the unsigned variant used by ROS ``compressed_depth_image_transport``.
+nibbles (a decoder rejects anything after the last pixel but zero padding). This is the
+unsigned variant used by ROS ``compressed_depth_image_transport``.
 
 The payload carries no size: width and height travel in the message's image descriptor, and
 the decoder writes exactly ``width * height`` pixels, checking every read against the
