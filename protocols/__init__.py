@@ -37,7 +37,6 @@ from .messages import (
     error_from_exception,
     peek_header,
 )
-from .rvl import rvl_decode, rvl_encode
 
 __all__ = [
     "COLOR_CODECS",
@@ -78,3 +77,11 @@ __all__ = [
     "rvl_encode",
     "write_container",
 ]
+
+
+def __getattr__(name: str):  # rvl_encode / rvl_decode load numba on first use, not at import
+    if name in ("rvl_encode", "rvl_decode"):
+        from . import rvl
+
+        return getattr(rvl, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -22,7 +22,6 @@ import numpy as np
 import zstandard
 
 from .errors import ProtocolError
-from .rvl import RVL_OK, RVL_STATUS_TEXT, rvl_decode, rvl_encode
 
 DEFAULT_MAX_PIXELS: int = 4096 * 4096
 MAX_IMAGE_SIDE: int = 65535  # JPEG's limit; applied to every codec
@@ -341,6 +340,8 @@ def encode_depth(
         params = [cv2.IMWRITE_PNG_COMPRESSION, png_compression]
         return _cv_encode(".png", depth_u16, params, field), meta
     if codec == "rvl":
+        from .rvl import rvl_encode  # numba loads on first use (0.4 s), not at import
+
         return rvl_encode(depth_u16), meta
     little = depth_u16.astype("<u2", copy=False)
     if codec == "raw":
@@ -392,6 +393,8 @@ def decode_depth(
             )
         return _native_u16(np.frombuffer(raw, dtype="<u2").reshape(shape))
     if fmt == "rvl":
+        from .rvl import RVL_OK, RVL_STATUS_TEXT, rvl_decode
+
         flat, status = rvl_decode(data, n)
         if status != RVL_OK:
             raise ProtocolError("decode_failed", f"RVL: {RVL_STATUS_TEXT[status]}", field)

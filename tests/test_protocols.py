@@ -52,6 +52,7 @@ from arlight.protocols import (
     write_container,
 )
 from arlight.protocols import codecs as codecs_module
+from arlight.protocols import rvl as rvl_module
 from arlight.protocols.rvl import (
     RVL_BAD_VALUE,
     RVL_OK,
@@ -630,7 +631,7 @@ class TestHostileInput:
 
     def test_huge_declared_sizes_are_rejected_before_allocation(self, monkeypatch):
         monkeypatch.setattr(codecs_module, "_cv_decode", lambda *a: pytest.fail("decoded"))
-        monkeypatch.setattr(codecs_module, "rvl_decode", lambda *a: pytest.fail("decoded"))
+        monkeypatch.setattr(rvl_module, "rvl_decode", lambda *a: pytest.fail("decoded"))
         parts = encode(frame(color_codec="raw", depth_codec="rvl"))
 
         def huge(h):
