@@ -1,0 +1,655 @@
+"""The streaming server: one ZeroMQ ROUTER socket, one I/O thread, a pool of worker threads.
+
+Transport (protocols/SPEC.md): every client, capture or display, talks to the one ROUTER
+through a DEALER; the ROUTER prepends the peer's identity frame. Only the I/O thread touches
+the socket. It routes frames to sessions (server/session.py), hands at most one frame per
+session to the worker pool (so a session's frames stay in order), and sends the workers'
+encoded Results back to the capture peer and to every display peer subscribed to the session.
+Workers report through a queue and wake the I/O thread through a socket pair it polls.
+
+Limits on everything that crosses the wire (each a ServerOptions field): the largest message
+(zmq MAXMSGSIZE drops a connection that sends more, the protocol decoder checks declared
+sizes), the largest image, the credit window, the per-peer send queue (SNDHWM: a display that
+reads slowly loses Results, counted, and never stalls the pipeline), the number of sessions.
+
+Liveness (zguide's Paranoid Pirate): the server sends a Heartbeat to every peer each
+`heartbeat_interval_s`; a peer silent for `liveness` intervals is dead and is detached (its
+session survives for a reconnecting client). A session that receives no frames for
+`session_timeout_s` expires and frees its Pipeline. `stop()` (SIGINT/SIGTERM in
+`arlight serve`) finishes the lossless frames already received within `shutdown_grace_s`,
+reports the rest with an Error, says Bye to every peer and closes the socket.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import queue
+import socket
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+import zmq
+
+from arlight.protocols import (
+    DEFAULT_MAX_MESSAGE_BYTES,
+    DEFAULT_MAX_PIXELS,
+    PROTOCOL_VERSION,
+    Bye,
+    Credit,
+    Error,
+    Heartbeat,
+    Hello,
+    ProtocolError,
+    Welcome,
+    decode,
+    encode,
+    error_from_exception,
+    peek_header,
+)
+from arlight.server.session import (
+    Job,
+    JobOutcome,
+    ProcessStep,
+    Session,
+    SessionSetupError,
+)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PORT = 5555
+DEFAULT_BIND = f"tcp://*:{DEFAULT_PORT}"
+MAX_SESSION_NAME = 64
+MAX_MESSAGES_PER_POLL = 256  # fairness between reading the socket and sending results
+
+
+@dataclass(frozen=True)
+class ServerOptions:
+    """Every server limit and interval (seconds), with its default."""
+
+    bind: str = DEFAULT_BIND
+    workers: int = 2  # worker threads running Pipeline.process (one frame per session at a time)
+    credits: int = 4  # lossless credit window: frames a capture client may have unacknowledged
+    heartbeat_interval_s: float = 1.0
+    liveness: int = 3  # missed heartbeat intervals before a peer is declared dead
+    session_timeout_s: float = 60.0  # a session with no frames for this long expires
+    log_interval_s: float = 5.0  # per-session frame rate and latency log lines
+    max_sessions: int = 32
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    max_pixels: int = DEFAULT_MAX_PIXELS
+    send_hwm: int = 32  # messages queued per peer before sends to it are dropped
+    receive_hwm: int = 256
+    shutdown_grace_s: float = 10.0  # time given to lossless frames received before stop()
+    name: str = "arlight"
+
+    def __post_init__(self) -> None:
+        checks = {"workers": self.workers >= 1, "credits": self.credits >= 1,
+                  "heartbeat_interval_s": self.heartbeat_interval_s > 0,
+                  "liveness": self.liveness >= 1, "session_timeout_s": self.session_timeout_s > 0,
+                  "log_interval_s": self.log_interval_s > 0,
+                  "max_sessions": self.max_sessions >= 1, "send_hwm": self.send_hwm >= 1,
+                  "receive_hwm": self.receive_hwm >= 1,
+                  "max_message_bytes": self.max_message_bytes >= 1024,
+                  "max_pixels": self.max_pixels >= 1,
+                  "shutdown_grace_s": self.shutdown_grace_s >= 0}
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"server option {name} is out of range: {getattr(self, name)!r}")
+
+
+@dataclass
+class Peer:
+    """A connected client. role: "capture" or "display"; session: the session name."""
+
+    identity: bytes
+    role: str
+    session: str
+    client_name: str
+    last_seen: float
+    results_dropped: int = 0  # Results not delivered because its queue was full
+
+    @property
+    def label(self) -> str:
+        name = f" {self.client_name!r}" if self.client_name else ""
+        return f"{self.role} peer {self.identity.hex()}{name}"
+
+
+@dataclass
+class ServerStats:
+    messages: int = 0
+    errors_sent: int = 0
+    peers_expired: int = 0
+    sessions_expired: int = 0
+    sessions_closed: int = 0
+    display_results_dropped: int = 0  # Results not delivered to a display (its queue full)
+    error_codes: collections.Counter = field(default_factory=collections.Counter)
+
+
+class Server:
+    """The streaming service, runnable in-process: `start()`, `endpoint`/`port`, `stop()`.
+
+    process: optional compute step replacing Pipeline.process (tests and the transport
+    benchmark only).
+    """
+
+    def __init__(self, options: ServerOptions | None = None, process: ProcessStep | None = None):
+        self.options = options or ServerOptions()
+        self._process = process
+        self.sessions: dict[str, Session] = {}
+        self.peers: dict[bytes, Peer] = {}
+        self.displays: dict[str, set[bytes]] = collections.defaultdict(set)
+        self.stats = ServerStats()
+        self.endpoint: str | None = None
+        self.port: int | None = None
+        self._ctx: zmq.Context | None = None
+        self._router: zmq.Socket | None = None
+        self._completions: queue.SimpleQueue[JobOutcome] = queue.SimpleQueue()
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._stop_requested = threading.Event()
+        self._stopped = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._executor: ThreadPoolExecutor | None = None
+        self._compute_lock = threading.Lock()
+        self._draining = False
+        self._drain_deadline = math.inf
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> Server:
+        """Bind the socket (OSError if the address is unusable) and start the I/O thread."""
+        if self._thread is not None:
+            raise RuntimeError("server already started")
+        opts = self.options
+        self._ctx = zmq.Context()
+        router = self._ctx.socket(zmq.ROUTER)
+        router.setsockopt(zmq.ROUTER_MANDATORY, 1)  # unknown peer / full queue: an error, not
+        router.setsockopt(zmq.SNDHWM, opts.send_hwm)  # a silent drop (we count the drops)
+        router.setsockopt(zmq.RCVHWM, opts.receive_hwm)
+        router.setsockopt(zmq.MAXMSGSIZE, opts.max_message_bytes)
+        router.setsockopt(zmq.LINGER, 0)
+        try:
+            router.bind(opts.bind)
+        except zmq.ZMQError as exc:
+            router.close()
+            self._ctx.term()
+            raise OSError(f"cannot bind {opts.bind!r}: {exc}; use tcp://HOST:PORT or "
+                          "tcp://*:PORT with a free port") from None
+        self._router = router
+        self.endpoint = router.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.port = int(self.endpoint.rsplit(":", 1)[1])
+        self._executor = ThreadPoolExecutor(opts.workers, thread_name_prefix="arlight-worker")
+        self._thread = threading.Thread(target=self._run, name="arlight-server-io", daemon=True)
+        self._thread.start()
+        log.info("arlight server listening on %s (%d workers, credits %d, heartbeat %.1f s, "
+                 "session timeout %.0f s)", self.endpoint, opts.workers, opts.credits,
+                 opts.heartbeat_interval_s, opts.session_timeout_s)
+        return self
+
+    @property
+    def connect_address(self) -> str:
+        """An address a client on this machine can connect to (tcp://127.0.0.1:PORT)."""
+        if self.endpoint is None:
+            raise RuntimeError("server not started")
+        host = self.endpoint.rsplit(":", 1)[0].replace("tcp://", "")
+        if host in ("0.0.0.0", "*", "[::]", "::"):
+            host = "127.0.0.1"
+        return f"tcp://{host}:{self.port}"
+
+    def stop(self, timeout: float | None = None) -> None:
+        """Shut down cleanly (see the module docstring) and wait for it; idempotent."""
+        self._stop_requested.set()
+        self._wake()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until the server has stopped; True if it has."""
+        return self._stopped.wait(timeout)
+
+    def __enter__(self) -> Server:
+        return self.start() if self._thread is None else self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def snapshot(self) -> dict:
+        """Counters per session and the peers (for tests and logs; read from any thread)."""
+        sessions = {name: {**s.counters(), "mode": s.config.mode,
+                           "capture_attached": s.capture_peer is not None,
+                           "pending": len(s.pending)} for name, s in list(self.sessions.items())}
+        return {"sessions": sessions, "peers": len(self.peers),
+                "displays": {k: len(v) for k, v in list(self.displays.items())},
+                "errors_sent": self.stats.errors_sent,
+                "display_results_dropped": self.stats.display_results_dropped,
+                "sessions_expired": self.stats.sessions_expired,
+                "peers_expired": self.stats.peers_expired}
+
+    # ------------------------------------------------------------------ I/O thread
+
+    def _wake(self) -> None:
+        try:
+            self._wake_w.send(b"\0")
+        except (BlockingIOError, OSError):
+            pass  # already awake (buffer full) or closed
+
+    def _run(self) -> None:
+        opts = self.options
+        router = self._router
+        poller = zmq.Poller()
+        poller.register(router, zmq.POLLIN)
+        poller.register(self._wake_r.fileno(), zmq.POLLIN)
+        now = time.time()
+        next_heartbeat = now + opts.heartbeat_interval_s
+        next_housekeeping = now + min(opts.heartbeat_interval_s, 1.0)
+        next_log = now + opts.log_interval_s
+        try:
+            while True:
+                now = time.time()
+                wait_s = max(0.0, min(next_heartbeat, next_housekeeping, next_log) - now)
+                events = dict(poller.poll(int(wait_s * 1000) + 1))
+                if events.get(router):
+                    self._drain_router()
+                if events.get(self._wake_r.fileno()):
+                    try:
+                        while self._wake_r.recv(4096):
+                            pass
+                    except (BlockingIOError, OSError):
+                        pass
+                self._drain_completions()
+                now = time.time()
+                if now >= next_heartbeat:
+                    self._send_heartbeats(now)
+                    next_heartbeat = now + opts.heartbeat_interval_s
+                if now >= next_housekeeping:
+                    self._expire_peers(now)
+                    self._expire_sessions(now)
+                    next_housekeeping = now + min(opts.heartbeat_interval_s, 1.0)
+                if now >= next_log:
+                    self._log_rates(now, opts.log_interval_s)
+                    next_log = now + opts.log_interval_s
+                if self._stop_requested.is_set() and not self._draining:
+                    self._begin_drain(now)
+                if self._draining and (self._drained() or now >= self._drain_deadline):
+                    self._finish_shutdown()
+                    return
+        except Exception:  # noqa: BLE001 - a bug in the loop: log it, still close cleanly
+            log.exception("server I/O loop failed; shutting down")
+            self._finish_shutdown()
+        finally:
+            self._stopped.set()
+
+    def _drain_router(self) -> None:
+        router = self._router
+        for _ in range(MAX_MESSAGES_PER_POLL):
+            try:
+                message = router.recv_multipart(zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                return
+            now = time.time()
+            identity = message[0].bytes
+            parts = [frame.buffer for frame in message[1:]]
+            self.stats.messages += 1
+            try:
+                self._handle(identity, parts, now)
+            except Exception as exc:  # noqa: BLE001 - bad input never crashes the server
+                log.exception("unexpected failure handling a message from %s", identity.hex())
+                self._send_error(identity, Error(code="internal", message=f"the server failed "
+                                                 f"to handle this message ({exc})"))
+
+    def _handle(self, identity: bytes, parts: list, now: float) -> None:
+        peer = self.peers.get(identity)
+        if peer is not None:
+            peer.last_seen = now
+        if not parts:
+            self._send_error(identity, Error(code="malformed", message="empty message"))
+            return
+        try:
+            header = peek_header(parts)
+        except ProtocolError as exc:
+            self._send_error(identity, error_from_exception(exc))
+            return
+        if header["type"] == "frame":  # routed undecoded: a worker decodes it, and a
+            # live frame replaced in the queue costs no decoding at all
+            self._on_frame(identity, peer, header, parts, now)
+            return
+        try:
+            message = decode(parts, max_message_bytes=self.options.max_message_bytes,
+                             max_pixels=self.options.max_pixels)
+        except ProtocolError as exc:
+            self._send_error(identity, error_from_exception(exc))
+            return
+        if isinstance(message, Hello):
+            self._on_hello(identity, message, now)
+        elif isinstance(message, Heartbeat):
+            if peer is None:  # e.g. after a server restart: tell the client to say Hello again
+                self._send_error(identity, Error(
+                    code="bad_state", field="session",
+                    message="unknown peer: send Hello first (the server may have restarted)"))
+        elif isinstance(message, Bye):
+            self._on_bye(identity, peer, message)
+        elif isinstance(message, (Credit, Error)):
+            if isinstance(message, Error):
+                log.info("client %s reported an error: %s %s", identity.hex(), message.code,
+                         message.message)
+        else:
+            self._send_error(identity, Error(
+                code="bad_state", field="type",
+                message=f"a client may send Hello, Frame, Heartbeat, Credit or Bye, "
+                        f"not {type(message).__name__}"))
+
+    def _on_hello(self, identity: bytes, hello: Hello, now: float) -> None:
+        cfg = hello.config
+        name = cfg.session
+        if not name or len(name) > MAX_SESSION_NAME:
+            self._send_error(identity, Error(
+                code="bad_field", field="hello.config.session",
+                message=f"session name must be 1..{MAX_SESSION_NAME} characters, "
+                        f"got {len(name or '')}"))
+            return
+        old = self.peers.get(identity)
+        if old is not None:
+            self._detach_peer(old, reason="said Hello again")
+        if cfg.role == "display":
+            self.peers[identity] = Peer(identity, "display", name, cfg.client_name, now)
+            self.displays[name].add(identity)
+            log.info("session %s: display peer %s subscribed", name, identity.hex())
+            self._send(identity, encode(Welcome(PROTOCOL_VERSION, name, 0,
+                                                self.options.heartbeat_interval_s,
+                                                self.options.name)))
+            return
+        if self._draining:
+            self._send_error(identity, Error(code="bad_state", field="shutdown",
+                                             message="the server is shutting down"))
+            return
+        session = self.sessions.get(name)
+        if session is not None and not session.same_setup(cfg):
+            owner = self.peers.get(session.capture_peer) if session.capture_peer else None
+            if owner is not None:
+                self._send_error(identity, Error(
+                    code="bad_state", field="hello.config.session",
+                    message=f"session {name!r} is in use by another capture client with a "
+                            "different configuration; choose another session name"))
+                return
+            self._close_session(session, "replaced by a new configuration")
+            session = None
+        if session is None:
+            if len(self.sessions) >= self.options.max_sessions:
+                self._send_error(identity, Error(
+                    code="too_large", field="hello.config.session",
+                    message=f"the server already holds {len(self.sessions)} sessions "
+                            f"(limit {self.options.max_sessions}); try again later"))
+                return
+            try:
+                session = Session(cfg, credits=self.options.credits,
+                                  max_pixels=self.options.max_pixels,
+                                  max_message_bytes=self.options.max_message_bytes,
+                                  process=self._process)
+            except SessionSetupError as exc:
+                self._send_error(identity, Error(code=exc.code, field=f"hello.config.{exc.field}",
+                                                 message=str(exc)))
+                return
+            self.sessions[name] = session
+            log.info("session %s: created (%s, %dx%d, preset %s) by capture peer %s %s", name,
+                     cfg.mode, session.camera.width, session.camera.height, cfg.preset,
+                     identity.hex(), repr(cfg.client_name) if cfg.client_name else "")
+        else:
+            previous = session.capture_peer
+            if previous is not None and previous != identity and previous in self.peers:
+                self._detach_peer(self.peers[previous], reason="replaced by a reconnect")
+            log.info("session %s: capture peer %s resumed it (last seq %d)", name,
+                     identity.hex(), session.highest_seq)
+        session.capture_peer = identity
+        session.ended = False
+        session.last_activity = now
+        self.peers[identity] = Peer(identity, "capture", name, cfg.client_name, now)
+        self._send(identity, encode(Welcome(PROTOCOL_VERSION, name, self.options.credits,
+                                            self.options.heartbeat_interval_s, self.options.name)))
+
+    def _on_frame(self, identity: bytes, peer: Peer | None, header: dict, parts: list,
+                  now: float) -> None:
+        seq = header.get("seq")
+        if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+            self._send_error(identity, Error(code="bad_field", field="frame.seq",
+                                             message=f"seq must be an integer >= 0, got {seq!r}"))
+            return
+        session = self.sessions.get(peer.session) if peer is not None else None
+        if peer is None or peer.role != "capture" or session is None or \
+                session.capture_peer != identity:
+            self._send_error(identity, Error(
+                code="bad_state", field="session", seq=seq,
+                message="no session for this peer: send Hello first (the server may have "
+                        "restarted or the session expired)"))
+            return
+        if self._draining:
+            self._send_error(identity, Error(code="bad_state", field="shutdown", seq=seq,
+                                             message="the server is shutting down; frame "
+                                                     "not processed"))
+            return
+        outcome = session.offer(seq, parts, now)
+        if outcome == "resend":
+            self._send(identity, session.results[seq])
+        elif outcome == "overflow":
+            self._send_error(identity, Error(
+                code="bad_state", field="credits", seq=seq,
+                message=f"more than {self.options.credits} frames unacknowledged in lossless "
+                        "mode; wait for Results (credits) before sending more"))
+        self._schedule(session)
+
+    def _on_bye(self, identity: bytes, peer: Peer | None, bye: Bye) -> None:
+        if peer is None:
+            return
+        log.info("session %s: %s said Bye (%s)", peer.session, peer.label, bye.reason or "")
+        session = self.sessions.get(peer.session)
+        self._detach_peer(peer, reason="said Bye")
+        if peer.role == "capture" and session is not None and session.capture_peer is None:
+            session.ended = True
+            if session.idle:
+                self._close_session(session, "end of stream")
+
+    # ------------------------------------------------------------------ work
+
+    def _schedule(self, session: Session) -> None:
+        job = session.next_job()
+        if job is not None:
+            self._executor.submit(self._work, session, job)
+
+    def _work(self, session: Session, job: Job) -> None:
+        """Worker thread: process one frame, hand the outcome to the I/O thread."""
+        if self.options.workers > 1 and _needs_serial_compute():
+            with self._compute_lock:
+                outcome = session.run(job)
+        else:
+            outcome = session.run(job)
+        self._completions.put(outcome)
+        self._wake()
+
+    def _drain_completions(self) -> None:
+        while True:
+            try:
+                outcome = self._completions.get_nowait()
+            except queue.Empty:
+                return
+            session = outcome.session
+            session.finish(outcome)
+            if session.capture_peer is not None:
+                self._send(session.capture_peer, outcome.parts)
+            if outcome.ok:
+                for identity in list(self.displays.get(session.name, ())):
+                    if not self._send(identity, outcome.parts):
+                        session.display_drops += 1
+                        self.stats.display_results_dropped += 1
+            else:
+                self.stats.errors_sent += 1
+                self.stats.error_codes[outcome.error.code] += 1
+            if self.sessions.get(session.name) is not session:
+                continue  # closed or replaced meanwhile
+            if self._draining and not session.lossless:
+                session.drop_pending()
+            self._schedule(session)
+            if session.ended and session.idle:
+                self._close_session(session, "end of stream")
+
+    # ------------------------------------------------------------------ sending
+
+    def _send(self, identity: bytes, parts: list) -> bool:
+        """Send without blocking; False if the peer is gone or its queue is full (dropped)."""
+        try:
+            self._router.send_multipart([identity, *parts], zmq.NOBLOCK, copy=False)
+            return True
+        except zmq.Again:
+            peer = self.peers.get(identity)
+            if peer is not None:
+                peer.results_dropped += 1
+            return False
+        except zmq.ZMQError as exc:
+            if exc.errno == zmq.EHOSTUNREACH:  # disconnected: forget it
+                peer = self.peers.get(identity)
+                if peer is not None:
+                    self._detach_peer(peer, reason="disconnected")
+                return False
+            raise
+
+    def _send_error(self, identity: bytes, error: Error) -> None:
+        self.stats.errors_sent += 1
+        self.stats.error_codes[error.code] += 1
+        log.info("error to %s: %s%s: %s", identity.hex(), error.code,
+                 f" ({error.field})" if error.field else "", error.message)
+        self._send(identity, encode(error))
+
+    def _send_heartbeats(self, now: float) -> None:
+        parts = encode(Heartbeat(now))
+        for identity in list(self.peers):
+            self._send(identity, parts)
+
+    # ------------------------------------------------------------------ housekeeping
+
+    def _detach_peer(self, peer: Peer, reason: str) -> None:
+        self.peers.pop(peer.identity, None)
+        if peer.role == "display":
+            subscribers = self.displays.get(peer.session)
+            if subscribers is not None:
+                subscribers.discard(peer.identity)
+                if not subscribers:
+                    del self.displays[peer.session]
+        else:
+            session = self.sessions.get(peer.session)
+            if session is not None and session.capture_peer == peer.identity:
+                session.capture_peer = None
+        if peer.results_dropped:
+            log.info("session %s: %s lost %d results to a full queue", peer.session,
+                     peer.label, peer.results_dropped)
+        log.debug("session %s: %s detached (%s)", peer.session, peer.label, reason)
+
+    def _close_session(self, session: Session, reason: str) -> None:
+        """Forget a session (its Pipeline is freed); displays get Bye at the end of a stream."""
+        if self.sessions.get(session.name) is session:
+            del self.sessions[session.name]
+        self.stats.sessions_closed += 1
+        c = session.counters()
+        log.info("session %s: closed (%s): %d received, %d processed, %d dropped, %d failed",
+                 session.name, reason, c["frames_received"], c["frames_processed"],
+                 c["frames_dropped"], c["frames_failed"])
+        if session.capture_peer is not None and session.capture_peer in self.peers:
+            self._detach_peer(self.peers[session.capture_peer], reason=reason)
+        if reason == "end of stream":
+            parts = encode(Bye(f"session {session.name} ended"))
+            for identity in list(self.displays.get(session.name, ())):
+                self._send(identity, parts)
+
+    def _expire_peers(self, now: float) -> None:
+        limit = self.options.liveness * self.options.heartbeat_interval_s
+        for peer in list(self.peers.values()):
+            if now - peer.last_seen > limit:
+                self.stats.peers_expired += 1
+                log.warning("session %s: %s silent for %.1f s: declared dead", peer.session,
+                            peer.label, now - peer.last_seen)
+                self._detach_peer(peer, reason="dead")
+
+    def _expire_sessions(self, now: float) -> None:
+        for session in list(self.sessions.values()):
+            if session.idle and now - session.last_activity > self.options.session_timeout_s:
+                self.stats.sessions_expired += 1
+                self._close_session(session, f"idle for {now - session.last_activity:.0f} s")
+
+    def _log_rates(self, now: float, interval_s: float) -> None:
+        for session in list(self.sessions.values()):
+            recent = [lat for t, lat in session.recent if t > now - interval_s]
+            if not recent and session.idle:
+                continue
+            c = session.counters()
+            lat_ms = np.asarray(recent) * 1e3
+            latency = (f"latency median {np.median(lat_ms):.0f} ms, p95 "
+                       f"{np.percentile(lat_ms, 95):.0f} ms" if recent else "no frames finished")
+            log.info("session %s: %.1f fps, %s (receive to finish); received %d, processed %d, "
+                     "dropped %d, failed %d; %d display(s), %d result(s) not delivered",
+                     session.name, len(recent) / interval_s, latency, c["frames_received"],
+                     c["frames_processed"], c["frames_dropped"], c["frames_failed"],
+                     len(self.displays.get(session.name, ())), session.display_drops)
+
+    # ------------------------------------------------------------------ shutdown
+
+    def _begin_drain(self, now: float) -> None:
+        self._draining = True
+        self._drain_deadline = now + self.options.shutdown_grace_s
+        waiting = 0
+        for session in self.sessions.values():
+            if session.lossless:
+                waiting += len(session.pending) + (session.in_flight is not None)
+            else:
+                session.drop_pending()
+        log.info("shutting down: %d lossless frame(s) still to finish (grace %.0f s)", waiting,
+                 self.options.shutdown_grace_s)
+
+    def _drained(self) -> bool:
+        return all(s.in_flight is None and not (s.lossless and s.pending)
+                   for s in self.sessions.values())
+
+    def _finish_shutdown(self) -> None:
+        """Report unfinished lossless frames, say Bye to every peer, close the socket."""
+        router = self._router
+        try:
+            for session in list(self.sessions.values()):
+                unfinished = [session.in_flight] if session.in_flight else []
+                unfinished += session.drop_pending()
+                if session.capture_peer is not None:
+                    for job in unfinished:
+                        self._send_error(session.capture_peer, Error(
+                            code="bad_state", field="shutdown", seq=job.seq,
+                            message="the server shut down before processing this frame; "
+                                    "send it again after reconnecting"))
+                if unfinished:
+                    log.warning("session %s: %d frame(s) not processed at shutdown (reported "
+                                "to the client)", session.name, len(unfinished))
+            bye = encode(Bye("server shutting down"))
+            for identity in list(self.peers):
+                self._send(identity, bye)
+            router.setsockopt(zmq.LINGER, 1000)  # let the Byes and last Results out
+        except Exception:  # noqa: BLE001
+            log.exception("error while shutting down")
+        finally:
+            router.close()
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._ctx.term()
+            self._wake_r.close()
+            self._wake_w.close()
+            self.sessions.clear()
+            log.info("server stopped")
+
+
+def _needs_serial_compute() -> bool:
+    """True unless Numba's threading layer is known to allow parallel calls from many threads.
+
+    Numba's fallback 'workqueue' layer aborts the process on concurrent parallel launches;
+    OpenMP and TBB allow them. Before any parallel kernel ran the layer is unknown: serialise.
+    """
+    try:
+        import numba
+
+        return numba.threading_layer() == "workqueue"
+    except (ImportError, ValueError):
+        return True

@@ -1,0 +1,320 @@
+"""One streaming session: its Pipeline, its queue of frames and its counters.
+
+A session is created by a capture client's Hello and named by `SessionConfig.session`. The
+I/O thread owns the queue (`offer`, `next_job`, `finish`); a worker thread runs one job at a
+time per session (`run`), so a session's frames are processed in order and its Pipeline is
+never used by two threads at once. Sessions share nothing: each has its own Pipeline, queue,
+counters and result cache.
+
+Delivery modes (DESIGN.md "Quality rules": drops are counted, never silent):
+- live: the queue holds the newest frame only; an older pending frame is replaced and
+  counted in `frames_dropped`, which every Result reports.
+- lossless: every frame is processed exactly once, in order. The client keeps at most
+  `credits` frames unacknowledged; a frame whose seq was already accepted is a duplicate
+  (a client resending after a reconnect): it is not processed again, and if its Result is
+  still cached the Result is sent again.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from arlight.pipeline.camera import PinholeCamera
+from arlight.pipeline.config import Config
+from arlight.pipeline.frames import FrameInput, FrameResult
+from arlight.pipeline.pipeline import FrameError, Pipeline
+from arlight.protocols import (
+    Error,
+    Frame,
+    ProtocolError,
+    Result,
+    SessionConfig,
+    decode,
+    encode,
+    error_from_exception,
+)
+
+log = logging.getLogger(__name__)
+
+# a compute step: (FrameInput, Session) -> FrameResult; the default runs the session's Pipeline.
+# Tests and the transport benchmark inject an identity step (they never ship in the server).
+ProcessStep = Callable[[FrameInput, "Session"], FrameResult]
+
+LOSSLESS_QUEUE_SLACK = 2  # frames beyond the credit window a lossless queue tolerates
+RESULT_CACHE_EXTRA = 4  # results kept for resending after a reconnect: credits + this
+
+
+class SessionSetupError(ValueError):
+    """A Hello whose config cannot make a session; `field` names the offending field."""
+
+    def __init__(self, field: str, message: str, code: str = "bad_field"):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.code = code
+
+
+def pipeline_config(config: SessionConfig) -> Config:
+    """The pipeline Config a session asks for (preset + overrides); SessionSetupError if bad."""
+    overrides = dict(config.overrides or {})
+    try:
+        return Config.from_preset(config.preset, **overrides)
+    except (TypeError, ValueError) as exc:
+        field = "preset" if "preset" in str(exc) else "overrides"
+        raise SessionSetupError(field, str(exc)) from None
+
+
+def camera_from_config(config: SessionConfig, max_pixels: int) -> PinholeCamera:
+    """The pinhole camera of a capture session's calibration; SessionSetupError if unusable."""
+    cal = config.calibration
+    if cal is None:
+        raise SessionSetupError("calibration", "a capture session needs the camera calibration")
+    if cal.width * cal.height > max_pixels:
+        raise SessionSetupError(
+            "calibration", f"{cal.width}x{cal.height} = {cal.width * cal.height} pixels exceeds "
+            f"the server's limit of {max_pixels}", code="too_large")
+    if any(float(d) != 0.0 for d in (cal.D or ())):
+        raise SessionSetupError(
+            "calibration.D", f"distortion model {cal.distortion_model!r} with non-zero "
+            "coefficients is not supported; undistort the images before streaming")
+    try:
+        return PinholeCamera(int(cal.width), int(cal.height), float(cal.fx), float(cal.fy),
+                             float(cal.cx), float(cal.cy))
+    except (TypeError, ValueError) as exc:
+        raise SessionSetupError("calibration", str(exc)) from None
+
+
+def frame_to_input(frame: Frame, camera: PinholeCamera, depth_scale: float) -> FrameInput:
+    """Pipeline input of a wire frame: depth uint16 / depth_scale -> float32 metres.
+
+    Checks the image sizes against the session's calibration (FrameError names the field);
+    everything else (NaN poses, dtypes) is checked by Pipeline.process.
+    """
+    expected = (camera.height, camera.width)
+    if tuple(frame.color.shape[:2]) != expected:
+        raise FrameError("color", f"size {frame.color.shape[1]}x{frame.color.shape[0]} does "
+                                  f"not match the session's calibration "
+                                  f"{camera.width}x{camera.height}")
+    if tuple(frame.depth.shape[:2]) != expected:
+        raise FrameError("depth", f"size {frame.depth.shape[1]}x{frame.depth.shape[0]} does "
+                                  f"not match the session's calibration "
+                                  f"{camera.width}x{camera.height}")
+    # the same arithmetic as the data set readers (client/datasets.py decode_depth), so a
+    # stream of recorded uint16 depth reproduces their metres bit for bit
+    depth_m = frame.depth.astype(np.float32) / np.float32(depth_scale)
+    pose = None if frame.pose is None else np.asarray(frame.pose, dtype=np.float64)
+    return FrameInput(color=frame.color, depth=depth_m, timestamp=float(frame.timestamp),
+                      pose=pose, panorama=frame.panorama)
+
+
+def default_process(frame: FrameInput, session: Session) -> FrameResult:
+    return session.pipeline.process(frame)
+
+
+@dataclass
+class Job:
+    """A received frame waiting for (or in) a worker. parts: the encoded message, undecoded."""
+
+    seq: int
+    parts: list
+    receive_time: float  # server clock, seconds
+
+
+@dataclass
+class JobOutcome:
+    """What a worker hands back to the I/O thread: encoded Result or Error parts."""
+
+    session: Session
+    job: Job
+    parts: list
+    ok: bool
+    finish_time: float
+    error: Error | None = None
+
+
+class Session:
+    """One session's state. Counters are read by workers and written by the I/O thread."""
+
+    def __init__(self, config: SessionConfig, *, credits: int, max_pixels: int,
+                 max_message_bytes: int, process: ProcessStep | None = None):
+        self.name = config.session
+        self.config = config
+        self.credits = credits
+        self.max_pixels = max_pixels
+        self.max_message_bytes = max_message_bytes
+        self.pipeline_config = pipeline_config(config)
+        self.camera = camera_from_config(config, max_pixels)
+        if not (np.isfinite(config.depth_scale) and config.depth_scale > 0):
+            raise SessionSetupError("depth_scale", f"must be a finite number of units per metre "
+                                                   f"> 0, got {config.depth_scale}")
+        self.lossless = config.mode == "lossless"
+        self._process = process or default_process
+        self._pipeline: Pipeline | None = None
+        self.pending: collections.deque[Job] = collections.deque()
+        self.in_flight: Job | None = None
+        self.capture_peer: bytes | None = None
+        self.ended = False  # the capture client said Bye: close once the queue is empty
+        self.created = time.time()
+        self.last_activity = self.created
+        self.highest_seq = -1  # highest seq accepted (lossless duplicate detection)
+        self.results: collections.OrderedDict[int, list] = collections.OrderedDict()
+        self._lock = threading.Lock()
+        self.frames_received = 0
+        self.frames_processed = 0
+        self.frames_dropped = 0
+        self.frames_failed = 0
+        self.display_drops = 0
+        # (finish_time, latency_s) of recent frames, for the periodic log line
+        self.recent: collections.deque[tuple[float, float]] = collections.deque(maxlen=512)
+
+    # ------------------------------------------------------------------ I/O thread
+
+    @property
+    def pipeline(self) -> Pipeline:
+        """The session's Pipeline, built on first use (in a worker: it allocates the volume)."""
+        if self._pipeline is None:
+            self._pipeline = Pipeline(self.pipeline_config, self.camera,
+                                      scene=self.config.virtual_scene)
+        return self._pipeline
+
+    def same_setup(self, config: SessionConfig) -> bool:
+        """True if `config` asks for the same session (a reconnecting client's Hello)."""
+        a = dataclasses.replace(self.config, client_name="")
+        b = dataclasses.replace(config, client_name="")
+        return a == b
+
+    def offer(self, seq: int, parts: list, now: float) -> str:
+        """Queue a received frame. Returns what happened:
+
+        "queued"; "replaced" (live: an older pending frame was dropped); "duplicate" (lossless:
+        seq already accepted and not finished: nothing to do); "resend" (lossless: already
+        processed, its Result is in `results`); "overflow" (lossless: the client ignored its
+        credit window; the frame is refused).
+        """
+        self.last_activity = now
+        if self.lossless:
+            if seq <= self.highest_seq:
+                return "resend" if seq in self.results else "duplicate"
+            if len(self.pending) >= self.credits + LOSSLESS_QUEUE_SLACK:
+                return "overflow"
+            with self._lock:
+                self.frames_received += 1
+            self.highest_seq = seq
+            self.pending.append(Job(seq, parts, now))
+            return "queued"
+        with self._lock:
+            self.frames_received += 1
+            outcome = "queued"
+            if self.pending:
+                self.pending.clear()
+                self.frames_dropped += 1
+                outcome = "replaced"
+        self.highest_seq = max(self.highest_seq, seq)
+        self.pending.append(Job(seq, parts, now))
+        return outcome
+
+    def next_job(self) -> Job | None:
+        """The next frame to process, if none of this session's frames is in a worker."""
+        if self.in_flight is not None or not self.pending:
+            return None
+        self.in_flight = self.pending.popleft()
+        return self.in_flight
+
+    def finish(self, outcome: JobOutcome) -> None:
+        self.in_flight = None
+        self.last_activity = max(self.last_activity, outcome.finish_time)
+        if outcome.ok:
+            self.results[outcome.job.seq] = outcome.parts
+            while len(self.results) > self.credits + RESULT_CACHE_EXTRA:
+                self.results.popitem(last=False)
+            self.recent.append((outcome.finish_time,
+                                outcome.finish_time - outcome.job.receive_time))
+
+    def drop_pending(self) -> list[Job]:
+        """Remove and return the queued frames (shutdown); live frames count as dropped."""
+        jobs = list(self.pending)
+        self.pending.clear()
+        if not self.lossless:
+            with self._lock:
+                self.frames_dropped += len(jobs)
+        return jobs
+
+    @property
+    def idle(self) -> bool:
+        return self.in_flight is None and not self.pending
+
+    def counters(self) -> dict:
+        with self._lock:
+            return {"frames_received": self.frames_received,
+                    "frames_processed": self.frames_processed,
+                    "frames_dropped": self.frames_dropped,
+                    "frames_failed": self.frames_failed}
+
+    # ------------------------------------------------------------------ worker thread
+
+    def run(self, job: Job) -> JobOutcome:
+        """Decode, check, process and encode one frame. Never raises: errors become Error."""
+        try:
+            frame = decode(job.parts, max_message_bytes=self.max_message_bytes,
+                           max_pixels=self.max_pixels)
+            if not isinstance(frame, Frame):
+                raise ProtocolError("bad_state", f"expected a Frame, got {type(frame).__name__}")
+            frame_input = frame_to_input(frame, self.camera, self.config.depth_scale)
+            result = self._process(frame_input, self)
+            composite = None
+            if self.config.want_composite:
+                from arlight.server.composite import composite_with_light_inset
+
+                composite = (result.composite if result.composite is not None else
+                             composite_with_light_inset(frame_input.color, result.sh_camera))
+            finish = time.time()
+            with self._lock:
+                self.frames_processed += 1
+                counters = (self.frames_received, self.frames_processed, self.frames_dropped)
+            message = result_message(job.seq, result, counters, job.receive_time, finish,
+                                     composite)
+            return JobOutcome(self, job, encode(message), True, finish)
+        except Exception as exc:  # noqa: BLE001 - every failure becomes an Error reply
+            error = frame_error(exc, job.seq)
+            if error.code == "internal":
+                log.exception("session %s: frame %d failed", self.name, job.seq)
+            else:
+                log.info("session %s: frame %d rejected: %s", self.name, job.seq, error.message)
+            with self._lock:
+                self.frames_failed += 1
+            return JobOutcome(self, job, encode(error), False, time.time(), error)
+
+
+def frame_error(exc: Exception, seq: int | None) -> Error:
+    """The Error reply for an exception raised while handling frame `seq`."""
+    if isinstance(exc, ProtocolError):
+        error = error_from_exception(exc)
+        return dataclasses.replace(error, seq=seq)
+    if isinstance(exc, FrameError):
+        return Error(code="bad_field", message=str(exc), field=f"frame.{exc.field}", seq=seq)
+    return Error(code="internal", message=f"the server failed to process this frame "
+                                          f"({type(exc).__name__}: {exc})", seq=seq)
+
+
+def result_message(seq: int, result: FrameResult, counters: tuple[int, int, int],
+                   receive_time: float, finish_time: float,
+                   composite: np.ndarray | None) -> Result:
+    received, processed, dropped = counters
+    return Result(
+        seq=seq, timestamp=float(result.timestamp),
+        sh=[float(x) for x in result.sh],
+        sh_rgb=None if result.sh_rgb is None else np.asarray(result.sh_rgb, float).tolist(),
+        dominant_direction_camera=[float(x) for x in result.dominant_direction_camera],
+        dominant_direction_world=[float(x) for x in result.dominant_direction_world],
+        intensity=float(result.intensity), confidence=result.confidence.to_dict(),
+        pose=np.asarray(result.pose, dtype=float).tolist(),
+        timings_ms={k: float(v) for k, v in result.timings_ms.items()},
+        frames_received=received, frames_processed=processed, frames_dropped=dropped,
+        server_receive_time=receive_time, server_finish_time=finish_time, composite=composite)
