@@ -1,0 +1,566 @@
+"""The capture client: frames from a source -> protocol Frames -> the server; Results back.
+
+Sources (`open_source`): "synthetic" (the built-in scene with known light), every folder
+layout `arlight estimate` reads (TUM RGB-D, Open3D/Redwood, 7-Scenes; client/datasets.py),
+and MCAP recordings made by `arlight record` (client/recording.py), whose Frame messages are
+sent exactly as recorded.
+
+Delivery (SessionConfig.mode):
+- live: frames go out as the source produces them (`rate="native"`: at the source's own
+  pace; "max": as fast as they can be encoded); the server keeps the newest, counts drops.
+- lossless: at most `credits` frames (from Welcome) unacknowledged; each Result (or Error for
+  that frame) acknowledges one. Every frame gets exactly one Result or Error.
+
+Liveness (zguide's Paranoid Pirate): any message from the server counts as a sign of life; a
+server silent for `liveness` heartbeat intervals, a Bye from it, or an Error saying it does
+not know this peer (it restarted) makes the client reconnect: new socket (LINGER 0), capped
+exponential back-off, Hello again, then in lossless mode the unacknowledged frames are sent
+again in order (the server ignores a seq it already accepted and re-sends a cached Result),
+so no frame is lost. The client gives up after `reconnect_timeout_s` without a Welcome.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import re
+import secrets
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+import msgpack
+import numpy as np
+import zmq
+
+from arlight.protocols import (
+    DEFAULT_COLOR_CODEC,
+    DEFAULT_DEPTH_CODEC,
+    DEFAULT_JPEG_QUALITY,
+    PROTOCOL_VERSION,
+    Bye,
+    CameraCalibration,
+    Credit,
+    Error,
+    Frame,
+    Heartbeat,
+    Hello,
+    ProtocolError,
+    Result,
+    SessionConfig,
+    Welcome,
+    decode,
+    encode,
+    peek_header,
+)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SERVER = "tcp://127.0.0.1:5555"
+DEPTH_SCALE_CANDIDATES = (5000.0, 1000.0)  # TUM, millimetres: tried for an exact round trip
+DEFAULT_DEPTH_SCALE = 5000.0  # 0.2 mm steps up to 13.1 m when no candidate is exact
+MAX_DEPTH_U16 = 65534  # larger values do not fit (65535 is the data sets' "invalid")
+RETRYABLE_FIELDS = ("session", "shutdown", "credits")  # bad_state errors worth a resend
+
+
+class StreamError(RuntimeError):
+    """The stream cannot go on: no server, or the server refused the session (fatal Error)."""
+
+
+# --------------------------------------------------------------------------- sources
+
+
+@dataclass
+class SourceFrame:
+    """One frame as sent: timestamp (source clock, s), color (H, W, 3) uint8 RGB,
+    depth (H, W) uint16 in the source's depth_scale units per metre, pose (4, 4) or None.
+    parts: for recordings, the encoded Frame exactly as recorded (sent verbatim)."""
+
+    timestamp: float
+    color: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    pose: np.ndarray | None = None
+    parts: list[bytes] | None = None
+
+
+@dataclass
+class Source:
+    """Frames plus what a Hello needs. frames(): a fresh iterator over all frames."""
+
+    name: str
+    calibration: CameraCalibration
+    depth_scale: float
+    num_frames: int
+    frames: Callable[[], Iterator[SourceFrame]]
+    notes: list[str] = field(default_factory=list)
+    recorded_config: SessionConfig | None = None  # recordings: the recorded session config
+
+
+def calibration_of(camera) -> CameraCalibration:
+    """The wire calibration of a PinholeCamera (no distortion: images are undistorted)."""
+    return CameraCalibration(int(camera.width), int(camera.height), float(camera.fx),
+                             float(camera.fy), float(camera.cx), float(camera.cy))
+
+
+def depth_to_u16(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
+    """(H, W) float metres -> uint16 in depth_scale units; missing, NaN or too far -> 0."""
+    d = np.asarray(depth_m, dtype=np.float64) * depth_scale
+    d = np.where(np.isfinite(d), np.rint(d), 0.0)
+    d[(d < 0) | (d > MAX_DEPTH_U16)] = 0.0
+    return d.astype(np.uint16)
+
+
+def choose_depth_scale(depth_m: np.ndarray) -> tuple[float, bool]:
+    """A depth_scale that turns these metres back into the stored integers exactly, if any.
+
+    Recorded depth is integers / scale (TUM 5000, millimetres 1000); sending the integers
+    with that scale lets the server recompute the reader's metres bit for bit (the equality
+    `arlight stream` promises in lossless mode). Returns (scale, exact).
+    """
+    valid = np.isfinite(depth_m) & (depth_m > 0)
+    values = depth_m[valid].astype(np.float32)
+    for scale in DEPTH_SCALE_CANDIDATES:
+        units = np.rint(values.astype(np.float64) * scale)
+        if units.size and units.max() > MAX_DEPTH_U16:
+            continue
+        if np.array_equal(units.astype(np.float32) / np.float32(scale), values):
+            return scale, True
+    return DEFAULT_DEPTH_SCALE, False
+
+
+def sequence_source(name: str, camera, frames, notes: list[str] | None = None) -> Source:
+    """A Source over FrameInputs (depth in metres), e.g. a data set or the synthetic scene."""
+    notes = list(notes or [])
+    first = frames[0]
+    scale, exact = choose_depth_scale(np.asarray(first.depth))
+    if not exact:
+        notes = [*notes, f"depth is not integers over 5000 or 1000; sent at depth_scale "
+                         f"{scale:g} (0.2 mm steps)"]
+
+    def iterate() -> Iterator[SourceFrame]:
+        for i in range(len(frames)):
+            f = frames[i]
+            yield SourceFrame(float(f.timestamp), np.ascontiguousarray(f.color),
+                              depth_to_u16(f.depth, scale), f.pose)
+
+    return Source(name, calibration_of(camera), scale, len(frames), iterate, notes)
+
+
+def open_source(spec: str, *, use_poses: bool = False, max_frames: int | None = None,
+                depth_encoding: str | None = None, synthetic_size: tuple[int, int] = (640, 480),
+                synthetic_frames: int = 12) -> Source:
+    """A frame source: "synthetic", a data set folder (see client/datasets.py) or FILE.mcap.
+
+    Raises DatasetError (arlight.client.datasets) or RecordingError for unusable input.
+    """
+    if spec == "synthetic":
+        from arlight.pipeline.synthetic import make_sequence
+
+        n = max_frames or synthetic_frames
+        seq = make_sequence(num_frames=n, width=synthetic_size[0], height=synthetic_size[1])
+        frames = seq.frames if use_poses else [dataclasses.replace(f, pose=None)
+                                               for f in seq.frames]
+        return sequence_source("synthetic", seq.camera, frames, [])
+    if spec.lower().endswith(".mcap"):
+        from arlight.client.recording import open_recording_source
+
+        return open_recording_source(spec, max_frames=max_frames)
+    from arlight.client.datasets import open_sequence
+
+    seq = open_sequence(spec, depth_encoding=depth_encoding, use_poses=use_poses,
+                        max_frames=max_frames)
+    return sequence_source(seq.name, seq.camera, seq.frames, list(seq.notes))
+
+
+def default_session_name(source_name: str) -> str:
+    """`<source>-<4 hex>`, within the protocol's [A-Za-z0-9_.-]{1,64}."""
+    base = re.sub(r"[^A-Za-z0-9_.-]+", "_", source_name).strip("_") or "stream"
+    return f"{base[:55]}-{secrets.token_hex(2)}"
+
+
+def restamp_seq(parts: list[bytes], seq: int) -> list[bytes]:
+    """A recorded Frame with a new seq (looping a recording): the header is re-packed, the
+    image payloads are left untouched."""
+    header = msgpack.unpackb(parts[0], raw=False)
+    header["seq"] = seq
+    return [msgpack.packb(header, use_bin_type=True), *parts[1:]]
+
+
+def encoded_frames(source: Source, options: StreamOptions, timestamps: str
+                   ) -> Iterator[tuple[int, float, list]]:
+    """(seq, source timestamp, encoded Frame parts) for every frame to send, looping if asked.
+
+    timestamps: "capture" stamps each frame with time.time() as it is encoded, "source" keeps
+    the source's. Recorded frames are passed on as recorded (re-stamped seq when looping).
+    """
+    seq = 0
+    offset_s = 0.0
+    while True:
+        first_ts = last_ts = None
+        for frame in source.frames():
+            if options.max_frames is not None and seq >= options.max_frames:
+                return
+            first_ts = frame.timestamp if first_ts is None else first_ts
+            last_ts = frame.timestamp
+            ts = frame.timestamp + offset_s
+            if frame.parts is not None:  # a recording: as recorded (bit-exact)
+                parts = frame.parts if seq == peek_header(frame.parts)["seq"] else \
+                    restamp_seq(frame.parts, seq)
+            else:
+                stamp = time.time() if timestamps == "capture" else ts
+                parts = encode(Frame(seq, stamp, frame.color, frame.depth, frame.pose, None,
+                                     options.color_codec, options.depth_codec,
+                                     options.jpeg_quality))
+            yield seq, ts, parts
+            seq += 1
+        if not options.loop or first_ts is None:
+            return
+        period = 1.0 / 30.0 if source.num_frames < 2 else \
+            (last_ts - first_ts) / (source.num_frames - 1)
+        offset_s += last_ts - first_ts + period
+
+
+# --------------------------------------------------------------------------- client
+
+
+@dataclass(frozen=True)
+class StreamOptions:
+    """How to stream. timestamps: "capture" stamps each frame with time.time() when it is
+    sent (end-to-end latency becomes measurable), "source" keeps the source's timestamps;
+    None = capture in live mode, source in lossless mode. Recordings keep theirs always."""
+
+    server: str = DEFAULT_SERVER
+    session: str | None = None
+    client_name: str = "arlight-stream"
+    mode: str = "live"
+    rate: str = "native"
+    loop: bool = False
+    color_codec: str = DEFAULT_COLOR_CODEC
+    depth_codec: str = DEFAULT_DEPTH_CODEC
+    jpeg_quality: int = DEFAULT_JPEG_QUALITY
+    preset: str = "full"
+    overrides: dict = field(default_factory=dict)
+    want_composite: bool = False
+    virtual_scene: str | None = None
+    timestamps: str | None = None
+    max_frames: int | None = None  # stop after this many frames (with --loop: in total)
+    heartbeat_interval_s: float = 1.0  # until the server's Welcome says otherwise
+    liveness: int = 3
+    reconnect_timeout_s: float = 30.0
+    backoff_initial_s: float = 0.1
+    backoff_max_s: float = 2.0
+    final_result_timeout_s: float = 30.0  # live mode: wait this long for the last Result
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("live", "lossless"):
+            raise ValueError(f"mode must be 'live' or 'lossless', got {self.mode!r}")
+        if self.rate not in ("native", "max"):
+            raise ValueError(f"rate must be 'native' or 'max', got {self.rate!r}")
+        if self.timestamps not in (None, "capture", "source"):
+            raise ValueError(f"timestamps must be 'capture' or 'source', got {self.timestamps!r}")
+
+
+@dataclass
+class StreamSummary:
+    session: str
+    frames_sent: int = 0
+    results: int = 0
+    errors: list[Error] = field(default_factory=list)
+    frames_dropped: int = 0  # as reported by the server's last Result
+    frames_not_sent: int = 0  # live: the client's own queue was full
+    reconnects: int = 0
+    elapsed_s: float = 0.0
+    latencies_s: list[float] = field(default_factory=list)  # send -> Result, per frame
+
+
+class CaptureClient:
+    """Streams one source into one session. `run()` blocks; `stop()` ends it from any thread.
+
+    on_result(result, receive_time) and on_error(error) are called in the client's thread.
+    recorder: optional client/recording.Recorder receiving the Hello and every frame sent.
+    """
+
+    def __init__(self, source: Source, options: StreamOptions,
+                 on_result: Callable[[Result, float], None] | None = None,
+                 on_error: Callable[[Error], None] | None = None, recorder=None,
+                 context: zmq.Context | None = None):
+        self.source = source
+        self.options = options
+        self.on_result = on_result
+        self.on_error = on_error
+        self.recorder = recorder
+        self.session = options.session or default_session_name(source.name)
+        self._ctx = context or zmq.Context.instance()
+        self._socket: zmq.Socket | None = None
+        self._stop = threading.Event()
+        self._timestamps = options.timestamps or ("capture" if options.mode == "live"
+                                                  else "source")
+        self.hello = self._make_hello()
+        self.credits = 1
+        self.heartbeat_interval_s = options.heartbeat_interval_s
+        self.summary = StreamSummary(self.session)
+        # lossless: seq -> encoded parts, sent (or to be sent again) and not yet acknowledged
+        self._unacked: collections.OrderedDict[int, list] = collections.OrderedDict()
+        self._sent_time: dict[int, float] = {}
+        self._resend: collections.deque[int] = collections.deque()
+        self._last_seq = -1
+        self._last_result_seq = -1
+
+    def _make_hello(self) -> Hello:
+        opts = self.options
+        base = self.source.recorded_config
+        config = SessionConfig(
+            session=self.session, client_name=opts.client_name, role="capture",
+            calibration=self.source.calibration, depth_scale=self.source.depth_scale,
+            preset=opts.preset, overrides=dict(opts.overrides), virtual_scene=opts.virtual_scene,
+            mode=opts.mode, want_composite=opts.want_composite)
+        if base is not None:  # a recording: its calibration and depth scale always hold
+            config = dataclasses.replace(config, calibration=base.calibration,
+                                         depth_scale=base.depth_scale)
+        return Hello(PROTOCOL_VERSION, config)
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    # ------------------------------------------------------------------ socket
+
+    def _open_socket(self) -> None:
+        if self._socket is not None:
+            self._socket.close(linger=0)
+        sock = self._ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.SNDHWM, 64)
+        sock.setsockopt(zmq.RCVHWM, 1000)
+        try:
+            sock.connect(self.options.server)
+        except zmq.ZMQError as exc:
+            sock.close(linger=0)
+            raise StreamError(f"cannot connect to {self.options.server!r}: {exc}; expected "
+                              "tcp://HOST:PORT") from None
+        self._socket = sock
+
+    def _send(self, parts: list, block: bool = False) -> bool:
+        try:
+            self._socket.send_multipart(parts, 0 if block else zmq.NOBLOCK, copy=False)
+            return True
+        except zmq.Again:
+            return False
+
+    def _receive(self, timeout_s: float) -> tuple[object, float] | None:
+        """One message from the server within timeout_s, or None."""
+        if not self._socket.poll(max(0, int(timeout_s * 1000)), zmq.POLLIN):
+            return None
+        parts = self._socket.recv_multipart(copy=False)
+        now = time.time()
+        try:
+            return decode([p.buffer for p in parts]), now
+        except ProtocolError as exc:
+            log.warning("undecodable message from the server ignored: %s", exc)
+            return exc, now
+
+    def _connect(self) -> None:
+        """(Re)connect and say Hello until Welcome; StreamError after reconnect_timeout_s."""
+        opts = self.options
+        deadline = time.monotonic() + opts.reconnect_timeout_s
+        backoff = opts.backoff_initial_s
+        attempt = 0
+        while not self._stop.is_set():
+            self._open_socket()
+            hello_parts = encode(self.hello)
+            self._send(hello_parts, block=False)
+            wait_until = time.monotonic() + max(opts.liveness * self.heartbeat_interval_s, 1.0)
+            while time.monotonic() < wait_until and not self._stop.is_set():
+                got = self._receive(min(0.1, wait_until - time.monotonic()))
+                if got is None:
+                    continue
+                message, now = got
+                if isinstance(message, Welcome):
+                    self.credits = max(1, message.credits)
+                    self.heartbeat_interval_s = message.heartbeat_interval_s
+                    if self.recorder is not None and attempt == 0 and \
+                            self.summary.reconnects == 0:
+                        self.recorder.write_hello(hello_parts, time.time_ns())
+                    self._last_heard = now
+                    self._last_sent = time.monotonic()
+                    return
+                if isinstance(message, Error) and message.seq is None and not (
+                        message.code == "bad_state" and message.field in RETRYABLE_FIELDS):
+                    raise StreamError(f"the server refused session {self.session!r}: "
+                                      f"{message.code}"
+                                      f"{' (' + message.field + ')' if message.field else ''}: "
+                                      f"{message.message}")
+                self._handle(message, now)  # late Results of the previous connection
+            attempt += 1
+            if time.monotonic() + backoff > deadline:
+                raise StreamError(f"no arlight server answered at {opts.server} within "
+                                  f"{opts.reconnect_timeout_s:.0f} s; start one with "
+                                  "`arlight serve` or check --server")
+            log.info("no Welcome from %s; retrying in %.1f s", opts.server, backoff)
+            self._stop.wait(backoff)
+            backoff = min(backoff * 2, opts.backoff_max_s)
+
+    def _reconnect(self, why: str) -> None:
+        log.warning("session %s: %s; reconnecting to %s", self.session, why, self.options.server)
+        self.summary.reconnects += 1
+        self._connect()
+        self._resend = collections.deque(self._unacked)  # lossless: send them all again
+
+    # ------------------------------------------------------------------ messages
+
+    def _handle(self, message, now: float) -> str | None:
+        """Act on one server message; returns "reconnect" or "rehello" when that is needed."""
+        self._last_heard = now
+        if isinstance(message, Result):
+            self._on_result(message, now)
+        elif isinstance(message, Error):
+            return self._on_error(message)
+        elif isinstance(message, Bye):
+            return "reconnect"
+        elif isinstance(message, Credit):
+            self.credits += message.credits  # the server widened the window
+        elif isinstance(message, (Heartbeat, Welcome)):
+            pass
+        return None
+
+    def _on_result(self, result: Result, now: float) -> None:
+        if self.options.mode == "lossless":
+            if result.seq not in self._unacked:
+                return  # a duplicate (re-sent after a reconnect)
+            del self._unacked[result.seq]
+        elif result.seq <= self._last_result_seq:
+            return
+        self._last_result_seq = max(self._last_result_seq, result.seq)
+        sent = self._sent_time.pop(result.seq, None)
+        if sent is not None:
+            self.summary.latencies_s.append(now - sent)
+        self.summary.results += 1
+        self.summary.frames_dropped = result.frames_dropped
+        if self.on_result is not None:
+            self.on_result(result, now)
+
+    def _on_error(self, error: Error) -> str | None:
+        # bad_state about the session, a shutdown or the credit window: the frame was not
+        # processed, so it stays unacknowledged and is sent again after the reconnect
+        retry = error.code == "bad_state" and error.field in RETRYABLE_FIELDS
+        if retry:
+            if error.field == "session":
+                return "rehello"
+            return None  # shutdown: the Bye follows; credits: sent again after reconnect
+        if error.seq is not None:
+            self._unacked.pop(error.seq, None)
+            self._sent_time.pop(error.seq, None)
+            self._last_result_seq = max(self._last_result_seq, error.seq)
+        self.summary.errors.append(error)
+        log.warning("session %s: server error for frame %s: %s%s: %s", self.session, error.seq,
+                    error.code, f" ({error.field})" if error.field else "", error.message)
+        if self.on_error is not None:
+            self.on_error(error)
+        return None
+
+    # ------------------------------------------------------------------ frames
+
+    def run(self) -> StreamSummary:
+        """Stream until the source ends (and, lossless, every frame is acknowledged)."""
+        opts = self.options
+        start = time.monotonic()
+        self._connect()
+        frames = encoded_frames(self.source, self.options, self._timestamps)
+        pending: tuple[int, float, list] | None = None
+        exhausted = False
+        source_t0 = wall_t0 = None
+        finish_deadline = None
+        try:
+            while not self._stop.is_set():
+                now_m = time.monotonic()
+                # 1. send what may be sent
+                while self._resend:
+                    seq = self._resend.popleft()
+                    if seq in self._unacked:
+                        self._send(self._unacked[seq], block=True)
+                        self._sent_time.setdefault(seq, time.time())
+                        self._last_sent = now_m
+                if pending is None and not exhausted:
+                    pending = next(frames, None)
+                    exhausted = pending is None
+                next_due = None
+                if pending is not None:
+                    seq, ts, parts = pending
+                    if source_t0 is None:
+                        source_t0, wall_t0 = ts, now_m
+                    due = wall_t0 + (ts - source_t0) if opts.rate == "native" else now_m
+                    window_open = opts.mode == "live" or len(self._unacked) < self.credits
+                    if window_open and now_m >= due:
+                        self._send_frame(seq, parts)
+                        pending = None
+                        continue
+                    next_due = due if window_open else None
+                # 2. finished?
+                if exhausted and pending is None:
+                    if opts.mode == "lossless" and not self._unacked:
+                        break
+                    if opts.mode == "live":
+                        if self._last_result_seq >= self._last_seq:
+                            break
+                        if finish_deadline is None:
+                            finish_deadline = now_m + opts.final_result_timeout_s
+                        elif now_m > finish_deadline:
+                            log.warning("session %s: no Result for the last frame within "
+                                        "%.0f s", self.session, opts.final_result_timeout_s)
+                            break
+                # 3. wait for the server (or the next due frame / heartbeat)
+                heartbeat_due = self._last_sent + self.heartbeat_interval_s
+                wake = min(x for x in (next_due, heartbeat_due, now_m + 0.25) if x is not None)
+                got = self._receive(max(0.0, wake - now_m))
+                action = None
+                while got is not None:
+                    action = self._handle(*got) or action
+                    got = self._receive(0)
+                now_m = time.monotonic()
+                if action == "rehello":
+                    self._rehello()
+                elif action == "reconnect":
+                    self._reconnect("the server said Bye")
+                elif time.time() - self._last_heard > opts.liveness * self.heartbeat_interval_s:
+                    self._reconnect(f"no message from the server for "
+                                    f"{time.time() - self._last_heard:.1f} s")
+                elif now_m >= heartbeat_due:
+                    self._send(encode(Heartbeat(time.time())))
+                    self._last_sent = now_m
+            if not self._stop.is_set():
+                self._send(encode(Bye("end of stream")), block=False)
+                time.sleep(0.05)  # let the Bye leave before the socket closes (LINGER 0)
+        finally:
+            self.summary.elapsed_s = time.monotonic() - start
+            self.summary.frames_sent = self._last_seq + 1
+            if self._socket is not None:
+                self._socket.close(linger=0)
+                self._socket = None
+        return self.summary
+
+    def _send_frame(self, seq: int, parts: list) -> None:
+        if self.options.mode == "lossless":
+            self._unacked[seq] = parts
+            self._send(parts, block=True)
+        elif not self._send(parts, block=False):
+            self.summary.frames_not_sent += 1
+            self._last_seq = seq
+            return
+        self._sent_time[seq] = time.time()
+        if len(self._sent_time) > 4096:  # live: Results of dropped frames never come
+            for old in list(self._sent_time)[:2048]:
+                del self._sent_time[old]
+        self._last_seq = seq
+        self._last_sent = time.monotonic()
+        if self.recorder is not None:
+            self.recorder.write_frame(parts, time.time_ns())
+
+    def _rehello(self) -> None:
+        """The server forgot this peer (restart, expiry): Hello again on a fresh socket."""
+        self._reconnect("the server does not know this session (restarted or expired)")
+
+
+def stream(source: Source, options: StreamOptions, **kwargs) -> StreamSummary:
+    """Stream `source` with `options` (see CaptureClient) and return the summary."""
+    return CaptureClient(source, options, **kwargs).run()

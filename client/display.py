@@ -1,0 +1,351 @@
+"""The thin display client: subscribes to one session's Results and writes/prints them.
+
+It connects with one DEALER to the server (`--server` is the only address it needs), says
+Hello(role=display, session=NAME) and receives every Result the server publishes for that
+session from then on (a display that joins late starts from there; one that reads slowly
+loses Results at its own queue, never stalling the pipeline). Writes, when asked:
+`results.jsonl` (one line per Result, with the latencies below), `frames/NNNNNN.png` (the
+composite each Result carries: only sessions started with want_composite send one) and a
+video of the composites (`--video out.mp4`, mp4v).
+
+Latency, all on one machine's clock or clocks kept in sync:
+- end_to_end_ms = display receive time - the frame's timestamp. Meaningful when the capture
+  client stamps frames with their capture time (`--timestamps capture`, the default in live
+  mode and in `arlight demo`); null when the timestamps are a data set's own clock (further
+  than an hour from now).
+- server_to_display_ms = display receive time - server receive time (server queue +
+  processing + the trip to the display);
+- server_ms = server finish - server receive (queue + processing).
+The printed "latency" is end_to_end_ms where available, else server_to_display_ms.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import zmq
+
+from arlight.protocols import (
+    PROTOCOL_VERSION,
+    Bye,
+    Error,
+    Heartbeat,
+    Hello,
+    ProtocolError,
+    Result,
+    SessionConfig,
+    Welcome,
+    decode,
+    encode,
+)
+
+log = logging.getLogger(__name__)
+
+END_OF_STREAM_SUFFIX = "ended"  # the server's Bye reason when the session's stream ended
+WALL_CLOCK_WINDOW_S = 3600.0  # timestamps within this of now count as capture times
+
+
+class DisplayError(RuntimeError):
+    """The display cannot go on (no server, or the server refused the subscription)."""
+
+
+@dataclass(frozen=True)
+class DisplayOptions:
+    server: str
+    session: str
+    out_dir: str | None = None  # results.jsonl and frames/ go here
+    video: str | None = None  # an .mp4 of the composites
+    video_fps: float = 15.0
+    max_results: int | None = None  # exit after this many Results
+    idle_exit_s: float | None = None  # exit after this long without a Result
+    follow: bool = False  # keep waiting for a new stream after the session ends
+    print_interval_s: float = 1.0
+    client_name: str = "arlight-display"
+    heartbeat_interval_s: float = 1.0
+    liveness: int = 3
+    reconnect_timeout_s: float = 30.0
+
+
+@dataclass
+class DisplaySummary:
+    session: str
+    results: int = 0
+    composites: int = 0
+    first_receive: float | None = None
+    last_receive: float | None = None
+    latencies_ms: list[float] = field(default_factory=list)  # the printed latency, per Result
+    end_to_end: bool = False  # latencies_ms are capture -> display
+    timings_ms: dict[str, list[float]] = field(default_factory=dict)
+    frames_dropped: int = 0  # the session's count, from the last Result
+    seq_gaps: int = 0  # Results this display did not receive (dropped for it or the session)
+    reconnects: int = 0
+    ended: bool = False  # the stream ended (Bye from the server)
+
+    @property
+    def fps(self) -> float:
+        if self.results < 2 or self.first_receive is None:
+            return 0.0
+        return (self.results - 1) / max(self.last_receive - self.first_receive, 1e-9)
+
+    def to_dict(self) -> dict:
+        lat = np.asarray(self.latencies_ms, dtype=float)
+        return {
+            "session": self.session, "results": self.results, "composites": self.composites,
+            "fps": round(self.fps, 3),
+            "latency_ms": {"kind": "end_to_end" if self.end_to_end else "server_to_display",
+                           "median": _round(np.median(lat)) if lat.size else None,
+                           "p95": _round(np.percentile(lat, 95)) if lat.size else None,
+                           "max": _round(lat.max()) if lat.size else None},
+            "timings_ms_median": {k: _round(np.median(v)) for k, v in self.timings_ms.items()},
+            "frames_dropped": self.frames_dropped, "results_missed": self.seq_gaps,
+            "reconnects": self.reconnects, "stream_ended": self.ended,
+        }
+
+
+def _round(x) -> float:
+    return round(float(x), 3)
+
+
+def result_record(result: Result, receive_time: float) -> dict:
+    """One line of results.jsonl."""
+    e2e = receive_time - result.timestamp
+    return {
+        "seq": result.seq, "timestamp": result.timestamp, "sh": result.sh,
+        "sh_rgb": result.sh_rgb,
+        "dominant_direction_camera": result.dominant_direction_camera,
+        "dominant_direction_world": result.dominant_direction_world,
+        "intensity": result.intensity, "confidence": result.confidence, "pose": result.pose,
+        "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},
+        "frames_received": result.frames_received, "frames_processed": result.frames_processed,
+        "frames_dropped": result.frames_dropped,
+        "server_receive_time": result.server_receive_time,
+        "server_finish_time": result.server_finish_time,
+        "display_receive_time": receive_time,
+        "end_to_end_ms": round(e2e * 1e3, 3) if abs(e2e) < WALL_CLOCK_WINDOW_S else None,
+        "server_to_display_ms": round((receive_time - result.server_receive_time) * 1e3, 3),
+        "server_ms": round((result.server_finish_time - result.server_receive_time) * 1e3, 3),
+    }
+
+
+class DisplayClient:
+    """Receives one session's Results until the stream ends (or a limit). `run()` blocks."""
+
+    def __init__(self, options: DisplayOptions,
+                 on_result: Callable[[Result, dict], None] | None = None,
+                 printer: Callable[[str], None] | None = None,
+                 context: zmq.Context | None = None, read_delay_s: float = 0.0):
+        self.options = options
+        self.on_result = on_result
+        self.printer = printer
+        self.read_delay_s = read_delay_s  # tests: a display that reads slowly
+        self._ctx = context or zmq.Context.instance()
+        self._socket: zmq.Socket | None = None
+        self._stop = threading.Event()
+        self.subscribed = threading.Event()
+        self.summary = DisplaySummary(options.session)
+        self._heartbeat_s = options.heartbeat_interval_s
+        self._last_seq: int | None = None
+        self._jsonl = None
+        self._frames_dir: Path | None = None
+        self._video = None
+        self._window: deque[tuple[float, float]] = deque()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def _open(self) -> None:
+        if self._socket is not None:
+            self._socket.close(linger=0)
+        sock = self._ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.RCVHWM, 100)
+        try:
+            sock.connect(self.options.server)
+        except zmq.ZMQError as exc:
+            sock.close(linger=0)
+            raise DisplayError(f"cannot connect to {self.options.server!r}: {exc}; expected "
+                               "tcp://HOST:PORT") from None
+        self._socket = sock
+        hello = Hello(PROTOCOL_VERSION, SessionConfig(
+            session=self.options.session, client_name=self.options.client_name,
+            role="display"))
+        self._socket.send_multipart(encode(hello), copy=False)
+        self._hello_sent = time.monotonic()
+        self._welcomed = False
+
+    def _receive(self, timeout_s: float):
+        if not self._socket.poll(max(0, int(timeout_s * 1000)), zmq.POLLIN):
+            return None
+        parts = self._socket.recv_multipart(copy=False)
+        now = time.time()
+        try:
+            return decode([p.buffer for p in parts]), now
+        except ProtocolError as exc:
+            log.warning("undecodable message from the server ignored: %s", exc)
+            return None
+
+    def _setup_outputs(self) -> None:
+        opts = self.options
+        if opts.out_dir:
+            out = Path(opts.out_dir)
+            self._frames_dir = out / "frames"
+            self._frames_dir.mkdir(parents=True, exist_ok=True)
+            self._jsonl = open(out / "results.jsonl", "w")  # noqa: SIM115 - closed in run()
+
+    def _write_composite(self, result: Result) -> None:
+        image = result.composite
+        if image is None:
+            return
+        self.summary.composites += 1
+        bgr = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR)
+        if self._frames_dir is not None:
+            cv2.imwrite(str(self._frames_dir / f"{result.seq:06d}.png"), bgr)
+        if self.options.video:
+            if self._video is None:
+                h, w = bgr.shape[:2]
+                Path(self.options.video).parent.mkdir(parents=True, exist_ok=True)
+                fourcc = cv2.VideoWriter_fourcc(*"mp4v")
+                self._video = cv2.VideoWriter(self.options.video, fourcc,
+                                              self.options.video_fps, (w, h))
+                self._video_size = (w, h)
+                if not self._video.isOpened():
+                    raise DisplayError(f"cannot write the video {self.options.video!r} "
+                                       "(OpenCV has no mp4v encoder here?)")
+            if (bgr.shape[1], bgr.shape[0]) != self._video_size:
+                bgr = cv2.resize(bgr, self._video_size, interpolation=cv2.INTER_AREA)
+            self._video.write(bgr)
+
+    def _on_result(self, result: Result, now: float) -> None:
+        s = self.summary
+        if self._last_seq is not None and result.seq > self._last_seq + 1:
+            s.seq_gaps += result.seq - self._last_seq - 1
+        self._last_seq = result.seq
+        record = result_record(result, now)
+        s.results += 1
+        s.first_receive = now if s.first_receive is None else s.first_receive
+        s.last_receive = now
+        s.frames_dropped = result.frames_dropped
+        if record["end_to_end_ms"] is not None:
+            s.end_to_end = True
+            latency = record["end_to_end_ms"]
+        else:
+            latency = record["server_to_display_ms"]
+        s.latencies_ms.append(latency)
+        for k, v in result.timings_ms.items():
+            s.timings_ms.setdefault(k, []).append(v)
+        self._window.append((now, latency))
+        if self._jsonl is not None:
+            self._jsonl.write(json.dumps(record) + "\n")
+            self._jsonl.flush()
+        self._write_composite(result)
+        if self.on_result is not None:
+            self.on_result(result, record)
+
+    def _print_rate(self, now: float) -> None:
+        while self._window and self._window[0][0] < now - max(self.options.print_interval_s,
+                                                              1.0):
+            self._window.popleft()
+        if self.printer is None:
+            return
+        n = len(self._window)
+        span = max(self.options.print_interval_s, 1.0)
+        lat = np.median([x for _, x in self._window]) if n else float("nan")
+        kind = "end-to-end" if self.summary.end_to_end else "server-to-display"
+        self.printer(f"display {self.options.session}: {n / span:5.1f} fps, {kind} latency "
+                     f"{lat:6.1f} ms, {self.summary.results} results, session dropped "
+                     f"{self.summary.frames_dropped}")
+
+    def run(self) -> DisplaySummary:
+        opts = self.options
+        self._setup_outputs()
+        self._open()
+        last_heard = time.time()
+        last_sent = time.monotonic()
+        last_result = time.monotonic()
+        next_print = time.monotonic() + opts.print_interval_s
+        lost_since: float | None = None
+        try:
+            while not self._stop.is_set():
+                got = self._receive(0.1)
+                now_m = time.monotonic()
+                if got is not None:
+                    message, now = got
+                    last_heard = now
+                    lost_since = None
+                    if isinstance(message, Welcome):
+                        self._welcomed = True
+                        self._heartbeat_s = message.heartbeat_interval_s
+                        self.subscribed.set()
+                    elif isinstance(message, Result):
+                        self._on_result(message, now)
+                        last_result = now_m
+                        if self.read_delay_s:
+                            time.sleep(self.read_delay_s)
+                    elif isinstance(message, Error):
+                        if message.code == "bad_state" and message.field == "session":
+                            self._resubscribe("the server does not know this display")
+                        elif not self._welcomed:
+                            raise DisplayError(f"the server refused the subscription: "
+                                               f"{message.code}: {message.message}")
+                    elif isinstance(message, Bye):
+                        if message.reason.endswith(END_OF_STREAM_SUFFIX) and not opts.follow:
+                            self.summary.ended = True
+                            break
+                        if not message.reason.endswith(END_OF_STREAM_SUFFIX):
+                            self._resubscribe(f"the server said Bye ({message.reason})")
+                    elif isinstance(message, Heartbeat):
+                        pass
+                if opts.max_results is not None and self.summary.results >= opts.max_results:
+                    break
+                if opts.idle_exit_s is not None and now_m - last_result > opts.idle_exit_s:
+                    break
+                if now_m >= next_print:
+                    self._print_rate(time.time())
+                    next_print = now_m + opts.print_interval_s
+                silent = time.time() - last_heard
+                if silent > opts.liveness * self._heartbeat_s:
+                    lost_since = lost_since or now_m
+                    if now_m - lost_since > opts.reconnect_timeout_s:
+                        raise DisplayError(f"no arlight server answered at {opts.server} "
+                                           f"within {opts.reconnect_timeout_s:.0f} s")
+                    self._resubscribe(f"no message from the server for {silent:.1f} s")
+                    last_heard = time.time()
+                if now_m - last_sent >= self._heartbeat_s:
+                    self._socket.send_multipart(encode(Heartbeat(time.time())), zmq.NOBLOCK,
+                                                copy=False)
+                    last_sent = now_m
+            if self._socket is not None and not self.summary.ended:
+                try:
+                    self._socket.send_multipart(encode(Bye("display closed")), zmq.NOBLOCK,
+                                                copy=False)
+                    time.sleep(0.02)
+                except zmq.Again:
+                    pass
+        finally:
+            if self._socket is not None:
+                self._socket.close(linger=0)
+                self._socket = None
+            if self._jsonl is not None:
+                self._jsonl.close()
+            if self._video is not None:
+                self._video.release()
+        return self.summary
+
+    def _resubscribe(self, why: str) -> None:
+        log.warning("display %s: %s; subscribing again", self.options.session, why)
+        self.summary.reconnects += 1
+        self._open()
+
+
+def print_line(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
