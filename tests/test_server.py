@@ -1,0 +1,496 @@
+"""The streaming server over real loopback sockets: delivery modes, sessions, displays,
+liveness, restarts, shutdown and hostile input (issue 3, item 5)."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import msgpack
+import numpy as np
+import pytest
+from streaming_support import (
+    SMALL,
+    TUM_FOLDER,
+    CaptureClientThread,
+    RawPeer,
+    flat_source,
+    identity_step,
+    need_data,
+    run_with_timeout,
+    server_factory,
+    wait_for,
+)
+
+from arlight.client.capture import (
+    CaptureClient,
+    StreamOptions,
+    open_source,
+    sequence_source,
+    stream,
+)
+from arlight.client.display import DisplayClient, DisplayOptions
+from arlight.pipeline.config import Config
+from arlight.pipeline.frames import FrameInput
+from arlight.pipeline.pipeline import Pipeline
+from arlight.pipeline.synthetic import make_sequence
+from arlight.protocols import (
+    PROTOCOL_VERSION,
+    Bye,
+    Error,
+    Frame,
+    Hello,
+    Result,
+    SessionConfig,
+    Welcome,
+    encode,
+)
+from arlight.server.server import Server, ServerOptions
+
+
+@pytest.fixture
+def make_server():
+    yield from server_factory()
+
+
+def _assert_result_equals(result: Result, expected) -> None:
+    """A Result carries exactly what Pipeline.process returned (float64 through msgpack)."""
+    np.testing.assert_array_equal(result.sh, expected.sh)
+    np.testing.assert_array_equal(result.dominant_direction_world,
+                                  expected.dominant_direction_world)
+    np.testing.assert_array_equal(result.dominant_direction_camera,
+                                  expected.dominant_direction_camera)
+    assert result.intensity == expected.intensity
+    assert result.confidence == expected.confidence.to_dict()
+    np.testing.assert_array_equal(result.pose, expected.pose)
+
+
+def _wire_input(frame) -> FrameInput:
+    """The pipeline input a SourceFrame becomes on the server (uint16 / 5000 -> metres)."""
+    return FrameInput(color=frame.color, depth=frame.depth.astype(np.float32) / np.float32(5000),
+                      timestamp=frame.timestamp, pose=frame.pose)
+
+
+class TestLossless:
+    @pytest.mark.data
+    def test_tum_folder_every_frame_equal_to_pipeline(self, make_server):
+        """A TUM folder streamed losslessly: one Result per frame, in order, each equal to
+        Pipeline.process on the frames the data set reader gives (png colour, zstd depth)."""
+        from arlight.client.datasets import open_sequence
+
+        folder = need_data(TUM_FOLDER)
+        server = make_server()
+        source = open_source(str(folder), max_frames=4)
+        assert source.depth_scale == 5000.0  # TUM's integers, so metres survive bit for bit
+        results: list[Result] = []
+        options = StreamOptions(server=server.connect_address, session="tum", mode="lossless",
+                                rate="max", color_codec="png", depth_codec="zstd",
+                                preset="fast", overrides=SMALL)
+        summary = run_with_timeout(lambda: stream(
+            source, options, on_result=lambda r, _: results.append(r)))
+        assert summary.errors == []
+        assert [r.seq for r in results] == [0, 1, 2, 3]
+        sequence = open_sequence(folder, max_frames=4)
+        pipeline = Pipeline(Config.from_preset("fast", **SMALL), sequence.camera)
+        for result, frame in zip(results, sequence.frames, strict=True):
+            assert result.timestamp == frame.timestamp  # lossless keeps the source's clock
+            _assert_result_equals(result, pipeline.process(frame))
+        assert results[-1].frames_received == results[-1].frames_processed == 4
+        assert results[-1].frames_dropped == 0
+
+    def test_two_concurrent_sessions_never_mix(self, make_server):
+        """Two sessions streamed at once, each equal to its own Pipeline run alone."""
+        server = make_server(workers=2)
+        sources = {}
+        for name, seed in (("left", 0), ("right", 3)):
+            seq = make_sequence(num_frames=3, width=160, height=120, seed=seed)
+            sources[name] = sequence_source(name, seq.camera, seq.frames)
+        results: dict[str, list[Result]] = {"left": [], "right": []}
+        clients = [CaptureClientThread(CaptureClient(
+            sources[name], StreamOptions(server=server.connect_address, session=name,
+                                         mode="lossless", rate="max", color_codec="png",
+                                         preset="fast", overrides=SMALL),
+            on_result=lambda r, _, name=name: results[name].append(r))) for name in sources]
+        for client in clients:
+            client.start()
+        for client in clients:
+            summary = client.join()
+            assert summary.errors == [] and summary.results == 3
+        for name, source in sources.items():
+            pipeline = Pipeline(Config.from_preset("fast", **SMALL), server_camera(source))
+            got = results[name]
+            assert [r.seq for r in got] == [0, 1, 2]
+            for result, frame in zip(got, source.frames(), strict=True):
+                _assert_result_equals(result, pipeline.process(_wire_input(frame)))
+
+    def test_duplicate_seq_is_not_processed_again(self, make_server):
+        """A frame sent again (a client resending after a reconnect) gets the cached Result."""
+        server = make_server(process=identity_step())
+        peer = RawPeer(server.connect_address)
+        assert isinstance(peer.hello("dup"), Welcome)
+        parts = _frame_parts(seq=0, value=42)
+        peer.send(parts)
+        first = peer.receive_raw()
+        peer.send(parts)
+        again = peer.receive_raw()
+        assert again == first
+        counters = server.snapshot()["sessions"]["dup"]
+        assert counters["frames_received"] == counters["frames_processed"] == 1
+        peer.close()
+
+
+def server_camera(source):
+    from arlight.pipeline.camera import PinholeCamera
+
+    c = source.calibration
+    return PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy)
+
+
+class TestLive:
+    def test_fast_producer_drops_frames_and_reports_them(self, make_server):
+        server = make_server(process=identity_step(delay_s=0.05))
+        results: list[Result] = []
+        options = StreamOptions(server=server.connect_address, session="live", mode="live",
+                                rate="max")
+        summary = run_with_timeout(lambda: stream(
+            flat_source(40), options, on_result=lambda r, _: results.append(r)))
+        assert summary.frames_sent == 40 and summary.frames_not_sent == 0
+        last = results[-1]
+        assert last.seq == 39  # the newest frame is never dropped
+        assert last.frames_received == 40
+        assert last.frames_dropped > 0
+        assert last.frames_processed + last.frames_dropped == 40
+        assert len(results) == last.frames_processed
+        assert summary.frames_dropped == last.frames_dropped
+        seqs = [r.seq for r in results]
+        assert seqs == sorted(seqs)
+        for r in results:  # every Result is its own frame's, and reports the counters
+            assert r.sh[0] == pytest.approx(10 + r.seq)
+            assert r.frames_processed + r.frames_dropped <= r.frames_received
+
+
+class TestDisplays:
+    def test_late_and_slow_displays_never_stall_the_pipeline(self, make_server):
+        server = make_server(process=identity_step())
+        address = server.connect_address
+        deaf = RawPeer(address, rcvhwm=1, rcvbuf=4096)  # subscribes, then never reads
+        assert isinstance(deaf.hello("shared", role="display"), Welcome)
+        deaf_alive = deaf.keep_alive()  # heartbeats only: the server must not think it dead
+        slow = DisplayClient(DisplayOptions(server=address, session="shared", idle_exit_s=3.0),
+                             read_delay_s=0.02)
+        late = DisplayClient(DisplayOptions(server=address, session="shared", idle_exit_s=3.0))
+        threads = {"slow": threading.Thread(target=slow.run, daemon=True),
+                   "late": threading.Thread(target=late.run, daemon=True)}
+        threads["slow"].start()
+        assert slow.subscribed.wait(10)
+        late_seqs: list[int] = []
+        late.on_result = lambda r, _: late_seqs.append(r.seq)
+
+        def on_result(result, _):
+            if result.seq == 100:
+                threads["late"].start()
+
+        n = 300
+        options = StreamOptions(server=address, session="shared", mode="lossless", rate="max",
+                                color_codec="raw", depth_codec="raw", want_composite=True)
+        summary = run_with_timeout(lambda: stream(flat_source(n, 320, 240, noise=True),
+                                                  options, on_result=on_result))
+        assert summary.results == n and summary.errors == []
+        for thread in threads.values():
+            thread.join(30)
+            assert not thread.is_alive()
+        assert late_seqs and late_seqs[0] > 0  # it joined late: no history is replayed
+        assert late_seqs == sorted(late_seqs)
+        assert 0 < slow.summary.results <= n
+        # the deaf display's queue filled up: the server dropped Results for it alone
+        assert server.stats.display_results_dropped > 0
+        deaf_alive.set()
+        deaf.close()
+
+
+class TestLiveness:
+    def test_idle_session_expires_and_silent_peer_is_dead(self, make_server):
+        server = make_server(process=identity_step(), session_timeout_s=1.5)
+        peer = RawPeer(server.connect_address)
+        assert isinstance(peer.hello("idle"), Welcome)
+        peer.send(_frame_parts(seq=0))
+        assert isinstance(peer.receive(), Result)
+        # the peer now stays silent (no heartbeats): dead after 3 intervals (0.6 s); the
+        # session expires after its timeout (1.5 s without frames) and frees its state
+        wait_for(lambda: "idle" not in server.snapshot()["sessions"], 10)
+        snapshot = server.snapshot()
+        assert snapshot["sessions_expired"] == 1 and snapshot["peers_expired"] >= 1
+        peer.send(_frame_parts(seq=1))
+        error = peer.receive()
+        assert isinstance(error, Error) and error.code == "bad_state"
+        assert error.field == "session" and error.seq == 1
+        peer.close()
+
+    def test_killed_capture_client_leaves_the_server_serving_others(self, make_server,
+                                                                     tmp_path):
+        server = make_server(process=identity_step())
+        script = tmp_path / "victim.py"
+        script.write_text(
+            "import sys\n"
+            f"sys.path.insert(0, {os.path.dirname(__file__)!r})\n"
+            "from streaming_support import flat_source\n"
+            "from arlight.client.capture import StreamOptions, stream\n"
+            f"stream(flat_source(100000), StreamOptions(server={server.connect_address!r}, "
+            "session='victim', mode='live', rate='native'))\n")
+        victim = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.PIPE)
+        try:
+            wait_for(lambda: server.snapshot()["sessions"].get("victim", {}).get(
+                "frames_received", 0) >= 5, 60, what="the victim's frames")
+        finally:
+            victim.kill()
+            victim.wait(10)
+        survivor = StreamOptions(server=server.connect_address, session="survivor",
+                                 mode="lossless", rate="max")
+        summary = run_with_timeout(lambda: stream(flat_source(5), survivor))
+        assert summary.results == 5 and summary.errors == []
+        wait_for(lambda: not server.snapshot()["sessions"]["victim"]["capture_attached"], 10,
+                 what="the dead capture peer to be detached")
+
+    def test_capture_client_survives_a_server_restart_without_losing_frames(self,
+                                                                             make_server):
+        server = make_server(process=identity_step(delay_s=0.02))
+        port = server.port
+        seqs: list[int] = []
+        client = CaptureClient(
+            flat_source(60), StreamOptions(server=f"tcp://127.0.0.1:{port}", session="phoenix",
+                                           mode="lossless", rate="max",
+                                           reconnect_timeout_s=20.0),
+            on_result=lambda r, _: seqs.append(r.seq))
+        runner = CaptureClientThread(client)
+        runner.start()
+        wait_for(lambda: len(seqs) >= 15, 30, what="15 results before the restart")
+        server.stop()
+        time.sleep(0.3)  # the client notices (Bye) and retries while the port is closed
+        second = make_server(process=identity_step(delay_s=0.02),
+                             bind=f"tcp://127.0.0.1:{port}")
+        summary = runner.join()
+        assert summary.reconnects >= 1
+        assert seqs == list(range(60))  # every frame exactly once, in order
+        assert summary.errors == []
+        assert "phoenix" in second.snapshot()["sessions"] or \
+            second.stats.sessions_closed >= 1  # it said Hello again to the new server
+
+    def test_shutdown_finishes_or_reports_in_flight_lossless_frames(self, make_server):
+        server = make_server(process=identity_step(delay_s=0.4), shutdown_grace_s=1.0,
+                             heartbeat_interval_s=5.0)  # the raw peer sends no heartbeats
+        peer = RawPeer(server.connect_address)
+        welcome = peer.hello("drain")
+        assert welcome.credits >= 4
+        for seq in range(4):
+            peer.send(_frame_parts(seq=seq))
+        time.sleep(0.1)
+        stopper = threading.Thread(target=server.stop)
+        stopper.start()
+        outcome: dict[int, str] = {}
+        while True:
+            message = peer.receive(15)
+            if isinstance(message, Bye):
+                break
+            assert message.seq not in outcome
+            if isinstance(message, Result):
+                outcome[message.seq] = "processed"
+            else:
+                assert message.code == "bad_state" and message.field == "shutdown"
+                outcome[message.seq] = "reported"
+        stopper.join(15)
+        assert sorted(outcome) == [0, 1, 2, 3]
+        assert "processed" in outcome.values() and "reported" in outcome.values()
+        peer.close()
+
+    def test_serve_command_shuts_down_cleanly_on_sigterm(self):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "arlight.cli", "serve", "--bind", f"tcp://127.0.0.1:{port}",
+             "--heartbeat", "0.2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            peer = RawPeer(f"tcp://127.0.0.1:{port}")
+            welcome = peer.hello("cli", timeout_s=60)  # includes the interpreter's start-up
+            assert isinstance(welcome, Welcome)
+            proc.send_signal(signal.SIGTERM)
+            assert isinstance(peer.receive(15), Bye)
+            _, stderr = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        assert proc.returncode == 0, stderr
+        assert "SIGTERM" in stderr and "server stopped" in stderr
+        peer.close()
+
+
+# --------------------------------------------------------------------------- hostile input
+
+
+def _frame_parts(seq: int = 0, width: int = 64, height: int = 48, value: int = 7,
+                 color_codec: str = "raw", depth_codec: str = "raw") -> list[bytes]:
+    frame = Frame(seq, 1.0, np.full((height, width, 3), value, np.uint8),
+                  np.full((height, width), 7500, np.uint16), None, None, color_codec,
+                  depth_codec)
+    return [bytes(memoryview(p)) for p in encode(frame)]
+
+
+def _edit(parts: list[bytes], edit) -> list[bytes]:
+    header = msgpack.unpackb(parts[0])
+    edit(header)
+    return [msgpack.packb(header, use_bin_type=True), *parts[1:]]
+
+
+def _set_sizes(header, w, h):
+    for key in ("color", "depth"):
+        header[key]["width"], header[key]["height"] = w, h
+
+
+def _hello_parts(**config) -> list:
+    base = dict(session="hostile", role="capture", calibration=None)
+    base.update(config)
+    return encode(Hello(PROTOCOL_VERSION, SessionConfig(**base)))
+
+
+def _corrupt_jpeg() -> list[bytes]:
+    """A frame whose JPEG payload is not a JPEG (its declared length is right)."""
+    parts = _frame_parts(color_codec="jpeg")
+    junk = b"\xff\xd8" + b"\x13" * 200
+    parts = _edit(parts, lambda h: h["buffers"].__setitem__(0, len(junk)))
+    return [parts[0], junk, parts[2]]
+
+
+def _calibrated(**config):
+    from arlight.client.capture import calibration_of
+    from arlight.pipeline.camera import PinholeCamera
+
+    return dict(calibration=calibration_of(PinholeCamera.kinect_v1(64, 48)), **config)
+
+
+def _pose_nan(header):
+    header["pose"] = [[math.nan, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+
+
+def _bad_depth_codec(header):
+    header["depth"]["format"] = "lz4"
+
+
+def _declare_huge_buffer(header):
+    header["buffers"][0] = 2**40
+
+
+# (name, needs a session first, parts, expected code, expected field prefix or None)
+HOSTILE = [
+    ("garbage bytes", False, [b"\x00\xffnot msgpack at all"], "malformed", None),
+    ("empty part", False, [b""], "malformed", None),
+    ("header not a map", False, [msgpack.packb([1, 2, 3])], "malformed", None),
+    ("unknown version", False,
+     [msgpack.packb({"v": 99, "type": "hello", "config": {}})], "bad_version", "v"),
+    ("unknown type", False, [msgpack.packb({"v": 1, "type": "teleport"})], "unknown_type",
+     "type"),
+    ("frame before hello", False, _frame_parts(), "bad_state", "session"),
+    ("hello without calibration", False, None, "bad_field", "hello.config.calibration"),
+    ("unknown preset", False, None, "bad_field", "hello.config.preset"),
+    ("unknown override", False, None, "bad_field", "hello.config.overrides"),
+    ("wrong override type", False, None, "bad_field", "hello.config.overrides"),
+    ("a client sending a Result", False, None, "bad_state", "type"),
+    ("huge declared image", True, _edit(_frame_parts(), lambda h: _set_sizes(h, 60000, 60000)),
+     "too_large", "frame.color"),
+    ("huge declared buffer", True, _edit(_frame_parts(), _declare_huge_buffer), "malformed",
+     "frame.buffers"),
+    ("truncated multipart", True, _frame_parts()[:-1], "malformed", "frame.buffers"),
+    ("NaN pose", True, _edit(_frame_parts(), _pose_nan), "bad_field", "frame.pose"),
+    ("colour and depth sizes differ", True,
+     _edit(_frame_parts(), lambda h: h["depth"].update(width=32)), "bad_field", "frame"),
+    ("frame size differs from the calibration", True, _frame_parts(width=32, height=24),
+     "bad_field", "frame.color"),
+    ("undecodable JPEG", True, _corrupt_jpeg(), "decode_failed", "frame.color"),
+    ("unknown depth codec", True, _edit(_frame_parts(), _bad_depth_codec), "bad_codec",
+     "frame.depth"),
+    ("negative seq", True, _edit(_frame_parts(), lambda h: h.update(seq=-1)), "bad_field",
+     "frame.seq"),
+]
+
+
+def _hello_case(name: str) -> list:
+    if name == "hello without calibration":  # encode() refuses it: edit the header by hand
+        parts = [bytes(memoryview(p)) for p in _hello_parts(**_calibrated())]
+        return _edit(parts, lambda h: h["config"].update(calibration=None))
+    if name == "unknown preset":
+        return _hello_parts(**_calibrated(preset="ultra"))
+    if name == "unknown override":
+        return _hello_parts(**_calibrated(overrides={"no_such_field": 1}))
+    if name == "wrong override type":
+        return _hello_parts(**_calibrated(overrides={"sh_bands": "many"}))
+    if name == "a client sending a Result":
+        return encode(Result(0, 1.0, [0.0], None, [0, 0, 1], [0, 0, 1], 0.0, {},
+                             np.eye(4).tolist(), {}, 0, 0, 0, 0.0, 0.0))
+    raise KeyError(name)
+
+
+@pytest.fixture(scope="module")
+def hostile_server():
+    """One server for every hostile message, with a bystander session that must not notice."""
+    server = Server(ServerOptions(bind="tcp://127.0.0.1:*", heartbeat_interval_s=1.0,
+                                  log_interval_s=60.0, max_message_bytes=2**20),
+                    process=identity_step()).start()
+    bystander = RawPeer(server.connect_address)
+    assert isinstance(bystander.hello("bystander"), Welcome)
+    bystander.send(_frame_parts(seq=0, value=11))
+    assert isinstance(bystander.receive(), Result)
+    yield server, bystander
+    bystander.close()
+    server.stop(timeout=15)
+
+
+class TestHostileInput:
+    @pytest.mark.parametrize("name, needs_session, parts, code, field", HOSTILE,
+                             ids=[case[0] for case in HOSTILE])
+    def test_gets_an_error_reply(self, hostile_server, name, needs_session, parts, code,
+                                 field):
+        server, _ = hostile_server
+        peer = RawPeer(server.connect_address)
+        try:
+            if needs_session:
+                assert isinstance(peer.hello(f"h{abs(hash(name)) % 10**6}"), Welcome)
+            peer.send(parts if parts is not None else _hello_case(name))
+            error = peer.receive()
+            assert isinstance(error, Error), error
+            assert error.code == code, error
+            if field is not None:
+                assert (error.field or "").startswith(field), error
+            if needs_session and name != "negative seq":
+                assert error.seq == 0  # the Error names the frame (lossless: acknowledges it)
+        finally:
+            peer.close()
+
+    def test_oversized_message_drops_only_that_connection(self, hostile_server):
+        server, _ = hostile_server
+        peer = RawPeer(server.connect_address)
+        peer.send([b"\x00" * (2 * 2**20)])  # over MAXMSGSIZE: zmq closes that connection
+        assert not peer.socket.poll(500)
+        peer.close()
+        other = RawPeer(server.connect_address)
+        assert isinstance(other.hello("after-oversized"), Welcome)
+        other.close()
+
+    def test_bystander_session_untouched_and_server_serving(self, hostile_server):
+        server, bystander = hostile_server
+        bystander.send(_frame_parts(seq=1, value=12))
+        result = bystander.receive()
+        assert isinstance(result, Result) and result.seq == 1
+        assert result.sh[0] == pytest.approx(12.0)
+        assert result.frames_received == result.frames_processed == 2
+        assert result.frames_dropped == 0
+        assert server.snapshot()["sessions"]["bystander"]["frames_failed"] == 0
+        fresh = StreamOptions(server=server.connect_address, session="fresh", mode="lossless",
+                              rate="max")
+        summary = run_with_timeout(lambda: stream(flat_source(3), fresh))
+        assert summary.results == 3 and summary.errors == []
