@@ -10,6 +10,7 @@ import dataclasses
 import json
 import logging
 import math
+import os
 import sys
 import time
 
@@ -134,6 +135,413 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+
+# --------------------------------------------------------------------------- streaming
+
+class _BadInput(ValueError):
+    """A usage error found after parsing (exit code 2)."""
+
+
+def _check_address(address: str, option: str) -> str:
+    if not address.startswith(("tcp://", "ipc://", "inproc://")):
+        raise _BadInput(f"{option} expects a ZeroMQ address such as tcp://HOST:PORT, "
+                        f"got {address!r}")
+    return address
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 320x240, got {text!r}")\
+            from None
+    if w < 8 or h < 8:
+        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {w}x{h}")
+    return w, h
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return value
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from arlight.protocols import DEFAULT_MAX_MESSAGE_BYTES
+    from arlight.server.server import Server, ServerOptions
+
+    _check_address(args.bind, "--bind")
+    logging.getLogger("arlight.server").setLevel(logging.INFO)
+    for handler in logging.getLogger().handlers:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: "
+                                               "%(message)s"))
+    options = ServerOptions(
+        bind=args.bind, workers=args.workers, credits=args.credits,
+        heartbeat_interval_s=args.heartbeat, session_timeout_s=args.session_timeout,
+        log_interval_s=args.log_interval, max_sessions=args.max_sessions,
+        max_message_bytes=int(args.max_message_mb * 2**20) if args.max_message_mb
+        else DEFAULT_MAX_MESSAGE_BYTES, shutdown_grace_s=args.shutdown_grace)
+    server = Server(options).start()
+    print(f"arlight serve: listening on {server.endpoint} (clients: --server "
+          f"{server.connect_address}); Ctrl-C or SIGTERM stops it", file=sys.stderr, flush=True)
+    stop = threading.Event()
+    signals_seen = []
+
+    def on_signal(signum, _frame) -> None:
+        signals_seen.append(signum)
+        if len(signals_seen) > 1:
+            print("arlight serve: second signal, exiting now", file=sys.stderr, flush=True)
+            os._exit(130)
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+    while not stop.is_set() and not server.wait(0.2):
+        pass
+    name = signal.Signals(signals_seen[0]).name if signals_seen else "server stopped"
+    print(f"arlight serve: {name}: shutting down (in-flight lossless frames finish, "
+          f"at most {args.shutdown_grace:g} s)", file=sys.stderr, flush=True)
+    server.stop()
+    return 0
+
+
+def _stream_options(args: argparse.Namespace, source) -> object:
+    from arlight.client.capture import StreamOptions
+
+    recorded = source.recorded_config
+    mode = args.mode or (recorded.mode if recorded else "live")
+    preset = args.preset or (recorded.preset if recorded else "full")
+    overrides = dict(recorded.overrides) if recorded and not args.set else {}
+    for key, value in args.set or []:
+        overrides[key] = value
+    composite = args.composite or bool(recorded and recorded.want_composite)
+    return StreamOptions(
+        server=_check_address(getattr(args, "server", None) or "tcp://127.0.0.1:5555",
+                              "--server"),
+        session=args.session or (recorded.session if recorded else None),
+        client_name=f"arlight-{args.command}", mode=mode, rate=getattr(args, "rate", "max"),
+        loop=getattr(args, "loop", False), color_codec=args.color_codec,
+        depth_codec=args.depth_codec, jpeg_quality=args.jpeg_quality, preset=preset,
+        overrides=overrides, want_composite=composite, timestamps=args.timestamps,
+        max_frames=args.max_frames if getattr(args, "loop", False) else None,
+        reconnect_timeout_s=getattr(args, "reconnect_timeout", 30.0))
+
+
+def _open_stream_source(args: argparse.Namespace):
+    from arlight.client.capture import open_source
+
+    if args.max_frames is not None and args.max_frames < 1:
+        raise _BadInput(f"--max-frames must be >= 1, got {args.max_frames}")
+    source = open_source(args.source, use_poses=args.poses == "groundtruth",
+                         max_frames=args.max_frames, depth_encoding=args.depth_encoding,
+                         synthetic_size=args.size, synthetic_frames=args.max_frames or 12)
+    for note in source.notes:
+        print(f"note: {note}", file=sys.stderr)
+    return source
+
+
+def cmd_stream(args: argparse.Namespace) -> int:
+    from arlight.client.capture import CaptureClient, StreamError
+
+    source = _open_stream_source(args)
+    options = _stream_options(args, source)
+    recorder = None
+    if args.record:
+        from arlight.client.recording import Recorder
+
+        recorder = Recorder(args.record, source=args.source, depth_scale=source.depth_scale)
+    out = open(args.out, "w") if args.out else None  # noqa: SIM115
+    total = "loop" if options.loop else str(source.num_frames)
+
+    def on_result(result, now: float) -> None:
+        d = result.dominant_direction_camera
+        server_ms = (result.server_finish_time - result.server_receive_time) * 1e3
+        print(f"[{result.seq + 1:>5}/{total}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
+              f"{d[2]:+.2f})  conf={result.confidence.get('value', 0):.2f}  "
+              f"server {server_ms:5.0f} ms  received {result.frames_received}  "
+              f"dropped {result.frames_dropped}", flush=True)
+        if out:
+            from arlight.client.display import result_record
+
+            out.write(json.dumps(result_record(result, now)) + "\n")
+
+    client = CaptureClient(source, options, on_result=on_result, recorder=recorder)
+    print(f"arlight stream: {args.source} ({source.num_frames} frames, "
+          f"{source.calibration.width}x{source.calibration.height}) -> {options.server}, "
+          f"session {client.session!r}, {options.mode}, rate {options.rate}, colour "
+          f"{options.color_codec}, depth {options.depth_codec}"
+          + ("" if source.recorded_config is None else " (recorded frames, sent as recorded)"),
+          file=sys.stderr, flush=True)
+    try:
+        summary = client.run()
+    except StreamError as exc:
+        print(f"arlight stream: error: {exc}", file=sys.stderr)
+        refused = "refused" in str(exc)
+        return EXIT_BAD_INPUT if refused else 1
+    finally:
+        if out:
+            out.close()
+        if recorder is not None:
+            recorder.close()
+    lat = summary.latencies_s
+    print(f"arlight stream: {summary.frames_sent} frames sent, {summary.results} results, "
+          f"{summary.frames_dropped} dropped by the server (live), {summary.frames_not_sent} "
+          f"not sent (queue full), {len(summary.errors)} rejected, {summary.reconnects} "
+          f"reconnect(s); send-to-result median "
+          f"{(np.median(lat) * 1e3 if lat else float('nan')):.0f} ms over "
+          f"{summary.elapsed_s:.1f} s", file=sys.stderr)
+    if args.record:
+        print(f"recorded {recorder.frames} frames to {args.record}", file=sys.stderr)
+    if summary.errors:
+        first = summary.errors[0]
+        print(f"arlight stream: {len(summary.errors)} frame(s) rejected by the server, first: "
+              f"{first.code} {first.field or ''}: {first.message}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from arlight.client.recording import record
+
+    if not args.out.lower().endswith(".mcap"):
+        raise _BadInput(f"--out must name an .mcap file, got {args.out!r}")
+    args.server = None
+    source = _open_stream_source(args)
+    options = _stream_options(args, source)
+    t0 = time.perf_counter()
+
+    def on_frame(seq: int, parts) -> None:
+        size = sum(len(memoryview(p)) for p in parts)
+        print(f"[{seq + 1:>5}/{source.num_frames}] {size / 1024:8.1f} KiB", flush=True)
+
+    n = record(source, args.out, options, on_frame=on_frame)
+    print(f"arlight record: wrote {n} frames (session {options.session or 'auto'}, "
+          f"{options.mode}, colour {options.color_codec}, depth {options.depth_codec}) to "
+          f"{args.out} in {time.perf_counter() - t0:.1f} s; replay with `arlight stream "
+          f"{args.out} --server tcp://HOST:PORT`", file=sys.stderr)
+    return 0
+
+
+def cmd_display(args: argparse.Namespace) -> int:
+    from arlight.client.display import DisplayClient, DisplayError, DisplayOptions, print_line
+
+    _check_address(args.server, "--server")
+    if args.video and not args.video.lower().endswith((".mp4", ".m4v", ".mov")):
+        raise _BadInput(f"--video expects an .mp4 file, got {args.video!r}")
+    options = DisplayOptions(server=args.server, session=args.session, out_dir=args.out,
+                             video=args.video, video_fps=args.video_fps,
+                             max_results=args.max_results, idle_exit_s=args.idle_exit,
+                             follow=args.follow, reconnect_timeout_s=args.reconnect_timeout)
+    print(f"arlight display: session {args.session!r} on {args.server}"
+          + (f", writing {args.out}/results.jsonl and {args.out}/frames/" if args.out else "")
+          + (f", video {args.video}" if args.video else ""), file=sys.stderr, flush=True)
+    try:
+        summary = DisplayClient(options, printer=print_line).run()
+    except DisplayError as exc:
+        print(f"arlight display: error: {exc}", file=sys.stderr)
+        return 1
+    info = summary.to_dict()
+    lat = info["latency_ms"]
+    print(f"arlight display: {info['results']} results ({info['composites']} composites), "
+          f"{info['fps']:.1f} fps, {lat['kind'].replace('_', '-')} latency median "
+          f"{lat['median']} ms, p95 {lat['p95']} ms; {info['results_missed']} missed; "
+          f"{'stream ended' if info['stream_ended'] else 'stopped'}", file=sys.stderr)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from arlight.demo import run_demo
+
+    t0 = time.perf_counter()
+    summary = run_demo(out_dir=args.out, frames=args.frames, size=args.size, preset=args.preset,
+                       video=args.video)
+    lat = summary["latency_ms"]
+    err = summary["angular_error_deg"]
+    stages = ", ".join(f"{k} {v:.0f}" for k, v in summary["timings_ms_median"].items())
+    print(f"arlight demo: {summary['results']}/{summary['frames_sent']} results at "
+          f"{summary['fps']:.1f} fps; end-to-end latency median {lat['median']:.0f} ms "
+          f"(p95 {lat['p95']:.0f}); median stage ms: {stages}; dominant light error median "
+          f"{err['median']:.1f} deg", file=sys.stderr)
+    print(f"wrote {args.out}/frames/ ({summary['composites']} composites), "
+          f"{args.out}/results.jsonl, {args.out}/summary.json in "
+          f"{time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    complete = summary["results"] == summary["frames_sent"] == args.frames
+    if not complete:
+        print("arlight demo: error: not every frame came back", file=sys.stderr)
+    return 0 if complete else 1
+
+
+def _add_source_options(p: argparse.ArgumentParser) -> None:
+    from arlight.protocols import (
+        COLOR_CODECS,
+        DEFAULT_COLOR_CODEC,
+        DEFAULT_DEPTH_CODEC,
+        DEFAULT_JPEG_QUALITY,
+        DEPTH_CODECS,
+    )
+
+    p.add_argument("source", metavar="SOURCE",
+                   help="'synthetic' (the built-in scene), a TUM / Open3D-Redwood / 7-Scenes "
+                        "folder, or a recording FILE.mcap (sent exactly as recorded)")
+    p.add_argument("--session", metavar="NAME", help="session name, [A-Za-z0-9_.-]{1,64} "
+                   "(default: the source's name plus 4 random hex digits; a recording: its own)")
+    p.add_argument("--mode", choices=("live", "lossless"),
+                   help="live: latest frame wins, drops counted (default); lossless: every "
+                        "frame processed once, in order (for recorded streams)")
+    p.add_argument("--color-codec", choices=COLOR_CODECS, default=DEFAULT_COLOR_CODEC,
+                   help=f"colour codec (default {DEFAULT_COLOR_CODEC}; png/raw are lossless)")
+    p.add_argument("--depth-codec", choices=DEPTH_CODECS, default=DEFAULT_DEPTH_CODEC,
+                   help=f"depth codec, all lossless (default {DEFAULT_DEPTH_CODEC})")
+    p.add_argument("--jpeg-quality", type=int, default=DEFAULT_JPEG_QUALITY, metavar="Q",
+                   help=f"JPEG quality 1..100 (default {DEFAULT_JPEG_QUALITY})")
+    p.add_argument("--preset", choices=("full", "fast", "mobile"),
+                   help="the session's pipeline preset (default full; a recording: its own)")
+    p.add_argument("--set", action="append", type=_parse_override, metavar="KEY=VALUE",
+                   help="override a pipeline Config field for the session")
+    p.add_argument("--composite", action="store_true",
+                   help="ask the server for composited frames (the input frame with the "
+                        "estimated light drawn in), for display clients")
+    p.add_argument("--poses", choices=("groundtruth", "track"), default="track",
+                   help="'groundtruth': send the data set's camera poses (tracking is then "
+                        "skipped); 'track' (default): the server tracks the camera")
+    p.add_argument("--max-frames", type=int, metavar="N", help="only the first N frames "
+                   "(with --loop: N frames in total); synthetic: the number of frames (12)")
+    p.add_argument("--depth-encoding", choices=("tum", "mm", "sun", "nyu"),
+                   help="depth encoding of a data set (default: from its layout)")
+    p.add_argument("--size", type=_parse_size, default=(640, 480), metavar="WxH",
+                   help="image size of the synthetic scene (default 640x480)")
+    p.add_argument("--timestamps", choices=("capture", "source"),
+                   help="frame timestamps: 'capture' = time.time() when sent (end-to-end "
+                        "latency measurable; default in live mode), 'source' = the data set's "
+                        "(default in lossless mode); recordings keep theirs")
+
+
+def _add_streaming_parsers(sub) -> None:
+    from arlight.server.server import DEFAULT_BIND, ServerOptions
+
+    defaults = ServerOptions()
+    serve = sub.add_parser(
+        "serve", help="run the streaming server (sessions, live/lossless delivery)",
+        description="Run the arlight streaming server: capture clients stream RGB-D frames "
+                    "into named sessions (each with its own pipeline state); Results go back "
+                    "to the capture client and to every display client subscribed to the "
+                    "session. Logs each session's frame rate and latency. SIGINT/SIGTERM shut "
+                    "it down cleanly.")
+    serve.add_argument("--bind", default=DEFAULT_BIND, metavar="ADDRESS",
+                       help=f"ZeroMQ address to listen on (default {DEFAULT_BIND}; "
+                            "tcp://127.0.0.1:PORT for this machine only)")
+    serve.add_argument("--workers", type=_positive_int, default=defaults.workers,
+                       help=f"worker threads running the pipeline (default {defaults.workers}; "
+                            "one frame per session at a time)")
+    serve.add_argument("--credits", type=_positive_int, default=defaults.credits,
+                       help="lossless credit window: frames a client may have unacknowledged "
+                            f"(default {defaults.credits})")
+    serve.add_argument("--heartbeat", type=_positive_float,
+                       default=defaults.heartbeat_interval_s, metavar="S",
+                       help=f"heartbeat interval in seconds; a peer silent for "
+                            f"{defaults.liveness} intervals is dead "
+                            f"(default {defaults.heartbeat_interval_s:g})")
+    serve.add_argument("--session-timeout", type=_positive_float,
+                       default=defaults.session_timeout_s, metavar="S",
+                       help="a session without frames for S seconds expires and frees its "
+                            f"memory (default {defaults.session_timeout_s:g})")
+    serve.add_argument("--log-interval", type=_positive_float, default=defaults.log_interval_s,
+                       metavar="S", help="seconds between per-session rate/latency log lines "
+                                         f"(default {defaults.log_interval_s:g})")
+    serve.add_argument("--max-sessions", type=_positive_int, default=defaults.max_sessions,
+                       help=f"most concurrent sessions (default {defaults.max_sessions})")
+    serve.add_argument("--max-message-mb", type=_positive_float, metavar="MB",
+                       help="largest message accepted, MiB (default "
+                            f"{defaults.max_message_bytes / 2**20:g}); a peer sending more is "
+                            "disconnected")
+    serve.add_argument("--shutdown-grace", type=float, default=defaults.shutdown_grace_s,
+                       metavar="S", help="on SIGINT/SIGTERM, time given to lossless frames "
+                                         "already received (default "
+                                         f"{defaults.shutdown_grace_s:g}); the rest are "
+                                         "reported to their clients")
+    serve.set_defaults(func=cmd_serve)
+
+    stream = sub.add_parser(
+        "stream", help="stream a source to a server and print the lighting per frame",
+        description="Stream RGB-D frames to an arlight server (`arlight serve`) and print "
+                    "the Result of each frame. Reconnects if the server restarts (lossless "
+                    "mode re-sends unacknowledged frames, so none is lost).")
+    _add_source_options(stream)
+    stream.add_argument("--server", default="tcp://127.0.0.1:5555", metavar="ADDRESS",
+                        help="the server, tcp://HOST:PORT (default tcp://127.0.0.1:5555)")
+    stream.add_argument("--rate", choices=("native", "max"), default="native",
+                        help="native: at the source's own frame rate (default); max: as fast "
+                             "as the mode allows")
+    stream.add_argument("--loop", action="store_true", help="start over at the end (until "
+                        "--max-frames or Ctrl-C)")
+    stream.add_argument("--out", metavar="FILE", help="also write the Results as JSON lines")
+    stream.add_argument("--record", metavar="FILE.mcap",
+                        help="also record the stream as sent to an MCAP file")
+    stream.add_argument("--reconnect-timeout", type=_positive_float, default=30.0, metavar="S",
+                        help="give up after S seconds without a server (default 30)")
+    stream.set_defaults(func=cmd_stream)
+
+    rec = sub.add_parser(
+        "record", help="record a source as a stream into one MCAP file (no server needed)",
+        description="Write the stream `arlight stream SOURCE` would send (session config, "
+                    "frames as encoded, timestamps) to one MCAP file; `arlight stream "
+                    "FILE.mcap` replays it bit-exactly.")
+    _add_source_options(rec)
+    rec.add_argument("--out", required=True, metavar="FILE.mcap", help="the MCAP file to write")
+    rec.set_defaults(func=cmd_record)
+
+    disp = sub.add_parser(
+        "display", help="subscribe to a session: write its Results and composites, print fps",
+        description="The thin display client: receives the Results of one session from the "
+                    "server, prints frames per second and latency, and writes results.jsonl, "
+                    "composited frames and a video. Exits when the stream ends.")
+    disp.add_argument("--server", required=True, metavar="ADDRESS",
+                      help="the server, tcp://HOST:PORT")
+    disp.add_argument("--session", required=True, metavar="NAME",
+                      help="the session to show (as printed by `arlight stream`)")
+    disp.add_argument("--out", metavar="DIR",
+                      help="write DIR/results.jsonl and DIR/frames/NNNNNN.png")
+    disp.add_argument("--video", metavar="FILE.mp4", help="write the composites as a video")
+    disp.add_argument("--video-fps", type=_positive_float, default=15.0, metavar="FPS",
+                      help="frame rate written into the video (default 15)")
+    disp.add_argument("--max-results", type=_positive_int, metavar="N",
+                      help="exit after N results")
+    disp.add_argument("--idle-exit", type=_positive_float, metavar="S",
+                      help="exit after S seconds without a result")
+    disp.add_argument("--follow", action="store_true",
+                      help="keep waiting when the stream ends (for the next stream)")
+    disp.add_argument("--reconnect-timeout", type=_positive_float, default=30.0, metavar="S",
+                      help="give up after S seconds without a server (default 30)")
+    disp.set_defaults(func=cmd_display)
+
+    demo = sub.add_parser(
+        "demo", help="server + capture + display on this machine: the built-in scene end to end",
+        description="Start a server, stream the built-in synthetic scene to it over loopback "
+                    "in lossless mode, run a display client, and write DIR: frames/ "
+                    "(composites), results.jsonl and summary.json (fps, latency, per-stage "
+                    "timings, light direction error).")
+    demo.add_argument("--out", default="out", metavar="DIR", help="output folder (default out)")
+    demo.add_argument("--frames", type=_positive_int, default=24,
+                      help="frames of the synthetic scene (default 24)")
+    demo.add_argument("--size", type=_parse_size, default=(320, 240), metavar="WxH",
+                      help="image size (default 320x240)")
+    demo.add_argument("--preset", choices=("full", "fast", "mobile"), default="fast",
+                      help="pipeline preset (default fast)")
+    demo.add_argument("--video", metavar="FILE.mp4", help="also write the composites as a video")
+    demo.set_defaults(func=cmd_demo)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="arlight", description="Probeless light estimation and coherent AR rendering "
@@ -176,6 +584,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--warmup", type=int, default=2, help="untimed frames first (JIT, caches)")
     bench.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     bench.set_defaults(func=cmd_bench)
+    _add_streaming_parsers(sub)
     return parser
 
 
@@ -189,7 +598,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return args.func(args)
-    except (DatasetError, FrameError, ValueError, OSError) as exc:
+    except (DatasetError, FrameError, ValueError, OSError) as exc:  # incl. ProtocolError,
+        # RecordingError and _BadInput (all ValueError)
         print(f"arlight {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
