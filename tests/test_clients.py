@@ -1,0 +1,352 @@
+"""Capture sources, MCAP recordings (bit-exact replay), the display client and the streaming
+commands (`arlight stream / record / display / demo`), over real loopback sockets."""
+
+from __future__ import annotations
+
+import json
+import re
+import threading
+
+import cv2
+import numpy as np
+import pytest
+import zmq
+from streaming_support import (
+    DATA,
+    TUM_FOLDER,
+    flat_source,
+    identity_step,
+    need_data,
+    run_with_timeout,
+    server_factory,
+)
+
+from arlight.cli import main
+from arlight.client.capture import (
+    DEFAULT_DEPTH_SCALE,
+    CaptureClient,
+    StreamOptions,
+    choose_depth_scale,
+    default_session_name,
+    depth_to_u16,
+    encoded_frames,
+    open_source,
+)
+from arlight.client.display import DisplayClient, DisplayOptions
+from arlight.client.recording import (
+    FRAME_TOPIC,
+    HELLO_TOPIC,
+    INFO_TOPIC,
+    Recording,
+    RecordingError,
+    record,
+)
+from arlight.protocols import (
+    PROTOCOL_VERSION,
+    Frame,
+    Hello,
+    Result,
+    Welcome,
+    decode,
+    encode,
+    peek_header,
+)
+
+
+@pytest.fixture
+def make_server():
+    yield from server_factory()
+
+
+def _bytes(parts) -> list[bytes]:
+    return [bytes(memoryview(p)) for p in parts]
+
+
+class TestSources:
+    def test_synthetic(self):
+        source = open_source("synthetic", synthetic_size=(64, 48), max_frames=2)
+        assert (source.calibration.width, source.calibration.height) == (64, 48)
+        frames = list(source.frames())
+        assert len(frames) == source.num_frames == 2
+        assert frames[0].color.shape == (48, 64, 3) and frames[0].color.dtype == np.uint8
+        assert frames[0].depth.shape == (48, 64) and frames[0].depth.dtype == np.uint16
+        assert frames[0].pose is None  # the server tracks unless poses are asked for
+        assert open_source("synthetic", synthetic_size=(64, 48), max_frames=1,
+                           use_poses=True).frames().__next__().pose.shape == (4, 4)
+
+    @pytest.mark.data
+    def test_tum_depth_travels_bit_exactly(self):
+        """TUM depth is integers / 5000: the wire integers give back the reader's metres."""
+        from arlight.client.datasets import open_sequence
+
+        folder = need_data(TUM_FOLDER)
+        source = open_source(str(folder), max_frames=2)
+        assert source.depth_scale == 5000.0
+        assert not any("depth_scale" in note for note in source.notes)
+        reference = open_sequence(folder, max_frames=2)
+        for sent, frame in zip(source.frames(), reference.frames, strict=True):
+            metres = sent.depth.astype(np.float32) / np.float32(source.depth_scale)
+            np.testing.assert_array_equal(metres, frame.depth)
+            np.testing.assert_array_equal(sent.color, frame.color)
+
+    @pytest.mark.data
+    def test_open3d_millimetre_depth_travels_bit_exactly(self):
+        """Millimetres: 5000 units per metre is exact too (5 v / 5000 = v / 1000 in float32,
+        both correctly rounded) while every value fits in 16 bits; 1000 otherwise."""
+        from arlight.client.datasets import open_sequence
+
+        folder = need_data(DATA / "real" / "icl_nuim_livingroom")
+        source = open_source(str(folder), max_frames=1)
+        assert source.depth_scale in (5000.0, 1000.0)
+        sent = next(source.frames())
+        metres = sent.depth.astype(np.float32) / np.float32(source.depth_scale)
+        np.testing.assert_array_equal(metres, open_sequence(folder, max_frames=1).frames[0].depth)
+        mm = np.array([[1.0, 20.0]], np.float32)  # 20 m does not fit at 5000 units per metre
+        assert choose_depth_scale(mm) == (1000.0, True)
+
+    @pytest.mark.data
+    def test_registered_depth_falls_back_with_a_note(self):
+        """7-Scenes depth is reprojected into the colour camera: no integer scale is exact."""
+        source = open_source(str(need_data(DATA / "real" / "7scenes_redkitchen")), max_frames=1)
+        assert source.depth_scale == DEFAULT_DEPTH_SCALE
+        assert any("depth_scale" in note for note in source.notes)
+
+    def test_depth_to_u16_edges(self):
+        depth = np.array([[0.0, np.nan, -1.0, np.inf], [1.0, 1.00009, 13.1, 20.0]], np.float32)
+        u16 = depth_to_u16(depth, 5000.0)
+        assert u16.dtype == np.uint16
+        assert u16.tolist() == [[0, 0, 0, 0], [5000, 5000, 65500, 0]]
+        assert choose_depth_scale(np.array([[1.0, 0.0]], np.float32)) == (5000.0, True)
+
+    def test_default_session_name_is_a_protocol_name(self):
+        name = default_session_name("my data set (copy)/x" * 10)
+        assert re.fullmatch(r"[A-Za-z0-9_.\-]{1,64}", name)
+
+
+class TestRecording:
+    def _record(self, path, n=3, **options):
+        source = flat_source(n, 64, 48)
+        opts = StreamOptions(session="rec", mode="lossless", color_codec="png",
+                             depth_codec="zstd", **options)
+        assert record(source, path, opts) == n
+        return source, opts
+
+    def test_round_trip(self, tmp_path):
+        path = tmp_path / "s.mcap"
+        source, opts = self._record(path)
+        rec = Recording(path)
+        assert rec.num_frames == 3
+        config = rec.hello.config
+        assert (config.session, config.mode, config.depth_scale) == ("rec", "lossless", 5000.0)
+        assert config.calibration == source.calibration
+        expected = [_bytes(parts) for _, _, parts in encoded_frames(source, opts, "source")]
+        assert [parts for _, parts in rec.frames()] == expected
+        log_times = [t for t, _ in rec.frames()]
+        assert log_times == sorted(log_times) and log_times[0] == 1000 * 10**9
+
+    def test_readable_by_a_generic_mcap_reader(self, tmp_path):
+        from mcap.reader import make_reader
+
+        path = tmp_path / "s.mcap"
+        self._record(path)
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            topics = {c.topic: c for c in summary.channels.values()}
+            assert set(topics) == {HELLO_TOPIC, FRAME_TOPIC, INFO_TOPIC}
+            assert topics[FRAME_TOPIC].message_encoding == "msgpack"
+            assert topics[INFO_TOPIC].message_encoding == "json"
+            assert summary.schemas[topics[INFO_TOPIC].schema_id].encoding == "jsonschema"
+            infos = [json.loads(m.data) for _, _, m in reader.iter_messages(topics=[INFO_TOPIC])]
+            assert [i["seq"] for i in infos] == [0, 1, 2]
+            assert infos[0]["color_codec"] == "png" and infos[0]["width"] == 64
+            metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+            assert metadata["arlight"]["protocol_version"] == str(PROTOCOL_VERSION)
+
+    def test_corrupt_files_are_rejected(self, tmp_path):
+        path = tmp_path / "s.mcap"
+        self._record(path)
+        data = path.read_bytes()
+        text = tmp_path / "text.mcap"
+        text.write_text("not an mcap file")
+        truncated = tmp_path / "truncated.mcap"
+        truncated.write_bytes(data[: len(data) // 2])
+        with pytest.raises(RecordingError):
+            Recording(text)
+        with pytest.raises(RecordingError):
+            Recording(tmp_path / "absent.mcap")
+        with pytest.raises(RecordingError):
+            rec = Recording(truncated)
+            list(rec.frames())
+
+    def test_looping_a_recording_renumbers_seq_and_keeps_payloads(self, tmp_path):
+        path = tmp_path / "s.mcap"
+        self._record(path)
+        source = open_source(str(path))
+        recorded = [parts for _, parts in Recording(path).frames()]
+        looped = list(encoded_frames(source, StreamOptions(loop=True, max_frames=7), "source"))
+        assert [seq for seq, _, _ in looped] == list(range(7))
+        for seq, _, parts in looped:
+            assert peek_header(parts)["seq"] == seq
+            assert parts[1:] == recorded[seq % 3][1:]  # image payloads untouched
+        assert looped[1][2] == recorded[1]  # the first pass is sent exactly as recorded
+
+    def test_replay_sends_the_recorded_bytes(self, tmp_path):
+        """What reaches the server's socket is byte for byte what was recorded."""
+        path = tmp_path / "s.mcap"
+        self._record(path, n=4)
+        ctx = zmq.Context.instance()
+        router = ctx.socket(zmq.ROUTER)
+        router.setsockopt(zmq.LINGER, 0)
+        port = router.bind_to_random_port("tcp://127.0.0.1")
+        received: list[list[bytes]] = []
+        done = threading.Event()
+
+        def fake_server():  # Welcome, then a Result for every Frame
+            while not done.is_set():
+                if not router.poll(100):
+                    continue
+                identity, *parts = router.recv_multipart()
+                message = decode(parts)
+                if isinstance(message, Hello):
+                    reply = Welcome(PROTOCOL_VERSION, message.config.session, 2, 1.0)
+                elif isinstance(message, Frame):
+                    received.append(parts)
+                    reply = Result(message.seq, message.timestamp, [0.0], None, [0, 0, 1],
+                                   [0, 0, 1], 0.0, {}, np.eye(4).tolist(), {}, 0, 0, 0, 0.0,
+                                   0.0)
+                else:
+                    continue
+                router.send_multipart([identity, *encode(reply)])
+
+        thread = threading.Thread(target=fake_server, daemon=True)
+        thread.start()
+        try:
+            source = open_source(str(path))
+            options = StreamOptions(server=f"tcp://127.0.0.1:{port}", session="replay",
+                                    mode="lossless", rate="max")
+            summary = run_with_timeout(lambda: CaptureClient(source, options).run())
+        finally:
+            done.set()
+            thread.join(5)
+            router.close(linger=0)
+        assert summary.results == 4
+        assert received == [parts for _, parts in Recording(path).frames()]
+
+
+class TestDisplay:
+    def test_writes_results_frames_and_video(self, make_server, tmp_path):
+        server = make_server(process=identity_step())
+        out = tmp_path / "out"
+        display = DisplayClient(DisplayOptions(server=server.connect_address, session="show",
+                                               out_dir=str(out), video=str(out / "v.mp4"),
+                                               idle_exit_s=30.0))
+        thread = threading.Thread(target=display.run, daemon=True)
+        thread.start()
+        assert display.subscribed.wait(10)
+        options = StreamOptions(server=server.connect_address, session="show",
+                                mode="lossless", rate="max", want_composite=True,
+                                timestamps="capture")
+        summary = run_with_timeout(lambda: CaptureClient(flat_source(5), options).run())
+        assert summary.results == 5
+        thread.join(30)
+        assert not thread.is_alive() and display.summary.ended  # Bye at the end of stream
+        lines = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
+        assert [x["seq"] for x in lines] == list(range(5))
+        assert all(x["end_to_end_ms"] is not None and x["end_to_end_ms"] >= 0 for x in lines)
+        assert lines[0]["sh"][0] == pytest.approx(10.0)
+        frames = sorted((out / "frames").glob("*.png"))
+        assert [f.name for f in frames] == [f"{i:06d}.png" for i in range(5)]
+        assert cv2.imread(str(frames[0])).shape == (48, 64, 3)
+        video = cv2.VideoCapture(str(out / "v.mp4"))
+        count = 0
+        while video.read()[0]:
+            count += 1
+        assert count == 5
+        info = display.summary.to_dict()
+        assert info["results"] == 5 and info["latency_ms"]["kind"] == "end_to_end"
+
+
+class TestCommands:
+    def test_demo_writes_frames_results_and_summary(self, tmp_path):
+        out = tmp_path / "demo"
+        assert main(["demo", "--out", str(out), "--frames", "3", "--size", "96x72"]) == 0
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["results"] == summary["frames_sent"] == 3
+        assert set(summary["timings_ms_median"]) >= {"Reconstruct", "RadTransfer", "LightEst"}
+        assert summary["latency_ms"]["median"] > 0 and summary["fps"] > 0
+        assert len(list((out / "frames").glob("*.png"))) == 3
+        assert len((out / "results.jsonl").read_text().splitlines()) == 3
+
+    def test_stream_record_and_bit_exact_replay(self, make_server, tmp_path, capsys):
+        server = make_server(process=identity_step())
+        addr = server.connect_address
+        first, second = tmp_path / "first.mcap", tmp_path / "replayed.mcap"
+        assert main(["stream", "synthetic", "--server", addr, "--session", "cli",
+                     "--mode", "lossless", "--rate", "max", "--max-frames", "3", "--size",
+                     "64x48", "--color-codec", "png", "--record", str(first), "--out",
+                     str(tmp_path / "r.jsonl")]) == 0
+        assert len((tmp_path / "r.jsonl").read_text().splitlines()) == 3
+        assert main(["stream", str(first), "--server", addr, "--session", "again", "--rate",
+                     "max", "--record", str(second)]) == 0
+        err = capsys.readouterr().err
+        assert "sent as recorded" in err
+        assert [p for _, p in Recording(first).frames()] == \
+            [p for _, p in Recording(second).frames()]
+        assert Recording(second).hello.config.mode == "lossless"  # the recording's own mode
+
+    def test_record_command(self, tmp_path):
+        path = tmp_path / "r.mcap"
+        assert main(["record", "synthetic", "--out", str(path), "--max-frames", "2", "--size",
+                     "64x48", "--mode", "lossless"]) == 0
+        assert Recording(path).num_frames == 2
+
+    @pytest.mark.parametrize("argv, message", [
+        (["stream", "/no/such/folder", "--server", "tcp://127.0.0.1:9"], "no such file"),
+        (["stream", "synthetic", "--server", "localhost:5555"], "tcp://HOST:PORT"),
+        (["record", "synthetic", "--out", "x.txt"], ".mcap"),
+        (["display", "--server", "tcp://127.0.0.1:9", "--session", "s", "--video", "v.avi"],
+         ".mp4"),
+        (["serve", "--bind", "127.0.0.1:5555"], "tcp://HOST:PORT"),
+    ], ids=["missing source", "bad server address", "record not mcap", "video not mp4",
+            "bad bind address"])
+    def test_bad_input_exits_2_with_a_message(self, argv, message, capsys):
+        assert main(argv) == 2
+        assert message in capsys.readouterr().err
+
+    def test_corrupt_recording_exits_2(self, tmp_path, capsys):
+        path = tmp_path / "bad.mcap"
+        path.write_bytes(b"\x89MCAP0\r\n" + b"\x00" * 64)
+        assert main(["stream", str(path), "--server", "tcp://127.0.0.1:9"]) == 2
+        assert "bad.mcap" in capsys.readouterr().err
+
+    def test_session_refused_by_the_server_exits_2(self, make_server, capsys):
+        server = make_server(process=identity_step())
+        assert main(["stream", "synthetic", "--server", server.connect_address, "--size",
+                     "64x48", "--max-frames", "1", "--set", "sh_bands=99"]) == 2
+        assert "sh_bands" in capsys.readouterr().err
+
+    def test_no_server_exits_1_after_the_reconnect_timeout(self, capsys):
+        with zmq.Context.instance().socket(zmq.ROUTER) as probe:  # a port nobody serves
+            port = probe.bind_to_random_port("tcp://127.0.0.1")
+        assert main(["stream", "synthetic", "--server", f"tcp://127.0.0.1:{port}", "--size",
+                     "64x48", "--max-frames", "1", "--reconnect-timeout", "1"]) == 1
+        assert "no arlight server answered" in capsys.readouterr().err
+
+    def test_unknown_mode_is_a_usage_error(self):
+        with pytest.raises(SystemExit) as exc:
+            main(["stream", "synthetic", "--mode", "sometimes"])
+        assert exc.value.code == 2
+
+
+def test_bye_ends_a_capture_stream(make_server):
+    """A capture client's Bye closes its session once idle (displays get Bye too)."""
+    server = make_server(process=identity_step())
+    options = StreamOptions(server=server.connect_address, session="byebye", mode="lossless",
+                            rate="max")
+    run_with_timeout(lambda: CaptureClient(flat_source(2), options).run())
+    for _ in range(100):
+        if "byebye" not in server.snapshot()["sessions"]:
+            break
+        threading.Event().wait(0.02)
+    assert "byebye" not in server.snapshot()["sessions"]
