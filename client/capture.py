@@ -307,6 +307,7 @@ class CaptureClient:
         self._resend: collections.deque[int] = collections.deque()
         self._last_seq = -1
         self._last_result_seq = -1
+        self._hello_recorded = False
 
     def _make_hello(self) -> Hello:
         opts = self.options
@@ -379,9 +380,9 @@ class CaptureClient:
                 if isinstance(message, Welcome):
                     self.credits = max(1, message.credits)
                     self.heartbeat_interval_s = message.heartbeat_interval_s
-                    if self.recorder is not None and attempt == 0 and \
-                            self.summary.reconnects == 0:
+                    if self.recorder is not None and not self._hello_recorded:
                         self.recorder.write_hello(hello_parts, time.time_ns())
+                        self._hello_recorded = True
                     self._last_heard = now
                     self._last_sent = time.monotonic()
                     return

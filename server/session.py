@@ -274,22 +274,29 @@ class Session:
 
                 composite = (result.composite if result.composite is not None else
                              composite_with_light_inset(frame_input.color, result.sh_camera))
-            finish = time.time()
-            with self._lock:
-                self.frames_processed += 1
-                counters = (self.frames_received, self.frames_processed, self.frames_dropped)
+        except Exception as exc:  # noqa: BLE001 - every failure becomes an Error reply
+            return self._failed(job, frame_error(exc, job.seq))
+        finish = time.time()
+        with self._lock:
+            self.frames_processed += 1
+            counters = (self.frames_received, self.frames_processed, self.frames_dropped)
+        try:
             message = result_message(job.seq, result, counters, job.receive_time, finish,
                                      composite)
             return JobOutcome(self, job, encode(message), True, finish)
-        except Exception as exc:  # noqa: BLE001 - every failure becomes an Error reply
-            error = frame_error(exc, job.seq)
-            if error.code == "internal":
-                log.exception("session %s: frame %d failed", self.name, job.seq)
-            else:
-                log.info("session %s: frame %d rejected: %s", self.name, job.seq, error.message)
-            with self._lock:
-                self.frames_failed += 1
-            return JobOutcome(self, job, encode(error), False, time.time(), error)
+        except Exception as exc:  # noqa: BLE001 - e.g. a non-finite estimate
+            return self._failed(job, Error(
+                code="internal", seq=job.seq,
+                message=f"the server could not send the Result of this frame ({exc})"))
+
+    def _failed(self, job: Job, error: Error) -> JobOutcome:
+        if error.code == "internal":
+            log.error("session %s: frame %d failed: %s", self.name, job.seq, error.message)
+        else:
+            log.info("session %s: frame %d rejected: %s", self.name, job.seq, error.message)
+        with self._lock:
+            self.frames_failed += 1
+        return JobOutcome(self, job, encode(error), False, time.time(), error)
 
 
 def frame_error(exc: Exception, seq: int | None) -> Error:
@@ -299,8 +306,9 @@ def frame_error(exc: Exception, seq: int | None) -> Error:
         return dataclasses.replace(error, seq=seq)
     if isinstance(exc, FrameError):
         return Error(code="bad_field", message=str(exc), field=f"frame.{exc.field}", seq=seq)
+    log.error("frame %s: unexpected failure", seq, exc_info=exc)
     return Error(code="internal", message=f"the server failed to process this frame "
-                                          f"({type(exc).__name__}: {exc})", seq=seq)
+                                          f"({type(exc).__name__}: {exc})"[:4096], seq=seq)
 
 
 def result_message(seq: int, result: FrameResult, counters: tuple[int, int, int],
