@@ -246,9 +246,7 @@ def _open_stream_source(args: argparse.Namespace):
     source = open_source(args.source, use_poses=args.poses == "groundtruth",
                          max_frames=args.max_frames, depth_encoding=args.depth_encoding,
                          synthetic_size=args.size, synthetic_frames=args.max_frames or 12)
-    for note in source.notes:
-        print(f"note: {note}", file=sys.stderr)
-    return source
+    return source  # its notes (defaults chosen for the data) were logged as warnings
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
@@ -295,12 +293,13 @@ def cmd_stream(args: argparse.Namespace) -> int:
         if recorder is not None:
             recorder.close()
     lat = summary.latencies_s
+    drops = (f"{summary.frames_dropped} dropped by the server (live: newest frame wins), "
+             f"{summary.frames_not_sent} not sent (send queue full), "
+             if options.mode == "live" else "")
+    median = f"{np.median(lat) * 1e3:.0f} ms" if lat else "-"
     print(f"arlight stream: {summary.frames_sent} frames sent, {summary.results} results, "
-          f"{summary.frames_dropped} dropped by the server (live), {summary.frames_not_sent} "
-          f"not sent (queue full), {len(summary.errors)} rejected, {summary.reconnects} "
-          f"reconnect(s); send-to-result median "
-          f"{(np.median(lat) * 1e3 if lat else float('nan')):.0f} ms over "
-          f"{summary.elapsed_s:.1f} s", file=sys.stderr)
+          f"{drops}{len(summary.errors)} rejected, {summary.reconnects} reconnect(s); "
+          f"send-to-result median {median}; {summary.elapsed_s:.1f} s", file=sys.stderr)
     if args.record:
         print(f"recorded {recorder.frames} frames to {args.record}", file=sys.stderr)
     if summary.errors:
@@ -325,8 +324,8 @@ def cmd_record(args: argparse.Namespace) -> int:
         size = sum(len(memoryview(p)) for p in parts)
         print(f"[{seq + 1:>5}/{source.num_frames}] {size / 1024:8.1f} KiB", flush=True)
 
-    n = record(source, args.out, options, on_frame=on_frame)
-    print(f"arlight record: wrote {n} frames (session {options.session or 'auto'}, "
+    n, session = record(source, args.out, options, on_frame=on_frame)
+    print(f"arlight record: wrote {n} frames (session {session}, "
           f"{options.mode}, colour {options.color_codec}, depth {options.depth_codec}) to "
           f"{args.out} in {time.perf_counter() - t0:.1f} s; replay with `arlight stream "
           f"{args.out} --server tcp://HOST:PORT`", file=sys.stderr)
@@ -353,9 +352,10 @@ def cmd_display(args: argparse.Namespace) -> int:
         return 1
     info = summary.to_dict()
     lat = info["latency_ms"]
+    latency = (f"{lat['kind'].replace('_', '-')} latency median {lat['median']:.0f} ms, p95 "
+               f"{lat['p95']:.0f} ms" if lat["median"] is not None else "no latency measured")
     print(f"arlight display: {info['results']} results ({info['composites']} composites), "
-          f"{info['fps']:.1f} fps, {lat['kind'].replace('_', '-')} latency median "
-          f"{lat['median']} ms, p95 {lat['p95']} ms; {info['results_missed']} missed; "
+          f"{info['fps']:.1f} fps, {latency}; {info['results_missed']} missed; "
           f"{'stream ended' if info['stream_ended'] else 'stopped'}", file=sys.stderr)
     return 0
 

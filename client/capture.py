@@ -136,8 +136,10 @@ def sequence_source(name: str, camera, frames, notes: list[str] | None = None) -
     first = frames[0]
     scale, exact = choose_depth_scale(np.asarray(first.depth))
     if not exact:
-        notes = [*notes, f"depth is not integers over 5000 or 1000; sent at depth_scale "
-                         f"{scale:g} (0.2 mm steps)"]
+        note = (f"{name}: depth is not integers over 5000 or 1000 (e.g. reprojected); sent at "
+                f"depth_scale {scale:g} (rounded to 0.2 mm)")
+        log.warning(note)
+        notes = [*notes, note]
 
     def iterate() -> Iterator[SourceFrame]:
         for i in range(len(frames)):
@@ -305,7 +307,8 @@ class CaptureClient:
         self._unacked: collections.OrderedDict[int, list] = collections.OrderedDict()
         self._sent_time: dict[int, float] = {}
         self._resend: collections.deque[int] = collections.deque()
-        self._last_seq = -1
+        self._last_seq = -1  # the last frame taken from the source
+        self._last_delivered_seq = -1  # the last frame handed to the socket
         self._last_result_seq = -1
         self._hello_recorded = False
 
@@ -502,7 +505,7 @@ class CaptureClient:
                     if opts.mode == "lossless" and not self._unacked:
                         break
                     if opts.mode == "live":
-                        if self._last_result_seq >= self._last_seq:
+                        if self._last_result_seq >= self._last_delivered_seq:
                             break
                         if finish_deadline is None:
                             finish_deadline = now_m + opts.final_result_timeout_s
@@ -530,8 +533,10 @@ class CaptureClient:
                     self._send(encode(Heartbeat(time.time())))
                     self._last_sent = now_m
             if not self._stop.is_set():
-                self._send(encode(Bye("end of stream")), block=False)
-                time.sleep(0.05)  # let the Bye leave before the socket closes (LINGER 0)
+                self._say_bye("end of stream")
+        except KeyboardInterrupt:
+            self._say_bye("interrupted")  # the server closes the session now, not at timeout
+            raise
         finally:
             self.summary.elapsed_s = time.monotonic() - start
             self.summary.frames_sent = self._last_seq + 1
@@ -548,6 +553,7 @@ class CaptureClient:
             self.summary.frames_not_sent += 1
             self._last_seq = seq
             return
+        self._last_delivered_seq = seq
         self._sent_time[seq] = time.time()
         if len(self._sent_time) > 4096:  # live: Results of dropped frames never come
             for old in list(self._sent_time)[:2048]:
@@ -556,6 +562,11 @@ class CaptureClient:
         self._last_sent = time.monotonic()
         if self.recorder is not None:
             self.recorder.write_frame(parts, time.time_ns())
+
+    def _say_bye(self, reason: str) -> None:
+        if self._socket is not None:
+            self._send(encode(Bye(reason)), block=False)
+            time.sleep(0.05)  # let the Bye leave before the socket closes (LINGER 0)
 
     def _rehello(self) -> None:
         """The server forgot this peer (restart, expiry): Hello again on a fresh socket."""

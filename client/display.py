@@ -259,10 +259,10 @@ class DisplayClient:
             return
         n = len(self._window)
         span = max(self.options.print_interval_s, 1.0)
-        lat = np.median([x for _, x in self._window]) if n else float("nan")
         kind = "end-to-end" if self.summary.end_to_end else "server-to-display"
+        latency = f"{np.median([x for _, x in self._window]):6.0f} ms" if n else "     - ms"
         self.printer(f"display {self.options.session}: {n / span:5.1f} fps, {kind} latency "
-                     f"{lat:6.1f} ms, {self.summary.results} results, session dropped "
+                     f"{latency}, {self.summary.results} results, session dropped "
                      f"{self.summary.frames_dropped}")
 
     def run(self) -> DisplaySummary:

@@ -220,11 +220,11 @@ def open_recording_source(path: str | Path, max_frames: int | None = None):
                   recorded_config=config)
 
 
-def record(source, path: str | Path, options, on_frame=None) -> int:
+def record(source, path: str | Path, options, on_frame=None) -> tuple[int, str]:
     """Write `source` to an MCAP file as `arlight stream` would send it (no server needed).
 
     options: a capture StreamOptions (session name, mode, codecs, preset, timestamps...).
-    log_time of each frame is its timestamp. Returns the number of frames written.
+    log_time of each frame is its timestamp. Returns (frames written, session name).
     """
     from arlight.client.capture import CaptureClient, encoded_frames
 
@@ -240,4 +240,4 @@ def record(source, path: str | Path, options, on_frame=None) -> int:
             recorder.write_frame(parts, None)
             if on_frame is not None:
                 on_frame(seq, parts)
-        return recorder.frames
+        return recorder.frames, client.session

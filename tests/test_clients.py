@@ -128,7 +128,7 @@ class TestRecording:
         source = flat_source(n, 64, 48)
         opts = StreamOptions(session="rec", mode="lossless", color_codec="png",
                              depth_codec="zstd", **options)
-        assert record(source, path, opts) == n
+        assert record(source, path, opts) == (n, "rec")
         return source, opts
 
     def test_round_trip(self, tmp_path):
