@@ -307,6 +307,7 @@ class CaptureClient:
         self._unacked: collections.OrderedDict[int, list] = collections.OrderedDict()
         self._sent_time: dict[int, float] = {}
         self._resend: collections.deque[int] = collections.deque()
+        self._after_result: list[int] = []  # refused for credits: send again after a Result
         self._last_seq = -1  # the last frame taken from the source
         self._last_delivered_seq = -1  # the last frame handed to the socket
         self._last_result_seq = -1
@@ -410,6 +411,7 @@ class CaptureClient:
         self.summary.reconnects += 1
         self._connect()
         self._resend = collections.deque(self._unacked)  # lossless: send them all again
+        self._after_result.clear()
 
     # ------------------------------------------------------------------ messages
 
@@ -436,6 +438,9 @@ class CaptureClient:
         elif result.seq <= self._last_result_seq:
             return
         self._last_result_seq = max(self._last_result_seq, result.seq)
+        if self._after_result:
+            self._resend.extend(sorted(self._after_result))
+            self._after_result.clear()
         sent = self._sent_time.pop(result.seq, None)
         if sent is not None:
             self.summary.latencies_s.append(now - sent)
@@ -451,7 +456,9 @@ class CaptureClient:
         if retry:
             if error.field == "session":
                 return "rehello"
-            return None  # shutdown: the Bye follows; credits: sent again after reconnect
+            if error.field == "credits" and error.seq in self._unacked:
+                self._after_result.append(error.seq)  # the server's queue was full: retry
+            return None  # shutdown: the Bye follows, then a reconnect re-sends the frame
         if error.seq is not None:
             self._unacked.pop(error.seq, None)
             self._sent_time.pop(error.seq, None)

@@ -164,6 +164,7 @@ class Session:
         self.created = time.time()
         self.last_activity = self.created
         self.highest_seq = -1  # highest seq accepted (lossless duplicate detection)
+        self.refused_from: int | None = None  # lossless: first seq refused for credits
         self.results: collections.OrderedDict[int, list] = collections.OrderedDict()
         self._lock = threading.Lock()
         self.frames_received = 0
@@ -202,8 +203,13 @@ class Session:
         if self.lossless:
             if seq <= self.highest_seq:
                 return "resend" if seq in self.results else "duplicate"
-            if len(self.pending) >= self.credits + LOSSLESS_QUEUE_SLACK:
+            # once a frame is refused, later ones are refused too until it comes again: a
+            # client that retries in order then keeps its frames in order
+            if len(self.pending) >= self.credits + LOSSLESS_QUEUE_SLACK or (
+                    self.refused_from is not None and seq > self.refused_from):
+                self.refused_from = seq if self.refused_from is None else self.refused_from
                 return "overflow"
+            self.refused_from = None
             with self._lock:
                 self.frames_received += 1
             self.highest_seq = seq

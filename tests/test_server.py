@@ -144,6 +144,28 @@ class TestLossless:
         assert counters["frames_received"] == counters["frames_processed"] == 1
         peer.close()
 
+    def test_frames_beyond_the_credit_window_are_refused_then_accepted_in_order(
+            self, make_server):
+        server = make_server(process=identity_step(delay_s=0.1), credits=2,
+                             heartbeat_interval_s=5.0)  # the raw peer sends no heartbeats
+        peer = RawPeer(server.connect_address)
+        assert peer.hello("greedy").credits == 2
+        for seq in range(8):  # the queue holds credits + 2 = 4 (and 1 in a worker)
+            peer.send(_frame_parts(seq=seq, value=seq))
+        refused, done = [], []
+        while len(done) < 8:
+            message = peer.receive(15)
+            if isinstance(message, Error):
+                assert (message.code, message.field) == ("bad_state", "credits")
+                refused.append(message.seq)
+            else:
+                done.append(message.seq)
+                if len(done) == 5:  # room again: send the refused ones, in order
+                    for seq in sorted(refused):
+                        peer.send(_frame_parts(seq=seq, value=seq))
+        assert refused == [5, 6, 7] and done == list(range(8))
+        peer.close()
+
 
 def server_camera(source):
     from arlight.pipeline.camera import PinholeCamera
