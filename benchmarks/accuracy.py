@@ -25,6 +25,7 @@ from arlight.pipeline.pipeline import Pipeline
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
 CONFIGS = {
     "full": lambda **kw: Config.from_preset("full", **kw),
+    "full_nobounce": lambda **kw: Config.from_preset("full", rt_bounce=False, **kw),
     "fast": lambda **kw: Config.from_preset("fast", **kw),
     "baseline": lambda **kw: Config.from_preset("full", visibility=False, **kw),
 }
@@ -53,7 +54,8 @@ def evaluate_sequence(folder: Path, config: Config, max_frames: int | None = Non
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    parser.add_argument("--configs", nargs="+", default=["full", "fast", "baseline"],
+                        choices=list(CONFIGS))
     parser.add_argument("--sequences", nargs="*", help="names (default: all)")
     parser.add_argument("--max-frames", type=int)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -66,7 +68,13 @@ def main(argv=None) -> int:
     overrides = {}
     for kv in args.set:
         k, v = kv.split("=", 1)
-        overrides[k] = json.loads(v) if v not in ("True", "False") else v == "True"
+        if v in ("True", "False"):
+            overrides[k] = v == "True"
+        else:
+            try:
+                overrides[k] = json.loads(v)
+            except json.JSONDecodeError:
+                overrides[k] = v  # a plain string, e.g. rt_visibility_ramp=half
     seqs = sorted(p for p in DATA.iterdir() if (p / "lighting_gt.json").exists())
     if args.sequences:
         seqs = [p for p in seqs if p.name in args.sequences]

@@ -8,7 +8,10 @@ Reads the results.jsonl that `arlight estimate ... --out FILE` writes and prints
 
 Frames without an estimate (zero direction or confidence 0) are left out and counted.
 
-    .venv/bin/python benchmarks/steadiness.py results.jsonl [--skip N]
+    .venv/bin/python benchmarks/steadiness.py results.jsonl [--skip N] [--gravity FILE]
+
+With --gravity (a world-frame gravity vector, e.g. 7-Scenes' gravity-direction.txt) it also
+prints the angle between the mean direction and "up" (ceiling lights should be near it).
 """
 
 from __future__ import annotations
@@ -47,6 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("results", type=Path, help="results.jsonl from arlight estimate --out")
     parser.add_argument("--skip", type=int, default=0,
                         help="leave out the first N frames (the temporal filter's warm-up)")
+    parser.add_argument("--gravity", type=Path,
+                        help="file with the world-frame gravity vector (3 numbers)")
     args = parser.parse_args(argv)
     dirs, missing = [], 0
     for line in args.results.read_text().splitlines()[args.skip:]:
@@ -62,6 +67,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"steadiness: {exc}", file=sys.stderr)
         return 2
     stats["frames_without_estimate"] = missing
+    if args.gravity:
+        up = -np.loadtxt(args.gravity).reshape(3)
+        up /= np.linalg.norm(up)
+        mean = np.asarray(stats["mean_direction_world"])
+        stats["mean_to_up_deg"] = float(angles_deg(mean / np.linalg.norm(mean), up))
     for key, value in stats.items():
         print(f"{key:28s} {value if not isinstance(value, float) else round(value, 2)}")
     return 0

@@ -63,6 +63,9 @@ class Config:
     rt_subsample: int = 1  # image-space sub-sampling (fast: 4)
     rt_upsample: bool = True  # sub-sampled transfer interpolated back to every pixel
     visibility: bool = True  # False: K = 1 everywhere (the no-visibility baseline)
+    # blocked directions bring the occluder's own (observed) light, as in SSDO's one-bounce
+    # indirect term; its unknown scale (mean albedo / pi) is solved with the light
+    rt_bounce: bool = True
 
     # Light estimation (section 5.2)
     regularization: float = 1e-3  # Tikhonov weight, relative to the mean diagonal of T^T T

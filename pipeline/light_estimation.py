@@ -46,6 +46,7 @@ class LightEstimate:
     confidence: Confidence
     sh_rgb: np.ndarray | None = None
     residual_rel: float = float("nan")
+    bounce_scale: float = 0.0  # beta of the one-bounce term (0 when not modelled)
 
 
 def _band_penalty(bands: int) -> np.ndarray:
@@ -73,25 +74,41 @@ def choose_bands(transfer: np.ndarray, weights: np.ndarray, max_bands: int) -> t
 
 
 def solve_regularised(transfer: np.ndarray, target: np.ndarray, weights: np.ndarray,
-                      bands: int, regularization: float) -> np.ndarray:
-    """argmin_l sum w (T l - I)^2 + lambda * mean(diag) * sum_z (l(l+1) l_z)^2."""
+                      bands: int, regularization: float,
+                      bounce: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """argmin_{l, beta} sum w (T l + beta B - I)^2 + lambda mean(diag) sum_z (l(l+1) l_z)^2.
+
+    Returns (l, beta). beta (>= 0) scales the one-bounce light B of the occluders (it is the
+    scene's mean albedo over pi, unknown); without `bounce` it is 0.
+    """
     n = bands * bands
     t = transfer[:, :n]
+    penalty = _band_penalty(bands) ** 2
+    if bounce is not None:
+        t = np.column_stack([t, bounce])
+        penalty = np.append(penalty, 1.0)
     gram = (t * weights[:, None]).T @ t
     rhs = (t * weights[:, None]).T @ target
     scale = float(np.mean(np.diag(gram))) or 1.0
-    penalty = regularization * scale * _band_penalty(bands) ** 2
-    return np.linalg.solve(gram + np.diag(penalty), rhs)
+    x = np.linalg.solve(gram + np.diag(regularization * scale * penalty), rhs)
+    if bounce is None:
+        return x, 0.0
+    if x[-1] < 0.0:  # more bounce than the data supports: fit without it
+        return solve_regularised(transfer, target, weights, bands, regularization)
+    return x[:n], float(x[-1])
 
 
 def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Config,
-                   segments: np.ndarray | None = None) -> LightEstimate:
+                   segments: np.ndarray | None = None,
+                   bounce: np.ndarray | None = None) -> LightEstimate:
     """Solve T l = I for the distant light.
 
     transfer: (M, C) SH transfer per pixel; color_linear: (M, 3) linear RGB of those pixels;
     segments: optional (M,) integer material label per pixel. With labels, each material
     gets its own unknown albedo a_g and the model is I = a_g T l, solved by alternating
     between l and the a_g (the paper assumes one grey albedo everywhere).
+    bounce: optional (M,) one-bounce light of the occluders per pixel (in the luminance
+    units of the image); the model is then I = a_g (T l + beta B) with beta >= 0 solved too.
     Returns an estimate with zero coefficients and confidence 0 when too few usable pixels.
     """
     n_coeffs = config.sh_bands ** 2
@@ -101,6 +118,7 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
     usable = (np.all(np.isfinite(t), axis=1) & np.isfinite(lum) & (rgb.max(axis=1) < CLIP_LEVEL)
               & (lum > DARK_LEVEL) & (t[:, 0] > 1e-6))
     t, lum, rgb = t[usable], lum[usable], rgb[usable]
+    b = None if bounce is None else np.asarray(bounce, dtype=np.float64).reshape(-1)[usable]
     labels = None
     if segments is not None:
         _, labels = np.unique(np.asarray(segments).reshape(-1)[usable], return_inverse=True)
@@ -112,21 +130,27 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
 
     weights = np.ones(len(lum))
     bands, cond = choose_bands(t, weights, config.sh_bands)
-    coeffs = solve_regularised(t, lum, weights, bands, config.regularization)
+    coeffs, beta = solve_regularised(t, lum, weights, bands, config.regularization, b)
+
+    def shading() -> np.ndarray:
+        s = t[:, : bands * bands] @ coeffs
+        return s + beta * b if b is not None else s
+
     albedo = np.ones(len(lum))
     for _ in range(config.robust_iterations):
         if labels is not None:
-            albedo = _segment_albedo(t[:, : bands * bands] @ coeffs, lum, labels, weights)
-        pred = albedo * (t[:, : bands * bands] @ coeffs)
+            albedo = _segment_albedo(shading(), lum, labels, weights)
+        pred = albedo * shading()
         # relative to the prediction, not the observation: a wrongly bright patch then has
         # a large residual and a correct dark pixel a small one
         rel = (pred - lum) / np.maximum(pred, DARK_LEVEL)
         sigma = 1.4826 * np.median(np.abs(rel - np.median(rel))) + 1e-6
         a = np.abs(rel) / (1.345 * sigma)
         weights = np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))  # Huber
-        coeffs = solve_regularised(t * albedo[:, None], lum, weights, bands,
-                                   config.regularization)
-    pred = albedo * (t[:, : bands * bands] @ coeffs)
+        coeffs, beta = solve_regularised(t * albedo[:, None], lum, weights, bands,
+                                         config.regularization,
+                                         None if b is None else b * albedo)
+    pred = albedo * shading()
     residual = float(np.sqrt(np.average(((pred - lum) / np.maximum(lum, DARK_LEVEL)) ** 2,
                                         weights=weights)))
 
@@ -136,11 +160,12 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
     if config.estimate_rgb:
         sh_rgb = np.zeros((3, n_coeffs))
         for ch in range(3):
-            sh_rgb[ch, : bands * bands] = solve_regularised(t * albedo[:, None], rgb[:, ch],
-                                                            weights, bands,
-                                                            config.regularization)
+            sh_rgb[ch, : bands * bands] = solve_regularised(
+                t * albedo[:, None], rgb[:, ch], weights, bands, config.regularization,
+                None if b is None else b * albedo)[0]
     value = _confidence_value(len(lum), cond, bands, residual)
-    return LightEstimate(full, Confidence(len(lum), cond, bands, value), sh_rgb, residual)
+    return LightEstimate(full, Confidence(len(lum), cond, bands, value), sh_rgb, residual,
+                         beta)
 
 
 def _segment_albedo(shading: np.ndarray, lum: np.ndarray, labels: np.ndarray,

@@ -19,6 +19,7 @@ from arlight.pipeline.config import Config
 from arlight.pipeline.depth_filter import filter_depth, intensity_from_rgb, normals_from_depth
 from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
 from arlight.pipeline.light_estimation import (
+    LUMA,
     LightEstimate,
     TemporalFilter,
     estimate_light,
@@ -161,8 +162,9 @@ class Pipeline:
 
         with stage("RadTransfer"):
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
+            luminance = color_linear @ LUMA.astype(np.float32) if self.config.rt_bounce else None
             transfer = compute_transfer(points, normals, self.camera, pose, self.pattern, aux,
-                                        self.config)
+                                        self.config, luminance)
             if self.config.rt_upsample and self.config.rt_subsample > 1:
                 has_geometry = (depth_filtered > 0) & np.any(normals != 0, axis=2)
                 transfer = upsample_transfer(transfer, has_geometry)
@@ -178,6 +180,7 @@ class Pipeline:
         rotation = pose[:3, :3]
         self.frames_processed += 1
         diagnostics["residual_rel"] = estimate.residual_rel
+        diagnostics["bounce_scale"] = estimate.bounce_scale
         diagnostics["raw_dominant_direction_world"] = sh.dominant_direction(estimate.sh).tolist()
         return FrameResult(
             timestamp=float(frame.timestamp), sh=coeffs, sh_camera=sh.rotate(coeffs, rotation.T),
@@ -197,4 +200,5 @@ class Pipeline:
         segments = None
         if self.config.albedo_segments:
             segments = material_segments(color_linear, depth)[grid][valid]
-        return estimate_light(transfer.transfer[valid], colors, self.config, segments)
+        bounce = transfer.bounce[valid] if transfer.bounce is not None else None
+        return estimate_light(transfer.transfer[valid], colors, self.config, segments, bounce)

@@ -170,15 +170,23 @@ def _visibility(px, py, pz, wx, wy, wz, radius, depth, fx, fy, cx, cy,
 @register_jitable
 def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii,
                     aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness,
-                    use_visibility, out):
-    """Fill out (C,) with the SH transfer vector of pixel (ui, vi); False if invalid."""
+                    use_visibility, luminance, out):
+    """Fill out (C,) with the SH transfer vector of pixel (ui, vi).
+
+    Returns (valid, bounce): bounce = sum_j (1 - K_j) max(0, w_j . n) I(s_j) 4 pi / N, the
+    one-bounce light from the occluders, with I(s_j) the image luminance where the
+    blocking sample projects (0 when no luminance image is given, luminance.size == 1).
+    """
     for c in range(out.shape[0]):
         out[c] = 0.0
     pz = points[vi, ui, 2]
     nx, ny, nz = normals[vi, ui, 0], normals[vi, ui, 1], normals[vi, ui, 2]
     if not (pz > 0.0) or (nx == 0.0 and ny == 0.0 and nz == 0.0):
-        return False
+        return False, 0.0
     px, py = points[vi, ui, 0], points[vi, ui, 1]
+    h, w = depth.shape
+    with_bounce = luminance.shape[0] == h and luminance.shape[1] == w
+    bounce = 0.0
     n_dirs = dirs.shape[0]
     weight = 4.0 * math.pi / n_dirs
     steps = radii.shape[3]
@@ -188,32 +196,44 @@ def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, r
         if cos_n <= 0.0:
             continue
         k = 1.0
+        blocker = 0.0
         if use_visibility:
             for s in range(steps):
-                k = min(k, _visibility(px, py, pz, wx, wy, wz, radii[vi % 2, ui % 2, j, s],
-                                       depth, fx, fy, cx, cy, aux_depth, aux_from_cam,
-                                       aux_pix, chi, bias_abs, bias_rel, thickness))
+                radius = radii[vi % 2, ui % 2, j, s]
+                ks = _visibility(px, py, pz, wx, wy, wz, radius, depth, fx, fy, cx, cy,
+                                 aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel,
+                                 thickness)
+                if ks < k:
+                    k = ks
+                    blocker = radius
         f = k * cos_n * weight
         if f > 0.0:
             for c in range(out.shape[0]):
                 out[c] += f * ysh[j, c]
-    return True
+        if with_bounce and k < 1.0:
+            yz = pz + blocker * wz
+            if yz > 1e-6:
+                u = int(round(fx * (px + blocker * wx) / yz + cx))
+                v = int(round(fy * (py + blocker * wy) / yz + cy))
+                if 0 <= u < w and 0 <= v < h:
+                    bounce += (1.0 - k) * cos_n * weight * luminance[v, u]
+    return True, bounce
 
 
 @numba.njit(parallel=True, cache=True)
 def _transfer_cpu(points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
                   aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness, use_visibility,
-                  step, transfer, valid):
+                  luminance, step, transfer, bounce, valid):
     hs, ws = valid.shape
     h, w = depth.shape
     for i in numba.prange(hs):
         vi = min(i * step + step // 2, h - 1)
         for jj in range(ws):
             ui = min(jj * step + step // 2, w - 1)
-            valid[i, jj] = _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy,
-                                           dirs, ysh, radii, aux_depth, aux_from_cam, aux_pix,
-                                           chi, bias_abs, bias_rel, thickness,
-                                           use_visibility, transfer[i, jj])
+            valid[i, jj], bounce[i, jj] = _transfer_pixel(
+                ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
+                aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness, use_visibility,
+                luminance, transfer[i, jj])
 
 
 @dataclass
@@ -221,13 +241,16 @@ class TransferResult:
     """Per-pixel SH transfer on the (sub-sampled) grid.
 
     transfer: (Hs, Ws, C) float32, world-frame SH; valid: (Hs, Ws) bool;
-    pixel_u, pixel_v: (Ws,), (Hs,) full-resolution pixel coordinates of the grid.
+    pixel_u, pixel_v: (Ws,), (Hs,) full-resolution pixel coordinates of the grid;
+    bounce: (Hs, Ws) float32 one-bounce light from the occluders (units of the luminance
+    image given to compute_transfer, times steradians), or None.
     """
 
     transfer: np.ndarray
     valid: np.ndarray
     pixel_u: np.ndarray
     pixel_v: np.ndarray
+    bounce: np.ndarray | None = None
 
 
 # Depth-test bias: a sample counts as behind a surface only beyond this margin (metres,
@@ -238,11 +261,14 @@ BIAS_REL = 0.01
 
 def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: PinholeCamera,
                      world_from_cam: np.ndarray, pattern: SamplingPattern,
-                     aux: AuxBufferArrays | None, config: Config) -> TransferResult:
+                     aux: AuxBufferArrays | None, config: Config,
+                     luminance: np.ndarray | None = None) -> TransferResult:
     """SH radiance transfer for every `config.rt_subsample`-th pixel (section 5.1).
 
     points_cam: (H, W, 3) float32 camera-frame points of the filtered depth (z = 0 missing);
-    normals_cam: (H, W, 3) unit normals, camera frame, zeros where unknown.
+    normals_cam: (H, W, 3) unit normals, camera frame, zeros where unknown;
+    luminance: optional (H, W) linear image luminance: with it, the one-bounce light of
+    the occluders is gathered as well (`TransferResult.bounce`, as in SSDO).
     """
     h, w = points_cam.shape[:2]
     step = config.rt_subsample
@@ -252,17 +278,23 @@ def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: Pi
     aux = aux if aux is not None else AuxBufferArrays.empty()
     transfer = np.zeros((hs, ws, ysh.shape[1]), np.float64)
     valid = np.zeros((hs, ws), np.bool_)
+    bounce = np.zeros((hs, ws), np.float64)
     points = np.ascontiguousarray(points_cam, dtype=np.float32)
     depth = np.ascontiguousarray(points[..., 2])
+    lum = (np.zeros((1, 1), np.float32) if luminance is None
+           else np.ascontiguousarray(luminance, dtype=np.float32))
+    if luminance is not None and lum.shape != (h, w):
+        raise ValueError(f"luminance must be {(h, w)}, got {lum.shape}")
     _transfer_cpu(points, np.ascontiguousarray(normals_cam, dtype=np.float32), depth,
                   camera.fx, camera.fy, camera.cx, camera.cy, pattern.directions, ysh,
                   pattern.radii, aux.depth, aux.buffer_from_cam, aux.pixel_size,
                   visibility_ramp(pattern, config),
-                  BIAS_ABS_M, BIAS_REL, config.rt_thickness_m, config.visibility, step,
-                  transfer, valid)
+                  BIAS_ABS_M, BIAS_REL, config.rt_thickness_m, config.visibility, lum, step,
+                  transfer, bounce, valid)
     u = np.minimum(np.arange(ws) * step + step // 2, w - 1)
     v = np.minimum(np.arange(hs) * step + step // 2, h - 1)
-    return TransferResult(transfer.astype(np.float32), valid, u, v)
+    return TransferResult(transfer.astype(np.float32), valid, u, v,
+                          bounce.astype(np.float32) if luminance is not None else None)
 
 
 def upsample_transfer(result: TransferResult, valid_full: np.ndarray) -> TransferResult:
@@ -287,7 +319,12 @@ def upsample_transfer(result: TransferResult, valid_full: np.ndarray) -> Transfe
     den = cv2.remap(weight, map_x, map_y, cv2.INTER_LINEAR)
     keep = valid_full & (den > 0.999)
     transfer = np.where(keep[..., None], num / np.maximum(den, 1e-6)[..., None], 0.0)
-    return TransferResult(transfer.astype(np.float32), keep, np.arange(w), np.arange(h))
+    bounce = None
+    if result.bounce is not None:
+        b = cv2.remap(result.bounce * weight, map_x, map_y, cv2.INTER_LINEAR)
+        bounce = np.where(keep, b / np.maximum(den, 1e-6), 0.0).astype(np.float32)
+    return TransferResult(transfer.astype(np.float32), keep, np.arange(w), np.arange(h),
+                          bounce)
 
 
 def _occlusion_reference(x: np.ndarray, s: np.ndarray, w: np.ndarray, chi: float) -> float:

@@ -291,3 +291,25 @@ class TestTemporalFilter:
         np.testing.assert_array_equal(f.state, self.OLD)
         kept[0] = 123.0  # a copy is returned, the state is not aliased
         assert f.state[0] != 123.0
+
+
+class TestBounceTerm:
+    def test_light_and_bounce_scale_recovered(self):
+        _, t = _synthetic()
+        rng = np.random.default_rng(3)
+        bounce = rng.uniform(0.0, 2.0, len(t))
+        light, beta = _light(), 0.12
+        est = le.estimate_light(t, _grey(t @ light + beta * bounce), Config(), bounce=bounce)
+        assert est.bounce_scale == pytest.approx(beta, rel=0.05)
+        assert _angle_deg(est.sh, light) < 1.0
+        # ignoring the bounce light biases the estimate
+        ignored = le.estimate_light(t, _grey(t @ light + beta * bounce), Config())
+        assert ignored.bounce_scale == 0.0
+
+    def test_negative_bounce_scale_is_not_allowed(self):
+        _, t = _synthetic()
+        bounce = np.random.default_rng(4).uniform(0.0, 2.0, len(t))
+        light = _light()
+        est = le.estimate_light(t, _grey(np.maximum(t @ light - 0.1 * bounce, 0.01)),
+                                Config(), bounce=bounce)
+        assert est.bounce_scale == 0.0

@@ -356,3 +356,35 @@ class TestUpsampling:
         full = rt.TransferResult(np.ones((4, 5, 2), np.float32), np.ones((4, 5), bool),
                                  np.arange(5), np.arange(4))
         assert rt.upsample_transfer(full, np.ones((4, 5), bool)) is full
+
+
+class TestBounce:
+    def test_blocked_light_is_returned_by_the_occluders(self):
+        """With a uniform luminance c, what a direction loses in K it gains as bounce:
+        T_00 / Y_00 + B / c equals the visibility-free cosine sum, pixel by pixel."""
+        camera, points, normals, world_from_cam, world, on_wall = _floor_and_wall()
+        cfg = Config(rt_directions=64, rt_steps=2)
+        pattern = rt.make_sampling_pattern(cfg)
+        c = 0.37
+        lum = np.full(points.shape[:2], c, np.float32)
+        res = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
+                                  cfg, luminance=lum)
+        free = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
+                                   cfg.replace(visibility=False))
+        y00 = sh.sh_basis(np.array([0.0, 0.0, 1.0]), 1)[0]
+        v = res.valid
+        assert res.bounce is not None and np.count_nonzero(res.bounce[v] > 1e-3) >= 10
+        np.testing.assert_allclose(res.transfer[v, 0] / y00 + res.bounce[v] / c,
+                                   free.transfer[v, 0] / y00, rtol=1e-4, atol=1e-5)
+        # without a luminance image there is no bounce term
+        plain = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, cfg)
+        assert plain.bounce is None
+        np.testing.assert_array_equal(plain.transfer, res.transfer)
+
+    def test_luminance_of_the_wrong_size_is_refused(self):
+        camera, points, normals, world_from_cam, _, _ = _floor_and_wall()
+        cfg = Config(rt_directions=16)
+        with pytest.raises(ValueError, match="luminance"):
+            rt.compute_transfer(points, normals, camera, world_from_cam,
+                                rt.make_sampling_pattern(cfg), None, cfg,
+                                luminance=np.ones((3, 3), np.float32))
