@@ -1,9 +1,9 @@
 """Accuracy against ground truth on ../shared/data/synthetic, pinned so it cannot regress.
 
-Runs the `full` preset over every frame with the ground-truth poses and checks the median
-angular error of dominant_direction_camera. Thresholds are the values measured with
-`benchmarks/accuracy.py` (see the issue note) plus a small margin; they are NOT the targets
-of the issue (12 degrees), which some sequences do not reach yet.
+Runs the `full` and `fast` presets over every frame with the ground-truth poses and checks
+the median angular error of dominant_direction_camera. Thresholds are the medians measured
+with `benchmarks/accuracy.py` (see the issue note) plus a 3 degree margin; they are NOT the
+issue's targets (12 degrees full, 15 fast), which dev_a, dev_c and dev_e do not reach yet.
 """
 
 import sys
@@ -17,20 +17,28 @@ from arlight.pipeline.config import Config
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from accuracy import DATA, evaluate_sequence  # noqa: E402
 
-# measured median (degrees) + margin
-PINNED_MEDIAN_DEG = {
-    "dev_a_static_venice": 30.6 + 5.0,
-    "dev_b_dynamic_potsdamer": 8.8 + 5.0,
-    "dev_c_lightswitch_forest_kiara": 14.1 + 5.0,
-    "dev_d_indoor_warehouse": 6.9 + 5.0,
+MARGIN_DEG = 3.0
+# measured median (degrees), `.venv/bin/python benchmarks/accuracy.py --configs full fast`
+MEASURED_MEDIAN_DEG = {
+    ("full", "dev_a_static_venice"): 19.9,
+    ("full", "dev_b_dynamic_potsdamer"): 9.7,
+    ("full", "dev_c_lightswitch_forest_kiara"): 15.5,
+    ("full", "dev_d_indoor_warehouse"): 7.7,
+    ("full", "dev_e_fewnormals_studio"): 37.3,
+    ("fast", "dev_a_static_venice"): 19.9,
+    ("fast", "dev_b_dynamic_potsdamer"): 10.5,
+    ("fast", "dev_c_lightswitch_forest_kiara"): 17.7,
+    ("fast", "dev_d_indoor_warehouse"): 11.6,
+    ("fast", "dev_e_fewnormals_studio"): 36.2,
 }
 
-pytestmark = pytest.mark.skipif(not DATA.is_dir(),
-                                reason=f"ground-truth data not found at {DATA}")
+pytestmark = [pytest.mark.slow, pytest.mark.data,
+              pytest.mark.skipif(not DATA.is_dir(),
+                                 reason=f"ground-truth data not found at {DATA}")]
 
 
-@pytest.mark.parametrize("sequence", sorted(PINNED_MEDIAN_DEG))
-def test_full_preset_median_angular_error(sequence):
-    errors = evaluate_sequence(DATA / sequence, Config.from_preset("full"))
+@pytest.mark.parametrize(("preset", "sequence"), sorted(MEASURED_MEDIAN_DEG))
+def test_median_angular_error_does_not_regress(preset, sequence):
+    errors = evaluate_sequence(DATA / sequence, Config.from_preset(preset))
     assert np.all(np.isfinite(errors))
-    assert np.median(errors) <= PINNED_MEDIAN_DEG[sequence]
+    assert np.median(errors) <= MEASURED_MEDIAN_DEG[preset, sequence] + MARGIN_DEG
