@@ -15,8 +15,11 @@ Liveness (zguide's Paranoid Pirate): any message from the server counts as a sig
 server silent for `liveness` heartbeat intervals, a Bye from it, or an Error saying it does
 not know this peer (it restarted) makes the client reconnect: new socket (LINGER 0), capped
 exponential back-off, Hello again, then in lossless mode the unacknowledged frames are sent
-again in order (the server ignores a seq it already accepted and re-sends a cached Result),
-so no frame is lost. The client gives up after `reconnect_timeout_s` without a Welcome.
+again in order (the server does not process a seq twice: it sends the frame's Result or
+Error again, or a final `bad_state` Error with field "duplicate" once it no longer keeps
+it), so no frame is lost and none is waited for forever. A second answer to a frame already
+answered is ignored: each frame returns its credit once. The client gives up after
+`reconnect_timeout_s` without a Welcome.
 """
 
 from __future__ import annotations
@@ -63,6 +66,7 @@ DEPTH_SCALE_CANDIDATES = (5000.0, 1000.0)  # TUM, millimetres: tried for an exac
 DEFAULT_DEPTH_SCALE = 5000.0  # 0.2 mm steps up to 13.1 m when no candidate is exact
 MAX_DEPTH_U16 = 65534  # larger values do not fit (65535 is the data sets' "invalid")
 RETRYABLE_FIELDS = ("session", "shutdown", "credits")  # bad_state errors worth a resend
+DUPLICATE_FIELD = "duplicate"  # final bad_state: a resent frame's answer is no longer kept
 
 
 class StreamError(RuntimeError):
@@ -460,12 +464,22 @@ class CaptureClient:
                 self._after_result.append(error.seq)  # the server's queue was full: retry
             return None  # shutdown: the Bye follows, then a reconnect re-sends the frame
         if error.seq is not None:
+            if self.options.mode == "lossless" and error.seq not in self._unacked:
+                log.debug("session %s: second answer to frame %d ignored", self.session,
+                          error.seq)
+                return None  # already answered (a frame sent again): no second credit
             self._unacked.pop(error.seq, None)
             self._sent_time.pop(error.seq, None)
             self._last_result_seq = max(self._last_result_seq, error.seq)
         self.summary.errors.append(error)
-        log.warning("session %s: server error for frame %s: %s%s: %s", self.session, error.seq,
-                    error.code, f" ({error.field})" if error.field else "", error.message)
+        if error.code == "bad_state" and error.field == DUPLICATE_FIELD:
+            log.warning("session %s: frame %s was sent again but the server no longer keeps "
+                        "its Result or Error (it may have been processed; it is not processed "
+                        "again): counted as failed", self.session, error.seq)
+        else:
+            log.warning("session %s: server error for frame %s: %s%s: %s", self.session,
+                        error.seq, error.code, f" ({error.field})" if error.field else "",
+                        error.message)
         if self.on_error is not None:
             self.on_error(error)
         return None

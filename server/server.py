@@ -52,6 +52,8 @@ from arlight.protocols import (
     peek_header,
 )
 from arlight.server.session import (
+    DUPLICATE_FIELD,
+    OUTCOME_CACHE_EXTRA,
     Job,
     JobOutcome,
     ProcessStep,
@@ -431,8 +433,15 @@ class Server:
                                                      "not processed"))
             return
         outcome = session.offer(seq, parts, now)
-        if outcome == "resend":
-            self._send(identity, session.results[seq])
+        if outcome == "resend":  # its Result or final Error, again (the first may be lost)
+            self._send(identity, session.outcomes[seq])
+        elif outcome == "expired":  # answer it, or a lossless client would wait for it forever
+            self._send_error(identity, Error(
+                code="bad_state", field=DUPLICATE_FIELD, seq=seq,
+                message=f"frame {seq} is not above the highest seq this session accepted "
+                        f"({session.highest_seq}) and its Result or Error is no longer kept "
+                        f"(only the last {self.options.credits + OUTCOME_CACHE_EXTRA} are); it "
+                        "is not processed again"))
         elif outcome == "overflow":
             self._send_error(identity, Error(
                 code="bad_state", field="credits", seq=seq,

@@ -4,15 +4,18 @@ A session is created by a capture client's Hello and named by `SessionConfig.ses
 I/O thread owns the queue (`offer`, `next_job`, `finish`); a worker thread runs one job at a
 time per session (`run`), so a session's frames are processed in order and its Pipeline is
 never used by two threads at once. Sessions share nothing: each has its own Pipeline, queue,
-counters and result cache.
+counters and outcome cache.
 
 Delivery modes (DESIGN.md "Quality rules": drops are counted, never silent):
 - live: the queue holds the newest frame only; an older pending frame is replaced and
   counted in `frames_dropped`, which every Result reports.
 - lossless: every frame is processed exactly once, in order. The client keeps at most
   `credits` frames unacknowledged; a frame whose seq was already accepted is a duplicate
-  (a client resending after a reconnect): it is not processed again, and if its Result is
-  still cached the Result is sent again.
+  (a client resending after a reconnect): it is not processed again. Its final outcome, the
+  Result or the final Error, is cached for the last `credits + OUTCOME_CACHE_EXTRA` frames
+  and sent again; a duplicate still queued or in a worker is answered when it finishes; an
+  older one gets a final `bad_state` Error (field "duplicate"), so every frame the client
+  sends gets an answer and a lossless stream never waits forever.
 """
 
 from __future__ import annotations
@@ -49,7 +52,9 @@ log = logging.getLogger(__name__)
 ProcessStep = Callable[[FrameInput, "Session"], FrameResult]
 
 LOSSLESS_QUEUE_SLACK = 2  # frames beyond the credit window a lossless queue tolerates
-RESULT_CACHE_EXTRA = 4  # results kept for resending after a reconnect: credits + this
+OUTCOME_CACHE_EXTRA = 4  # final outcomes kept for resending after a reconnect: credits + this
+DUPLICATE_FIELD = "duplicate"  # Error field: a duplicate whose outcome is no longer cached
+RETRYABLE_FIELDS = ("session", "shutdown", "credits")  # bad_state fields: frame not answered
 
 
 class SessionSetupError(ValueError):
@@ -165,7 +170,8 @@ class Session:
         self.last_activity = self.created
         self.highest_seq = -1  # highest seq accepted (lossless duplicate detection)
         self.refused_from: int | None = None  # lossless: first seq refused for credits
-        self.results: collections.OrderedDict[int, list] = collections.OrderedDict()
+        # lossless: seq -> encoded final reply (Result or final Error) of the last frames
+        self.outcomes: collections.OrderedDict[int, list] = collections.OrderedDict()
         self._lock = threading.Lock()
         self.frames_received = 0
         self.frames_processed = 0
@@ -195,14 +201,20 @@ class Session:
         """Queue a received frame. Returns what happened:
 
         "queued"; "replaced" (live: an older pending frame was dropped); "duplicate" (lossless:
-        seq already accepted and not finished: nothing to do); "resend" (lossless: already
-        processed, its Result is in `results`); "overflow" (lossless: the client ignored its
-        credit window; the frame is refused).
+        seq already accepted, still queued or in a worker: its reply comes when it finishes);
+        "resend" (lossless: already finished, its Result or final Error is in `outcomes`);
+        "expired" (lossless: seq at or below the highest accepted, neither waiting nor in
+        `outcomes`: its outcome can no longer be sent again); "overflow" (lossless: the
+        client ignored its credit window; the frame is refused).
         """
         self.last_activity = now
         if self.lossless:
             if seq <= self.highest_seq:
-                return "resend" if seq in self.results else "duplicate"
+                if seq in self.outcomes:
+                    return "resend"
+                waiting = (self.in_flight is not None and self.in_flight.seq == seq) or any(
+                    job.seq == seq for job in self.pending)
+                return "duplicate" if waiting else "expired"
             # once a frame is refused, later ones are refused too until it comes again: a
             # client that retries in order then keeps its frames in order
             if len(self.pending) >= self.credits + LOSSLESS_QUEUE_SLACK or (
@@ -236,10 +248,13 @@ class Session:
     def finish(self, outcome: JobOutcome) -> None:
         self.in_flight = None
         self.last_activity = max(self.last_activity, outcome.finish_time)
+        if self.lossless and (outcome.ok or not is_retryable(outcome.error)):
+            # the frame's final reply: a duplicate of this seq gets it again, so a reply lost
+            # on the way (the client disconnected) is recovered by resending the frame
+            self.outcomes[outcome.job.seq] = outcome.parts
+            while len(self.outcomes) > self.credits + OUTCOME_CACHE_EXTRA:
+                self.outcomes.popitem(last=False)
         if outcome.ok:
-            self.results[outcome.job.seq] = outcome.parts
-            while len(self.results) > self.credits + RESULT_CACHE_EXTRA:
-                self.results.popitem(last=False)
             self.recent.append((outcome.finish_time,
                                 outcome.finish_time - outcome.job.receive_time))
 
@@ -303,6 +318,11 @@ class Session:
         with self._lock:
             self.frames_failed += 1
         return JobOutcome(self, job, encode(error), False, time.time(), error)
+
+
+def is_retryable(error: Error | None) -> bool:
+    """True for an Error that leaves its frame unanswered (SPEC.md "Retryable Errors")."""
+    return error is not None and error.code == "bad_state" and error.field in RETRYABLE_FIELDS
 
 
 def frame_error(exc: Exception, seq: int | None) -> Error:

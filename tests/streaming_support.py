@@ -6,6 +6,7 @@ so a hang fails the test instead of blocking CI.
 
 from __future__ import annotations
 
+import socket
 import threading
 import time
 from pathlib import Path
@@ -218,3 +219,80 @@ def server_factory():
     yield make
     for server in servers:
         server.stop(timeout=15)
+
+
+class CuttableProxy:
+    """A TCP relay between clients and a server that a test can cut, like a network drop.
+
+    `address` is what clients connect to. `cut(hold=True)` closes every relayed connection
+    (both ends see the drop) and, while held, leaves new connections waiting unanswered in
+    the listen backlog; `release()` relays them again.
+    """
+
+    def __init__(self, target_port: int):
+        self.target_port = target_port
+        self.listener = socket.socket()
+        self.listener.bind(("127.0.0.1", 0))
+        self.listener.listen(16)
+        self.address = f"tcp://127.0.0.1:{self.listener.getsockname()[1]}"
+        self._open = threading.Event()
+        self._open.set()
+        self._closed = False
+        self._lock = threading.Lock()
+        self._sockets: list[socket.socket] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while not self._closed:
+            self._open.wait()
+            try:
+                client, _ = self.listener.accept()
+            except OSError:
+                return
+            try:
+                upstream = socket.create_connection(("127.0.0.1", self.target_port), 5)
+            except OSError:
+                client.close()
+                continue
+            with self._lock:
+                if not self._open.is_set() or self._closed:  # cut meanwhile: drop it
+                    client.close()
+                    upstream.close()
+                    continue
+                self._sockets += [client, upstream]
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    @staticmethod
+    def _pump(source: socket.socket, sink: socket.socket) -> None:
+        try:
+            while data := source.recv(65536):
+                sink.sendall(data)
+        except OSError:
+            pass
+        for s in (source, sink):
+            try:
+                s.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+
+    def cut(self, hold: bool = True) -> None:
+        with self._lock:
+            if hold:
+                self._open.clear()
+            sockets, self._sockets = self._sockets, []
+        for s in sockets:
+            try:
+                s.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            s.close()
+
+    def release(self) -> None:
+        self._open.set()
+
+    def close(self) -> None:
+        self._closed = True
+        self._open.set()
+        self.cut(hold=False)
+        self.listener.close()
