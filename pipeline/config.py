@@ -70,6 +70,9 @@ class Config:
     # Light estimation (section 5.2)
     regularization: float = 1e-3  # Tikhonov weight, relative to the mean diagonal of T^T T
     min_samples: int = 200  # fewer valid pixels: no estimate (confidence 0)
+    # weight of the prior used when the light comes out below the horizon of the surface the
+    # scene stands on: radiance there is held to that of a lit ground (0 = off)
+    horizon_prior: float = 0.1
     robust_iterations: int = 8  # IRLS / albedo alternation passes (0 = plain least squares)
     albedo_segments: bool = True  # one unknown albedo per material segment (beyond the paper)
     temporal_half_life_frames: float = 2.0  # exponential filter; light changes pass in ~3 frames

@@ -47,6 +47,7 @@ class LightEstimate:
     sh_rgb: np.ndarray | None = None
     residual_rel: float = float("nan")
     bounce_scale: float = 0.0  # beta of the one-bounce term (0 when not modelled)
+    horizon_prior_used: bool = False  # the fit was redone with the below-horizon prior
 
 
 def _band_penalty(bands: int) -> np.ndarray:
@@ -73,34 +74,58 @@ def choose_bands(transfer: np.ndarray, weights: np.ndarray, max_bands: int) -> t
     return 1, cond
 
 
+def below_horizon_gram(up: np.ndarray, bands: int, ground_albedo: float = 0.3,
+                       samples: int = 2048) -> np.ndarray:
+    """Q such that l^T Q l = integral over w . up < 0 of (L(w) - L_ground)^2 dw, where
+    L_ground = ground_albedo / pi * E_up is the radiance of a Lambertian ground lit by the
+    upper hemisphere of the same light (E_up = its irradiance on a surface facing `up`).
+    Light from below the horizon of the surface a scene stands on is, for that scene, the
+    glow of such a ground, not a lobe of its own. `up`: unit, frame of l."""
+    up = np.asarray(up, dtype=np.float64)
+    dirs = sh.fibonacci_sphere(samples)
+    weight = 4.0 * math.pi / samples
+    cos_up = dirs @ up
+    y = sh.sh_basis(dirs, bands)
+    e_up = (y * np.maximum(cos_up, 0.0)[:, None]).sum(axis=0) * weight  # E_up = e_up . l
+    d = y[cos_up < 0.0] - (ground_albedo / math.pi) * e_up
+    return d.T @ d * weight
+
+
 def solve_regularised(transfer: np.ndarray, target: np.ndarray, weights: np.ndarray,
                       bands: int, regularization: float,
-                      bounce: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """argmin_{l, beta} sum w (T l + beta B - I)^2 + lambda mean(diag) sum_z (l(l+1) l_z)^2.
+                      bounce: np.ndarray | None = None,
+                      prior: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """argmin_{l, beta} sum w (T l + beta B - I)^2 + lambda mean(diag) sum_z (l(l+1) l_z)^2
+    + mean(diag) l^T P l.
 
     Returns (l, beta). beta (>= 0) scales the one-bounce light B of the occluders (it is the
-    scene's mean albedo over pi, unknown); without `bounce` it is 0.
+    scene's mean albedo over pi, unknown); without `bounce` it is 0. P (C x C, optional) is
+    an extra quadratic prior on l, relative to the mean diagonal of the normal matrix.
     """
     n = bands * bands
     t = transfer[:, :n]
-    penalty = _band_penalty(bands) ** 2
+    penalty = np.diag(regularization * _band_penalty(bands) ** 2)
+    if prior is not None:
+        penalty = penalty + prior[:n, :n]
     if bounce is not None:
         t = np.column_stack([t, bounce])
-        penalty = np.append(penalty, 1.0)
+        penalty = np.pad(penalty, ((0, 1), (0, 1)))
+        penalty[n, n] = regularization
     gram = (t * weights[:, None]).T @ t
     rhs = (t * weights[:, None]).T @ target
     scale = float(np.mean(np.diag(gram))) or 1.0
-    x = np.linalg.solve(gram + np.diag(regularization * scale * penalty), rhs)
+    x = np.linalg.solve(gram + scale * penalty, rhs)
     if bounce is None:
         return x, 0.0
     if x[-1] < 0.0:  # more bounce than the data supports: fit without it
-        return solve_regularised(transfer, target, weights, bands, regularization)
+        return solve_regularised(transfer, target, weights, bands, regularization, None, prior)
     return x[:n], float(x[-1])
 
 
 def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Config,
                    segments: np.ndarray | None = None,
-                   bounce: np.ndarray | None = None) -> LightEstimate:
+                   bounce: np.ndarray | None = None,
+                   up: np.ndarray | None = None) -> LightEstimate:
     """Solve T l = I for the distant light.
 
     transfer: (M, C) SH transfer per pixel; color_linear: (M, 3) linear RGB of those pixels;
@@ -109,6 +134,9 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
     between l and the a_g (the paper assumes one grey albedo everywhere).
     bounce: optional (M,) one-bounce light of the occluders per pixel (in the luminance
     units of the image); the model is then I = a_g (T l + beta B) with beta >= 0 solved too.
+    up: optional unit "up" vector (frame of T), the normal of the surface the scene stands
+    on: light from below its horizon cannot reach the scene directly, so its radiance is
+    damped with weight `config.horizon_prior` (nothing visible constrains it otherwise).
     Returns an estimate with zero coefficients and confidence 0 when too few usable pixels.
     """
     n_coeffs = config.sh_bands ** 2
@@ -128,15 +156,59 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
                                      f"{config.min_samples}"),
             np.zeros((3, n_coeffs)) if config.estimate_rgb else None)
 
+    bands, cond = choose_bands(t, np.ones(len(lum)), config.sh_bands)
+    fit = _alternate(t, lum, b, labels, bands, config, None)
+    prior = None
+    if up is not None and config.horizon_prior > 0:
+        # the data put the light below the horizon of the surface the scene stands on:
+        # light from there cannot reach the scene, so that lobe is an artefact of what the
+        # normals leave unconstrained; fit again with below-horizon radiance held to a
+        # ground's glow
+        if float(sh.dominant_direction(fit.coeffs) @ up) < 0.0:
+            prior = config.horizon_prior * below_horizon_gram(up, bands)
+            fit = _alternate(t, lum, b, labels, bands, config, prior)
+    coeffs, beta, albedo, weights = fit.coeffs, fit.beta, fit.albedo, fit.weights
+    pred = albedo * fit.shading
+    residual = float(np.sqrt(np.average(((pred - lum) / np.maximum(lum, DARK_LEVEL)) ** 2,
+                                        weights=weights)))
+
+    full = np.zeros(n_coeffs)
+    full[: bands * bands] = coeffs
+    sh_rgb = None
+    if config.estimate_rgb:
+        sh_rgb = np.zeros((3, n_coeffs))
+        for ch in range(3):
+            sh_rgb[ch, : bands * bands] = solve_regularised(
+                t * albedo[:, None], rgb[:, ch], weights, bands, config.regularization,
+                None if b is None else b * albedo, prior)[0]
+    value = _confidence_value(len(lum), cond, bands, residual)
+    return LightEstimate(full, Confidence(len(lum), cond, bands, value), sh_rgb, residual,
+                         beta, prior is not None)
+
+
+@dataclass
+class _Fit:
+    coeffs: np.ndarray
+    beta: float
+    albedo: np.ndarray  # per sample, sample-weighted mean 1
+    weights: np.ndarray  # robust weights per sample
+    shading: np.ndarray  # T l + beta B per sample
+
+
+def _alternate(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
+               labels: np.ndarray | None, bands: int, config: Config,
+               prior: np.ndarray | None) -> _Fit:
+    """Regularised solve, then `robust_iterations` rounds of per-segment albedo and Huber
+    re-weighting (relative residuals), each followed by a new solve."""
+    n = bands * bands
     weights = np.ones(len(lum))
-    bands, cond = choose_bands(t, weights, config.sh_bands)
-    coeffs, beta = solve_regularised(t, lum, weights, bands, config.regularization, b)
+    albedo = np.ones(len(lum))
+    coeffs, beta = solve_regularised(t, lum, weights, bands, config.regularization, b, prior)
 
     def shading() -> np.ndarray:
-        s = t[:, : bands * bands] @ coeffs
+        s = t[:, :n] @ coeffs
         return s + beta * b if b is not None else s
 
-    albedo = np.ones(len(lum))
     for _ in range(config.robust_iterations):
         if labels is not None:
             albedo = _segment_albedo(shading(), lum, labels, weights)
@@ -149,23 +221,8 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
         weights = np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))  # Huber
         coeffs, beta = solve_regularised(t * albedo[:, None], lum, weights, bands,
                                          config.regularization,
-                                         None if b is None else b * albedo)
-    pred = albedo * shading()
-    residual = float(np.sqrt(np.average(((pred - lum) / np.maximum(lum, DARK_LEVEL)) ** 2,
-                                        weights=weights)))
-
-    full = np.zeros(n_coeffs)
-    full[: bands * bands] = coeffs
-    sh_rgb = None
-    if config.estimate_rgb:
-        sh_rgb = np.zeros((3, n_coeffs))
-        for ch in range(3):
-            sh_rgb[ch, : bands * bands] = solve_regularised(
-                t * albedo[:, None], rgb[:, ch], weights, bands, config.regularization,
-                None if b is None else b * albedo)[0]
-    value = _confidence_value(len(lum), cond, bands, residual)
-    return LightEstimate(full, Confidence(len(lum), cond, bands, value), sh_rgb, residual,
-                         beta)
+                                         None if b is None else b * albedo, prior)
+    return _Fit(coeffs, beta, albedo, weights, shading())
 
 
 def _segment_albedo(shading: np.ndarray, lum: np.ndarray, labels: np.ndarray,

@@ -18,6 +18,7 @@ from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.depth_filter import filter_depth, intensity_from_rgb, normals_from_depth
 from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
+from arlight.pipeline.horizon import support_plane_up
 from arlight.pipeline.light_estimation import (
     LUMA,
     LightEstimate,
@@ -170,7 +171,9 @@ class Pipeline:
                 transfer = upsample_transfer(transfer, has_geometry)
 
         with stage("LightEst"):
-            estimate = self._estimate(transfer, color_linear, depth_filtered)
+            up_cam = support_plane_up(normals) if self.config.horizon_prior > 0 else None
+            up_world = pose[:3, :3] @ up_cam if up_cam is not None else None
+            estimate = self._estimate(transfer, color_linear, depth_filtered, up_world)
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             direction_world, intensity_value = sh.dominant_light(coeffs)
             if np.any(direction_world):
@@ -181,6 +184,9 @@ class Pipeline:
         self.frames_processed += 1
         diagnostics["residual_rel"] = estimate.residual_rel
         diagnostics["bounce_scale"] = estimate.bounce_scale
+        diagnostics["horizon_prior_used"] = estimate.horizon_prior_used
+        diagnostics["support_plane_up_world"] = (None if up_world is None
+                                                 else [float(x) for x in up_world])
         diagnostics["raw_dominant_direction_world"] = sh.dominant_direction(estimate.sh).tolist()
         return FrameResult(
             timestamp=float(frame.timestamp), sh=coeffs, sh_camera=sh.rotate(coeffs, rotation.T),
@@ -189,7 +195,8 @@ class Pipeline:
             intensity=intensity_value, confidence=estimate.confidence, pose=pose.copy(),
             sh_rgb=estimate.sh_rgb, composite=None, timings_ms=timings, diagnostics=diagnostics)
 
-    def _estimate(self, transfer, color_linear: np.ndarray, depth: np.ndarray) -> LightEstimate:
+    def _estimate(self, transfer, color_linear: np.ndarray, depth: np.ndarray,
+                  up_world: np.ndarray | None = None) -> LightEstimate:
         valid = transfer.valid
         n = self.config.sh_bands ** 2
         if not np.any(valid):
@@ -201,4 +208,5 @@ class Pipeline:
         if self.config.albedo_segments:
             segments = material_segments(color_linear, depth)[grid][valid]
         bounce = transfer.bounce[valid] if transfer.bounce is not None else None
-        return estimate_light(transfer.transfer[valid], colors, self.config, segments, bounce)
+        return estimate_light(transfer.transfer[valid], colors, self.config, segments, bounce,
+                              up_world)
