@@ -427,6 +427,12 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
                         "(default in lossless mode); recordings keep theirs")
 
 
+def _add_reconnect_timeout(p: argparse.ArgumentParser) -> None:
+    """--reconnect-timeout, shared by the two clients (stream, display)."""
+    p.add_argument("--reconnect-timeout", type=_positive_float, default=30.0, metavar="S",
+                   help="give up after S seconds without a server (default 30)")
+
+
 def _add_streaming_parsers(sub) -> None:
     from arlight.server.server import DEFAULT_BIND, ServerOptions
 
@@ -488,8 +494,7 @@ def _add_streaming_parsers(sub) -> None:
     stream.add_argument("--out", metavar="FILE", help="also write the Results as JSON lines")
     stream.add_argument("--record", metavar="FILE.mcap",
                         help="also record the stream as sent to an MCAP file")
-    stream.add_argument("--reconnect-timeout", type=_positive_float, default=30.0, metavar="S",
-                        help="give up after S seconds without a server (default 30)")
+    _add_reconnect_timeout(stream)
     stream.set_defaults(func=cmd_stream)
 
     rec = sub.add_parser(
@@ -521,8 +526,7 @@ def _add_streaming_parsers(sub) -> None:
                       help="exit after S seconds without a result")
     disp.add_argument("--follow", action="store_true",
                       help="keep waiting when the stream ends (for the next stream)")
-    disp.add_argument("--reconnect-timeout", type=_positive_float, default=30.0, metavar="S",
-                      help="give up after S seconds without a server (default 30)")
+    _add_reconnect_timeout(disp)
     disp.set_defaults(func=cmd_display)
 
     demo = sub.add_parser(

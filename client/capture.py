@@ -38,6 +38,7 @@ import msgpack
 import numpy as np
 import zmq
 
+from arlight.client.connection import open_dealer, receive_message
 from arlight.protocols import (
     DEFAULT_COLOR_CODEC,
     DEFAULT_DEPTH_CODEC,
@@ -50,11 +51,9 @@ from arlight.protocols import (
     Frame,
     Heartbeat,
     Hello,
-    ProtocolError,
     Result,
     SessionConfig,
     Welcome,
-    decode,
     encode,
     peek_header,
 )
@@ -338,17 +337,8 @@ class CaptureClient:
     def _open_socket(self) -> None:
         if self._socket is not None:
             self._socket.close(linger=0)
-        sock = self._ctx.socket(zmq.DEALER)
-        sock.setsockopt(zmq.LINGER, 0)
-        sock.setsockopt(zmq.SNDHWM, 64)
-        sock.setsockopt(zmq.RCVHWM, 1000)
-        try:
-            sock.connect(self.options.server)
-        except zmq.ZMQError as exc:
-            sock.close(linger=0)
-            raise StreamError(f"cannot connect to {self.options.server!r}: {exc}; expected "
-                              "tcp://HOST:PORT") from None
-        self._socket = sock
+        self._socket = open_dealer(self._ctx, self.options.server, sndhwm=64, rcvhwm=1000,
+                                   error=StreamError)
 
     def _send(self, parts: list, block: bool = False) -> bool:
         try:
@@ -358,16 +348,8 @@ class CaptureClient:
             return False
 
     def _receive(self, timeout_s: float) -> tuple[object, float] | None:
-        """One message from the server within timeout_s, or None."""
-        if not self._socket.poll(max(0, int(timeout_s * 1000)), zmq.POLLIN):
-            return None
-        parts = self._socket.recv_multipart(copy=False)
-        now = time.time()
-        try:
-            return decode([p.buffer for p in parts]), now
-        except ProtocolError as exc:
-            log.warning("undecodable message from the server ignored: %s", exc)
-            return exc, now
+        """One message from the server within timeout_s, or None (see receive_message)."""
+        return receive_message(self._socket, timeout_s, log)
 
     def _connect(self) -> None:
         """(Re)connect and say Hello until Welcome; StreamError after reconnect_timeout_s."""

@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 import zmq
 
+from arlight.client.connection import open_dealer, receive_message
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Bye,
@@ -45,7 +46,6 @@ from arlight.protocols import (
     Result,
     SessionConfig,
     Welcome,
-    decode,
     encode,
 )
 
@@ -166,16 +166,8 @@ class DisplayClient:
     def _open(self) -> None:
         if self._socket is not None:
             self._socket.close(linger=0)
-        sock = self._ctx.socket(zmq.DEALER)
-        sock.setsockopt(zmq.LINGER, 0)
-        sock.setsockopt(zmq.RCVHWM, 100)
-        try:
-            sock.connect(self.options.server)
-        except zmq.ZMQError as exc:
-            sock.close(linger=0)
-            raise DisplayError(f"cannot connect to {self.options.server!r}: {exc}; expected "
-                               "tcp://HOST:PORT") from None
-        self._socket = sock
+        self._socket = open_dealer(self._ctx, self.options.server, rcvhwm=100,
+                                   error=DisplayError)
         hello = Hello(PROTOCOL_VERSION, SessionConfig(
             session=self.options.session, client_name=self.options.client_name,
             role="display"))
@@ -184,15 +176,12 @@ class DisplayClient:
         self._welcomed = False
 
     def _receive(self, timeout_s: float):
-        if not self._socket.poll(max(0, int(timeout_s * 1000)), zmq.POLLIN):
+        """(message, receive time) within timeout_s, or None; an undecodable message is
+        logged and skipped (it does not count as a sign of life here)."""
+        got = receive_message(self._socket, timeout_s, log)
+        if got is not None and isinstance(got[0], ProtocolError):
             return None
-        parts = self._socket.recv_multipart(copy=False)
-        now = time.time()
-        try:
-            return decode([p.buffer for p in parts]), now
-        except ProtocolError as exc:
-            log.warning("undecodable message from the server ignored: %s", exc)
-            return None
+        return got
 
     def _setup_outputs(self) -> None:
         opts = self.options

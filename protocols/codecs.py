@@ -15,6 +15,7 @@ C-contiguous, and raw/zstd decoders may return read-only arrays (copy before wri
 
 from __future__ import annotations
 
+import math
 import struct
 
 import cv2
@@ -274,23 +275,9 @@ def decode_color(
     data = as_bytes_view(payload)
     shape = (height, width, 3)
     if fmt == "raw":
-        if len(data) != width * height * 3:
-            raise ProtocolError(
-                "decode_failed",
-                f"raw payload of {len(data)} bytes, expected {width * height * 3}",
-                field,
-            )
-        return np.frombuffer(data, dtype=np.uint8).reshape(shape)
+        return _raw_image(data, shape, np.uint8, field)
     if fmt == "png":
-        w, h, bit_depth, colour_type = _with_field(png_header, data, field)
-        _check_declared(w, h, width, height, "PNG IHDR", field)
-        if bit_depth != 8 or colour_type != 2:
-            raise ProtocolError(
-                "decode_failed",
-                f"colour PNG must be 8-bit RGB (colour type 2), got bit depth {bit_depth}, "
-                f"colour type {colour_type}",
-                field,
-            )
+        _check_png(data, width, height, 8, 2, "colour PNG must be 8-bit RGB (colour type 2)", field)
     else:
         if "quality" in meta:
             _int_field(meta, "quality", field, 1, 100)
@@ -311,6 +298,32 @@ def _with_field(fn, data, field):
         return fn(data)
     except ProtocolError as exc:
         raise ProtocolError(exc.code, exc.message, field) from None
+
+
+def _raw_image(data: memoryview, shape: tuple[int, ...], dtype, field: str) -> np.ndarray:
+    """A raw payload as an array of `shape` (a view of it, possibly read-only); its length
+    must match."""
+    expected = math.prod(shape) * np.dtype(dtype).itemsize
+    if len(data) != expected:
+        raise ProtocolError(
+            "decode_failed", f"raw payload of {len(data)} bytes, expected {expected}", field
+        )
+    return np.frombuffer(data, dtype=dtype).reshape(shape)
+
+
+def _check_png(
+    data, width: int, height: int, bit_depth: int, colour_type: int, rule: str, field: str
+) -> None:
+    """Check a PNG's IHDR before decoding: the descriptor's size, and `bit_depth` and
+    `colour_type` (`rule` says which, for the error message)."""
+    w, h, got_depth, got_type = _with_field(png_header, data, field)
+    _check_declared(w, h, width, height, "PNG IHDR", field)
+    if (got_depth, got_type) != (bit_depth, colour_type):
+        raise ProtocolError(
+            "decode_failed",
+            f"{rule}, got bit depth {got_depth}, colour type {got_type}",
+            field,
+        )
 
 
 # --------------------------------------------------------------------------- depth
@@ -361,11 +374,7 @@ def decode_depth(
     n = width * height
     shape = (height, width)
     if fmt == "raw":
-        if len(data) != 2 * n:
-            raise ProtocolError(
-                "decode_failed", f"raw payload of {len(data)} bytes, expected {2 * n}", field
-            )
-        return _native_u16(np.frombuffer(data, dtype="<u2").reshape(shape))
+        return _native_u16(_raw_image(data, shape, "<u2", field))
     if fmt == "zstd":
         try:
             size = zstandard.frame_content_size(data)
@@ -399,15 +408,9 @@ def decode_depth(
         if status != RVL_OK:
             raise ProtocolError("decode_failed", f"RVL: {RVL_STATUS_TEXT[status]}", field)
         return flat.reshape(shape)
-    w, h, bit_depth, colour_type = _with_field(png_header, data, field)
-    _check_declared(w, h, width, height, "PNG IHDR", field)
-    if bit_depth != 16 or colour_type != 0:
-        raise ProtocolError(
-            "decode_failed",
-            f"depth PNG must be 16-bit greyscale (colour type 0), got bit depth {bit_depth}, "
-            f"colour type {colour_type}",
-            field,
-        )
+    _check_png(
+        data, width, height, 16, 0, "depth PNG must be 16-bit greyscale (colour type 0)", field
+    )
     return _check_shape(_cv_decode(data, _CV_DEPTH16, field), shape, np.uint16, field)
 
 

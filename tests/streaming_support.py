@@ -154,7 +154,9 @@ class RawPeer:
     def send_message(self, message) -> None:
         self.send(encode(message))
 
-    def receive(self, timeout_s: float = 10.0, skip_heartbeats: bool = True):
+    def _receive_parts(self, timeout_s: float, skip_heartbeats: bool):
+        """(parts as received, decoded message) of the next message within timeout_s
+        seconds (Heartbeats skipped if asked); fails the test if none comes."""
         deadline = time.monotonic() + timeout_s
         while True:
             left = deadline - time.monotonic()
@@ -164,17 +166,14 @@ class RawPeer:
             message = decode(parts)
             if skip_heartbeats and type(message).__name__ == "Heartbeat":
                 continue
-            return message
+            return parts, message
+
+    def receive(self, timeout_s: float = 10.0, skip_heartbeats: bool = True):
+        return self._receive_parts(timeout_s, skip_heartbeats)[1]
 
     def receive_raw(self, timeout_s: float = 10.0) -> list[bytes]:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0 or not self.socket.poll(int(left * 1000)):
-                pytest.fail(f"no message within {timeout_s} s")
-            parts = self.socket.recv_multipart()
-            if type(decode(parts)).__name__ != "Heartbeat":
-                return parts
+        """The next message other than a Heartbeat, as received (undecoded parts)."""
+        return self._receive_parts(timeout_s, skip_heartbeats=True)[0]
 
     def hello(self, session: str, mode: str = "lossless", role: str = "capture",
               width: int = 64, height: int = 48, timeout_s: float = 10.0, **config):

@@ -1,0 +1,49 @@
+"""The one DEALER socket a client (capture or display) keeps to the server.
+
+Both clients open it the same way (LINGER 0, so a reconnect or exit never waits on unsent
+messages; queue limits counted in messages) and read the server's messages the same way
+(poll with a timeout in seconds, decode, stamp with the wall-clock receive time).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import zmq
+
+from arlight.protocols import ProtocolError, decode
+
+
+def open_dealer(context: zmq.Context, server: str, *, rcvhwm: int, sndhwm: int | None = None,
+                error: type[Exception] = RuntimeError) -> zmq.Socket:
+    """A DEALER connected to `server`, LINGER 0; rcvhwm/sndhwm: queue limits in messages
+    (sndhwm None: ZeroMQ's default). Raises `error` when the address is not usable."""
+    sock = context.socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    if sndhwm is not None:
+        sock.setsockopt(zmq.SNDHWM, sndhwm)
+    sock.setsockopt(zmq.RCVHWM, rcvhwm)
+    try:
+        sock.connect(server)
+    except zmq.ZMQError as exc:
+        sock.close(linger=0)
+        raise error(f"cannot connect to {server!r}: {exc}; expected "
+                    "tcp://HOST:PORT") from None
+    return sock
+
+
+def receive_message(sock: zmq.Socket, timeout_s: float, log: logging.Logger
+                    ) -> tuple[object, float] | None:
+    """(message, receive time from time.time()) for one message within timeout_s seconds,
+    or None. An undecodable message is logged to `log` and returned as its ProtocolError,
+    with its receive time (the caller decides whether it counts as a sign of life)."""
+    if not sock.poll(max(0, int(timeout_s * 1000)), zmq.POLLIN):
+        return None
+    parts = sock.recv_multipart(copy=False)
+    now = time.time()
+    try:
+        return decode([p.buffer for p in parts]), now
+    except ProtocolError as exc:
+        log.warning("undecodable message from the server ignored: %s", exc)
+        return exc, now
