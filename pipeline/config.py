@@ -70,6 +70,7 @@ class Config:
     # Light estimation (section 5.2)
     regularization: float = 1e-3  # Tikhonov weight, relative to the mean diagonal of T^T T
     min_samples: int = 200  # fewer valid pixels: no estimate (confidence 0)
+    light_max_samples: int = 50000  # larger sets of usable pixels are randomly sub-sampled
     # weight of the prior used when the light comes out below the horizon of the surface the
     # scene stands on: radiance there is held to that of a lit ground (0 = off)
     horizon_prior: float = 0.1
@@ -88,6 +89,9 @@ class Config:
             raise ValueError(f"rt_directions must be >= 4, got {self.rt_directions}")
         if self.min_samples < 1:
             raise ValueError(f"min_samples must be >= 1, got {self.min_samples}")
+        if self.light_max_samples < self.min_samples:
+            raise ValueError(f"light_max_samples must be >= min_samples ({self.min_samples}), "
+                             f"got {self.light_max_samples}")
         if self.rt_steps < 1:
             raise ValueError(f"rt_steps must be >= 1, got {self.rt_steps}")
         if self.rt_subsample < 1:

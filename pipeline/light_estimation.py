@@ -145,11 +145,16 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
     lum = rgb @ LUMA
     usable = (np.all(np.isfinite(t), axis=1) & np.isfinite(lum) & (rgb.max(axis=1) < CLIP_LEVEL)
               & (lum > DARK_LEVEL) & (t[:, 0] > 1e-6))
-    t, lum, rgb = t[usable], lum[usable], rgb[usable]
-    b = None if bounce is None else np.asarray(bounce, dtype=np.float64).reshape(-1)[usable]
+    keep = np.flatnonzero(usable)
+    if len(keep) > config.light_max_samples:
+        # neighbouring pixels repeat each other: a seeded random subset fits the same light
+        rng = np.random.default_rng(config.seed)
+        keep = np.sort(rng.choice(keep, config.light_max_samples, replace=False))
+    t, lum, rgb = t[keep], lum[keep], rgb[keep]
+    b = None if bounce is None else np.asarray(bounce, dtype=np.float64).reshape(-1)[keep]
     labels = None
     if segments is not None:
-        _, labels = np.unique(np.asarray(segments).reshape(-1)[usable], return_inverse=True)
+        _, labels = np.unique(np.asarray(segments).reshape(-1)[keep], return_inverse=True)
     if len(lum) < config.min_samples:
         return LightEstimate(np.zeros(n_coeffs), Confidence(
             samples=len(lum), reason=f"{len(lum)} usable pixels < min_samples "
