@@ -76,6 +76,8 @@ class Config:
     horizon_prior: float = 0.1
     robust_iterations: int = 8  # IRLS / albedo alternation passes (0 = plain least squares)
     albedo_segments: bool = True  # one unknown albedo per material segment (beyond the paper)
+    segment_features: str = "invariant"  # or "chroma" (rg chromaticity, sensitive to sun/sky)
+    segment_illuminant_weight: float = 4.0  # "invariant": weight of the sun/sky colour axis
     temporal_half_life_frames: float = 2.0  # exponential filter; light changes pass in ~3 frames
     change_reset_deg: float = 35.0  # a jump larger than this resets the temporal filter
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
@@ -92,6 +94,9 @@ class Config:
         if self.light_max_samples < self.min_samples:
             raise ValueError(f"light_max_samples must be >= min_samples ({self.min_samples}), "
                              f"got {self.light_max_samples}")
+        if self.segment_features not in ("invariant", "chroma"):
+            raise ValueError(f"segment_features must be 'invariant' or 'chroma', got "
+                             f"{self.segment_features!r}")
         if self.rt_steps < 1:
             raise ValueError(f"rt_steps must be >= 1, got {self.rt_steps}")
         if self.rt_subsample < 1:

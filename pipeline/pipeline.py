@@ -206,7 +206,9 @@ class Pipeline:
         colors = color_linear[grid][valid]
         segments = None
         if self.config.albedo_segments:
-            segments = material_segments(color_linear, depth)[grid][valid]
+            segments = material_segments(
+                color_linear, depth, features=self.config.segment_features,
+                illuminant_weight=self.config.segment_illuminant_weight)[grid][valid]
         bounce = transfer.bounce[valid] if transfer.bounce is not None else None
         return estimate_light(transfer.transfer[valid], colors, self.config, segments, bounce,
                               up_world)
