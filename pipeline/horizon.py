@@ -10,12 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from arlight.pipeline import sh
-
 MIN_FACING_UP = 0.5  # cos of the largest tilt of a candidate normal from the image's "up"
 CLUSTER_COS = np.cos(np.radians(15.0))  # normals within 15 degrees form the plane's cluster
 MIN_FRACTION = 0.1  # the plane must hold this fraction of all known normals
-_BINS = sh.fibonacci_sphere(400)
+_GRID = 20  # cells per side of the (x, z) histogram of candidate normals (~6 degrees)
 
 
 def support_plane_up(normals_cam: np.ndarray, stride: int = 4) -> np.ndarray | None:
@@ -31,8 +29,13 @@ def support_plane_up(normals_cam: np.ndarray, stride: int = 4) -> np.ndarray | N
     candidates = n[-n[:, 1] > MIN_FACING_UP]
     if len(candidates) < MIN_FRACTION * len(n):
         return None
-    counts = np.bincount(np.argmax(candidates @ _BINS.T, axis=1), minlength=len(_BINS))
-    centre = _BINS[np.argmax(counts)]
+    # the most populated cell of a grid over (x, z): the candidates all lie on the cap y < 0
+    cells = np.clip(((candidates[:, [0, 2]] + 1.0) * (_GRID / 2)).astype(np.int64), 0,
+                    _GRID - 1)
+    peak = np.argmax(np.bincount(cells[:, 0] * _GRID + cells[:, 1], minlength=_GRID ** 2))
+    x, z = (np.array(divmod(peak, _GRID)) + 0.5) * (2.0 / _GRID) - 1.0
+    centre = np.array([x, -np.sqrt(max(1.0 - x * x - z * z, 0.0)), z])
+    centre /= np.linalg.norm(centre)
     cluster = candidates[candidates @ centre > CLUSTER_COS]
     if len(cluster) < MIN_FRACTION * len(n):
         return None
