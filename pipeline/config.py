@@ -66,18 +66,25 @@ class Config:
     # blocked directions bring the occluder's own (observed) light, as in SSDO's one-bounce
     # indirect term; its unknown scale (mean albedo / pi) is solved with the light
     rt_bounce: bool = True
+    # the support plane (floor, table) hides the distant light below its horizon: those
+    # directions see the lit ground (its observed luminance, through the bounce term)
+    rt_horizon: bool = False
 
     # Light estimation (section 5.2)
     regularization: float = 1e-3  # Tikhonov weight, relative to the mean diagonal of T^T T
     min_samples: int = 200  # fewer valid pixels: no estimate (confidence 0)
     light_max_samples: int = 50000  # larger sets of usable pixels are randomly sub-sampled
-    # weight of the prior used when the light comes out below the horizon of the surface the
-    # scene stands on: radiance there is held to that of a lit ground (0 = off)
+    # weight of the prior holding radiance below the horizon of the surface the scene stands
+    # on to that of a lit ground (0 = off); always on with rt_horizon (no pixel sees there),
+    # otherwise only when the light comes out below that horizon
     horizon_prior: float = 0.1
+    horizon_ground_albedo: float = 0.3  # of the prior's ground glow
     robust_iterations: int = 8  # IRLS / albedo alternation passes (0 = plain least squares)
     albedo_segments: bool = True  # one unknown albedo per material segment (beyond the paper)
     segment_features: str = "invariant"  # or "chroma" (rg chromaticity, sensitive to sun/sky)
     segment_illuminant_weight: float = 4.0  # "invariant": weight of the sun/sky colour axis
+    segment_normal_weight: float = 0.0  # feature levels per unit of normal change (creases)
+    segment_split_ground: bool = True  # the support plane's pixels never share a segment
     temporal_half_life_frames: float = 2.0  # exponential filter; light changes pass in ~3 frames
     change_reset_deg: float = 35.0  # a jump larger than this resets the temporal filter
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel

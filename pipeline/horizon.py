@@ -1,12 +1,15 @@
 """The "up" direction of the surface a scene stands on (floor or table), from normals.
 
-Distant light from below that surface's horizon cannot reach the scene directly; the light
-estimate uses it to damp what the visible normals leave unconstrained (below-horizon
-radiance). Found as the most common normal orientation among the surfaces that face up in
-the image (against the camera's +y, which points down in OpenCV axes).
+Distant light from below that surface's horizon cannot reach the scene directly: the radiance
+transfer sees the lit ground there instead (`SupportPlane`), and the light estimate damps
+what the visible normals leave unconstrained (below-horizon radiance). The plane's normal is
+the most common orientation among the surfaces that face up in the image (against the
+camera's +y, which points down in OpenCV axes), its offset the most common height.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -41,3 +44,53 @@ def support_plane_up(normals_cam: np.ndarray, stride: int = 4) -> np.ndarray | N
         return None
     up = cluster.mean(axis=0)
     return up / np.linalg.norm(up)
+
+
+PLANE_TOLERANCE_M = 0.03  # a pixel lies on the plane within this (plus 1 % of its depth)
+_HEIGHT_BIN_M = 0.01
+
+
+@dataclass(frozen=True)
+class SupportPlane:
+    """The plane a scene stands on, camera frame: up . p + offset = 0 (metres).
+
+    up: (3,) unit normal pointing to the side the camera sees (into the scene's space);
+    offset: metres; on_plane: (H, W) bool, pixels lying on it (the visible ground).
+    """
+
+    up: np.ndarray
+    offset: float
+    on_plane: np.ndarray
+
+    def height(self, points_cam: np.ndarray) -> np.ndarray:
+        """Signed height (metres) of camera-frame points (..., 3) above the plane."""
+        return np.asarray(points_cam, dtype=np.float64) @ self.up + self.offset
+
+
+def support_plane(normals_cam: np.ndarray, points_cam: np.ndarray,
+                  stride: int = 4) -> SupportPlane | None:
+    """The dominant upward-facing plane (normal from `support_plane_up`, offset from the
+    most common height of the pixels that face that way), or None.
+
+    normals_cam: (H, W, 3) unit normals, zeros where unknown; points_cam: (H, W, 3) metres,
+    camera frame, z = 0 where depth is missing.
+    """
+    up = support_plane_up(normals_cam, stride)
+    if up is None:
+        return None
+    n = np.asarray(normals_cam, dtype=np.float64)
+    p = np.asarray(points_cam, dtype=np.float64)
+    facing = (n[::stride, ::stride] @ up > CLUSTER_COS) & (p[::stride, ::stride, 2] > 0)
+    dist = p[::stride, ::stride][facing] @ up  # = -offset on the plane
+    if len(dist) == 0:
+        return None
+    # the most common height (1 cm bins), refined by the median of the pixels near it:
+    # the tops of objects face up too but hold fewer pixels than the ground
+    bins = np.floor((dist - dist.min()) / _HEIGHT_BIN_M).astype(np.int64)
+    peak = dist.min() + (np.argmax(np.bincount(bins)) + 0.5) * _HEIGHT_BIN_M
+    near = dist[np.abs(dist - peak) < PLANE_TOLERANCE_M]
+    offset = -float(np.median(near))
+    height = p @ up + offset
+    on_plane = ((p[..., 2] > 0) & (np.abs(height) < PLANE_TOLERANCE_M + 0.01 * p[..., 2])
+                & (n @ up > CLUSTER_COS))
+    return SupportPlane(up, offset, on_plane)

@@ -125,7 +125,8 @@ def solve_regularised(transfer: np.ndarray, target: np.ndarray, weights: np.ndar
 def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Config,
                    segments: np.ndarray | None = None,
                    bounce: np.ndarray | None = None,
-                   up: np.ndarray | None = None) -> LightEstimate:
+                   up: np.ndarray | None = None,
+                   below_horizon_unseen: bool = False) -> LightEstimate:
     """Solve T l = I for the distant light.
 
     transfer: (M, C) SH transfer per pixel; color_linear: (M, 3) linear RGB of those pixels;
@@ -136,7 +137,9 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
     units of the image); the model is then I = a_g (T l + beta B) with beta >= 0 solved too.
     up: optional unit "up" vector (frame of T), the normal of the surface the scene stands
     on: light from below its horizon cannot reach the scene directly, so its radiance is
-    damped with weight `config.horizon_prior` (nothing visible constrains it otherwise).
+    damped with weight `config.horizon_prior` (nothing visible constrains it otherwise):
+    always when `below_horizon_unseen` (the transfer gave no pixel a direction below that
+    horizon), else only when the unconstrained fit puts the light there.
     Returns an estimate with zero coefficients and confidence 0 when too few usable pixels.
     """
     n_coeffs = config.sh_bands ** 2
@@ -162,16 +165,22 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
             np.zeros((3, n_coeffs)) if config.estimate_rgb else None)
 
     bands, cond = choose_bands(t, np.ones(len(lum)), config.sh_bands)
-    fit = _alternate(t, lum, b, labels, bands, config, None)
     prior = None
     if up is not None and config.horizon_prior > 0:
+        prior = config.horizon_prior * below_horizon_gram(up, bands,
+                                                          config.horizon_ground_albedo)
+    if below_horizon_unseen and prior is not None:
+        fit = _alternate(t, lum, b, labels, bands, config, prior)
+    else:
+        fit = _alternate(t, lum, b, labels, bands, config, None)
         # the data put the light below the horizon of the surface the scene stands on:
         # light from there cannot reach the scene, so that lobe is an artefact of what the
         # normals leave unconstrained; fit again with below-horizon radiance held to a
         # ground's glow
-        if float(sh.dominant_direction(fit.coeffs) @ up) < 0.0:
-            prior = config.horizon_prior * below_horizon_gram(up, bands)
+        if prior is not None and float(sh.dominant_direction(fit.coeffs) @ up) < 0.0:
             fit = _alternate(t, lum, b, labels, bands, config, prior)
+        else:
+            prior = None
     coeffs, beta, albedo, weights = fit.coeffs, fit.beta, fit.albedo, fit.weights
     pred = albedo * fit.shading
     residual = float(np.sqrt(np.average(((pred - lum) / np.maximum(lum, DARK_LEVEL)) ** 2,

@@ -18,7 +18,7 @@ from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.depth_filter import filter_depth, intensity_from_rgb, normals_from_depth
 from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
-from arlight.pipeline.horizon import support_plane_up
+from arlight.pipeline.horizon import SupportPlane, support_plane
 from arlight.pipeline.light_estimation import (
     LUMA,
     LightEstimate,
@@ -161,19 +161,26 @@ class Pipeline:
                 smooth_depth_for_normals(depth_filtered, self.config.normal_window), self.camera)
             points = self.camera.unproject(depth_filtered)
 
+            plane = None
+            if (self.config.rt_horizon or self.config.horizon_prior > 0
+                    or self.config.segment_split_ground):
+                plane = support_plane(normals, points)
+
         with stage("RadTransfer"):
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
             luminance = color_linear @ LUMA.astype(np.float32) if self.config.rt_bounce else None
             transfer = compute_transfer(points, normals, self.camera, pose, self.pattern, aux,
-                                        self.config, luminance)
+                                        self.config, luminance,
+                                        plane if self.config.rt_horizon else None)
             if self.config.rt_upsample and self.config.rt_subsample > 1:
                 has_geometry = (depth_filtered > 0) & np.any(normals != 0, axis=2)
                 transfer = upsample_transfer(transfer, has_geometry)
 
         with stage("LightEst"):
-            up_cam = support_plane_up(normals) if self.config.horizon_prior > 0 else None
-            up_world = pose[:3, :3] @ up_cam if up_cam is not None else None
-            estimate = self._estimate(transfer, color_linear, depth_filtered, up_world)
+            up_world = pose[:3, :3] @ plane.up if plane is not None else None
+            estimate = self._estimate(transfer, color_linear, depth_filtered, normals, plane,
+                                      up_world,
+                                      below_horizon_unseen=self.config.rt_horizon)
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             direction_world, intensity_value = sh.dominant_light(coeffs)
             if np.any(direction_world):
@@ -196,7 +203,9 @@ class Pipeline:
             sh_rgb=estimate.sh_rgb, composite=None, timings_ms=timings, diagnostics=diagnostics)
 
     def _estimate(self, transfer, color_linear: np.ndarray, depth: np.ndarray,
-                  up_world: np.ndarray | None = None) -> LightEstimate:
+                  normals: np.ndarray, plane: SupportPlane | None = None,
+                  up_world: np.ndarray | None = None,
+                  below_horizon_unseen: bool = False) -> LightEstimate:
         valid = transfer.valid
         n = self.config.sh_bands ** 2
         if not np.any(valid):
@@ -208,7 +217,12 @@ class Pipeline:
         if self.config.albedo_segments:
             segments = material_segments(
                 color_linear, depth, features=self.config.segment_features,
-                illuminant_weight=self.config.segment_illuminant_weight)[grid][valid]
+                illuminant_weight=self.config.segment_illuminant_weight,
+                normals=normals, normal_weight=self.config.segment_normal_weight)
+            if plane is not None and self.config.segment_split_ground:
+                # what stands on the ground is rarely made of the ground's material
+                segments = segments * 2 + plane.on_plane
+            segments = segments[grid][valid]
         bounce = transfer.bounce[valid] if transfer.bounce is not None else None
         return estimate_light(transfer.transfer[valid], colors, self.config, segments, bounce,
-                              up_world)
+                              up_world, below_horizon_unseen)

@@ -33,6 +33,7 @@ from scipy.spatial import ConvexHull
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
+from arlight.pipeline.horizon import SupportPlane
 
 
 @dataclass(frozen=True)
@@ -168,14 +169,33 @@ def _visibility(px, py, pz, wx, wy, wz, radius, depth, fx, fy, cx, cy,
 
 
 @register_jitable
+def _ground_luminance(px, py, pz, wx, wy, wz, t, depth, luminance, fx, fy, cx, cy, fallback):
+    """Luminance of the ground where the ray x + t w meets it, when the camera sees that
+    spot (in the image, depth within 5 %), else `fallback`."""
+    hz = pz + t * wz
+    if hz > 1e-6:
+        u = int(round(fx * (px + t * wx) / hz + cx))
+        v = int(round(fy * (py + t * wy) / hz + cy))
+        if 0 <= u < depth.shape[1] and 0 <= v < depth.shape[0]:
+            d = depth[v, u]
+            if d > 0.0 and abs(d - hz) < 0.05 * hz:
+                return luminance[v, u]
+    return fallback
+
+
+@register_jitable
 def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii,
                     aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness,
-                    use_visibility, luminance, out):
+                    use_visibility, luminance, plane, ground_lum, out):
     """Fill out (C,) with the SH transfer vector of pixel (ui, vi).
 
     Returns (valid, bounce): bounce = sum_j (1 - K_j) max(0, w_j . n) I(s_j) 4 pi / N, the
     one-bounce light from the occluders, with I(s_j) the image luminance where the
     blocking sample projects (0 when no luminance image is given, luminance.size == 1).
+    plane (4,): (up, offset) of the support plane, camera frame, or zeros (none): for a
+    point above it, a direction below its horizon meets the ground, so it adds the ground's
+    luminance (where the ray hits it, if seen there, else `ground_lum`) to the bounce and
+    nothing to the transfer.
     """
     for c in range(out.shape[0]):
         out[c] = 0.0
@@ -187,6 +207,10 @@ def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, r
     h, w = depth.shape
     with_bounce = luminance.shape[0] == h and luminance.shape[1] == w
     bounce = 0.0
+    ux, uy, uz = plane[0], plane[1], plane[2]
+    height = ux * px + uy * py + uz * pz + plane[3]
+    # points clearly under the plane (a floor seen past a table's edge) are not shadowed by it
+    use_plane = (ux != 0.0 or uy != 0.0 or uz != 0.0) and height > -HORIZON_BELOW_M
     n_dirs = dirs.shape[0]
     weight = 4.0 * math.pi / n_dirs
     steps = radii.shape[3]
@@ -207,7 +231,12 @@ def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, r
                     k = ks
                     blocker = radius
         f = k * cos_n * weight
-        if f > 0.0:
+        cos_up = wx * ux + wy * uy + wz * uz
+        if use_plane and cos_up < 0.0:
+            if with_bounce and f > 0.0:
+                bounce += f * _ground_luminance(px, py, pz, wx, wy, wz, max(height, 0.0) / -cos_up,
+                                                depth, luminance, fx, fy, cx, cy, ground_lum)
+        elif f > 0.0:
             for c in range(out.shape[0]):
                 out[c] += f * ysh[j, c]
         if with_bounce and k < 1.0:
@@ -223,7 +252,7 @@ def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, r
 @numba.njit(parallel=True, cache=True)
 def _transfer_cpu(points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
                   aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness, use_visibility,
-                  luminance, step, transfer, bounce, valid):
+                  luminance, plane, ground_lum, step, transfer, bounce, valid):
     hs, ws = valid.shape
     h, w = depth.shape
     for i in numba.prange(hs):
@@ -233,7 +262,7 @@ def _transfer_cpu(points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_
             valid[i, jj], bounce[i, jj] = _transfer_pixel(
                 ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
                 aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness, use_visibility,
-                luminance, transfer[i, jj])
+                luminance, plane, ground_lum, transfer[i, jj])
 
 
 @dataclass
@@ -257,18 +286,23 @@ class TransferResult:
 # absolute + relative to depth), against sensor noise and quantisation.
 BIAS_ABS_M = 0.01
 BIAS_REL = 0.01
+# points more than this below the support plane are not shadowed by it (metres)
+HORIZON_BELOW_M = 0.05
 
 
 def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: PinholeCamera,
                      world_from_cam: np.ndarray, pattern: SamplingPattern,
                      aux: AuxBufferArrays | None, config: Config,
-                     luminance: np.ndarray | None = None) -> TransferResult:
+                     luminance: np.ndarray | None = None,
+                     plane: SupportPlane | None = None) -> TransferResult:
     """SH radiance transfer for every `config.rt_subsample`-th pixel (section 5.1).
 
     points_cam: (H, W, 3) float32 camera-frame points of the filtered depth (z = 0 missing);
     normals_cam: (H, W, 3) unit normals, camera frame, zeros where unknown;
     luminance: optional (H, W) linear image luminance: with it, the one-bounce light of
-    the occluders is gathered as well (`TransferResult.bounce`, as in SSDO).
+    the occluders is gathered as well (`TransferResult.bounce`, as in SSDO);
+    plane: optional support plane (camera frame): directions below its horizon see the
+    ground, never the distant light (their light, the ground's luminance, goes to bounce).
     """
     h, w = points_cam.shape[:2]
     step = config.rt_subsample
@@ -285,16 +319,28 @@ def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: Pi
            else np.ascontiguousarray(luminance, dtype=np.float32))
     if luminance is not None and lum.shape != (h, w):
         raise ValueError(f"luminance must be {(h, w)}, got {lum.shape}")
+    plane_arr, ground_lum = _plane_arrays(plane, lum if luminance is not None else None)
     _transfer_cpu(points, np.ascontiguousarray(normals_cam, dtype=np.float32), depth,
                   camera.fx, camera.fy, camera.cx, camera.cy, pattern.directions, ysh,
                   pattern.radii, aux.depth, aux.buffer_from_cam, aux.pixel_size,
                   visibility_ramp(pattern, config),
-                  BIAS_ABS_M, BIAS_REL, config.rt_thickness_m, config.visibility, lum, step,
-                  transfer, bounce, valid)
+                  BIAS_ABS_M, BIAS_REL, config.rt_thickness_m, config.visibility, lum,
+                  plane_arr, ground_lum, step, transfer, bounce, valid)
     u = np.minimum(np.arange(ws) * step + step // 2, w - 1)
     v = np.minimum(np.arange(hs) * step + step // 2, h - 1)
     return TransferResult(transfer.astype(np.float32), valid, u, v,
                           bounce.astype(np.float32) if luminance is not None else None)
+
+
+def _plane_arrays(plane: SupportPlane | None,
+                  luminance: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """(up, offset) as a (4,) array (zeros: no plane) and the ground's median luminance."""
+    if plane is None:
+        return np.zeros(4), 0.0
+    ground = 0.0
+    if luminance is not None and np.any(plane.on_plane):
+        ground = float(np.median(luminance[plane.on_plane]))
+    return np.array([*plane.up, plane.offset], dtype=np.float64), ground
 
 
 def upsample_transfer(result: TransferResult, valid_full: np.ndarray) -> TransferResult:
@@ -370,8 +416,10 @@ def _visibility_reference(x: np.ndarray, w: np.ndarray, radius: float, depth: np
 
 def transfer_reference(points_cam: np.ndarray, normals_cam: np.ndarray, camera: PinholeCamera,
                        world_from_cam: np.ndarray, pattern: SamplingPattern,
-                       aux: AuxBufferArrays | None, config: Config) -> TransferResult:
-    """Plain NumPy/Python oracle of :func:`compute_transfer`: same inputs, same definition.
+                       aux: AuxBufferArrays | None, config: Config,
+                       plane: SupportPlane | None = None) -> TransferResult:
+    """Plain NumPy/Python oracle of :func:`compute_transfer`: same inputs, same definition
+    (the transfer only, not the bounce).
 
     A straightforward loop over grid pixels, directions and steps; very slow, for tests on
     tiny images only.
@@ -397,9 +445,10 @@ def transfer_reference(points_cam: np.ndarray, normals_cam: np.ndarray, camera: 
             if not x[2] > 0.0 or not np.any(n != 0.0):
                 continue
             valid[i, jj] = True
+            above_plane = plane is not None and plane.height(x) > -HORIZON_BELOW_M
             for j, wdir in enumerate(dirs):
                 cos_n = float(wdir @ n)
-                if not cos_n > 0.0:
+                if not cos_n > 0.0 or (above_plane and float(wdir @ plane.up) < 0.0):
                     continue
                 k = 1.0
                 if config.visibility:
