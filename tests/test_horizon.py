@@ -9,7 +9,8 @@ import pytest
 from arlight.pipeline import light_estimation as le
 from arlight.pipeline import sh
 from arlight.pipeline.config import Config
-from arlight.pipeline.horizon import support_plane_up
+from arlight.pipeline.camera import PinholeCamera
+from arlight.pipeline.horizon import support_plane, support_plane_up
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
 
@@ -46,6 +47,45 @@ class TestSupportPlaneUp:
 
     def test_small_upward_patch_is_not_a_support_plane(self):
         assert support_plane_up(self._image(_unit([0, -1.0, 0]), floor_rows=5), stride=1) is None
+
+
+class TestSupportPlane:
+    def _floor_and_table(self, seed=0):
+        """A camera 1.2 m above a floor, pitched 35 degrees down; a table top 0.4 m high
+        covers a quarter of the image. Points and normals in the camera frame, with noise."""
+        rng = np.random.default_rng(seed)
+        camera = PinholeCamera(160, 120, 120.0, 120.0, 79.5, 59.5)
+        pitch = math.radians(35.0)
+        # columns: the camera's x (right), y (down), z (forward) in the world (y up); symmetric
+        r_wc = np.array([[1.0, 0, 0],
+                         [0, -math.cos(pitch), -math.sin(pitch)],
+                         [0, -math.sin(pitch), math.cos(pitch)]])
+        rays = camera.unproject(np.ones((120, 160), np.float32)).astype(np.float64)
+        d_world = rays @ r_wc.T
+        height = np.full((120, 160), 0.0)
+        height[60:, 40:120] = 0.4  # the table, nearer the camera (lower in the image)
+        t = (height - 1.2) / d_world[..., 1]
+        depth = (t * rays[..., 2]).astype(np.float32)
+        depth += rng.normal(scale=0.002, size=depth.shape).astype(np.float32)
+        points = camera.unproject(depth)
+        up_cam = r_wc.T @ np.array([0.0, 1.0, 0.0])
+        normals = np.broadcast_to(up_cam, points.shape).astype(np.float32).copy()
+        return points, normals, up_cam, height
+
+    def test_floor_found_with_its_height_and_pixels(self):
+        points, normals, up_cam, height = self._floor_and_table()
+        plane = support_plane(normals, points, stride=1)
+        assert plane is not None and _angle_deg(plane.up, up_cam) < 1.0
+        assert plane.offset == pytest.approx(1.2, abs=0.01)  # the camera's height above it
+        np.testing.assert_allclose(plane.height(points[height == 0]), 0.0, atol=0.02)
+        np.testing.assert_allclose(plane.height(points[height > 0]), 0.4, atol=0.02)
+        assert plane.on_plane[height == 0].mean() > 0.95
+        assert not plane.on_plane[height > 0].any()
+
+    def test_no_upward_surface_no_plane(self):
+        points, normals, _, _ = self._floor_and_table()
+        normals[:] = [0.0, 0.0, -1.0]
+        assert support_plane(normals, points) is None
 
 
 class TestBelowHorizonPrior:

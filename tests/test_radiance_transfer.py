@@ -15,6 +15,7 @@ from arlight.pipeline import radiance_transfer as rt
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
+from arlight.pipeline.horizon import SupportPlane
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
 
@@ -388,3 +389,62 @@ class TestBounce:
             rt.compute_transfer(points, normals, camera, world_from_cam,
                                 rt.make_sampling_pattern(cfg), None, cfg,
                                 luminance=np.ones((3, 3), np.float32))
+
+
+def _floor_plane(world_from_cam, on_floor):
+    """The floor z_w = 0 of `_floor_and_wall` as a SupportPlane in the camera frame."""
+    up_cam = world_from_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    return SupportPlane(up_cam, float(world_from_cam[2, 3]), on_floor)
+
+
+class TestHorizonPlane:
+    """plane=...: directions below the support plane's horizon see the ground, not the light."""
+
+    @pytest.mark.parametrize("seed", [0, 1])
+    def test_kernel_matches_reference(self, seed):
+        camera, points, normals, world_from_cam = _random_scene(seed)
+        rng = np.random.default_rng(seed)
+        up = rng.normal(size=3)
+        up /= np.linalg.norm(up)
+        plane = SupportPlane(up, -float(np.median(points[..., 2])) * up[2],
+                             np.zeros((1, 1), bool))
+        cfg = Config(rt_directions=32, seed=seed)
+        pattern = rt.make_sampling_pattern(cfg)
+        fast = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, cfg,
+                                   plane=plane)
+        ref = rt.transfer_reference(points, normals, camera, world_from_cam, pattern, None, cfg,
+                                    plane=plane)
+        np.testing.assert_allclose(fast.transfer, ref.transfer, atol=1e-4)
+        without = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, cfg)
+        assert np.abs(without.transfer - fast.transfer).max() > 0.05  # the plane did something
+
+    def test_wall_sees_no_light_from_below_and_the_ground_instead(self):
+        camera, points, normals, world_from_cam, world, on_wall = _floor_and_wall()
+        cfg = Config(rt_directions=128, rt_steps=2)
+        pattern = rt.make_sampling_pattern(cfg)
+        plane = _floor_plane(world_from_cam, ~on_wall & (points[..., 2] > 0))
+        c = 0.37
+        lum = np.full(points.shape[:2], c, np.float32)
+        res = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, cfg,
+                                  luminance=lum, plane=plane)
+        free = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
+                                   cfg.replace(visibility=False))
+        v = res.valid
+        # a light only below the floor's horizon reaches no pixel
+        below = sh.directional_light(np.array([0.3, -0.2, -0.93]) / np.linalg.norm(
+            [0.3, -0.2, -0.93]), 1.0, 4)
+        below_only = np.clip(sh.sh_basis(sh.fibonacci_sphere(4096), 4) @ below, 0, None)
+        below_only[sh.fibonacci_sphere(4096)[:, 2] >= 0] = 0  # cut at the horizon exactly
+        light = sh.project_samples(sh.fibonacci_sphere(4096), below_only,
+                                   np.full(4096, 4 * np.pi / 4096), 4)
+        lit = res.transfer[v] @ light
+        assert np.abs(lit).max() < 0.15 * np.abs(free.transfer[v] @ light).max()
+        # what the wall loses below the horizon comes back as the ground's luminance
+        y00 = sh.sh_basis(np.array([0.0, 0.0, 1.0]), 1)[0]
+        wall = v & on_wall[res.pixel_v][:, res.pixel_u]
+        assert wall.sum() > 20
+        np.testing.assert_allclose(res.transfer[wall, 0] / y00 + res.bounce[wall] / c,
+                                   free.transfer[wall, 0] / y00, rtol=1e-4, atol=1e-5)
+        # the wall's lower half of directions is gone from the transfer: about half its DC
+        ratio = res.transfer[wall, 0] / free.transfer[wall, 0]
+        assert 0.3 < np.median(ratio) < 0.7
