@@ -8,8 +8,8 @@ import pytest
 
 from arlight.pipeline import light_estimation as le
 from arlight.pipeline import sh
-from arlight.pipeline.config import Config
 from arlight.pipeline.camera import PinholeCamera
+from arlight.pipeline.config import Config
 from arlight.pipeline.horizon import support_plane, support_plane_up
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
