@@ -7,9 +7,13 @@ luminance. Beyond the paper's plain least squares:
   radiance, and 8-bit sRGB is not;
 * clipped and near-black pixels are left out;
 * Tikhonov regularisation grows with the band (l(l+1)), so directions of the light that
-  the observed normals cannot constrain are damped towards zero rather than invented;
+  the observed normals cannot constrain are damped towards zero rather than invented
+  (bands 2-3 firmly: a diffuse image barely sees them, and left free they absorb albedo
+  texture and depth errors that then tilt band 1, the dominant direction);
   the number of bands is also cut back while the column-scaled normal matrix is too
   ill-conditioned, and the conditioning is reported;
+* one unknown albedo per material segment (the pipeline never lets the ground share one
+  with what stands on it), solved by alternation with the light;
 * iteratively re-weighted least squares (Huber weights on the relative residual) so
   that pixels whose albedo or geometry breaks the model do not pull the solution.
 """

@@ -178,8 +178,7 @@ class Pipeline:
 
         with stage("LightEst"):
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
-            estimate = self._estimate(transfer, color_linear, depth_filtered, normals, plane,
-                                      up_world,
+            estimate = self._estimate(transfer, color_linear, depth_filtered, plane, up_world,
                                       below_horizon_unseen=self.config.rt_horizon)
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             direction_world, intensity_value = sh.dominant_light(coeffs)
@@ -203,7 +202,7 @@ class Pipeline:
             sh_rgb=estimate.sh_rgb, composite=None, timings_ms=timings, diagnostics=diagnostics)
 
     def _estimate(self, transfer, color_linear: np.ndarray, depth: np.ndarray,
-                  normals: np.ndarray, plane: SupportPlane | None = None,
+                  plane: SupportPlane | None = None,
                   up_world: np.ndarray | None = None,
                   below_horizon_unseen: bool = False) -> LightEstimate:
         valid = transfer.valid
@@ -217,8 +216,7 @@ class Pipeline:
         if self.config.albedo_segments:
             segments = material_segments(
                 color_linear, depth, features=self.config.segment_features,
-                illuminant_weight=self.config.segment_illuminant_weight,
-                normals=normals, normal_weight=self.config.segment_normal_weight)
+                illuminant_weight=self.config.segment_illuminant_weight)
             if plane is not None and self.config.segment_split_ground:
                 # what stands on the ground is rarely made of the ground's material
                 segments = segments * 2 + plane.on_plane

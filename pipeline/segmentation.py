@@ -30,9 +30,7 @@ ILLUMINANT_WEIGHT = 4.0  # feature levels per unit of log chromaticity along it
 def material_segments(color_linear: np.ndarray, depth_m: np.ndarray, *, scale: int = 2,
                       k: float = 300.0, min_size: int = 50,
                       features: str = "invariant",
-                      illuminant_weight: float = ILLUMINANT_WEIGHT,
-                      normals: np.ndarray | None = None,
-                      normal_weight: float = 0.0) -> np.ndarray:
+                      illuminant_weight: float = ILLUMINANT_WEIGHT) -> np.ndarray:
     """(H, W) int32 labels >= 0 of likely-uniform-albedo regions.
 
     color_linear: (H, W, 3) linear RGB; depth_m: (H, W) metres (0 = missing);
@@ -58,9 +56,6 @@ def material_segments(color_linear: np.ndarray, depth_m: np.ndarray, *, scale: i
                          128.0 + illuminant_weight * along, depth_feat], axis=-1)
     else:
         raise ValueError(f"features must be 'chroma' or 'invariant', got {features!r}")
-    if normals is not None and normal_weight > 0:
-        small_n = np.asarray(normals, dtype=np.float32)[::scale, ::scale]
-        feat = np.concatenate([feat, 128.0 + normal_weight * small_n], axis=-1)
     feat = np.ascontiguousarray(np.clip(feat, 0, 255).astype(np.uint8))
     seg = cv2.ximgproc.segmentation.createGraphSegmentation(sigma=0.8, k=k, min_size=min_size)
     labels = seg.processImage(feat).astype(np.int32)

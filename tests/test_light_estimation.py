@@ -17,6 +17,10 @@ from arlight.pipeline.config import Config
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
 LIGHT_DIR = (0.3, -0.8, 0.5)
+# The default regularisation (1e-2) damps bands 2-3 hard: on real frames that is what holds
+# the direction (see README, accuracy), on the ideal point lights of these tests it costs a
+# few per cent of band-1 magnitude. Tests of exact recovery use a weak one.
+WEAK = Config(regularization=1e-3)
 
 
 def _unit(v):
@@ -66,7 +70,7 @@ class TestRecovery:
     def test_exact_data(self):
         _, t = _synthetic()
         light = _light()
-        est = le.estimate_light(t, _grey(t @ light), Config())
+        est = le.estimate_light(t, _grey(t @ light), WEAK)
         assert _angle_deg(est.sh, light) < 1.0
         # A_3 = 0: band 3 is invisible to a diffuse surface and is not invented
         assert est.confidence.bands_estimated == 3
@@ -75,6 +79,13 @@ class TestRecovery:
         assert est.confidence.samples == 3000 and est.confidence.value > 0
         assert est.confidence.condition_number < 10
         assert est.sh_rgb is None
+
+    def test_default_regularisation_keeps_direction_and_most_of_the_magnitude(self):
+        _, t = _synthetic()
+        light = _light()
+        est = le.estimate_light(t, _grey(t @ light), Config())
+        assert _angle_deg(est.sh, light) < 1.0
+        np.testing.assert_allclose(est.sh[:4], light[:4], rtol=0.15)
 
     @pytest.mark.parametrize("seed", [1, 2])
     def test_noisy_data(self, seed):
@@ -107,8 +118,8 @@ class TestAlbedoSegments:
         light = _light()
         segments = np.digitize(n[:, 2], [-1 / 3, 1 / 3])
         color = _grey((t @ light) * self.ALBEDO[segments])
-        with_segments = le.estimate_light(t, color, Config(), segments=segments)
-        without = le.estimate_light(t, color, Config())
+        with_segments = le.estimate_light(t, color, WEAK, segments=segments)
+        without = le.estimate_light(t, color, WEAK)
         assert _angle_deg(with_segments.sh, light) < 3.0
         assert _angle_deg(without.sh, light) > 10.0
         assert with_segments.residual_rel < without.residual_rel
@@ -129,7 +140,7 @@ class TestAlbedoSegments:
         assert _angle_deg(est.sh, light) < 0.5
 
     @pytest.mark.xfail(strict=True, reason="known limitation: with the default 8 alternations "
-                       "and regularization 1e-3 the albedo alternation stops (or converges) "
+                       "and regularisation the albedo alternation stops (or converges) "
                        "several degrees off for some segment layouts")
     def test_default_config_any_layout(self):
         n, t = _synthetic()
@@ -180,7 +191,7 @@ class TestDegenerate:
         light = _light()
         rng = np.random.default_rng(0)
         color = _grey((t @ light) * (1.0 + 0.01 * rng.normal(size=m)))
-        est = le.estimate_light(t, color, Config(estimate_rgb=True))
+        est = le.estimate_light(t, color, WEAK.replace(estimate_rgb=True))
         conf = est.confidence
         assert conf.bands_estimated < 4 or conf.condition_number > le.MAX_CONDITION
         assert conf.bands_estimated == 1  # no band-1 direction is invented from one normal
@@ -239,7 +250,7 @@ class TestRgb:
         warm = np.stack([1.0 * base, 0.85 * base, 0.6 * base])
         warm[2, 0] += 0.05  # a bluish ambient
         color = t @ warm.T
-        est = le.estimate_light(t, color, Config(estimate_rgb=True))
+        est = le.estimate_light(t, color, WEAK.replace(estimate_rgb=True))
         assert est.sh_rgb.shape == (3, 16)
         np.testing.assert_allclose(le.LUMA @ est.sh_rgb, est.sh, atol=1e-9)
         for ch in range(3):
