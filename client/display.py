@@ -310,8 +310,11 @@ class DisplayClient:
                     self._resubscribe(f"no message from the server for {silent:.1f} s")
                     last_heard = time.time()
                 if now_m - last_sent >= self._heartbeat_s:
-                    self._socket.send_multipart(encode(Heartbeat(time.time())), zmq.NOBLOCK,
-                                                copy=False)
+                    try:
+                        self._socket.send_multipart(encode(Heartbeat(time.time())),
+                                                    zmq.NOBLOCK, copy=False)
+                    except zmq.Again:
+                        pass  # queue full while the server is away: the next one will do
                     last_sent = now_m
             if self._socket is not None and not self.summary.ended:
                 try:
