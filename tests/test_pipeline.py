@@ -152,3 +152,30 @@ class TestExtremes:
         result = Pipeline(cfg, clean_sequence.camera).process(clean_sequence.frames[0])
         assert result.sh.shape == (64,)
         _finite_result(result)
+
+
+class TestSupportPlaneOnTheBuiltInScene:
+    def test_ground_pixels_are_on_the_plane_and_objects_are_not(self, clean_sequence):
+        """The segments of the light estimate are split along this mask."""
+        from arlight.pipeline.depth_filter import normals_from_depth
+        from arlight.pipeline.horizon import support_plane
+        from arlight.pipeline.pipeline import smooth_depth_for_normals
+
+        camera = clean_sequence.camera
+        frame = clean_sequence.frames[0]
+        depth = np.asarray(frame.depth, np.float32)
+        normals = normals_from_depth(smooth_depth_for_normals(depth, 15), camera)
+        points = camera.unproject(depth)
+        plane = support_plane(normals, points, stride=1)
+        assert plane is not None
+        pose = np.asarray(frame.pose)
+        height_world = (points @ pose[:3, :3].T + pose[:3, 3])[..., 1]  # world +y is up
+        known = (depth > 0) & np.any(normals != 0, axis=2)
+        ground, objects = known & (np.abs(height_world) < 0.005), known & (height_world > 0.05)
+        assert ground.sum() > 1000 and objects.sum() > 100
+        # ground pixels whose normals the smoothing window tilts (next to objects) are left
+        # off on purpose: giving them the ground's albedo costs the shared GT set 10-17
+        # degrees (measured with a height-only mask); at 160x120 they are 16 % of the ground
+        assert plane.on_plane[ground].mean() > 0.8
+        assert plane.on_plane[objects].mean() < 0.02
+        np.testing.assert_allclose(pose[:3, :3] @ plane.up, [0.0, 1.0, 0.0], atol=0.02)
