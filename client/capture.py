@@ -257,6 +257,10 @@ class StreamOptions:
     backoff_initial_s: float = 0.1
     backoff_max_s: float = 2.0
     final_result_timeout_s: float = 30.0  # live mode: wait this long for the last Result
+    # lossless: a frame unanswered this long is sent again (its Result may have been lost at
+    # a full send queue; the server answers a duplicate once, when it has the outcome); the
+    # wait doubles at each resend of the same frame
+    resend_after_s: float = 20.0
 
     def __post_init__(self) -> None:
         if self.mode not in ("live", "lossless"):
@@ -309,6 +313,9 @@ class CaptureClient:
         # lossless: seq -> encoded parts, sent (or to be sent again) and not yet acknowledged
         self._unacked: collections.OrderedDict[int, list] = collections.OrderedDict()
         self._sent_time: dict[int, float] = {}
+        # lossless: seq -> (monotonic time it was last handed to the socket, wait before the
+        # next resend)
+        self._resend_due: dict[int, tuple[float, float]] = {}
         self._resend: collections.deque[int] = collections.deque()
         self._after_result: list[int] = []  # refused for credits: send again after a Result
         self._last_seq = -1  # the last frame taken from the source
@@ -421,6 +428,7 @@ class CaptureClient:
             if result.seq not in self._unacked:
                 return  # a duplicate (re-sent after a reconnect)
             del self._unacked[result.seq]
+            self._resend_due.pop(result.seq, None)
         elif result.seq <= self._last_result_seq:
             return
         self._last_result_seq = max(self._last_result_seq, result.seq)
@@ -451,6 +459,7 @@ class CaptureClient:
                           error.seq)
                 return None  # already answered (a frame sent again): no second credit
             self._unacked.pop(error.seq, None)
+            self._resend_due.pop(error.seq, None)
             self._sent_time.pop(error.seq, None)
             self._last_result_seq = max(self._last_result_seq, error.seq)
         self.summary.errors.append(error)
@@ -488,6 +497,8 @@ class CaptureClient:
                         self._send(self._unacked[seq], block=True)
                         self._sent_time.setdefault(seq, time.time())
                         self._last_sent = now_m
+                        _, wait = self._resend_due.get(seq, (now_m, opts.resend_after_s))
+                        self._resend_due[seq] = (now_m, wait)
                 if pending is None and not exhausted:
                     pending = next(frames, None)
                     exhausted = pending is None
@@ -535,6 +546,7 @@ class CaptureClient:
                 elif now_m >= heartbeat_due:
                     self._send(encode(Heartbeat(time.time())))
                     self._last_sent = now_m
+                self._resend_overdue(now_m)
             if not self._stop.is_set():
                 self._say_bye("end of stream")
         except KeyboardInterrupt:
@@ -548,9 +560,22 @@ class CaptureClient:
                 self._socket = None
         return self.summary
 
+    def _resend_overdue(self, now_m: float) -> None:
+        """Lossless: queue again the frames unanswered for longer than their wait."""
+        if self.options.mode != "lossless":
+            return
+        for seq in self._unacked:
+            sent, wait = self._resend_due.get(seq, (now_m, self.options.resend_after_s))
+            if now_m - sent > wait and seq not in self._resend:
+                log.warning("session %s: no answer to frame %d for %.0f s; sending it again",
+                            self.session, seq, now_m - sent)
+                self._resend.append(seq)
+                self._resend_due[seq] = (now_m, 2.0 * wait)
+
     def _send_frame(self, seq: int, parts: list) -> None:
         if self.options.mode == "lossless":
             self._unacked[seq] = parts
+            self._resend_due[seq] = (time.monotonic(), self.options.resend_after_s)
             self._send(parts, block=True)
         elif not self._send(parts, block=False):
             self.summary.frames_not_sent += 1

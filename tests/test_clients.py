@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import re
 import threading
+import time
 
 import cv2
 import numpy as np
@@ -44,6 +45,7 @@ from arlight.client.recording import (
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Frame,
+    Heartbeat,
     Hello,
     Result,
     Welcome,
@@ -350,3 +352,48 @@ def test_bye_ends_a_capture_stream(make_server):
             break
         threading.Event().wait(0.02)
     assert "byebye" not in server.snapshot()["sessions"]
+
+
+def test_lossless_frame_whose_result_was_lost_is_sent_again():
+    """A Result lost on the way (a full send queue at the server) does not hang the stream:
+    the unanswered frame is sent again after resend_after_s and its answer then counts."""
+    ctx = zmq.Context.instance()
+    router = ctx.socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    seen: list[int] = []
+    done = threading.Event()
+
+    def fake_server():  # answers every Frame except the first copy of seq 1
+        while not done.is_set():
+            if not router.poll(50):
+                continue
+            identity, *parts = router.recv_multipart()
+            message = decode(parts)
+            if isinstance(message, Hello):
+                reply = Welcome(PROTOCOL_VERSION, message.config.session, 2, 1.0)
+            elif isinstance(message, Frame):
+                seen.append(message.seq)
+                if message.seq == 1 and seen.count(1) == 1:
+                    continue  # this Result is "lost"
+                reply = Result(message.seq, message.timestamp, [0.0], None, [0, 0, 1],
+                               [0, 0, 1], 0.0, {}, np.eye(4).tolist(), {}, 0, 0, 0, 0.0, 0.0)
+            elif isinstance(message, Heartbeat):
+                reply = Heartbeat(time.time())
+            else:
+                continue
+            router.send_multipart([identity, *encode(reply)])
+
+    thread = threading.Thread(target=fake_server, daemon=True)
+    thread.start()
+    try:
+        options = StreamOptions(server=f"tcp://127.0.0.1:{port}", session="lost",
+                                mode="lossless", rate="max", resend_after_s=0.5)
+        summary = run_with_timeout(lambda: CaptureClient(flat_source(3), options).run())
+    finally:
+        done.set()
+        thread.join(5)
+        router.close(linger=0)
+    assert summary.results == 3 and not summary.errors
+    assert summary.reconnects == 0  # the frame came back by the resend timer, not a reconnect
+    assert seen.count(1) == 2 and seen.count(0) == 1 and seen.count(2) == 1
