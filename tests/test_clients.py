@@ -197,43 +197,59 @@ class TestRecording:
         """What reaches the server's socket is byte for byte what was recorded."""
         path = tmp_path / "s.mcap"
         self._record(path, n=4)
-        ctx = zmq.Context.instance()
-        router = ctx.socket(zmq.ROUTER)
-        router.setsockopt(zmq.LINGER, 0)
-        port = router.bind_to_random_port("tcp://127.0.0.1")
         received: list[list[bytes]] = []
-        done = threading.Event()
 
-        def fake_server():  # Welcome, then a Result for every Frame
-            while not done.is_set():
-                if not router.poll(100):
-                    continue
-                identity, *parts = router.recv_multipart()
-                message = decode(parts)
-                if isinstance(message, Hello):
-                    reply = Welcome(PROTOCOL_VERSION, message.config.session, 2, 1.0)
-                elif isinstance(message, Frame):
-                    received.append(parts)
-                    reply = Result(message.seq, message.timestamp, [0.0], None, [0, 0, 1],
-                                   [0, 0, 1], 0.0, {}, np.eye(4).tolist(), {}, 0, 0, 0, 0.0,
-                                   0.0)
-                else:
-                    continue
-                router.send_multipart([identity, *encode(reply)])
+        def answer(message, parts):  # a Result for every Frame
+            received.append(parts)
+            return _dummy_result(message)
 
-        thread = threading.Thread(target=fake_server, daemon=True)
-        thread.start()
-        try:
-            source = open_source(str(path))
-            options = StreamOptions(server=f"tcp://127.0.0.1:{port}", session="replay",
-                                    mode="lossless", rate="max")
-            summary = run_with_timeout(lambda: CaptureClient(source, options).run())
-        finally:
-            done.set()
-            thread.join(5)
-            router.close(linger=0)
+        source = open_source(str(path))
+        summary = _stream_to_fake_server(answer, lambda address: StreamOptions(
+            server=address, session="replay", mode="lossless", rate="max"), source)
         assert summary.results == 4
         assert received == [parts for _, parts in Recording(path).frames()]
+
+
+def _dummy_result(frame: Frame) -> Result:
+    return Result(frame.seq, frame.timestamp, [0.0], None, [0, 0, 1], [0, 0, 1], 0.0, {},
+                  np.eye(4).tolist(), {}, 0, 0, 0, 0.0, 0.0)
+
+
+def _stream_to_fake_server(answer, make_options, source):
+    """Stream `source` to a hand-written server on a ROUTER socket: it welcomes the client,
+    answers heartbeats, and replies to each Frame with answer(frame, parts) (None: no reply).
+    make_options(address) gives the StreamOptions. Returns the stream's summary."""
+    router = zmq.Context.instance().socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    done = threading.Event()
+
+    def serve():
+        while not done.is_set():
+            if not router.poll(50):
+                continue
+            identity, *parts = router.recv_multipart()
+            message = decode(parts)
+            if isinstance(message, Hello):
+                reply = Welcome(PROTOCOL_VERSION, message.config.session, 2, 1.0)
+            elif isinstance(message, Frame):
+                reply = answer(message, parts)
+            elif isinstance(message, Heartbeat):
+                reply = Heartbeat(time.time())
+            else:
+                reply = None
+            if reply is not None:
+                router.send_multipart([identity, *encode(reply)])
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        options = make_options(f"tcp://127.0.0.1:{port}")
+        return run_with_timeout(lambda: CaptureClient(source, options).run())
+    finally:
+        done.set()
+        thread.join(5)
+        router.close(linger=0)
 
 
 class TestDisplay:
@@ -357,43 +373,17 @@ def test_bye_ends_a_capture_stream(make_server):
 def test_lossless_frame_whose_result_was_lost_is_sent_again():
     """A Result lost on the way (a full send queue at the server) does not hang the stream:
     the unanswered frame is sent again after resend_after_s and its answer then counts."""
-    ctx = zmq.Context.instance()
-    router = ctx.socket(zmq.ROUTER)
-    router.setsockopt(zmq.LINGER, 0)
-    port = router.bind_to_random_port("tcp://127.0.0.1")
     seen: list[int] = []
-    done = threading.Event()
 
-    def fake_server():  # answers every Frame except the first copy of seq 1
-        while not done.is_set():
-            if not router.poll(50):
-                continue
-            identity, *parts = router.recv_multipart()
-            message = decode(parts)
-            if isinstance(message, Hello):
-                reply = Welcome(PROTOCOL_VERSION, message.config.session, 2, 1.0)
-            elif isinstance(message, Frame):
-                seen.append(message.seq)
-                if message.seq == 1 and seen.count(1) == 1:
-                    continue  # this Result is "lost"
-                reply = Result(message.seq, message.timestamp, [0.0], None, [0, 0, 1],
-                               [0, 0, 1], 0.0, {}, np.eye(4).tolist(), {}, 0, 0, 0, 0.0, 0.0)
-            elif isinstance(message, Heartbeat):
-                reply = Heartbeat(time.time())
-            else:
-                continue
-            router.send_multipart([identity, *encode(reply)])
+    def answer(message, parts):  # every Frame except the first copy of seq 1
+        seen.append(message.seq)
+        if message.seq == 1 and seen.count(1) == 1:
+            return None  # this Result is "lost"
+        return _dummy_result(message)
 
-    thread = threading.Thread(target=fake_server, daemon=True)
-    thread.start()
-    try:
-        options = StreamOptions(server=f"tcp://127.0.0.1:{port}", session="lost",
-                                mode="lossless", rate="max", resend_after_s=0.5)
-        summary = run_with_timeout(lambda: CaptureClient(flat_source(3), options).run())
-    finally:
-        done.set()
-        thread.join(5)
-        router.close(linger=0)
+    summary = _stream_to_fake_server(answer, lambda address: StreamOptions(
+        server=address, session="lost", mode="lossless", rate="max", resend_after_s=0.5),
+        flat_source(3))
     assert summary.results == 3 and not summary.errors
     assert summary.reconnects == 0  # the frame came back by the resend timer, not a reconnect
     assert seen.count(1) == 2 and seen.count(0) == 1 and seen.count(2) == 1
