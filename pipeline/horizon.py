@@ -78,10 +78,9 @@ def support_plane(normals_cam: np.ndarray, points_cam: np.ndarray,
     up = support_plane_up(normals_cam, stride)
     if up is None:
         return None
-    n = np.asarray(normals_cam, dtype=np.float64)
-    p = np.asarray(points_cam, dtype=np.float64)
+    n, p = np.asarray(normals_cam), np.asarray(points_cam)
     facing = (n[::stride, ::stride] @ up > CLUSTER_COS) & (p[::stride, ::stride, 2] > 0)
-    dist = p[::stride, ::stride][facing] @ up  # = -offset on the plane
+    dist = p[::stride, ::stride][facing].astype(np.float64) @ up  # = -offset on the plane
     if len(dist) == 0:
         return None
     # the most common height (1 cm bins), refined by the median of the pixels near it:
@@ -90,9 +89,11 @@ def support_plane(normals_cam: np.ndarray, points_cam: np.ndarray,
     peak = dist.min() + (np.argmax(np.bincount(bins)) + 0.5) * _HEIGHT_BIN_M
     near = dist[np.abs(dist - peak) < PLANE_TOLERANCE_M]
     offset = -float(np.median(near))
-    height = p @ up + offset
+    # full resolution in the images' own precision (float32): no per-frame float64 copies
+    up_n = up.astype(n.dtype)
+    height = p @ up.astype(p.dtype) + np.asarray(offset, p.dtype)
     # the normal test matters: ground pixels whose (smoothed) normals tilt next to objects
     # are better off in segments of their own (a height-only mask: GT medians a 4 -> 22)
     on_plane = ((p[..., 2] > 0) & (np.abs(height) < PLANE_TOLERANCE_M + 0.01 * p[..., 2])
-                & (n @ up > CLUSTER_COS))
+                & (n @ up_n > CLUSTER_COS))
     return SupportPlane(up, offset, on_plane)

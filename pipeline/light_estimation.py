@@ -169,22 +169,19 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
             np.zeros((3, n_coeffs)) if config.estimate_rgb else None)
 
     bands, cond = choose_bands(t, np.ones(len(lum)), config.sh_bands)
+    use_prior = up is not None and config.horizon_prior > 0
     prior = None
-    if up is not None and config.horizon_prior > 0:
-        prior = config.horizon_prior * below_horizon_gram(up, bands,
-                                                          config.horizon_ground_albedo)
-    if below_horizon_unseen and prior is not None:
-        fit = _alternate(t, lum, b, labels, bands, config, prior)
-    else:
+    if not (use_prior and below_horizon_unseen):
         fit = _alternate(t, lum, b, labels, bands, config, None)
         # the data put the light below the horizon of the surface the scene stands on:
         # light from there cannot reach the scene, so that lobe is an artefact of what the
         # normals leave unconstrained; fit again with below-horizon radiance held to a
         # ground's glow
-        if prior is not None and float(sh.dominant_direction(fit.coeffs) @ up) < 0.0:
-            fit = _alternate(t, lum, b, labels, bands, config, prior)
-        else:
-            prior = None
+        use_prior = use_prior and float(sh.dominant_direction(fit.coeffs) @ up) < 0.0
+    if use_prior:  # built only when used: it costs a 2048-direction SH evaluation
+        prior = config.horizon_prior * below_horizon_gram(up, bands,
+                                                          config.horizon_ground_albedo)
+        fit = _alternate(t, lum, b, labels, bands, config, prior)
     coeffs, beta, albedo, weights = fit.coeffs, fit.beta, fit.albedo, fit.weights
     pred = albedo * fit.shading
     residual = float(np.sqrt(np.average(((pred - lum) / np.maximum(lum, DARK_LEVEL)) ** 2,
