@@ -12,7 +12,9 @@ class FrameInput:
     """One RGB-D frame.
 
     color: (H, W, 3) uint8, RGB order, sRGB-encoded.
-    depth: (H, W) float32, metres along the optical axis; 0 or NaN = missing.
+    depth: (H, W) along the optical axis, 0 = missing: the sensor's uint16 units with
+        `depth_scale` units per metre (what sources yield), or float metres (NaN = missing)
+        with depth_scale None. `Pipeline.process` converts to metres, once.
     timestamp: seconds (sender clock).
     pose: optional (4, 4) camera-to-world (world_from_cam); when given, tracking is skipped.
     panorama: optional equirectangular LDR uint8 image for the 360-degree path.
@@ -23,6 +25,7 @@ class FrameInput:
     timestamp: float = 0.0
     pose: np.ndarray | None = None
     panorama: np.ndarray | None = None
+    depth_scale: float | None = None
 
 
 @dataclass
