@@ -59,6 +59,7 @@ import numpy as np
 
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.frames import FrameInput
+from arlight.pipeline.splat import splat_nearest
 
 log = logging.getLogger(__name__)
 
@@ -364,16 +365,10 @@ def register_depth(depth_m: np.ndarray, depth_camera: PinholeCamera,
     x = m[0, 0] * x_d + m[0, 1] * y_d + m[0, 2] * z_d + m[0, 3]
     y = m[1, 0] * x_d + m[1, 1] * y_d + m[1, 2] * z_d + m[1, 3]
     z = m[2, 0] * x_d + m[2, 1] * y_d + m[2, 2] * z_d + m[2, 3]
-    front = z > 0
-    x, y, z = x[front], y[front], z[front]
-    u = np.rint(color_camera.fx * x / z + color_camera.cx)
-    v = np.rint(color_camera.fy * y / z + color_camera.cy)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    lin = v[inside].astype(np.int64) * w + u[inside].astype(np.int64)
-    zbuf = np.full(h * w, np.inf)
-    np.minimum.at(zbuf, lin, z[inside])  # the nearest surface wins
-    zbuf[np.isinf(zbuf)] = 0.0
-    return zbuf.reshape(h, w).astype(np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):  # z <= 0 is dropped by the splat
+        u = color_camera.fx * x / z + color_camera.cx
+        v = color_camera.fy * y / z + color_camera.cy
+    return splat_nearest(u, v, z, w, h)  # the nearest surface wins
 
 
 # --------------------------------------------------------------------------- poses

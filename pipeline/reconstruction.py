@@ -51,6 +51,7 @@ from numba.extending import register_jitable
 
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
+from arlight.pipeline.splat import splat_nearest
 
 # Frame-to-model tracking (projective point-to-plane ICP, coarse to fine: 3 pyramid levels).
 TRACKING_ITERATIONS = (6, 3, 1)  # Open3D's t.pipelines.slam defaults
@@ -147,16 +148,8 @@ def render_orthographic(points_world: np.ndarray, world_from_buffer: np.ndarray,
     buffer_from_world = np.linalg.inv(np.asarray(world_from_buffer, dtype=np.float64))
     q = p @ buffer_from_world[:3, :3].T + buffer_from_world[:3, 3]
     half = (resolution - 1) / 2.0
-    u = np.rint(q[:, 0] / pixel_size_m + half)
-    v = np.rint(q[:, 1] / pixel_size_m + half)
-    z = q[:, 2]
-    keep = ((u >= 0) & (u < resolution) & (v >= 0) & (v < resolution) & (z > 0)
-            & (z <= max_depth_m))
-    flat = v[keep].astype(np.int64) * resolution + u[keep].astype(np.int64)
-    zbuf = np.full(resolution * resolution, np.inf)
-    np.minimum.at(zbuf, flat, z[keep])
-    zbuf[~np.isfinite(zbuf)] = 0.0
-    return zbuf.reshape(resolution, resolution).astype(np.float32)
+    return splat_nearest(q[:, 0] / pixel_size_m + half, q[:, 1] / pixel_size_m + half, q[:, 2],
+                         resolution, resolution, max_depth_m)
 
 
 def aux_buffer_poses(world_from_cam: np.ndarray, centre_depth_m: float, extent_m: float,
