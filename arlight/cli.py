@@ -434,6 +434,15 @@ def _add_reconnect_timeout(p: argparse.ArgumentParser) -> None:
 
 
 def _add_streaming_parsers(sub) -> None:
+    """The service's subcommands: serve, stream, record, display, demo."""
+    _add_serve_parser(sub)
+    _add_stream_parser(sub)
+    _add_record_parser(sub)
+    _add_display_parser(sub)
+    _add_demo_parser(sub)
+
+
+def _add_serve_parser(sub) -> None:
     from arlight.server.server import DEFAULT_BIND, ServerOptions
 
     defaults = ServerOptions()
@@ -478,6 +487,8 @@ def _add_streaming_parsers(sub) -> None:
                                          "reported to their clients")
     serve.set_defaults(func=cmd_serve)
 
+
+def _add_stream_parser(sub) -> None:
     stream = sub.add_parser(
         "stream", help="stream a source to a server and print the lighting per frame",
         description="Stream RGB-D frames to an arlight server (`arlight serve`) and print "
@@ -497,6 +508,8 @@ def _add_streaming_parsers(sub) -> None:
     _add_reconnect_timeout(stream)
     stream.set_defaults(func=cmd_stream)
 
+
+def _add_record_parser(sub) -> None:
     rec = sub.add_parser(
         "record", help="record a source as a stream into one MCAP file (no server needed)",
         description="Write the stream `arlight stream SOURCE` would send (session config, "
@@ -506,6 +519,8 @@ def _add_streaming_parsers(sub) -> None:
     rec.add_argument("--out", required=True, metavar="FILE.mcap", help="the MCAP file to write")
     rec.set_defaults(func=cmd_record)
 
+
+def _add_display_parser(sub) -> None:
     disp = sub.add_parser(
         "display", help="subscribe to a session: write its Results and composites, print fps",
         description="The thin display client: receives the Results of one session from the "
@@ -529,6 +544,8 @@ def _add_streaming_parsers(sub) -> None:
     _add_reconnect_timeout(disp)
     disp.set_defaults(func=cmd_display)
 
+
+def _add_demo_parser(sub) -> None:
     demo = sub.add_parser(
         "demo", help="server + capture + display on this machine: the built-in scene end to end",
         description="Start a server, stream the built-in synthetic scene to it over loopback "
