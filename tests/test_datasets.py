@@ -623,3 +623,18 @@ class TestRegisterDepth:
         m[0, 3] = 0.2  # 0.2 m to the right at 2 m, f = 10 px: 1 px
         out = register_depth(depth, cam, cam, m)
         assert out[0, 0] == 0.0 and np.all(out[0, 1:] == 2.0)
+
+
+class TestPackage:
+    def test_sources_never_import_client_or_server(self):
+        """The dependency direction: client -> sources -> pipeline, protocols."""
+        import subprocess
+        import sys
+
+        code = ("import sys, arlight.sources.source\n"
+                "bad = sorted(m for m in sys.modules\n"
+                "             if m.startswith(('arlight.client', 'arlight.server')))\n"
+                "print(bad); sys.exit(1 if bad else 0)")
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              timeout=120)
+        assert done.returncode == 0, done.stdout + done.stderr
