@@ -59,11 +59,12 @@ def _build_config(args: argparse.Namespace):
 
 def _open_source(args: argparse.Namespace):
     """(sequence-like with .camera, len(), frame(i)), ground truth or None."""
-    from arlight.client.datasets import open_pair, open_sequence
+    from arlight.sources.image_pair import open_pair
+    from arlight.sources.sequence import open_sequence
 
     use_poses = args.poses == "groundtruth"
     if args.path == "synthetic":
-        from arlight.pipeline.synthetic import make_sequence
+        from arlight.sources.synthetic import make_sequence
 
         seq = make_sequence(num_frames=args.max_frames or 12)
         frames = [f if use_poses else dataclasses.replace(f, pose=None) for f in seq.frames]
@@ -239,7 +240,7 @@ def _stream_options(args: argparse.Namespace, source) -> object:
 
 
 def _open_stream_source(args: argparse.Namespace):
-    from arlight.client.capture import open_source
+    from arlight.sources.source import open_source
 
     if args.max_frames is not None and args.max_frames < 1:
         raise _BadInput(f"--max-frames must be >= 1, got {args.max_frames}")
@@ -614,8 +615,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    from arlight.client.datasets import DatasetError
     from arlight.pipeline.pipeline import FrameError
+    from arlight.sources.errors import DatasetError
 
     try:
         return args.func(args)

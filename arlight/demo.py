@@ -39,10 +39,11 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
              preset: str = "fast", video: str | None = None,
              printer: Callable[[str], None] = print) -> dict:
     """Run the demo; returns the summary (also written to out_dir/summary.json)."""
-    from arlight.client.capture import CaptureClient, StreamOptions, sequence_source
+    from arlight.client.capture import CaptureClient, StreamOptions
     from arlight.client.display import DisplayClient, DisplayOptions
-    from arlight.pipeline.synthetic import make_sequence
     from arlight.server.server import Server, ServerOptions
+    from arlight.sources.source import sequence_source
+    from arlight.sources.synthetic import make_sequence
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
