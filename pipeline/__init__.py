@@ -1,7 +1,5 @@
-"""The compute: pure functions and kernels, no sockets (see DESIGN.md)."""
+"""The compute: pure functions and kernels, no sockets (see docs/architecture.md).
 
-import warnings
-
-# numba probes an old system TBB and warns before falling back to OpenMP/workqueue;
-# the fallback is fine and the warning only confuses users
-warnings.filterwarnings("ignore", message=".*TBB threading layer.*")
+Importing it changes no process-wide setting; entry points call
+`arlight.pipeline.runtime.configure_process()` once at start.
+"""

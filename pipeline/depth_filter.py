@@ -31,7 +31,7 @@ Decisions where the paper leaves room (eq. 3):
   support agrees with the volume but where D_v(p) itself is missing gets the median.
 - Omega_D requires D_v(q) to exist (a support pixel without volume depth cannot agree).
 
-Backends (DESIGN.md "Compute backends"): the per-pixel logic is written once as
+Backends (docs/architecture.md, "Conventions"): the per-pixel logic is written once as
 ``register_jitable`` functions (``_merge_pixel``, ``_support_median_pixel``,
 ``_normal_pixel``), driven on the CPU by ``@njit(parallel=True, cache=True)`` loops over
 rows and on the GPU by ``numba.cuda`` kernels that are built on first use (importing this
@@ -62,6 +62,7 @@ from numba import prange
 from numba.extending import register_jitable
 
 from arlight.pipeline.camera import PinholeCamera
+from arlight.pipeline.color import intensity_from_rgb
 
 if TYPE_CHECKING:
     from arlight.pipeline.config import Config
@@ -79,7 +80,6 @@ __all__ = [
 ]
 
 BACKENDS = ("cpu", "cuda")
-REC709_LUMA = (0.2126, 0.7152, 0.0722)  # weights of R, G, B
 MAX_WINDOW = 64  # window and subsample limit (a CUDA thread's median scratch: 64*64 floats)
 NORMAL_MAX_RELATIVE_JUMP = 0.05  # a neighbour further than 5 % of the depth is another surface
 _CUDA_BLOCK = (16, 16)
@@ -448,21 +448,6 @@ def _run_support_median(depth, inten, offsets, lam_i, gate, backend):
 # --------------------------------------------------------------------------------------
 # Public API
 # --------------------------------------------------------------------------------------
-
-
-def intensity_from_rgb(color_rgb_u8: np.ndarray) -> np.ndarray:
-    """Grey levels (H, W) float32 in 0..255 from an (H, W, 3) uint8 RGB image.
-
-    Rec. 709 luma weights applied to the 8-bit (gamma-encoded) values, as the paper's
-    thresholds lambda_I are in 8-bit grey levels.
-    """
-    arr = np.asarray(color_rgb_u8)
-    if arr.ndim != 3 or arr.shape[2] != 3:
-        raise ValueError(f"color_rgb_u8: expected shape (H, W, 3), got {arr.shape}")
-    if arr.dtype != np.uint8:
-        raise ValueError(f"color_rgb_u8: expected dtype uint8, got {arr.dtype}")
-    weights = np.asarray(REC709_LUMA, dtype=np.float32)
-    return np.ascontiguousarray(arr.astype(np.float32) @ weights)
 
 
 def merge_depth(depth_raw_m: np.ndarray, depth_volume_m: np.ndarray | None,

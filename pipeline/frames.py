@@ -1,4 +1,4 @@
-"""Per-frame input and output of the pipeline (DESIGN.md, "Pipeline interface")."""
+"""Per-frame input and output of the pipeline (docs/architecture.md, "Data flow")."""
 
 from __future__ import annotations
 

@@ -26,20 +26,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from arlight.pipeline import sh
+from arlight.pipeline.color import LUMA, srgb_to_linear  # noqa: F401 (srgb_to_linear: re-export)
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import Confidence
 
-LUMA = np.array([0.2126, 0.7152, 0.0722])
 CLIP_LEVEL = 0.98  # linear value above which a channel is treated as clipped
 DARK_LEVEL = 0.004  # linear luminance below which a pixel carries only noise
 MAX_CONDITION = 1e5  # of the column-scaled normal matrix; above it, drop the top band
-
-
-def srgb_to_linear(color_u8: np.ndarray) -> np.ndarray:
-    """8-bit sRGB -> linear [0, 1] float32 (IEC 61966-2-1), via a 256-entry table."""
-    c = np.arange(256, dtype=np.float64) / 255.0
-    table = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
-    return table[np.asarray(color_u8, dtype=np.uint8)]
 
 
 @dataclass

@@ -1,4 +1,6 @@
-"""One session's light-estimation pipeline: frames in, lighting out (DESIGN.md data flow).
+"""One session's light-estimation pipeline: frames in, lighting out.
+
+Data flow: docs/architecture.md, "Data flow".
 
 Stages, named as the rows of the paper's table 1: Input, Reconstruct, Surface, DynGeo,
 RadTransfer, LightEst (Rendering is skipped while there is no virtual scene to render).
@@ -102,7 +104,7 @@ def smooth_depth_for_normals(depth_m: np.ndarray, window: int) -> np.ndarray:
 
 
 class Pipeline:
-    """Holds one session's state (volume, pose, temporal filter); see DESIGN.md.
+    """Holds one session's state (volume, pose, temporal filter); see docs/architecture.md.
 
     config: all parameters (Config.from_preset); camera: intrinsics of the (registered)
     colour and depth images; scene: virtual objects to render (not used yet: no

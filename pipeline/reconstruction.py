@@ -30,16 +30,15 @@ depth (tests/test_reconstruction.py):
   a hang): cast a padded image;
 - its fragment buffer drops a fragment whenever it grows (holes that vary from run to run):
   reserve it once per session;
-- odometry sums with a TBB reduction (poses vary by ~1e-5 m run to run): track on one thread.
+- odometry sums with a TBB reduction (poses vary by ~1e-5 m run to run): entry points run
+  Open3D on one thread (`arlight.pipeline.runtime.configure_open3d_threads`); this module
+  never changes that process-wide setting.
 """
 
 from __future__ import annotations
 
 import math
-import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 
 import numba
@@ -52,6 +51,24 @@ from numba.extending import register_jitable
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.splat import splat_nearest
+
+# The Open3D releases whose behaviours (listed above) this module was measured against and
+# corrects; another release may have fixed one (the correction would then shift the surface)
+OPEN3D_SUPPORTED = ((0, 20), (0, 21))  # [from, to)
+
+
+def _check_open3d_version(version: str = o3d.__version__) -> None:
+    major_minor = tuple(int(x) for x in version.split(".")[:2])
+    low, high = OPEN3D_SUPPORTED
+    if not low <= major_minor < high:
+        raise ImportError(
+            f"arlight.pipeline.reconstruction supports open3d >={low[0]}.{low[1]},"
+            f"<{high[0]}.{high[1]} (it corrects that release's ray casting and integration), "
+            f"found {version}; install it with: pip install 'open3d>={low[0]}.{low[1]},"
+            f"<{high[0]}.{high[1]}'")
+
+
+_check_open3d_version()
 
 # Frame-to-model tracking (projective point-to-plane ICP, coarse to fine: 3 pyramid levels).
 TRACKING_ITERATIONS = (6, 3, 1)  # Open3D's t.pipelines.slam defaults
@@ -201,34 +218,6 @@ def _check_pose(pose: np.ndarray | None, name: str) -> np.ndarray | None:
     if not np.all(np.isfinite(p)):
         raise ValueError(f"{name} must be finite")
     return p
-
-
-_single_thread_lock = threading.Lock()
-_single_thread_users = 0
-_saved_max_threads = 0
-
-
-@contextmanager
-def _open3d_single_thread() -> Iterator[None]:
-    """Run Open3D on one CPU thread inside the block (process-wide, re-entrant across threads).
-
-    Open3D's odometry sums its normal equations with a TBB parallel reduction whose order
-    depends on thread scheduling, so the same frames could give poses differing by ~1e-5 m;
-    one thread makes tracking, and so the whole session, deterministic (DESIGN.md). While
-    any session tracks, other Open3D calls in the process also run on one thread."""
-    global _single_thread_users, _saved_max_threads
-    with _single_thread_lock:
-        if _single_thread_users == 0:
-            _saved_max_threads = o3d.utility.get_max_threads()
-            o3d.utility.set_max_threads(1)
-        _single_thread_users += 1
-    try:
-        yield
-    finally:
-        with _single_thread_lock:
-            _single_thread_users -= 1
-            if _single_thread_users == 0:
-                o3d.utility.set_max_threads(_saved_max_threads)
 
 
 def _padded(size: int) -> int:
@@ -528,15 +517,13 @@ class VolumeReconstruction:
         if int((model > 0).to(o3c.int64).sum().item()) < TRACKING_MIN_VALID_PIXELS:
             return False
         odometry = o3d.t.pipelines.odometry
-        on_cpu = self.device.get_type() == o3c.Device.DeviceType.CPU
         try:
             # point-to-plane odometry reads depth only; the colour slot holds a placeholder
-            with _open3d_single_thread() if on_cpu else nullcontext():
-                result = odometry.rgbd_odometry_multi_scale(
-                    o3d.t.geometry.RGBDImage(self._no_color, depth_image),
-                    o3d.t.geometry.RGBDImage(self._no_color, o3d.t.geometry.Image(model)),
-                    self._intrinsic, o3c.Tensor(np.eye(4)), 1.0, self.config.depth_max_m,
-                    self._criteria, odometry.Method.PointToPlane, self._loss)
+            result = odometry.rgbd_odometry_multi_scale(
+                o3d.t.geometry.RGBDImage(self._no_color, depth_image),
+                o3d.t.geometry.RGBDImage(self._no_color, o3d.t.geometry.Image(model)),
+                self._intrinsic, o3c.Tensor(np.eye(4)), 1.0, self.config.depth_max_m,
+                self._criteria, odometry.Method.PointToPlane, self._loss)
         except RuntimeError:
             return False
         prev_from_cur = result.transformation.numpy()

@@ -10,7 +10,11 @@ from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.pipeline import STAGES, FrameError, Pipeline
+from arlight.pipeline.runtime import configure_open3d_threads
 from arlight.pipeline.synthetic import make_sequence
+
+# one Open3D thread: tracking (its TBB reduction) is deterministic, as the entry points set
+configure_open3d_threads(1)
 
 SMALL = dict(volume_resolution=64, aux_resolution=32)
 

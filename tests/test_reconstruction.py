@@ -21,6 +21,10 @@ from arlight.pipeline.reconstruction import (
     refine_ray_cast,
     render_orthographic,
 )
+from arlight.pipeline.runtime import configure_open3d_threads
+
+# one Open3D thread: tracking (its TBB reduction) is deterministic, as the entry points set
+configure_open3d_threads(1)
 
 # ------------------------------------------------------------------ analytic scene
 # World axes as the first camera's: x right, y down, z forward. Outward normals.

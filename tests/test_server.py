@@ -43,6 +43,7 @@ from arlight.client.display import DisplayClient, DisplayOptions
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.pipeline import FrameError, Pipeline
+from arlight.pipeline.runtime import configure_open3d_threads
 from arlight.pipeline.synthetic import make_sequence
 from arlight.protocols import (
     PROTOCOL_VERSION,
@@ -57,6 +58,9 @@ from arlight.protocols import (
     encode,
 )
 from arlight.server.server import Server, ServerOptions
+
+# one Open3D thread: tracking (its TBB reduction) is deterministic, as the entry points set
+configure_open3d_threads(1)
 
 
 @pytest.fixture
