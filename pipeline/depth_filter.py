@@ -63,9 +63,10 @@ from numba.extending import register_jitable
 
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.color import intensity_from_rgb
+from arlight.pipeline.config import MAX_WINDOW
 
 if TYPE_CHECKING:
-    from arlight.pipeline.config import Config
+    from arlight.pipeline.config import FilterParams
 
 __all__ = [
     "BACKENDS",
@@ -80,7 +81,6 @@ __all__ = [
 ]
 
 BACKENDS = ("cpu", "cuda")
-MAX_WINDOW = 64  # window and subsample limit (a CUDA thread's median scratch: 64*64 floats)
 NORMAL_MAX_RELATIVE_JUMP = 0.05  # a neighbour further than 5 % of the depth is another surface
 _CUDA_BLOCK = (16, 16)
 _SMALL_SORT = 16  # medians of up to this many samples use an insertion sort
@@ -503,28 +503,31 @@ def median_depth(depth_m: np.ndarray, window: int = 2, *, backend: str = "cpu") 
                                _check_backend(backend))
 
 
+def backend_for_device(device: str) -> str:
+    """The kernels' backend for an Open3D device name ("CUDA:0" -> "cuda", else "cpu")."""
+    return "cuda" if device.startswith("CUDA") else "cpu"
+
+
 def filter_depth(depth_raw_m: np.ndarray, depth_volume_m: np.ndarray | None,
-                 intensity: np.ndarray, config: Config, *, backend: str | None = None,
+                 intensity: np.ndarray, params: FilterParams, *, backend: str = "cpu",
                  ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """The filter chain D' -> D'' (-> D''' when config.denoise) with the config's parameters.
+    """The filter chain D' -> D'' (-> D''' when params.denoise) with the stage's parameters.
 
     Returns the final depth (H, W) float32 metres (0 = missing) and the intermediate
     passes {"merged": D', "smoothed": D''[, "denoised": D''']}.
-    backend: "cpu" or "cuda"; None picks "cuda" when config.device is a CUDA device,
-    else "cpu" (a CUDA config without a usable GPU raises RuntimeError).
+    backend: "cpu" or "cuda" (`backend_for_device`; "cuda" without a usable GPU raises
+    RuntimeError).
     """
-    if backend is None:
-        backend = "cuda" if config.device.startswith("CUDA") else "cpu"
-    merged = merge_depth(depth_raw_m, depth_volume_m, intensity, config.merge_window,
-                         config.merge_intensity_threshold, config.merge_depth_threshold_m,
+    merged = merge_depth(depth_raw_m, depth_volume_m, intensity, params.merge_window,
+                         params.merge_intensity_threshold, params.merge_depth_threshold_m,
                          backend=backend)
-    smoothed = joint_bilateral_median(merged, intensity, config.smooth_window,
-                                      config.smooth_intensity_threshold,
-                                      config.smooth_subsample, backend=backend)
+    smoothed = joint_bilateral_median(merged, intensity, params.smooth_window,
+                                      params.smooth_intensity_threshold,
+                                      params.smooth_subsample, backend=backend)
     passes = {"merged": merged, "smoothed": smoothed}
-    if not config.denoise:
+    if not params.denoise:
         return smoothed, passes
-    denoised = median_depth(smoothed, config.denoise_window, backend=backend)
+    denoised = median_depth(smoothed, params.denoise_window, backend=backend)
     passes["denoised"] = denoised
     return denoised, passes
 
