@@ -54,19 +54,16 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
 from numba import prange
 from numba.extending import register_jitable
 
+from arlight.checks import CheckError, check_image
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.color import intensity_from_rgb
-from arlight.pipeline.config import MAX_WINDOW
-
-if TYPE_CHECKING:
-    from arlight.pipeline.config import FilterParams
+from arlight.pipeline.config import MAX_WINDOW, FilterParams
 
 __all__ = [
     "BACKENDS",
@@ -370,19 +367,18 @@ def _check_backend(backend: str) -> str:
 def _check_depth(name: str, depth: np.ndarray, shape: tuple[int, int] | None = None,
                  ) -> np.ndarray:
     """(H, W) float32 copy-free where possible, NaN -> 0; rejects other shapes, inf, < 0."""
-    arr = np.asarray(depth)
-    if arr.ndim != 2 or (shape is not None and arr.shape != shape):
-        expected = "(H, W)" if shape is None else f"{shape} (same as depth_raw_m)"
-        raise ValueError(f"{name}: expected shape {expected}, got {arr.shape}")
+    arr = check_image(depth, name)  # (H, W)
+    if shape is not None and arr.shape != shape:
+        raise CheckError(name, f"expected shape {shape} (same as depth_raw_m), got {arr.shape}")
     if not np.issubdtype(arr.dtype, np.floating):
-        raise ValueError(f"{name}: expected a float dtype (metres, float32), got {arr.dtype}")
+        raise CheckError(name, f"expected a float dtype (metres, float32), got {arr.dtype}")
     arr = np.ascontiguousarray(arr, dtype=np.float32)
     nan = np.isnan(arr)
     if nan.any():
         arr = np.where(nan, np.float32(0.0), arr)
     bad = np.isinf(arr) | (arr < 0)
     if bad.any():
-        raise ValueError(f"{name}: depth must be finite and >= 0 metres (0 or NaN = missing); "
+        raise CheckError(name, f"depth must be finite and >= 0 metres (0 or NaN = missing); "
                          f"{int(bad.sum())} pixel(s) are inf or negative")
     return arr
 
@@ -390,27 +386,27 @@ def _check_depth(name: str, depth: np.ndarray, shape: tuple[int, int] | None = N
 def _check_intensity(intensity: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     arr = np.asarray(intensity)
     if arr.shape != shape:
-        raise ValueError(f"intensity: expected shape {shape} (same as the depth), "
+        raise CheckError("intensity", f"expected shape {shape} (same as the depth), "
                          f"got {arr.shape}")
     if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-        raise ValueError(f"intensity: expected grey levels as float32, got {arr.dtype}")
+        raise CheckError("intensity", f"expected grey levels as float32, got {arr.dtype}")
     arr = np.ascontiguousarray(arr, dtype=np.float32)
     if not np.isfinite(arr).all():
-        raise ValueError("intensity: expected finite grey levels, got NaN or inf")
+        raise CheckError("intensity", "expected finite grey levels, got NaN or inf")
     return arr
 
 
 def _check_window(name: str, value: int) -> int:
     if (isinstance(value, bool) or not isinstance(value, (int, np.integer))
             or not 1 <= value <= MAX_WINDOW):
-        raise ValueError(f"{name}: expected an integer in 1..{MAX_WINDOW}, got {value!r}")
+        raise CheckError(name, f"expected an integer in 1..{MAX_WINDOW}, got {value!r}")
     return int(value)
 
 
 def _check_threshold(name: str, value: float) -> np.float32:
     v = float(value)
     if not v >= 0 or v == float("inf"):
-        raise ValueError(f"{name}: expected a finite threshold >= 0, got {value!r}")
+        raise CheckError(name, f"expected a finite threshold >= 0, got {value!r}")
     return np.float32(v)
 
 
