@@ -285,6 +285,19 @@ class TestTracking:
         assert out.tracking_ok
         np.testing.assert_allclose(out.pose, pose_before, atol=5e-3)
 
+    def test_failures_say_why(self):
+        recon = VolumeReconstruction.from_config(config(aux_buffers=False), CAMERA)
+        for pose in self.true_poses(2):
+            out = recon.process(COLOR, render_scene(CAMERA, pose)[0], None)
+        assert out.tracking.ok and out.tracking.reason == ""
+        wall = np.full((CAMERA.height, CAMERA.width), 0.4, np.float32)
+        out = recon.process(COLOR, wall, None)
+        assert not out.tracking.ok and not out.tracking_ok
+        assert out.tracking.reason  # ICP error text, too few inliers or an implausible jump
+        empty = recon.process(COLOR, np.zeros_like(wall), None)
+        assert "too little depth" in empty.tracking.reason
+        assert empty.tracking.to_dict() == {"ok": False, "reason": empty.tracking.reason}
+
     def test_missing_depth_while_tracking_keeps_pose_and_model(self):
         recon = VolumeReconstruction.from_config(config(aux_buffers=False), CAMERA)
         pose = self.true_poses(1)[0]
