@@ -210,7 +210,7 @@ class TransferParams:
 
 @dataclass(frozen=True)
 class EstimationParams:
-    """LightEst: the regularised, robust least squares T l = I (section 5.2, eq. 10)."""
+    """LightEst: regularised, robust least squares T l = I_c (section 5.2, unnumbered)."""
 
     # Tikhonov weight, relative to the mean diagonal of T^T T, times (l(l+1))^2 per band;
     # 6e-3..1.5e-2 all hold the shared GT sequences under 9 degrees, 1e-3 reaches 17

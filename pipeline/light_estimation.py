@@ -124,7 +124,7 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: Estim
                    bounce: np.ndarray | None = None,
                    up: np.ndarray | None = None,
                    below_horizon_unseen: bool = False, *, seed: int = 0) -> LightEstimate:
-    """Solve T l = I for the distant light (eq. 9-10, made robust: module docstring).
+    """Solve T l = I_c for the distant light (section 5.2, made robust: module docstring).
 
     transfer: (M, C) SH transfer per pixel, C = L*L for L bands (as many are solved for, or
     fewer when the normals cannot constrain them); color_linear: (M, 3) linear RGB of those

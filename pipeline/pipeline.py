@@ -211,7 +211,7 @@ class Pipeline:
 
     def _transfer(self, geometry: _Geometry, color_linear: np.ndarray, pose: np.ndarray,
                   aux_buffers: list) -> TransferResult:
-        """RadTransfer (eq. 6-8), up-sampled to every pixel when sub-sampled (OursFast)."""
+        """RadTransfer (eq. 6-9), up-sampled to every pixel when sub-sampled (OursFast)."""
         p = self.config.transfer
         aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
         lum = luminance(color_linear) if p.rt_bounce else None
@@ -227,7 +227,7 @@ class Pipeline:
                   plane: SupportPlane | None = None,
                   up_world: np.ndarray | None = None,
                   below_horizon_unseen: bool = False) -> LightEstimate:
-        """LightEst (eq. 9-10) on the pixels with transfer, one albedo per material segment."""
+        """LightEst (T l = I_c, section 5.2) on the pixels with transfer; albedo per segment."""
         p = self.config.estimation
         valid = transfer.valid
         n = transfer.transfer.shape[-1]

@@ -294,7 +294,7 @@ def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: Pi
                      aux: AuxBufferArrays | None, params: TransferParams,
                      luminance: np.ndarray | None = None,
                      plane: SupportPlane | None = None) -> TransferResult:
-    """SH radiance transfer for every `params.rt_subsample`-th pixel (section 5.1, eq. 6-8).
+    """SH radiance transfer for every `params.rt_subsample`-th pixel (section 5.1, eq. 6-9).
 
     points_cam: (H, W, 3) float32 camera-frame points of the filtered depth (z = 0 missing);
     normals_cam: (H, W, 3) unit normals, camera frame, zeros where unknown;
