@@ -11,6 +11,7 @@ are reproducible only with Open3D on one thread, which the entry point sets once
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +46,12 @@ class TrackingResult:
         if math.isfinite(self.inlier_fraction):
             out["inlier_fraction"] = float(self.inlier_fraction)
         return out
+
+
+def _open3d_message(exc: Exception) -> str:
+    """Open3D's error text without its terminal colours and C++ source location."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).strip()
+    return re.sub(r"^\[Open3D Error\] \(.*?\) \S+:\d+: ", "", text, flags=re.S)
 
 
 def _rotation_angle(rot: np.ndarray) -> float:
@@ -95,7 +102,7 @@ class FrameToModelTracker:
                 self._intrinsic, o3c.Tensor(np.eye(4)), 1.0, self.depth_max_m,
                 self._criteria, odometry.Method.PointToPlane, self._loss)
         except RuntimeError as exc:  # Open3D raises when ICP finds no correspondences
-            return TrackingResult(False, reason=f"ICP failed: {exc}")
+            return TrackingResult(False, reason=f"ICP failed: {_open3d_message(exc)}")
         prev_from_cur = result.transformation.numpy()
         # Open3D's fitness is inliers per image pixel; relate it to the pixels with depth
         inliers = result.fitness * self.camera.width * self.camera.height / n_valid
