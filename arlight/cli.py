@@ -27,22 +27,23 @@ def _parse_override(text: str) -> tuple[str, object]:
     if "=" not in text:
         raise argparse.ArgumentTypeError(f"--set expects KEY=VALUE, got {text!r}")
     key, value = text.split("=", 1)
-    fields = {f.name: f for f in dataclasses.fields(Config)}
-    if key not in fields:
+    types = Config.flat_key_types()  # the flat keys of every stage's parameters
+    if key not in types:
         raise argparse.ArgumentTypeError(
-            f"unknown config field {key!r}; fields: {', '.join(sorted(fields))}")
-    kind = fields[key].type
+            f"unknown config key {key!r}; keys: {', '.join(sorted(types))}")
+    kind = types[key]
     try:
-        if kind == "bool":
+        if kind is bool:
             if value.lower() not in ("true", "false", "1", "0"):
                 raise ValueError(value)
             return key, value.lower() in ("true", "1")
-        if kind == "int":
+        if kind is int:
             return key, int(value)
-        if kind == "float":
+        if kind is float:
             return key, float(value)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{key} expects a {kind}, got {value!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"{key} expects a {kind.__name__}, got {value!r}") from None
     return key, value
 
 

@@ -1,27 +1,109 @@
-"""Every pipeline parameter in one frozen dataclass, with the presets of DESIGN.md.
+"""Pipeline parameters: one frozen dataclass per stage, composed into `Config`, with presets.
 
 Defaults follow section 6.1 of the image-space illumination paper (seeds/000): 640x480,
 a 2 m workspace at 256 voxels per side, 4 SH bands, D': k=20, lambda_I=7, lambda_D=5 cm;
 D'': k=8, lambda_I=7; D''': k=2. Units: metres, seconds, radians; intensities in 8-bit
 grey levels (0..255) as in the paper.
+
+Each stage takes only its own object (`VolumeParams`, `AuxBufferParams`, `FilterParams`,
+`TransferParams`, `EstimationParams`, `TemporalParams`); each checks all its fields when
+made, with a message naming the `--set` key. Users keep one flat namespace of keys
+(`Config.from_preset("fast", rt_directions=128)`, `config.replace(visibility=False)`, the
+CLI's `--set KEY=VALUE`, a session's overrides): `FLAT_KEYS` maps each key to its
+(stage, field). One alias converts a unit: `change_reset_deg` (degrees, as users think of
+an angle) sets `TemporalParams.change_reset_rad`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+import math
+import numbers
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any
 
-PRESETS = ("full", "fast", "mobile")
+
+class Preset(str, Enum):
+    FULL = "full"  # the paper's "Ours"
+    FAST = "fast"  # its "OursFast": 4x4 image-space sub-sampling of the radiance transfer
+    MOBILE = "mobile"  # its 64^3 volume, no D''', sub-sampled transfer
+    CUSTOM = "custom"  # made by hand, not from a preset
 
 
+class VisibilityRamp(str, Enum):
+    """The threshold c of K = min(c, 1 - t.w) / c (eq. 8)."""
+
+    PAPER = "paper"  # c = chi, eq. 8 as printed
+    HALF = "half"  # c = 1 - chi: K ramps over half the angle between neighbouring directions
+
+
+class SegmentFeatures(str, Enum):
+    INVARIANT = "invariant"  # log chromaticity across the Planckian locus (sun/sky robust)
+    CHROMA = "chroma"  # rg chromaticity (sensitive to sun/sky colour)
+
+
+PRESETS = tuple(p.value for p in Preset if p is not Preset.CUSTOM)
+MAX_WINDOW = 64  # depth-filter windows (a CUDA thread's median scratch: 64 * 64 floats)
+
+
+# ------------------------------------------------------------------ field checks
+def _hint(key: str, kind: str) -> str:
+    return f"(--set {key}={kind})"
+
+
+def _check_bool(obj: Any, key: str) -> None:
+    value = getattr(obj, key)
+    if not isinstance(value, bool):
+        raise ValueError(f"{key} must be true or false {_hint(key, 'true|false')}, "
+                         f"got {value!r}")
+
+
+def _check_int(obj: Any, key: str, low: int | None = None, high: int | None = None) -> None:
+    value = getattr(obj, key)
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"{key} must be an integer {_hint(key, 'N')}, got {value!r}")
+    if low is not None and high is not None and not low <= value <= high:
+        raise ValueError(f"{key} must be in {low}..{high} {_hint(key, 'N')}, got {value}")
+    if low is not None and value < low:
+        raise ValueError(f"{key} must be >= {low} {_hint(key, 'N')}, got {value}")
+    if high is not None and value > high:
+        raise ValueError(f"{key} must be <= {high} {_hint(key, 'N')}, got {value}")
+    object.__setattr__(obj, key, int(value))
+
+
+def _check_float(obj: Any, key: str, low: float | None = None, high: float | None = None,
+                 *, low_open: bool = False) -> None:
+    value = getattr(obj, key)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{key} must be a number {_hint(key, 'X')}, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"{key} must be finite {_hint(key, 'X')}, got {v}")
+    if low is not None and (v < low or (low_open and v == low)):
+        rel = ">" if low_open else ">="
+        raise ValueError(f"{key} must be {rel} {low:g} {_hint(key, 'X')}, got {v:g}")
+    if high is not None and v > high:
+        raise ValueError(f"{key} must be <= {high:g} {_hint(key, 'X')}, got {v:g}")
+    object.__setattr__(obj, key, v)
+
+
+def _check_enum(obj: Any, key: str, kind: type[Enum]) -> None:
+    value = getattr(obj, key)
+    try:
+        object.__setattr__(obj, key, kind(value))
+    except ValueError:
+        choices = "|".join(m.value for m in kind)
+        raise ValueError(f"{key} must be one of {choices} {_hint(key, choices)}, "
+                         f"got {value!r}") from None
+
+
+# ------------------------------------------------------------------ stage parameters
 @dataclass(frozen=True)
-class Config:
-    preset: str = "full"
-    device: str = "CPU:0"  # Open3D device for the volume ("CPU:0" or "CUDA:0")
-    seed: int = 0  # seeds every random choice: same frames -> same results
+class VolumeParams:
+    """Reconstruct / Surface: the TSDF volume V (Open3D tensor VoxelBlockGrid), tracking."""
 
-    # Reconstruct / Surface (Open3D tensor VoxelBlockGrid)
     volume_size_m: float = 2.0  # workspace edge; voxel size = volume_size_m / volume_resolution
     volume_resolution: int = 256
     block_resolution: int = 8  # voxels per block edge
@@ -32,34 +114,76 @@ class Config:
     tracking_depth_diff_m: float = 0.07  # ICP correspondence gate
     use_volume: bool = True  # False: skip the volume; D_v is then empty (image-space only)
 
-    # Auxiliary orthographic geometry buffers (section 5.1)
+    def __post_init__(self) -> None:
+        _check_float(self, "volume_size_m", 0.0, low_open=True)
+        _check_int(self, "volume_resolution", 8)
+        _check_int(self, "block_resolution", 1)
+        _check_int(self, "block_count", 1)
+        _check_float(self, "depth_min_m", 0.0)
+        _check_float(self, "depth_max_m", self.depth_min_m, low_open=True)
+        _check_float(self, "sdf_trunc_voxels", 0.0, low_open=True)
+        _check_float(self, "tracking_depth_diff_m", 0.0, low_open=True)
+        _check_bool(self, "use_volume")
+
+    @property
+    def voxel_size_m(self) -> float:
+        return self.volume_size_m / self.volume_resolution
+
+
+@dataclass(frozen=True)
+class AuxBufferParams:
+    """Auxiliary orthographic geometry buffers (section 5.1)."""
+
     aux_buffers: bool = True
     aux_resolution: int = 128  # pixels per side of each orthographic buffer
     aux_extent_m: float = 4.0  # side of the square each buffer covers, metres
     aux_update_interval: int = 5  # re-render the auxiliary buffers every n frames
 
-    # D' merge (eq. 1-3)
+    def __post_init__(self) -> None:
+        _check_bool(self, "aux_buffers")
+        _check_int(self, "aux_resolution", 1)
+        _check_float(self, "aux_extent_m", 0.0, low_open=True)
+        _check_int(self, "aux_update_interval", 1)
+
+    @property
+    def pixel_size_m(self) -> float:
+        return self.aux_extent_m / self.aux_resolution
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """DynGeo: the depth filter chain D' (eq. 1-3), D'' (eq. 4), D''' (eq. 5), normals."""
+
     merge_window: int = 20  # k
     merge_intensity_threshold: float = 7.0  # lambda_I, grey levels
     merge_depth_threshold_m: float = 0.05  # lambda_D
-    # D'' joint bilateral median (eq. 4)
     smooth_window: int = 8  # k
     smooth_intensity_threshold: float = 7.0  # lambda_I
     smooth_subsample: int = 5  # the k x k window is sub-sampled to this many per side
-    # D''' median (eq. 5)
     denoise: bool = True
     denoise_window: int = 2  # k
     normal_window: int = 15  # box window (pixels) over depth before normals (1 = raw depth)
 
-    # Radiance transfer (section 5.1)
-    sh_bands: int = 4  # L: L*L coefficients
+    def __post_init__(self) -> None:
+        for key in ("merge_window", "smooth_window", "smooth_subsample", "denoise_window"):
+            _check_int(self, key, 1, MAX_WINDOW)
+        for key in ("merge_intensity_threshold", "merge_depth_threshold_m",
+                    "smooth_intensity_threshold"):
+            _check_float(self, key, 0.0)
+        _check_bool(self, "denoise")
+        _check_int(self, "normal_window", 1)
+
+
+@dataclass(frozen=True)
+class TransferParams:
+    """RadTransfer: image-space SSDO radiance transfer into SH (section 5.1, eq. 6-9)."""
+
+    sh_bands: int = 4  # L: L*L coefficients (the light estimate solves for as many)
     rt_directions: int = 64  # N jittered directions on the sphere
     rt_radius_m: float = 0.5  # largest sample displacement along a direction
     rt_thickness_m: float = 0.3  # a sample further than this behind a surface is not occluded
     rt_steps: int = 1  # samples along each direction (1 = the paper's single SSDO sample)
-    # eq. 8 as printed, K = min(chi, 1 - t.w) / chi ("paper"), or K ramping over the
-    # half-angle between neighbouring directions, min(1 - chi, 1 - t.w) / (1 - chi) ("half")
-    rt_visibility_ramp: str = "paper"
+    rt_visibility_ramp: VisibilityRamp = VisibilityRamp.PAPER
     rt_subsample: int = 1  # image-space sub-sampling (fast: 4)
     rt_upsample: bool = True  # sub-sampled transfer interpolated back to every pixel
     visibility: bool = True  # False: K = 1 everywhere (the no-visibility baseline)
@@ -72,7 +196,22 @@ class Config:
     # set gave full medians a 37, b 3.6, c 22, d 24, e 14 (off: 4.2, 7.7, 7.0, 4.3, 5.2)
     rt_horizon: bool = False
 
-    # Light estimation (section 5.2)
+    def __post_init__(self) -> None:
+        _check_int(self, "sh_bands", 1, 12)
+        _check_int(self, "rt_directions", 4)
+        _check_float(self, "rt_radius_m", 0.0, low_open=True)
+        _check_float(self, "rt_thickness_m", 0.0, low_open=True)
+        _check_int(self, "rt_steps", 1)
+        _check_enum(self, "rt_visibility_ramp", VisibilityRamp)
+        _check_int(self, "rt_subsample", 1)
+        for key in ("rt_upsample", "visibility", "rt_bounce", "rt_horizon"):
+            _check_bool(self, key)
+
+
+@dataclass(frozen=True)
+class EstimationParams:
+    """LightEst: regularised, robust least squares T l = I_c (section 5.2, unnumbered)."""
+
     # Tikhonov weight, relative to the mean diagonal of T^T T, times (l(l+1))^2 per band;
     # 6e-3..1.5e-2 all hold the shared GT sequences under 9 degrees, 1e-3 reaches 17
     regularization: float = 1e-2
@@ -85,56 +224,175 @@ class Config:
     horizon_ground_albedo: float = 0.3  # of the prior's ground glow
     robust_iterations: int = 8  # IRLS / albedo alternation passes (0 = plain least squares)
     albedo_segments: bool = True  # one unknown albedo per material segment (beyond the paper)
-    segment_features: str = "invariant"  # or "chroma" (rg chromaticity, sensitive to sun/sky)
+    segment_features: SegmentFeatures = SegmentFeatures.INVARIANT
     segment_illuminant_weight: float = 4.0  # "invariant": weight of the sun/sky colour axis
     segment_split_ground: bool = True  # the support plane's pixels never share a segment
-    temporal_half_life_frames: float = 2.0  # exponential filter; light changes pass in ~3 frames
-    change_reset_deg: float = 35.0  # a jump larger than this resets the temporal filter
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
 
     def __post_init__(self) -> None:
-        if self.preset not in PRESETS and self.preset != "custom":
-            raise ValueError(f"preset must be one of {PRESETS}, got {self.preset!r}")
-        if not 1 <= self.sh_bands <= 12:
-            raise ValueError(f"sh_bands must be in 1..12, got {self.sh_bands}")
-        if self.rt_directions < 4:
-            raise ValueError(f"rt_directions must be >= 4, got {self.rt_directions}")
-        if self.min_samples < 1:
-            raise ValueError(f"min_samples must be >= 1, got {self.min_samples}")
-        if self.light_max_samples < self.min_samples:
-            raise ValueError(f"light_max_samples must be >= min_samples ({self.min_samples}), "
-                             f"got {self.light_max_samples}")
-        if self.segment_features not in ("invariant", "chroma"):
-            raise ValueError(f"segment_features must be 'invariant' or 'chroma', got "
-                             f"{self.segment_features!r}")
-        if self.rt_steps < 1:
-            raise ValueError(f"rt_steps must be >= 1, got {self.rt_steps}")
-        if self.rt_subsample < 1:
-            raise ValueError(f"rt_subsample must be >= 1, got {self.rt_subsample}")
-        if self.volume_resolution < 8:
-            raise ValueError(f"volume_resolution must be >= 8, got {self.volume_resolution}")
-        if not self.device.startswith(("CPU:", "CUDA:")):
-            raise ValueError(f"device must be 'CPU:n' or 'CUDA:n', got {self.device!r}")
+        _check_float(self, "regularization", 0.0)
+        _check_int(self, "min_samples", 1)
+        if (isinstance(self.light_max_samples, numbers.Integral)
+                and not isinstance(self.light_max_samples, bool)
+                and self.light_max_samples < self.min_samples):
+            raise ValueError(f"light_max_samples must be >= min_samples ({self.min_samples}) "
+                             f"{_hint('light_max_samples', 'N')}, got {self.light_max_samples}")
+        _check_int(self, "light_max_samples", 1)
+        _check_float(self, "horizon_prior", 0.0)
+        _check_float(self, "horizon_ground_albedo", 0.0, 1.0)
+        _check_int(self, "robust_iterations", 0)
+        _check_bool(self, "albedo_segments")
+        _check_enum(self, "segment_features", SegmentFeatures)
+        _check_float(self, "segment_illuminant_weight", 0.0)
+        _check_bool(self, "segment_split_ground")
+        _check_bool(self, "estimate_rgb")
+
+
+@dataclass(frozen=True)
+class TemporalParams:
+    """The temporal filter of the world-frame SH (exponential, reset on a light change)."""
+
+    temporal_half_life_frames: float = 2.0  # light changes pass in ~3 frames
+    # a jump of the dominant direction larger than this resets the filter (35 degrees)
+    change_reset_rad: float = math.radians(35.0)
+
+    def __post_init__(self) -> None:
+        _check_float(self, "temporal_half_life_frames", 0.0, low_open=True)
+        _check_float(self, "change_reset_rad", 0.0, math.pi, low_open=True)
+
+
+STAGE_TYPES: dict[str, type] = {
+    "volume": VolumeParams,
+    "aux": AuxBufferParams,
+    "filter": FilterParams,
+    "transfer": TransferParams,
+    "estimation": EstimationParams,
+    "temporal": TemporalParams,
+}
+
+
+# ------------------------------------------------------------------ flat keys
+def _flat_table() -> dict[str, tuple[str | None, str]]:
+    table: dict[str, tuple[str | None, str]] = {"device": (None, "device"),
+                                                "seed": (None, "seed")}
+    for stage, cls in STAGE_TYPES.items():
+        for f in dataclasses.fields(cls):
+            table[f.name] = (stage, f.name)
+    return table
+
+
+# flat key -> (stage attribute of Config or None for Config's own field, field name)
+FLAT_KEYS: dict[str, tuple[str | None, str]] = _flat_table()
+# flat keys in another unit: key -> (the canonical key, conversion to its unit)
+FLAT_ALIASES: dict[str, tuple[str, Callable[[float], float]]] = {
+    "change_reset_deg": ("change_reset_rad", math.radians),
+}
+
+
+def _valid_keys_text() -> str:
+    return ", ".join(sorted([*FLAT_KEYS, *FLAT_ALIASES]))
+
+
+def _flat_overrides(changes: dict[str, Any]) -> dict[str, Any]:
+    """Aliases converted to their canonical keys; unknown keys refused (listing the valid)."""
+    unknown = sorted(set(changes) - set(FLAT_KEYS) - set(FLAT_ALIASES))
+    if unknown:
+        raise ValueError(f"unknown config key(s): {', '.join(unknown)}; valid keys: "
+                         f"{_valid_keys_text()}")
+    out = {}
+    for key, value in changes.items():
+        if key in FLAT_ALIASES:
+            canonical, convert = FLAT_ALIASES[key]
+            if canonical in changes:
+                raise ValueError(f"give {key} or {canonical}, not both")
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise ValueError(f"{key} must be a number {_hint(key, 'X')}, got {value!r}")
+            value = convert(float(value))
+            key = canonical
+        out[key] = value
+    return out
+
+
+def _preset_overrides(preset: Preset) -> dict[str, Any]:
+    if preset is Preset.FAST:
+        return {"rt_subsample": 4}
+    if preset is Preset.MOBILE:
+        return {"volume_resolution": 64, "denoise": False, "rt_subsample": 4}
+    return {}
+
+
+@dataclass(frozen=True)
+class Config:
+    """Every pipeline parameter: the stage objects plus the preset, the device and the seed.
+
+    Make one with `Config.from_preset(name, **flat_keys)`; change one with
+    `config.replace(**flat_keys)` (keys: `FLAT_KEYS`, `FLAT_ALIASES`).
+    """
+
+    preset: Preset = Preset.FULL
+    device: str = "CPU:0"  # Open3D device for the volume ("CPU:0" or "CUDA:0")
+    seed: int = 0  # seeds every random choice: same frames -> same results
+    volume: VolumeParams = field(default_factory=VolumeParams)
+    aux: AuxBufferParams = field(default_factory=AuxBufferParams)
+    filter: FilterParams = field(default_factory=FilterParams)
+    transfer: TransferParams = field(default_factory=TransferParams)
+    estimation: EstimationParams = field(default_factory=EstimationParams)
+    temporal: TemporalParams = field(default_factory=TemporalParams)
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "preset", Preset(self.preset))
+        except ValueError:
+            raise ValueError(f"preset must be one of {', '.join(p.value for p in Preset)}, "
+                             f"got {self.preset!r}") from None
+        if not isinstance(self.device, str) or not self.device.startswith(("CPU:", "CUDA:")):
+            raise ValueError(f"device must be 'CPU:n' or 'CUDA:n' {_hint('device', 'CPU:0')}, "
+                             f"got {self.device!r}")
+        _check_int(self, "seed", 0)
+        for stage, cls in STAGE_TYPES.items():
+            if not isinstance(getattr(self, stage), cls):
+                raise TypeError(f"Config.{stage} must be a {cls.__name__}, got "
+                                f"{type(getattr(self, stage)).__name__}")
 
     @property
     def voxel_size_m(self) -> float:
-        return self.volume_size_m / self.volume_resolution
+        return self.volume.voxel_size_m
 
     @classmethod
     def from_preset(cls, name: str = "full", **overrides: Any) -> Config:
-        """A preset ('full' = paper's Ours, 'fast' = OursFast, 'mobile') with user overrides."""
+        """A preset ('full' = paper's Ours, 'fast' = OursFast, 'mobile') with flat overrides."""
         if name not in PRESETS:
             raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
-        base: dict[str, Any] = {"preset": name}
-        if name == "fast":
-            base.update(rt_subsample=4)
-        elif name == "mobile":
-            base.update(volume_resolution=64, denoise=False, rt_subsample=4)
-        unknown = set(overrides) - {f.name for f in dataclasses.fields(cls)}
-        if unknown:
-            raise ValueError(f"unknown config field(s): {', '.join(sorted(unknown))}")
-        base.update(overrides)
-        return cls(**base)
+        changes = _flat_overrides(overrides)  # checked before the preset's own values
+        preset = Preset(name)
+        return cls(preset=preset).replace(**{**_preset_overrides(preset), **changes})
 
     def replace(self, **changes: Any) -> Config:
-        return dataclasses.replace(self, **changes)
+        """A copy with flat keys changed (e.g. `replace(rt_directions=128, seed=1)`)."""
+        changes = _flat_overrides(changes)
+        per_stage: dict[str | None, dict[str, Any]] = {}
+        for key, value in changes.items():
+            stage, name = FLAT_KEYS[key]
+            per_stage.setdefault(stage, {})[name] = value
+        top = per_stage.pop(None, {})
+        stages = {stage: dataclasses.replace(getattr(self, stage), **values)
+                  for stage, values in per_stage.items()}
+        return dataclasses.replace(self, **top, **stages)
+
+    def flat(self) -> dict[str, Any]:
+        """Every flat key and its value (enums as their strings), e.g. for a report."""
+        out: dict[str, Any] = {"preset": self.preset.value}
+        for key, (stage, name) in FLAT_KEYS.items():
+            value = getattr(self if stage is None else getattr(self, stage), name)
+            out[key] = value.value if isinstance(value, Enum) else value
+        return out
+
+    @staticmethod
+    def flat_key_types() -> dict[str, type]:
+        """Flat key -> bool, int, float or str (Enum options are given as their strings);
+        what a command line needs to parse `--set KEY=VALUE`."""
+        defaults = Config().flat()
+        types: dict[str, type] = {key: type(value) for key, value in defaults.items()
+                                  if key != "preset"}
+        types.update({alias: float for alias in FLAT_ALIASES})
+        return types

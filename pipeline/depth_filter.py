@@ -31,7 +31,7 @@ Decisions where the paper leaves room (eq. 3):
   support agrees with the volume but where D_v(p) itself is missing gets the median.
 - Omega_D requires D_v(q) to exist (a support pixel without volume depth cannot agree).
 
-Backends (DESIGN.md "Compute backends"): the per-pixel logic is written once as
+Backends (docs/architecture.md, "Conventions"): the per-pixel logic is written once as
 ``register_jitable`` functions (``_merge_pixel``, ``_support_median_pixel``,
 ``_normal_pixel``), driven on the CPU by ``@njit(parallel=True, cache=True)`` loops over
 rows and on the GPU by ``numba.cuda`` kernels that are built on first use (importing this
@@ -54,17 +54,16 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
 from numba import prange
 from numba.extending import register_jitable
 
+from arlight.checks import CheckError, check_image
 from arlight.pipeline.camera import PinholeCamera
-
-if TYPE_CHECKING:
-    from arlight.pipeline.config import Config
+from arlight.pipeline.color import intensity_from_rgb
+from arlight.pipeline.config import MAX_WINDOW, FilterParams
 
 __all__ = [
     "BACKENDS",
@@ -79,8 +78,6 @@ __all__ = [
 ]
 
 BACKENDS = ("cpu", "cuda")
-REC709_LUMA = (0.2126, 0.7152, 0.0722)  # weights of R, G, B
-MAX_WINDOW = 64  # window and subsample limit (a CUDA thread's median scratch: 64*64 floats)
 NORMAL_MAX_RELATIVE_JUMP = 0.05  # a neighbour further than 5 % of the depth is another surface
 _CUDA_BLOCK = (16, 16)
 _SMALL_SORT = 16  # medians of up to this many samples use an insertion sort
@@ -370,19 +367,18 @@ def _check_backend(backend: str) -> str:
 def _check_depth(name: str, depth: np.ndarray, shape: tuple[int, int] | None = None,
                  ) -> np.ndarray:
     """(H, W) float32 copy-free where possible, NaN -> 0; rejects other shapes, inf, < 0."""
-    arr = np.asarray(depth)
-    if arr.ndim != 2 or (shape is not None and arr.shape != shape):
-        expected = "(H, W)" if shape is None else f"{shape} (same as depth_raw_m)"
-        raise ValueError(f"{name}: expected shape {expected}, got {arr.shape}")
+    arr = check_image(depth, name)  # (H, W)
+    if shape is not None and arr.shape != shape:
+        raise CheckError(name, f"expected shape {shape} (same as depth_raw_m), got {arr.shape}")
     if not np.issubdtype(arr.dtype, np.floating):
-        raise ValueError(f"{name}: expected a float dtype (metres, float32), got {arr.dtype}")
+        raise CheckError(name, f"expected a float dtype (metres, float32), got {arr.dtype}")
     arr = np.ascontiguousarray(arr, dtype=np.float32)
     nan = np.isnan(arr)
     if nan.any():
         arr = np.where(nan, np.float32(0.0), arr)
     bad = np.isinf(arr) | (arr < 0)
     if bad.any():
-        raise ValueError(f"{name}: depth must be finite and >= 0 metres (0 or NaN = missing); "
+        raise CheckError(name, f"depth must be finite and >= 0 metres (0 or NaN = missing); "
                          f"{int(bad.sum())} pixel(s) are inf or negative")
     return arr
 
@@ -390,27 +386,27 @@ def _check_depth(name: str, depth: np.ndarray, shape: tuple[int, int] | None = N
 def _check_intensity(intensity: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     arr = np.asarray(intensity)
     if arr.shape != shape:
-        raise ValueError(f"intensity: expected shape {shape} (same as the depth), "
+        raise CheckError("intensity", f"expected shape {shape} (same as the depth), "
                          f"got {arr.shape}")
     if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
-        raise ValueError(f"intensity: expected grey levels as float32, got {arr.dtype}")
+        raise CheckError("intensity", f"expected grey levels as float32, got {arr.dtype}")
     arr = np.ascontiguousarray(arr, dtype=np.float32)
     if not np.isfinite(arr).all():
-        raise ValueError("intensity: expected finite grey levels, got NaN or inf")
+        raise CheckError("intensity", "expected finite grey levels, got NaN or inf")
     return arr
 
 
 def _check_window(name: str, value: int) -> int:
     if (isinstance(value, bool) or not isinstance(value, (int, np.integer))
             or not 1 <= value <= MAX_WINDOW):
-        raise ValueError(f"{name}: expected an integer in 1..{MAX_WINDOW}, got {value!r}")
+        raise CheckError(name, f"expected an integer in 1..{MAX_WINDOW}, got {value!r}")
     return int(value)
 
 
 def _check_threshold(name: str, value: float) -> np.float32:
     v = float(value)
     if not v >= 0 or v == float("inf"):
-        raise ValueError(f"{name}: expected a finite threshold >= 0, got {value!r}")
+        raise CheckError(name, f"expected a finite threshold >= 0, got {value!r}")
     return np.float32(v)
 
 
@@ -448,21 +444,6 @@ def _run_support_median(depth, inten, offsets, lam_i, gate, backend):
 # --------------------------------------------------------------------------------------
 # Public API
 # --------------------------------------------------------------------------------------
-
-
-def intensity_from_rgb(color_rgb_u8: np.ndarray) -> np.ndarray:
-    """Grey levels (H, W) float32 in 0..255 from an (H, W, 3) uint8 RGB image.
-
-    Rec. 709 luma weights applied to the 8-bit (gamma-encoded) values, as the paper's
-    thresholds lambda_I are in 8-bit grey levels.
-    """
-    arr = np.asarray(color_rgb_u8)
-    if arr.ndim != 3 or arr.shape[2] != 3:
-        raise ValueError(f"color_rgb_u8: expected shape (H, W, 3), got {arr.shape}")
-    if arr.dtype != np.uint8:
-        raise ValueError(f"color_rgb_u8: expected dtype uint8, got {arr.dtype}")
-    weights = np.asarray(REC709_LUMA, dtype=np.float32)
-    return np.ascontiguousarray(arr.astype(np.float32) @ weights)
 
 
 def merge_depth(depth_raw_m: np.ndarray, depth_volume_m: np.ndarray | None,
@@ -518,28 +499,31 @@ def median_depth(depth_m: np.ndarray, window: int = 2, *, backend: str = "cpu") 
                                _check_backend(backend))
 
 
+def backend_for_device(device: str) -> str:
+    """The kernels' backend for an Open3D device name ("CUDA:0" -> "cuda", else "cpu")."""
+    return "cuda" if device.startswith("CUDA") else "cpu"
+
+
 def filter_depth(depth_raw_m: np.ndarray, depth_volume_m: np.ndarray | None,
-                 intensity: np.ndarray, config: Config, *, backend: str | None = None,
+                 intensity: np.ndarray, params: FilterParams, *, backend: str = "cpu",
                  ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """The filter chain D' -> D'' (-> D''' when config.denoise) with the config's parameters.
+    """The filter chain D' -> D'' (-> D''' when params.denoise) with the stage's parameters.
 
     Returns the final depth (H, W) float32 metres (0 = missing) and the intermediate
     passes {"merged": D', "smoothed": D''[, "denoised": D''']}.
-    backend: "cpu" or "cuda"; None picks "cuda" when config.device is a CUDA device,
-    else "cpu" (a CUDA config without a usable GPU raises RuntimeError).
+    backend: "cpu" or "cuda" (`backend_for_device`; "cuda" without a usable GPU raises
+    RuntimeError).
     """
-    if backend is None:
-        backend = "cuda" if config.device.startswith("CUDA") else "cpu"
-    merged = merge_depth(depth_raw_m, depth_volume_m, intensity, config.merge_window,
-                         config.merge_intensity_threshold, config.merge_depth_threshold_m,
+    merged = merge_depth(depth_raw_m, depth_volume_m, intensity, params.merge_window,
+                         params.merge_intensity_threshold, params.merge_depth_threshold_m,
                          backend=backend)
-    smoothed = joint_bilateral_median(merged, intensity, config.smooth_window,
-                                      config.smooth_intensity_threshold,
-                                      config.smooth_subsample, backend=backend)
+    smoothed = joint_bilateral_median(merged, intensity, params.smooth_window,
+                                      params.smooth_intensity_threshold,
+                                      params.smooth_subsample, backend=backend)
     passes = {"merged": merged, "smoothed": smoothed}
-    if not config.denoise:
+    if not params.denoise:
         return smoothed, passes
-    denoised = median_depth(smoothed, config.denoise_window, backend=backend)
+    denoised = median_depth(smoothed, params.denoise_window, backend=backend)
     passes["denoised"] = denoised
     return denoised, passes
 

@@ -1,4 +1,4 @@
-"""Per-frame input and output of the pipeline (DESIGN.md, "Pipeline interface")."""
+"""Per-frame input and output of the pipeline (docs/architecture.md, "Data flow")."""
 
 from __future__ import annotations
 
@@ -34,7 +34,8 @@ class Confidence:
 
     samples: pixels used in the least-squares fit; condition_number: of the (unregularised,
     column-scaled) normal matrix; bands_estimated: SH bands solved for (the rest are zero);
-    value: overall confidence in [0, 1] (0 = no estimate possible).
+    value: overall confidence in [0, 1] (0 = no estimate possible); reason: why the value is
+    low (below light_estimation.LOW_CONFIDENCE, or 0), naming the cause ("" otherwise).
     """
 
     samples: int = 0

@@ -26,20 +26,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from arlight.pipeline import sh
-from arlight.pipeline.config import Config
+from arlight.pipeline.color import LUMA, srgb_to_linear  # noqa: F401 (srgb_to_linear: re-export)
+from arlight.pipeline.config import EstimationParams, TemporalParams
 from arlight.pipeline.frames import Confidence
 
-LUMA = np.array([0.2126, 0.7152, 0.0722])
 CLIP_LEVEL = 0.98  # linear value above which a channel is treated as clipped
 DARK_LEVEL = 0.004  # linear luminance below which a pixel carries only noise
 MAX_CONDITION = 1e5  # of the column-scaled normal matrix; above it, drop the top band
-
-
-def srgb_to_linear(color_u8: np.ndarray) -> np.ndarray:
-    """8-bit sRGB -> linear [0, 1] float32 (IEC 61966-2-1), via a 256-entry table."""
-    c = np.arange(256, dtype=np.float64) / 255.0
-    table = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
-    return table[np.asarray(color_u8, dtype=np.uint8)]
 
 
 @dataclass
@@ -126,14 +119,16 @@ def solve_regularised(transfer: np.ndarray, target: np.ndarray, weights: np.ndar
     return x[:n], float(x[-1])
 
 
-def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Config,
+def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: EstimationParams,
                    segments: np.ndarray | None = None,
                    bounce: np.ndarray | None = None,
                    up: np.ndarray | None = None,
-                   below_horizon_unseen: bool = False) -> LightEstimate:
-    """Solve T l = I for the distant light.
+                   below_horizon_unseen: bool = False, *, seed: int = 0) -> LightEstimate:
+    """Solve T l = I_c for the distant light (section 5.2, made robust: module docstring).
 
-    transfer: (M, C) SH transfer per pixel; color_linear: (M, 3) linear RGB of those pixels;
+    transfer: (M, C) SH transfer per pixel, C = L*L for L bands (as many are solved for, or
+    fewer when the normals cannot constrain them); color_linear: (M, 3) linear RGB of those
+    pixels; seed: of the random subset when more than params.light_max_samples are usable;
     segments: optional (M,) integer material label per pixel. With labels, each material
     gets its own unknown albedo a_g and the model is I = a_g T l, solved by alternating
     between l and the a_g (the paper assumes one grey albedo everywhere).
@@ -141,64 +136,99 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, config: Confi
     units of the image); the model is then I = a_g (T l + beta B) with beta >= 0 solved too.
     up: optional unit "up" vector (frame of T), the normal of the surface the scene stands
     on: light from below its horizon cannot reach the scene directly, so its radiance is
-    damped with weight `config.horizon_prior` (nothing visible constrains it otherwise):
+    damped with weight `params.horizon_prior` (nothing visible constrains it otherwise):
     always when `below_horizon_unseen` (the transfer gave no pixel a direction below that
     horizon), else only when the unconstrained fit puts the light there.
-    Returns an estimate with zero coefficients and confidence 0 when too few usable pixels.
+    Returns an estimate with zero coefficients and confidence 0 when too few usable pixels
+    (Confidence.reason says why, as it does whenever the confidence is low).
     """
-    n_coeffs = config.sh_bands ** 2
-    t = np.asarray(transfer, dtype=np.float64).reshape(-1, n_coeffs)
+    t = np.asarray(transfer, dtype=np.float64)
+    n_coeffs = t.shape[-1]
+    samples = _usable_samples(t.reshape(-1, n_coeffs), color_linear, bounce, segments,
+                              params.light_max_samples, seed)
+    t, lum, rgb, b, labels = samples.transfer, samples.lum, samples.rgb, samples.bounce, \
+        samples.labels
+    if len(lum) < params.min_samples:
+        return LightEstimate(np.zeros(n_coeffs), Confidence(
+            samples=len(lum), reason=f"{len(lum)} usable pixels < min_samples "
+                                     f"{params.min_samples} ({samples.left_out})"),
+            np.zeros((3, n_coeffs)) if params.estimate_rgb else None)
+
+    max_bands = math.isqrt(n_coeffs)
+    bands, cond = choose_bands(t, np.ones(len(lum)), max_bands)
+    fit, prior = _fit_light(t, lum, b, labels, bands, params, up, below_horizon_unseen)
+    pred = fit.albedo * fit.shading
+    residual = float(np.sqrt(np.average(((pred - lum) / np.maximum(lum, DARK_LEVEL)) ** 2,
+                                        weights=fit.weights)))
+    full = np.zeros(n_coeffs)
+    full[: bands * bands] = fit.coeffs
+    sh_rgb = None
+    if params.estimate_rgb:
+        sh_rgb = np.zeros((3, n_coeffs))
+        for ch in range(3):
+            sh_rgb[ch, : bands * bands] = solve_regularised(
+                t * fit.albedo[:, None], rgb[:, ch], fit.weights, bands, params.regularization,
+                None if b is None else b * fit.albedo, prior)[0]
+    value = _confidence_value(len(lum), cond, bands, residual)
+    reason = _low_confidence_reason(len(lum), cond, bands, max_bands, residual, value)
+    return LightEstimate(full, Confidence(len(lum), cond, bands, value, reason), sh_rgb,
+                         residual, fit.beta, prior is not None)
+
+
+@dataclass
+class _Samples:
+    """The pixels a fit uses (usable, randomly sub-sampled above the limit)."""
+
+    transfer: np.ndarray  # (M, C) float64
+    lum: np.ndarray  # (M,) linear luminance
+    rgb: np.ndarray  # (M, 3) linear RGB
+    bounce: np.ndarray | None  # (M,)
+    labels: np.ndarray | None  # (M,) segment index 0..G-1
+    left_out: str  # why the others were not used, e.g. "10 clipped, 3 too dark"
+
+
+def _usable_samples(t: np.ndarray, color_linear: np.ndarray, bounce: np.ndarray | None,
+                    segments: np.ndarray | None, max_samples: int, seed: int) -> _Samples:
+    """Clipped, near-black, non-finite and transfer-less pixels left out; above
+    max_samples a seeded random subset (neighbouring pixels repeat each other)."""
     rgb = np.asarray(color_linear, dtype=np.float64).reshape(-1, 3)
     lum = rgb @ LUMA
-    usable = (np.all(np.isfinite(t), axis=1) & np.isfinite(lum) & (rgb.max(axis=1) < CLIP_LEVEL)
-              & (lum > DARK_LEVEL) & (t[:, 0] > 1e-6))
+    finite = np.all(np.isfinite(t), axis=1) & np.isfinite(lum)
+    clipped = rgb.max(axis=1) >= CLIP_LEVEL
+    dark = ~(lum > DARK_LEVEL)
+    no_transfer = ~(t[:, 0] > 1e-6)
+    usable = finite & ~clipped & ~dark & ~no_transfer
     keep = np.flatnonzero(usable)
-    if len(keep) > config.light_max_samples:
-        # neighbouring pixels repeat each other: a seeded random subset fits the same light
-        rng = np.random.default_rng(config.seed)
-        keep = np.sort(rng.choice(keep, config.light_max_samples, replace=False))
-    t, lum, rgb = t[keep], lum[keep], rgb[keep]
+    if len(keep) > max_samples:
+        rng = np.random.default_rng(seed)
+        keep = np.sort(rng.choice(keep, max_samples, replace=False))
     b = None if bounce is None else np.asarray(bounce, dtype=np.float64).reshape(-1)[keep]
     labels = None
     if segments is not None:
         _, labels = np.unique(np.asarray(segments).reshape(-1)[keep], return_inverse=True)
-    if len(lum) < config.min_samples:
-        return LightEstimate(np.zeros(n_coeffs), Confidence(
-            samples=len(lum), reason=f"{len(lum)} usable pixels < min_samples "
-                                     f"{config.min_samples}"),
-            np.zeros((3, n_coeffs)) if config.estimate_rgb else None)
+    left_out = (f"of {len(lum)}: {int(clipped.sum())} clipped, {int(dark.sum())} too dark, "
+                f"{int(no_transfer.sum())} without transfer, {int((~finite).sum())} not finite")
+    return _Samples(t[keep], lum[keep], rgb[keep], b, labels, left_out)
 
-    bands, cond = choose_bands(t, np.ones(len(lum)), config.sh_bands)
-    use_prior = up is not None and config.horizon_prior > 0
-    prior = None
+
+def _fit_light(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
+               labels: np.ndarray | None, bands: int, params: EstimationParams,
+               up: np.ndarray | None, below_horizon_unseen: bool,
+               ) -> tuple[_Fit, np.ndarray | None]:
+    """The robust fit, with the below-horizon prior where it applies; (fit, prior or None)."""
+    use_prior = up is not None and params.horizon_prior > 0
     if not (use_prior and below_horizon_unseen):
-        fit = _alternate(t, lum, b, labels, bands, config, None)
+        fit = _alternate(t, lum, b, labels, bands, params, None)
         # the data put the light below the horizon of the surface the scene stands on:
         # light from there cannot reach the scene, so that lobe is an artefact of what the
         # normals leave unconstrained; fit again with below-horizon radiance held to a
         # ground's glow
         use_prior = use_prior and float(sh.dominant_direction(fit.coeffs) @ up) < 0.0
-    if use_prior:  # built only when used: it costs a 2048-direction SH evaluation
-        prior = config.horizon_prior * below_horizon_gram(up, bands,
-                                                          config.horizon_ground_albedo)
-        fit = _alternate(t, lum, b, labels, bands, config, prior)
-    coeffs, beta, albedo, weights = fit.coeffs, fit.beta, fit.albedo, fit.weights
-    pred = albedo * fit.shading
-    residual = float(np.sqrt(np.average(((pred - lum) / np.maximum(lum, DARK_LEVEL)) ** 2,
-                                        weights=weights)))
-
-    full = np.zeros(n_coeffs)
-    full[: bands * bands] = coeffs
-    sh_rgb = None
-    if config.estimate_rgb:
-        sh_rgb = np.zeros((3, n_coeffs))
-        for ch in range(3):
-            sh_rgb[ch, : bands * bands] = solve_regularised(
-                t * albedo[:, None], rgb[:, ch], weights, bands, config.regularization,
-                None if b is None else b * albedo, prior)[0]
-    value = _confidence_value(len(lum), cond, bands, residual)
-    return LightEstimate(full, Confidence(len(lum), cond, bands, value), sh_rgb, residual,
-                         beta, prior is not None)
+        if not use_prior:
+            return fit, None
+    # built only when used: it costs a 2048-direction SH evaluation
+    prior = params.horizon_prior * below_horizon_gram(up, bands, params.horizon_ground_albedo)
+    return _alternate(t, lum, b, labels, bands, params, prior), prior
 
 
 @dataclass
@@ -211,20 +241,20 @@ class _Fit:
 
 
 def _alternate(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
-               labels: np.ndarray | None, bands: int, config: Config,
+               labels: np.ndarray | None, bands: int, params: EstimationParams,
                prior: np.ndarray | None) -> _Fit:
     """Regularised solve, then `robust_iterations` rounds of per-segment albedo and Huber
     re-weighting (relative residuals), each followed by a new solve."""
     n = bands * bands
     weights = np.ones(len(lum))
     albedo = np.ones(len(lum))
-    coeffs, beta = solve_regularised(t, lum, weights, bands, config.regularization, b, prior)
+    coeffs, beta = solve_regularised(t, lum, weights, bands, params.regularization, b, prior)
 
     def shading() -> np.ndarray:
         s = t[:, :n] @ coeffs
         return s + beta * b if b is not None else s
 
-    for _ in range(config.robust_iterations):
+    for _ in range(params.robust_iterations):
         if labels is not None:
             albedo = _segment_albedo(shading(), lum, labels, weights)
         pred = albedo * shading()
@@ -235,7 +265,7 @@ def _alternate(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
         a = np.abs(rel) / (1.345 * sigma)
         weights = np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))  # Huber
         coeffs, beta = solve_regularised(t * albedo[:, None], lum, weights, bands,
-                                         config.regularization,
+                                         params.regularization,
                                          None if b is None else b * albedo, prior)
     return _Fit(coeffs, beta, albedo, weights, shading())
 
@@ -253,28 +283,63 @@ def _segment_albedo(shading: np.ndarray, lum: np.ndarray, labels: np.ndarray,
     return per_pixel / max(float(np.mean(per_pixel)), 1e-6)
 
 
+def _confidence_factors(samples: int, cond: float, bands: int,
+                        residual_rel: float) -> dict[str, float]:
+    """The factors of the confidence, each in [0, 1]."""
+    return {
+        "samples": min(1.0, samples / 5000.0),
+        "conditioning": 1.0 / (1.0 + math.log10(max(cond, 1.0)) / 5.0),
+        "bands": 1.0 if bands >= 2 else 0.3,  # without band 1 there is no direction
+        "residual": (1.0 / (1.0 + (residual_rel / 0.3) ** 2) if np.isfinite(residual_rel)
+                     else 0.0),
+    }
+
+
 def _confidence_value(samples: int, cond: float, bands: int, residual_rel: float) -> float:
     """Heuristic [0, 1]: enough samples, a well-posed system, a model that fits."""
     if samples == 0 or not np.isfinite(cond):
         return 0.0
-    s = min(1.0, samples / 5000.0)
-    c = 1.0 / (1.0 + math.log10(max(cond, 1.0)) / 5.0)
-    b = 1.0 if bands >= 2 else 0.3  # without band 1 there is no direction
-    r = 1.0 / (1.0 + (residual_rel / 0.3) ** 2) if np.isfinite(residual_rel) else 0.0
-    return float(np.clip(s * c * b * r, 0.0, 1.0))
+    f = _confidence_factors(samples, cond, bands, residual_rel)
+    return float(np.clip(f["samples"] * f["conditioning"] * f["bands"] * f["residual"],
+                         0.0, 1.0))
+
+
+LOW_CONFIDENCE = 0.3  # below this, Confidence.reason names the causes
+WEAK_FACTOR = 0.6  # a confidence factor below this is named as a cause
+
+
+def _low_confidence_reason(samples: int, cond: float, bands: int, max_bands: int,
+                           residual_rel: float, value: float) -> str:
+    """Why the confidence is low ("" when it is not): every weak factor, by name."""
+    if value >= LOW_CONFIDENCE:
+        return ""
+    if samples == 0:
+        return "no usable pixels"
+    if not np.isfinite(cond):
+        return "singular system: the normals constrain no light"
+    text = {
+        "samples": f"few usable pixels ({samples})",
+        "conditioning": f"ill-conditioned normals (condition number {cond:.3g}, "
+                        f"{bands} of {max_bands} bands estimated)",
+        "bands": f"only band 0 estimated ({max_bands} asked): no direction",
+        "residual": f"the model fits badly (relative residual {residual_rel:.2f})",
+    }
+    f = _confidence_factors(samples, cond, bands, residual_rel)
+    weak = [name for name, v in f.items() if v < WEAK_FACTOR] or [min(f, key=f.get)]
+    return "; ".join(text[name] for name in weak)
 
 
 class TemporalFilter:
     """Exponential smoothing of world-frame SH that still follows a real light change.
 
     Each frame blends in the new estimate with weight 1 - 0.5^(1 / half_life) (scaled by
-    its confidence); when the dominant direction jumps by more than `change_reset_deg` for
+    its confidence); when the dominant direction jumps by more than `change_reset_rad` for
     two frames in a row, the filter restarts from the new light (a switched lamp).
     """
 
-    def __init__(self, half_life_frames: float, change_reset_deg: float) -> None:
-        self.alpha = 1.0 - 0.5 ** (1.0 / max(half_life_frames, 1e-6))
-        self.reset_cos = math.cos(math.radians(change_reset_deg))
+    def __init__(self, params: TemporalParams) -> None:
+        self.alpha = 1.0 - 0.5 ** (1.0 / max(params.temporal_half_life_frames, 1e-6))
+        self.reset_cos = math.cos(params.change_reset_rad)
         self.state: np.ndarray | None = None
         self.pending_jump = 0
 

@@ -1,4 +1,6 @@
-"""One session's light-estimation pipeline: frames in, lighting out (DESIGN.md data flow).
+"""One session's light-estimation pipeline: frames in, lighting out.
+
+Data flow: docs/architecture.md, "Data flow".
 
 Stages, named as the rows of the paper's table 1: Input, Reconstruct, Surface, DynGeo,
 RadTransfer, LightEst (Rendering is skipped while there is no virtual scene to render).
@@ -7,28 +9,26 @@ RadTransfer, LightEst (Rendering is skipped while there is no virtual scene to r
 from __future__ import annotations
 
 import logging
+import math
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from arlight.checks import CheckError, depth_metres
+from arlight.checks import CheckError, check_finite, check_image, check_rigid, depth_metres
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
+from arlight.pipeline.color import intensity_from_rgb, luminance, srgb_to_linear
 from arlight.pipeline.config import Config
-from arlight.pipeline.depth_filter import filter_depth, intensity_from_rgb, normals_from_depth
+from arlight.pipeline.depth_filter import backend_for_device, filter_depth, normals_from_depth
 from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
 from arlight.pipeline.horizon import SupportPlane, support_plane
-from arlight.pipeline.light_estimation import (
-    LUMA,
-    LightEstimate,
-    TemporalFilter,
-    estimate_light,
-    srgb_to_linear,
-)
+from arlight.pipeline.light_estimation import LightEstimate, TemporalFilter, estimate_light
 from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
+    TransferResult,
     compute_transfer,
     make_sampling_pattern,
     upsample_transfer,
@@ -38,48 +38,61 @@ from arlight.pipeline.segmentation import material_segments
 log = logging.getLogger(__name__)
 
 STAGES = ("Input", "Reconstruct", "Surface", "DynGeo", "RadTransfer", "LightEst", "Rendering")
-MAX_DEPTH_M = 100.0  # larger (finite) depth values are treated as invalid sensor output
 
 
-class FrameError(ValueError):
+class FrameError(CheckError):
     """A frame that cannot be processed; the message names the field and the limit."""
 
-    def __init__(self, field: str, message: str):
-        super().__init__(f"{field}: {message}")
-        self.field = field
+
+@dataclass(frozen=True)
+class ValidFrame:
+    """A frame that passed `validate_frame`: color (H, W, 3) uint8 RGB; depth_m (H, W)
+    float32 metres, 0 = missing (NaN, inf, negative, > 100 m -> 0); pose (4, 4) rigid
+    world_from_cam float64 or None."""
+
+    color: np.ndarray
+    depth_m: np.ndarray
+    pose: np.ndarray | None
 
 
-def validate_frame(frame: FrameInput, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
-    """Checked colour (H, W, 3) uint8 and depth (H, W) float32 metres with NaN/inf/negative -> 0."""
-    color = np.asarray(frame.color)
-    depth = np.asarray(frame.depth)
-    expected = (camera.height, camera.width)
-    if color.ndim != 3 or color.shape[2] != 3:
-        raise FrameError("color", f"expected shape (H, W, 3), got {color.shape}")
-    if color.dtype != np.uint8:
-        raise FrameError("color", f"expected dtype uint8, got {color.dtype}")
-    if color.shape[:2] != expected:
-        raise FrameError("color", f"size {color.shape[1]}x{color.shape[0]} does not match the "
-                                  f"camera's {camera.width}x{camera.height}")
-    if depth.ndim != 2:
-        raise FrameError("depth", f"expected shape (H, W), got {depth.shape}")
-    if depth.shape != expected:
-        raise FrameError("depth", f"size {depth.shape[1]}x{depth.shape[0]} does not match the "
-                                  f"colour image's {camera.width}x{camera.height}")
+def validate_frame(frame: FrameInput, camera: PinholeCamera) -> ValidFrame:
+    """The pipeline's one edge (arlight.checks); FrameError naming the field otherwise.
+
+    Depth is converted to metres here, once (uint16 with frame.depth_scale, or float metres
+    without); the pose must be rigid within the wire's tolerance (1e-3).
+    """
+    size = (camera.width, camera.height)
     try:
-        depth = depth_metres(frame.depth, frame.depth_scale)
+        color = check_image(frame.color, "color", channels=3, dtype=np.uint8, size=size)
+        check_image(frame.depth, "depth", size=size)
+        depth = depth_metres(frame.depth, frame.depth_scale, "depth")
+        pose = None if frame.pose is None else check_rigid(frame.pose, "pose")
+        check_finite(frame.timestamp, "timestamp")
     except CheckError as exc:
-        raise FrameError("depth", exc.message) from None
-    if frame.pose is not None:
-        pose = np.asarray(frame.pose, dtype=np.float64)
-        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-            raise FrameError("pose", f"expected a finite 4x4 matrix, got shape {pose.shape}")
-        r = pose[:3, :3]
-        if np.abs(r.T @ r - np.eye(3)).max() > 1e-3 or np.linalg.det(r) < 0:
-            raise FrameError("pose", "rotation part is not a rotation (R^T R != I or det < 0)")
-    if not np.isfinite(frame.timestamp):
-        raise FrameError("timestamp", f"must be finite, got {frame.timestamp}")
-    return color, depth
+        raise FrameError(exc.field, exc.message) from None
+    return ValidFrame(color, depth, pose)
+
+
+@contextmanager
+def _stage(timings: dict[str, float], name: str):
+    """Adds the wall-clock milliseconds of the block to timings[name]."""
+    t0 = time.perf_counter()
+    yield
+    timings[name] = timings.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
+
+
+@dataclass
+class _Geometry:
+    """The DynGeo stage's output: G_r of the paper and what is derived from it."""
+
+    depth_m: np.ndarray  # (H, W) float32 filtered depth, 0 = missing
+    normals: np.ndarray  # (H, W, 3) float32 camera frame, zeros where unknown
+    points: np.ndarray  # (H, W, 3) float32 camera frame
+    plane: SupportPlane | None
+
+
+def _json_float(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
 
 
 def smooth_depth_for_normals(depth_m: np.ndarray, window: int) -> np.ndarray:
@@ -103,25 +116,25 @@ def smooth_depth_for_normals(depth_m: np.ndarray, window: int) -> np.ndarray:
 
 
 class Pipeline:
-    """Holds one session's state (volume, pose, temporal filter); see DESIGN.md.
+    """Holds one session's state (volume, pose, temporal filter); see docs/architecture.md.
 
     config: all parameters (Config.from_preset); camera: intrinsics of the (registered)
     colour and depth images; scene: virtual objects to render (not used yet: no
-    differential rendering until a scene is given).
+    differential rendering until a scene is given). Not thread-safe (pipeline.runtime).
     """
 
     def __init__(self, config: Config, camera: PinholeCamera, scene=None):
         self.config = config
         self.camera = camera
         self.scene = scene
-        self.pattern = make_sampling_pattern(config)
-        self.filter = TemporalFilter(config.temporal_half_life_frames, config.change_reset_deg)
+        self.pattern = make_sampling_pattern(config.transfer, config.seed)
+        self.filter = TemporalFilter(config.temporal)
         self.frames_processed = 0
         self._volume = None
-        if config.use_volume:
+        if config.volume.use_volume:
             from arlight.pipeline.reconstruction import VolumeReconstruction
 
-            self._volume = VolumeReconstruction(config, camera)
+            self._volume = VolumeReconstruction.from_config(config, camera)
         self._pose = np.eye(4)
         self._light_world: np.ndarray | None = None
 
@@ -129,72 +142,28 @@ class Pipeline:
         """Estimate the lighting of one frame. Raises FrameError on malformed input."""
         timings: dict[str, float] = {}
         diagnostics: dict = {}
-
-        @contextmanager
-        def stage(name: str):
-            t0 = time.perf_counter()
-            yield
-            timings[name] = timings.get(name, 0.0) + (time.perf_counter() - t0) * 1e3
-
-        with stage("Input"):
-            color, depth = validate_frame(frame, self.camera)
-            intensity = intensity_from_rgb(color)
-            color_linear = srgb_to_linear(color)
-
-        aux_buffers = []
-        depth_volume = None
-        if self._volume is not None:
-            surface = self._volume.process(color, depth, frame.pose, self._light_world)
-            timings["Reconstruct"] = surface.timings_ms.get("Reconstruct", 0.0)
-            timings["Surface"] = surface.timings_ms.get("Surface", 0.0)
-            pose = surface.pose
-            depth_volume = surface.depth_volume_m
-            aux_buffers = surface.aux_buffers
-            diagnostics["tracking_ok"] = bool(surface.tracking_ok)
-        else:
-            timings["Reconstruct"] = timings["Surface"] = 0.0
-            pose = np.asarray(frame.pose, np.float64) if frame.pose is not None else self._pose
-        self._pose = pose
-
-        with stage("DynGeo"):
-            depth_filtered, _ = filter_depth(depth, depth_volume, intensity, self.config)
-            normals = normals_from_depth(
-                smooth_depth_for_normals(depth_filtered, self.config.normal_window), self.camera)
-            points = self.camera.unproject(depth_filtered)
-
-            plane = None
-            if (self.config.rt_horizon or self.config.horizon_prior > 0
-                    or self.config.segment_split_ground):
-                plane = support_plane(normals, points)
-
-        with stage("RadTransfer"):
-            aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
-            luminance = color_linear @ LUMA.astype(np.float32) if self.config.rt_bounce else None
-            transfer = compute_transfer(points, normals, self.camera, pose, self.pattern, aux,
-                                        self.config, luminance,
-                                        plane if self.config.rt_horizon else None)
-            if self.config.rt_upsample and self.config.rt_subsample > 1:
-                has_geometry = (depth_filtered > 0) & np.any(normals != 0, axis=2)
-                transfer = upsample_transfer(transfer, has_geometry)
-
-        with stage("LightEst"):
+        with _stage(timings, "Input"):
+            valid = validate_frame(frame, self.camera)
+            intensity = intensity_from_rgb(valid.color)
+            color_linear = srgb_to_linear(valid.color)
+        pose, depth_volume, aux_buffers = self._reconstruct(valid, timings, diagnostics)
+        with _stage(timings, "DynGeo"):
+            geometry = self._dynamic_geometry(valid.depth_m, depth_volume, intensity)
+        with _stage(timings, "RadTransfer"):
+            transfer = self._transfer(geometry, color_linear, pose, aux_buffers)
+        with _stage(timings, "LightEst"):
+            plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
-            estimate = self._estimate(transfer, color_linear, depth_filtered, plane, up_world,
-                                      below_horizon_unseen=self.config.rt_horizon)
+            estimate = self._estimate(transfer, color_linear, geometry.depth_m, plane, up_world,
+                                      below_horizon_unseen=self.config.transfer.rt_horizon)
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             direction_world, intensity_value = sh.dominant_light(coeffs)
             if np.any(direction_world):
                 self._light_world = direction_world
         timings["Rendering"] = 0.0
-
-        rotation = pose[:3, :3]
         self.frames_processed += 1
-        diagnostics["residual_rel"] = estimate.residual_rel
-        diagnostics["bounce_scale"] = estimate.bounce_scale
-        diagnostics["horizon_prior_used"] = estimate.horizon_prior_used
-        diagnostics["support_plane_up_world"] = (None if up_world is None
-                                                 else [float(x) for x in up_world])
-        diagnostics["raw_dominant_direction_world"] = sh.dominant_direction(estimate.sh).tolist()
+        diagnostics.update(self._estimate_diagnostics(estimate, up_world))
+        rotation = pose[:3, :3]
         return FrameResult(
             timestamp=float(frame.timestamp), sh=coeffs, sh_camera=sh.rotate(coeffs, rotation.T),
             dominant_direction_world=direction_world,
@@ -202,26 +171,96 @@ class Pipeline:
             intensity=intensity_value, confidence=estimate.confidence, pose=pose.copy(),
             sh_rgb=estimate.sh_rgb, composite=None, timings_ms=timings, diagnostics=diagnostics)
 
-    def _estimate(self, transfer, color_linear: np.ndarray, depth: np.ndarray,
+    def _reconstruct(self, valid: ValidFrame, timings: dict[str, float], diagnostics: dict,
+                     ) -> tuple[np.ndarray, np.ndarray | None, list]:
+        """Reconstruct + Surface: (pose, D_v or None, aux buffers); tracking diagnostics."""
+        depth_volume, aux_buffers = None, []
+        if self._volume is None:
+            timings["Reconstruct"] = timings["Surface"] = 0.0
+            ok = valid.pose is not None or self.frames_processed == 0
+            pose = valid.pose if valid.pose is not None else self._pose
+            tracking = {"ok": ok, "reason": "" if ok else "no volume (use_volume false) and "
+                                                          "no pose: the last pose is kept"}
+        else:
+            surface = self._volume.process_validated(valid.depth_m, valid.pose,
+                                                     self._light_world)
+            timings["Reconstruct"] = surface.timings_ms.get("Reconstruct", 0.0)
+            timings["Surface"] = surface.timings_ms.get("Surface", 0.0)
+            pose, depth_volume, aux_buffers = (surface.pose, surface.depth_volume_m,
+                                               surface.aux_buffers)
+            tracking = surface.tracking.to_dict()
+        self._pose = pose
+        diagnostics["tracking_ok"] = bool(tracking["ok"])
+        diagnostics["tracking"] = tracking
+        return pose, depth_volume, aux_buffers
+
+    def _dynamic_geometry(self, depth_m: np.ndarray, depth_volume: np.ndarray | None,
+                          intensity: np.ndarray) -> _Geometry:
+        """DynGeo: the filter chain (eq. 1-5), normals, points and the support plane."""
+        c = self.config
+        depth_filtered, _ = filter_depth(depth_m, depth_volume, intensity, c.filter,
+                                         backend=backend_for_device(c.device))
+        normals = normals_from_depth(
+            smooth_depth_for_normals(depth_filtered, c.filter.normal_window), self.camera)
+        points = self.camera.unproject(depth_filtered)
+        plane = None
+        if (c.transfer.rt_horizon or c.estimation.horizon_prior > 0
+                or c.estimation.segment_split_ground):
+            plane = support_plane(normals, points)
+        return _Geometry(depth_filtered, normals, points, plane)
+
+    def _transfer(self, geometry: _Geometry, color_linear: np.ndarray, pose: np.ndarray,
+                  aux_buffers: list) -> TransferResult:
+        """RadTransfer (eq. 6-9), up-sampled to every pixel when sub-sampled (OursFast)."""
+        p = self.config.transfer
+        aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
+        lum = luminance(color_linear) if p.rt_bounce else None
+        transfer = compute_transfer(geometry.points, geometry.normals, self.camera, pose,
+                                    self.pattern, aux, p, lum,
+                                    geometry.plane if p.rt_horizon else None)
+        if p.rt_upsample and p.rt_subsample > 1:
+            has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
+            transfer = upsample_transfer(transfer, has_geometry)
+        return transfer
+
+    def _estimate(self, transfer: TransferResult, color_linear: np.ndarray, depth: np.ndarray,
                   plane: SupportPlane | None = None,
                   up_world: np.ndarray | None = None,
                   below_horizon_unseen: bool = False) -> LightEstimate:
+        """LightEst (T l = I_c, section 5.2) on the pixels with transfer; albedo per segment."""
+        p = self.config.estimation
         valid = transfer.valid
-        n = self.config.sh_bands ** 2
+        n = transfer.transfer.shape[-1]
         if not np.any(valid):
             return LightEstimate(np.zeros(n), Confidence(reason="no valid depth"),
-                                 np.zeros((3, n)) if self.config.estimate_rgb else None)
+                                 np.zeros((3, n)) if p.estimate_rgb else None)
         grid = np.ix_(transfer.pixel_v, transfer.pixel_u)
         colors = color_linear[grid][valid]
         segments = None
-        if self.config.albedo_segments:
+        if p.albedo_segments:
             segments = material_segments(
-                color_linear, depth, features=self.config.segment_features,
-                illuminant_weight=self.config.segment_illuminant_weight)
-            if plane is not None and self.config.segment_split_ground:
+                color_linear, depth, features=p.segment_features.value,
+                illuminant_weight=p.segment_illuminant_weight)
+            if plane is not None and p.segment_split_ground:
                 # what stands on the ground is rarely made of the ground's material
                 segments = segments * 2 + plane.on_plane
             segments = segments[grid][valid]
         bounce = transfer.bounce[valid] if transfer.bounce is not None else None
-        return estimate_light(transfer.transfer[valid], colors, self.config, segments, bounce,
-                              up_world, below_horizon_unseen)
+        return estimate_light(transfer.transfer[valid], colors, p, segments, bounce,
+                              up_world, below_horizon_unseen, seed=self.config.seed)
+
+    def _estimate_diagnostics(self, estimate: LightEstimate,
+                              up_world: np.ndarray | None) -> dict:
+        """Plain JSON types (the wire carries them): what the light estimate did and why."""
+        return {
+            "residual_rel": _json_float(estimate.residual_rel),
+            "bounce_scale": float(estimate.bounce_scale),
+            "horizon_prior_used": bool(estimate.horizon_prior_used),
+            "support_plane_up_world": (None if up_world is None
+                                       else [float(x) for x in up_world]),
+            "raw_dominant_direction_world": [
+                float(x) for x in sh.dominant_direction(estimate.sh)],
+            "bands_requested": int(self.config.transfer.sh_bands),
+            "bands_estimated": int(estimate.confidence.bands_estimated),
+            "confidence_reason": estimate.confidence.reason,
+        }

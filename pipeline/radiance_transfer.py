@@ -30,9 +30,10 @@ import numpy as np
 from numba.extending import register_jitable
 from scipy.spatial import ConvexHull
 
+from arlight.checks import check_image
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
-from arlight.pipeline.config import Config
+from arlight.pipeline.config import TransferParams, VisibilityRamp
 from arlight.pipeline.horizon import SupportPlane
 
 
@@ -68,26 +69,24 @@ def visibility_threshold(directions: np.ndarray) -> float:
     return float(math.cos(np.median(np.arccos(cosines)) / 2.0))
 
 
-def make_sampling_pattern(config: Config) -> SamplingPattern:
-    rng = np.random.default_rng(config.seed)
-    dirs = jittered_directions(config.rt_directions, rng)
-    steps = config.rt_steps
+def make_sampling_pattern(params: TransferParams, seed: int = 0) -> SamplingPattern:
+    """The N jittered directions, the sample radii and chi (eq. 9), seeded by `seed`."""
+    rng = np.random.default_rng(seed)
+    dirs = jittered_directions(params.rt_directions, rng)
+    steps = params.rt_steps
     # one random distance per direction and 2x2 block position; with several steps per
     # direction the distances are stratified in (0, radius]
-    u = rng.random((2, 2, config.rt_directions, steps))
-    radii = (np.arange(steps) + u) / steps * config.rt_radius_m
+    u = rng.random((2, 2, params.rt_directions, steps))
+    radii = (np.arange(steps) + u) / steps * params.rt_radius_m
     return SamplingPattern(dirs, radii.astype(np.float64), visibility_threshold(dirs))
 
 
-def visibility_ramp(pattern: SamplingPattern, config: Config) -> float:
+def visibility_ramp(pattern: SamplingPattern, params: TransferParams) -> float:
     """The threshold c of K = min(c, 1 - t.w) / c: chi as printed in eq. 8 ("paper"), or
     1 - chi so K ramps over half the neighbour angle ("half")."""
-    if config.rt_visibility_ramp == "paper":
+    if params.rt_visibility_ramp is VisibilityRamp.PAPER:
         return pattern.chi
-    if config.rt_visibility_ramp == "half":
-        return 1.0 - pattern.chi
-    raise ValueError(f"rt_visibility_ramp must be 'paper' or 'half', got "
-                     f"{config.rt_visibility_ramp!r}")
+    return 1.0 - pattern.chi
 
 
 @dataclass
@@ -292,10 +291,10 @@ HORIZON_BELOW_M = 0.05
 
 def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: PinholeCamera,
                      world_from_cam: np.ndarray, pattern: SamplingPattern,
-                     aux: AuxBufferArrays | None, config: Config,
+                     aux: AuxBufferArrays | None, params: TransferParams,
                      luminance: np.ndarray | None = None,
                      plane: SupportPlane | None = None) -> TransferResult:
-    """SH radiance transfer for every `config.rt_subsample`-th pixel (section 5.1).
+    """SH radiance transfer for every `params.rt_subsample`-th pixel (section 5.1, eq. 6-9).
 
     points_cam: (H, W, 3) float32 camera-frame points of the filtered depth (z = 0 missing);
     normals_cam: (H, W, 3) unit normals, camera frame, zeros where unknown;
@@ -305,26 +304,26 @@ def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: Pi
     ground, never the distant light (their light, the ground's luminance, goes to bounce).
     """
     h, w = points_cam.shape[:2]
-    step = config.rt_subsample
+    step = params.rt_subsample
     hs, ws = (h + step - 1) // step, (w + step - 1) // step
     dirs_world = pattern.directions @ np.asarray(world_from_cam, np.float64)[:3, :3].T
-    ysh = sh.sh_basis(dirs_world, config.sh_bands)
+    ysh = sh.sh_basis(dirs_world, params.sh_bands)
     aux = aux if aux is not None else AuxBufferArrays.empty()
     transfer = np.zeros((hs, ws, ysh.shape[1]), np.float64)
     valid = np.zeros((hs, ws), np.bool_)
     bounce = np.zeros((hs, ws), np.float64)
     points = np.ascontiguousarray(points_cam, dtype=np.float32)
     depth = np.ascontiguousarray(points[..., 2])
+    if luminance is not None:  # a public entry: the one image not made from points_cam
+        check_image(luminance, "luminance", size=(w, h))
     lum = (np.zeros((1, 1), np.float32) if luminance is None
            else np.ascontiguousarray(luminance, dtype=np.float32))
-    if luminance is not None and lum.shape != (h, w):
-        raise ValueError(f"luminance must be {(h, w)}, got {lum.shape}")
     plane_arr, ground_lum = _plane_arrays(plane, lum if luminance is not None else None)
     _transfer_cpu(points, np.ascontiguousarray(normals_cam, dtype=np.float32), depth,
                   camera.fx, camera.fy, camera.cx, camera.cy, pattern.directions, ysh,
                   pattern.radii, aux.depth, aux.buffer_from_cam, aux.pixel_size,
-                  visibility_ramp(pattern, config),
-                  BIAS_ABS_M, BIAS_REL, config.rt_thickness_m, config.visibility, lum,
+                  visibility_ramp(pattern, params),
+                  BIAS_ABS_M, BIAS_REL, params.rt_thickness_m, params.visibility, lum,
                   plane_arr, ground_lum, step, transfer, bounce, valid)
     u = np.minimum(np.arange(ws) * step + step // 2, w - 1)
     v = np.minimum(np.arange(hs) * step + step // 2, h - 1)
@@ -416,7 +415,7 @@ def _visibility_reference(x: np.ndarray, w: np.ndarray, radius: float, depth: np
 
 def transfer_reference(points_cam: np.ndarray, normals_cam: np.ndarray, camera: PinholeCamera,
                        world_from_cam: np.ndarray, pattern: SamplingPattern,
-                       aux: AuxBufferArrays | None, config: Config,
+                       aux: AuxBufferArrays | None, params: TransferParams,
                        plane: SupportPlane | None = None) -> TransferResult:
     """Plain NumPy/Python oracle of :func:`compute_transfer`: same inputs, same definition
     (the transfer only, not the bounce).
@@ -428,13 +427,13 @@ def transfer_reference(points_cam: np.ndarray, normals_cam: np.ndarray, camera: 
     normals = np.asarray(normals_cam, dtype=np.float32).astype(np.float64)
     depth = points[..., 2]
     h, w = depth.shape
-    step = config.rt_subsample
+    step = params.rt_subsample
     hs, ws = (h + step - 1) // step, (w + step - 1) // step
     u_grid = np.array([min(j * step + step // 2, w - 1) for j in range(ws)])
     v_grid = np.array([min(i * step + step // 2, h - 1) for i in range(hs)])
     dirs = np.asarray(pattern.directions, dtype=np.float64)
     rot_world_cam = np.asarray(world_from_cam, dtype=np.float64)[:3, :3]
-    ysh = sh.sh_basis(dirs @ rot_world_cam.T, config.sh_bands)  # basis in the WORLD frame
+    ysh = sh.sh_basis(dirs @ rot_world_cam.T, params.sh_bands)  # basis in the WORLD frame
     aux = aux if aux is not None else AuxBufferArrays.empty()
     weight = 4.0 * math.pi / len(dirs)
     transfer = np.zeros((hs, ws, ysh.shape[1]))
@@ -451,11 +450,11 @@ def transfer_reference(points_cam: np.ndarray, normals_cam: np.ndarray, camera: 
                 if not cos_n > 0.0 or (above_plane and float(wdir @ plane.up) < 0.0):
                     continue
                 k = 1.0
-                if config.visibility:
+                if params.visibility:
                     for s in range(pattern.radii.shape[3]):
                         radius = float(pattern.radii[vi % 2, ui % 2, j, s])
                         k = min(k, _visibility_reference(x, wdir, radius, depth, camera, aux,
-                                                         visibility_ramp(pattern, config),
-                                                         config.rt_thickness_m))
+                                                         visibility_ramp(pattern, params),
+                                                         params.rt_thickness_m))
                 transfer[i, jj] += k * cos_n * weight * ysh[j]
     return TransferResult(transfer.astype(np.float32), valid, u_grid, v_grid)

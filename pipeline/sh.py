@@ -1,7 +1,8 @@
 """Real spherical harmonics: the one place where the convention is written out.
 
-Convention (DESIGN.md): real, orthonormal over the unit sphere, WITHOUT the Condon-Shortley
-phase, index ``i = l*(l+1) + m`` for band ``l`` and order ``m = -l..l``::
+Convention (docs/architecture.md, "Conventions"): real, orthonormal over the unit sphere,
+WITHOUT the Condon-Shortley phase, index ``i = l*(l+1) + m`` for band ``l`` and order
+``m = -l..l``::
 
     Y_l,m  = sqrt(2) K_l^m P_l^m(z) cos(m phi)        m > 0
     Y_l,0  =         K_l^0 P_l^0(z)

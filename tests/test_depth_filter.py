@@ -257,47 +257,47 @@ class TestFilterDepth:
     def test_passes_and_config(self):
         dc, dv, intensity = _random_inputs(5)
         config = Config()
-        final, passes = df.filter_depth(dc, dv, intensity, config)
+        final, passes = df.filter_depth(dc, dv, intensity, config.filter)
         merged = df.merge_depth(dc, dv, intensity, 20, 7.0, 0.05)
         smoothed = df.joint_bilateral_median(merged, intensity, 8, 7.0, 5)
         np.testing.assert_array_equal(passes["merged"], merged)
         np.testing.assert_array_equal(passes["smoothed"], smoothed)
         np.testing.assert_array_equal(final, df.median_depth(smoothed, 2))
         np.testing.assert_array_equal(passes["denoised"], final)
-        final, passes = df.filter_depth(dc, dv, intensity, Config.from_preset("mobile"))
+        final, passes = df.filter_depth(dc, dv, intensity, Config.from_preset("mobile").filter)
         assert set(passes) == {"merged", "smoothed"}
         np.testing.assert_array_equal(final, smoothed)
 
     def test_all_missing_gives_zeros(self):
         zeros = np.zeros((24, 32), np.float32)
-        final, passes = df.filter_depth(zeros, zeros, _flat(24, 32, DARK), Config())
+        final, passes = df.filter_depth(zeros, zeros, _flat(24, 32, DARK), Config().filter)
         for image in (final, *passes.values()):
             assert image.dtype == np.float32 and not image.any() and np.isfinite(image).all()
         nan = _flat(24, 32, np.nan)
-        final, _ = df.filter_depth(nan, nan, _flat(24, 32, DARK), Config())
+        final, _ = df.filter_depth(nan, nan, _flat(24, 32, DARK), Config().filter)
         assert not final.any()
 
     def test_one_pixel(self):
         final, _ = df.filter_depth(_flat(1, 1, 1.5), _flat(1, 1, 1.52), _flat(1, 1, DARK),
-                                   Config())
+                                   Config().filter)
         assert final.shape == (1, 1) and final[0, 0] == np.float32(1.52)
         final, _ = df.filter_depth(_flat(1, 1, 0.0), _flat(1, 1, 0.0), _flat(1, 1, DARK),
-                                   Config())
+                                   Config().filter)
         assert final[0, 0] == 0
 
     @pytest.mark.parametrize("depth_m", [0.1, 10.0])
     def test_near_and_far_planes(self, depth_m):
         dc = _flat(40, 50, depth_m)
         dc[10:14, 20:30] = 0
-        final, _ = df.filter_depth(dc, None, _flat(40, 50, DARK), Config())
+        final, _ = df.filter_depth(dc, None, _flat(40, 50, DARK), Config().filter)
         np.testing.assert_array_equal(final, np.float32(depth_m))
 
     def test_cuda_config_without_gpu_raises(self):
         if df.cuda_available():
             pytest.skip("a GPU is present")
         with pytest.raises(RuntimeError, match="cuda"):
-            df.filter_depth(_flat(2, 2, 1.0), None, _flat(2, 2, DARK),
-                            Config(device="CUDA:0"))
+            df.filter_depth(_flat(2, 2, 1.0), None, _flat(2, 2, DARK), Config().filter,
+                            backend=df.backend_for_device(Config(device="CUDA:0").device))
 
 
 class TestNormals:

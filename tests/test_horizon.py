@@ -9,7 +9,7 @@ import pytest
 from arlight.pipeline import light_estimation as le
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
-from arlight.pipeline.config import Config
+from arlight.pipeline.config import EstimationParams
 from arlight.pipeline.horizon import support_plane, support_plane_up
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
@@ -114,18 +114,18 @@ class TestBelowHorizonPrior:
 
     def test_light_above_the_horizon_is_left_alone(self):
         t, color, light = self._data([0.3, 0.8, 0.5])
-        free = le.estimate_light(t, color, Config())
-        with_up = le.estimate_light(t, color, Config(), up=np.array([0.0, 1.0, 0.0]))
+        free = le.estimate_light(t, color, EstimationParams())
+        with_up = le.estimate_light(t, color, EstimationParams(), up=np.array([0.0, 1.0, 0.0]))
         assert not with_up.horizon_prior_used
         np.testing.assert_allclose(with_up.sh, free.sh)
 
     def test_light_below_the_horizon_is_refit_with_the_prior(self):
         t, color, light = self._data([0.3, -0.6, 0.5])
-        free = le.estimate_light(t, color, Config())
-        with_up = le.estimate_light(t, color, Config(), up=np.array([0.0, 1.0, 0.0]))
+        free = le.estimate_light(t, color, EstimationParams())
+        with_up = le.estimate_light(t, color, EstimationParams(), up=np.array([0.0, 1.0, 0.0]))
         assert with_up.horizon_prior_used
         d_free, d_up = sh.dominant_direction(free.sh), sh.dominant_direction(with_up.sh)
         assert d_up[1] > d_free[1]  # pulled up towards the horizon
-        off = le.estimate_light(t, color, Config(horizon_prior=0.0),
+        off = le.estimate_light(t, color, EstimationParams(horizon_prior=0.0),
                                 up=np.array([0.0, 1.0, 0.0]))
         assert not off.horizon_prior_used

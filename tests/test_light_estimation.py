@@ -6,6 +6,7 @@ and without noise, per-segment albedo, outliers, a single plane (rank-deficient)
 samples, clipped and NaN pixels, RGB, the sRGB decode, and the temporal filter.
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -13,14 +14,14 @@ import pytest
 
 from arlight.pipeline import light_estimation as le
 from arlight.pipeline import sh
-from arlight.pipeline.config import Config
+from arlight.pipeline.config import EstimationParams, TemporalParams
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
 LIGHT_DIR = (0.3, -0.8, 0.5)
 # The default regularisation (1e-2) damps bands 2-3 hard: on real frames that is what holds
 # the direction (see README, accuracy), on the ideal point lights of these tests it costs a
 # few per cent of band-1 magnitude. Tests of exact recovery use a weak one.
-WEAK = Config(regularization=1e-3)
+WEAK = EstimationParams(regularization=1e-3)
 
 
 def _unit(v):
@@ -83,7 +84,7 @@ class TestRecovery:
     def test_default_regularisation_keeps_direction_and_most_of_the_magnitude(self):
         _, t = _synthetic()
         light = _light()
-        est = le.estimate_light(t, _grey(t @ light), Config())
+        est = le.estimate_light(t, _grey(t @ light), EstimationParams())
         assert _angle_deg(est.sh, light) < 1.0
         np.testing.assert_allclose(est.sh[:4], light[:4], rtol=0.15)
 
@@ -94,7 +95,7 @@ class TestRecovery:
         rng = np.random.default_rng(seed + 10)
         noisy = (t @ light) * (1.0 + 0.05 * rng.normal(size=len(t))) + 0.005 * rng.normal(
             size=len(t))
-        est = le.estimate_light(t, _grey(noisy), Config())
+        est = le.estimate_light(t, _grey(noisy), EstimationParams())
         assert _angle_deg(est.sh, light) < 1.0
         assert np.all(np.isfinite(est.sh)) and est.residual_rel < 0.2
 
@@ -103,7 +104,7 @@ class TestRecovery:
         _, t = _synthetic()
         light = _light()
         rot = sh.rotation_matrix(np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]), 4)
-        est = le.estimate_light(t @ rot.T, _grey(t @ light), Config())
+        est = le.estimate_light(t @ rot.T, _grey(t @ light), EstimationParams())
         # T' l' = T l with T' = T R^T  <=>  l' = R l
         assert _angle_deg(est.sh, rot @ light) < 1.0
 
@@ -135,7 +136,7 @@ class TestAlbedoSegments:
                     "latitude": np.digitize(n[:, 2], [-1 / 3, 1 / 3]),
                     "x": np.digitize(n[:, 0], [-1 / 3, 1 / 3])}[layout]
         color = _grey((t @ light) * self.ALBEDO[segments])
-        cfg = Config(robust_iterations=60, regularization=1e-6)
+        cfg = EstimationParams(robust_iterations=60, regularization=1e-6)
         est = le.estimate_light(t, color, cfg, segments=segments)
         assert _angle_deg(est.sh, light) < 0.5
 
@@ -147,7 +148,7 @@ class TestAlbedoSegments:
         light = _light()
         segments = np.digitize(np.arctan2(n[:, 1], n[:, 0]), [-1.05, 1.05])
         color = _grey((t @ light) * self.ALBEDO[segments])
-        est = le.estimate_light(t, color, Config(), segments=segments)
+        est = le.estimate_light(t, color, EstimationParams(), segments=segments)
         assert _angle_deg(est.sh, light) < 3.0
 
 
@@ -163,8 +164,8 @@ class TestOutliers:
         idx = np.random.default_rng(3).choice(len(bad), len(bad) // 10, replace=False)
         bad[idx] *= 3.0
         assert bad.max() < le.CLIP_LEVEL  # the outliers are not simply clipped away
-        robust = le.estimate_light(t, _grey(bad), Config())
-        plain = le.estimate_light(t, _grey(bad), Config(robust_iterations=0))
+        robust = le.estimate_light(t, _grey(bad), EstimationParams())
+        plain = le.estimate_light(t, _grey(bad), EstimationParams(robust_iterations=0))
         assert robust.confidence.samples == plain.confidence.samples == len(bad)
         e_robust, e_plain = _angle_deg(robust.sh, light), _angle_deg(plain.sh, light)
         assert e_robust < e_plain and e_robust < 1.5
@@ -178,8 +179,8 @@ class TestOutliers:
         bad = clean.copy()
         idx = np.argsort(-(n @ _unit([-0.6, 0.2, 0.3])))[: len(bad) // 10]  # one bright patch
         bad[idx] *= 3.0
-        robust = le.estimate_light(t, _grey(bad), Config())
-        plain = le.estimate_light(t, _grey(bad), Config(robust_iterations=0))
+        robust = le.estimate_light(t, _grey(bad), EstimationParams())
+        plain = le.estimate_light(t, _grey(bad), EstimationParams(robust_iterations=0))
         assert _angle_deg(robust.sh, light) < _angle_deg(plain.sh, light)
 
 
@@ -191,7 +192,7 @@ class TestDegenerate:
         light = _light()
         rng = np.random.default_rng(0)
         color = _grey((t @ light) * (1.0 + 0.01 * rng.normal(size=m)))
-        est = le.estimate_light(t, color, WEAK.replace(estimate_rgb=True))
+        est = le.estimate_light(t, color, dataclasses.replace(WEAK, estimate_rgb=True))
         conf = est.confidence
         assert conf.bands_estimated < 4 or conf.condition_number > le.MAX_CONDITION
         assert conf.bands_estimated == 1  # no band-1 direction is invented from one normal
@@ -203,7 +204,7 @@ class TestDegenerate:
     @pytest.mark.parametrize("rgb", [False, True])
     def test_too_few_samples(self, rgb):
         _, t = _synthetic(m=150)
-        est = le.estimate_light(t, _grey(t @ _light()), Config(min_samples=200,
+        est = le.estimate_light(t, _grey(t @ _light()), EstimationParams(min_samples=200,
                                                                estimate_rgb=rgb))
         assert est.confidence.value == 0.0 and est.confidence.samples == 150
         assert "min_samples" in est.confidence.reason
@@ -214,7 +215,7 @@ class TestDegenerate:
             assert est.sh_rgb is None
 
     def test_empty_input(self):
-        est = le.estimate_light(np.zeros((0, 16)), np.zeros((0, 3)), Config())
+        est = le.estimate_light(np.zeros((0, 16)), np.zeros((0, 3)), EstimationParams())
         assert est.confidence.value == 0.0 and est.confidence.samples == 0
         assert np.all(est.sh == 0)
 
@@ -234,7 +235,7 @@ class TestDegenerate:
         order = rng.permutation(2400)
         t_all = np.concatenate([t, bad_t])[order]
         color_all = np.concatenate([color, bad_color])[order]
-        cfg = Config(estimate_rgb=True)
+        cfg = EstimationParams(estimate_rgb=True)
         mixed = le.estimate_light(t_all, color_all, cfg)
         clean = le.estimate_light(t, color, cfg)
         assert mixed.confidence.samples == 2000
@@ -250,7 +251,7 @@ class TestRgb:
         warm = np.stack([1.0 * base, 0.85 * base, 0.6 * base])
         warm[2, 0] += 0.05  # a bluish ambient
         color = t @ warm.T
-        est = le.estimate_light(t, color, WEAK.replace(estimate_rgb=True))
+        est = le.estimate_light(t, color, dataclasses.replace(WEAK, estimate_rgb=True))
         assert est.sh_rgb.shape == (3, 16)
         np.testing.assert_allclose(le.LUMA @ est.sh_rgb, est.sh, atol=1e-9)
         for ch in range(3):
@@ -263,8 +264,7 @@ class TestTemporalFilter:
     NEW = _light((1.0, 0.0, 0.0))  # 90 degrees away
 
     def _filter(self):
-        cfg = Config()
-        return le.TemporalFilter(cfg.temporal_half_life_frames, cfg.change_reset_deg)
+        return le.TemporalFilter(TemporalParams())
 
     def test_constant_input_converges_immediately(self):
         f = self._filter()
@@ -310,11 +310,12 @@ class TestBounceTerm:
         rng = np.random.default_rng(3)
         bounce = rng.uniform(0.0, 2.0, len(t))
         light, beta = _light(), 0.12
-        est = le.estimate_light(t, _grey(t @ light + beta * bounce), Config(), bounce=bounce)
+        est = le.estimate_light(t, _grey(t @ light + beta * bounce), EstimationParams(),
+                                bounce=bounce)
         assert est.bounce_scale == pytest.approx(beta, rel=0.05)
         assert _angle_deg(est.sh, light) < 1.0
         # ignoring the bounce light biases the estimate
-        ignored = le.estimate_light(t, _grey(t @ light + beta * bounce), Config())
+        ignored = le.estimate_light(t, _grey(t @ light + beta * bounce), EstimationParams())
         assert ignored.bounce_scale == 0.0
 
     def test_negative_bounce_scale_is_not_allowed(self):
@@ -322,5 +323,5 @@ class TestBounceTerm:
         bounce = np.random.default_rng(4).uniform(0.0, 2.0, len(t))
         light = _light()
         est = le.estimate_light(t, _grey(np.maximum(t @ light - 0.1 * bounce, 0.01)),
-                                Config(), bounce=bounce)
+                                EstimationParams(), bounce=bounce)
         assert est.bounce_scale == 0.0

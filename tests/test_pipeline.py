@@ -1,16 +1,22 @@
 """Pipeline.process end to end: interface, determinism, bad input, numerical extremes."""
 
 import dataclasses
+import json
 import math
 
 import numpy as np
 import pytest
 
+from arlight.checks import CheckError
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.pipeline import STAGES, FrameError, Pipeline
+from arlight.pipeline.runtime import configure_open3d_threads
 from arlight.sources.synthetic import make_sequence
+
+# one Open3D thread: tracking (its TBB reduction) is deterministic, as the entry points set
+configure_open3d_threads(1)
 
 SMALL = dict(volume_resolution=64, aux_resolution=32)
 
@@ -179,3 +185,48 @@ class TestSupportPlaneOnTheBuiltInScene:
         assert plane.on_plane[ground].mean() > 0.8
         assert plane.on_plane[objects].mean() < 0.02
         np.testing.assert_allclose(pose[:3, :3] @ plane.up, [0.0, 1.0, 0.0], atol=0.02)
+
+
+class TestDiagnostics:
+    """FrameResult.diagnostics: plain JSON (the wire carries it), saying what happened."""
+
+    def test_plain_json_with_tracking_and_bands(self, clean_sequence):
+        pipe = Pipeline(Config.from_preset("fast", **SMALL), clean_sequence.camera)
+        for frame in clean_sequence.frames[:2]:
+            result = pipe.process(dataclasses.replace(frame, pose=None))
+        d = result.diagnostics
+        assert json.loads(json.dumps(d, allow_nan=False)) == d
+        assert d["tracking_ok"] is True and d["tracking"]["ok"] is True
+        assert d["tracking"]["reason"] == ""
+        assert d["bands_estimated"] == result.confidence.bands_estimated
+        assert d["bands_requested"] == 4
+
+    def test_tracking_failure_says_why(self, clean_sequence):
+        pipe = Pipeline(Config.from_preset("fast", **SMALL), clean_sequence.camera)
+        f = clean_sequence.frames[0]
+        pipe.process(dataclasses.replace(f, pose=None))
+        result = pipe.process(dataclasses.replace(f, pose=None, depth=np.zeros_like(f.depth)))
+        assert result.diagnostics["tracking_ok"] is False
+        assert "too little depth" in result.diagnostics["tracking"]["reason"]
+
+    def test_low_confidence_has_a_reason(self, clean_sequence):
+        f = clean_sequence.frames[0]
+        pipe = Pipeline(Config.from_preset("fast", use_volume=False), clean_sequence.camera)
+        for color in (np.zeros_like(f.color), f.color):
+            result = pipe.process(dataclasses.replace(f, color=color))
+            if result.confidence.value < 0.3:
+                assert result.confidence.reason
+                assert result.diagnostics["confidence_reason"] == result.confidence.reason
+        black = pipe.process(dataclasses.replace(f, color=np.zeros_like(f.color)))
+        assert "too dark" in black.confidence.reason
+
+    def test_raw_depth_with_its_scale(self, clean_sequence):
+        f = clean_sequence.frames[0]
+        metres = np.where(np.isfinite(f.depth) & (f.depth < 13.0), f.depth, 0.0)
+        raw = np.round(metres * 5000).astype(np.uint16)
+        pipe = Pipeline(Config.from_preset("fast", use_volume=False), clean_sequence.camera)
+        a = pipe.process(dataclasses.replace(f, depth=raw, depth_scale=5000.0))
+        assert a.confidence.samples > 1000
+        with pytest.raises(FrameError, match="depth_scale"):
+            pipe.process(dataclasses.replace(f, depth=raw, depth_scale=-1.0))
+        assert issubclass(FrameError, CheckError)

@@ -110,17 +110,19 @@ class TestSampling:
         assert np.arccos(np.clip((a * base).sum(axis=1), -1, 1)).max() < 1.5 * cell
 
     def test_pattern_deterministic_per_seed(self):
-        cfg = Config(rt_directions=32, rt_steps=3, rt_radius_m=0.4, seed=3)
-        p, q = rt.make_sampling_pattern(cfg), rt.make_sampling_pattern(cfg)
+        cfg = Config().replace(rt_directions=32, rt_steps=3, rt_radius_m=0.4, seed=3)
+        tp = cfg.transfer
+        p, q = rt.make_sampling_pattern(tp, cfg.seed), rt.make_sampling_pattern(tp, cfg.seed)
         np.testing.assert_array_equal(p.directions, q.directions)
         np.testing.assert_array_equal(p.radii, q.radii)
         assert p.chi == q.chi == rt.visibility_threshold(p.directions)
-        other = rt.make_sampling_pattern(cfg.replace(seed=4))
+        other = rt.make_sampling_pattern(tp, 4)
         assert not np.allclose(p.directions, other.directions)
 
     def test_radii_stratified_within_radius(self):
-        cfg = Config(rt_directions=32, rt_steps=3, rt_radius_m=0.4)
-        radii = rt.make_sampling_pattern(cfg).radii
+        cfg = Config().replace(rt_directions=32, rt_steps=3, rt_radius_m=0.4)
+        tp = cfg.transfer
+        radii = rt.make_sampling_pattern(tp, cfg.seed).radii
         assert radii.shape == (2, 2, 32, 3)
         assert radii.min() > 0.0 and radii.max() <= 0.4
         for s in range(3):  # step s draws from (s, s + 1] / steps * radius
@@ -165,10 +167,11 @@ class TestKernelAgainstReference:
     def test_random_scene_with_holes(self, seed, step, steps, with_aux):
         camera, points, normals, world_from_cam = _random_scene(seed)
         aux = _hand_made_aux(seed) if with_aux else None
-        cfg = Config(rt_directions=32, rt_steps=steps, rt_subsample=step, seed=seed)
-        pattern = rt.make_sampling_pattern(cfg)
-        fast = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, aux, cfg)
-        ref = rt.transfer_reference(points, normals, camera, world_from_cam, pattern, aux, cfg)
+        cfg = Config().replace(rt_directions=32, rt_steps=steps, rt_subsample=step, seed=seed)
+        tp = cfg.transfer
+        pattern = rt.make_sampling_pattern(tp, cfg.seed)
+        fast = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, aux, tp)
+        ref = rt.transfer_reference(points, normals, camera, world_from_cam, pattern, aux, tp)
         np.testing.assert_array_equal(fast.valid, ref.valid)
         np.testing.assert_array_equal(fast.pixel_u, ref.pixel_u)
         np.testing.assert_array_equal(fast.pixel_v, ref.pixel_v)
@@ -178,17 +181,18 @@ class TestKernelAgainstReference:
         assert 0 < fast.valid.sum() < fast.valid.size
         assert np.all(fast.transfer[~fast.valid] == 0)
         free = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, aux,
-                                   cfg.replace(visibility=False))
+                                   cfg.replace(visibility=False).transfer)
         assert (free.transfer[..., 0] - fast.transfer[..., 0])[fast.valid].mean() > 0.05
 
     def test_aux_buffers_add_occlusion(self):
         camera, points, normals, world_from_cam = _random_scene(0)
-        cfg = Config(rt_directions=32)
-        pattern = rt.make_sampling_pattern(cfg)
+        cfg = Config().replace(rt_directions=32)
+        tp = cfg.transfer
+        pattern = rt.make_sampling_pattern(tp, cfg.seed)
         main_only = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
-                                        cfg)
+                                        tp)
         with_aux = rt.compute_transfer(points, normals, camera, world_from_cam, pattern,
-                                       _hand_made_aux(0), cfg)
+                                       _hand_made_aux(0), tp)
         dc_drop = (main_only.transfer[..., 0] - with_aux.transfer[..., 0])[main_only.valid]
         assert np.all(dc_drop >= -1e-6) and dc_drop.mean() > 0.05
 
@@ -203,9 +207,10 @@ class TestVisibilityFree:
         normals[..., 2] = -1.0
         world_from_cam = np.eye(4)
         world_from_cam[:3, :3] = _random_rotation(np.random.default_rng(3))
-        cfg = Config(rt_directions=512, visibility=False)
+        cfg = Config().replace(rt_directions=512, visibility=False)
+        tp = cfg.transfer
         res = rt.compute_transfer(points, normals, camera, world_from_cam,
-                                  rt.make_sampling_pattern(cfg), None, cfg)
+                                  rt.make_sampling_pattern(tp, cfg.seed), None, tp)
         assert res.valid.all()
         t = res.transfer.reshape(-1, 16)
         np.testing.assert_allclose(t, t[:1].repeat(len(t), axis=0), atol=1e-6)
@@ -257,9 +262,10 @@ def _floor_and_wall(w=64, h=48, wall_y=0.5, wall_height=0.5):
 class TestOccluder:
     def test_wall_shadows_the_floor_next_to_it(self):
         camera, points, normals, world_from_cam, world, on_wall = _floor_and_wall()
-        cfg = Config(rt_directions=64, rt_steps=2)
+        cfg = Config().replace(rt_directions=64, rt_steps=2)
+        tp = cfg.transfer
         res = rt.compute_transfer(points, normals, camera, world_from_cam,
-                                  rt.make_sampling_pattern(cfg), None, cfg)
+                                  rt.make_sampling_pattern(tp, cfg.seed), None, tp)
         floor = ~on_wall & res.valid
         central = np.abs(world[..., 0]) < 0.4
         near = floor & central & (world[..., 1] > 0.3) & (world[..., 1] < 0.45)
@@ -280,16 +286,17 @@ class TestOccluder:
 class TestSubsampling:
     def test_grid_shape_and_pixels(self):
         camera, points, normals, world_from_cam = _random_scene(5, w=13, h=10)
-        cfg = Config(rt_directions=16, rt_subsample=4)
-        pattern = rt.make_sampling_pattern(cfg)
-        sub = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, cfg)
+        cfg = Config().replace(rt_directions=16, rt_subsample=4)
+        tp = cfg.transfer
+        pattern = rt.make_sampling_pattern(tp, cfg.seed)
+        sub = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, tp)
         assert sub.transfer.shape == (math.ceil(10 / 4), math.ceil(13 / 4), 16)
         assert sub.valid.shape == (3, 4)
         np.testing.assert_array_equal(sub.pixel_u, [2, 6, 10, 12])  # last clamped to W - 1
         np.testing.assert_array_equal(sub.pixel_v, [2, 6, 9])
         # each grid cell is the full-resolution transfer of its pixel (same 2x2 radii)
         full = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
-                                   cfg.replace(rt_subsample=1))
+                                   cfg.replace(rt_subsample=1).transfer)
         grid = np.ix_(sub.pixel_v, sub.pixel_u)
         np.testing.assert_array_equal(sub.valid, full.valid[grid])
         np.testing.assert_allclose(sub.transfer, full.transfer[grid], atol=1e-6)
@@ -299,15 +306,16 @@ class TestExtremes:
     @pytest.mark.parametrize("step", [1, 4])
     def test_one_pixel_image(self, step):
         camera = PinholeCamera(1, 1, 1.0, 1.0, 0.0, 0.0)
-        cfg = Config(rt_directions=16, rt_subsample=step)
-        pattern = rt.make_sampling_pattern(cfg)
+        cfg = Config().replace(rt_directions=16, rt_subsample=step)
+        tp = cfg.transfer
+        pattern = rt.make_sampling_pattern(tp, cfg.seed)
         normal = np.array([[[0.0, 0.0, -1.0]]], np.float32)
         missing = rt.compute_transfer(camera.unproject(np.zeros((1, 1), np.float32)), normal,
-                                      camera, np.eye(4), pattern, None, cfg)
+                                      camera, np.eye(4), pattern, None, tp)
         assert missing.transfer.shape == (1, 1, 16) and not missing.valid.any()
         assert np.all(missing.transfer == 0)
         present = rt.compute_transfer(camera.unproject(np.ones((1, 1), np.float32)), normal,
-                                      camera, np.eye(4), pattern, None, cfg)
+                                      camera, np.eye(4), pattern, None, tp)
         assert present.valid.all() and np.all(np.isfinite(present.transfer))
         assert present.transfer[0, 0, 0] > 0
 
@@ -318,11 +326,12 @@ class TestExtremes:
         points = camera.unproject(depth)
         normals = np.zeros((9, 12, 3), np.float32)
         normals[..., 2] = -1.0  # even with normals, no depth means no transfer
-        cfg = Config(rt_directions=16)
-        pattern = rt.make_sampling_pattern(cfg)
+        cfg = Config().replace(rt_directions=16)
+        tp = cfg.transfer
+        pattern = rt.make_sampling_pattern(tp, cfg.seed)
         aux = _hand_made_aux(0)
         for fn in (rt.compute_transfer, rt.transfer_reference):
-            res = fn(points, normals, camera, np.eye(4), pattern, aux, cfg)
+            res = fn(points, normals, camera, np.eye(4), pattern, aux, tp)
             assert not res.valid.any()
             assert np.all(res.transfer == 0)
 
@@ -364,30 +373,32 @@ class TestBounce:
         """With a uniform luminance c, what a direction loses in K it gains as bounce:
         T_00 / Y_00 + B / c equals the visibility-free cosine sum, pixel by pixel."""
         camera, points, normals, world_from_cam, world, on_wall = _floor_and_wall()
-        cfg = Config(rt_directions=64, rt_steps=2)
-        pattern = rt.make_sampling_pattern(cfg)
+        cfg = Config().replace(rt_directions=64, rt_steps=2)
+        tp = cfg.transfer
+        pattern = rt.make_sampling_pattern(tp, cfg.seed)
         c = 0.37
         lum = np.full(points.shape[:2], c, np.float32)
         res = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
-                                  cfg, luminance=lum)
+                                  tp, luminance=lum)
         free = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
-                                   cfg.replace(visibility=False))
+                                   cfg.replace(visibility=False).transfer)
         y00 = sh.sh_basis(np.array([0.0, 0.0, 1.0]), 1)[0]
         v = res.valid
         assert res.bounce is not None and np.count_nonzero(res.bounce[v] > 1e-3) >= 10
         np.testing.assert_allclose(res.transfer[v, 0] / y00 + res.bounce[v] / c,
                                    free.transfer[v, 0] / y00, rtol=1e-4, atol=1e-5)
         # without a luminance image there is no bounce term
-        plain = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, cfg)
+        plain = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, tp)
         assert plain.bounce is None
         np.testing.assert_array_equal(plain.transfer, res.transfer)
 
     def test_luminance_of_the_wrong_size_is_refused(self):
         camera, points, normals, world_from_cam, _, _ = _floor_and_wall()
-        cfg = Config(rt_directions=16)
+        cfg = Config().replace(rt_directions=16)
+        tp = cfg.transfer
         with pytest.raises(ValueError, match="luminance"):
             rt.compute_transfer(points, normals, camera, world_from_cam,
-                                rt.make_sampling_pattern(cfg), None, cfg,
+                                rt.make_sampling_pattern(tp, cfg.seed), None, tp,
                                 luminance=np.ones((3, 3), np.float32))
 
 
@@ -408,27 +419,29 @@ class TestHorizonPlane:
         up /= np.linalg.norm(up)
         plane = SupportPlane(up, -float(np.median(points[..., 2])) * up[2],
                              np.zeros((1, 1), bool))
-        cfg = Config(rt_directions=32, seed=seed)
-        pattern = rt.make_sampling_pattern(cfg)
-        fast = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, cfg,
+        cfg = Config().replace(rt_directions=32, seed=seed)
+        tp = cfg.transfer
+        pattern = rt.make_sampling_pattern(tp, cfg.seed)
+        fast = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, tp,
                                    plane=plane)
-        ref = rt.transfer_reference(points, normals, camera, world_from_cam, pattern, None, cfg,
+        ref = rt.transfer_reference(points, normals, camera, world_from_cam, pattern, None, tp,
                                     plane=plane)
         np.testing.assert_allclose(fast.transfer, ref.transfer, atol=1e-4)
-        without = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, cfg)
+        without = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, tp)
         assert np.abs(without.transfer - fast.transfer).max() > 0.05  # the plane did something
 
     def test_wall_sees_no_light_from_below_and_the_ground_instead(self):
         camera, points, normals, world_from_cam, world, on_wall = _floor_and_wall()
-        cfg = Config(rt_directions=128, rt_steps=2)
-        pattern = rt.make_sampling_pattern(cfg)
+        cfg = Config().replace(rt_directions=128, rt_steps=2)
+        tp = cfg.transfer
+        pattern = rt.make_sampling_pattern(tp, cfg.seed)
         plane = _floor_plane(world_from_cam, ~on_wall & (points[..., 2] > 0))
         c = 0.37
         lum = np.full(points.shape[:2], c, np.float32)
-        res = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, cfg,
+        res = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, tp,
                                   luminance=lum, plane=plane)
         free = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
-                                   cfg.replace(visibility=False))
+                                   cfg.replace(visibility=False).transfer)
         v = res.valid
         # a light only below the floor's horizon reaches no pixel
         below = sh.directional_light(np.array([0.3, -0.2, -0.93]) / np.linalg.norm(

@@ -10,17 +10,15 @@ import pytest
 from scipy.ndimage import maximum_filter, minimum_filter
 from scipy.spatial import cKDTree
 
+from arlight.pipeline.aux_buffers import OrthoBuffer, aux_buffer_poses, render_orthographic
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
-from arlight.pipeline.reconstruction import (
-    REFINE_MAX_STEP_VOXELS,
-    OrthoBuffer,
-    SurfaceOutput,
-    VolumeReconstruction,
-    aux_buffer_poses,
-    refine_ray_cast,
-    render_orthographic,
-)
+from arlight.pipeline.ray_refine import REFINE_MAX_STEP_VOXELS, refine_ray_cast
+from arlight.pipeline.reconstruction import SurfaceOutput, VolumeReconstruction
+from arlight.pipeline.runtime import configure_open3d_threads
+
+# one Open3D thread: tracking (its TBB reduction) is deterministic, as the entry points set
+configure_open3d_threads(1)
 
 # ------------------------------------------------------------------ analytic scene
 # World axes as the first camera's: x right, y down, z forward. Outward normals.
@@ -123,7 +121,7 @@ def config(**overrides) -> Config:
 def fused():
     """Four frames fused with known poses; outputs of every frame (aux every frame)."""
     cfg = config(aux_update_interval=1)
-    recon = VolumeReconstruction(cfg, CAMERA)
+    recon = VolumeReconstruction.from_config(cfg, CAMERA)
     outputs = []
     for pose in POSES:
         depth, _ = render_scene(CAMERA, pose)
@@ -151,7 +149,7 @@ class TestGeometryBuffer:
 
     def test_depth_matches_analytic_within_voxels(self, fused):
         recon, outputs = fused
-        voxel = recon.config.voxel_size_m
+        voxel = recon.params.voxel_size_m
         truth, normals = render_scene(CAMERA, POSES[-1])
         d_v = outputs[-1].depth_volume_m
         inner = smooth_mask(truth, normals)
@@ -182,7 +180,7 @@ class TestGeometryBuffer:
 def ray_cast(fused):
     """Open3D's ray cast of the fused scene into the last view, as refine_ray_cast takes it."""
     recon, _ = fused
-    grid, c, pose = recon.voxel_grid, recon.config, POSES[-1]
+    grid, c, pose = recon.voxel_grid, recon.params, POSES[-1]
     hashmap = grid.hashmap()
     blocks = hashmap.key_tensor()[hashmap.active_buf_indices().to(o3c.int64)]
     result = grid.ray_cast(
@@ -257,7 +255,7 @@ class TestTracking:
                           [0.01 * k, -0.005 * k, 0.01 * k]) for k in range(n)]
 
     def test_relative_poses_match_truth(self):
-        recon = VolumeReconstruction(config(aux_buffers=False), CAMERA)
+        recon = VolumeReconstruction.from_config(config(aux_buffers=False), CAMERA)
         truth = self.true_poses()
         first_inv = np.linalg.inv(truth[0])
         for k, pose in enumerate(truth):
@@ -272,7 +270,7 @@ class TestTracking:
             assert np.degrees(np.arccos(cos_angle)) < 1.0, k
 
     def test_unrelated_frame_fails_and_keeps_pose(self):
-        recon = VolumeReconstruction(config(aux_buffers=False), CAMERA)
+        recon = VolumeReconstruction.from_config(config(aux_buffers=False), CAMERA)
         truth = self.true_poses(2)
         for pose in truth:
             out = recon.process(COLOR, render_scene(CAMERA, pose)[0], None)
@@ -287,8 +285,21 @@ class TestTracking:
         assert out.tracking_ok
         np.testing.assert_allclose(out.pose, pose_before, atol=5e-3)
 
+    def test_failures_say_why(self):
+        recon = VolumeReconstruction.from_config(config(aux_buffers=False), CAMERA)
+        for pose in self.true_poses(2):
+            out = recon.process(COLOR, render_scene(CAMERA, pose)[0], None)
+        assert out.tracking.ok and out.tracking.reason == ""
+        wall = np.full((CAMERA.height, CAMERA.width), 0.4, np.float32)
+        out = recon.process(COLOR, wall, None)
+        assert not out.tracking.ok and not out.tracking_ok
+        assert out.tracking.reason  # ICP error text, too few inliers or an implausible jump
+        empty = recon.process(COLOR, np.zeros_like(wall), None)
+        assert "too little depth" in empty.tracking.reason
+        assert empty.tracking.to_dict() == {"ok": False, "reason": empty.tracking.reason}
+
     def test_missing_depth_while_tracking_keeps_pose_and_model(self):
-        recon = VolumeReconstruction(config(aux_buffers=False), CAMERA)
+        recon = VolumeReconstruction.from_config(config(aux_buffers=False), CAMERA)
         pose = self.true_poses(1)[0]
         recon.process(COLOR, render_scene(CAMERA, pose)[0], None)
         out = recon.process(COLOR, np.zeros((CAMERA.height, CAMERA.width), np.float32), None)
@@ -335,11 +346,11 @@ class TestAuxBuffers:
         recon, outputs = fused
         bufs = self.buffers(outputs[-1])
         assert list(bufs) == ["left", "right", "top", "light"]
-        res = recon.config.aux_resolution
+        res = recon.aux_params.aux_resolution
         for b in bufs.values():
             assert b.depth_m.shape == (res, res) and b.depth_m.dtype == np.float32
-            assert b.pixel_size_m == pytest.approx(recon.config.aux_extent_m / res)
-            assert np.all(b.depth_m >= 0) and np.all(b.depth_m <= recon.config.aux_extent_m)
+            assert b.pixel_size_m == pytest.approx(recon.aux_params.aux_extent_m / res)
+            assert np.all(b.depth_m >= 0) and np.all(b.depth_m <= recon.aux_params.aux_extent_m)
         np.testing.assert_allclose(bufs["light"].world_from_buffer[:3, 2], -LIGHT, atol=1e-12)
 
     def test_box_top_at_the_right_depth_in_top_buffer(self, fused):
@@ -356,7 +367,7 @@ class TestAuxBuffers:
         assert np.all(stored > 0)
         # the box top is tilted in the buffer by the camera pitch: one pixel spans this depth
         slope = top.pixel_size_m * np.tan(PITCH)
-        np.testing.assert_allclose(stored, depth, atol=2 * recon.config.voxel_size_m + slope)
+        np.testing.assert_allclose(stored, depth, atol=2 * recon.params.voxel_size_m + slope)
 
     def test_floor_seen_from_above_matches_analytic(self, fused):
         recon, outputs = fused
@@ -372,14 +383,14 @@ class TestAuxBuffers:
         assert valid.mean() > 0.1
         err = np.abs(top.depth_m - truth)[valid]
         slope = top.pixel_size_m * np.tan(PITCH)
-        assert np.median(err) < recon.config.voxel_size_m
+        assert np.median(err) < recon.params.voxel_size_m
         # where V knew the first surface (most pixels), it is where the scene has it
-        assert np.mean(err < 2 * recon.config.voxel_size_m + slope) > 0.9
+        assert np.mean(err < 2 * recon.params.voxel_size_m + slope) > 0.9
 
     def test_wall_seen_from_behind_is_transparent(self, fused):
         recon, outputs = fused
         bufs = self.buffers(outputs[-1])
-        tol = 2 * recon.config.voxel_size_m
+        tol = 2 * recon.params.voxel_size_m
 
         def on_left_wall(b: OrthoBuffer) -> int:
             res = b.resolution
@@ -396,7 +407,7 @@ class TestAuxBuffers:
         assert on_left_wall(bufs["left"]) == 0
 
     def test_cached_between_updates(self):
-        recon = VolumeReconstruction(config(aux_update_interval=3), CAMERA)
+        recon = VolumeReconstruction.from_config(config(aux_update_interval=3), CAMERA)
         outs = [recon.process(COLOR, render_scene(CAMERA, p)[0], p) for p in POSES]
         first = [b.world_from_buffer for b in outs[0].aux_buffers]
         for out in outs[1:3]:
@@ -406,7 +417,7 @@ class TestAuxBuffers:
         assert [b.name for b in outs[0].aux_buffers] == ["left", "right", "top"]
 
     def test_disabled(self):
-        recon = VolumeReconstruction(config(aux_buffers=False), CAMERA)
+        recon = VolumeReconstruction.from_config(config(aux_buffers=False), CAMERA)
         out = recon.process(COLOR, render_scene(CAMERA, POSES[0])[0], POSES[0], LIGHT)
         assert out.aux_buffers == []
 
@@ -455,7 +466,7 @@ class TestSurfacePoints:
         coarse, _ = recon.surface_points(2)
         dist, _ = cKDTree(fine).query(coarse)
         assert len(coarse) < len(fine) / 2
-        assert np.percentile(dist, 99) < recon.config.voxel_size_m
+        assert np.percentile(dist, 99) < recon.params.voxel_size_m
 
     def test_stride_must_divide_block(self, fused):
         recon, _ = fused
@@ -468,7 +479,7 @@ class TestDeterminism:
         """DESIGN.md: the same frames give the same results (tracking included)."""
         runs = []
         for _ in range(2):
-            recon = VolumeReconstruction(config(aux_update_interval=2), CAMERA)
+            recon = VolumeReconstruction.from_config(config(aux_update_interval=2), CAMERA)
             runs.append([recon.process(COLOR, render_scene(CAMERA, p)[0], None, LIGHT)
                          for p in POSES])
         for a, b in zip(*runs, strict=True):
@@ -483,7 +494,7 @@ class TestDeterminism:
 class TestBadInput:
     @pytest.mark.parametrize("fill", [0.0, np.nan])
     def test_missing_depth_gives_empty_surface(self, fill):
-        recon = VolumeReconstruction(config(), CAMERA)
+        recon = VolumeReconstruction.from_config(config(), CAMERA)
         depth = np.full((CAMERA.height, CAMERA.width), fill, np.float32)
         for pose in (None, None, POSES[0]):
             out = recon.process(COLOR, depth, pose, LIGHT)
@@ -493,7 +504,7 @@ class TestBadInput:
         assert recon.num_blocks == 0
 
     def test_out_of_range_and_inf_depth_ignored(self):
-        recon = VolumeReconstruction(config(), CAMERA)
+        recon = VolumeReconstruction.from_config(config(), CAMERA)
         depth = np.full((CAMERA.height, CAMERA.width), 9.0, np.float32)  # beyond depth_max
         depth[:, :10] = np.inf
         depth[:, 10:20] = 0.05  # nearer than depth_min
@@ -501,7 +512,7 @@ class TestBadInput:
         assert np.all(out.depth_volume_m == 0)
 
     def test_first_valid_frame_after_empty_ones_starts_the_map(self):
-        recon = VolumeReconstruction(config(aux_buffers=False), CAMERA)
+        recon = VolumeReconstruction.from_config(config(aux_buffers=False), CAMERA)
         recon.process(COLOR, np.zeros((CAMERA.height, CAMERA.width), np.float32), None)
         out = recon.process(COLOR, render_scene(CAMERA, POSES[0])[0], None)
         assert out.tracking_ok
@@ -517,7 +528,7 @@ class TestBadInput:
         ("light", {"light_direction_world": np.zeros(3)}, "light_direction_world"),
     ])
     def test_invalid_arguments_raise(self, field, kwargs, match):
-        recon = VolumeReconstruction(config(), CAMERA)
+        recon = VolumeReconstruction.from_config(config(), CAMERA)
         args = {"color_rgb_u8": COLOR,
                 "depth_m": np.zeros((CAMERA.height, CAMERA.width), np.float32), "pose": None}
         args.update(kwargs)
@@ -530,17 +541,17 @@ class TestBadInput:
         map past its end for sizes that are not multiples of 8 (holes, or a hang); the last
         rows and columns must still get D_v."""
         camera = PinholeCamera.kinect_v1(*size)
-        recon = VolumeReconstruction(config(aux_buffers=False), camera)
+        recon = VolumeReconstruction.from_config(config(aux_buffers=False), camera)
         plane = np.full((size[1], size[0]), 1.5, np.float32)  # facing the camera
         for _ in range(2):
             out = recon.process(np.zeros((size[1], size[0], 3), np.uint8), plane, np.eye(4))
         valid = out.depth_volume_m > 0
         assert valid[1:-1, 1:-1].mean() > 0.95
         assert valid[-3:-1, 1:-1].mean() > 0.9 and valid[1:-1, -3:-1].mean() > 0.9
-        assert np.abs(out.depth_volume_m[valid] - 1.5).max() < 0.25 * recon.config.voxel_size_m
+        assert np.abs(out.depth_volume_m[valid] - 1.5).max() < 0.25 * recon.params.voxel_size_m
 
     def test_without_volume(self):
-        recon = VolumeReconstruction(config(use_volume=False), CAMERA)
+        recon = VolumeReconstruction.from_config(config(use_volume=False), CAMERA)
         out = recon.process(COLOR, render_scene(CAMERA, POSES[1])[0], POSES[1])
         np.testing.assert_array_equal(out.pose, POSES[1])
         assert np.all(out.depth_volume_m == 0) and out.aux_buffers == []
@@ -548,7 +559,7 @@ class TestBadInput:
     @pytest.mark.skipif(o3c.cuda.is_available(), reason="CUDA is available here")
     def test_cuda_requested_without_cuda(self):
         with pytest.raises(RuntimeError, match="CUDA"):
-            VolumeReconstruction(config(device="CUDA:0"), CAMERA)
+            VolumeReconstruction.from_config(config(device="CUDA:0"), CAMERA)
 
 
 @pytest.mark.skipif(not o3c.cuda.is_available(), reason="needs Open3D with a CUDA device")
@@ -556,7 +567,7 @@ class TestCuda:
     def test_cuda_matches_cpu(self):
         outs = {}
         for device in ("CPU:0", "CUDA:0"):
-            recon = VolumeReconstruction(config(device=device), CAMERA)
+            recon = VolumeReconstruction.from_config(config(device=device), CAMERA)
             for pose in POSES[:2]:
                 outs[device] = recon.process(COLOR, render_scene(CAMERA, pose)[0], pose)
         cpu, gpu = outs["CPU:0"], outs["CUDA:0"]

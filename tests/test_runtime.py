@@ -1,0 +1,33 @@
+"""Process-wide settings the entry points choose once (pipeline.runtime)."""
+
+import warnings
+
+import open3d as o3d
+import pytest
+
+from arlight.pipeline import runtime
+from arlight.pipeline.volume import _check_open3d_version
+
+
+def test_configure_open3d_threads():
+    runtime.configure_open3d_threads(1)
+    assert o3d.utility.get_max_threads() == 1
+    with pytest.raises(ValueError, match="n must be an integer >= 1"):
+        runtime.configure_open3d_threads(0)
+
+
+def test_importing_the_pipeline_leaves_the_warnings_filter_alone():
+    import importlib
+
+    import arlight.pipeline
+
+    before = list(warnings.filters)
+    importlib.reload(arlight.pipeline)
+    assert warnings.filters == before
+
+
+def test_open3d_version_outside_the_supported_range_is_refused():
+    _check_open3d_version("0.20.0")
+    for version in ("0.19.0", "0.21.0"):
+        with pytest.raises(ImportError, match=r"open3d >=0\.20,<0\.21"):
+            _check_open3d_version(version)
