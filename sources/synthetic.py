@@ -59,10 +59,10 @@ import numpy as np
 
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
+from arlight.pipeline.color import LUMA as LUMINANCE_RGB
 from arlight.pipeline.frames import FrameInput
 
 SH_BANDS = 4
-from arlight.pipeline.color import LUMA as LUMINANCE_RGB  # noqa: E402, I001 (one definition)
 FIRST_TIMESTAMP_S = 1000.0
 FRAME_RATE_HZ = 30.0
 DEPTH_SCALE = 5000.0  # depth quantisation, units per metre (TUM)
