@@ -211,8 +211,11 @@ class TestRecording:
 
 
 def _dummy_result(frame: Frame) -> Result:
-    return Result(frame.seq, frame.timestamp, [0.0], None, [0, 0, 1], [0, 0, 1], 0.0, {},
-                  np.eye(4).tolist(), {}, 0, 0, 0, 0.0, 0.0)
+    return Result(seq=frame.seq, timestamp=frame.timestamp, sh=[0.0],
+                  dominant_direction_camera=[0, 0, 1], dominant_direction_world=[0, 0, 1],
+                  intensity=0.0, confidence={}, pose=np.eye(4).tolist(), timings_ms={},
+                  frames_received=0, frames_processed=0, frames_dropped=0,
+                  server_receive_time=0.0, server_finish_time=0.0)
 
 
 def _stream_to_fake_server(answer, make_options, source):

@@ -64,7 +64,7 @@ from arlight.protocols.rvl import (
 
 HERE = Path(__file__).resolve().parent
 REAL = HERE.parents[1] / "shared" / "data" / "real"
-GOLDEN = HERE / "golden" / "protocol_v1"
+GOLDEN = HERE / "golden" / f"protocol_v{PROTOCOL_VERSION}"
 
 
 def _load_vector_script():
@@ -324,10 +324,10 @@ class TestCodecs:
         expect("bad_field", encode, frame(pose=np.eye(3)), field="frame.pose")
         expect("bad_field", encode, frame(timestamp=math.inf), field="frame.timestamp")
         expect("bad_field", encode, frame(seq=-1), field="frame.seq")
-        expect("bad_field", encode, Hello(1, SessionConfig("bad name!")),
+        expect("bad_field", encode, Hello(PROTOCOL_VERSION, SessionConfig("bad name!")),
                field="hello.config.session")
-        expect("bad_field", encode, Hello(1, SessionConfig("s")),  # capture needs calibration
-               field="hello.config.calibration")
+        expect("bad_field", encode,  # capture needs calibration
+               Hello(PROTOCOL_VERSION, SessionConfig("s")), field="hello.config.calibration")
         expect("bad_field", encode, result(sh=[0.1] * 5), field="result.sh")
         expect("bad_field", encode, result(timings_ms={"a": -1.0}), field="result.timings_ms.a")
         expect("unknown_type", encode, object())
@@ -562,8 +562,10 @@ class TestHostileInput:
 
     def test_version_and_type(self):
         parts = encode(Heartbeat(1.0))
-        expect("bad_version", decode, tamper(parts, lambda h: h.update(v=2)), field="v")
-        expect("bad_version", decode, encode(Hello(2, SessionConfig("s", role="display"))))
+        expect("bad_version", decode, tamper(parts, lambda h: h.update(v=PROTOCOL_VERSION + 1)),
+               field="v")
+        expect("bad_version", decode,
+               encode(Hello(PROTOCOL_VERSION + 1, SessionConfig("s", role="display"))))
         expect("malformed", decode, tamper(parts, lambda h: h.update(v="1")), field="v")
         expect("malformed", decode, tamper(parts, lambda h: h.pop("v")), field="v")
         expect("unknown_type", decode, tamper(parts, lambda h: h.update(type="Frame")),
@@ -583,7 +585,7 @@ class TestHostileInput:
                field="frame.extra")
         expect("bad_field", decode, tamper(parts, lambda h: h["depth"].update(width=-1)),
                field="frame.depth.width")
-        hello = encode(Hello(1, SessionConfig("s", calibration=calibration())))
+        hello = encode(Hello(PROTOCOL_VERSION, SessionConfig("s", calibration=calibration())))
         expect("bad_field", decode,
                tamper(hello, lambda h: h["config"]["calibration"].update(K=[1.0] * 9)),
                field="hello.config.calibration.K")

@@ -329,8 +329,12 @@ class TestLossless:
                     continue
                 reply = Error(code="bad_field", message="test", field="frame.pose",
                               seq=message.seq) if message.seq % 2 == 0 else \
-                    Result(message.seq, 1.0, [0.0], None, [0, 0, 1], [0, 0, 1], 0.0, {},
-                           np.eye(4).tolist(), {}, 0, 0, 0, 0.0, 0.0)
+                    Result(seq=message.seq, timestamp=1.0, sh=[0.0],
+                           dominant_direction_camera=[0, 0, 1],
+                           dominant_direction_world=[0, 0, 1], intensity=0.0, confidence={},
+                           pose=np.eye(4).tolist(), timings_ms={}, frames_received=0,
+                           frames_processed=0, frames_dropped=0, server_receive_time=0.0,
+                           server_finish_time=0.0)
                 for _ in range(2):
                     router.send_multipart([identity, *encode(reply)])
 
@@ -620,8 +624,8 @@ HOSTILE = [
     ("header not a map", False, [msgpack.packb([1, 2, 3])], "malformed", None),
     ("unknown version", False,
      [msgpack.packb({"v": 99, "type": "hello", "config": {}})], "bad_version", "v"),
-    ("unknown type", False, [msgpack.packb({"v": 1, "type": "teleport"})], "unknown_type",
-     "type"),
+    ("unknown type", False, [msgpack.packb({"v": PROTOCOL_VERSION, "type": "teleport"})],
+     "unknown_type", "type"),
     ("frame before hello", False, _frame_parts(), "bad_state", "session"),
     ("hello without calibration", False, None, "bad_field", "hello.config.calibration"),
     ("unknown preset", False, None, "bad_field", "hello.config.preset"),
@@ -657,8 +661,11 @@ def _hello_case(name: str) -> list:
     if name == "wrong override type":
         return _hello_parts(**_calibrated(overrides={"sh_bands": "many"}))
     if name == "a client sending a Result":
-        return encode(Result(0, 1.0, [0.0], None, [0, 0, 1], [0, 0, 1], 0.0, {},
-                             np.eye(4).tolist(), {}, 0, 0, 0, 0.0, 0.0))
+        return encode(Result(seq=0, timestamp=1.0, sh=[0.0], dominant_direction_camera=[0, 0, 1],
+                             dominant_direction_world=[0, 0, 1], intensity=0.0, confidence={},
+                             pose=np.eye(4).tolist(), timings_ms={}, frames_received=0,
+                             frames_processed=0, frames_dropped=0, server_receive_time=0.0,
+                             server_finish_time=0.0))
     raise KeyError(name)
 
 
