@@ -85,6 +85,8 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     from arlight.pipeline.pipeline import Pipeline
+    from arlight.protocols import result_record
+    from arlight.server.results import result_message
 
     config = _build_config(args)
     camera, frames, truth = _open_source(args)
@@ -98,10 +100,13 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         for i in range(n):
             frame = frames[i]
             t0 = time.perf_counter()
+            start_wall = time.time()
             result = pipeline.process(frame)
             ms = (time.perf_counter() - t0) * 1e3
-            record = result.to_json_dict()
-            record["frame"] = i
+            # the record `arlight stream --out` writes, from the Result the server would send
+            record = result_record(result_message(
+                result, seq=i, counters=(i + 1, i + 1, 0), receive_time_wall=start_wall,
+                finish_time_wall=time.time()))
             d = result.dominant_direction_camera
             line = (f"[{i + 1:>4}/{n}] t={result.timestamp:.3f}s  light(cam)=({d[0]:+.2f}, "
                     f"{d[1]:+.2f}, {d[2]:+.2f})  intensity={result.intensity:.3g}  "
@@ -270,9 +275,9 @@ def cmd_stream(args: argparse.Namespace) -> int:
               f"server {server_ms:5.0f} ms  received {result.frames_received}  "
               f"dropped {result.frames_dropped}", flush=True)
         if out:
-            from arlight.client.display import result_record
+            from arlight.protocols import received_record
 
-            out.write(json.dumps(result_record(result, now)) + "\n")
+            out.write(json.dumps(received_record(result, now)) + "\n")
 
     client = CaptureClient(source, options, on_result=on_result, recorder=recorder)
     print(f"arlight stream: {args.source} ({source.num_frames} frames, "

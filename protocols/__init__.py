@@ -38,7 +38,9 @@ from .messages import (
     encode,
     error_from_exception,
     peek_header,
+    plain_diagnostics,
 )
+from .records import received_record, result_record
 
 __all__ = [
     "COLOR_CODECS",
@@ -76,6 +78,9 @@ __all__ = [
     "encode_depth",
     "error_from_exception",
     "peek_header",
+    "plain_diagnostics",
+    "received_record",
+    "result_record",
     "read_container",
     "rvl_decode",
     "rvl_encode",

@@ -234,6 +234,12 @@ DIAGNOSTICS_MAX_VALUES = 4096  # scalars plus array elements, in all
 _DIAGNOSTIC_TYPES = "nil, bool, int, float, str, arrays of numbers and maps of these"
 
 
+def plain_diagnostics(diagnostics: Any, name: str = "result.diagnostics") -> dict:
+    """Result.diagnostics as the wire carries it: numpy values and tuples made plain, then
+    checked against the limits; ProtocolError (bad_field, naming the key) for anything else."""
+    return _read_diagnostics(_to_plain(diagnostics), name)
+
+
 def _read_diagnostics(v: Any, name: str) -> dict:
     """Check a diagnostics map (decode, and encode before sending); arrays become floats."""
     budget = [DIAGNOSTICS_MAX_VALUES]
@@ -399,7 +405,17 @@ def _float_list(v: Any, name: str) -> list:
 # what `_pack` wrote, so a peer never sends what it would reject.
 
 
-class ByeKind(str, Enum):
+class _WireEnum(str, Enum):
+    """An Enum of wire strings: members equal, print and format as their value."""
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    def __format__(self, spec: str) -> str:
+        return format(str(self.value), spec)
+
+
+class ByeKind(_WireEnum):
     """Why a Bye was sent (its `kind` on the wire; SPEC.md section 3, "Bye")."""
 
     END_OF_STREAM = "end_of_stream"  # the stream ended: server -> displays, or a capture
@@ -408,7 +424,7 @@ class ByeKind(str, Enum):
     LEAVING = "leaving"  # a client leaves before its stream ended (interrupted, closed)
 
 
-class ErrorField(str, Enum):
+class ErrorField(_WireEnum):
     """The `Error.field` values that are not field paths (SPEC.md section 6, "Error fields").
 
     Compare with `error.field == ErrorField.SESSION` (the members are strings); whether an
@@ -773,13 +789,16 @@ class Error:
     TYPE: ClassVar[str] = "error"
     code: str
     message: str
-    field: str | None = None  # dotted field path, or an ErrorField value
+    field: str | None = None  # dotted field path, or an ErrorField (kept as its string)
     seq: int | None = None
     retryable: bool = False
 
+    def __post_init__(self) -> None:
+        if isinstance(self.field, Enum):
+            self.field = str(self.field.value)
+
     def _pack(self, parts: list) -> dict:
-        field_ = self.field.value if isinstance(self.field, Enum) else self.field
-        return {"code": self.code, "message": self.message, "field": field_,
+        return {"code": self.code, "message": self.message, "field": self.field,
                 "seq": _to_plain(self.seq), "retryable": _to_plain(self.retryable)}
 
     @classmethod

@@ -18,6 +18,10 @@ session survives for a reconnecting client). A session that receives no frames f
 `session_timeout_s` expires and frees its Pipeline. `stop()` (SIGINT/SIGTERM in
 `arlight serve`) finishes the lossless frames already received within `shutdown_grace_s`,
 reports the rest with an Error, says Bye to every peer and closes the socket.
+
+Clocks: liveness, expiry, the heartbeat schedule and the shutdown deadline run on
+time.monotonic(); time.time() is read only for what goes on the wire (Heartbeat.time, a
+Result's server receive/finish times).
 """
 
 from __future__ import annotations
@@ -35,13 +39,16 @@ from dataclasses import dataclass, field
 import numpy as np
 import zmq
 
+from arlight.pipeline.runtime import concurrent_pipelines_safe
 from arlight.protocols import (
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_PIXELS,
     PROTOCOL_VERSION,
     Bye,
+    ByeKind,
     Credit,
     Error,
+    ErrorField,
     Heartbeat,
     Hello,
     ProtocolError,
@@ -52,7 +59,6 @@ from arlight.protocols import (
     peek_header,
 )
 from arlight.server.session import (
-    DUPLICATE_FIELD,
     OUTCOME_CACHE_EXTRA,
     Job,
     JobOutcome,
@@ -111,7 +117,7 @@ class Peer:
     role: str
     session: str
     client_name: str
-    last_seen: float
+    last_seen: float  # time.monotonic() of its last message, seconds
     results_dropped: int = 0  # Results not delivered because its queue was full
 
     @property
@@ -245,13 +251,13 @@ class Server:
         poller = zmq.Poller()
         poller.register(router, zmq.POLLIN)
         poller.register(self._wake_r.fileno(), zmq.POLLIN)
-        now = time.time()
+        now = time.monotonic()
         next_heartbeat = now + opts.heartbeat_interval_s
         next_housekeeping = now + min(opts.heartbeat_interval_s, 1.0)
         next_log = now + opts.log_interval_s
         try:
             while True:
-                now = time.time()
+                now = time.monotonic()
                 wait_s = max(0.0, min(next_heartbeat, next_housekeeping, next_log) - now)
                 events = dict(poller.poll(int(wait_s * 1000) + 1))
                 if events.get(router):
@@ -263,9 +269,9 @@ class Server:
                     except (BlockingIOError, OSError):
                         pass
                 self._drain_completions()
-                now = time.time()
+                now = time.monotonic()
                 if now >= next_heartbeat:
-                    self._send_heartbeats(now)
+                    self._send_heartbeats()
                     next_heartbeat = now + opts.heartbeat_interval_s
                 if now >= next_housekeeping:
                     self._expire_peers(now)
@@ -292,18 +298,21 @@ class Server:
                 message = router.recv_multipart(zmq.NOBLOCK, copy=False)
             except zmq.Again:
                 return
-            now = time.time()
+            now = time.monotonic()
+            receive_time_wall = time.time()
             identity = message[0].bytes
             parts = [frame.buffer for frame in message[1:]]
             self.stats.messages += 1
             try:
-                self._handle(identity, parts, now)
+                self._handle(identity, parts, now, receive_time_wall)
             except Exception as exc:  # noqa: BLE001 - bad input never crashes the server
                 log.exception("unexpected failure handling a message from %s", identity.hex())
                 self._send_error(identity, Error(code="internal", message=f"the server failed "
                                                  f"to handle this message ({exc})"))
 
-    def _handle(self, identity: bytes, parts: list, now: float) -> None:
+    def _handle(self, identity: bytes, parts: list, now: float,
+                receive_time_wall: float) -> None:
+        """One message from a peer; now: time.monotonic(), receive_time_wall: time.time()."""
         peer = self.peers.get(identity)
         if peer is not None:
             peer.last_seen = now
@@ -317,7 +326,7 @@ class Server:
             return
         if header["type"] == "frame":  # routed undecoded: a worker decodes it, and a
             # live frame replaced in the queue costs no decoding at all
-            self._on_frame(identity, peer, header, parts, now)
+            self._on_frame(identity, peer, header, parts, now, receive_time_wall)
             return
         try:
             message = decode(parts, max_message_bytes=self.options.max_message_bytes,
@@ -330,7 +339,7 @@ class Server:
         elif isinstance(message, Heartbeat):
             if peer is None:  # e.g. after a server restart: tell the client to say Hello again
                 self._send_error(identity, Error(
-                    code="bad_state", field="session",
+                    code="bad_state", field=ErrorField.SESSION, retryable=True,
                     message="unknown peer: send Hello first (the server may have restarted)"))
         elif isinstance(message, Bye):
             self._on_bye(identity, peer, message)
@@ -340,7 +349,7 @@ class Server:
                          message.message)
         else:
             self._send_error(identity, Error(
-                code="bad_state", field="type",
+                code="bad_state", field=ErrorField.TYPE,
                 message=f"a client may send Hello, Frame, Heartbeat, Credit or Bye, "
                         f"not {type(message).__name__}"))
 
@@ -365,7 +374,8 @@ class Server:
                                                 self.options.name)))
             return
         if self._draining:
-            self._send_error(identity, Error(code="bad_state", field="shutdown",
+            self._send_error(identity, Error(code="bad_state", field=ErrorField.SHUTDOWN,
+                                             retryable=True,
                                              message="the server is shutting down"))
             return
         session = self.sessions.get(name)
@@ -413,7 +423,7 @@ class Server:
                                             self.options.heartbeat_interval_s, self.options.name)))
 
     def _on_frame(self, identity: bytes, peer: Peer | None, header: dict, parts: list,
-                  now: float) -> None:
+                  now: float, receive_time_wall: float) -> None:
         seq = header.get("seq")
         if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
             self._send_error(identity, Error(code="bad_field", field="frame.seq",
@@ -423,28 +433,29 @@ class Server:
         if peer is None or peer.role != "capture" or session is None or \
                 session.capture_peer != identity:
             self._send_error(identity, Error(
-                code="bad_state", field="session", seq=seq,
+                code="bad_state", field=ErrorField.SESSION, seq=seq, retryable=True,
                 message="no session for this peer: send Hello first (the server may have "
                         "restarted or the session expired)"))
             return
         if self._draining:
-            self._send_error(identity, Error(code="bad_state", field="shutdown", seq=seq,
+            self._send_error(identity, Error(code="bad_state", field=ErrorField.SHUTDOWN,
+                                             seq=seq, retryable=True,
                                              message="the server is shutting down; frame "
                                                      "not processed"))
             return
-        outcome = session.offer(seq, parts, now)
+        outcome = session.offer(Job(seq, parts, receive_time_wall, now))
         if outcome == "resend":  # its Result or final Error, again (the first may be lost)
             self._send(identity, session.outcomes[seq])
         elif outcome == "expired":  # answer it, or a lossless client would wait for it forever
             self._send_error(identity, Error(
-                code="bad_state", field=DUPLICATE_FIELD, seq=seq,
+                code="bad_state", field=ErrorField.DUPLICATE, seq=seq, retryable=False,
                 message=f"frame {seq} is not above the highest seq this session accepted "
                         f"({session.highest_seq}) and its Result or Error is no longer kept "
                         f"(only the last {self.options.credits + OUTCOME_CACHE_EXTRA} are); it "
                         "is not processed again"))
         elif outcome == "overflow":
             self._send_error(identity, Error(
-                code="bad_state", field="credits", seq=seq,
+                code="bad_state", field=ErrorField.CREDITS, seq=seq, retryable=True,
                 message=f"more than {self.options.credits} frames unacknowledged in lossless "
                         "mode; wait for Results (credits) before sending more"))
         self._schedule(session)
@@ -469,7 +480,7 @@ class Server:
 
     def _work(self, session: Session, job: Job) -> None:
         """Worker thread: process one frame, hand the outcome to the I/O thread."""
-        if self.options.workers > 1 and _needs_serial_compute():
+        if self.options.workers > 1 and not concurrent_pipelines_safe():
             with self._compute_lock:
                 outcome = session.run(job)
         else:
@@ -530,8 +541,8 @@ class Server:
                  f" ({error.field})" if error.field else "", error.message)
         self._send(identity, encode(error))
 
-    def _send_heartbeats(self, now: float) -> None:
-        parts = encode(Heartbeat(now))
+    def _send_heartbeats(self) -> None:
+        parts = encode(Heartbeat(time.time()))
         for identity in list(self.peers):
             self._send(identity, parts)
 
@@ -566,7 +577,7 @@ class Server:
         if session.capture_peer is not None and session.capture_peer in self.peers:
             self._detach_peer(self.peers[session.capture_peer], reason=reason)
         if reason == "end of stream":
-            parts = encode(Bye(f"session {session.name} ended"))
+            parts = encode(Bye(f"session {session.name} ended", ByeKind.END_OF_STREAM))
             for identity in list(self.displays.get(session.name, ())):
                 self._send(identity, parts)
 
@@ -628,13 +639,14 @@ class Server:
                 if session.capture_peer is not None:
                     for job in unfinished:
                         self._send_error(session.capture_peer, Error(
-                            code="bad_state", field="shutdown", seq=job.seq,
+                            code="bad_state", field=ErrorField.SHUTDOWN, seq=job.seq,
+                            retryable=True,
                             message="the server shut down before processing this frame; "
                                     "send it again after reconnecting"))
                 if unfinished:
                     log.warning("session %s: %d frame(s) not processed at shutdown (reported "
                                 "to the client)", session.name, len(unfinished))
-            bye = encode(Bye("server shutting down"))
+            bye = encode(Bye("server shutting down", ByeKind.SHUTDOWN))
             for identity in list(self.peers):
                 self._send(identity, bye)
             router.setsockopt(zmq.LINGER, 1000)  # let the Byes and last Results out
@@ -649,16 +661,3 @@ class Server:
             self.sessions.clear()
             log.info("server stopped")
 
-
-def _needs_serial_compute() -> bool:
-    """True unless Numba's threading layer is known to allow parallel calls from many threads.
-
-    Numba's fallback 'workqueue' layer aborts the process on concurrent parallel launches;
-    OpenMP and TBB allow them. Before any parallel kernel ran the layer is unknown: serialise.
-    """
-    try:
-        import numba
-
-        return numba.threading_layer() == "workqueue"
-    except (ImportError, ValueError):
-        return True

@@ -273,7 +273,7 @@ class TestDisplay:
         thread.join(30)
         assert not thread.is_alive() and display.summary.ended  # Bye at the end of stream
         lines = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
-        assert [x["seq"] for x in lines] == list(range(5))
+        assert [x["frame"] for x in lines] == list(range(5))
         assert all(x["end_to_end_ms"] is not None and x["end_to_end_ms"] >= 0 for x in lines)
         assert lines[0]["sh"][0] == pytest.approx(10.0)
         frames = sorted((out / "frames").glob("*.png"))
