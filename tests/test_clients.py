@@ -316,6 +316,32 @@ class TestCommands:
             [p for _, p in Recording(second).frames()]
         assert Recording(second).hello.config.mode == "lossless"  # the recording's own mode
 
+    def test_estimate_stream_and_display_write_one_record_layout(self, make_server,
+                                                                  tmp_path):
+        """README "Each line of --out is one frame": the same keys from every command (the
+        streaming ones add the delivery fields; estimate adds the error against truth)."""
+        from arlight.protocols import result_record
+
+        est = tmp_path / "est.jsonl"
+        assert main(["estimate", "synthetic", "--max-frames", "1", "--preset", "mobile",
+                     "--out", str(est)]) == 0
+        record = json.loads(est.read_text().splitlines()[0])
+        core = ["timestamp", "frame", "sh", "sh_camera", "sh_rgb", "dominant_direction_camera",
+                "dominant_direction_world", "intensity", "confidence", "pose", "timings_ms",
+                "diagnostics"]
+        assert list(record) == [*core, "angular_error_deg"]
+        assert record["frame"] == 0 and len(record["sh_camera"]) == len(record["sh"])
+        assert "tracking_ok" in record["diagnostics"]
+        server = make_server(process=identity_step())
+        streamed = tmp_path / "s.jsonl"
+        assert main(["stream", "synthetic", "--server", server.connect_address, "--session",
+                     "records", "--mode", "lossless", "--rate", "max", "--max-frames", "2",
+                     "--size", "64x48", "--out", str(streamed)]) == 0
+        lines = [json.loads(x) for x in streamed.read_text().splitlines()]
+        assert [x["frame"] for x in lines] == [0, 1]
+        assert all(list(x)[:len(core)] == core for x in lines)
+        assert list(result_record(_dummy_result(Frame(0, 1.0, None, None)))) == core
+
     def test_record_command(self, tmp_path):
         path = tmp_path / "r.mcap"
         assert main(["record", "synthetic", "--out", str(path), "--max-frames", "2", "--size",
