@@ -39,7 +39,7 @@ def open_dealer(context: zmq.Context, server: str, *, rcvhwm: int, sndhwm: int |
         sock.connect(server)
     except zmq.ZMQError as exc:
         sock.close(linger=0)
-        raise error(f"cannot connect to {server!r}: {exc}; expected "
+        raise error(f"cannot connect to {server!r}: {exc}; --server expects "
                     "tcp://HOST:PORT") from None
     return sock
 

@@ -189,7 +189,7 @@ class DisplayClient:
                                               self.options.video_fps, (w, h))
                 self._video_size = (w, h)
                 if not self._video.isOpened():
-                    raise DisplayError(f"cannot write the video {self.options.video!r} "
+                    raise DisplayError(f"cannot write the video --video {self.options.video!r} "
                                        "(OpenCV has no mp4v encoder here?)")
             if (bgr.shape[1], bgr.shape[0]) != self._video_size:
                 bgr = cv2.resize(bgr, self._video_size, interpolation=cv2.INTER_AREA)

@@ -52,6 +52,7 @@ from arlight.protocols import (
     Heartbeat,
     Hello,
     ProtocolError,
+    SessionConfig,
     Welcome,
     decode,
     encode,
@@ -73,6 +74,13 @@ DEFAULT_PORT = 5555
 DEFAULT_BIND = f"tcp://*:{DEFAULT_PORT}"
 MAX_SESSION_NAME = 64
 MAX_MESSAGES_PER_POLL = 256  # fairness between reading the socket and sending results
+
+
+# the `arlight serve` flag of each ServerOptions field that has one (for error messages)
+SERVE_FLAGS = {"bind": "--bind", "workers": "--workers", "credits": "--credits",
+               "heartbeat_interval_s": "--heartbeat", "session_timeout_s": "--session-timeout",
+               "log_interval_s": "--log-interval", "max_sessions": "--max-sessions",
+               "max_message_bytes": "--max-message-mb", "shutdown_grace_s": "--shutdown-grace"}
 
 
 @dataclass(frozen=True)
@@ -106,7 +114,9 @@ class ServerOptions:
                   "shutdown_grace_s": self.shutdown_grace_s >= 0}
         for name, ok in checks.items():
             if not ok:
-                raise ValueError(f"server option {name} is out of range: {getattr(self, name)!r}")
+                flag = SERVE_FLAGS.get(name)
+                raise ValueError(f"server option {name}{f' ({flag})' if flag else ''} is out of "
+                                 f"range: {getattr(self, name)!r}")
 
 
 @dataclass
@@ -185,7 +195,7 @@ class Server:
         except zmq.ZMQError as exc:
             router.close()
             self._ctx.term()
-            raise OSError(f"cannot bind {opts.bind!r}: {exc}; use tcp://HOST:PORT or "
+            raise OSError(f"cannot bind {opts.bind!r}: {exc}; give --bind tcp://HOST:PORT or "
                           "tcp://*:PORT with a free port") from None
         self._router = router
         self.endpoint = router.getsockopt_string(zmq.LAST_ENDPOINT)
@@ -359,7 +369,7 @@ class Server:
         if not name or len(name) > MAX_SESSION_NAME:
             self._send_error(identity, Error(
                 code="bad_field", field="hello.config.session",
-                message=f"session name must be 1..{MAX_SESSION_NAME} characters, "
+                message=f"session name (--session) must be 1..{MAX_SESSION_NAME} characters, "
                         f"got {len(name or '')}"))
             return
         old = self.peers.get(identity)
@@ -369,15 +379,30 @@ class Server:
             self.peers[identity] = Peer(identity, "display", name, cfg.client_name, now)
             self.displays[name].add(identity)
             log.info("session %s: display peer %s subscribed", name, identity.hex())
-            self._send(identity, encode(Welcome(PROTOCOL_VERSION, name, 0,
-                                                self.options.heartbeat_interval_s,
-                                                self.options.name)))
+            self._send_welcome(identity, name, credits=0)
             return
         if self._draining:
             self._send_error(identity, Error(code="bad_state", field=ErrorField.SHUTDOWN,
                                              retryable=True,
                                              message="the server is shutting down"))
             return
+        session = self._capture_session(identity, cfg)
+        if session is None:
+            return  # refused: the Error is sent
+        session.capture_peer = identity
+        session.ended = False
+        session.last_activity = now
+        self.peers[identity] = Peer(identity, "capture", name, cfg.client_name, now)
+        self._send_welcome(identity, name, credits=self.options.credits)
+
+    def _send_welcome(self, identity: bytes, session: str, credits: int) -> None:
+        self._send(identity, encode(Welcome(PROTOCOL_VERSION, session, credits,
+                                            self.options.heartbeat_interval_s, self.options.name)))
+
+    def _capture_session(self, identity: bytes, cfg: SessionConfig) -> Session | None:
+        """The session a capture Hello resumes or creates (section 3 of SPEC.md, "Handshake");
+        None after sending the Error that refuses it."""
+        name = cfg.session
         session = self.sessions.get(name)
         if session is not None and not session.same_setup(cfg):
             owner = self.peers.get(session.capture_peer) if session.capture_peer else None
@@ -385,42 +410,38 @@ class Server:
                 self._send_error(identity, Error(
                     code="bad_state", field="hello.config.session",
                     message=f"session {name!r} is in use by another capture client with a "
-                            "different configuration; choose another session name"))
-                return
+                            "different configuration; choose another session name (--session)"))
+                return None
             self._close_session(session, "replaced by a new configuration")
             session = None
-        if session is None:
-            if len(self.sessions) >= self.options.max_sessions:
-                self._send_error(identity, Error(
-                    code="too_large", field="hello.config.session",
-                    message=f"the server already holds {len(self.sessions)} sessions "
-                            f"(limit {self.options.max_sessions}); try again later"))
-                return
-            try:
-                session = Session(cfg, credits=self.options.credits,
-                                  max_pixels=self.options.max_pixels,
-                                  max_message_bytes=self.options.max_message_bytes,
-                                  process=self._process)
-            except SessionSetupError as exc:
-                self._send_error(identity, Error(code=exc.code, field=f"hello.config.{exc.field}",
-                                                 message=str(exc)))
-                return
-            self.sessions[name] = session
-            log.info("session %s: created (%s, %dx%d, preset %s) by capture peer %s %s", name,
-                     cfg.mode, session.camera.width, session.camera.height, cfg.preset,
-                     identity.hex(), repr(cfg.client_name) if cfg.client_name else "")
-        else:
+        if session is not None:
             previous = session.capture_peer
             if previous is not None and previous != identity and previous in self.peers:
                 self._detach_peer(self.peers[previous], reason="replaced by a reconnect")
             log.info("session %s: capture peer %s resumed it (last seq %d)", name,
                      identity.hex(), session.highest_seq)
-        session.capture_peer = identity
-        session.ended = False
-        session.last_activity = now
-        self.peers[identity] = Peer(identity, "capture", name, cfg.client_name, now)
-        self._send(identity, encode(Welcome(PROTOCOL_VERSION, name, self.options.credits,
-                                            self.options.heartbeat_interval_s, self.options.name)))
+            return session
+        if len(self.sessions) >= self.options.max_sessions:
+            self._send_error(identity, Error(
+                code="too_large", field="hello.config.session",
+                message=f"the server already holds {len(self.sessions)} sessions "
+                        f"(limit {self.options.max_sessions}, `arlight serve --max-sessions`); "
+                        "try again later"))
+            return None
+        try:
+            session = Session(cfg, credits=self.options.credits,
+                              max_pixels=self.options.max_pixels,
+                              max_message_bytes=self.options.max_message_bytes,
+                              process=self._process)
+        except SessionSetupError as exc:
+            self._send_error(identity, Error(code=exc.code, field=f"hello.config.{exc.field}",
+                                             message=str(exc)))
+            return None
+        self.sessions[name] = session
+        log.info("session %s: created (%s, %dx%d, preset %s) by capture peer %s %s", name,
+                 cfg.mode, session.camera.width, session.camera.height, cfg.preset,
+                 identity.hex(), repr(cfg.client_name) if cfg.client_name else "")
+        return session
 
     def _on_frame(self, identity: bytes, peer: Peer | None, header: dict, parts: list,
                   now: float, receive_time_wall: float) -> None:
