@@ -68,16 +68,6 @@ DEFAULT_DEPTH_SCALE = 5000.0  # 0.2 mm steps up to 13.1 m when no candidate is e
 MAX_DEPTH_U16 = 65534  # larger values do not fit (65535 is the data sets' "invalid")
 
 
-# the `arlight stream` flag that sets a Hello field the server may refuse
-HELLO_FIELD_FLAGS = {
-    "hello.config.session": "--session",
-    "hello.config.preset": "--preset",
-    "hello.config.overrides": "--set",
-    "hello.config.calibration": "--size (synthetic) or the data set's calibration",
-    "hello.config.mode": "--mode",
-}
-
-
 class StreamError(RuntimeError):
     """The stream cannot go on: no server, or the server refused the session (fatal Error)."""
 
@@ -238,6 +228,16 @@ def encoded_frames(source: Source, options: StreamOptions, timestamps: str
 
 
 # --------------------------------------------------------------------------- client
+
+
+# the `arlight stream` flag that sets a Hello field the server may refuse
+HELLO_FIELD_FLAGS = {
+    "hello.config.session": "--session",
+    "hello.config.preset": "--preset",
+    "hello.config.overrides": "--set",
+    "hello.config.calibration": "--size (synthetic) or the data set's calibration",
+    "hello.config.mode": "--mode",
+}
 
 
 @dataclass(frozen=True)
