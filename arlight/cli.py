@@ -267,7 +267,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
     total = "loop" if options.loop else str(source.num_frames)
 
-    def on_result(result, now: float) -> None:
+    def on_result(result, receive_time_wall: float) -> None:
         d = result.dominant_direction_camera
         server_ms = (result.server_finish_time - result.server_receive_time) * 1e3
         print(f"[{result.seq + 1:>5}/{total}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
@@ -277,7 +277,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
         if out:
             from arlight.protocols import received_record
 
-            out.write(json.dumps(received_record(result, now)) + "\n")
+            out.write(json.dumps(received_record(result, receive_time_wall)) + "\n")
 
     client = CaptureClient(source, options, on_result=on_result, recorder=recorder)
     print(f"arlight stream: {args.source} ({source.num_frames} frames, "

@@ -214,8 +214,8 @@ def encoded_frames(source: Source, options: StreamOptions, timestamps: str
                 parts = frame.parts if seq == peek_header(frame.parts)["seq"] else \
                     restamp_seq(frame.parts, seq)
             else:
-                stamp = time.time() if timestamps == "capture" else ts
-                parts = encode(Frame(seq, stamp, frame.color, frame.depth, frame.pose, None,
+                stamp_s = time.time() if timestamps == "capture" else ts  # goes on the wire
+                parts = encode(Frame(seq, stamp_s, frame.color, frame.depth, frame.pose, None,
                                      options.color_codec, options.depth_codec,
                                      options.jpeg_quality))
             yield seq, ts, parts
@@ -298,7 +298,8 @@ class StreamSummary:
 class CaptureClient:
     """Streams one source into one session. `run()` blocks; `stop()` ends it from any thread.
 
-    on_result(result, receive_time) and on_error(error) are called in the client's thread.
+    on_result(result, receive_time_wall) (time.time() when the Result came, seconds) and
+    on_error(error) are called in the client's thread.
     recorder: optional client/recording.Recorder receiving the Hello and every frame sent.
     """
 
