@@ -18,7 +18,7 @@ import numpy as np
 
 from arlight.pipeline.config import Config
 from arlight.pipeline.pipeline import STAGES, Pipeline
-from arlight.pipeline.synthetic import make_sequence
+from arlight.sources.synthetic import make_sequence
 
 
 def _commit() -> str:

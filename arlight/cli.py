@@ -59,11 +59,12 @@ def _build_config(args: argparse.Namespace):
 
 def _open_source(args: argparse.Namespace):
     """(sequence-like with .camera, len(), frame(i)), ground truth or None."""
-    from arlight.client.datasets import open_pair, open_sequence
+    from arlight.sources.image_pair import open_pair
+    from arlight.sources.sequence import open_sequence
 
     use_poses = args.poses == "groundtruth"
     if args.path == "synthetic":
-        from arlight.pipeline.synthetic import make_sequence
+        from arlight.sources.synthetic import make_sequence
 
         seq = make_sequence(num_frames=args.max_frames or 12)
         frames = [f if use_poses else dataclasses.replace(f, pose=None) for f in seq.frames]
@@ -244,7 +245,7 @@ def _stream_options(args: argparse.Namespace, source) -> object:
 
 
 def _open_stream_source(args: argparse.Namespace):
-    from arlight.client.capture import open_source
+    from arlight.sources.source import open_source
 
     if args.max_frames is not None and args.max_frames < 1:
         raise _BadInput(f"--max-frames must be >= 1, got {args.max_frames}")
@@ -439,6 +440,15 @@ def _add_reconnect_timeout(p: argparse.ArgumentParser) -> None:
 
 
 def _add_streaming_parsers(sub) -> None:
+    """The service's subcommands: serve, stream, record, display, demo."""
+    _add_serve_parser(sub)
+    _add_stream_parser(sub)
+    _add_record_parser(sub)
+    _add_display_parser(sub)
+    _add_demo_parser(sub)
+
+
+def _add_serve_parser(sub) -> None:
     from arlight.server.server import DEFAULT_BIND, ServerOptions
 
     defaults = ServerOptions()
@@ -483,6 +493,8 @@ def _add_streaming_parsers(sub) -> None:
                                          "reported to their clients")
     serve.set_defaults(func=cmd_serve)
 
+
+def _add_stream_parser(sub) -> None:
     stream = sub.add_parser(
         "stream", help="stream a source to a server and print the lighting per frame",
         description="Stream RGB-D frames to an arlight server (`arlight serve`) and print "
@@ -502,6 +514,8 @@ def _add_streaming_parsers(sub) -> None:
     _add_reconnect_timeout(stream)
     stream.set_defaults(func=cmd_stream)
 
+
+def _add_record_parser(sub) -> None:
     rec = sub.add_parser(
         "record", help="record a source as a stream into one MCAP file (no server needed)",
         description="Write the stream `arlight stream SOURCE` would send (session config, "
@@ -511,6 +525,8 @@ def _add_streaming_parsers(sub) -> None:
     rec.add_argument("--out", required=True, metavar="FILE.mcap", help="the MCAP file to write")
     rec.set_defaults(func=cmd_record)
 
+
+def _add_display_parser(sub) -> None:
     disp = sub.add_parser(
         "display", help="subscribe to a session: write its Results and composites, print fps",
         description="The thin display client: receives the Results of one session from the "
@@ -534,6 +550,8 @@ def _add_streaming_parsers(sub) -> None:
     _add_reconnect_timeout(disp)
     disp.set_defaults(func=cmd_display)
 
+
+def _add_demo_parser(sub) -> None:
     demo = sub.add_parser(
         "demo", help="server + capture + display on this machine: the built-in scene end to end",
         description="Start a server, stream the built-in synthetic scene to it over loopback "
@@ -602,8 +620,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    from arlight.client.datasets import DatasetError
     from arlight.pipeline.pipeline import FrameError
+    from arlight.sources.errors import DatasetError
 
     try:
         return args.func(args)

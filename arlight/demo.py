@@ -16,7 +16,8 @@ import json
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -38,10 +39,11 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
              preset: str = "fast", video: str | None = None,
              printer: Callable[[str], None] = print) -> dict:
     """Run the demo; returns the summary (also written to out_dir/summary.json)."""
-    from arlight.client.capture import CaptureClient, StreamOptions, sequence_source
+    from arlight.client.capture import CaptureClient, StreamOptions
     from arlight.client.display import DisplayClient, DisplayOptions
-    from arlight.pipeline.synthetic import make_sequence
     from arlight.server.server import Server, ServerOptions
+    from arlight.sources.source import sequence_source
+    from arlight.sources.synthetic import make_sequence
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -70,34 +72,49 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
         display = DisplayClient(DisplayOptions(server=address, session=DEMO_SESSION,
                                                out_dir=str(out), video=video,
                                                idle_exit_s=120.0), on_result=on_result)
-        display_errors: list[BaseException] = []
-
-        def run_display() -> None:
-            try:
-                display.run()
-            except BaseException as exc:  # noqa: BLE001 - reported by the main thread
-                display_errors.append(exc)
-
-        thread = threading.Thread(target=run_display, name="arlight-demo-display", daemon=True)
-        thread.start()
-        if not display.subscribed.wait(10.0):
-            raise RuntimeError("the display client could not subscribe to the demo server")
-        capture = CaptureClient(source, StreamOptions(
-            server=address, session=DEMO_SESSION, client_name="arlight-demo", mode="lossless",
-            rate="max", preset=preset, want_composite=True, timestamps="capture",
-            overrides={}))
-        stream = capture.run()
-        thread.join(60.0)
-        if thread.is_alive():
-            display.stop()
-            thread.join(5.0)
-        if display_errors:
-            raise display_errors[0]
+        with _display_in_background(display):
+            capture = CaptureClient(source, StreamOptions(
+                server=address, session=DEMO_SESSION, client_name="arlight-demo",
+                mode="lossless", rate="max", preset=preset, want_composite=True,
+                timestamps="capture", overrides={}))
+            stream = capture.run()
     finally:
         server.stop()
-    shown = display.summary.to_dict()
+    summary = _summary(display.summary.to_dict(), stream, errors, frames, size, preset,
+                       time.monotonic() - started)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+@contextmanager
+def _display_in_background(display) -> Iterator[None]:
+    """Run `display` in a thread, subscribed before the block starts; wait for it after."""
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            display.run()
+        except BaseException as exc:  # noqa: BLE001 - re-raised by the main thread
+            errors.append(exc)
+
+    thread = threading.Thread(target=run, name="arlight-demo-display", daemon=True)
+    thread.start()
+    if not display.subscribed.wait(10.0):
+        raise RuntimeError("the display client could not subscribe to the demo server")
+    yield
+    thread.join(60.0)
+    if thread.is_alive():
+        display.stop()
+        thread.join(5.0)
+    if errors:
+        raise errors[0]
+
+
+def _summary(shown: dict, stream, errors: dict[int, float], frames: int,
+             size: tuple[int, int], preset: str, wall_time_s: float) -> dict:
+    """summary.json: what the display received, the capture client's counts, the errors."""
     valid_errors = [e for e in errors.values() if np.isfinite(e)]
-    summary = {
+    return {
         "arlight_version": __version__,
         "scene": {"source": "synthetic", "frames": frames, "width": size[0], "height": size[1]},
         "preset": preset, "mode": "lossless", "session": DEMO_SESSION,
@@ -112,11 +129,9 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
             "median": round(float(np.median(valid_errors)), 3) if valid_errors else None,
             "p90": round(float(np.percentile(valid_errors, 90)), 3) if valid_errors else None},
         "frames_dropped": shown["frames_dropped"], "reconnects": stream.reconnects,
-        "wall_time_s": round(time.monotonic() - started, 3),
+        "wall_time_s": round(wall_time_s, 3),
         "composite": "input frame with the estimated light drawn as a lit sphere (top left); "
                      "no virtual objects are rendered yet",
         "latency_note": "end-to-end = display receive time - capture timestamp (one clock); "
                         "lossless mode queues up to `credits` frames, so it includes waiting",
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    return summary

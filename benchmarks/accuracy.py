@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from arlight.client.datasets import open_sequence
 from arlight.pipeline.config import Config
 from arlight.pipeline.pipeline import Pipeline
+from arlight.sources.sequence import open_sequence
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
 CONFIGS = {

@@ -70,8 +70,8 @@ def serve(port: int) -> None:
 
 
 def make_frames(n: int = 8):
-    from arlight.client.capture import sequence_source
-    from arlight.pipeline.synthetic import make_sequence
+    from arlight.sources.source import sequence_source
+    from arlight.sources.synthetic import make_sequence
 
     seq = make_sequence(num_frames=n, width=WIDTH, height=HEIGHT)
     source = sequence_source("synthetic", seq.camera, seq.frames)

@@ -1,9 +1,10 @@
 """The capture client: frames from a source -> protocol Frames -> the server; Results back.
 
-Sources (`open_source`): "synthetic" (the built-in scene with known light), every folder
-layout `arlight estimate` reads (TUM RGB-D, Open3D/Redwood, 7-Scenes; client/datasets.py),
-and MCAP recordings made by `arlight record` (client/recording.py), whose Frame messages are
-sent exactly as recorded.
+Sources (`arlight.sources.source.open_source`): "synthetic" (the built-in scene with known
+light), every folder layout `arlight estimate` reads (TUM RGB-D, Open3D/Redwood, 7-Scenes) and
+MCAP recordings made by `arlight record`, whose Frame messages are sent exactly as recorded.
+Depth goes out as the source gives it, uint16 with the source's depth_scale in the Hello's
+SessionConfig; the server turns it into metres once.
 
 Delivery (SessionConfig.mode):
 - live: frames go out as the source produces them (`rate="native"`: at the source's own
@@ -35,7 +36,6 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import msgpack
-import numpy as np
 import zmq
 
 from arlight.client.connection import Received, open_dealer, receive_message
@@ -46,7 +46,6 @@ from arlight.protocols import (
     PROTOCOL_VERSION,
     Bye,
     ByeKind,
-    CameraCalibration,
     Credit,
     Error,
     ErrorField,
@@ -59,124 +58,18 @@ from arlight.protocols import (
     encode,
     peek_header,
 )
+from arlight.sources.source import Source
 
 log = logging.getLogger(__name__)
 
 DEFAULT_SERVER = "tcp://127.0.0.1:5555"
-DEPTH_SCALE_CANDIDATES = (5000.0, 1000.0)  # TUM, millimetres: tried for an exact round trip
-DEFAULT_DEPTH_SCALE = 5000.0  # 0.2 mm steps up to 13.1 m when no candidate is exact
-MAX_DEPTH_U16 = 65534  # larger values do not fit (65535 is the data sets' "invalid")
 
 
 class StreamError(RuntimeError):
     """The stream cannot go on: no server, or the server refused the session (fatal Error)."""
 
 
-# --------------------------------------------------------------------------- sources
-
-
-@dataclass
-class SourceFrame:
-    """One frame as sent: timestamp (source clock, s), color (H, W, 3) uint8 RGB,
-    depth (H, W) uint16 in the source's depth_scale units per metre, pose (4, 4) or None.
-    parts: for recordings, the encoded Frame exactly as recorded (sent verbatim)."""
-
-    timestamp: float
-    color: np.ndarray | None = None
-    depth: np.ndarray | None = None
-    pose: np.ndarray | None = None
-    parts: list[bytes] | None = None
-
-
-@dataclass
-class Source:
-    """Frames plus what a Hello needs. frames(): a fresh iterator over all frames."""
-
-    name: str
-    calibration: CameraCalibration
-    depth_scale: float
-    num_frames: int
-    frames: Callable[[], Iterator[SourceFrame]]
-    notes: list[str] = field(default_factory=list)
-    recorded_config: SessionConfig | None = None  # recordings: the recorded session config
-
-
-def calibration_of(camera) -> CameraCalibration:
-    """The wire calibration of a PinholeCamera (no distortion: images are undistorted)."""
-    return CameraCalibration(int(camera.width), int(camera.height), float(camera.fx),
-                             float(camera.fy), float(camera.cx), float(camera.cy))
-
-
-def depth_to_u16(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
-    """(H, W) float metres -> uint16 in depth_scale units; missing, NaN or too far -> 0."""
-    d = np.asarray(depth_m, dtype=np.float64) * depth_scale
-    d = np.where(np.isfinite(d), np.rint(d), 0.0)
-    d[(d < 0) | (d > MAX_DEPTH_U16)] = 0.0
-    return d.astype(np.uint16)
-
-
-def choose_depth_scale(depth_m: np.ndarray) -> tuple[float, bool]:
-    """A depth_scale that turns these metres back into the stored integers exactly, if any.
-
-    Recorded depth is integers / scale (TUM 5000, millimetres 1000); sending the integers
-    with that scale lets the server recompute the reader's metres bit for bit (the equality
-    `arlight stream` promises in lossless mode). Returns (scale, exact).
-    """
-    valid = np.isfinite(depth_m) & (depth_m > 0)
-    values = depth_m[valid].astype(np.float32)
-    for scale in DEPTH_SCALE_CANDIDATES:
-        units = np.rint(values.astype(np.float64) * scale)
-        if units.size and units.max() > MAX_DEPTH_U16:
-            continue
-        if np.array_equal(units.astype(np.float32) / np.float32(scale), values):
-            return scale, True
-    return DEFAULT_DEPTH_SCALE, False
-
-
-def sequence_source(name: str, camera, frames, notes: list[str] | None = None) -> Source:
-    """A Source over FrameInputs (depth in metres), e.g. a data set or the synthetic scene."""
-    notes = list(notes or [])
-    first = frames[0]
-    scale, exact = choose_depth_scale(np.asarray(first.depth))
-    if not exact:
-        note = (f"{name}: depth is not integers over 5000 or 1000 (e.g. reprojected); sent at "
-                f"depth_scale {scale:g} (rounded to 0.2 mm)")
-        log.warning(note)
-        notes = [*notes, note]
-
-    def iterate() -> Iterator[SourceFrame]:
-        for i in range(len(frames)):
-            f = frames[i]
-            yield SourceFrame(float(f.timestamp), np.ascontiguousarray(f.color),
-                              depth_to_u16(f.depth, scale), f.pose)
-
-    return Source(name, calibration_of(camera), scale, len(frames), iterate, notes)
-
-
-def open_source(spec: str, *, use_poses: bool = False, max_frames: int | None = None,
-                depth_encoding: str | None = None, synthetic_size: tuple[int, int] = (640, 480),
-                synthetic_frames: int = 12) -> Source:
-    """A frame source: "synthetic", a data set folder (see client/datasets.py) or FILE.mcap.
-
-    Raises DatasetError (arlight.client.datasets) or RecordingError for unusable input.
-    """
-    if spec == "synthetic":
-        from arlight.pipeline.synthetic import make_sequence
-
-        n = max_frames or synthetic_frames
-        seq = make_sequence(num_frames=n, width=synthetic_size[0], height=synthetic_size[1])
-        frames = seq.frames if use_poses else [dataclasses.replace(f, pose=None)
-                                               for f in seq.frames]
-        return sequence_source("synthetic", seq.camera, frames, [])
-    if spec.lower().endswith(".mcap"):
-        from arlight.client.recording import open_recording_source
-
-        return open_recording_source(spec, max_frames=max_frames)
-    from arlight.client.datasets import open_sequence
-
-    seq = open_sequence(spec, depth_encoding=depth_encoding, use_poses=use_poses,
-                        max_frames=max_frames)
-    return sequence_source(seq.name, seq.camera, seq.frames, list(seq.notes))
+# --------------------------------------------------------------------------- frames
 
 
 def default_session_name(source_name: str) -> str:
@@ -198,7 +91,8 @@ def encoded_frames(source: Source, options: StreamOptions, timestamps: str
     """(seq, source timestamp, encoded Frame parts) for every frame to send, looping if asked.
 
     timestamps: "capture" stamps each frame with time.time() as it is encoded, "source" keeps
-    the source's. Recorded frames are passed on as recorded (re-stamped seq when looping).
+    the source's. Recorded frames are passed on as recorded (re-stamped seq when looping);
+    other frames' depth is encoded as the source gives it (uint16, source.depth_scale).
     """
     seq = 0
     offset_s = 0.0

@@ -13,6 +13,7 @@ from contextlib import contextmanager
 import cv2
 import numpy as np
 
+from arlight.checks import CheckError, depth_metres
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
@@ -65,10 +66,10 @@ def validate_frame(frame: FrameInput, camera: PinholeCamera) -> tuple[np.ndarray
     if depth.shape != expected:
         raise FrameError("depth", f"size {depth.shape[1]}x{depth.shape[0]} does not match the "
                                   f"colour image's {camera.width}x{camera.height}")
-    if not np.issubdtype(depth.dtype, np.floating):
-        raise FrameError("depth", f"expected float metres, got dtype {depth.dtype}")
-    depth = depth.astype(np.float32, copy=True)
-    depth[~np.isfinite(depth) | (depth < 0) | (depth > MAX_DEPTH_M)] = 0.0
+    try:
+        depth = depth_metres(frame.depth, frame.depth_scale)
+    except CheckError as exc:
+        raise FrameError("depth", exc.message) from None
     if frame.pose is not None:
         pose = np.asarray(frame.pose, dtype=np.float64)
         if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):

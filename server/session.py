@@ -99,7 +99,8 @@ def camera_from_config(config: SessionConfig, max_pixels: int) -> PinholeCamera:
 
 
 def frame_to_input(frame: Frame, camera: PinholeCamera, depth_scale: float) -> FrameInput:
-    """Pipeline input of a wire frame: depth uint16 / depth_scale -> float32 metres.
+    """Pipeline input of a wire frame: its uint16 depth as received, with the session's
+    depth_scale (units per metre); Pipeline.process turns it into metres, once.
 
     Checks the image sizes against the session's calibration (FrameError names the field);
     everything else (NaN poses, dtypes) is checked by Pipeline.process.
@@ -113,12 +114,11 @@ def frame_to_input(frame: Frame, camera: PinholeCamera, depth_scale: float) -> F
         raise FrameError("depth", f"size {frame.depth.shape[1]}x{frame.depth.shape[0]} does "
                                   f"not match the session's calibration "
                                   f"{camera.width}x{camera.height}")
-    # the same arithmetic as the data set readers (client/datasets.py decode_depth), so a
-    # stream of recorded uint16 depth reproduces their metres bit for bit
-    depth_m = frame.depth.astype(np.float32) / np.float32(depth_scale)
+    # the sources' integers and depth_scale, untouched: a stream of recorded depth gives the
+    # pipeline the metres that reading the recording directly gives, bit for bit
     pose = None if frame.pose is None else np.asarray(frame.pose, dtype=np.float64)
-    return FrameInput(color=frame.color, depth=depth_m, timestamp=float(frame.timestamp),
-                      pose=pose, panorama=frame.panorama)
+    return FrameInput(color=frame.color, depth=frame.depth, depth_scale=float(depth_scale),
+                      timestamp=float(frame.timestamp), pose=pose, panorama=frame.panorama)
 
 
 def default_process(frame: FrameInput, session: Session) -> FrameResult:

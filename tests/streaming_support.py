@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 import zmq
 
-from arlight.client.capture import Source, SourceFrame, calibration_of
+from arlight.checks import depth_metres
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
 from arlight.protocols import PROTOCOL_VERSION, Hello, SessionConfig, decode, encode
 from arlight.server.server import Server, ServerOptions
+from arlight.sources.source import Source, SourceFrame, calibration_of
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TUM_FOLDER = DATA / "real" / "corner_18frames"
@@ -54,7 +55,7 @@ def identity_step(delay_s: float = 0.0):
         return FrameResult(timestamp=frame.timestamp, sh=sh, sh_camera=sh,
                            dominant_direction_world=np.zeros(3),
                            dominant_direction_camera=np.zeros(3),
-                           intensity=float(np.asarray(frame.depth).mean()),
+                           intensity=float(depth_metres(frame.depth, frame.depth_scale).mean()),
                            confidence=Confidence(), pose=pose, timings_ms={"Identity": 0.0})
 
     return step

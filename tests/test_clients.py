@@ -22,26 +22,16 @@ from streaming_support import (
     server_factory,
 )
 
+from arlight.checks import depth_metres
 from arlight.cli import main
 from arlight.client.capture import (
-    DEFAULT_DEPTH_SCALE,
     CaptureClient,
     StreamOptions,
-    choose_depth_scale,
     default_session_name,
-    depth_to_u16,
     encoded_frames,
-    open_source,
 )
 from arlight.client.display import DisplayClient, DisplayOptions
-from arlight.client.recording import (
-    FRAME_TOPIC,
-    HELLO_TOPIC,
-    INFO_TOPIC,
-    Recording,
-    RecordingError,
-    record,
-)
+from arlight.client.recording import record
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Frame,
@@ -53,6 +43,15 @@ from arlight.protocols import (
     encode,
     peek_header,
 )
+from arlight.sources.recording import (
+    FRAME_TOPIC,
+    HELLO_TOPIC,
+    INFO_TOPIC,
+    Recording,
+    RecordingError,
+)
+from arlight.sources.seven_scenes import SEVEN_SCENES_DEPTH_SCALE
+from arlight.sources.source import open_source
 
 
 @pytest.fixture
@@ -78,8 +77,9 @@ class TestSources:
 
     @pytest.mark.data
     def test_tum_depth_travels_bit_exactly(self):
-        """TUM depth is integers / 5000: the wire integers give back the reader's metres."""
-        from arlight.client.datasets import open_sequence
+        """TUM depth is integers at 5000 units per metre: they are sent untouched, so the wire
+        integers give back the reader's metres."""
+        from arlight.sources.sequence import open_sequence
 
         folder = need_data(TUM_FOLDER)
         source = open_source(str(folder), max_frames=2)
@@ -87,38 +87,75 @@ class TestSources:
         assert not any("depth_scale" in note for note in source.notes)
         reference = open_sequence(folder, max_frames=2)
         for sent, frame in zip(source.frames(), reference.frames, strict=True):
-            metres = sent.depth.astype(np.float32) / np.float32(source.depth_scale)
-            np.testing.assert_array_equal(metres, frame.depth)
+            assert frame.depth_scale == source.depth_scale
+            np.testing.assert_array_equal(sent.depth, frame.depth)  # the stored integers
+            metres = depth_metres(sent.depth, source.depth_scale)
+            np.testing.assert_array_equal(metres, depth_metres(frame.depth, frame.depth_scale))
             np.testing.assert_array_equal(sent.color, frame.color)
 
     @pytest.mark.data
     def test_open3d_millimetre_depth_travels_bit_exactly(self):
-        """Millimetres: 5000 units per metre is exact too (5 v / 5000 = v / 1000 in float32,
-        both correctly rounded) while every value fits in 16 bits; 1000 otherwise."""
-        from arlight.client.datasets import open_sequence
+        """Millimetres go out as the stored millimetres, at 1000 units per metre."""
+        from arlight.sources.sequence import open_sequence
 
         folder = need_data(DATA / "real" / "icl_nuim_livingroom")
         source = open_source(str(folder), max_frames=1)
         assert source.depth_scale in (5000.0, 1000.0)
+        assert source.depth_scale == 1000.0  # the sensor's own units, never rescaled
         sent = next(source.frames())
-        metres = sent.depth.astype(np.float32) / np.float32(source.depth_scale)
-        np.testing.assert_array_equal(metres, open_sequence(folder, max_frames=1).frames[0].depth)
-        mm = np.array([[1.0, 20.0]], np.float32)  # 20 m does not fit at 5000 units per metre
-        assert choose_depth_scale(mm) == (1000.0, True)
+        raw = cv2.imread(str(folder / "depth" / "00000.png"), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(sent.depth, raw)
+        frame = open_sequence(folder, max_frames=1).frames[0]
+        np.testing.assert_array_equal(depth_metres(sent.depth, source.depth_scale),
+                                      depth_metres(frame.depth, frame.depth_scale))
 
     @pytest.mark.data
-    def test_registered_depth_falls_back_with_a_note(self):
-        """7-Scenes depth is reprojected into the colour camera: no integer scale is exact."""
-        source = open_source(str(need_data(DATA / "real" / "7scenes_redkitchen")), max_frames=1)
-        assert source.depth_scale == DEFAULT_DEPTH_SCALE
-        assert any("depth_scale" in note for note in source.notes)
+    def test_registered_depth_goes_at_the_readers_stated_scale(self):
+        """7-Scenes depth is reprojected into the colour camera: the reader quantises it at
+        its stated scale, and that is what is sent (no second rounding)."""
+        from arlight.sources.sequence import open_sequence
 
-    def test_depth_to_u16_edges(self):
-        depth = np.array([[0.0, np.nan, -1.0, np.inf], [1.0, 1.00009, 13.1, 20.0]], np.float32)
-        u16 = depth_to_u16(depth, 5000.0)
-        assert u16.dtype == np.uint16
-        assert u16.tolist() == [[0, 0, 0, 0], [5000, 5000, 65500, 0]]
-        assert choose_depth_scale(np.array([[1.0, 0.0]], np.float32)) == (5000.0, True)
+        folder = need_data(DATA / "real" / "7scenes_redkitchen")
+        source = open_source(str(folder), max_frames=1)
+        assert source.depth_scale == SEVEN_SCENES_DEPTH_SCALE == 5000.0
+        assert any("quantised at 5000" in note for note in source.notes)
+        np.testing.assert_array_equal(next(source.frames()).depth,
+                                      open_sequence(folder, max_frames=1).frames[0].depth)
+
+    def test_float_metres_are_refused(self):
+        """A Source sends the sensor's integers: frames of float metres cannot be one."""
+        from arlight.sources.source import sequence_source
+        from arlight.sources.synthetic import make_sequence
+
+        clean = make_sequence(num_frames=1, width=8, height=6, sensor_noise=False)
+        with pytest.raises(ValueError, match="depth_scale None"):
+            sequence_source("clean", clean.camera, clean.frames)
+
+    @pytest.mark.data
+    def test_tum_folder_over_loopback_gives_the_readers_metres(self, make_server):
+        """Streamed losslessly, the server's pipeline gets the metres that reading the folder
+        directly gives, bit for bit."""
+        from arlight.sources.sequence import open_sequence
+
+        folder = need_data(TUM_FOLDER)
+        received = []
+        step = identity_step()
+
+        def process(frame, session):
+            received.append(depth_metres(frame.depth, frame.depth_scale))
+            return step(frame, session)
+
+        server = make_server(process=process)
+        options = StreamOptions(server=server.connect_address, session="metres",
+                                mode="lossless", rate="max", color_codec="png",
+                                depth_codec="zstd")
+        summary = run_with_timeout(CaptureClient(open_source(str(folder), max_frames=3),
+                                                 options).run)
+        assert summary.errors == [] and summary.results == 3
+        reference = open_sequence(folder, max_frames=3)
+        assert len(received) == 3
+        for got, frame in zip(received, reference.frames, strict=True):
+            np.testing.assert_array_equal(got, depth_metres(frame.depth, frame.depth_scale))
 
     def test_default_session_name_is_a_protocol_name(self):
         name = default_session_name("my data set (copy)/x" * 10)

@@ -1,5 +1,5 @@
-"""Tests of arlight.client.datasets: real recorded data (skipped without ../shared/data) and
-tiny folders written to tmp_path for every bad-input case."""
+"""Tests of the data set readers (arlight.sources): real recorded data (skipped without
+../shared/data) and tiny folders written to tmp_path for every bad-input case."""
 
 from __future__ import annotations
 
@@ -11,18 +11,22 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from arlight.client.datasets import (
-    SEVEN_SCENES_COLOR_FROM_DEPTH,
-    DatasetError,
-    RgbdSequence,
-    decode_depth,
-    open_pair,
-    open_sequence,
-    read_color,
-    read_depth,
-    register_depth,
-)
+from arlight.checks import depth_metres
 from arlight.pipeline.camera import PinholeCamera
+from arlight.sources.depth_encodings import (
+    NYU_DEPTH_SCALE,
+    decode_depth,
+    metres_to_units,
+    read_depth,
+)
+from arlight.sources.errors import DatasetError
+from arlight.sources.image_pair import open_pair
+from arlight.sources.images import read_color
+from arlight.sources.registration import register_depth
+from arlight.sources.rgbd_sequence import RgbdSequence
+from arlight.sources.sequence import open_sequence
+from arlight.sources.seven_scenes import SEVEN_SCENES_COLOR_FROM_DEPTH, SEVEN_SCENES_DEPTH_SCALE
+from arlight.sources.tum import quaternion_to_matrix
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 REAL = DATA / "real"
@@ -36,12 +40,21 @@ needs_data = [
 ]
 
 
+def metres(frame) -> np.ndarray:
+    """The frame's depth in metres, as the pipeline computes it."""
+    return depth_metres(frame.depth, frame.depth_scale)
+
+
 def check_frame(frame, camera: PinholeCamera, min_m: float = 0.05, max_m: float = 15.0) -> None:
     h, w = camera.height, camera.width
     assert frame.color.shape == (h, w, 3) and frame.color.dtype == np.uint8
-    assert frame.depth.shape == (h, w) and frame.depth.dtype == np.float32
-    assert np.all(np.isfinite(frame.depth))
-    valid = frame.depth[frame.depth > 0]
+    # sources yield the sensor's integers and their units per metre
+    assert frame.depth.shape == (h, w) and frame.depth.dtype == np.uint16
+    assert frame.depth_scale is not None and frame.depth_scale > 0
+    depth = metres(frame)
+    assert depth.shape == (h, w) and depth.dtype == np.float32
+    assert np.all(np.isfinite(depth))
+    valid = depth[depth > 0]
     assert valid.size > 0.3 * h * w
     assert valid.min() >= min_m and valid.max() <= max_m
     assert 0.3 <= float(np.median(valid)) <= 10.0
@@ -90,7 +103,10 @@ class TestTumSynthetic:
         bgr = cv2.imread(str(self.folder / "rgb" / "000000.png"), cv2.IMREAD_COLOR)
         np.testing.assert_array_equal(f.color, bgr[..., ::-1])
         raw = cv2.imread(str(self.folder / "depth" / "000000.png"), cv2.IMREAD_UNCHANGED)
-        np.testing.assert_allclose(f.depth, raw.astype(np.float32) / 5000.0, rtol=1e-6)
+        np.testing.assert_allclose(metres(f), raw.astype(np.float32) / 5000.0, rtol=1e-6)
+        # the stored integers themselves, untouched
+        assert f.depth_scale == 5000.0
+        np.testing.assert_array_equal(f.depth, raw)
 
     def test_poses_match_groundtruth(self):
         seq = open_sequence(self.folder, use_poses=True)
@@ -119,7 +135,7 @@ class TestTumCorner:
     folder = REAL / "corner_18frames"
 
     def test_loads_with_kinect_defaults(self, caplog):
-        with caplog.at_level(logging.WARNING, logger="arlight.client.datasets"):
+        with caplog.at_level(logging.WARNING, logger="arlight.sources"):
             seq = open_sequence(self.folder)
         assert "camera.json" in caplog.text
         # 18 image pairs on disk; one (1628069034.423709) is in neither depth.txt nor
@@ -128,8 +144,9 @@ class TestTumCorner:
         assert seq.camera == PinholeCamera.kinect_v1(640, 480)
         assert not seq.has_poses
         f = seq.frame(0)
-        assert f.color.shape == (480, 640, 3) and f.depth.dtype == np.float32
-        assert 0.3 <= float(np.median(f.depth[f.depth > 0])) <= 10.0
+        depth = metres(f)
+        assert f.color.shape == (480, 640, 3) and depth.dtype == np.float32
+        assert 0.3 <= float(np.median(depth[depth > 0])) <= 10.0
 
     def test_associations_with_depth_column_first(self):
         # corner's associations.txt lists depth before rgb: colour must still be colour
@@ -144,7 +161,7 @@ class TestTumCorner:
                          cv2.IMREAD_UNCHANGED)
         saturated = raw == 65535
         assert saturated.mean() > 0.01
-        depth = seq.frame(0).depth
+        depth = metres(seq.frame(0))
         assert np.all(depth[saturated] == 0)
         ok = ~saturated
         np.testing.assert_allclose(depth[ok], raw[ok] / 5000.0, rtol=1e-6)
@@ -167,7 +184,9 @@ class TestRedwood:
             assert f.timestamp == pytest.approx(i / 30.0)
             assert f.pose is None
         raw = cv2.imread(str(self.folder / "depth" / "00002.png"), cv2.IMREAD_UNCHANGED)
-        np.testing.assert_allclose(seq.frame(2).depth, raw / 1000.0, rtol=1e-6)
+        np.testing.assert_allclose(metres(seq.frame(2)), raw / 1000.0, rtol=1e-6)
+        assert seq.frame(2).depth_scale == 1000.0
+        np.testing.assert_array_equal(seq.frame(2).depth, raw)
 
     def test_poses_match_trajectory_log(self):
         seq = open_sequence(self.folder, use_poses=True)
@@ -195,7 +214,7 @@ class TestSevenScenes:
     def test_65535_and_zero_are_missing(self):
         raw = cv2.imread(str(self.folder / "frame-000000.depth.png"), cv2.IMREAD_UNCHANGED)
         raw[:10, :10] = 65535
-        depth = decode_depth(raw, "mm")
+        depth = depth_metres(*decode_depth(raw, "mm"))
         assert np.all(depth[:10, :10] == 0)
 
     def test_registration_aligns_depth_edges_with_colour_edges(self):
@@ -208,18 +227,25 @@ class TestSevenScenes:
             gray = cv2.cvtColor(seq.frame(i).color, cv2.COLOR_RGB2GRAY)
             edges = cv2.Canny(gray, 50, 150)
             dist = cv2.distanceTransform((edges == 0).astype(np.uint8), cv2.DIST_L2, 3)
-            raw = read_depth(self.folder / f"frame-{i:06d}.depth.png", "mm")
-            for depth, out in ((raw, raw_d), (seq.frame(i).depth, reg_d)):
+            raw = depth_metres(*read_depth(self.folder / f"frame-{i:06d}.depth.png", "mm"))
+            for depth, out in ((raw, raw_d), (metres(seq.frame(i)), reg_d)):
                 jump = (np.abs(np.diff(depth, axis=1)) > 0.1) & (depth[:, 1:] > 0) & (
                     depth[:, :-1] > 0)
                 ys, xs = np.nonzero(jump)
                 out.append(np.median(dist[ys, xs]))
         assert np.mean(reg_d) < 0.7 * np.mean(raw_d)
-        # and the registration is the documented one
+        # and the registration is the documented one, quantised at the stated scale
+        assert seq.frame(0).depth_scale == SEVEN_SCENES_DEPTH_SCALE == 5000.0
+        registered = register_depth(
+            depth_metres(*read_depth(self.folder / "frame-000000.depth.png", "mm")), depth_cam,
+            seq.camera, SEVEN_SCENES_COLOR_FROM_DEPTH)
         np.testing.assert_allclose(
-            seq.frame(0).depth,
-            register_depth(read_depth(self.folder / "frame-000000.depth.png", "mm"), depth_cam,
-                           seq.camera, SEVEN_SCENES_COLOR_FROM_DEPTH))
+            metres(seq.frame(0)),
+            depth_metres(metres_to_units(registered, SEVEN_SCENES_DEPTH_SCALE),
+                         SEVEN_SCENES_DEPTH_SCALE))
+        # which is within half a step (0.1 mm) of the reprojected depth
+        both = (registered > 0) & (metres(seq.frame(0)) > 0)
+        assert np.abs(metres(seq.frame(0)) - registered)[both].max() <= 0.5 / 5000 + 1e-6
 
     def test_poses(self):
         seq = open_sequence(self.folder, use_poses=True, max_frames=5)
@@ -259,21 +285,28 @@ class TestSingleFrames:
         # the colour file alone finds its partner and infers the encoding from the prefix
         auto = open_sequence(color).frame(0)
         np.testing.assert_array_equal(auto.depth, f.depth)
+        assert auto.depth_scale == f.depth_scale
 
     def test_nyu_missing_and_formula(self):
         raw = cv2.imread(str(self.folder / "NYU_depth.pgm"), cv2.IMREAD_UNCHANGED).byteswap()
-        depth = open_pair(self.folder / "NYU_color.ppm", self.folder / "NYU_depth.pgm",
-                          "nyu").frame(0).depth
+        frame = open_pair(self.folder / "NYU_color.ppm", self.folder / "NYU_depth.pgm",
+                          "nyu").frame(0)
+        assert frame.depth.dtype == np.uint16 and frame.depth_scale == NYU_DEPTH_SCALE == 5000.0
+        depth = metres(frame)
         missing = raw == 2047
         assert missing.mean() > 0.01 and np.all(depth[missing] == 0)
         ok = ~missing
-        np.testing.assert_allclose(depth[ok], 351.3 / (1092.5 - raw[ok].astype(np.float64)),
-                                   rtol=1e-5)
+        # disparity is not linear in depth: the reader quantises the formula's metres at
+        # NYU_DEPTH_SCALE units per metre
+        formula = 351.3 / (1092.5 - raw[ok].astype(np.float64))
+        np.testing.assert_allclose(depth[ok], np.rint(formula * 5000.0) / 5000.0, rtol=1e-5)
+        assert np.abs(depth[ok] - formula).max() <= 0.5 / 5000 + 1e-6
 
     def test_wrong_encoding_is_implausible(self):
         # the SUN file read as plain millimetres gives nonsense depth: the encoding matters
         f = open_pair(self.folder / "SUN_color.jpg", self.folder / "SUN_depth.png", "mm").frame(0)
-        assert np.median(f.depth[f.depth > 0]) > 10.0
+        depth = metres(f)
+        assert np.median(depth[depth > 0]) > 10.0
 
     def test_folder_with_several_pairs_lists_them(self):
         with pytest.raises(DatasetError, match="TUM_color.png") as err:
@@ -343,7 +376,7 @@ class TestTinyTum:
         assert len(seq) == 3
         f = seq.frame(2)
         assert f.color[0, 0].tolist() == [20, 100, 50]
-        np.testing.assert_allclose(f.depth, 3.0)
+        np.testing.assert_allclose(metres(f), 3.0)
         assert f.timestamp == pytest.approx(100.0 + 2 / 30.0)
         np.testing.assert_allclose(f.pose[:3, 3], [2, 2, 3])
         np.testing.assert_allclose(f.pose[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]],
@@ -355,7 +388,8 @@ class TestTinyTum:
                                                 '"width": 8, "height": 6, "depth_scale": 1000}')
         seq = open_sequence(folder)
         assert seq.camera == PinholeCamera(8, 6, 10.0, 11.0, 3.5, 2.5)
-        np.testing.assert_allclose(seq.frame(0).depth, 5.0)  # 5000 units at 1000 / m
+        np.testing.assert_allclose(metres(seq.frame(0)), 5.0)  # 5000 units at 1000 / m
+        assert seq.frame(0).depth_scale == 1000.0
 
     def test_pose_too_far_in_time_drops_frame(self, tmp_path):
         folder = make_tum(tmp_path, n=3)
@@ -468,7 +502,7 @@ class TestBadInput:
         write_png(tmp_path / "depth" / "00000.png", depth_image(scale=1000.0))
         seq = open_sequence(tmp_path)
         assert seq.format == "redwood" and len(seq) == 1
-        np.testing.assert_allclose(seq.frame(0).depth, 1.5)
+        np.testing.assert_allclose(metres(seq.frame(0)), 1.5)
         with pytest.raises(DatasetError, match="trajectory.log"):
             open_sequence(tmp_path, use_poses=True)
         (tmp_path / "trajectory.log").write_text("0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1 0\n")
@@ -500,7 +534,7 @@ class TestBadInput:
         with pytest.raises(DatasetError, match="depth_encoding"):
             open_sequence(tmp_path / "a_color.png")
         seq = open_sequence(tmp_path / "a_color.png", depth_encoding="mm")
-        np.testing.assert_allclose(seq.frame(0).depth, 7.5)
+        np.testing.assert_allclose(metres(seq.frame(0)), 7.5)
         write_png(tmp_path / "b_color.png", color_image())
         with pytest.raises(DatasetError, match="no depth partner"):
             open_sequence(tmp_path / "b_color.png", depth_encoding="mm")
@@ -520,20 +554,45 @@ class TestBadInput:
 class TestDecodeDepth:
     def test_tum_and_mm(self):
         raw = np.array([[0, 5000, 65535]], np.uint16)
-        np.testing.assert_allclose(decode_depth(raw, "tum"), [[0.0, 1.0, 0.0]])
-        np.testing.assert_allclose(decode_depth(raw, "mm"), [[0.0, 5.0, 0.0]])
+        np.testing.assert_allclose(depth_metres(*decode_depth(raw, "tum")), [[0.0, 1.0, 0.0]])
+        np.testing.assert_allclose(depth_metres(*decode_depth(raw, "mm")), [[0.0, 5.0, 0.0]])
+        units, scale = decode_depth(raw, "tum")
+        assert units.dtype == np.uint16 and units.tolist() == [[0, 5000, 0]] and scale == 5000.0
+        assert decode_depth(raw, "mm", units_per_metre=2000.0)[1] == 2000.0
 
     def test_sun_bit_rotation(self):
         mm = np.array([0, 1234, 8191, 9870], np.uint32)
         stored = (((mm << 3) | (mm >> 13)) & 0xFFFF).astype(np.uint16)
-        np.testing.assert_allclose(decode_depth(stored[None], "sun")[0], mm / 1000.0, rtol=1e-6)
+        np.testing.assert_allclose(depth_metres(*decode_depth(stored[None], "sun"))[0],
+                                   mm / 1000.0, rtol=1e-6)
+        units, scale = decode_depth(stored[None], "sun")
+        assert units[0].tolist() == mm.tolist() and scale == 1000.0  # the millimetre integers
 
     def test_nyu(self):
         disparity = np.array([[2047, 1092, 1200, 1000, 300]], np.uint16)
         expected = [0.0, 0.0, 0.0, 351.3 / 92.5, 351.3 / 792.5]  # missing, >10 m, negative
-        np.testing.assert_allclose(decode_depth(disparity.byteswap(), "nyu"), [expected],
+        # quantised at NYU_DEPTH_SCALE units per metre (disparity is not linear in depth)
+        expected = np.rint(np.array(expected) * NYU_DEPTH_SCALE) / NYU_DEPTH_SCALE
+        np.testing.assert_allclose(depth_metres(*decode_depth(disparity.byteswap(), "nyu")),
+                                   [expected], rtol=1e-6)
+        np.testing.assert_allclose(depth_metres(*decode_depth(disparity, "nyu")), [expected],
                                    rtol=1e-6)
-        np.testing.assert_allclose(decode_depth(disparity, "nyu"), [expected], rtol=1e-6)
+        assert decode_depth(disparity, "nyu")[1] == NYU_DEPTH_SCALE
+
+    def test_metres_to_units_edges(self):
+        depth = np.array([[0.0, np.nan, -1.0, np.inf], [1.0, 1.00009, 13.1, 20.0]], np.float32)
+        units = metres_to_units(depth, 5000.0)
+        assert units.dtype == np.uint16
+        assert units.tolist() == [[0, 0, 0, 0], [5000, 5000, 65500, 0]]
+
+    def test_quaternion_to_matrix(self):
+        q = [0.1, -0.2, 0.3, 0.9]  # x, y, z, w as TUM writes them; not unit length
+        np.testing.assert_allclose(quaternion_to_matrix(*q),
+                                   Rotation.from_quat(q).as_matrix(), atol=1e-12)
+        np.testing.assert_allclose(quaternion_to_matrix(0, 0, 0.7071068, 0.7071068),
+                                   [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-6)
+        with pytest.raises(ValueError, match="no direction"):
+            quaternion_to_matrix(0, 0, 0, 0)
 
     def test_read_color_converts_grey_and_bgr(self, tmp_path):
         write_png(tmp_path / "g.png", np.full((2, 3), 9, np.uint8))
@@ -564,3 +623,18 @@ class TestRegisterDepth:
         m[0, 3] = 0.2  # 0.2 m to the right at 2 m, f = 10 px: 1 px
         out = register_depth(depth, cam, cam, m)
         assert out[0, 0] == 0.0 and np.all(out[0, 1:] == 2.0)
+
+
+class TestPackage:
+    def test_sources_never_import_client_or_server(self):
+        """The dependency direction: client -> sources -> pipeline, protocols."""
+        import subprocess
+        import sys
+
+        code = ("import sys, arlight.sources.source\n"
+                "bad = sorted(m for m in sys.modules\n"
+                "             if m.startswith(('arlight.client', 'arlight.server')))\n"
+                "print(bad); sys.exit(1 if bad else 0)")
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              timeout=120)
+        assert done.returncode == 0, done.stdout + done.stderr

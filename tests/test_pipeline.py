@@ -10,7 +10,7 @@ from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.pipeline import STAGES, FrameError, Pipeline
-from arlight.pipeline.synthetic import make_sequence
+from arlight.sources.synthetic import make_sequence
 
 SMALL = dict(volume_resolution=64, aux_resolution=32)
 

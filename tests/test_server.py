@@ -35,15 +35,12 @@ from streaming_support import (
 from arlight.client.capture import (
     CaptureClient,
     StreamOptions,
-    open_source,
-    sequence_source,
     stream,
 )
 from arlight.client.display import DisplayClient, DisplayOptions
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.pipeline import FrameError, Pipeline
-from arlight.pipeline.synthetic import make_sequence
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Bye,
@@ -58,6 +55,8 @@ from arlight.protocols import (
     encode,
 )
 from arlight.server.server import Server, ServerOptions
+from arlight.sources.source import open_source, sequence_source
+from arlight.sources.synthetic import make_sequence
 
 
 @pytest.fixture
@@ -78,8 +77,9 @@ def _assert_result_equals(result: Result, expected) -> None:
 
 
 def _wire_input(frame) -> FrameInput:
-    """The pipeline input a SourceFrame becomes on the server (uint16 / 5000 -> metres)."""
-    return FrameInput(color=frame.color, depth=frame.depth.astype(np.float32) / np.float32(5000),
+    """The pipeline input a SourceFrame becomes on the server (uint16 at 5000 units per
+    metre, converted to metres by Pipeline.process)."""
+    return FrameInput(color=frame.color, depth=frame.depth, depth_scale=5000.0,
                       timestamp=frame.timestamp, pose=frame.pose)
 
 
@@ -88,7 +88,7 @@ class TestLossless:
     def test_tum_folder_every_frame_equal_to_pipeline(self, make_server):
         """A TUM folder streamed losslessly: one Result per frame, in order, each equal to
         Pipeline.process on the frames the data set reader gives (png colour, zstd depth)."""
-        from arlight.client.datasets import open_sequence
+        from arlight.sources.sequence import open_sequence
 
         folder = need_data(TUM_FOLDER)
         server = make_server()
@@ -600,8 +600,8 @@ def _corrupt_jpeg() -> list[bytes]:
 
 
 def _calibrated(**config):
-    from arlight.client.capture import calibration_of
     from arlight.pipeline.camera import PinholeCamera
+    from arlight.sources.source import calibration_of
 
     return dict(calibration=calibration_of(PinholeCamera.kinect_v1(64, 48)), **config)
 

@@ -5,8 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from arlight.pipeline import sh, synthetic
+from arlight.checks import depth_metres
+from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
+from arlight.sources import synthetic
 
 
 def _angle_deg(a, b):
@@ -256,7 +258,9 @@ class TestDepth:
 
     def test_sensor_depth_kinect_like(self, noisy):
         for i, frame in enumerate(noisy.frames):
-            d, gt = frame.depth, noisy.depth_gt[i]
+            # the sensor's integers at 5000 units per metre, metres as the pipeline makes them
+            assert frame.depth.dtype == np.uint16 and frame.depth_scale == synthetic.DEPTH_SCALE
+            d, gt = depth_metres(frame.depth, frame.depth_scale), noisy.depth_gt[i]
             assert d.dtype == np.float32 and d.shape == gt.shape
             valid = d > 0
             assert np.all((d[valid] >= 0.4) & (d[valid] <= 4.0))
@@ -307,7 +311,10 @@ class TestSequence:
         assert seq.camera == PinholeCamera.kinect_v1(32, 24)
         for frame in seq.frames:
             assert frame.color.shape == (24, 32, 3) and frame.color.dtype == np.uint8
-            assert frame.depth.shape == (24, 32) and frame.depth.dtype == np.float32
+            assert frame.depth.shape == (24, 32) and frame.depth.dtype == np.uint16
+            assert frame.depth_scale == 5000.0
+            depth = depth_metres(frame.depth, frame.depth_scale)
+            assert depth.shape == (24, 32) and depth.dtype == np.float32
             assert frame.pose.shape == (4, 4)
         assert seq.exposure > 0
         for field in (seq.sh_world, seq.dominant_direction_world, seq.dominant_direction_camera,

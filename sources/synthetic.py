@@ -41,9 +41,12 @@ with the exposure fixed per sequence so that sunlit ground of mean albedo is mid
 linear), plus Gaussian noise (sigma 1.5/255) before rounding to uint8 when ``sensor_noise``.
 Sensor depth (``sensor_noise``): Kinect-v1-like z + N(0, sigma(z)^2) with
 sigma(z) = 0.0012 + 0.0019 (z - 0.4)^2, a one-pixel band removed along depth jumps, ~1 %
-random dropouts, 0 outside 0.4-4.0 m, quantised to 1/5000 m. Clean depth (float32,
-unquantised, unlimited range) is kept in ``depth_gt`` and is the frames' depth when
-``sensor_noise`` is off. Everything is deterministic from ``seed``.
+random dropouts, 0 outside 0.4-4.0 m, quantised to 1/5000 m: the frames carry those
+integers, (H, W) uint16 with ``depth_scale`` = :data:`DEPTH_SCALE` (5000 units per metre,
+as TUM), like every source. Clean depth (float32 metres, unquantised, unlimited range) is
+kept in ``depth_gt`` and is the frames' depth when ``sensor_noise`` is off (then
+``depth_scale`` is None: exact geometry for tests, not a sensor stream). Everything is
+deterministic from ``seed``.
 """
 
 from __future__ import annotations
@@ -541,15 +544,16 @@ def _depth_edges(depth: np.ndarray) -> np.ndarray:
 
 
 def kinect_depth(depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Kinect-v1-like sensor depth (H, W) float32 metres from clean depth (0 = missing)."""
+    """Kinect-v1-like sensor depth (H, W) uint16 at DEPTH_SCALE units per metre (0 = missing)
+    from clean depth (H, W) float32 metres (0 = missing)."""
     z = depth.astype(np.float32)
     sigma = 0.0012 + 0.0019 * (z - np.float32(DEPTH_RANGE_M[0])) ** 2
     noisy = z + rng.standard_normal(z.shape, np.float32) * sigma
     drop = rng.random(z.shape, np.float32) < DEPTH_DROPOUT_FRACTION
     valid = (z > 0) & (noisy >= DEPTH_RANGE_M[0]) & (noisy <= DEPTH_RANGE_M[1])
     valid &= ~drop & ~_depth_edges(z)
-    quantised = np.rint(noisy * np.float32(DEPTH_SCALE)) / np.float32(DEPTH_SCALE)
-    return np.where(valid, quantised, 0.0).astype(np.float32)
+    units = np.rint(noisy * np.float32(DEPTH_SCALE))  # <= 4.0 m * 5000: fits in uint16
+    return np.where(valid, units, 0.0).astype(np.uint16)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -583,7 +587,8 @@ def orbit_poses(num_frames: int, start_azimuth: float) -> list[np.ndarray]:
 class SyntheticSequence:
     """A rendered sequence and its ground truth (module docstring for the definitions).
 
-    frames: FrameInput per frame, pose = world_from_cam (4, 4), timestamp 1000 + i / 30 s.
+    frames: FrameInput per frame, pose = world_from_cam (4, 4), timestamp 1000 + i / 30 s;
+        depth uint16 at depth_scale DEPTH_SCALE (sensor_noise) or clean float32 metres.
     sh_world: (16,) per frame, luminance radiance SH of the environment, world frame, arlight
         basis, radiance units before exposure. sh_rgb_world: (3, 16) per frame, per channel.
     dominant_direction_world / _camera: (3,) per frame, sh.dominant_direction(sh_world) and
@@ -649,9 +654,12 @@ def make_sequence(num_frames: int = 12, width: int = 640, height: int = 480, see
         radiance, depth = render_frame(camera, pose, light, rays_cam=rays_cam)
         rng = noise_rng if sensor_noise else None
         color = encode_color(radiance, exposure, rng)
-        sensor_depth = kinect_depth(depth, noise_rng) if sensor_noise else depth
-        seq.frames.append(FrameInput(color=color, depth=sensor_depth, pose=pose,
-                                     timestamp=FIRST_TIMESTAMP_S + i / FRAME_RATE_HZ))
+        if sensor_noise:
+            sensor_depth, depth_scale = kinect_depth(depth, noise_rng), DEPTH_SCALE
+        else:
+            sensor_depth, depth_scale = depth, None
+        seq.frames.append(FrameInput(color=color, depth=sensor_depth, depth_scale=depth_scale,
+                                     pose=pose, timestamp=FIRST_TIMESTAMP_S + i / FRAME_RATE_HZ))
         _append_ground_truth(seq, light, pose)
         seq.depth_gt.append(depth)
     return seq
