@@ -87,6 +87,8 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     from arlight.pipeline.pipeline import Pipeline
+    from arlight.protocols import result_record
+    from arlight.server.results import result_message
 
     config = _build_config(args)
     camera, frames, truth = _open_source(args)
@@ -100,10 +102,13 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         for i in range(n):
             frame = frames[i]
             t0 = time.perf_counter()
+            start_wall = time.time()
             result = pipeline.process(frame)
             ms = (time.perf_counter() - t0) * 1e3
-            record = result.to_json_dict()
-            record["frame"] = i
+            # the record `arlight stream --out` writes, from the Result the server would send
+            record = result_record(result_message(
+                result, seq=i, counters=(i + 1, i + 1, 0), receive_time_wall=start_wall,
+                finish_time_wall=time.time()))
             d = result.dominant_direction_camera
             line = (f"[{i + 1:>4}/{n}] t={result.timestamp:.3f}s  light(cam)=({d[0]:+.2f}, "
                     f"{d[1]:+.2f}, {d[2]:+.2f})  intensity={result.intensity:.3g}  "
@@ -264,7 +269,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
     total = "loop" if options.loop else str(source.num_frames)
 
-    def on_result(result, now: float) -> None:
+    def on_result(result, receive_time_wall: float) -> None:
         d = result.dominant_direction_camera
         server_ms = (result.server_finish_time - result.server_receive_time) * 1e3
         print(f"[{result.seq + 1:>5}/{total}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
@@ -272,9 +277,9 @@ def cmd_stream(args: argparse.Namespace) -> int:
               f"server {server_ms:5.0f} ms  received {result.frames_received}  "
               f"dropped {result.frames_dropped}", flush=True)
         if out:
-            from arlight.client.display import result_record
+            from arlight.protocols import received_record
 
-            out.write(json.dumps(result_record(result, now)) + "\n")
+            out.write(json.dumps(received_record(result, receive_time_wall)) + "\n")
 
     client = CaptureClient(source, options, on_result=on_result, recorder=recorder)
     print(f"arlight stream: {args.source} ({source.num_frames} frames, "

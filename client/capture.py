@@ -38,15 +38,17 @@ from dataclasses import dataclass, field
 import msgpack
 import zmq
 
-from arlight.client.connection import open_dealer, receive_message
+from arlight.client.connection import Received, open_dealer, receive_message
 from arlight.protocols import (
     DEFAULT_COLOR_CODEC,
     DEFAULT_DEPTH_CODEC,
     DEFAULT_JPEG_QUALITY,
     PROTOCOL_VERSION,
     Bye,
+    ByeKind,
     Credit,
     Error,
+    ErrorField,
     Frame,
     Heartbeat,
     Hello,
@@ -61,8 +63,6 @@ from arlight.sources.source import Source
 log = logging.getLogger(__name__)
 
 DEFAULT_SERVER = "tcp://127.0.0.1:5555"
-RETRYABLE_FIELDS = ("session", "shutdown", "credits")  # bad_state errors worth a resend
-DUPLICATE_FIELD = "duplicate"  # final bad_state: a resent frame's answer is no longer kept
 
 
 class StreamError(RuntimeError):
@@ -108,8 +108,8 @@ def encoded_frames(source: Source, options: StreamOptions, timestamps: str
                 parts = frame.parts if seq == peek_header(frame.parts)["seq"] else \
                     restamp_seq(frame.parts, seq)
             else:
-                stamp = time.time() if timestamps == "capture" else ts
-                parts = encode(Frame(seq, stamp, frame.color, frame.depth, frame.pose, None,
+                stamp_s = time.time() if timestamps == "capture" else ts  # goes on the wire
+                parts = encode(Frame(seq, stamp_s, frame.color, frame.depth, frame.pose, None,
                                      options.color_codec, options.depth_codec,
                                      options.jpeg_quality))
             yield seq, ts, parts
@@ -122,6 +122,16 @@ def encoded_frames(source: Source, options: StreamOptions, timestamps: str
 
 
 # --------------------------------------------------------------------------- client
+
+
+# the `arlight stream` flag that sets a Hello field the server may refuse
+HELLO_FIELD_FLAGS = {
+    "hello.config.session": "--session",
+    "hello.config.preset": "--preset",
+    "hello.config.overrides": "--set",
+    "hello.config.calibration": "--size (synthetic) or the data set's calibration",
+    "hello.config.mode": "--mode",
+}
 
 
 @dataclass(frozen=True)
@@ -158,11 +168,12 @@ class StreamOptions:
 
     def __post_init__(self) -> None:
         if self.mode not in ("live", "lossless"):
-            raise ValueError(f"mode must be 'live' or 'lossless', got {self.mode!r}")
+            raise ValueError(f"--mode must be 'live' or 'lossless', got {self.mode!r}")
         if self.rate not in ("native", "max"):
-            raise ValueError(f"rate must be 'native' or 'max', got {self.rate!r}")
+            raise ValueError(f"--rate must be 'native' or 'max', got {self.rate!r}")
         if self.timestamps not in (None, "capture", "source"):
-            raise ValueError(f"timestamps must be 'capture' or 'source', got {self.timestamps!r}")
+            raise ValueError(f"--timestamps must be 'capture' or 'source', got "
+                             f"{self.timestamps!r}")
 
 
 @dataclass
@@ -181,7 +192,8 @@ class StreamSummary:
 class CaptureClient:
     """Streams one source into one session. `run()` blocks; `stop()` ends it from any thread.
 
-    on_result(result, receive_time) and on_error(error) are called in the client's thread.
+    on_result(result, receive_time_wall) (time.time() when the Result came, seconds) and
+    on_error(error) are called in the client's thread.
     recorder: optional client/recording.Recorder receiving the Hello and every frame sent.
     """
 
@@ -206,7 +218,7 @@ class CaptureClient:
         self.summary = StreamSummary(self.session)
         # lossless: seq -> encoded parts, sent (or to be sent again) and not yet acknowledged
         self._unacked: collections.OrderedDict[int, list] = collections.OrderedDict()
-        self._sent_time: dict[int, float] = {}
+        self._sent_time_mono: dict[int, float] = {}  # seq -> time.monotonic() it was sent
         # lossless: seq -> (monotonic time it was last handed to the socket, wait before the
         # next resend)
         self._resend_due: dict[int, tuple[float, float]] = {}
@@ -216,6 +228,10 @@ class CaptureClient:
         self._last_delivered_seq = -1  # the last frame handed to the socket
         self._last_result_seq = -1
         self._hello_recorded = False
+        self._last_heard = self._last_sent = time.monotonic()  # liveness, monotonic seconds
+        self._source_t0: float | None = None  # the first frame's source timestamp ...
+        self._start_t0_mono = 0.0  # ... and when it was due (rate native)
+        self._finish_deadline_mono: float | None = None  # live: wait for the last Result
 
     def _make_hello(self) -> Hello:
         opts = self.options
@@ -248,7 +264,7 @@ class CaptureClient:
         except zmq.Again:
             return False
 
-    def _receive(self, timeout_s: float) -> tuple[object, float] | None:
+    def _receive(self, timeout_s: float) -> Received | None:
         """One message from the server within timeout_s, or None (see receive_message)."""
         return receive_message(self._socket, timeout_s, log)
 
@@ -257,7 +273,6 @@ class CaptureClient:
         opts = self.options
         deadline = time.monotonic() + opts.reconnect_timeout_s
         backoff = opts.backoff_initial_s
-        attempt = 0
         while not self._stop.is_set():
             self._open_socket()
             hello_parts = encode(self.hello)
@@ -267,31 +282,37 @@ class CaptureClient:
                 got = self._receive(min(0.1, wait_until - time.monotonic()))
                 if got is None:
                     continue
-                message, now = got
-                if isinstance(message, Welcome):
-                    self.credits = max(1, message.credits)
-                    self.heartbeat_interval_s = message.heartbeat_interval_s
-                    if self.recorder is not None and not self._hello_recorded:
-                        self.recorder.write_hello(hello_parts, time.time_ns())
-                        self._hello_recorded = True
-                    self._last_heard = now
-                    self._last_sent = time.monotonic()
+                if isinstance(got.message, Welcome):
+                    self._welcomed(got, hello_parts)
                     return
-                if isinstance(message, Error) and message.seq is None and not (
-                        message.code == "bad_state" and message.field in RETRYABLE_FIELDS):
-                    raise StreamError(f"the server refused session {self.session!r}: "
-                                      f"{message.code}"
-                                      f"{' (' + message.field + ')' if message.field else ''}: "
-                                      f"{message.message}")
-                self._handle(message, now)  # late Results of the previous connection
-            attempt += 1
+                if isinstance(got.message, Error) and got.message.seq is None and \
+                        not got.message.retryable:
+                    raise StreamError(self._refusal_text(got.message))
+                self._handle(got)  # late Results of the previous connection
             if time.monotonic() + backoff > deadline:
                 raise StreamError(f"no arlight server answered at {opts.server} within "
-                                  f"{opts.reconnect_timeout_s:.0f} s; start one with "
-                                  "`arlight serve` or check --server")
+                                  f"{opts.reconnect_timeout_s:.0f} s (--reconnect-timeout); "
+                                  "start one with `arlight serve` or check --server")
             log.info("no Welcome from %s; retrying in %.1f s", opts.server, backoff)
             self._stop.wait(backoff)
             backoff = min(backoff * 2, opts.backoff_max_s)
+
+    def _welcomed(self, got: Received, hello_parts: list) -> None:
+        welcome = got.message
+        self.credits = max(1, welcome.credits)
+        self.heartbeat_interval_s = welcome.heartbeat_interval_s
+        if self.recorder is not None and not self._hello_recorded:
+            self.recorder.write_hello(hello_parts, time.time_ns())
+            self._hello_recorded = True
+        self._last_heard = got.receive_time_mono
+        self._last_sent = time.monotonic()
+
+    def _refusal_text(self, error: Error) -> str:
+        """The StreamError text of a refused Hello, naming the command-line flag if any."""
+        flag = HELLO_FIELD_FLAGS.get(error.field or "")
+        where = f" ({error.field}{', see ' + flag if flag else ''})" if error.field else ""
+        return (f"the server refused session {self.session!r}: {error.code}{where}: "
+                f"{error.message}")
 
     def _reconnect(self, why: str) -> None:
         log.warning("session %s: %s; reconnecting to %s", self.session, why, self.options.server)
@@ -302,22 +323,23 @@ class CaptureClient:
 
     # ------------------------------------------------------------------ messages
 
-    def _handle(self, message, now: float) -> str | None:
+    def _handle(self, got: Received) -> str | None:
         """Act on one server message; returns "reconnect" or "rehello" when that is needed."""
-        self._last_heard = now
+        self._last_heard = got.receive_time_mono
+        message = got.message
         if isinstance(message, Result):
-            self._on_result(message, now)
+            self._on_result(message, got)
         elif isinstance(message, Error):
             return self._on_error(message)
-        elif isinstance(message, Bye):
+        elif isinstance(message, Bye):  # shutdown (or any other kind): find the next server
+            log.info("session %s: the server said Bye (%s: %s)", self.session,
+                     message.kind.value, message.reason)
             return "reconnect"
         elif isinstance(message, Credit):
             self.credits += message.credits  # the server widened the window
-        elif isinstance(message, (Heartbeat, Welcome)):
-            pass
-        return None
+        return None  # Heartbeat, Welcome, an undecodable message: a sign of life only
 
-    def _on_result(self, result: Result, now: float) -> None:
+    def _on_result(self, result: Result, got: Received) -> None:
         if self.options.mode == "lossless":
             if result.seq not in self._unacked:
                 return  # a duplicate (re-sent after a reconnect)
@@ -329,22 +351,19 @@ class CaptureClient:
         if self._after_result:
             self._resend.extend(sorted(self._after_result))
             self._after_result.clear()
-        sent = self._sent_time.pop(result.seq, None)
-        if sent is not None:
-            self.summary.latencies_s.append(now - sent)
+        sent_mono = self._sent_time_mono.pop(result.seq, None)
+        if sent_mono is not None:
+            self.summary.latencies_s.append(got.receive_time_mono - sent_mono)
         self.summary.results += 1
         self.summary.frames_dropped = result.frames_dropped
         if self.on_result is not None:
-            self.on_result(result, now)
+            self.on_result(result, got.receive_time_wall)
 
     def _on_error(self, error: Error) -> str | None:
-        # bad_state about the session, a shutdown or the credit window: the frame was not
-        # processed, so it stays unacknowledged and is sent again after the reconnect
-        retry = error.code == "bad_state" and error.field in RETRYABLE_FIELDS
-        if retry:
-            if error.field == "session":
+        if error.retryable:  # the frame was not processed: it stays unacknowledged
+            if error.field == ErrorField.SESSION:
                 return "rehello"
-            if error.field == "credits" and error.seq in self._unacked:
+            if error.field == ErrorField.CREDITS and error.seq in self._unacked:
                 self._after_result.append(error.seq)  # the server's queue was full: retry
             return None  # shutdown: the Bye follows, then a reconnect re-sends the frame
         if error.seq is not None:
@@ -354,10 +373,10 @@ class CaptureClient:
                 return None  # already answered (a frame sent again): no second credit
             self._unacked.pop(error.seq, None)
             self._resend_due.pop(error.seq, None)
-            self._sent_time.pop(error.seq, None)
+            self._sent_time_mono.pop(error.seq, None)
             self._last_result_seq = max(self._last_result_seq, error.seq)
         self.summary.errors.append(error)
-        if error.code == "bad_state" and error.field == DUPLICATE_FIELD:
+        if error.field == ErrorField.DUPLICATE:
             log.warning("session %s: frame %s was sent again but the server no longer keeps "
                         "its Result or Error (it may have been processed; it is not processed "
                         "again): counted as failed", self.session, error.seq)
@@ -373,86 +392,99 @@ class CaptureClient:
 
     def run(self) -> StreamSummary:
         """Stream until the source ends (and, lossless, every frame is acknowledged)."""
-        opts = self.options
-        start = time.monotonic()
+        start_mono = time.monotonic()
         self._connect()
         frames = encoded_frames(self.source, self.options, self._timestamps)
-        pending: tuple[int, float, list] | None = None
-        exhausted = False
-        source_t0 = wall_t0 = None
-        finish_deadline = None
+        pending: tuple[int, float, list] | None = None  # (seq, source timestamp, parts)
         try:
             while not self._stop.is_set():
                 now_m = time.monotonic()
-                # 1. send what may be sent
-                while self._resend:
-                    seq = self._resend.popleft()
-                    if seq in self._unacked:
-                        self._send(self._unacked[seq], block=True)
-                        self._sent_time.setdefault(seq, time.time())
-                        self._last_sent = now_m
-                        _, wait = self._resend_due.get(seq, (now_m, opts.resend_after_s))
-                        self._resend_due[seq] = (now_m, wait)
-                if pending is None and not exhausted:
+                self._send_resends(now_m)
+                if pending is None:
                     pending = next(frames, None)
-                    exhausted = pending is None
-                next_due = None
-                if pending is not None:
-                    seq, ts, parts = pending
-                    if source_t0 is None:
-                        source_t0, wall_t0 = ts, now_m
-                    due = wall_t0 + (ts - source_t0) if opts.rate == "native" else now_m
-                    window_open = opts.mode == "live" or len(self._unacked) < self.credits
-                    if window_open and now_m >= due:
-                        self._send_frame(seq, parts)
+                if pending is None:  # the source is exhausted
+                    if self._stream_done(now_m):
+                        break
+                    next_due = None
+                else:
+                    next_due = self._due_time(pending[1], now_m)
+                    if next_due is not None and now_m >= next_due:
+                        self._send_frame(pending[0], pending[2])
                         pending = None
                         continue
-                    next_due = due if window_open else None
-                # 2. finished?
-                if exhausted and pending is None:
-                    if opts.mode == "lossless" and not self._unacked:
-                        break
-                    if opts.mode == "live":
-                        if self._last_result_seq >= self._last_delivered_seq:
-                            break
-                        if finish_deadline is None:
-                            finish_deadline = now_m + opts.final_result_timeout_s
-                        elif now_m > finish_deadline:
-                            log.warning("session %s: no Result for the last frame within "
-                                        "%.0f s", self.session, opts.final_result_timeout_s)
-                            break
-                # 3. wait for the server (or the next due frame / heartbeat)
-                heartbeat_due = self._last_sent + self.heartbeat_interval_s
-                wake = min(x for x in (next_due, heartbeat_due, now_m + 0.25) if x is not None)
-                got = self._receive(max(0.0, wake - now_m))
-                action = None
-                while got is not None:
-                    action = self._handle(*got) or action
-                    got = self._receive(0)
-                now_m = time.monotonic()
-                if action == "rehello":
-                    self._rehello()
-                elif action == "reconnect":
-                    self._reconnect("the server said Bye")
-                elif time.time() - self._last_heard > opts.liveness * self.heartbeat_interval_s:
-                    self._reconnect(f"no message from the server for "
-                                    f"{time.time() - self._last_heard:.1f} s")
-                elif now_m >= heartbeat_due:
-                    self._send(encode(Heartbeat(time.time())))
-                    self._last_sent = now_m
-                self._resend_overdue(now_m)
+                self._serve(now_m, next_due)
             if not self._stop.is_set():
-                self._say_bye("end of stream")
+                self._say_bye("end of stream", ByeKind.END_OF_STREAM)
         except KeyboardInterrupt:
-            self._say_bye("interrupted")  # the server closes the session now, not at timeout
+            self._say_bye("interrupted", ByeKind.LEAVING)  # the session closes now
             raise
         finally:
-            self.summary.elapsed_s = time.monotonic() - start
+            self.summary.elapsed_s = time.monotonic() - start_mono
             self.summary.frames_sent = self._last_seq + 1
             if self._socket is not None:
                 self._socket.close(linger=0)
                 self._socket = None
         return self.summary
+
+    def _due_time(self, source_ts: float, now_m: float) -> float | None:
+        """When the next frame may go (monotonic seconds): at its source time (rate native)
+        or now (max); None while the lossless credit window is full."""
+        if self._source_t0 is None:
+            self._source_t0, self._start_t0_mono = source_ts, now_m
+        if self.options.mode == "lossless" and len(self._unacked) >= self.credits:
+            return None
+        if self.options.rate == "native":
+            return self._start_t0_mono + (source_ts - self._source_t0)
+        return now_m
+
+    def _stream_done(self, now_m: float) -> bool:
+        """Every frame is sent: done once each is answered (live: the last Result came, or
+        final_result_timeout_s passed)."""
+        if self.options.mode == "lossless":
+            return not self._unacked
+        if self._last_result_seq >= self._last_delivered_seq:
+            return True
+        if self._finish_deadline_mono is None:
+            self._finish_deadline_mono = now_m + self.options.final_result_timeout_s
+        elif now_m > self._finish_deadline_mono:
+            log.warning("session %s: no Result for the last frame within %.0f s",
+                        self.session, self.options.final_result_timeout_s)
+            return True
+        return False
+
+    def _serve(self, now_m: float, next_due: float | None) -> None:
+        """Wait for the server until the next frame is due (or a heartbeat, or 0.25 s),
+        handle what came, and keep the connection alive (reconnect, heartbeat, resends)."""
+        heartbeat_due = self._last_sent + self.heartbeat_interval_s
+        wake = min(x for x in (next_due, heartbeat_due, now_m + 0.25) if x is not None)
+        action = None
+        got = self._receive(max(0.0, wake - now_m))
+        while got is not None:
+            action = self._handle(got) or action
+            got = self._receive(0)
+        now_m = time.monotonic()
+        silent_s = now_m - self._last_heard
+        if action == "rehello":
+            self._reconnect("the server does not know this session (restarted or expired)")
+        elif action == "reconnect":
+            self._reconnect("the server said Bye")
+        elif silent_s > self.options.liveness * self.heartbeat_interval_s:
+            self._reconnect(f"no message from the server for {silent_s:.1f} s")
+        elif now_m >= heartbeat_due:
+            self._send(encode(Heartbeat(time.time())))
+            self._last_sent = now_m
+        self._resend_overdue(now_m)
+
+    def _send_resends(self, now_m: float) -> None:
+        """Lossless: hand the frames queued for sending again to the socket, in order."""
+        while self._resend:
+            seq = self._resend.popleft()
+            if seq in self._unacked:
+                self._send(self._unacked[seq], block=True)
+                self._sent_time_mono.setdefault(seq, now_m)
+                self._last_sent = now_m
+                _, wait = self._resend_due.get(seq, (now_m, self.options.resend_after_s))
+                self._resend_due[seq] = (now_m, wait)
 
     def _resend_overdue(self, now_m: float) -> None:
         """Lossless: queue again the frames unanswered for longer than their wait."""
@@ -467,32 +499,29 @@ class CaptureClient:
                 self._resend_due[seq] = (now_m, 2.0 * wait)
 
     def _send_frame(self, seq: int, parts: list) -> None:
+        now_m = time.monotonic()
         if self.options.mode == "lossless":
             self._unacked[seq] = parts
-            self._resend_due[seq] = (time.monotonic(), self.options.resend_after_s)
+            self._resend_due[seq] = (now_m, self.options.resend_after_s)
             self._send(parts, block=True)
         elif not self._send(parts, block=False):
             self.summary.frames_not_sent += 1
             self._last_seq = seq
             return
         self._last_delivered_seq = seq
-        self._sent_time[seq] = time.time()
-        if len(self._sent_time) > 4096:  # live: Results of dropped frames never come
-            for old in list(self._sent_time)[:2048]:
-                del self._sent_time[old]
+        self._sent_time_mono[seq] = now_m
+        if len(self._sent_time_mono) > 4096:  # live: Results of dropped frames never come
+            for old in list(self._sent_time_mono)[:2048]:
+                del self._sent_time_mono[old]
         self._last_seq = seq
-        self._last_sent = time.monotonic()
+        self._last_sent = now_m
         if self.recorder is not None:
             self.recorder.write_frame(parts, time.time_ns())
 
-    def _say_bye(self, reason: str) -> None:
+    def _say_bye(self, reason: str, kind: ByeKind) -> None:
         if self._socket is not None:
-            self._send(encode(Bye(reason)), block=False)
+            self._send(encode(Bye(reason, kind)), block=False)
             time.sleep(0.05)  # let the Bye leave before the socket closes (LINGER 0)
-
-    def _rehello(self) -> None:
-        """The server forgot this peer (restart, expiry): Hello again on a fresh socket."""
-        self._reconnect("the server does not know this session (restarted or expired)")
 
 
 def stream(source: Source, options: StreamOptions, **kwargs) -> StreamSummary:

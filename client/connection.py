@@ -2,17 +2,28 @@
 
 Both clients open it the same way (LINGER 0, so a reconnect or exit never waits on unsent
 messages; queue limits counted in messages) and read the server's messages the same way
-(poll with a timeout in seconds, decode, stamp with the wall-clock receive time).
+(poll with a timeout in seconds, decode, stamp with the receive time on both clocks).
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from typing import NamedTuple
 
 import zmq
 
 from arlight.protocols import ProtocolError, decode
+
+
+class Received(NamedTuple):
+    """A message from the server (or the ProtocolError of one that did not decode) and when
+    it came: wall clock (for records and latencies against the sender's timestamps) and
+    monotonic (for liveness and durations)."""
+
+    message: object
+    receive_time_wall: float  # time.time(), seconds
+    receive_time_mono: float  # time.monotonic(), seconds
 
 
 def open_dealer(context: zmq.Context, server: str, *, rcvhwm: int, sndhwm: int | None = None,
@@ -28,22 +39,22 @@ def open_dealer(context: zmq.Context, server: str, *, rcvhwm: int, sndhwm: int |
         sock.connect(server)
     except zmq.ZMQError as exc:
         sock.close(linger=0)
-        raise error(f"cannot connect to {server!r}: {exc}; expected "
+        raise error(f"cannot connect to {server!r}: {exc}; --server expects "
                     "tcp://HOST:PORT") from None
     return sock
 
 
 def receive_message(sock: zmq.Socket, timeout_s: float, log: logging.Logger
-                    ) -> tuple[object, float] | None:
-    """(message, receive time from time.time()) for one message within timeout_s seconds,
-    or None. An undecodable message is logged to `log` and returned as its ProtocolError,
-    with its receive time (the caller decides whether it counts as a sign of life)."""
+                    ) -> Received | None:
+    """The next message within timeout_s seconds, or None. An undecodable message is logged
+    to `log` and returned as its ProtocolError, with its receive times (the caller decides
+    whether it counts as a sign of life)."""
     if not sock.poll(max(0, int(timeout_s * 1000)), zmq.POLLIN):
         return None
     parts = sock.recv_multipart(copy=False)
-    now = time.time()
+    wall, mono = time.time(), time.monotonic()
     try:
-        return decode([p.buffer for p in parts]), now
+        return Received(decode([p.buffer for p in parts]), wall, mono)
     except ProtocolError as exc:
         log.warning("undecodable message from the server ignored: %s", exc)
-        return exc, now
+        return Received(exc, wall, mono)

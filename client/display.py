@@ -4,11 +4,13 @@ It connects with one DEALER to the server (`--server` is the only address it nee
 Hello(role=display, session=NAME) and receives every Result the server publishes for that
 session from then on (a display that joins late starts from there; one that reads slowly
 loses Results at its own queue, never stalling the pipeline). Writes, when asked:
-`results.jsonl` (one line per Result, with the latencies below), `frames/NNNNNN.png` (the
+`results.jsonl` (one line per Result: the record every `--out` writes, plus the delivery
+fields and latencies below), `frames/NNNNNN.png` (the
 composite each Result carries: only sessions started with want_composite send one) and a
 video of the composites (`--video out.mp4`, mp4v).
 
-Latency, all on one machine's clock or clocks kept in sync:
+Latency, all on one machine's clock or clocks kept in sync (protocols/records.py,
+`received_record`):
 - end_to_end_ms = display receive time - the frame's timestamp. Meaningful when the capture
   client stamps frames with their capture time (`--timestamps capture`, the default in live
   mode and in `arlight demo`); null when the timestamps are a data set's own clock (further
@@ -35,11 +37,13 @@ import cv2
 import numpy as np
 import zmq
 
-from arlight.client.connection import open_dealer, receive_message
+from arlight.client.connection import Received, open_dealer, receive_message
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Bye,
+    ByeKind,
     Error,
+    ErrorField,
     Heartbeat,
     Hello,
     ProtocolError,
@@ -47,12 +51,10 @@ from arlight.protocols import (
     SessionConfig,
     Welcome,
     encode,
+    received_record,
 )
 
 log = logging.getLogger(__name__)
-
-END_OF_STREAM_SUFFIX = "ended"  # the server's Bye reason when the session's stream ended
-WALL_CLOCK_WINDOW_S = 3600.0  # timestamps within this of now count as capture times
 
 
 class DisplayError(RuntimeError):
@@ -81,8 +83,8 @@ class DisplaySummary:
     session: str
     results: int = 0
     composites: int = 0
-    first_receive: float | None = None
-    last_receive: float | None = None
+    first_receive: float | None = None  # time.monotonic() of the first Result, seconds
+    last_receive: float | None = None  # ... and of the last
     latencies_ms: list[float] = field(default_factory=list)  # the printed latency, per Result
     end_to_end: bool = False  # latencies_ms are capture -> display
     timings_ms: dict[str, list[float]] = field(default_factory=dict)
@@ -116,27 +118,6 @@ def _round(x) -> float:
     return round(float(x), 3)
 
 
-def result_record(result: Result, receive_time: float) -> dict:
-    """One line of results.jsonl."""
-    e2e = receive_time - result.timestamp
-    return {
-        "seq": result.seq, "timestamp": result.timestamp, "sh": result.sh,
-        "sh_rgb": result.sh_rgb,
-        "dominant_direction_camera": result.dominant_direction_camera,
-        "dominant_direction_world": result.dominant_direction_world,
-        "intensity": result.intensity, "confidence": result.confidence, "pose": result.pose,
-        "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},
-        "frames_received": result.frames_received, "frames_processed": result.frames_processed,
-        "frames_dropped": result.frames_dropped,
-        "server_receive_time": result.server_receive_time,
-        "server_finish_time": result.server_finish_time,
-        "display_receive_time": receive_time,
-        "end_to_end_ms": round(e2e * 1e3, 3) if abs(e2e) < WALL_CLOCK_WINDOW_S else None,
-        "server_to_display_ms": round((receive_time - result.server_receive_time) * 1e3, 3),
-        "server_ms": round((result.server_finish_time - result.server_receive_time) * 1e3, 3),
-    }
-
-
 class DisplayClient:
     """Receives one session's Results until the stream ends (or a limit). `run()` blocks."""
 
@@ -158,7 +139,7 @@ class DisplayClient:
         self._jsonl = None
         self._frames_dir: Path | None = None
         self._video = None
-        self._window: deque[tuple[float, float]] = deque()
+        self._window: deque[tuple[float, float]] = deque()  # (monotonic receive, latency ms)
 
     def stop(self) -> None:
         self._stop.set()
@@ -175,11 +156,11 @@ class DisplayClient:
         self._hello_sent = time.monotonic()
         self._welcomed = False
 
-    def _receive(self, timeout_s: float):
-        """(message, receive time) within timeout_s, or None; an undecodable message is
-        logged and skipped (it does not count as a sign of life here)."""
+    def _receive(self, timeout_s: float) -> Received | None:
+        """The next message within timeout_s, or None; an undecodable message is logged and
+        skipped (it does not count as a sign of life here)."""
         got = receive_message(self._socket, timeout_s, log)
-        if got is not None and isinstance(got[0], ProtocolError):
+        if got is not None and isinstance(got.message, ProtocolError):
             return None
         return got
 
@@ -208,21 +189,22 @@ class DisplayClient:
                                               self.options.video_fps, (w, h))
                 self._video_size = (w, h)
                 if not self._video.isOpened():
-                    raise DisplayError(f"cannot write the video {self.options.video!r} "
+                    raise DisplayError(f"cannot write the video --video {self.options.video!r} "
                                        "(OpenCV has no mp4v encoder here?)")
             if (bgr.shape[1], bgr.shape[0]) != self._video_size:
                 bgr = cv2.resize(bgr, self._video_size, interpolation=cv2.INTER_AREA)
             self._video.write(bgr)
 
-    def _on_result(self, result: Result, now: float) -> None:
+    def _on_result(self, result: Result, got: Received) -> None:
         s = self.summary
         if self._last_seq is not None and result.seq > self._last_seq + 1:
             s.seq_gaps += result.seq - self._last_seq - 1
         self._last_seq = result.seq
-        record = result_record(result, now)
+        record = received_record(result, got.receive_time_wall)
+        now_m = got.receive_time_mono
         s.results += 1
-        s.first_receive = now if s.first_receive is None else s.first_receive
-        s.last_receive = now
+        s.first_receive = now_m if s.first_receive is None else s.first_receive
+        s.last_receive = now_m
         s.frames_dropped = result.frames_dropped
         if record["end_to_end_ms"] is not None:
             s.end_to_end = True
@@ -232,7 +214,7 @@ class DisplayClient:
         s.latencies_ms.append(latency)
         for k, v in result.timings_ms.items():
             s.timings_ms.setdefault(k, []).append(v)
-        self._window.append((now, latency))
+        self._window.append((now_m, latency))
         if self._jsonl is not None:
             self._jsonl.write(json.dumps(record) + "\n")
             self._jsonl.flush()
@@ -240,8 +222,8 @@ class DisplayClient:
         if self.on_result is not None:
             self.on_result(result, record)
 
-    def _print_rate(self, now: float) -> None:
-        while self._window and self._window[0][0] < now - max(self.options.print_interval_s,
+    def _print_rate(self, now_m: float) -> None:
+        while self._window and self._window[0][0] < now_m - max(self.options.print_interval_s,
                                                               1.0):
             self._window.popleft()
         if self.printer is None:
@@ -255,83 +237,106 @@ class DisplayClient:
                      f"{self.summary.frames_dropped}")
 
     def run(self) -> DisplaySummary:
+        """Receive Results until the stream ends, a limit is reached or stop() is called."""
         opts = self.options
         self._setup_outputs()
         self._open()
-        last_heard = time.time()
-        last_sent = time.monotonic()
-        last_result = time.monotonic()
-        next_print = time.monotonic() + opts.print_interval_s
-        lost_since: float | None = None
+        now_m = time.monotonic()
+        self._last_heard_mono = self._last_sent_mono = self._last_result_mono = now_m
+        self._lost_since_mono: float | None = None
+        next_print_mono = now_m + opts.print_interval_s
         try:
             while not self._stop.is_set():
                 got = self._receive(0.1)
+                if got is not None and self._on_message(got) == "end":
+                    break
                 now_m = time.monotonic()
-                if got is not None:
-                    message, now = got
-                    last_heard = now
-                    lost_since = None
-                    if isinstance(message, Welcome):
-                        self._welcomed = True
-                        self._heartbeat_s = message.heartbeat_interval_s
-                        self.subscribed.set()
-                    elif isinstance(message, Result):
-                        self._on_result(message, now)
-                        last_result = now_m
-                        if self.read_delay_s:
-                            time.sleep(self.read_delay_s)
-                    elif isinstance(message, Error):
-                        if message.code == "bad_state" and message.field == "session":
-                            self._resubscribe("the server does not know this display")
-                        elif not self._welcomed:
-                            raise DisplayError(f"the server refused the subscription: "
-                                               f"{message.code}: {message.message}")
-                    elif isinstance(message, Bye):
-                        if message.reason.endswith(END_OF_STREAM_SUFFIX) and not opts.follow:
-                            self.summary.ended = True
-                            break
-                        if not message.reason.endswith(END_OF_STREAM_SUFFIX):
-                            self._resubscribe(f"the server said Bye ({message.reason})")
-                    elif isinstance(message, Heartbeat):
-                        pass
-                if opts.max_results is not None and self.summary.results >= opts.max_results:
+                if self._limit_reached(now_m):
                     break
-                if opts.idle_exit_s is not None and now_m - last_result > opts.idle_exit_s:
-                    break
-                if now_m >= next_print:
-                    self._print_rate(time.time())
-                    next_print = now_m + opts.print_interval_s
-                silent = time.time() - last_heard
-                if silent > opts.liveness * self._heartbeat_s:
-                    lost_since = lost_since or now_m
-                    if now_m - lost_since > opts.reconnect_timeout_s:
-                        raise DisplayError(f"no arlight server answered at {opts.server} "
-                                           f"within {opts.reconnect_timeout_s:.0f} s")
-                    self._resubscribe(f"no message from the server for {silent:.1f} s")
-                    last_heard = time.time()
-                if now_m - last_sent >= self._heartbeat_s:
-                    try:
-                        self._socket.send_multipart(encode(Heartbeat(time.time())),
-                                                    zmq.NOBLOCK, copy=False)
-                    except zmq.Again:
-                        pass  # queue full while the server is away: the next one will do
-                    last_sent = now_m
-            if self._socket is not None and not self.summary.ended:
-                try:
-                    self._socket.send_multipart(encode(Bye("display closed")), zmq.NOBLOCK,
-                                                copy=False)
-                    time.sleep(0.02)
-                except zmq.Again:
-                    pass
+                if now_m >= next_print_mono:
+                    self._print_rate(now_m)
+                    next_print_mono = now_m + opts.print_interval_s
+                self._keep_alive(now_m)
+            if not self.summary.ended:
+                self._say_bye()
         finally:
-            if self._socket is not None:
-                self._socket.close(linger=0)
-                self._socket = None
-            if self._jsonl is not None:
-                self._jsonl.close()
-            if self._video is not None:
-                self._video.release()
+            self._close()
         return self.summary
+
+    def _on_message(self, got: Received) -> str | None:
+        """Act on one server message; "end" when the stream has ended (and not --follow)."""
+        message = got.message
+        self._last_heard_mono = got.receive_time_mono
+        self._lost_since_mono = None
+        if isinstance(message, Welcome):
+            self._welcomed = True
+            self._heartbeat_s = message.heartbeat_interval_s
+            self.subscribed.set()
+        elif isinstance(message, Result):
+            self._on_result(message, got)
+            self._last_result_mono = time.monotonic()
+            if self.read_delay_s:
+                time.sleep(self.read_delay_s)
+        elif isinstance(message, Error):
+            if message.retryable and message.field == ErrorField.SESSION:
+                self._resubscribe("the server does not know this display")
+            elif not self._welcomed:
+                raise DisplayError(f"the server refused the subscription: {message.code}: "
+                                   f"{message.message}")
+        elif isinstance(message, Bye):
+            if message.kind != ByeKind.END_OF_STREAM:  # shutdown: wait for the next server
+                self._resubscribe(f"the server said Bye ({message.kind}: {message.reason})")
+            elif not self.options.follow:
+                self.summary.ended = True
+                return "end"
+        return None
+
+    def _limit_reached(self, now_m: float) -> bool:
+        opts = self.options
+        if opts.max_results is not None and self.summary.results >= opts.max_results:
+            return True
+        return opts.idle_exit_s is not None and now_m - self._last_result_mono > opts.idle_exit_s
+
+    def _keep_alive(self, now_m: float) -> None:
+        """Resubscribe when the server went silent (DisplayError after reconnect_timeout_s);
+        send a Heartbeat every interval."""
+        opts = self.options
+        silent_s = now_m - self._last_heard_mono
+        if silent_s > opts.liveness * self._heartbeat_s:
+            if self._lost_since_mono is None:
+                self._lost_since_mono = now_m
+            if now_m - self._lost_since_mono > opts.reconnect_timeout_s:
+                raise DisplayError(f"no arlight server answered at {opts.server} within "
+                                   f"{opts.reconnect_timeout_s:.0f} s (--reconnect-timeout); "
+                                   "check --server and that `arlight serve` runs")
+            self._resubscribe(f"no message from the server for {silent_s:.1f} s")
+            self._last_heard_mono = time.monotonic()
+        if now_m - self._last_sent_mono >= self._heartbeat_s:
+            try:
+                self._socket.send_multipart(encode(Heartbeat(time.time())), zmq.NOBLOCK,
+                                            copy=False)
+            except zmq.Again:
+                pass  # queue full while the server is away: the next one will do
+            self._last_sent_mono = now_m
+
+    def _say_bye(self) -> None:
+        if self._socket is None:
+            return
+        try:
+            self._socket.send_multipart(encode(Bye("display closed", ByeKind.LEAVING)),
+                                        zmq.NOBLOCK, copy=False)
+            time.sleep(0.02)
+        except zmq.Again:
+            pass
+
+    def _close(self) -> None:
+        if self._socket is not None:
+            self._socket.close(linger=0)
+            self._socket = None
+        if self._jsonl is not None:
+            self._jsonl.close()
+        if self._video is not None:
+            self._video.release()
 
     def _resubscribe(self, why: str) -> None:
         log.warning("display %s: %s; subscribing again", self.options.session, why)

@@ -22,9 +22,11 @@ from .messages import (
     PROTOCOL_VERSION,
     ROLES,
     Bye,
+    ByeKind,
     CameraCalibration,
     Credit,
     Error,
+    ErrorField,
     Frame,
     Heartbeat,
     Hello,
@@ -36,7 +38,9 @@ from .messages import (
     encode,
     error_from_exception,
     peek_header,
+    plain_diagnostics,
 )
+from .records import received_record, result_record
 
 __all__ = [
     "COLOR_CODECS",
@@ -53,9 +57,11 @@ __all__ = [
     "PROTOCOL_VERSION",
     "ROLES",
     "Bye",
+    "ByeKind",
     "CameraCalibration",
     "Credit",
     "Error",
+    "ErrorField",
     "Frame",
     "Heartbeat",
     "Hello",
@@ -72,6 +78,9 @@ __all__ = [
     "encode_depth",
     "error_from_exception",
     "peek_header",
+    "plain_diagnostics",
+    "received_record",
+    "result_record",
     "read_container",
     "rvl_decode",
     "rvl_encode",

@@ -1,4 +1,4 @@
-"""arlight wire protocol v1: message dataclasses, encode() and decode() (spec: SPEC.md).
+"""arlight wire protocol v2: message dataclasses, encode() and decode() (spec: SPEC.md).
 
 A message is a ZeroMQ multipart message ``[header, buffer 0, buffer 1, ...]``. The header is
 a msgpack map with ``"v"`` (protocol version), ``"type"`` and the message's fields; every
@@ -13,11 +13,13 @@ allocated. encode() runs the same header checks, so a peer never sends what it w
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any, Union
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any, ClassVar, Union
 
 import msgpack
 import numpy as np
@@ -41,7 +43,7 @@ from .codecs import (
 )
 from .errors import ProtocolError
 
-PROTOCOL_VERSION: int = 1
+PROTOCOL_VERSION: int = 2  # 2: Error.retryable, Bye.kind, Result.sh_camera/diagnostics
 DEFAULT_MAX_MESSAGE_BYTES: int = 64 * 2**20  # whole multipart message
 MAX_HEADER_BYTES: int = 2**20  # the msgpack header part
 MAX_PARTS: int = 16  # header + buffers
@@ -54,132 +56,6 @@ _NAME_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 _KEY_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 _CODE_RE = re.compile(r"[a-z0-9_]{1,32}")
 RIGID_TOLERANCE = 1e-3  # |R^T R - I| and |bottom row - (0, 0, 0, 1)|, elementwise
-
-
-# --------------------------------------------------------------------------- messages
-
-
-@dataclass(frozen=True)
-class CameraCalibration:
-    """Pinhole intrinsics in pixels (Foxglove CameraCalibration; K = [fx 0 cx; 0 fy cy; 0 0 1])."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    distortion_model: str = ""  # "", "plumb_bob", "rational_polynomial", ...
-    D: tuple[float, ...] = ()
-
-
-@dataclass
-class SessionConfig:
-    session: str  # session name, [A-Za-z0-9_.-]{1,64}
-    client_name: str = ""
-    role: str = "capture"  # "capture" | "display"
-    calibration: CameraCalibration | None = None  # required for role capture
-    depth_scale: float = 1000.0  # depth units per metre on the wire (TUM: 5000)
-    preset: str = "full"
-    overrides: dict[str, bool | int | float | str] = field(default_factory=dict)
-    virtual_scene: str | None = None
-    mode: str = "live"  # "live" | "lossless"
-    want_composite: bool = False
-
-
-@dataclass
-class Hello:
-    protocol_version: int
-    config: SessionConfig
-
-
-@dataclass
-class Welcome:
-    protocol_version: int
-    session: str
-    credits: int  # frames the capture client may send before the next Credit (lossless)
-    heartbeat_interval_s: float
-    server_name: str = "arlight"
-
-
-@dataclass
-class Frame:
-    seq: int  # >= 0, per session, increasing
-    timestamp: float  # capture time, sender clock, seconds
-    color: np.ndarray  # (H, W, 3) uint8 RGB
-    depth: np.ndarray  # (H, W) uint16, SessionConfig.depth_scale units per metre, 0 = missing
-    pose: np.ndarray | None = None  # (4, 4) float64 camera-to-world
-    panorama: np.ndarray | None = None  # (h, w, 3) uint8 RGB equirectangular
-    color_codec: str = DEFAULT_COLOR_CODEC  # also used for the panorama
-    depth_codec: str = DEFAULT_DEPTH_CODEC
-    jpeg_quality: int = DEFAULT_JPEG_QUALITY
-
-
-@dataclass
-class Result:
-    seq: int
-    timestamp: float  # the frame's capture timestamp, sender clock, seconds
-    sh: list[float]  # radiance SH, luminance, L^2 coefficients
-    sh_rgb: list[list[float]] | None  # 3 x L^2
-    dominant_direction_camera: list[float]  # unit vector towards the light
-    dominant_direction_world: list[float]
-    intensity: float
-    confidence: dict
-    pose: list[list[float]]  # 4 x 4 camera-to-world
-    timings_ms: dict[str, float]
-    frames_received: int  # session counters so far
-    frames_processed: int
-    frames_dropped: int
-    server_receive_time: float  # server clock, seconds
-    server_finish_time: float
-    composite: np.ndarray | None = None  # (H, W, 3) uint8 RGB
-    composite_codec: str = "jpeg"
-    jpeg_quality: int = DEFAULT_JPEG_QUALITY
-
-
-@dataclass
-class Credit:
-    credits: int  # lossless flow control: capture may send this many more frames
-
-
-@dataclass
-class Error:
-    code: str
-    message: str
-    field: str | None = None
-    seq: int | None = None
-
-
-@dataclass
-class Heartbeat:
-    time: float  # sender clock, seconds
-
-
-@dataclass
-class Bye:
-    reason: str = ""
-
-
-Message = Union[Hello, Welcome, Frame, Result, Credit, Error, Heartbeat, Bye]  # noqa: UP007
-
-MESSAGE_TYPES: dict[str, type] = {
-    "hello": Hello,
-    "welcome": Welcome,
-    "frame": Frame,
-    "result": Result,
-    "credit": Credit,
-    "error": Error,
-    "heartbeat": Heartbeat,
-    "bye": Bye,
-}
-_TYPE_NAMES = {cls: name for name, cls in MESSAGE_TYPES.items()}
-
-
-def error_from_exception(exc: BaseException, seq: int | None = None) -> Error:
-    """The Error message to send for an exception (ProtocolError keeps its code and field)."""
-    if isinstance(exc, ProtocolError):
-        return Error(exc.code, exc.message[:4096], exc.field, seq)
-    return Error("internal", f"{type(exc).__name__}: {exc}"[:4096], None, seq)
 
 
 # --------------------------------------------------------------------------- field checks
@@ -349,6 +225,83 @@ def _to_plain(v: Any) -> Any:
     return v
 
 
+# Result.diagnostics (SPEC.md section 4, "diagnostics"): plain values only, bounded.
+DIAGNOSTICS_MAX_DEPTH = 4  # levels of maps, the diagnostics map itself being level 1
+DIAGNOSTICS_MAX_KEYS = 64  # entries per map
+DIAGNOSTICS_MAX_ARRAY = 1024  # numbers per array
+DIAGNOSTICS_MAX_STR = 1024  # characters per string
+DIAGNOSTICS_MAX_VALUES = 4096  # scalars plus array elements, in all
+_DIAGNOSTIC_TYPES = "nil, bool, int, float, str, arrays of numbers and maps of these"
+
+
+def plain_diagnostics(diagnostics: Any, name: str = "result.diagnostics") -> dict:
+    """Result.diagnostics as the wire carries it: numpy values and tuples made plain, then
+    checked against the limits; ProtocolError (bad_field, naming the key) for anything else."""
+    return _read_diagnostics(_to_plain(diagnostics), name)
+
+
+def _read_diagnostics(v: Any, name: str) -> dict:
+    """Check a diagnostics map (decode, and encode before sending); arrays become floats."""
+    budget = [DIAGNOSTICS_MAX_VALUES]
+    return _diagnostics_map(v, name, 1, budget)
+
+
+def _diagnostics_map(v: Any, name: str, level: int, budget: list[int]) -> dict:
+    if type(v) is not dict:
+        raise ProtocolError("bad_field", f"expected a map, got {_tn(v)}", name)
+    if len(v) > DIAGNOSTICS_MAX_KEYS:
+        raise ProtocolError(
+            "bad_field", f"{len(v)} entries, at most {DIAGNOSTICS_MAX_KEYS}", name
+        )
+    out = {}
+    for k, x in v.items():
+        key = _str(k, f"{name} key", 64, _KEY_RE)
+        out[key] = _diagnostics_value(x, f"{name}.{key}", level, budget)
+    return out
+
+
+def _diagnostics_value(x: Any, name: str, level: int, budget: list[int]) -> Any:
+    t = type(x)
+    if t is dict:
+        if level >= DIAGNOSTICS_MAX_DEPTH:
+            raise ProtocolError(
+                "bad_field", f"maps nested more than {DIAGNOSTICS_MAX_DEPTH} levels deep", name
+            )
+        return _diagnostics_map(x, name, level + 1, budget)
+    n = len(x) if t is list else 1
+    budget[0] -= n
+    if budget[0] < 0:
+        raise ProtocolError(
+            "bad_field", f"more than {DIAGNOSTICS_MAX_VALUES} values in all diagnostics", name
+        )
+    if t is list:
+        if n > DIAGNOSTICS_MAX_ARRAY:
+            raise ProtocolError(
+                "bad_field", f"{n} numbers, at most {DIAGNOSTICS_MAX_ARRAY}", name
+            )
+        out = []
+        for i, e in enumerate(x):
+            if type(e) not in (int, float):
+                raise ProtocolError(
+                    "bad_field", f"arrays hold numbers only, got {_tn(e)}", f"{name}[{i}]"
+                )
+            out.append(float(e))
+        return out
+    if t is int and not -(2**63) <= x < 2**64:
+        raise ProtocolError("bad_field", "integer outside the 64-bit range", name)
+    if t is str and len(x) > DIAGNOSTICS_MAX_STR:
+        raise ProtocolError(
+            "bad_field", f"{len(x)} characters, at most {DIAGNOSTICS_MAX_STR}", name
+        )
+    if x is None or t in (bool, int, float, str):
+        return x
+    raise ProtocolError(
+        "bad_field", f"unsupported value type {t.__name__}; diagnostics hold {_DIAGNOSTIC_TYPES}",
+        name,
+    )
+
+
+
 # --------------------------------------------------------------------------- images
 
 
@@ -419,33 +372,160 @@ class _Images:
             )
 
 
-# --------------------------------------------------------------------------- per type
+def _pose_to_wire(pose: Any, name: str) -> list:
+    try:
+        m = np.asarray(pose, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ProtocolError("bad_field", "expected a 4 x 4 matrix of numbers", name) from None
+    if m.shape != (4, 4):
+        raise ProtocolError("bad_field", f"expected shape (4, 4), got {m.shape}", name)
+    return m.tolist()
 
 
-def _read_calibration(m: _Map) -> CameraCalibration:
-    width = m.int("width", 1, MAX_IMAGE_SIDE)
-    height = m.int("height", 1, MAX_IMAGE_SIDE)
-    k = m.floats("K", 9)
-    if k[1] != 0 or k[3] != 0 or k[6] != 0 or k[7] != 0 or k[8] != 1:
-        raise ProtocolError(
-            "bad_field", "K must be [fx, 0, cx, 0, fy, cy, 0, 0, 1] (no skew)", m.f("K")
-        )
-    if not (k[0] > 0 and k[4] > 0):
-        raise ProtocolError("bad_field", f"focal lengths must be > 0, got {k[0]}, {k[4]}", m.f("K"))
-    model = m.str("distortion_model", 64)
-    d = m.floats("D", max_len=16)
-    m.done()
-    return CameraCalibration(width, height, k[0], k[4], k[2], k[5], model, tuple(d))
+def _add_image(parts: list, payload, meta: dict) -> dict:
+    meta = dict(meta)
+    meta["buffer"] = len(parts)
+    parts.append(payload)
+    return meta
 
 
-def _write_calibration(c: CameraCalibration) -> dict:
-    return {
-        "width": _to_plain(c.width),
-        "height": _to_plain(c.height),
-        "K": _to_plain([c.fx, 0.0, c.cx, 0.0, c.fy, c.cy, 0.0, 0.0, 1.0]),
-        "distortion_model": c.distortion_model,
-        "D": _to_plain(list(c.D)),
-    }
+def _float_list(v: Any, name: str) -> list:
+    try:
+        return np.asarray(v, dtype=np.float64).tolist()
+    except (TypeError, ValueError):
+        raise ProtocolError("bad_field", "expected numbers", name) from None
+
+
+
+# --------------------------------------------------------------------------- messages
+#
+# One dataclass per message type. Each owns its bytes (as mcap's records.py): `_pack(parts)`
+# gives the header fields (appending image payloads to `parts`) in SPEC.md's key order, and
+# `_unpack(h, v, images)` reads and checks them from a header map. encode() runs `_unpack` on
+# what `_pack` wrote, so a peer never sends what it would reject.
+
+
+class _WireEnum(str, Enum):
+    """An Enum of wire strings: members equal, print and format as their value."""
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    def __format__(self, spec: str) -> str:
+        return format(str(self.value), spec)
+
+
+class ByeKind(_WireEnum):
+    """Why a Bye was sent (its `kind` on the wire; SPEC.md section 3, "Bye")."""
+
+    END_OF_STREAM = "end_of_stream"  # the stream ended: server -> displays, or a capture
+    # client whose source has no more frames
+    SHUTDOWN = "shutdown"  # the server is shutting down: reconnect to the restarted server
+    LEAVING = "leaving"  # a client leaves before its stream ended (interrupted, closed)
+
+
+class ErrorField(_WireEnum):
+    """The `Error.field` values that are not field paths (SPEC.md section 6, "Error fields").
+
+    Compare with `error.field == ErrorField.SESSION` (the members are strings); whether an
+    Error may be retried is its own `retryable` flag, not looked up from these.
+    """
+
+    HEADER = "header"
+    VERSION = "v"
+    TYPE = "type"
+    SESSION = "session"  # retryable: the server does not know this peer; say Hello again
+    SHUTDOWN = "shutdown"  # retryable: the server is shutting down
+    CREDITS = "credits"  # retryable: a lossless frame refused for the credit window
+    DUPLICATE = "duplicate"  # final: a resent frame whose answer is no longer kept
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    """Pinhole intrinsics in pixels (Foxglove CameraCalibration; K = [fx 0 cx; 0 fy cy; 0 0 1])."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion_model: str = ""  # "", "plumb_bob", "rational_polynomial", ...
+    D: tuple[float, ...] = ()
+
+    def _pack(self) -> dict:
+        return {
+            "width": _to_plain(self.width),
+            "height": _to_plain(self.height),
+            "K": _to_plain([self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0]),
+            "distortion_model": self.distortion_model,
+            "D": _to_plain(list(self.D)),
+        }
+
+    @classmethod
+    def _unpack(cls, m: _Map) -> CameraCalibration:
+        width = m.int("width", 1, MAX_IMAGE_SIDE)
+        height = m.int("height", 1, MAX_IMAGE_SIDE)
+        k = m.floats("K", 9)
+        if k[1] != 0 or k[3] != 0 or k[6] != 0 or k[7] != 0 or k[8] != 1:
+            raise ProtocolError(
+                "bad_field", "K must be [fx, 0, cx, 0, fy, cy, 0, 0, 1] (no skew)", m.f("K")
+            )
+        if not (k[0] > 0 and k[4] > 0):
+            raise ProtocolError(
+                "bad_field", f"focal lengths must be > 0, got {k[0]}, {k[4]}", m.f("K")
+            )
+        model = m.str("distortion_model", 64)
+        d = m.floats("D", max_len=16)
+        m.done()
+        return cls(width, height, k[0], k[4], k[2], k[5], model, tuple(d))
+
+
+@dataclass
+class SessionConfig:
+    session: str  # session name, [A-Za-z0-9_.-]{1,64}
+    client_name: str = ""
+    role: str = "capture"  # "capture" | "display"
+    calibration: CameraCalibration | None = None  # required for role capture
+    depth_scale: float = 1000.0  # depth units per metre on the wire (TUM: 5000)
+    preset: str = "full"
+    overrides: dict[str, bool | int | float | str] = dataclasses.field(default_factory=dict)
+    virtual_scene: str | None = None
+    mode: str = "live"  # "live" | "lossless"
+    want_composite: bool = False
+
+    def _pack(self) -> dict:
+        return {
+            "session": self.session,
+            "client_name": self.client_name,
+            "role": self.role,
+            "calibration": None if self.calibration is None else self.calibration._pack(),
+            "depth_scale": _to_plain(self.depth_scale),
+            "preset": self.preset,
+            "overrides": _to_plain(self.overrides),
+            "virtual_scene": self.virtual_scene,
+            "mode": self.mode,
+            "want_composite": _to_plain(self.want_composite),
+        }
+
+    @classmethod
+    def _unpack(cls, c: _Map) -> SessionConfig:
+        session = c.str("session", 64, _NAME_RE)
+        client_name = c.str("client_name", 128)
+        role = c.str("role", choices=ROLES)
+        cal = c.map("calibration", nullable=True)
+        calibration = None if cal is None else CameraCalibration._unpack(cal)
+        if role == "capture" and calibration is None:
+            raise ProtocolError("bad_field", "required for role capture", c.f("calibration"))
+        depth_scale = c.float("depth_scale", 1e-6, 1e9)
+        preset = c.str("preset", 64, _NAME_RE)
+        overrides = _read_overrides(c.raw("overrides"), c.f("overrides"))
+        virtual_scene = c.str("virtual_scene", 1024, nullable=True)
+        mode = c.str("mode", choices=MODES)
+        want_composite = c.bool("want_composite")
+        c.done()
+        return cls(session, client_name, role, calibration, depth_scale, preset, overrides,
+                   virtual_scene, mode, want_composite)
 
 
 def _read_overrides(v: Any, name: str) -> dict[str, bool | int | float | str]:
@@ -469,287 +549,320 @@ def _read_overrides(v: Any, name: str) -> dict[str, bool | int | float | str]:
     return out
 
 
-def _read_hello(h: _Map, v: int, images: _Images) -> Hello:
-    c = h.map("config")
-    session = c.str("session", 64, _NAME_RE)
-    client_name = c.str("client_name", 128)
-    role = c.str("role", choices=ROLES)
-    cal = c.map("calibration", nullable=True)
-    calibration = None if cal is None else _read_calibration(cal)
-    if role == "capture" and calibration is None:
-        raise ProtocolError("bad_field", "required for role capture", c.f("calibration"))
-    depth_scale = c.float("depth_scale", 1e-6, 1e9)
-    if depth_scale <= 0:
-        raise ProtocolError("bad_field", "must be > 0", c.f("depth_scale"))
-    preset = c.str("preset", 64, _NAME_RE)
-    overrides = _read_overrides(c.raw("overrides"), c.f("overrides"))
-    virtual_scene = c.str("virtual_scene", 1024, nullable=True)
-    mode = c.str("mode", choices=MODES)
-    want_composite = c.bool("want_composite")
-    c.done()
-    config = SessionConfig(
-        session,
-        client_name,
-        role,
-        calibration,
-        depth_scale,
-        preset,
-        overrides,
-        virtual_scene,
-        mode,
-        want_composite,
-    )
-    return Hello(v, config)
+@dataclass
+class Hello:
+    TYPE: ClassVar[str] = "hello"
+    protocol_version: int
+    config: SessionConfig
+
+    def _pack(self, parts: list) -> dict:
+        return {"config": self.config._pack()}
+
+    @classmethod
+    def _unpack(cls, h: _Map, v: int, images: _Images) -> Hello:
+        return cls(v, SessionConfig._unpack(h.map("config")))
 
 
-def _write_hello(msg: Hello, parts: list) -> dict:
-    c = msg.config
-    return {
-        "config": {
-            "session": c.session,
-            "client_name": c.client_name,
-            "role": c.role,
-            "calibration": None if c.calibration is None else _write_calibration(c.calibration),
-            "depth_scale": _to_plain(c.depth_scale),
-            "preset": c.preset,
-            "overrides": _to_plain(c.overrides),
-            "virtual_scene": c.virtual_scene,
-            "mode": c.mode,
-            "want_composite": _to_plain(c.want_composite),
+@dataclass
+class Welcome:
+    TYPE: ClassVar[str] = "welcome"
+    protocol_version: int
+    session: str
+    credits: int  # frames the capture client may send before the next Credit (lossless)
+    heartbeat_interval_s: float
+    server_name: str = "arlight"
+
+    def _pack(self, parts: list) -> dict:
+        return {
+            "session": self.session,
+            "credits": _to_plain(self.credits),
+            "heartbeat_interval_s": _to_plain(self.heartbeat_interval_s),
+            "server_name": self.server_name,
         }
-    }
 
-
-def _read_welcome(h: _Map, v: int, images: _Images) -> Welcome:
-    return Welcome(
-        v,
-        h.str("session", 64, _NAME_RE),
-        h.int("credits", 0, MAX_CREDITS),
-        h.float("heartbeat_interval_s", 1e-3, 3600.0),
-        h.str("server_name", 128),
-    )
-
-
-def _write_welcome(msg: Welcome, parts: list) -> dict:
-    return {
-        "session": msg.session,
-        "credits": _to_plain(msg.credits),
-        "heartbeat_interval_s": _to_plain(msg.heartbeat_interval_s),
-        "server_name": msg.server_name,
-    }
-
-
-def _read_frame(h: _Map, v: int, images: _Images) -> Frame:
-    seq = h.int("seq")
-    timestamp = h.float("timestamp")
-    pose = h.raw("pose", nullable=True)
-    pose = None if pose is None else _pose(pose, h.f("pose"))
-    dc = images.descriptor(h, "color", depth=False)
-    dd = images.descriptor(h, "depth", depth=True)
-    dp = images.descriptor(h, "panorama", depth=False, nullable=True)
-    if (dc[2], dc[3]) != (dd[2], dd[3]):
-        raise ProtocolError(
-            "bad_field",
-            f"depth is {dd[2]} x {dd[3]}, colour {dc[2]} x {dc[3]}: they must agree",
-            h.f("depth"),
+    @classmethod
+    def _unpack(cls, h: _Map, v: int, images: _Images) -> Welcome:
+        return cls(
+            v,
+            h.str("session", 64, _NAME_RE),
+            h.int("credits", 0, MAX_CREDITS),
+            h.float("heartbeat_interval_s", 1e-3, 3600.0),
+            h.str("server_name", 128),
         )
-    h.done()
-    images.done(h.name)
-    color = images.decode(dc)
-    depth = images.decode(dd)
-    panorama = images.decode(dp)
-    quality = dc[0].get("quality", DEFAULT_JPEG_QUALITY)
-    return Frame(seq, timestamp, color, depth, pose, panorama, dc[1], dd[1], quality)
 
 
-def _write_frame(msg: Frame, parts: list) -> dict:
-    nm = "frame"
-    color = msg.color
-    depth = msg.depth
-    if isinstance(color, np.ndarray) and isinstance(depth, np.ndarray):
-        if color.shape[:2] != depth.shape[:2]:
+@dataclass
+class Frame:
+    TYPE: ClassVar[str] = "frame"
+    seq: int  # >= 0, per session, increasing
+    timestamp: float  # capture time, sender clock, seconds
+    color: np.ndarray  # (H, W, 3) uint8 RGB
+    depth: np.ndarray  # (H, W) uint16, SessionConfig.depth_scale units per metre, 0 = missing
+    pose: np.ndarray | None = None  # (4, 4) float64 camera-to-world
+    panorama: np.ndarray | None = None  # (h, w, 3) uint8 RGB equirectangular
+    color_codec: str = DEFAULT_COLOR_CODEC  # also used for the panorama
+    depth_codec: str = DEFAULT_DEPTH_CODEC
+    jpeg_quality: int = DEFAULT_JPEG_QUALITY
+
+    def _pack(self, parts: list) -> dict:
+        nm = "frame"
+        color, depth = self.color, self.depth
+        if isinstance(color, np.ndarray) and isinstance(depth, np.ndarray):
+            if color.shape[:2] != depth.shape[:2]:
+                raise ProtocolError(
+                    "bad_field",
+                    f"depth shape {depth.shape} and colour shape {color.shape} must agree in "
+                    "(H, W)",
+                    f"{nm}.depth",
+                )
+        out: dict[str, Any] = {
+            "seq": _to_plain(self.seq),
+            "timestamp": _to_plain(self.timestamp),
+            "pose": None if self.pose is None else _pose_to_wire(self.pose, f"{nm}.pose"),
+        }
+        out["color"] = _add_image(
+            parts, *encode_color(color, self.color_codec, self.jpeg_quality, field=f"{nm}.color")
+        )
+        out["depth"] = _add_image(
+            parts, *encode_depth(depth, self.depth_codec, field=f"{nm}.depth")
+        )
+        out["panorama"] = None if self.panorama is None else _add_image(
+            parts,
+            *encode_color(self.panorama, self.color_codec, self.jpeg_quality,
+                          field=f"{nm}.panorama"),
+        )
+        return out
+
+    @classmethod
+    def _unpack(cls, h: _Map, v: int, images: _Images) -> Frame:
+        seq = h.int("seq")
+        timestamp = h.float("timestamp")
+        pose = h.raw("pose", nullable=True)
+        pose = None if pose is None else _pose(pose, h.f("pose"))
+        dc = images.descriptor(h, "color", depth=False)
+        dd = images.descriptor(h, "depth", depth=True)
+        dp = images.descriptor(h, "panorama", depth=False, nullable=True)
+        if (dc[2], dc[3]) != (dd[2], dd[3]):
             raise ProtocolError(
                 "bad_field",
-                f"depth shape {depth.shape} and colour shape {color.shape} must agree in (H, W)",
-                f"{nm}.depth",
+                f"depth is {dd[2]} x {dd[3]}, colour {dc[2]} x {dc[3]}: they must agree",
+                h.f("depth"),
             )
-    out: dict[str, Any] = {
-        "seq": _to_plain(msg.seq),
-        "timestamp": _to_plain(msg.timestamp),
-        "pose": None if msg.pose is None else _pose_to_wire(msg.pose, f"{nm}.pose"),
-    }
-    out["color"] = _add_image(
-        parts, *encode_color(color, msg.color_codec, msg.jpeg_quality, field=f"{nm}.color")
-    )
-    out["depth"] = _add_image(parts, *encode_depth(depth, msg.depth_codec, field=f"{nm}.depth"))
-    out["panorama"] = (
-        None
-        if msg.panorama is None
-        else _add_image(
-            parts,
-            *encode_color(msg.panorama, msg.color_codec, msg.jpeg_quality, field=f"{nm}.panorama"),
-        )
-    )
-    return out
+        h.done()
+        images.done(h.name)
+        color = images.decode(dc)
+        depth = images.decode(dd)
+        panorama = images.decode(dp)
+        quality = dc[0].get("quality", DEFAULT_JPEG_QUALITY)
+        return cls(seq, timestamp, color, depth, pose, panorama, dc[1], dd[1], quality)
 
 
-def _pose_to_wire(pose: Any, name: str) -> list:
-    try:
-        m = np.asarray(pose, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ProtocolError("bad_field", "expected a 4 x 4 matrix of numbers", name) from None
-    if m.shape != (4, 4):
-        raise ProtocolError("bad_field", f"expected shape (4, 4), got {m.shape}", name)
-    return m.tolist()
+@dataclass(kw_only=True)
+class Result:
+    """The lighting of one processed frame (server -> capture and display clients).
 
+    Built with keywords only. `diagnostics`: a bounded map of plain values (str, bool, int,
+    float, nil, arrays of numbers, maps of these; SPEC.md "diagnostics"), e.g. the pipeline's
+    `{"tracking": {"ok": True, "reason": ""}}`; anything else is refused by encode().
+    """
 
-def _add_image(parts: list, payload, meta: dict) -> dict:
-    meta = dict(meta)
-    meta["buffer"] = len(parts)
-    parts.append(payload)
-    return meta
+    TYPE: ClassVar[str] = "result"
+    seq: int
+    timestamp: float  # the frame's capture timestamp, sender clock, seconds
+    sh: list[float]  # radiance SH, luminance, world frame, L^2 coefficients
+    sh_camera: list[float] | None = None  # the same light in this frame's camera frame
+    sh_rgb: list[list[float]] | None = None  # 3 x L^2, world frame
+    dominant_direction_camera: list[float]  # unit vector towards the light
+    dominant_direction_world: list[float]
+    intensity: float
+    confidence: dict
+    pose: list[list[float]]  # 4 x 4 camera-to-world
+    timings_ms: dict[str, float]
+    diagnostics: dict = dataclasses.field(default_factory=dict)
+    frames_received: int  # session counters so far
+    frames_processed: int
+    frames_dropped: int
+    server_receive_time: float  # server wall clock, seconds
+    server_finish_time: float
+    composite: np.ndarray | None = None  # (H, W, 3) uint8 RGB
+    composite_codec: str = "jpeg"
+    jpeg_quality: int = DEFAULT_JPEG_QUALITY
 
-
-def _read_result(h: _Map, v: int, images: _Images) -> Result:
-    seq = h.int("seq")
-    timestamp = h.float("timestamp")
-    sh = h.floats("sh", max_len=1024)
-    bands = math.isqrt(len(sh))
-    if not sh or bands * bands != len(sh):
-        raise ProtocolError("bad_field", f"{len(sh)} coefficients is not L^2 for L >= 1", h.f("sh"))
-    sh_rgb = h.raw("sh_rgb", nullable=True)
-    if sh_rgb is not None:
-        if type(sh_rgb) is not list or len(sh_rgb) != 3:
-            raise ProtocolError(
-                "bad_field", "expected 3 arrays (R, G, B) of L^2 numbers", h.f("sh_rgb")
-            )
-        sh_rgb = [_floats(c, f"{h.f('sh_rgb')}[{i}]", len(sh)) for i, c in enumerate(sh_rgb)]
-    dir_cam = h.floats("dominant_direction_camera", 3)
-    dir_world = h.floats("dominant_direction_world", 3)
-    intensity = h.float("intensity")
-    confidence = _plain_map(h.raw("confidence"), h.f("confidence"), 0, 64)
-    pose = _pose(h.raw("pose"), h.f("pose")).tolist()
-    timings = _plain_map(h.raw("timings_ms"), h.f("timings_ms"), 0, 64)
-    timings = {k: _float(x, f"{h.f('timings_ms')}.{k}", 0.0) for k, x in timings.items()}
-    received = h.int("frames_received")
-    processed = h.int("frames_processed")
-    dropped = h.int("frames_dropped")
-    t_recv = h.float("server_receive_time")
-    t_fin = h.float("server_finish_time")
-    dc = images.descriptor(h, "composite", depth=False, nullable=True)
-    h.done()
-    images.done(h.name)
-    composite = images.decode(dc)
-    codec = "jpeg" if dc is None else dc[1]
-    quality = DEFAULT_JPEG_QUALITY if dc is None else dc[0].get("quality", DEFAULT_JPEG_QUALITY)
-    return Result(
-        seq,
-        timestamp,
-        sh,
-        sh_rgb,
-        dir_cam,
-        dir_world,
-        intensity,
-        confidence,
-        pose,
-        timings,
-        received,
-        processed,
-        dropped,
-        t_recv,
-        t_fin,
-        composite,
-        codec,
-        quality,
-    )
-
-
-def _write_result(msg: Result, parts: list) -> dict:
-    out = {
-        "seq": _to_plain(msg.seq),
-        "timestamp": _to_plain(msg.timestamp),
-        "sh": _float_list(msg.sh, "result.sh"),
-        "sh_rgb": None if msg.sh_rgb is None else _float_list(msg.sh_rgb, "result.sh_rgb"),
-        "dominant_direction_camera": _float_list(
-            msg.dominant_direction_camera, "result.dominant_direction_camera"
-        ),
-        "dominant_direction_world": _float_list(
-            msg.dominant_direction_world, "result.dominant_direction_world"
-        ),
-        "intensity": _to_plain(msg.intensity),
-        "confidence": _to_plain(msg.confidence),
-        "pose": _pose_to_wire(msg.pose, "result.pose"),
-        "timings_ms": _to_plain(msg.timings_ms),
-        "frames_received": _to_plain(msg.frames_received),
-        "frames_processed": _to_plain(msg.frames_processed),
-        "frames_dropped": _to_plain(msg.frames_dropped),
-        "server_receive_time": _to_plain(msg.server_receive_time),
-        "server_finish_time": _to_plain(msg.server_finish_time),
-        "composite": None,
-    }
-    if msg.composite is not None:
-        out["composite"] = _add_image(
-            parts,
-            *encode_color(
-                msg.composite, msg.composite_codec, msg.jpeg_quality, field="result.composite"
+    def _pack(self, parts: list) -> dict:
+        out = {
+            "seq": _to_plain(self.seq),
+            "timestamp": _to_plain(self.timestamp),
+            "sh": _float_list(self.sh, "result.sh"),
+            "sh_camera": None if self.sh_camera is None else _float_list(
+                self.sh_camera, "result.sh_camera"),
+            "sh_rgb": None if self.sh_rgb is None else _float_list(self.sh_rgb, "result.sh_rgb"),
+            "dominant_direction_camera": _float_list(
+                self.dominant_direction_camera, "result.dominant_direction_camera"
             ),
+            "dominant_direction_world": _float_list(
+                self.dominant_direction_world, "result.dominant_direction_world"
+            ),
+            "intensity": _to_plain(self.intensity),
+            "confidence": _to_plain(self.confidence),
+            "pose": _pose_to_wire(self.pose, "result.pose"),
+            "timings_ms": _to_plain(self.timings_ms),
+            "diagnostics": _to_plain(self.diagnostics),
+            "frames_received": _to_plain(self.frames_received),
+            "frames_processed": _to_plain(self.frames_processed),
+            "frames_dropped": _to_plain(self.frames_dropped),
+            "server_receive_time": _to_plain(self.server_receive_time),
+            "server_finish_time": _to_plain(self.server_finish_time),
+            "composite": None,
+        }
+        if self.composite is not None:
+            out["composite"] = _add_image(
+                parts,
+                *encode_color(self.composite, self.composite_codec, self.jpeg_quality,
+                              field="result.composite"),
+            )
+        return out
+
+    @classmethod
+    def _unpack(cls, h: _Map, v: int, images: _Images) -> Result:
+        seq = h.int("seq")
+        timestamp = h.float("timestamp")
+        sh = h.floats("sh", max_len=1024)
+        bands = math.isqrt(len(sh))
+        if not sh or bands * bands != len(sh):
+            raise ProtocolError(
+                "bad_field", f"{len(sh)} coefficients is not L^2 for L >= 1", h.f("sh")
+            )
+        sh_camera = h.raw("sh_camera", nullable=True)
+        if sh_camera is not None:
+            sh_camera = _floats(sh_camera, h.f("sh_camera"), len(sh))
+        sh_rgb = h.raw("sh_rgb", nullable=True)
+        if sh_rgb is not None:
+            if type(sh_rgb) is not list or len(sh_rgb) != 3:
+                raise ProtocolError(
+                    "bad_field", "expected 3 arrays (R, G, B) of L^2 numbers", h.f("sh_rgb")
+                )
+            sh_rgb = [_floats(c, f"{h.f('sh_rgb')}[{i}]", len(sh)) for i, c in enumerate(sh_rgb)]
+        fields: dict[str, Any] = dict(
+            seq=seq, timestamp=timestamp, sh=sh, sh_camera=sh_camera, sh_rgb=sh_rgb,
+            dominant_direction_camera=h.floats("dominant_direction_camera", 3),
+            dominant_direction_world=h.floats("dominant_direction_world", 3),
+            intensity=h.float("intensity"),
+            confidence=_plain_map(h.raw("confidence"), h.f("confidence"), 0, 64),
+            pose=_pose(h.raw("pose"), h.f("pose")).tolist(),
         )
-    return out
+        timings = _plain_map(h.raw("timings_ms"), h.f("timings_ms"), 0, 64)
+        fields["timings_ms"] = {
+            k: _float(x, f"{h.f('timings_ms')}.{k}", 0.0) for k, x in timings.items()
+        }
+        fields["diagnostics"] = _read_diagnostics(h.raw("diagnostics"), h.f("diagnostics"))
+        for key in ("frames_received", "frames_processed", "frames_dropped"):
+            fields[key] = h.int(key)
+        for key in ("server_receive_time", "server_finish_time"):
+            fields[key] = h.float(key)
+        dc = images.descriptor(h, "composite", depth=False, nullable=True)
+        h.done()
+        images.done(h.name)
+        if dc is not None:
+            fields.update(composite=images.decode(dc), composite_codec=dc[1],
+                          jpeg_quality=dc[0].get("quality", DEFAULT_JPEG_QUALITY))
+        return cls(**fields)
 
 
-def _float_list(v: Any, name: str) -> list:
-    try:
-        return np.asarray(v, dtype=np.float64).tolist()
-    except (TypeError, ValueError):
-        raise ProtocolError("bad_field", "expected numbers", name) from None
+@dataclass
+class Credit:
+    TYPE: ClassVar[str] = "credit"
+    credits: int  # lossless flow control: capture may send this many more frames
+
+    def _pack(self, parts: list) -> dict:
+        return {"credits": _to_plain(self.credits)}
+
+    @classmethod
+    def _unpack(cls, h: _Map, v: int, images: _Images) -> Credit:
+        return cls(h.int("credits", 0, MAX_CREDITS))
 
 
-def _read_credit(h: _Map, v: int, images: _Images) -> Credit:
-    return Credit(h.int("credits", 0, MAX_CREDITS))
+@dataclass
+class Error:
+    """An error report. retryable: the frame `seq` (if any) was not processed and is not
+    answered: keep it and send it again (SPEC.md "Retryable Errors"); False: final."""
+
+    TYPE: ClassVar[str] = "error"
+    code: str
+    message: str
+    field: str | None = None  # dotted field path, or an ErrorField (kept as its string)
+    seq: int | None = None
+    retryable: bool = False
+
+    def __post_init__(self) -> None:
+        if isinstance(self.field, Enum):
+            self.field = str(self.field.value)
+
+    def _pack(self, parts: list) -> dict:
+        return {"code": self.code, "message": self.message, "field": self.field,
+                "seq": _to_plain(self.seq), "retryable": _to_plain(self.retryable)}
+
+    @classmethod
+    def _unpack(cls, h: _Map, v: int, images: _Images) -> Error:
+        return cls(
+            h.str("code", 32, _CODE_RE),
+            h.str("message", 4096),
+            h.str("field", 256, nullable=True),
+            h.int("seq", nullable=True),
+            h.bool("retryable"),
+        )
 
 
-def _read_error(h: _Map, v: int, images: _Images) -> Error:
-    return Error(
-        h.str("code", 32, _CODE_RE),
-        h.str("message", 4096),
-        h.str("field", 256, nullable=True),
-        h.int("seq", nullable=True),
-    )
+@dataclass
+class Heartbeat:
+    TYPE: ClassVar[str] = "heartbeat"
+    time: float  # sender wall clock, seconds
+
+    def _pack(self, parts: list) -> dict:
+        return {"time": _to_plain(self.time)}
+
+    @classmethod
+    def _unpack(cls, h: _Map, v: int, images: _Images) -> Heartbeat:
+        return cls(h.float("time"))
 
 
-def _read_heartbeat(h: _Map, v: int, images: _Images) -> Heartbeat:
-    return Heartbeat(h.float("time"))
+@dataclass
+class Bye:
+    """The end of a conversation: `kind` says why (what the peer should do), `reason` is
+    free text for humans and logs."""
+
+    TYPE: ClassVar[str] = "bye"
+    reason: str = ""
+    kind: ByeKind = ByeKind.LEAVING
+
+    def _pack(self, parts: list) -> dict:
+        try:
+            kind = ByeKind(self.kind).value
+        except ValueError:
+            raise ProtocolError(
+                "bad_field", f"{self.kind!r} is not one of {[k.value for k in ByeKind]}",
+                "bye.kind") from None
+        return {"kind": kind, "reason": self.reason}
+
+    @classmethod
+    def _unpack(cls, h: _Map, v: int, images: _Images) -> Bye:
+        kind = h.str("kind", 32, choices=tuple(k.value for k in ByeKind))
+        return cls(h.str("reason", 1024), ByeKind(kind))
 
 
-def _read_bye(h: _Map, v: int, images: _Images) -> Bye:
-    return Bye(h.str("reason", 1024))
+Message = Union[Hello, Welcome, Frame, Result, Credit, Error, Heartbeat, Bye]  # noqa: UP007
 
-
-_READERS = {
-    "hello": _read_hello,
-    "welcome": _read_welcome,
-    "frame": _read_frame,
-    "result": _read_result,
-    "credit": _read_credit,
-    "error": _read_error,
-    "heartbeat": _read_heartbeat,
-    "bye": _read_bye,
+MESSAGE_TYPES: dict[str, type] = {
+    cls.TYPE: cls for cls in (Hello, Welcome, Frame, Result, Credit, Error, Heartbeat, Bye)
 }
-_WRITERS = {
-    "hello": _write_hello,
-    "welcome": _write_welcome,
-    "frame": _write_frame,
-    "result": _write_result,
-    "credit": lambda m, p: {"credits": _to_plain(m.credits)},
-    "error": lambda m, p: {
-        "code": m.code,
-        "message": m.message,
-        "field": m.field,
-        "seq": _to_plain(m.seq),
-    },
-    "heartbeat": lambda m, p: {"time": _to_plain(m.time)},
-    "bye": lambda m, p: {"reason": m.reason},
-}
+_TYPE_NAMES = {cls: name for name, cls in MESSAGE_TYPES.items()}
+
+
+def error_from_exception(exc: BaseException, seq: int | None = None) -> Error:
+    """The Error message to send for an exception (ProtocolError keeps its code and field)."""
+    if isinstance(exc, ProtocolError):
+        return Error(exc.code, exc.message[:4096], exc.field, seq)
+    return Error("internal", f"{type(exc).__name__}: {exc}"[:4096], None, seq)
+
 
 
 # --------------------------------------------------------------------------- encode / decode
@@ -772,14 +885,14 @@ def encode(
     version = msg.protocol_version if name in ("hello", "welcome") else PROTOCOL_VERSION
     parts: list[bytes | memoryview] = []
     header: dict[str, Any] = {"v": _to_plain(version), "type": name}
-    header.update(_WRITERS[name](msg, parts))
+    header.update(msg._pack(parts))
     if parts:
         header["buffers"] = [len(as_bytes_view(p)) for p in parts]
     if version != PROTOCOL_VERSION:  # a deliberately wrong version (tests); skip the checks
         return [msgpack.packb(header, use_bin_type=True), *parts]
     m = _Map(header, name)
     m.seen.update(("v", "type", "buffers"))
-    _READERS[name](m, version, _Images(None, max_pixels))
+    type(msg)._unpack(m, version, _Images(None, max_pixels))
     m.done()
     try:
         packed = msgpack.packb(header, use_bin_type=True)
@@ -897,7 +1010,7 @@ def _decode(parts: Any, max_message_bytes: int, max_pixels: int) -> Message:
     m = _Map(header, name)
     m.seen.update(("v", "type", "buffers"))
     images = _Images(bufs, max_pixels)
-    msg = _READERS[name](m, header["v"], images)
+    msg = MESSAGE_TYPES[name]._unpack(m, header["v"], images)
     m.done()
     images.done(name)
     return msg

@@ -18,6 +18,10 @@ session survives for a reconnecting client). A session that receives no frames f
 `session_timeout_s` expires and frees its Pipeline. `stop()` (SIGINT/SIGTERM in
 `arlight serve`) finishes the lossless frames already received within `shutdown_grace_s`,
 reports the rest with an Error, says Bye to every peer and closes the socket.
+
+Clocks: liveness, expiry, the heartbeat schedule and the shutdown deadline run on
+time.monotonic(); time.time() is read only for what goes on the wire (Heartbeat.time, a
+Result's server receive/finish times).
 """
 
 from __future__ import annotations
@@ -35,16 +39,20 @@ from dataclasses import dataclass, field
 import numpy as np
 import zmq
 
+from arlight.pipeline.runtime import concurrent_pipelines_safe
 from arlight.protocols import (
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_PIXELS,
     PROTOCOL_VERSION,
     Bye,
+    ByeKind,
     Credit,
     Error,
+    ErrorField,
     Heartbeat,
     Hello,
     ProtocolError,
+    SessionConfig,
     Welcome,
     decode,
     encode,
@@ -52,7 +60,6 @@ from arlight.protocols import (
     peek_header,
 )
 from arlight.server.session import (
-    DUPLICATE_FIELD,
     OUTCOME_CACHE_EXTRA,
     Job,
     JobOutcome,
@@ -67,6 +74,13 @@ DEFAULT_PORT = 5555
 DEFAULT_BIND = f"tcp://*:{DEFAULT_PORT}"
 MAX_SESSION_NAME = 64
 MAX_MESSAGES_PER_POLL = 256  # fairness between reading the socket and sending results
+
+
+# the `arlight serve` flag of each ServerOptions field that has one (for error messages)
+SERVE_FLAGS = {"bind": "--bind", "workers": "--workers", "credits": "--credits",
+               "heartbeat_interval_s": "--heartbeat", "session_timeout_s": "--session-timeout",
+               "log_interval_s": "--log-interval", "max_sessions": "--max-sessions",
+               "max_message_bytes": "--max-message-mb", "shutdown_grace_s": "--shutdown-grace"}
 
 
 @dataclass(frozen=True)
@@ -100,7 +114,9 @@ class ServerOptions:
                   "shutdown_grace_s": self.shutdown_grace_s >= 0}
         for name, ok in checks.items():
             if not ok:
-                raise ValueError(f"server option {name} is out of range: {getattr(self, name)!r}")
+                flag = SERVE_FLAGS.get(name)
+                raise ValueError(f"server option {name}{f' ({flag})' if flag else ''} is out of "
+                                 f"range: {getattr(self, name)!r}")
 
 
 @dataclass
@@ -111,7 +127,7 @@ class Peer:
     role: str
     session: str
     client_name: str
-    last_seen: float
+    last_seen: float  # time.monotonic() of its last message, seconds
     results_dropped: int = 0  # Results not delivered because its queue was full
 
     @property
@@ -179,7 +195,7 @@ class Server:
         except zmq.ZMQError as exc:
             router.close()
             self._ctx.term()
-            raise OSError(f"cannot bind {opts.bind!r}: {exc}; use tcp://HOST:PORT or "
+            raise OSError(f"cannot bind {opts.bind!r}: {exc}; give --bind tcp://HOST:PORT or "
                           "tcp://*:PORT with a free port") from None
         self._router = router
         self.endpoint = router.getsockopt_string(zmq.LAST_ENDPOINT)
@@ -245,13 +261,13 @@ class Server:
         poller = zmq.Poller()
         poller.register(router, zmq.POLLIN)
         poller.register(self._wake_r.fileno(), zmq.POLLIN)
-        now = time.time()
+        now = time.monotonic()
         next_heartbeat = now + opts.heartbeat_interval_s
         next_housekeeping = now + min(opts.heartbeat_interval_s, 1.0)
         next_log = now + opts.log_interval_s
         try:
             while True:
-                now = time.time()
+                now = time.monotonic()
                 wait_s = max(0.0, min(next_heartbeat, next_housekeeping, next_log) - now)
                 events = dict(poller.poll(int(wait_s * 1000) + 1))
                 if events.get(router):
@@ -263,9 +279,9 @@ class Server:
                     except (BlockingIOError, OSError):
                         pass
                 self._drain_completions()
-                now = time.time()
+                now = time.monotonic()
                 if now >= next_heartbeat:
-                    self._send_heartbeats(now)
+                    self._send_heartbeats()
                     next_heartbeat = now + opts.heartbeat_interval_s
                 if now >= next_housekeeping:
                     self._expire_peers(now)
@@ -292,18 +308,21 @@ class Server:
                 message = router.recv_multipart(zmq.NOBLOCK, copy=False)
             except zmq.Again:
                 return
-            now = time.time()
+            now = time.monotonic()
+            receive_time_wall = time.time()
             identity = message[0].bytes
             parts = [frame.buffer for frame in message[1:]]
             self.stats.messages += 1
             try:
-                self._handle(identity, parts, now)
+                self._handle(identity, parts, now, receive_time_wall)
             except Exception as exc:  # noqa: BLE001 - bad input never crashes the server
                 log.exception("unexpected failure handling a message from %s", identity.hex())
                 self._send_error(identity, Error(code="internal", message=f"the server failed "
                                                  f"to handle this message ({exc})"))
 
-    def _handle(self, identity: bytes, parts: list, now: float) -> None:
+    def _handle(self, identity: bytes, parts: list, now: float,
+                receive_time_wall: float) -> None:
+        """One message from a peer; now: time.monotonic(), receive_time_wall: time.time()."""
         peer = self.peers.get(identity)
         if peer is not None:
             peer.last_seen = now
@@ -317,7 +336,7 @@ class Server:
             return
         if header["type"] == "frame":  # routed undecoded: a worker decodes it, and a
             # live frame replaced in the queue costs no decoding at all
-            self._on_frame(identity, peer, header, parts, now)
+            self._on_frame(identity, peer, header, parts, now, receive_time_wall)
             return
         try:
             message = decode(parts, max_message_bytes=self.options.max_message_bytes,
@@ -330,7 +349,7 @@ class Server:
         elif isinstance(message, Heartbeat):
             if peer is None:  # e.g. after a server restart: tell the client to say Hello again
                 self._send_error(identity, Error(
-                    code="bad_state", field="session",
+                    code="bad_state", field=ErrorField.SESSION, retryable=True,
                     message="unknown peer: send Hello first (the server may have restarted)"))
         elif isinstance(message, Bye):
             self._on_bye(identity, peer, message)
@@ -340,7 +359,7 @@ class Server:
                          message.message)
         else:
             self._send_error(identity, Error(
-                code="bad_state", field="type",
+                code="bad_state", field=ErrorField.TYPE,
                 message=f"a client may send Hello, Frame, Heartbeat, Credit or Bye, "
                         f"not {type(message).__name__}"))
 
@@ -350,7 +369,7 @@ class Server:
         if not name or len(name) > MAX_SESSION_NAME:
             self._send_error(identity, Error(
                 code="bad_field", field="hello.config.session",
-                message=f"session name must be 1..{MAX_SESSION_NAME} characters, "
+                message=f"session name (--session) must be 1..{MAX_SESSION_NAME} characters, "
                         f"got {len(name or '')}"))
             return
         old = self.peers.get(identity)
@@ -360,14 +379,30 @@ class Server:
             self.peers[identity] = Peer(identity, "display", name, cfg.client_name, now)
             self.displays[name].add(identity)
             log.info("session %s: display peer %s subscribed", name, identity.hex())
-            self._send(identity, encode(Welcome(PROTOCOL_VERSION, name, 0,
-                                                self.options.heartbeat_interval_s,
-                                                self.options.name)))
+            self._send_welcome(identity, name, credits=0)
             return
         if self._draining:
-            self._send_error(identity, Error(code="bad_state", field="shutdown",
+            self._send_error(identity, Error(code="bad_state", field=ErrorField.SHUTDOWN,
+                                             retryable=True,
                                              message="the server is shutting down"))
             return
+        session = self._capture_session(identity, cfg)
+        if session is None:
+            return  # refused: the Error is sent
+        session.capture_peer = identity
+        session.ended = False
+        session.last_activity = now
+        self.peers[identity] = Peer(identity, "capture", name, cfg.client_name, now)
+        self._send_welcome(identity, name, credits=self.options.credits)
+
+    def _send_welcome(self, identity: bytes, session: str, credits: int) -> None:
+        self._send(identity, encode(Welcome(PROTOCOL_VERSION, session, credits,
+                                            self.options.heartbeat_interval_s, self.options.name)))
+
+    def _capture_session(self, identity: bytes, cfg: SessionConfig) -> Session | None:
+        """The session a capture Hello resumes or creates (section 3 of SPEC.md, "Handshake");
+        None after sending the Error that refuses it."""
+        name = cfg.session
         session = self.sessions.get(name)
         if session is not None and not session.same_setup(cfg):
             owner = self.peers.get(session.capture_peer) if session.capture_peer else None
@@ -375,45 +410,41 @@ class Server:
                 self._send_error(identity, Error(
                     code="bad_state", field="hello.config.session",
                     message=f"session {name!r} is in use by another capture client with a "
-                            "different configuration; choose another session name"))
-                return
+                            "different configuration; choose another session name (--session)"))
+                return None
             self._close_session(session, "replaced by a new configuration")
             session = None
-        if session is None:
-            if len(self.sessions) >= self.options.max_sessions:
-                self._send_error(identity, Error(
-                    code="too_large", field="hello.config.session",
-                    message=f"the server already holds {len(self.sessions)} sessions "
-                            f"(limit {self.options.max_sessions}); try again later"))
-                return
-            try:
-                session = Session(cfg, credits=self.options.credits,
-                                  max_pixels=self.options.max_pixels,
-                                  max_message_bytes=self.options.max_message_bytes,
-                                  process=self._process)
-            except SessionSetupError as exc:
-                self._send_error(identity, Error(code=exc.code, field=f"hello.config.{exc.field}",
-                                                 message=str(exc)))
-                return
-            self.sessions[name] = session
-            log.info("session %s: created (%s, %dx%d, preset %s) by capture peer %s %s", name,
-                     cfg.mode, session.camera.width, session.camera.height, cfg.preset,
-                     identity.hex(), repr(cfg.client_name) if cfg.client_name else "")
-        else:
+        if session is not None:
             previous = session.capture_peer
             if previous is not None and previous != identity and previous in self.peers:
                 self._detach_peer(self.peers[previous], reason="replaced by a reconnect")
             log.info("session %s: capture peer %s resumed it (last seq %d)", name,
                      identity.hex(), session.highest_seq)
-        session.capture_peer = identity
-        session.ended = False
-        session.last_activity = now
-        self.peers[identity] = Peer(identity, "capture", name, cfg.client_name, now)
-        self._send(identity, encode(Welcome(PROTOCOL_VERSION, name, self.options.credits,
-                                            self.options.heartbeat_interval_s, self.options.name)))
+            return session
+        if len(self.sessions) >= self.options.max_sessions:
+            self._send_error(identity, Error(
+                code="too_large", field="hello.config.session",
+                message=f"the server already holds {len(self.sessions)} sessions "
+                        f"(limit {self.options.max_sessions}, `arlight serve --max-sessions`); "
+                        "try again later"))
+            return None
+        try:
+            session = Session(cfg, credits=self.options.credits,
+                              max_pixels=self.options.max_pixels,
+                              max_message_bytes=self.options.max_message_bytes,
+                              process=self._process)
+        except SessionSetupError as exc:
+            self._send_error(identity, Error(code=exc.code, field=f"hello.config.{exc.field}",
+                                             message=str(exc)))
+            return None
+        self.sessions[name] = session
+        log.info("session %s: created (%s, %dx%d, preset %s) by capture peer %s %s", name,
+                 cfg.mode, session.camera.width, session.camera.height, cfg.preset,
+                 identity.hex(), repr(cfg.client_name) if cfg.client_name else "")
+        return session
 
     def _on_frame(self, identity: bytes, peer: Peer | None, header: dict, parts: list,
-                  now: float) -> None:
+                  now: float, receive_time_wall: float) -> None:
         seq = header.get("seq")
         if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
             self._send_error(identity, Error(code="bad_field", field="frame.seq",
@@ -423,28 +454,29 @@ class Server:
         if peer is None or peer.role != "capture" or session is None or \
                 session.capture_peer != identity:
             self._send_error(identity, Error(
-                code="bad_state", field="session", seq=seq,
+                code="bad_state", field=ErrorField.SESSION, seq=seq, retryable=True,
                 message="no session for this peer: send Hello first (the server may have "
                         "restarted or the session expired)"))
             return
         if self._draining:
-            self._send_error(identity, Error(code="bad_state", field="shutdown", seq=seq,
+            self._send_error(identity, Error(code="bad_state", field=ErrorField.SHUTDOWN,
+                                             seq=seq, retryable=True,
                                              message="the server is shutting down; frame "
                                                      "not processed"))
             return
-        outcome = session.offer(seq, parts, now)
+        outcome = session.offer(Job(seq, parts, receive_time_wall, now))
         if outcome == "resend":  # its Result or final Error, again (the first may be lost)
             self._send(identity, session.outcomes[seq])
         elif outcome == "expired":  # answer it, or a lossless client would wait for it forever
             self._send_error(identity, Error(
-                code="bad_state", field=DUPLICATE_FIELD, seq=seq,
+                code="bad_state", field=ErrorField.DUPLICATE, seq=seq, retryable=False,
                 message=f"frame {seq} is not above the highest seq this session accepted "
                         f"({session.highest_seq}) and its Result or Error is no longer kept "
                         f"(only the last {self.options.credits + OUTCOME_CACHE_EXTRA} are); it "
                         "is not processed again"))
         elif outcome == "overflow":
             self._send_error(identity, Error(
-                code="bad_state", field="credits", seq=seq,
+                code="bad_state", field=ErrorField.CREDITS, seq=seq, retryable=True,
                 message=f"more than {self.options.credits} frames unacknowledged in lossless "
                         "mode; wait for Results (credits) before sending more"))
         self._schedule(session)
@@ -469,7 +501,7 @@ class Server:
 
     def _work(self, session: Session, job: Job) -> None:
         """Worker thread: process one frame, hand the outcome to the I/O thread."""
-        if self.options.workers > 1 and _needs_serial_compute():
+        if self.options.workers > 1 and not concurrent_pipelines_safe():
             with self._compute_lock:
                 outcome = session.run(job)
         else:
@@ -530,8 +562,8 @@ class Server:
                  f" ({error.field})" if error.field else "", error.message)
         self._send(identity, encode(error))
 
-    def _send_heartbeats(self, now: float) -> None:
-        parts = encode(Heartbeat(now))
+    def _send_heartbeats(self) -> None:
+        parts = encode(Heartbeat(time.time()))
         for identity in list(self.peers):
             self._send(identity, parts)
 
@@ -566,7 +598,7 @@ class Server:
         if session.capture_peer is not None and session.capture_peer in self.peers:
             self._detach_peer(self.peers[session.capture_peer], reason=reason)
         if reason == "end of stream":
-            parts = encode(Bye(f"session {session.name} ended"))
+            parts = encode(Bye(f"session {session.name} ended", ByeKind.END_OF_STREAM))
             for identity in list(self.displays.get(session.name, ())):
                 self._send(identity, parts)
 
@@ -628,13 +660,14 @@ class Server:
                 if session.capture_peer is not None:
                     for job in unfinished:
                         self._send_error(session.capture_peer, Error(
-                            code="bad_state", field="shutdown", seq=job.seq,
+                            code="bad_state", field=ErrorField.SHUTDOWN, seq=job.seq,
+                            retryable=True,
                             message="the server shut down before processing this frame; "
                                     "send it again after reconnecting"))
                 if unfinished:
                     log.warning("session %s: %d frame(s) not processed at shutdown (reported "
                                 "to the client)", session.name, len(unfinished))
-            bye = encode(Bye("server shutting down"))
+            bye = encode(Bye("server shutting down", ByeKind.SHUTDOWN))
             for identity in list(self.peers):
                 self._send(identity, bye)
             router.setsockopt(zmq.LINGER, 1000)  # let the Byes and last Results out
@@ -649,16 +682,3 @@ class Server:
             self.sessions.clear()
             log.info("server stopped")
 
-
-def _needs_serial_compute() -> bool:
-    """True unless Numba's threading layer is known to allow parallel calls from many threads.
-
-    Numba's fallback 'workqueue' layer aborts the process on concurrent parallel launches;
-    OpenMP and TBB allow them. Before any parallel kernel ran the layer is unknown: serialise.
-    """
-    try:
-        import numba
-
-        return numba.threading_layer() == "workqueue"
-    except (ImportError, ValueError):
-        return True

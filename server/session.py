@@ -6,7 +6,7 @@ time per session (`run`), so a session's frames are processed in order and its P
 never used by two threads at once. Sessions share nothing: each has its own Pipeline, queue,
 counters and outcome cache.
 
-Delivery modes (DESIGN.md "Quality rules": drops are counted, never silent):
+Delivery modes (docs/architecture.md; drops are counted, never silent):
 - live: the queue holds the newest frame only; an older pending frame is replaced and
   counted in `frames_dropped`, which every Result reports.
 - lossless: every frame is processed exactly once, in order. The client keeps at most
@@ -16,6 +16,10 @@ Delivery modes (DESIGN.md "Quality rules": drops are counted, never silent):
   and sent again; a duplicate still queued or in a worker is answered when it finishes; an
   older one gets a final `bad_state` Error (field "duplicate"), so every frame the client
   sends gets an answer and a lossless stream never waits forever.
+
+Clocks: liveness and expiry (`last_activity`, the latency log) run on time.monotonic();
+wall-clock times (`*_wall`) are only the timestamps that go on the wire (a Result's
+server_receive_time and server_finish_time).
 """
 
 from __future__ import annotations
@@ -38,12 +42,12 @@ from arlight.protocols import (
     Error,
     Frame,
     ProtocolError,
-    Result,
     SessionConfig,
     decode,
     encode,
     error_from_exception,
 )
+from arlight.server.results import result_message
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +57,6 @@ ProcessStep = Callable[[FrameInput, "Session"], FrameResult]
 
 LOSSLESS_QUEUE_SLACK = 2  # frames beyond the credit window a lossless queue tolerates
 OUTCOME_CACHE_EXTRA = 4  # final outcomes kept for resending after a reconnect: credits + this
-DUPLICATE_FIELD = "duplicate"  # Error field: a duplicate whose outcome is no longer cached
-RETRYABLE_FIELDS = ("session", "shutdown", "credits")  # bad_state fields: frame not answered
 
 
 class SessionSetupError(ValueError):
@@ -129,7 +131,8 @@ class Job:
 
     seq: int
     parts: list
-    receive_time: float  # server clock, seconds
+    receive_time_wall: float  # time.time(), seconds: the Result's server_receive_time
+    receive_time_mono: float  # time.monotonic(), seconds: latency and liveness
 
 
 @dataclass
@@ -140,7 +143,7 @@ class JobOutcome:
     job: Job
     parts: list
     ok: bool
-    finish_time: float
+    finish_time_mono: float  # time.monotonic(), seconds
     error: Error | None = None
 
 
@@ -166,8 +169,8 @@ class Session:
         self.in_flight: Job | None = None
         self.capture_peer: bytes | None = None
         self.ended = False  # the capture client said Bye: close once the queue is empty
-        self.created = time.time()
-        self.last_activity = self.created
+        self.created_mono = time.monotonic()
+        self.last_activity = self.created_mono  # time.monotonic() of the last frame or Hello
         self.highest_seq = -1  # highest seq accepted (lossless duplicate detection)
         self.refused_from: int | None = None  # lossless: first seq refused for credits
         # lossless: seq -> encoded final reply (Result or final Error) of the last frames
@@ -178,7 +181,7 @@ class Session:
         self.frames_dropped = 0
         self.frames_failed = 0
         self.display_drops = 0
-        # (finish_time, latency_s) of recent frames, for the periodic log line
+        # (monotonic finish time, receive-to-finish latency), seconds, for the periodic log
         self.recent: collections.deque[tuple[float, float]] = collections.deque(maxlen=512)
 
     # ------------------------------------------------------------------ I/O thread
@@ -197,7 +200,7 @@ class Session:
         b = dataclasses.replace(config, client_name="")
         return a == b
 
-    def offer(self, seq: int, parts: list, now: float) -> str:
+    def offer(self, job: Job) -> str:
         """Queue a received frame. Returns what happened:
 
         "queued"; "replaced" (live: an older pending frame was dropped); "duplicate" (lossless:
@@ -207,7 +210,8 @@ class Session:
         `outcomes`: its outcome can no longer be sent again); "overflow" (lossless: the
         client ignored its credit window; the frame is refused).
         """
-        self.last_activity = now
+        seq = job.seq
+        self.last_activity = job.receive_time_mono
         if self.lossless:
             if seq <= self.highest_seq:
                 if seq in self.outcomes:
@@ -225,7 +229,7 @@ class Session:
             with self._lock:
                 self.frames_received += 1
             self.highest_seq = seq
-            self.pending.append(Job(seq, parts, now))
+            self.pending.append(job)
             return "queued"
         with self._lock:
             self.frames_received += 1
@@ -235,7 +239,7 @@ class Session:
                 self.frames_dropped += 1
                 outcome = "replaced"
         self.highest_seq = max(self.highest_seq, seq)
-        self.pending.append(Job(seq, parts, now))
+        self.pending.append(job)
         return outcome
 
     def next_job(self) -> Job | None:
@@ -247,16 +251,16 @@ class Session:
 
     def finish(self, outcome: JobOutcome) -> None:
         self.in_flight = None
-        self.last_activity = max(self.last_activity, outcome.finish_time)
-        if self.lossless and (outcome.ok or not is_retryable(outcome.error)):
+        self.last_activity = max(self.last_activity, outcome.finish_time_mono)
+        if self.lossless and (outcome.ok or not outcome.error.retryable):
             # the frame's final reply: a duplicate of this seq gets it again, so a reply lost
             # on the way (the client disconnected) is recovered by resending the frame
             self.outcomes[outcome.job.seq] = outcome.parts
             while len(self.outcomes) > self.credits + OUTCOME_CACHE_EXTRA:
                 self.outcomes.popitem(last=False)
         if outcome.ok:
-            self.recent.append((outcome.finish_time,
-                                outcome.finish_time - outcome.job.receive_time))
+            self.recent.append((outcome.finish_time_mono,
+                                outcome.finish_time_mono - outcome.job.receive_time_mono))
 
     def drop_pending(self) -> list[Job]:
         """Remove and return the queued frames (shutdown); live frames count as dropped."""
@@ -297,14 +301,15 @@ class Session:
                              composite_with_light_inset(frame_input.color, result.sh_camera))
         except Exception as exc:  # noqa: BLE001 - every failure becomes an Error reply
             return self._failed(job, frame_error(exc, job.seq))
-        finish = time.time()
+        finish_wall = time.time()
         with self._lock:
             self.frames_processed += 1
             counters = (self.frames_received, self.frames_processed, self.frames_dropped)
         try:
-            message = result_message(job.seq, result, counters, job.receive_time, finish,
-                                     composite)
-            return JobOutcome(self, job, encode(message), True, finish)
+            message = result_message(result, seq=job.seq, counters=counters,
+                                     receive_time_wall=job.receive_time_wall,
+                                     finish_time_wall=finish_wall, composite=composite)
+            return JobOutcome(self, job, encode(message), True, time.monotonic())
         except Exception as exc:  # noqa: BLE001 - e.g. a non-finite estimate
             return self._failed(job, Error(
                 code="internal", seq=job.seq,
@@ -317,12 +322,7 @@ class Session:
             log.info("session %s: frame %d rejected: %s", self.name, job.seq, error.message)
         with self._lock:
             self.frames_failed += 1
-        return JobOutcome(self, job, encode(error), False, time.time(), error)
-
-
-def is_retryable(error: Error | None) -> bool:
-    """True for an Error that leaves its frame unanswered (SPEC.md "Retryable Errors")."""
-    return error is not None and error.code == "bad_state" and error.field in RETRYABLE_FIELDS
+        return JobOutcome(self, job, encode(error), False, time.monotonic(), error)
 
 
 def frame_error(exc: Exception, seq: int | None) -> Error:
@@ -336,19 +336,3 @@ def frame_error(exc: Exception, seq: int | None) -> Error:
     return Error(code="internal", message=f"the server failed to process this frame "
                                           f"({type(exc).__name__}: {exc})"[:4096], seq=seq)
 
-
-def result_message(seq: int, result: FrameResult, counters: tuple[int, int, int],
-                   receive_time: float, finish_time: float,
-                   composite: np.ndarray | None) -> Result:
-    received, processed, dropped = counters
-    return Result(
-        seq=seq, timestamp=float(result.timestamp),
-        sh=[float(x) for x in result.sh],
-        sh_rgb=None if result.sh_rgb is None else np.asarray(result.sh_rgb, float).tolist(),
-        dominant_direction_camera=[float(x) for x in result.dominant_direction_camera],
-        dominant_direction_world=[float(x) for x in result.dominant_direction_world],
-        intensity=float(result.intensity), confidence=result.confidence.to_dict(),
-        pose=np.asarray(result.pose, dtype=float).tolist(),
-        timings_ms={k: float(v) for k, v in result.timings_ms.items()},
-        frames_received=received, frames_processed=processed, frames_dropped=dropped,
-        server_receive_time=receive_time, server_finish_time=finish_time, composite=composite)

@@ -248,8 +248,11 @@ class TestRecording:
 
 
 def _dummy_result(frame: Frame) -> Result:
-    return Result(frame.seq, frame.timestamp, [0.0], None, [0, 0, 1], [0, 0, 1], 0.0, {},
-                  np.eye(4).tolist(), {}, 0, 0, 0, 0.0, 0.0)
+    return Result(seq=frame.seq, timestamp=frame.timestamp, sh=[0.0],
+                  dominant_direction_camera=[0, 0, 1], dominant_direction_world=[0, 0, 1],
+                  intensity=0.0, confidence={}, pose=np.eye(4).tolist(), timings_ms={},
+                  frames_received=0, frames_processed=0, frames_dropped=0,
+                  server_receive_time=0.0, server_finish_time=0.0)
 
 
 def _stream_to_fake_server(answer, make_options, source):
@@ -307,7 +310,7 @@ class TestDisplay:
         thread.join(30)
         assert not thread.is_alive() and display.summary.ended  # Bye at the end of stream
         lines = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
-        assert [x["seq"] for x in lines] == list(range(5))
+        assert [x["frame"] for x in lines] == list(range(5))
         assert all(x["end_to_end_ms"] is not None and x["end_to_end_ms"] >= 0 for x in lines)
         assert lines[0]["sh"][0] == pytest.approx(10.0)
         frames = sorted((out / "frames").glob("*.png"))
@@ -349,6 +352,32 @@ class TestCommands:
         assert [p for _, p in Recording(first).frames()] == \
             [p for _, p in Recording(second).frames()]
         assert Recording(second).hello.config.mode == "lossless"  # the recording's own mode
+
+    def test_estimate_stream_and_display_write_one_record_layout(self, make_server,
+                                                                  tmp_path):
+        """README "Each line of --out is one frame": the same keys from every command (the
+        streaming ones add the delivery fields; estimate adds the error against truth)."""
+        from arlight.protocols import result_record
+
+        est = tmp_path / "est.jsonl"
+        assert main(["estimate", "synthetic", "--max-frames", "1", "--preset", "mobile",
+                     "--out", str(est)]) == 0
+        record = json.loads(est.read_text().splitlines()[0])
+        core = ["timestamp", "frame", "sh", "sh_camera", "sh_rgb", "dominant_direction_camera",
+                "dominant_direction_world", "intensity", "confidence", "pose", "timings_ms",
+                "diagnostics"]
+        assert list(record) == [*core, "angular_error_deg"]
+        assert record["frame"] == 0 and len(record["sh_camera"]) == len(record["sh"])
+        assert "tracking_ok" in record["diagnostics"]
+        server = make_server(process=identity_step())
+        streamed = tmp_path / "s.jsonl"
+        assert main(["stream", "synthetic", "--server", server.connect_address, "--session",
+                     "records", "--mode", "lossless", "--rate", "max", "--max-frames", "2",
+                     "--size", "64x48", "--out", str(streamed)]) == 0
+        lines = [json.loads(x) for x in streamed.read_text().splitlines()]
+        assert [x["frame"] for x in lines] == [0, 1]
+        assert all(list(x)[:len(core)] == core for x in lines)
+        assert list(result_record(_dummy_result(Frame(0, 1.0, None, None)))) == core
 
     def test_record_command(self, tmp_path):
         path = tmp_path / "r.mcap"

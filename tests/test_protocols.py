@@ -28,9 +28,11 @@ from arlight.protocols import (
     MESSAGE_TYPES,
     PROTOCOL_VERSION,
     Bye,
+    ByeKind,
     CameraCalibration,
     Credit,
     Error,
+    ErrorField,
     Frame,
     Heartbeat,
     Hello,
@@ -46,7 +48,10 @@ from arlight.protocols import (
     encode_depth,
     error_from_exception,
     peek_header,
+    plain_diagnostics,
     read_container,
+    received_record,
+    result_record,
     rvl_decode,
     rvl_encode,
     write_container,
@@ -64,7 +69,7 @@ from arlight.protocols.rvl import (
 
 HERE = Path(__file__).resolve().parent
 REAL = HERE.parents[1] / "shared" / "data" / "real"
-GOLDEN = HERE / "golden" / "protocol_v1"
+GOLDEN = HERE / "golden" / f"protocol_v{PROTOCOL_VERSION}"
 
 
 def _load_vector_script():
@@ -324,10 +329,10 @@ class TestCodecs:
         expect("bad_field", encode, frame(pose=np.eye(3)), field="frame.pose")
         expect("bad_field", encode, frame(timestamp=math.inf), field="frame.timestamp")
         expect("bad_field", encode, frame(seq=-1), field="frame.seq")
-        expect("bad_field", encode, Hello(1, SessionConfig("bad name!")),
+        expect("bad_field", encode, Hello(PROTOCOL_VERSION, SessionConfig("bad name!")),
                field="hello.config.session")
-        expect("bad_field", encode, Hello(1, SessionConfig("s")),  # capture needs calibration
-               field="hello.config.calibration")
+        expect("bad_field", encode,  # capture needs calibration
+               Hello(PROTOCOL_VERSION, SessionConfig("s")), field="hello.config.calibration")
         expect("bad_field", encode, result(sh=[0.1] * 5), field="result.sh")
         expect("bad_field", encode, result(timings_ms={"a": -1.0}), field="result.timings_ms.a")
         expect("unknown_type", encode, object())
@@ -562,8 +567,10 @@ class TestHostileInput:
 
     def test_version_and_type(self):
         parts = encode(Heartbeat(1.0))
-        expect("bad_version", decode, tamper(parts, lambda h: h.update(v=2)), field="v")
-        expect("bad_version", decode, encode(Hello(2, SessionConfig("s", role="display"))))
+        expect("bad_version", decode, tamper(parts, lambda h: h.update(v=PROTOCOL_VERSION + 1)),
+               field="v")
+        expect("bad_version", decode,
+               encode(Hello(PROTOCOL_VERSION + 1, SessionConfig("s", role="display"))))
         expect("malformed", decode, tamper(parts, lambda h: h.update(v="1")), field="v")
         expect("malformed", decode, tamper(parts, lambda h: h.pop("v")), field="v")
         expect("unknown_type", decode, tamper(parts, lambda h: h.update(type="Frame")),
@@ -583,7 +590,7 @@ class TestHostileInput:
                field="frame.extra")
         expect("bad_field", decode, tamper(parts, lambda h: h["depth"].update(width=-1)),
                field="frame.depth.width")
-        hello = encode(Hello(1, SessionConfig("s", calibration=calibration())))
+        hello = encode(Hello(PROTOCOL_VERSION, SessionConfig("s", calibration=calibration())))
         expect("bad_field", decode,
                tamper(hello, lambda h: h["config"]["calibration"].update(K=[1.0] * 9)),
                field="hello.config.calibration.K")
@@ -828,3 +835,108 @@ def test_fuzz_mutations_only_raise_protocol_error():
             assert exc.__cause__ is None, f"{exc!r} came from {exc.__cause__!r}"
         # any other exception type fails the test by propagating
     assert {"malformed", "bad_field", "decode_failed"} <= codes
+
+
+# --------------------------------------------------------------------------- v2 fields
+
+
+class TestVersion2Fields:
+    """Error.retryable, Bye.kind, Result.sh_camera and Result.diagnostics (SPEC.md v2)."""
+
+    def test_retryable_error_and_bye_kinds_round_trip(self):
+        err = Error("bad_state", "busy", ErrorField.CREDITS, 5, retryable=True)
+        assert err.field == "credits" and type(err.field) is str
+        assert decode(encode(err)) == err
+        for kind in ByeKind:
+            assert decode(encode(Bye("why", kind))).kind is kind
+        assert Bye().kind is ByeKind.LEAVING
+        assert error_from_exception(ProtocolError("bad_field", "x")).retryable is False
+
+    def test_retryable_and_kind_are_checked(self):
+        expect("bad_field", decode, tamper(encode(Error("a", "b")),
+                                           lambda h: h.update(retryable=1)),
+               field="error.retryable")
+        expect("bad_field", decode, tamper(encode(Error("a", "b")),
+                                           lambda h: h.pop("retryable")),
+               field="error.retryable")
+        expect("bad_field", decode, tamper(encode(Bye()), lambda h: h.update(kind="ended")),
+               field="bye.kind")
+        expect("bad_field", encode, Bye("x", "ended"), field="bye.kind")
+
+    def test_result_sh_camera_and_diagnostics_round_trip(self):
+        diagnostics = {"tracking": {"ok": False, "reason": "too few points"},
+                       "residuals": [0.5, 1, math.inf], "bands_estimated": 3,
+                       "up": None, "a": {"b": {"c": {"d": 1.5}}}}
+        back = decode(encode(result(sh_camera=[0.2] * 9, diagnostics=diagnostics)))
+        assert back.sh_camera == [0.2] * 9
+        assert back.diagnostics == diagnostics
+        assert decode(encode(result())).sh_camera is None
+        assert decode(encode(result())).diagnostics == {}
+
+    def test_numpy_diagnostics_are_made_plain(self):
+        d = {"n": np.int64(3), "ok": np.bool_(True), "v": np.arange(3, dtype=np.float32),
+             "t": (1.0, 2.0)}
+        assert plain_diagnostics(d) == {"n": 3, "ok": True, "v": [0.0, 1.0, 2.0],
+                                        "t": [1.0, 2.0]}
+        assert decode(encode(result(diagnostics=d))).diagnostics == plain_diagnostics(d)
+
+    @pytest.mark.parametrize("diagnostics, field", [
+        ({"s": {1, 2}}, "result.diagnostics.s"),
+        ({"o": object()}, "result.diagnostics.o"),
+        ({"b": b"bytes"}, "result.diagnostics.b"),
+        ({"m": np.eye(2)}, "result.diagnostics.m[0]"),
+        ({"strings": ["a"]}, "result.diagnostics.strings[0]"),
+        ({"a": {"b": {"c": {"d": {"e": 1}}}}}, "result.diagnostics.a.b.c.d"),
+        ({f"k{i}": i for i in range(65)}, "result.diagnostics"),
+        ({"long": "x" * 1025}, "result.diagnostics.long"),
+        ({"big": [0.0] * 1025}, "result.diagnostics.big"),
+        ({f"k{i}": [0.0] * 1000 for i in range(5)}, "result.diagnostics.k4"),
+        ({"bad key!": 1}, "result.diagnostics key"),
+        ({3: 1}, "result.diagnostics key"),
+        ({"huge": 2**70}, "result.diagnostics.huge"),
+    ], ids=["set", "object", "bytes", "2-D array", "array of strings", "too deep",
+            "too many keys", "long string", "long array", "too many values", "bad key",
+            "int key", "huge int"])
+    def test_non_plain_diagnostics_are_refused_naming_the_key(self, diagnostics, field):
+        expect("bad_field", encode, result(diagnostics=diagnostics), field=field)
+        expect("bad_field", plain_diagnostics, diagnostics, field=field)
+
+    def test_hostile_diagnostics_and_sh_camera_on_decode(self):
+        parts = encode(result(sh_camera=[0.0] * 9, diagnostics={"a": 1}))
+        expect("bad_field", decode, tamper(parts, lambda h: h.update(diagnostics=None)),
+               field="result.diagnostics")
+        expect("bad_field", decode, tamper(parts, lambda h: h.update(diagnostics=[1])),
+               field="result.diagnostics")
+        expect("bad_field", decode,
+               tamper(parts, lambda h: h["diagnostics"].update(a=[[1.0]])),
+               field="result.diagnostics.a[0]")
+        expect("bad_field", decode, tamper(parts, lambda h: h.update(sh_camera=[0.0] * 4)),
+               field="result.sh_camera")
+        expect("bad_field", decode, tamper(parts, lambda h: h.pop("sh_camera")),
+               field="result.sh_camera")
+
+    def test_result_is_built_with_keywords_only(self):
+        with pytest.raises(TypeError):
+            Result(3, 12.5, [0.1])
+
+
+class TestRecords:
+    def test_result_record_layout(self):
+        msg = result(sh_camera=[0.2] * 9, diagnostics={"tracking": {"ok": True}},
+                     timings_ms={"render": 1.23456})
+        record = result_record(msg)
+        assert list(record) == ["timestamp", "frame", "sh", "sh_camera", "sh_rgb",
+                                "dominant_direction_camera", "dominant_direction_world",
+                                "intensity", "confidence", "pose", "timings_ms",
+                                "diagnostics"]
+        assert record["frame"] == 3 and record["sh_camera"] == [0.2] * 9
+        assert record["timings_ms"] == {"render": 1.235}
+        assert record["diagnostics"] == {"tracking": {"ok": True}}
+
+    def test_received_record_adds_delivery_fields(self):
+        msg = result(timestamp=100.0, server_receive_time=100.5, server_finish_time=100.75)
+        record = received_record(msg, 101.0)
+        assert list(record)[:12] == list(result_record(msg))
+        assert record["end_to_end_ms"] == 1000.0 and record["server_ms"] == 250.0
+        assert record["server_to_display_ms"] == 500.0 and record["receive_time"] == 101.0
+        assert received_record(msg, 100.0 + 7200.0)["end_to_end_ms"] is None

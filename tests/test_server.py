@@ -45,6 +45,7 @@ from arlight.pipeline.runtime import configure_open3d_threads
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Bye,
+    ByeKind,
     Error,
     Frame,
     Hello,
@@ -333,8 +334,12 @@ class TestLossless:
                     continue
                 reply = Error(code="bad_field", message="test", field="frame.pose",
                               seq=message.seq) if message.seq % 2 == 0 else \
-                    Result(message.seq, 1.0, [0.0], None, [0, 0, 1], [0, 0, 1], 0.0, {},
-                           np.eye(4).tolist(), {}, 0, 0, 0, 0.0, 0.0)
+                    Result(seq=message.seq, timestamp=1.0, sh=[0.0],
+                           dominant_direction_camera=[0, 0, 1],
+                           dominant_direction_world=[0, 0, 1], intensity=0.0, confidence={},
+                           pose=np.eye(4).tolist(), timings_ms={}, frames_received=0,
+                           frames_processed=0, frames_dropped=0, server_receive_time=0.0,
+                           server_finish_time=0.0)
                 for _ in range(2):
                     router.send_multipart([identity, *encode(reply)])
 
@@ -624,8 +629,8 @@ HOSTILE = [
     ("header not a map", False, [msgpack.packb([1, 2, 3])], "malformed", None),
     ("unknown version", False,
      [msgpack.packb({"v": 99, "type": "hello", "config": {}})], "bad_version", "v"),
-    ("unknown type", False, [msgpack.packb({"v": 1, "type": "teleport"})], "unknown_type",
-     "type"),
+    ("unknown type", False, [msgpack.packb({"v": PROTOCOL_VERSION, "type": "teleport"})],
+     "unknown_type", "type"),
     ("frame before hello", False, _frame_parts(), "bad_state", "session"),
     ("hello without calibration", False, None, "bad_field", "hello.config.calibration"),
     ("unknown preset", False, None, "bad_field", "hello.config.preset"),
@@ -661,8 +666,11 @@ def _hello_case(name: str) -> list:
     if name == "wrong override type":
         return _hello_parts(**_calibrated(overrides={"sh_bands": "many"}))
     if name == "a client sending a Result":
-        return encode(Result(0, 1.0, [0.0], None, [0, 0, 1], [0, 0, 1], 0.0, {},
-                             np.eye(4).tolist(), {}, 0, 0, 0, 0.0, 0.0))
+        return encode(Result(seq=0, timestamp=1.0, sh=[0.0], dominant_direction_camera=[0, 0, 1],
+                             dominant_direction_world=[0, 0, 1], intensity=0.0, confidence={},
+                             pose=np.eye(4).tolist(), timings_ms={}, frames_received=0,
+                             frames_processed=0, frames_dropped=0, server_receive_time=0.0,
+                             server_finish_time=0.0))
     raise KeyError(name)
 
 
@@ -725,3 +733,97 @@ class TestHostileInput:
                               rate="max")
         summary = run_with_timeout(lambda: stream(flat_source(3), fresh))
         assert summary.results == 3 and summary.errors == []
+
+
+# --------------------------------------------------------------------------- typed protocol
+
+
+class TestTypedMeaning:
+    """What a client acts on is typed in the message: Error.retryable, Bye.kind (v2)."""
+
+    def test_retryable_errors_are_flagged_and_final_ones_not(self, make_server):
+        server = make_server(process=identity_step(delay_s=0.1), credits=1,
+                             heartbeat_interval_s=5.0)
+        stranger = RawPeer(server.connect_address)
+        stranger.send(_frame_parts(seq=0))
+        error = stranger.receive()
+        assert (error.code, error.field, error.seq, error.retryable) == \
+            ("bad_state", "session", 0, True)
+        stranger.close()
+        peer = RawPeer(server.connect_address)
+        assert isinstance(peer.hello("typed"), Welcome)
+        for seq in range(6):  # credits 1: the queue holds 3, the rest is refused
+            peer.send(_frame_parts(seq=seq))
+        answers = [peer.receive(15) for _ in range(6)]
+        refused = [m for m in answers if isinstance(m, Error)]
+        assert refused and all(m.field == "credits" and m.retryable for m in refused)
+        peer.close()
+        fresh = RawPeer(server.connect_address)
+        assert isinstance(fresh.hello("typed-final"), Welcome)
+        fresh.send(_frame_parts(seq=0, width=32, height=24))  # final: not the calibration
+        error = fresh.receive(15)
+        assert error.seq == 0 and error.code == "bad_field" and error.retryable is False
+        fresh.close()
+
+    def test_diagnostics_reach_capture_and_display_clients(self, make_server):
+        step = identity_step()
+
+        def with_diagnostics(frame, session):
+            result = step(frame, session)
+            result.diagnostics = {"tracking": {"ok": True, "reason": ""},
+                                  "residuals": np.array([0.5, 0.25]), "n": np.int64(3)}
+            return result
+
+        server = make_server(process=with_diagnostics)
+        display = DisplayClient(DisplayOptions(server=server.connect_address, session="diag",
+                                               idle_exit_s=30.0))
+        thread = threading.Thread(target=display.run, daemon=True)
+        shown: list[Result] = []
+        display.on_result = lambda r, _: shown.append(r)
+        thread.start()
+        assert display.subscribed.wait(10)
+        results: list[Result] = []
+        options = StreamOptions(server=server.connect_address, session="diag",
+                                mode="lossless", rate="max")
+        run_with_timeout(lambda: stream(flat_source(2), options,
+                                        on_result=lambda r, _: results.append(r)))
+        thread.join(30)
+        expected = {"tracking": {"ok": True, "reason": ""}, "residuals": [0.5, 0.25], "n": 3}
+        assert [r.diagnostics for r in results] == [expected, expected]
+        assert results[0].sh_camera == results[0].sh
+        assert display.summary.ended and [r.diagnostics for r in shown] == [expected] * 2
+
+    def test_non_plain_diagnostics_fail_the_frame_with_a_clear_error(self, make_server):
+        step = identity_step()
+
+        def bad(frame, session):
+            result = step(frame, session)
+            result.diagnostics = {"mesh": object()}
+            return result
+
+        server = make_server(process=bad, heartbeat_interval_s=5.0)
+        peer = RawPeer(server.connect_address)
+        assert isinstance(peer.hello("bad-diag"), Welcome)
+        peer.send(_frame_parts(seq=0))
+        error = peer.receive(15)
+        assert error.code == "internal" and error.seq == 0 and not error.retryable
+        assert "result.diagnostics.mesh" in error.message
+        peer.close()
+
+    def test_end_of_stream_and_shutdown_byes_have_their_kinds(self, make_server):
+        server = make_server(process=identity_step(), heartbeat_interval_s=5.0)
+        display = RawPeer(server.connect_address)
+        assert isinstance(display.hello("kinds", role="display"), Welcome)
+        capture = RawPeer(server.connect_address)
+        assert isinstance(capture.hello("kinds"), Welcome)
+        capture.send(_frame_parts(seq=0))
+        assert isinstance(capture.receive(15), Result)
+        capture.send_message(Bye("end of stream", ByeKind.END_OF_STREAM))
+        assert isinstance(display.receive(15), Result)
+        bye = display.receive(15)
+        assert isinstance(bye, Bye) and bye.kind is ByeKind.END_OF_STREAM
+        server.stop(timeout=15)
+        bye = display.receive(15)
+        assert isinstance(bye, Bye) and bye.kind is ByeKind.SHUTDOWN
+        display.close()
+        capture.close()

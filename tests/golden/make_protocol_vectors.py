@@ -1,4 +1,4 @@
-"""Regenerate the golden vectors of the wire protocol: tests/golden/protocol_v1/*.bin.
+"""Regenerate the golden vectors of the wire protocol: tests/golden/protocol_v2/*.bin.
 
 Each file is a container (SPEC.md, "Container") holding one encoded message built by
 vectors() below from fixed, hand-made values (8 x 6 images). tests/test_protocols.py checks
@@ -20,10 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from arlight.protocols import (
+    PROTOCOL_VERSION,
     Bye,
+    ByeKind,
     CameraCalibration,
     Credit,
     Error,
+    ErrorField,
     Frame,
     Heartbeat,
     Hello,
@@ -34,7 +37,7 @@ from arlight.protocols import (
     write_container,
 )
 
-OUT = Path(__file__).resolve().parent / "protocol_v1"
+OUT = Path(__file__).resolve().parent / f"protocol_v{PROTOCOL_VERSION}"
 JPEG_VECTORS = ("frame_jpeg_zstd",)  # pinned by decoding, not by re-encoding
 
 
@@ -75,7 +78,7 @@ def vectors() -> dict[str, object]:
     sh = [0.5 - 0.03125 * i for i in range(16)]
     return {
         "hello": Hello(
-            1,
+            PROTOCOL_VERSION,
             SessionConfig(
                 session="golden-1",
                 client_name="golden vectors",
@@ -89,8 +92,8 @@ def vectors() -> dict[str, object]:
                 want_composite=True,
             ),
         ),
-        "hello_display": Hello(1, SessionConfig(session="golden-1", role="display")),
-        "welcome": Welcome(1, "golden-1", 8, 1.0, "arlight"),
+        "hello_display": Hello(PROTOCOL_VERSION, SessionConfig(session="golden-1", role="display")),
+        "welcome": Welcome(PROTOCOL_VERSION, "golden-1", 8, 1.0, "arlight"),
         "frame_raw_raw": Frame(7, 1234.5, rgb, depth, pose(), None, "raw", "raw"),
         "frame_png_zstd": Frame(8, 1234.75, rgb, depth, None, panorama_16x8(), "png", "zstd"),
         "frame_png_png": Frame(9, 1235.0, rgb, depth, pose(), None, "png", "png"),
@@ -100,6 +103,7 @@ def vectors() -> dict[str, object]:
             seq=7,
             timestamp=1234.5,
             sh=sh,
+            sh_camera=[-x for x in sh],
             sh_rgb=[sh, [x * 0.5 for x in sh], [x * 0.25 for x in sh]],
             dominant_direction_camera=[0.0, -0.6, 0.8],
             dominant_direction_world=[0.6, -0.8, 0.0],
@@ -107,6 +111,8 @@ def vectors() -> dict[str, object]:
             confidence={"samples": 1200, "condition": 12.5, "bands": 4, "unconstrained": []},
             pose=pose().tolist(),
             timings_ms={"reconstruct": 3.5, "light_estimation": 0.75},
+            diagnostics={"tracking": {"ok": True, "reason": ""}, "residuals": [0.5, 0.25],
+                         "bands_estimated": 3, "note": "golden"},
             frames_received=8,
             frames_processed=7,
             frames_dropped=1,
@@ -116,14 +122,20 @@ def vectors() -> dict[str, object]:
             composite_codec="png",
         ),
         "result_no_composite": Result(
-            7, 1234.5, sh, None, [0.0, 0.0, 1.0], [0.0, 0.0, 1.0], 0.0,
-            {"condition": float("inf")}, np.eye(4).tolist(), {}, 1, 0, 1, 5.0, 5.0,
+            seq=7, timestamp=1234.5, sh=sh, dominant_direction_camera=[0.0, 0.0, 1.0],
+            dominant_direction_world=[0.0, 0.0, 1.0], intensity=0.0,
+            confidence={"condition": float("inf")}, pose=np.eye(4).tolist(), timings_ms={},
+            frames_received=1, frames_processed=0, frames_dropped=1, server_receive_time=5.0,
+            server_finish_time=5.0,
         ),
         "credit": Credit(4),
         "error": Error("bad_field", "depth is 8 x 6, colour 4 x 3: they must agree",
                        "frame.depth", 12),
+        "error_retryable": Error("bad_state", "more than 4 frames unacknowledged",
+                                 ErrorField.CREDITS, 13, retryable=True),
         "heartbeat": Heartbeat(100.125),
-        "bye": Bye("end of recording"),
+        "bye": Bye("end of recording", ByeKind.END_OF_STREAM),
+        "bye_shutdown": Bye("server shutting down", ByeKind.SHUTDOWN),
     }
 
 

@@ -1,0 +1,53 @@
+"""The JSON record of one frame's lighting: one line of every `--out` file.
+
+`arlight estimate --out`, `arlight stream --out` and `arlight display --out` all write
+`result_record` (README, "Each line of `--out` is one frame"); the two streaming clients add
+the delivery fields of `received_record`. `estimate` has no Result: it converts its pipeline
+FrameResult with the server's own conversion (arlight.server.results.result_message) first.
+"""
+
+from __future__ import annotations
+
+from .messages import Result
+
+WALL_CLOCK_WINDOW_S = 3600.0  # timestamps within this of the receive time are capture times
+
+
+def result_record(result: Result) -> dict:
+    """The record of one Result: plain JSON values, in the README's key order."""
+    return {
+        "timestamp": result.timestamp,
+        "frame": result.seq,
+        "sh": result.sh,
+        "sh_camera": result.sh_camera,
+        "sh_rgb": result.sh_rgb,
+        "dominant_direction_camera": result.dominant_direction_camera,
+        "dominant_direction_world": result.dominant_direction_world,
+        "intensity": result.intensity,
+        "confidence": result.confidence,
+        "pose": result.pose,
+        "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},
+        "diagnostics": result.diagnostics,
+    }
+
+
+def received_record(result: Result, receive_time: float) -> dict:
+    """result_record plus what a client that received it knows (wall-clock seconds).
+
+    end_to_end_ms = receive_time - the frame's timestamp, when that timestamp is a capture
+    time (within WALL_CLOCK_WINDOW_S), else None; server_to_display_ms = receive_time -
+    server_receive_time; server_ms = server_finish_time - server_receive_time.
+    """
+    e2e = receive_time - result.timestamp
+    return {
+        **result_record(result),
+        "frames_received": result.frames_received,
+        "frames_processed": result.frames_processed,
+        "frames_dropped": result.frames_dropped,
+        "server_receive_time": result.server_receive_time,
+        "server_finish_time": result.server_finish_time,
+        "receive_time": receive_time,
+        "end_to_end_ms": round(e2e * 1e3, 3) if abs(e2e) < WALL_CLOCK_WINDOW_S else None,
+        "server_to_display_ms": round((receive_time - result.server_receive_time) * 1e3, 3),
+        "server_ms": round((result.server_finish_time - result.server_receive_time) * 1e3, 3),
+    }

@@ -1,0 +1,35 @@
+"""The pipeline's FrameResult as a protocol Result: the one conversion, used by the server's
+sessions and by `arlight estimate` (whose JSON record is built from the same Result)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from arlight.pipeline.frames import FrameResult
+from arlight.protocols import Result, plain_diagnostics
+
+
+def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, int],
+                   receive_time_wall: float, finish_time_wall: float,
+                   composite: np.ndarray | None = None) -> Result:
+    """The Result of frame `seq`. counters: the session's (frames_received,
+    frames_processed, frames_dropped); receive/finish times: wall clock, seconds.
+
+    Raises ProtocolError (bad_field, naming `result.diagnostics.KEY`) when the pipeline's
+    diagnostics hold a value the protocol does not carry.
+    """
+    received, processed, dropped = counters
+    return Result(
+        seq=seq, timestamp=float(result.timestamp),
+        sh=[float(x) for x in result.sh],
+        sh_camera=[float(x) for x in result.sh_camera],
+        sh_rgb=None if result.sh_rgb is None else np.asarray(result.sh_rgb, float).tolist(),
+        dominant_direction_camera=[float(x) for x in result.dominant_direction_camera],
+        dominant_direction_world=[float(x) for x in result.dominant_direction_world],
+        intensity=float(result.intensity), confidence=result.confidence.to_dict(),
+        pose=np.asarray(result.pose, dtype=float).tolist(),
+        timings_ms={k: float(v) for k, v in result.timings_ms.items()},
+        diagnostics=plain_diagnostics(result.diagnostics),
+        frames_received=received, frames_processed=processed, frames_dropped=dropped,
+        server_receive_time=receive_time_wall, server_finish_time=finish_time_wall,
+        composite=composite)
