@@ -622,8 +622,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     from arlight.pipeline.pipeline import FrameError
+    from arlight.pipeline.runtime import configure_process
     from arlight.sources.errors import DatasetError
 
+    configure_process()  # once per process: Open3D on one thread (reproducible poses)
     try:
         return args.func(args)
     except (DatasetError, FrameError, ValueError, OSError) as exc:  # incl. ProtocolError,
