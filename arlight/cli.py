@@ -577,6 +577,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"arlight {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log details (warnings "
                         "about defaults chosen for the data are shown either way)")
+    parser.add_argument("--open3d-threads", type=_positive_int, metavar="N",
+                        help="CPU threads for Open3D (volume, ray cast, tracking); default: "
+                             "all cores. 1 makes tracked poses reproducible run to run, at the "
+                             "cost of a slower Surface stage")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     est = sub.add_parser(
@@ -625,7 +629,7 @@ def main(argv: list[str] | None = None) -> int:
     from arlight.pipeline.runtime import configure_process
     from arlight.sources.errors import DatasetError
 
-    configure_process()  # once per process: Open3D on one thread (reproducible poses)
+    configure_process(args.open3d_threads)  # once per process, before any Pipeline
     try:
         return args.func(args)
     except (DatasetError, FrameError, ValueError, OSError) as exc:  # incl. ProtocolError,

@@ -20,6 +20,7 @@ import numpy as np
 
 from arlight.pipeline.config import Config
 from arlight.pipeline.pipeline import Pipeline
+from arlight.pipeline.runtime import configure_process
 from arlight.sources.sequence import open_sequence
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
@@ -62,6 +63,7 @@ def main(argv=None) -> int:
                         help="override a Config field for every configuration")
     parser.add_argument("--json", help="write the table as JSON")
     args = parser.parse_args(argv)
+    configure_process()
     if not DATA.is_dir():
         print(f"no ground-truth data at {DATA}", file=sys.stderr)
         return 2

@@ -10,38 +10,50 @@ the pipeline itself never changes a process-wide setting.
 
 from __future__ import annotations
 
-import warnings
+import os
 
-# numba probes a system TBB (too old on many distributions), warns, and falls back to
-# OpenMP or workqueue; the fallback is fine and the warning only confuses users
-NUMBA_TBB_WARNING = ".*TBB threading layer.*"
+# numba's kernels need a threading layer. It probes TBB first, and a system TBB that is too old
+# (common on Debian/Ubuntu) makes it warn before it falls back to OpenMP; OpenMP first is
+# what it would end up with anyway, and is safe for concurrent pipelines
+NUMBA_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 
 
-def configure_open3d_threads(n: int = 1) -> None:
-    """Run Open3D on `n` CPU threads, process-wide (call once, at start).
+def configure_open3d_threads(n: int | None = None) -> None:
+    """Run Open3D on `n` CPU threads, process-wide (call once, at start; None: all cores).
 
-    One thread (the default) is what makes sessions deterministic (docs/architecture.md,
-    Conventions): Open3D's RGB-D odometry sums its normal equations with a TBB parallel
+    Trade-off measured at 640x480 on 2 cores: one thread makes frame-to-model tracking
+    reproducible (Open3D's RGB-D odometry sums its normal equations with a TBB parallel
     reduction whose order depends on thread scheduling, so with several threads the same
-    frames give poses that differ by ~1e-5 m from run to run. Fusion and ray casting
-    then run on one thread too (slower on a many-core server; pass n > 1 where
-    reproducible poses matter less than speed).
+    frames give poses that differ by ~1e-5 m from run to run), but fusion and the ray cast
+    then run on one thread too (Surface 110 -> 174 ms, `arlight bench --presets full`).
+    The tests run with one thread; `arlight --open3d-threads 1` asks for it.
     """
+    if n is None:
+        return
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"n must be an integer >= 1 (Open3D threads), got {n!r}")
+        raise ValueError(f"Open3D threads must be an integer >= 1 (--open3d-threads N), "
+                         f"got {n!r}")
     import open3d as o3d
 
     o3d.utility.set_max_threads(n)
 
 
-def silence_numba_tbb_warning() -> None:
-    """Hide numba's warning that the system TBB is unusable (it falls back by itself)."""
-    warnings.filterwarnings("ignore", message=NUMBA_TBB_WARNING)
+def choose_numba_threading_layer() -> None:
+    """OpenMP first, so numba does not probe (and warn about) an unusable system TBB.
+
+    Takes effect before the first parallel kernel runs; NUMBA_THREADING_LAYER set by the
+    user wins.
+    """
+    if os.environ.get("NUMBA_THREADING_LAYER"):
+        return
+    import numba
+
+    numba.config.THREADING_LAYER_PRIORITY = list(NUMBA_LAYER_PRIORITY)
 
 
-def configure_process(open3d_threads: int = 1) -> None:
+def configure_process(open3d_threads: int | None = None) -> None:
     """What an entry point (server, CLI, benchmark) calls once before any Pipeline."""
-    silence_numba_tbb_warning()
+    choose_numba_threading_layer()
     configure_open3d_threads(open3d_threads)
 
 

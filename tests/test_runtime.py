@@ -12,8 +12,27 @@ from arlight.pipeline.volume import _check_open3d_version
 def test_configure_open3d_threads():
     runtime.configure_open3d_threads(1)
     assert o3d.utility.get_max_threads() == 1
-    with pytest.raises(ValueError, match="n must be an integer >= 1"):
+    with pytest.raises(ValueError, match="--open3d-threads"):
         runtime.configure_open3d_threads(0)
+    runtime.configure_open3d_threads(None)  # leaves it as it is
+    assert o3d.utility.get_max_threads() == 1
+
+
+def test_numba_uses_openmp_without_probing_tbb():
+    import subprocess
+    import sys
+
+    code = ("import warnings; warnings.simplefilter('error'); "
+            "from arlight.pipeline.runtime import configure_process; configure_process(); "
+            "import numba, numpy as np\n"
+            "@numba.njit(parallel=True)\n"
+            "def f(a):\n    return a.sum()\n"
+            "f(np.ones(8)); print(numba.threading_layer())")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "NUMBA_THREADING_LAYER"}
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() in ("omp", "tbb", "workqueue")
+    assert "TBB" not in run.stderr
 
 
 def test_importing_the_pipeline_leaves_the_warnings_filter_alone():
