@@ -14,7 +14,7 @@ codec combination, and reports:
 - KiB per frame: all parts of the Frame message;
 - encode / decode ms: median of encode(Frame) and decode(parts) alone, in this process.
 
-Nothing is asserted: figures, not tests (DESIGN.md "Measuring").
+Nothing is asserted: figures, not tests (docs/architecture.md).
 """
 
 from __future__ import annotations

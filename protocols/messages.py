@@ -24,6 +24,8 @@ from typing import Any, ClassVar, Union
 import msgpack
 import numpy as np
 
+from arlight.checks import RIGID_TOLERANCE, CheckError, check_rigid
+
 from .codecs import (
     COLOR_CODECS,
     COLOR_ENCODING,
@@ -55,7 +57,6 @@ MAX_CREDITS = 2**20
 _NAME_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 _KEY_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 _CODE_RE = re.compile(r"[a-z0-9_]{1,32}")
-RIGID_TOLERANCE = 1e-3  # |R^T R - I| and |bottom row - (0, 0, 0, 1)|, elementwise
 
 
 # --------------------------------------------------------------------------- field checks
@@ -167,20 +168,10 @@ def _pose(v: Any, name: str) -> np.ndarray:
     if type(v) is not list or len(v) != 4:
         raise ProtocolError("bad_field", "expected 4 rows of 4 numbers (a 4 x 4 matrix)", name)
     rows = [_floats(r, f"{name}[{i}]", 4) for i, r in enumerate(v)]
-    m = np.array(rows, dtype=np.float64)
-    r = m[:3, :3]
-    if (
-        np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > RIGID_TOLERANCE
-        or np.abs(r.T @ r - np.eye(3)).max() > RIGID_TOLERANCE
-        or np.linalg.det(r) <= 0
-    ):
-        raise ProtocolError(
-            "bad_field",
-            f"not a rigid transform (rotation orthonormal with det +1, last row 0 0 0 1; "
-            f"tolerance {RIGID_TOLERANCE})",
-            name,
-        )
-    return m
+    try:
+        return check_rigid(rows, name, RIGID_TOLERANCE)  # the one rule (arlight.checks)
+    except CheckError as exc:
+        raise ProtocolError("bad_field", exc.message, name) from None
 
 
 def _plain_value(v: Any, name: str, depth: int = 0) -> Any:

@@ -476,7 +476,7 @@ class TestSurfacePoints:
 
 class TestDeterminism:
     def test_same_frames_same_results(self):
-        """DESIGN.md: the same frames give the same results (tracking included)."""
+        """The same frames give the same results, tracking included (docs/architecture.md)."""
         runs = []
         for _ in range(2):
             recon = VolumeReconstruction.from_config(config(aux_update_interval=2), CAMERA)
