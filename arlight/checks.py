@@ -40,11 +40,12 @@ def _shape_text(shape: tuple) -> str:
 
 
 def check_image(array: Any, field: str, *, channels: int | None = None,
-                dtype: Any = None, size: tuple[int, int] | None = None) -> np.ndarray:
+                dtype: Any = None, size: tuple[int, int] | None = None,
+                size_of: str = "the expected") -> np.ndarray:
     """`array` as an (H, W) image (channels None) or (H, W, channels) image.
 
-    dtype: required dtype (None: any); size: required (width, height) in pixels.
-    Returns the array (not copied).
+    dtype: required dtype (None: any); size: required (width, height) in pixels, named
+    `size_of` in the message ("the camera calibration's"). Returns the array (not copied).
     """
     a = np.asarray(array)
     if channels is None:
@@ -55,7 +56,7 @@ def check_image(array: Any, field: str, *, channels: int | None = None,
     if dtype is not None and a.dtype != np.dtype(dtype):
         raise CheckError(field, f"expected dtype {np.dtype(dtype)}, got {a.dtype}")
     if size is not None and (a.shape[1], a.shape[0]) != tuple(size):
-        raise CheckError(field, f"size {a.shape[1]}x{a.shape[0]} does not match the expected "
+        raise CheckError(field, f"size {a.shape[1]}x{a.shape[0]} does not match {size_of} "
                                 f"{size[0]}x{size[1]}")
     return a
 

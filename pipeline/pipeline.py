@@ -63,8 +63,9 @@ def validate_frame(frame: FrameInput, camera: PinholeCamera) -> ValidFrame:
     """
     size = (camera.width, camera.height)
     try:
-        color = check_image(frame.color, "color", channels=3, dtype=np.uint8, size=size)
-        check_image(frame.depth, "depth", size=size)
+        color = check_image(frame.color, "color", channels=3, dtype=np.uint8, size=size,
+                            size_of="the camera calibration's")
+        check_image(frame.depth, "depth", size=size, size_of="the camera calibration's")
         depth = depth_metres(frame.depth, frame.depth_scale, "depth")
         pose = None if frame.pose is None else check_rigid(frame.pose, "pose")
         check_finite(frame.timestamp, "timestamp")

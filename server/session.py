@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from arlight.checks import CheckError, check_image
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import FrameInput, FrameResult
@@ -105,15 +106,13 @@ def frame_to_input(frame: Frame, camera: PinholeCamera, depth_scale: float) -> F
     Checks the image sizes against the session's calibration (FrameError names the field);
     everything else (NaN poses, dtypes) is checked by Pipeline.process.
     """
-    expected = (camera.height, camera.width)
-    if tuple(frame.color.shape[:2]) != expected:
-        raise FrameError("color", f"size {frame.color.shape[1]}x{frame.color.shape[0]} does "
-                                  f"not match the session's calibration "
-                                  f"{camera.width}x{camera.height}")
-    if tuple(frame.depth.shape[:2]) != expected:
-        raise FrameError("depth", f"size {frame.depth.shape[1]}x{frame.depth.shape[0]} does "
-                                  f"not match the session's calibration "
-                                  f"{camera.width}x{camera.height}")
+    size = (camera.width, camera.height)
+    try:
+        for name, image in (("color", frame.color), ("depth", frame.depth)):
+            check_image(image, name, channels=3 if name == "color" else None, size=size,
+                        size_of="the session's calibration")
+    except CheckError as exc:
+        raise FrameError(exc.field, exc.message) from None
     # the sources' integers and depth_scale, untouched: a stream of recorded depth gives the
     # pipeline the metres that reading the recording directly gives, bit for bit
     pose = None if frame.pose is None else np.asarray(frame.pose, dtype=np.float64)
