@@ -95,7 +95,7 @@ class TestBadInput:
         with pytest.raises(FrameError, match="uint8"):
             pipe.process(dataclasses.replace(f, color=f.color.astype(np.float32)))
         with pytest.raises(FrameError, match="float"):
-            millimetres = np.nan_to_num(f.depth * 1000).astype(np.uint16)
+            millimetres = np.nan_to_num(f.depth * 1000, posinf=0).clip(0, 65535).astype(np.uint16)
             pipe.process(dataclasses.replace(f, depth=millimetres))  # no depth_scale
 
     def test_bad_pose(self, pipe, clean_sequence):
