@@ -42,8 +42,9 @@ def _parse_override(text: str) -> tuple[str, object]:
         if kind is float:
             return key, float(value)
     except ValueError:
+        what = {bool: "true or false", int: "an integer", float: "a number"}[kind]
         raise argparse.ArgumentTypeError(
-            f"{key} expects a {kind.__name__}, got {value!r}") from None
+            f"{key} expects {what} (--set {key}=VALUE), got {value!r}") from None
     return key, value
 
 
@@ -156,6 +157,9 @@ def _check_address(address: str, option: str) -> str:
     return address
 
 
+MAX_SYNTHETIC_PIXELS = 3840 * 2160  # 4K: the built-in scene renders in memory (~1 KiB/pixel)
+
+
 def _parse_size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(x) for x in text.lower().split("x"))
@@ -164,20 +168,37 @@ def _parse_size(text: str) -> tuple[int, int]:
             from None
     if w < 8 or h < 8:
         raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {w}x{h}")
+    if w * h > MAX_SYNTHETIC_PIXELS:
+        raise argparse.ArgumentTypeError(f"size {w}x{h} is larger than the built-in scene "
+                                         "renders (at most 3840x2160 pixels)")
     return w, h
 
 
 def _positive_float(text: str) -> float:
-    value = float(text)
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
     if not math.isfinite(value) or value <= 0:
         raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
     return value
 
 
 def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return _int_at_least(text, 1)
+
+
+def _non_negative_int(text: str) -> int:
+    return _int_at_least(text, 0)
+
+
+def _int_at_least(text: str, low: int) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < low:
+        raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}")
     return value
 
 
@@ -248,8 +269,6 @@ def _stream_options(args: argparse.Namespace, source) -> object:
 def _open_stream_source(args: argparse.Namespace):
     from arlight.sources.source import open_source
 
-    if args.max_frames is not None and args.max_frames < 1:
-        raise _BadInput(f"--max-frames must be >= 1, got {args.max_frames}")
     source = open_source(args.source, use_poses=args.poses == "groundtruth",
                          max_frames=args.max_frames, depth_encoding=args.depth_encoding,
                          synthetic_size=args.size, synthetic_frames=args.max_frames or 12)
@@ -258,6 +277,7 @@ def _open_stream_source(args: argparse.Namespace):
 
 def cmd_stream(args: argparse.Namespace) -> int:
     from arlight.client.capture import CaptureClient, StreamError
+    from arlight.protocols.records import pipeline_ms
 
     source = _open_stream_source(args)
     options = _stream_options(args, source)
@@ -271,11 +291,11 @@ def cmd_stream(args: argparse.Namespace) -> int:
 
     def on_result(result, receive_time_wall: float) -> None:
         d = result.dominant_direction_camera
-        server_ms = (result.server_finish_time - result.server_receive_time) * 1e3
+        in_server_ms = (result.server_finish_time - result.server_receive_time) * 1e3
         print(f"[{result.seq + 1:>5}/{total}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
               f"{d[2]:+.2f})  conf={result.confidence.get('value', 0):.2f}  "
-              f"server {server_ms:5.0f} ms  received {result.frames_received}  "
-              f"dropped {result.frames_dropped}", flush=True)
+              f"pipeline {pipeline_ms(result):5.0f} ms  in server {in_server_ms:5.0f} ms  "
+              f"received {result.frames_received}  dropped {result.frames_dropped}", flush=True)
         if out:
             from arlight.protocols import received_record
 
@@ -376,10 +396,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     lat = summary["latency_ms"]
     err = summary["angular_error_deg"]
     stages = ", ".join(f"{k} {v:.0f}" for k, v in summary["timings_ms_median"].items())
-    print(f"arlight demo: {summary['results']}/{summary['frames_sent']} results at "
-          f"{summary['fps']:.1f} fps; end-to-end latency median {lat['median']:.0f} ms "
-          f"(p95 {lat['p95']:.0f}); median stage ms: {stages}; dominant light error median "
-          f"{err['median']:.1f} deg", file=sys.stderr)
+    print(f"arlight demo: {summary['results']}/{summary['frames_sent']} results, "
+          f"{_figure(summary['fps'], '.1f')} fps delivered (pipeline alone "
+          f"{_figure(summary['pipeline_ms_median'], '.0f')} ms/frame = "
+          f"{_figure(summary['pipeline_fps'], '.1f')} fps); end-to-end latency median "
+          f"{_figure(lat['median'], '.0f')} ms (p95 {_figure(lat['p95'], '.0f')}, lossless: "
+          f"includes queueing); median stage ms: {stages}; dominant light error median "
+          f"{_figure(err['median'], '.1f')} deg", file=sys.stderr)
     print(f"wrote {args.out}/frames/ ({summary['composites']} composites), "
           f"{args.out}/results.jsonl, {args.out}/summary.json in "
           f"{time.perf_counter() - t0:.0f} s", file=sys.stderr)
@@ -387,6 +410,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if not complete:
         print("arlight demo: error: not every frame came back", file=sys.stderr)
     return 0 if complete else 1
+
+
+def _figure(value: float | None, spec: str) -> str:
+    """A number for a summary line; '-' where nothing was measured."""
+    return "-" if value is None else format(value, spec)
 
 
 def _add_source_options(p: argparse.ArgumentParser) -> None:
@@ -422,7 +450,7 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--poses", choices=("groundtruth", "track"), default="track",
                    help="'groundtruth': send the data set's camera poses (tracking is then "
                         "skipped); 'track' (default): the server tracks the camera")
-    p.add_argument("--max-frames", type=int, metavar="N", help="only the first N frames "
+    p.add_argument("--max-frames", type=_positive_int, metavar="N", help="only the first N frames "
                    "(with --loop: N frames in total); synthetic: the number of frames (12)")
     p.add_argument("--depth-encoding", choices=("tum", "mm", "sun", "nyu"),
                    help="depth encoding of a data set (default: from its layout)")
@@ -597,7 +625,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "'track' (default): frame-to-model tracking")
     est.add_argument("--rgb", action="store_true", help="also estimate one SH per RGB channel")
     est.add_argument("--out", metavar="FILE", help="write results as JSON lines to FILE")
-    est.add_argument("--max-frames", type=int, metavar="N", help="only the first N frames")
+    est.add_argument("--max-frames", type=_positive_int, metavar="N",
+                     help="only the first N frames (synthetic: its length, default 12)")
     est.add_argument("--depth", metavar="FILE", help="depth image for a single colour image")
     est.add_argument("--depth-encoding", choices=("tum", "mm", "sun", "nyu"),
                      help="depth encoding (default: from the data set's layout or file name)")
@@ -612,8 +641,10 @@ def build_parser() -> argparse.ArgumentParser:
                                        "the paper's table 1, and frames per second.")
     bench.add_argument("--presets", nargs="+", default=["full", "fast"],
                        choices=("full", "fast", "mobile"))
-    bench.add_argument("--frames", type=int, default=8, help="timed frames per preset")
-    bench.add_argument("--warmup", type=int, default=2, help="untimed frames first (JIT, caches)")
+    bench.add_argument("--frames", type=_positive_int, default=8, metavar="N",
+                       help="timed frames per preset (default 8)")
+    bench.add_argument("--warmup", type=_non_negative_int, default=2, metavar="N",
+                       help="untimed frames first (JIT, caches; default 2)")
     bench.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     bench.set_defaults(func=cmd_bench)
     _add_streaming_parsers(sub)

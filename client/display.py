@@ -15,10 +15,11 @@ Latency, all on one machine's clock or clocks kept in sync (protocols/records.py
   client stamps frames with their capture time (`--timestamps capture`, the default in live
   mode and in `arlight demo`); null when the timestamps are a data set's own clock (further
   than an hour from now).
-- server_to_display_ms = display receive time - server receive time (server queue +
-  processing + the trip to the display);
-- server_ms = server finish - server receive (queue + processing).
-The printed "latency" is end_to_end_ms where available, else server_to_display_ms.
+- pipeline_ms: the pipeline's stages alone; in_server_ms = server finish - server receive
+  (queueing + decoding + pipeline + encoding); server_to_client_ms = display receive time -
+  server finish time (the trip back).
+The printed "latency" is end_to_end_ms where available, else server receive -> display
+(in_server_ms + server_to_client_ms: everything but the trip to the server).
 """
 
 from __future__ import annotations
@@ -104,7 +105,8 @@ class DisplaySummary:
         return {
             "session": self.session, "results": self.results, "composites": self.composites,
             "fps": round(self.fps, 3),
-            "latency_ms": {"kind": "end_to_end" if self.end_to_end else "server_to_display",
+            "latency_ms": {"kind": "end_to_end" if self.end_to_end
+                           else "server_receive_to_display",
                            "median": _round(np.median(lat)) if lat.size else None,
                            "p95": _round(np.percentile(lat, 95)) if lat.size else None,
                            "max": _round(lat.max()) if lat.size else None},
@@ -210,7 +212,7 @@ class DisplayClient:
             s.end_to_end = True
             latency = record["end_to_end_ms"]
         else:
-            latency = record["server_to_display_ms"]
+            latency = record["in_server_ms"] + record["server_to_client_ms"]
         s.latencies_ms.append(latency)
         for k, v in result.timings_ms.items():
             s.timings_ms.setdefault(k, []).append(v)
@@ -230,7 +232,7 @@ class DisplayClient:
             return
         n = len(self._window)
         span = max(self.options.print_interval_s, 1.0)
-        kind = "end-to-end" if self.summary.end_to_end else "server-to-display"
+        kind = "end-to-end" if self.summary.end_to_end else "server-receive-to-display"
         latency = f"{np.median([x for _, x in self._window]):6.0f} ms" if n else "     - ms"
         self.printer(f"display {self.options.session}: {n / span:5.1f} fps, {kind} latency "
                      f"{latency}, {self.summary.results} results, session dropped "

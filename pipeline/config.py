@@ -25,21 +25,31 @@ from enum import Enum
 from typing import Any
 
 
-class Preset(str, Enum):
+class _StrEnum(str, Enum):
+    """An option's string values as an Enum: members print and format as their value."""
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    def __format__(self, spec: str) -> str:
+        return format(str(self.value), spec)
+
+
+class Preset(_StrEnum):
     FULL = "full"  # the paper's "Ours"
     FAST = "fast"  # its "OursFast": 4x4 image-space sub-sampling of the radiance transfer
     MOBILE = "mobile"  # its 64^3 volume, no D''', sub-sampled transfer
     CUSTOM = "custom"  # made by hand, not from a preset
 
 
-class VisibilityRamp(str, Enum):
+class VisibilityRamp(_StrEnum):
     """The threshold c of K = min(c, 1 - t.w) / c (eq. 8)."""
 
     PAPER = "paper"  # c = chi, eq. 8 as printed
     HALF = "half"  # c = 1 - chi: K ramps over half the angle between neighbouring directions
 
 
-class SegmentFeatures(str, Enum):
+class SegmentFeatures(_StrEnum):
     INVARIANT = "invariant"  # log chromaticity across the Planckian locus (sun/sky robust)
     CHROMA = "chroma"  # rg chromaticity (sensitive to sun/sky colour)
 

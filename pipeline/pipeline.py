@@ -33,6 +33,7 @@ from arlight.pipeline.radiance_transfer import (
     make_sampling_pattern,
     upsample_transfer,
 )
+from arlight.pipeline.runtime import require_device
 from arlight.pipeline.segmentation import material_segments
 
 log = logging.getLogger(__name__)
@@ -125,6 +126,7 @@ class Pipeline:
     """
 
     def __init__(self, config: Config, camera: PinholeCamera, scene=None):
+        require_device(config.device)  # a clear error, not Open3D's, when there is no GPU
         self.config = config
         self.camera = camera
         self.scene = scene

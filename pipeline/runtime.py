@@ -57,6 +57,36 @@ def configure_process(open3d_threads: int | None = None) -> None:
     configure_open3d_threads(open3d_threads)
 
 
+def require_device(device: str) -> None:
+    """ValueError naming the CPU alternative unless `device` ("CPU:0", "CUDA:n") can run here.
+
+    CUDA needs both halves of the GPU path: Open3D built with CUDA (the volume) and a GPU
+    that numba sees (the kernels).
+    """
+    if not device.startswith("CUDA:"):
+        return
+    import open3d as o3d
+
+    try:
+        index = int(device.split(":", 1)[1])
+    except ValueError:
+        raise ValueError(f"device {device!r}: expected CPU:0 or CUDA:N (--device)") from None
+    count = o3d.core.cuda.device_count() if o3d.core.cuda.is_available() else 0
+    if index >= count:
+        seen = "no CUDA device" if count == 0 else f"only {count} CUDA device(s)"
+        raise ValueError(f"device {device}: Open3D sees {seen} on this machine (a CPU-only "
+                         "build or no GPU driver); run on the CPU with --device CPU:0")
+    try:
+        from numba import cuda
+
+        numba_ok = cuda.is_available()
+    except Exception:  # noqa: BLE001 - any failure to load the CUDA driver means "no"
+        numba_ok = False
+    if not numba_ok:
+        raise ValueError(f"device {device}: numba sees no CUDA GPU (driver or CUDA toolkit "
+                         "missing), so the kernels cannot run there; use --device CPU:0")
+
+
 def concurrent_pipelines_safe() -> bool:
     """True when several Pipelines may run their Numba kernels in parallel threads.
 

@@ -34,9 +34,14 @@ def result_record(result: Result) -> dict:
 def received_record(result: Result, receive_time: float) -> dict:
     """result_record plus what a client that received it knows (wall-clock seconds).
 
-    end_to_end_ms = receive_time - the frame's timestamp, when that timestamp is a capture
-    time (within WALL_CLOCK_WINDOW_S), else None; server_to_display_ms = receive_time -
-    server_receive_time; server_ms = server_finish_time - server_receive_time.
+    Each latency names the two instants it lies between (milliseconds):
+    - pipeline_ms: the pipeline's own stages (sum of timings_ms), no waiting;
+    - in_server_ms = server_finish_time - server_receive_time: queueing (lossless mode keeps
+      up to `credits` frames waiting) + decoding + the pipeline + encoding;
+    - server_to_client_ms = receive_time - server_finish_time: the trip back (needs the two
+      machines' clocks in sync);
+    - end_to_end_ms = receive_time - the frame's timestamp, when that timestamp is a capture
+      time (within WALL_CLOCK_WINDOW_S of receive_time), else None.
     """
     e2e = receive_time - result.timestamp
     return {
@@ -48,6 +53,12 @@ def received_record(result: Result, receive_time: float) -> dict:
         "server_finish_time": result.server_finish_time,
         "receive_time": receive_time,
         "end_to_end_ms": round(e2e * 1e3, 3) if abs(e2e) < WALL_CLOCK_WINDOW_S else None,
-        "server_to_display_ms": round((receive_time - result.server_receive_time) * 1e3, 3),
-        "server_ms": round((result.server_finish_time - result.server_receive_time) * 1e3, 3),
+        "pipeline_ms": round(pipeline_ms(result), 3),
+        "in_server_ms": round((result.server_finish_time - result.server_receive_time) * 1e3, 3),
+        "server_to_client_ms": round((receive_time - result.server_finish_time) * 1e3, 3),
     }
+
+
+def pipeline_ms(result: Result) -> float:
+    """The pipeline's time for this frame: the sum of its per-stage milliseconds."""
+    return float(sum(result.timings_ms.values()))

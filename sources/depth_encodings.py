@@ -47,7 +47,8 @@ def check_encoding(encoding: str) -> None:
     """DatasetError unless `encoding` is one of DEPTH_ENCODINGS."""
     if encoding not in DEPTH_ENCODINGS:
         raise DatasetError(
-            f"unknown depth_encoding {encoding!r}; use one of: {', '.join(DEPTH_ENCODINGS)}")
+            f"unknown depth encoding {encoding!r}; --depth-encoding takes one of: "
+            f"{', '.join(DEPTH_ENCODINGS)}")
 
 
 def read_depth(path: str | Path, encoding: str, units_per_metre: float | None = None
@@ -105,7 +106,7 @@ def _decode_nyu(raw: np.ndarray, source: str) -> np.ndarray:
     else:
         raise DatasetError(
             f"{source}: values exceed 2047 in either byte order, so this is not raw Kinect "
-            "disparity (NYU Depth v2 raw PGM); pick another depth_encoding")
+            "disparity (NYU Depth v2 raw PGM); pick another --depth-encoding")
     d = disparity.astype(np.float64)
     with np.errstate(divide="ignore"):
         depth_m = 351.3 / (1092.5 - d)

@@ -43,7 +43,7 @@ def open_pair(color_path: str | Path, depth_path: str | Path, depth_encoding: st
     if depth_encoding is None:
         depth_encoding = _infer_encoding(color_path, depth_path)
         note(notes, f"depth encoding {depth_encoding!r} inferred from the file name "
-                    f"{depth_path.name}; pass depth_encoding to override", logging.INFO)
+                    f"{depth_path.name}; --depth-encoding overrides it", logging.INFO)
     check_encoding(depth_encoding)
     if camera is None:
         camera = default_camera(color_path, notes, f"{color_path}: no intrinsics given")
@@ -60,8 +60,8 @@ def without_poses(seq: RgbdSequence, use_poses: bool) -> RgbdSequence:
     """`seq`, or DatasetError when poses were asked for: a single pair has none."""
     if use_poses:
         raise DatasetError(
-            f"{seq.source}: a single colour + depth pair has no camera poses; "
-            "open it with use_poses=False")
+            f"{seq.source}: a single colour + depth pair has no camera poses, so "
+            "--poses groundtruth cannot be used; track instead (--poses track)")
     return seq
 
 
@@ -83,11 +83,11 @@ def partner_of_color_file(path: Path) -> tuple[Path, Path]:
                 return path, candidate
         raise DatasetError(
             f"{path}: found no depth partner (looked for {', '.join(p.name for p in tried)}); "
-            "use open_pair(color_path, depth_path, depth_encoding)")
+            "name the depth image with --depth FILE --depth-encoding E")
     raise DatasetError(
         f"{path}: a single image is opened as a colour + depth pair, but its name holds none "
-        f"of {', '.join(COLOR_TOKENS)} to find the depth partner by; use "
-        "open_pair(color_path, depth_path, depth_encoding)")
+        f"of {', '.join(COLOR_TOKENS)} to find the depth partner by; name the depth image "
+        "with --depth FILE --depth-encoding E")
 
 
 def pairs_in_folder(folder: Path) -> list[tuple[Path, Path]]:
@@ -110,8 +110,8 @@ def _infer_encoding(color_path: Path, depth_path: Path) -> str:
             return _ENCODING_PREFIXES[match.group(1).lower()]
     described = "; ".join(f"{k}: {v}" for k, v in DEPTH_ENCODINGS.items())
     raise DatasetError(
-        f"{depth_path}: cannot tell how this depth image is encoded; pass depth_encoding= one "
-        f"of {', '.join(DEPTH_ENCODINGS)} ({described})")
+        f"{depth_path}: cannot tell how this depth image is encoded; name it with "
+        f"--depth-encoding {'|'.join(DEPTH_ENCODINGS)} ({described})")
 
 
 def _common_prefix_name(a: Path, b: Path) -> str:

@@ -55,8 +55,8 @@ def open_redwood(folder: Path, color_dir: Path, depth_encoding: str | None, use_
     traj = folder / "trajectory.log"
     if use_poses:
         if not traj.is_file():
-            raise DatasetError(f"{folder}: use_poses=True but there is no trajectory.log; "
-                               "open it with use_poses=False (poses are then estimated)")
+            raise DatasetError(f"{folder}: --poses groundtruth, but there is no "
+                               "trajectory.log; track instead (--poses track)")
         poses = _read_trajectory_log(traj)
         # trajectory.log entries follow the sorted colour images, as Open3D writes them
         if len(poses) != len(colors):

@@ -53,7 +53,7 @@ def open_sequence(path: str | Path, *, depth_encoding: str | None = None,
     if depth_encoding is not None:
         check_encoding(depth_encoding)
     if max_frames is not None and max_frames < 1:
-        raise DatasetError(f"max_frames must be >= 1, got {max_frames}")
+        raise DatasetError(f"--max-frames must be >= 1, got {max_frames}")
     if not path.exists():
         raise DatasetError(
             f"{path}: no such file or folder; pass a recorded RGB-D sequence folder "

@@ -157,8 +157,8 @@ def _records_with_poses(folder: Path, files: list[_Files], notes: list[str]
                         ) -> list[FrameRecord]:
     """Records of the frames with a pose.txt, each pose moved to the colour camera."""
     if not any(f[3].is_file() for f in files):
-        raise DatasetError(f"{folder}: use_poses=True but there are no "
-                           "frame-NNNNNN.pose.txt files; open it with use_poses=False")
+        raise DatasetError(f"{folder}: --poses groundtruth, but there are no "
+                           "frame-NNNNNN.pose.txt files; track instead (--poses track)")
     # the files hold world_from_depth-camera; the frames are in the colour camera
     depth_from_color = np.linalg.inv(SEVEN_SCENES_COLOR_FROM_DEPTH)
     records = [FrameRecord(c, d, n / SEVEN_SCENES_FPS, _read_pose_file(p) @ depth_from_color)

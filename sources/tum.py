@@ -60,8 +60,8 @@ def open_tum(folder: Path, depth_encoding: str | None, use_poses: bool,
     records = [FrameRecord(folder / c, folder / d, t) for t, c, _, d in pairs]
     if use_poses:
         if not gt_path.is_file():
-            raise DatasetError(f"{folder}: use_poses=True but there is no groundtruth.txt; "
-                               "open it with use_poses=False (poses are then estimated)")
+            raise DatasetError(f"{folder}: --poses groundtruth, but there is no "
+                               "groundtruth.txt; track instead (--poses track)")
         records = _with_groundtruth(records, gt_path, notes)
     return build_sequence(folder.name, "tum", folder, records, camera, encoding, units,
                           gt_path.is_file(), use_poses, max_frames, notes)

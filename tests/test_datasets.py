@@ -488,9 +488,9 @@ class TestBadInput:
 
     def test_arguments(self, tmp_path):
         folder = make_tum(tmp_path, n=1)
-        with pytest.raises(DatasetError, match="unknown depth_encoding 'cm'"):
+        with pytest.raises(DatasetError, match="unknown depth encoding 'cm'"):
             open_sequence(folder, depth_encoding="cm")
-        with pytest.raises(DatasetError, match="max_frames"):
+        with pytest.raises(DatasetError, match="--max-frames"):
             open_sequence(folder, max_frames=0)
 
     def test_redwood_empty_and_missing_poses(self, tmp_path):
@@ -529,9 +529,9 @@ class TestBadInput:
     def test_pair_errors(self, tmp_path):
         write_png(tmp_path / "a_color.png", color_image())
         write_png(tmp_path / "a_depth.png", depth_image())
-        with pytest.raises(DatasetError, match="depth_encoding"):
+        with pytest.raises(DatasetError, match="--depth-encoding"):
             open_pair(tmp_path / "a_color.png", tmp_path / "a_depth.png", None)
-        with pytest.raises(DatasetError, match="depth_encoding"):
+        with pytest.raises(DatasetError, match="--depth-encoding"):
             open_sequence(tmp_path / "a_color.png")
         seq = open_sequence(tmp_path / "a_color.png", depth_encoding="mm")
         np.testing.assert_allclose(metres(seq.frame(0)), 7.5)

@@ -937,6 +937,7 @@ class TestRecords:
         msg = result(timestamp=100.0, server_receive_time=100.5, server_finish_time=100.75)
         record = received_record(msg, 101.0)
         assert list(record)[:12] == list(result_record(msg))
-        assert record["end_to_end_ms"] == 1000.0 and record["server_ms"] == 250.0
-        assert record["server_to_display_ms"] == 500.0 and record["receive_time"] == 101.0
+        assert record["end_to_end_ms"] == 1000.0 and record["in_server_ms"] == 250.0
+        assert record["server_to_client_ms"] == 250.0 and record["receive_time"] == 101.0
+        assert record["pipeline_ms"] == pytest.approx(sum(msg.timings_ms.values()), abs=1e-3)
         assert received_record(msg, 100.0 + 7200.0)["end_to_end_ms"] is None
