@@ -94,7 +94,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     config = _build_config(args)
     camera, frames, truth = _open_source(args)
     n = len(frames)
-    print(f"arlight estimate: {args.path} ({n} frames, {camera.width}x{camera.height}), "
+    print(f"arlight estimate: {args.path} ({_count(n, 'frame')}, {camera.width}x{camera.height}), "
           f"preset {config.preset}, poses {args.poses}", file=sys.stderr)
     pipeline = Pipeline(config, camera)
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
@@ -131,7 +131,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         print(f"median angular error of the dominant light: {np.nanmedian(errors):.1f} deg "
               f"(90th percentile {np.nanpercentile(errors, 90):.1f})", file=sys.stderr)
     if args.out:
-        print(f"wrote {n} results to {args.out}", file=sys.stderr)
+        print(f"wrote {_count(n, 'result')} to {args.out}", file=sys.stderr)
     return 0
 
 
@@ -302,7 +302,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
             out.write(json.dumps(received_record(result, receive_time_wall)) + "\n")
 
     client = CaptureClient(source, options, on_result=on_result, recorder=recorder)
-    print(f"arlight stream: {args.source} ({source.num_frames} frames, "
+    print(f"arlight stream: {args.source} ({_count(source.num_frames, 'frame')}, "
           f"{source.calibration.width}x{source.calibration.height}) -> {options.server}, "
           f"session {client.session!r}, {options.mode}, rate {options.rate}, colour "
           f"{options.color_codec}, depth {options.depth_codec}"
@@ -324,14 +324,16 @@ def cmd_stream(args: argparse.Namespace) -> int:
              f"{summary.frames_not_sent} not sent (send queue full), "
              if options.mode == "live" else "")
     median = f"{np.median(lat) * 1e3:.0f} ms" if lat else "-"
-    print(f"arlight stream: {summary.frames_sent} frames sent, {summary.results} results, "
+    print(f"arlight stream: {_count(summary.frames_sent, 'frame')} sent, "
+          f"{_count(summary.results, 'result')}, "
           f"{drops}{len(summary.errors)} rejected, {summary.reconnects} reconnect(s); "
           f"send-to-result median {median}; {summary.elapsed_s:.1f} s", file=sys.stderr)
     if args.record:
-        print(f"recorded {recorder.frames} frames to {args.record}", file=sys.stderr)
+        print(f"recorded {_count(recorder.frames, 'frame')} to {args.record}", file=sys.stderr)
     if summary.errors:
         first = summary.errors[0]
-        print(f"arlight stream: {len(summary.errors)} frame(s) rejected by the server, first: "
+        print(f"arlight stream: {_count(len(summary.errors), 'frame')} rejected by the server, "
+              "first: "
               f"{first.code} {first.field or ''}: {first.message}", file=sys.stderr)
         return 1
     return 0
@@ -352,7 +354,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         print(f"[{seq + 1:>5}/{source.num_frames}] {size / 1024:8.1f} KiB", flush=True)
 
     n, session = record(source, args.out, options, on_frame=on_frame)
-    print(f"arlight record: wrote {n} frames (session {session}, "
+    print(f"arlight record: wrote {_count(n, 'frame')} (session {session}, "
           f"{options.mode}, colour {options.color_codec}, depth {options.depth_codec}) to "
           f"{args.out} in {time.perf_counter() - t0:.1f} s; replay with `arlight stream "
           f"{args.out} --server tcp://HOST:PORT`", file=sys.stderr)
@@ -410,6 +412,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     if not complete:
         print("arlight demo: error: not every frame came back", file=sys.stderr)
     return 0 if complete else 1
+
+
+def _count(n: int, noun: str) -> str:
+    """'1 frame', '2 frames'."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 def _figure(value: float | None, spec: str) -> str:

@@ -61,7 +61,8 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
         e2e = record["end_to_end_ms"]
         printer(f"[{result.seq + 1:>3}/{frames}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
                 f"{d[2]:+.2f})  conf={result.confidence.get('value', 0):.2f}  "
-                f"error={err:5.1f} deg  pipeline {record['pipeline_ms']:6.0f} ms  "
+                f"error={f'{err:5.1f}' if np.isfinite(err) else '  -  '} deg  "
+                f"pipeline {record['pipeline_ms']:6.0f} ms  "
                 f"in server {record['in_server_ms']:6.0f} ms (incl. queue)  end-to-end "
                 + ("-" if e2e is None else f"{e2e:6.0f} ms"))
 

@@ -293,7 +293,12 @@ class CaptureClient:
                 raise StreamError(f"no arlight server answered at {opts.server} within "
                                   f"{opts.reconnect_timeout_s:.0f} s (--reconnect-timeout); "
                                   "start one with `arlight serve` or check --server")
-            log.info("no Welcome from %s; retrying in %.1f s", opts.server, backoff)
+            if backoff == opts.backoff_initial_s:  # the first miss: say what is going on
+                log.warning("no answer from %s yet; trying again for up to %.0f s "
+                            "(--reconnect-timeout)", opts.server,
+                            max(deadline - time.monotonic(), 0.0))
+            else:
+                log.info("no Welcome from %s; retrying in %.1f s", opts.server, backoff)
             self._stop.wait(backoff)
             backoff = min(backoff * 2, opts.backoff_max_s)
 

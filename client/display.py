@@ -306,7 +306,7 @@ class DisplayClient:
         silent_s = now_m - self._last_heard_mono
         if silent_s > opts.liveness * self._heartbeat_s:
             if self._lost_since_mono is None:
-                self._lost_since_mono = now_m
+                self._lost_since_mono = self._last_heard_mono  # lost since last heard from
             if now_m - self._lost_since_mono > opts.reconnect_timeout_s:
                 raise DisplayError(f"no arlight server answered at {opts.server} within "
                                    f"{opts.reconnect_timeout_s:.0f} s (--reconnect-timeout); "

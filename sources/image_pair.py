@@ -17,7 +17,7 @@ from pathlib import Path
 from arlight.pipeline.camera import PinholeCamera
 from arlight.sources.depth_encodings import DEPTH_ENCODINGS, check_encoding
 from arlight.sources.errors import DatasetError
-from arlight.sources.images import IMAGE_EXTS, is_image
+from arlight.sources.images import IMAGE_EXTS, check_decodable, is_image
 from arlight.sources.rgbd_sequence import (
     FrameRecord,
     RgbdSequence,
@@ -39,6 +39,8 @@ def open_pair(color_path: str | Path, depth_path: str | Path, depth_encoding: st
     uses Kinect v1 defaults scaled to the image width (with a warning).
     """
     color_path, depth_path = Path(color_path), Path(depth_path)
+    check_decodable(color_path, "colour image")  # before anything is said about the depth
+    check_decodable(depth_path, "depth image")
     notes: list[str] = []
     if depth_encoding is None:
         depth_encoding = _infer_encoding(color_path, depth_path)

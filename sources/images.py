@@ -17,6 +17,15 @@ def is_image(path: Path) -> bool:
     return path.is_file() and path.suffix.lower() in IMAGE_EXTS
 
 
+def check_decodable(path: Path, what: str) -> None:
+    """DatasetError unless `path` exists and starts like an image OpenCV can decode."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: {what} file does not exist")
+    if not cv2.haveImageReader(str(path)):
+        raise DatasetError(f"{path}: not an image OpenCV can decode (the {what} must be a "
+                           "PNG, JPEG, PPM/PGM, BMP or TIFF file)")
+
+
 def read_image(path: Path, flags: int, what: str) -> np.ndarray:
     """The image at `path` decoded by OpenCV with `flags`; DatasetError naming `what`."""
     if not path.is_file():

@@ -539,7 +539,7 @@ class TestBadInput:
         with pytest.raises(DatasetError, match="no depth partner"):
             open_sequence(tmp_path / "b_color.png", depth_encoding="mm")
         write_png(tmp_path / "c.png", color_image())
-        with pytest.raises(DatasetError, match="open_pair"):
+        with pytest.raises(DatasetError, match="--depth FILE"):
             open_sequence(tmp_path / "c.png", depth_encoding="mm")
         with pytest.raises(DatasetError, match="does not exist"):
             open_pair(tmp_path / "a_color.png", tmp_path / "nope.png", "mm",
