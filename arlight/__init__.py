@@ -1,3 +1,3 @@
-"""arlight: probeless light estimation and coherent AR rendering from live RGB-D."""
+"""arlight: probeless light estimation from RGB-D, as a library and a streaming service."""
 
 __version__ = "0.1.0"

@@ -607,8 +607,10 @@ def _add_demo_parser(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="arlight", description="Probeless light estimation and coherent AR rendering "
-                                    "from RGB-D.")
+        prog="arlight", description="Probeless light estimation from RGB-D (recorded data "
+                                    "sets, recordings and the built-in scene), in-process or "
+                                    "as a streaming service. Rendering of virtual objects and "
+                                    "live camera sources are not there yet.")
     parser.add_argument("--version", action="version", version=f"arlight {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log details (warnings "
                         "about defaults chosen for the data are shown either way)")

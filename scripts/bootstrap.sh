@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up everything arlight needs on a fresh Debian/Ubuntu machine (idempotent, quick when done):
 # the system libraries Open3D loads, a virtual environment in .venv, and arlight installed
-# into it in editable mode with its test tools.
+# into it in editable mode with its test tools, and the Numba kernels compiled into their cache.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -35,6 +35,9 @@ if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; th
   echo "arlight: creating .venv and installing dependencies (first run takes a few minutes)" >&2
   "$PYTHON" -m venv .venv
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e ".[test]"
+  # PYTHONWARNINGS: setuptools' notes about editable installs are not for our users
+  PYTHONWARNINGS=ignore .venv/bin/python -m pip install -q -e ".[test]"
+  # compile the Numba kernels now (a minute or two, once), not on a user's first frames
+  .venv/bin/python -m arlight.warmup
   echo "$want" > "$stamp"
 fi
