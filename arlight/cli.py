@@ -61,7 +61,7 @@ def _build_config(args: argparse.Namespace):
 
 def _open_source(args: argparse.Namespace):
     """(sequence-like with .camera, len(), frame(i)), ground truth or None."""
-    from arlight.sources.image_pair import open_pair
+    from arlight.sources.image_pair import open_pair, without_poses
     from arlight.sources.sequence import open_sequence
 
     use_poses = args.poses == "groundtruth"
@@ -72,7 +72,7 @@ def _open_source(args: argparse.Namespace):
         frames = [f if use_poses else dataclasses.replace(f, pose=None) for f in seq.frames]
         return seq.camera, frames, seq
     if args.depth:
-        seq = open_pair(args.path, args.depth, args.depth_encoding)
+        seq = without_poses(open_pair(args.path, args.depth, args.depth_encoding), use_poses)
     else:
         seq = open_sequence(args.path, depth_encoding=args.depth_encoding, use_poses=use_poses,
                             max_frames=args.max_frames)

@@ -1,0 +1,104 @@
+"""The `arlight` command on bad input: exit code 2, a message naming the flag, no traceback.
+
+Each case runs the real CLI entry point (`arlight.cli.main`) in this process, with what a
+user would type; argparse's own errors exit through SystemExit(2), ours return 2.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import open3d.core as o3c
+import pytest
+
+from arlight.cli import EXIT_BAD_INPUT, main
+
+
+def run_cli(argv: list[str], capsys) -> tuple[int, str]:
+    """(exit code, stdout + stderr) of `arlight ARGV`."""
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse: usage errors
+        code = exc.code
+    captured = capsys.readouterr()
+    return code, captured.out + captured.err
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """A decodable colour + depth pair, random bytes named .png, a non-image."""
+    d = tmp_path_factory.mktemp("cli")
+    cv2.imwrite(str(d / "shot_color.png"), np.full((12, 16, 3), 128, np.uint8))
+    cv2.imwrite(str(d / "shot_depth.png"), np.full((12, 16), 5000, np.uint16))
+    rng = np.random.default_rng(0)
+    (d / "noise_color.png").write_bytes(rng.bytes(300))
+    (d / "noise_depth.png").write_bytes(rng.bytes(300))
+    return d
+
+
+# (argv, text the message must contain); {d} is the fixture folder
+BAD_INPUT = [
+    (["bench", "--frames", "0"], "--frames"),
+    (["bench", "--warmup", "-1"], "--warmup"),
+    (["bench", "--frames", "many"], "--frames"),
+    (["estimate", "--max-frames", "0"], "--max-frames"),
+    (["estimate", "--set", "rt_directions=x"], "--set rt_directions"),
+    (["estimate", "--set", "rt_directions=2"], "--set rt_directions"),
+    (["estimate", "--set", "no_such_key=1"], "--set"),
+    (["estimate", "--set", "rt_visibility_ramp=sideways"], "--set rt_visibility_ramp"),
+    (["estimate", "--set", "sh_bands=0"], "--set sh_bands"),
+    (["estimate", "/no/such/folder"], "no such file"),
+    (["estimate", "{d}/noise_color.png", "--depth", "{d}/noise_depth.png"], "not an image"),
+    (["estimate", "{d}/shot_color.png", "--depth", "{d}/noise_depth.png",
+      "--depth-encoding", "tum"], "not an image"),
+    (["estimate", "{d}/shot_color.png", "--depth", "{d}/shot_depth.png"], "--depth-encoding"),
+    (["estimate", "{d}/shot_color.png", "--depth", "{d}/shot_depth.png",
+      "--depth-encoding", "mm", "--poses", "groundtruth"], "--poses"),
+    (["--open3d-threads", "0", "estimate"], "--open3d-threads"),
+    (["stream", "synthetic", "--size", "100000x100000"], "--size"),
+    (["stream", "synthetic", "--size", "4x4"], "--size"),
+    (["stream", "synthetic", "--max-frames", "0"], "--max-frames"),
+    (["stream", "synthetic", "--server", "localhost:5555"], "--server"),
+    (["record", "synthetic", "--out", "{d}/stream.txt"], "--out"),
+    (["serve", "--bind", "5555"], "--bind"),
+    (["serve", "--workers", "0"], "--workers"),
+    (["display", "--server", "tcp://127.0.0.1:1", "--session", "x", "--video", "{d}/v.avi"],
+     "--video"),
+    (["demo", "--frames", "0"], "--frames"),
+]
+
+
+@pytest.mark.parametrize("argv, names", BAD_INPUT, ids=lambda v: " ".join(v)
+                         if isinstance(v, list) else None)
+def test_bad_input_names_the_flag(argv, names, files, capsys):
+    code, text = run_cli([a.format(d=files) for a in argv], capsys)
+    assert "Traceback" not in text, text
+    assert code == EXIT_BAD_INPUT, (code, text)
+    assert names in text, text
+
+
+@pytest.mark.skipif(o3c.cuda.is_available(), reason="CUDA is available here")
+def test_cuda_device_without_cuda_is_a_usage_error(capsys):
+    code, text = run_cli(["estimate", "--device", "CUDA:0", "--max-frames", "1"], capsys)
+    assert code == EXIT_BAD_INPUT and "Traceback" not in text
+    assert "--device CPU:0" in text, text
+
+
+def test_tiny_demo_runs_and_reports_what_it_could_not_measure(tmp_path, capsys):
+    """16x12 frames give no estimate: the summary says '-' instead of failing to format."""
+    code, text = run_cli(["demo", "--size", "16x12", "--frames", "2", "--out",
+                          str(tmp_path / "out")], capsys)
+    assert "Traceback" not in text, text
+    assert code == 0, text
+    assert "2/2 results" in text and "error median - deg" in text, text
+
+
+def test_no_traceback_as_a_process():
+    """The installed entry point as a user runs it (a fresh interpreter, real stderr)."""
+    run = subprocess.run([sys.executable, "-m", "arlight.cli", "bench", "--frames", "0"],
+                         capture_output=True, text=True)
+    assert run.returncode == EXIT_BAD_INPUT
+    assert "Traceback" not in run.stderr and "--frames" in run.stderr, run.stderr
