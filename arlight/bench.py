@@ -1,86 +1,261 @@
-"""Pipeline benchmark: per-stage milliseconds in the rows of the paper's table 1.
+"""`arlight bench`: speed and accuracy of each configuration, measured in one run.
 
-Never a single call: warm-up frames first (JIT compilation, caches), then median and
-spread over the timed frames; every preset runs in the same process on the same frames so
-the ratios compare like with like. Seeds are fixed (built-in synthetic scene, seed 0).
+Never a single call: every configuration runs over the same frames in the same process,
+warm-up frames first (JIT, caches) and left out of the timings; stage milliseconds are the
+rows of the paper's table 1, reported as median and 10th-90th percentile. Where the data has
+ground truth (a `lighting_gt.json`, or the built-in scene) each frame is also scored
+(arlight.evaluation): the angular error of the dominant direction against the whole sphere
+and the upper hemisphere, the SH error and the diffuse-shading error. Poses are the data's
+own (tracking skipped), so accuracy measures the light estimate, not the tracker. Seeds are
+fixed. The report (report.json, report.md, trade.png) is written by arlight.report.
 """
 
 from __future__ import annotations
 
-import json
-import os
-import platform
-import subprocess
-import sys
-import time
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from arlight import evaluation
+from arlight.checks import depth_metres
 from arlight.pipeline.config import Config
-from arlight.pipeline.pipeline import STAGES, Pipeline
-from arlight.sources.synthetic import make_sequence
+from arlight.pipeline.depth_filter import normals_from_depth
+from arlight.pipeline.pipeline import STAGES, Pipeline, smooth_depth_for_normals
+
+BUILT_IN = "synthetic"
+COMPARATORS = {"baseline": ("full", {"visibility": False})}  # K = 1: no visibility at all
+NORMAL_SAMPLES = 4000  # observed normals per frame for the shading error
+NORMAL_WINDOW = 15  # pixels, the pipeline's default smoothing before normals
 
 
-def _commit() -> str:
+class BenchError(ValueError):
+    """Bad benchmark input (a CLI usage error: exit code 2)."""
+
+
+@dataclass
+class BenchSequence:
+    """Frames to run, their camera, and the truth per frame (None: timings only)."""
+
+    name: str
+    camera: Any
+    frames: list
+    truth: list[evaluation.FrameTruth] | None
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """One point of the report: a name, the Config, and where it came from."""
+
+    name: str
+    config: Config
+    size: tuple[int, int] | None = None  # built-in scene rendered at this size (size sweep)
+    sweep: str | None = None  # the swept key, or None
+    value: Any = None  # its value
+
+
+@dataclass
+class ConfigResult:
+    name: str
+    overrides: dict
+    sweep: str | None
+    value: Any
+    stage_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
+    total_ms: list[float] = field(default_factory=list)
+    per_sequence: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- inputs
+
+def parse_sweep(text: str) -> tuple[str, list[Any]]:
+    """"KEY=V1,V2,..." -> (KEY, values), each value typed by the Config key ("size": WxH)."""
+    if "=" not in text:
+        raise BenchError(f"--sweep expects KEY=V1,V2,..., got {text!r}")
+    key, values = text.split("=", 1)
+    items = [v.strip() for v in values.split(",") if v.strip()]
+    if not items:
+        raise BenchError(f"--sweep {key}= has no values")
+    if key == "size":
+        return key, [_parse_size(v) for v in items]
+    types = Config.flat_key_types()
+    if key not in types:
+        raise BenchError(f"--sweep: unknown key {key!r}; use size or one of: "
+                         f"{', '.join(sorted(types))}")
+    return key, [_typed(key, v, types[key]) for v in items]
+
+
+def _typed(key: str, text: str, kind: type) -> Any:
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, check=False, cwd=os.path.dirname(__file__)
-                              ).stdout.strip() or "unknown"
-    except OSError:
-        return "unknown"
+        if kind is bool:
+            if text.lower() not in ("true", "false", "1", "0", "on", "off"):
+                raise ValueError(text)
+            return text.lower() in ("true", "1", "on")
+        return kind(text)
+    except ValueError:
+        raise BenchError(f"--sweep {key}: {text!r} is not a {kind.__name__}") from None
 
 
-def run_pipeline_benchmark(presets: list[str], frames: int = 8, warmup: int = 2,
-                           json_path: str | None = None) -> dict:
-    """Time `frames` frames per preset after `warmup` untimed ones; print a table."""
-    seq = make_sequence(num_frames=warmup + frames)
-    record = {"commit": _commit(), "machine": platform.machine(), "cpus": os.cpu_count(),
-              "python": sys.version.split()[0], "frames": frames, "warmup": warmup,
-              "resolution": [seq.camera.width, seq.camera.height], "presets": {}}
-    print(f"arlight bench: {seq.camera.width}x{seq.camera.height}, {frames} timed frames "
-          f"after {warmup} warm-up, poses given (tracking skipped), {os.cpu_count()} CPUs",
-          file=sys.stderr)
-    for preset in presets:
-        pipeline = Pipeline(Config.from_preset(preset), seq.camera)
-        per_stage: dict[str, list[float]] = {s: [] for s in STAGES}
-        totals = []
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise BenchError(f"--sweep size: expected WIDTHxHEIGHT, got {text!r}") from None
+    if w < 8 or h < 8 or w * h > 3840 * 2160:
+        raise BenchError(f"--sweep size: {w}x{h} is outside 8x8 .. 3840x2160")
+    return w, h
+
+
+def make_configs(presets: list[str], sweeps: list[tuple[str, list[Any]]],
+                 overrides: dict[str, Any]) -> list[BenchConfig]:
+    """The presets (and comparators), then each sweep's points on the first preset."""
+    configs = []
+    for name in presets:
+        base, extra = COMPARATORS.get(name, (name, {}))
+        configs.append(BenchConfig(name, Config.from_preset(base, **{**overrides, **extra})))
+    base_preset = COMPARATORS.get(presets[0], (presets[0], {}))[0]
+    for key, values in sweeps:
+        for value in values:
+            if key == "size":
+                name = f"{base_preset} size={value[0]}x{value[1]}"
+                configs.append(BenchConfig(name, Config.from_preset(base_preset, **overrides),
+                                           size=value, sweep=key, value=list(value)))
+            else:
+                config = Config.from_preset(base_preset, **{**overrides, key: value})
+                configs.append(BenchConfig(f"{base_preset} {key}={value}", config, sweep=key,
+                                           value=value))
+    return configs
+
+
+def open_data(paths: list[str], frames: int | None, warmup: int,
+              size: tuple[int, int] = (640, 480)) -> list[BenchSequence]:
+    """BenchSequences of the DATA arguments: "synthetic", sequence folders, or folders of them."""
+    from arlight.sources.sequence import open_sequence
+    from arlight.sources.synthetic import make_sequence
+
+    out = []
+    for p in paths:
+        if p == BUILT_IN:
+            scene = make_sequence(num_frames=warmup + (frames or 8), width=size[0],
+                                  height=size[1])
+            out.append(BenchSequence(BUILT_IN, scene.camera, scene.frames,
+                                     evaluation.scene_truth(scene)))
+            continue
+        folder = Path(p)
+        if not folder.is_dir():
+            raise BenchError(f"DATA {p!r}: no such folder (give 'synthetic', a sequence "
+                             "folder, or a folder of sequence folders)")
+        children = sorted(c for c in folder.iterdir() if evaluation.has_ground_truth(c))
+        for seq_folder in children if not evaluation.has_ground_truth(folder) else [folder]:
+            seq = open_sequence(seq_folder, use_poses=True, max_frames=frames)
+            truth = (evaluation.load_ground_truth(seq_folder)
+                     if evaluation.has_ground_truth(seq_folder) else None)
+            out.append(BenchSequence(seq_folder.name, seq.camera, list(seq.frames), truth))
+        if not children and not evaluation.has_ground_truth(folder):
+            seq = open_sequence(folder, use_poses=True, max_frames=frames)
+            out.append(BenchSequence(folder.name, seq.camera, list(seq.frames), None))
+    return out
+
+
+# --------------------------------------------------------------------------- running
+
+def observed_normals_world(frame, camera, rng: np.random.Generator) -> np.ndarray:
+    """Up to NORMAL_SAMPLES unit normals (N, 3), world frame, of the frame's valid depth."""
+    depth = depth_metres(frame.depth, frame.depth_scale)
+    normals = normals_from_depth(smooth_depth_for_normals(depth, NORMAL_WINDOW), camera)
+    valid = np.any(normals != 0, axis=2)
+    n = normals[valid].astype(np.float64)
+    if len(n) > NORMAL_SAMPLES:
+        n = n[rng.choice(len(n), NORMAL_SAMPLES, replace=False)]
+    rotation = np.asarray(frame.pose, float)[:3, :3] if frame.pose is not None else np.eye(3)
+    return n @ rotation.T
+
+
+def run_config(bench: BenchConfig, sequences: list[BenchSequence], warmup: int,
+               on_frame=None) -> ConfigResult:
+    """Process every sequence's frames with one configuration; time and score each frame."""
+    overrides = {k: v for k, v in bench.config.flat().items()
+                 if v != Config.from_preset(_preset_name(bench.config)).flat().get(k)}
+    result = ConfigResult(bench.name, overrides, bench.sweep, bench.value)
+    rng = np.random.default_rng(0)
+    for seq in sequences:
+        pipeline = Pipeline(bench.config, seq.camera)
+        scores: dict[str, list[float]] = {"angle_upper_deg": [], "angle_deg": [],
+                                          "sh_error": [], "shading_error": []}
         for i, frame in enumerate(seq.frames):
-            t0 = time.perf_counter()
-            result = pipeline.process(frame)
-            total = (time.perf_counter() - t0) * 1e3
-            print(f"  {preset}: frame {i + 1}/{len(seq.frames)} {total:.0f} ms"
-                  + (" (warm-up)" if i < warmup else ""), file=sys.stderr, flush=True)
-            if i < warmup:
-                continue
-            totals.append(total)
-            for s in STAGES:
-                per_stage[s].append(result.timings_ms.get(s, 0.0))
-        stats = {s: {"median_ms": float(np.median(v)), "p10_ms": float(np.percentile(v, 10)),
-                     "p90_ms": float(np.percentile(v, 90))} for s, v in per_stage.items()}
-        stats["Update"] = {"median_ms": float(np.median(totals)),
-                           "p10_ms": float(np.percentile(totals, 10)),
-                           "p90_ms": float(np.percentile(totals, 90))}
-        stats["FPS"] = 1000.0 / stats["Update"]["median_ms"]
-        record["presets"][preset] = stats
-    _print_table(record)
-    if json_path:
-        with open(json_path, "w") as f:
-            json.dump(record, f, indent=1)
-    return record
+            out = pipeline.process(frame)
+            if i >= warmup or len(seq.frames) <= warmup:
+                for stage in STAGES:
+                    result.stage_ms[stage].append(out.timings_ms.get(stage, 0.0))
+                result.total_ms.append(sum(out.timings_ms.values()))
+            if seq.truth is not None and i < len(seq.truth):
+                _score(scores, out, seq.truth[i], frame, seq.camera, rng)
+            if on_frame is not None:
+                on_frame()
+        result.per_sequence[seq.name] = scores
+    return result
 
 
-def _print_table(record: dict) -> None:
-    presets = list(record["presets"])
-    print(f"{'stage (ms, median [p10-p90])':<30}" + "".join(f"{p:>24}" for p in presets))
-    for row in ("FPS", "Update", *STAGES):
-        cells = []
-        for p in presets:
-            v = record["presets"][p][row]
-            cells.append(f"{v:.2f}" if row == "FPS" else
-                         f"{v['median_ms']:.1f} [{v['p10_ms']:.0f}-{v['p90_ms']:.0f}]")
-        print(f"{row:<30}" + "".join(f"{c:>24}" for c in cells))
-    if len(presets) > 1:
-        base = record["presets"][presets[0]]["Update"]["median_ms"]
-        for p in presets[1:]:
-            ratio = base / record["presets"][p]["Update"]["median_ms"]
-            print(f"speed-up {p} vs {presets[0]}: {ratio:.2f}x")
+def _preset_name(config: Config) -> str:
+    preset = str(config.preset)
+    return preset if preset in ("full", "fast", "mobile") else "full"
+
+
+def _score(scores: dict[str, list[float]], out, truth: evaluation.FrameTruth, frame, camera,
+           rng: np.random.Generator) -> None:
+    scores["angle_deg"].append(evaluation.angular_error_deg(out.dominant_direction_camera,
+                                                            truth.dominant_camera))
+    scores["angle_upper_deg"].append(evaluation.angular_error_deg(
+        out.dominant_direction_camera, truth.dominant_upper_camera))
+    if truth.sh_upper_world is not None:
+        scores["sh_error"].append(evaluation.sh_error(out.sh, truth.sh_upper_world))
+        normals = observed_normals_world(frame, camera, rng)
+        scores["shading_error"].append(evaluation.shading_error(out.sh, truth.sh_upper_world,
+                                                                normals))
+
+
+def run_benchmark(data: list[str], presets: list[str], sweeps: list[tuple[str, list[Any]]],
+                  frames: int | None, warmup: int, overrides: dict[str, Any],
+                  progress: bool = True, size: tuple[int, int] = (640, 480)) -> dict:
+    """Every configuration over every DATA sequence; the report's figures (a plain dict).
+
+    size: image size of the built-in scene (pixels) where no size sweep sets it.
+    """
+    from arlight.report import summarise
+
+    configs = make_configs(presets, sweeps, overrides)
+    if any(b.size is not None for b in configs) and data != [BUILT_IN]:
+        raise BenchError("--sweep size renders the built-in scene: use it without DATA (or "
+                         "with DATA synthetic)")
+    base_data = open_data(data, frames, warmup, size)
+    sized: dict[tuple[int, int], list[BenchSequence]] = {}
+    for bench in configs:
+        if bench.size is not None and bench.size not in sized:
+            sized[bench.size] = open_data([BUILT_IN], frames, warmup, bench.size)
+    total = sum(sum(len(s.frames) for s in (sized[b.size] if b.size else base_data))
+                for b in configs)
+    bar = _progress_bar(total, progress)
+    results = []
+    try:
+        for bench in configs:
+            bar.set_description(bench.name)
+            seqs = sized[bench.size] if bench.size else base_data
+            results.append(run_config(bench, seqs, warmup, on_frame=lambda: bar.update(1)))
+    finally:
+        bar.close()
+    return summarise(results, data=[s.name for s in base_data], frames=frames, warmup=warmup,
+                     sweeps=[k for k, _ in sweeps])
+
+
+def _progress_bar(total: int, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="frame", disable=not enabled, dynamic_ncols=True,
+                leave=False)
+
+
+def frames_per_second(total_ms: list[float]) -> float:
+    """1000 / the median pipeline milliseconds per frame (nan without frames)."""
+    return 1000.0 / float(np.median(total_ms)) if total_ms else math.nan
+
