@@ -5,19 +5,23 @@ the median and 90th percentile of the angular error of dominant_direction_camera
 lighting_gt.json, for `full`, `fast` and the no-visibility baseline (K = 1, else `full`).
 
     .venv/bin/python benchmarks/accuracy.py [--configs full fast baseline] [--json FILE]
+
+`arlight bench ../shared/data/synthetic` reports the same errors (and against the
+upper-hemisphere truth, SH and shading errors, timings); this script stays for the pins in
+tests/test_accuracy.py.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline.config import Config
 from arlight.pipeline.pipeline import Pipeline
 from arlight.pipeline.runtime import configure_process
@@ -32,14 +36,6 @@ CONFIGS = {
 }
 
 
-def angle_deg(a, b) -> float:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    na, nb = np.linalg.norm(a), np.linalg.norm(b)
-    if na == 0 or nb == 0:
-        return 180.0  # no estimate counts as the worst error
-    return math.degrees(math.acos(float(np.clip(a @ b / (na * nb), -1, 1))))
-
-
 def evaluate_sequence(folder: Path, config: Config, max_frames: int | None = None) -> np.ndarray:
     """Per-frame angular errors (degrees) of dominant_direction_camera."""
     seq = open_sequence(folder, use_poses=True, max_frames=max_frames)
@@ -48,8 +44,8 @@ def evaluate_sequence(folder: Path, config: Config, max_frames: int | None = Non
     errors = []
     for i, frame in enumerate(seq.frames):
         result = pipeline.process(frame)
-        errors.append(angle_deg(result.dominant_direction_camera,
-                                truth[i]["dominant_dir_camera"]))
+        errors.append(angular_error_deg(result.dominant_direction_camera,
+                                         truth[i]["dominant_dir_camera"]))
     return np.array(errors)
 
 
