@@ -2,8 +2,10 @@
 
 One set of rules for one frame, in the spirit of Kornia's ``KORNIA_CHECK_SHAPE``: every check
 raises `CheckError` naming the field, what was expected and what came. Edges translate it into
-their own error type (the protocol's ``bad_field``, a data set error naming the file); inner
-stages trust what passed here and check nothing again. Never ``assert`` for input.
+their own error type (the protocol's ``bad_field``, a data set error naming the file). Inner
+stages of the pipeline trust what passed here; public functions that users may call on
+their own (the depth filters, `VolumeReconstruction.process`) check their arguments with the
+same helpers. Never ``assert`` for input.
 
 Imports numpy only, so that every package (protocols, pipeline, sources) may use it.
 """

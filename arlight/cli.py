@@ -89,10 +89,12 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     from arlight.pipeline.pipeline import Pipeline
+    from arlight.pipeline.runtime import require_device
     from arlight.protocols import result_record
     from arlight.server.results import result_message
 
     config = _build_config(args)
+    require_device(config.device)  # before the source is read
     camera, frames, truth = _open_source(args)
     n = len(frames)
     print(f"arlight estimate: {args.path} ({_count(n, 'frame')}, {camera.width}x{camera.height}), "
@@ -201,6 +203,13 @@ def _positive_float(text: str) -> float:
 
 def _positive_int(text: str) -> int:
     return _int_at_least(text, 1)
+
+
+def _jpeg_quality(text: str) -> int:
+    value = _int_at_least(text, 1)
+    if value > 100:
+        raise argparse.ArgumentTypeError(f"expected 1..100, got {text!r}")
+    return value
 
 
 def _non_negative_int(text: str) -> int:
@@ -408,8 +417,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from arlight.demo import run_demo
 
     t0 = time.perf_counter()
-    summary = run_demo(out_dir=args.out, frames=args.frames, size=args.size, preset=args.preset,
-                       video=args.video)
+    try:
+        summary = run_demo(out_dir=args.out, frames=args.frames, size=args.size,
+                           preset=args.preset, video=args.video)
+    except RuntimeError as exc:  # StreamError, DisplayError: the loopback service failed
+        print(f"arlight demo: error: {exc}", file=sys.stderr)
+        return 1
     lat = summary["latency_ms"]
     err = summary["angular_error_deg"]
     stages = ", ".join(f"{k} {v:.0f}" for k, v in summary["timings_ms_median"].items())
@@ -460,7 +473,7 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
                    help=f"colour codec (default {DEFAULT_COLOR_CODEC}; png/raw are lossless)")
     p.add_argument("--depth-codec", choices=DEPTH_CODECS, default=DEFAULT_DEPTH_CODEC,
                    help=f"depth codec, all lossless (default {DEFAULT_DEPTH_CODEC})")
-    p.add_argument("--jpeg-quality", type=int, default=DEFAULT_JPEG_QUALITY, metavar="Q",
+    p.add_argument("--jpeg-quality", type=_jpeg_quality, default=DEFAULT_JPEG_QUALITY, metavar="Q",
                    help=f"JPEG quality 1..100 (default {DEFAULT_JPEG_QUALITY})")
     p.add_argument("--preset", choices=("full", "fast", "mobile"),
                    help="the session's pipeline preset (default full; a recording: its own)")

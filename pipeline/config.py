@@ -293,9 +293,11 @@ def _flat_table() -> dict[str, tuple[str | None, str]]:
 
 # flat key -> (stage attribute of Config or None for Config's own field, field name)
 FLAT_KEYS: dict[str, tuple[str | None, str]] = _flat_table()
-# flat keys in another unit: key -> (the canonical key, conversion to its unit)
-FLAT_ALIASES: dict[str, tuple[str, Callable[[float], float]]] = {
-    "change_reset_deg": ("change_reset_rad", math.radians),
+# flat keys in another unit: key -> (the canonical key, conversion to its unit, the alias's
+# own range (low excluded, high included), checked before converting so the message speaks
+# the user's unit)
+FLAT_ALIASES: dict[str, tuple[str, Callable[[float], float], tuple[float, float]]] = {
+    "change_reset_deg": ("change_reset_rad", math.radians, (0.0, 180.0)),
 }
 
 
@@ -312,11 +314,14 @@ def _flat_overrides(changes: dict[str, Any]) -> dict[str, Any]:
     out = {}
     for key, value in changes.items():
         if key in FLAT_ALIASES:
-            canonical, convert = FLAT_ALIASES[key]
+            canonical, convert, (low, high) = FLAT_ALIASES[key]
             if canonical in changes:
                 raise ValueError(f"give {key} or {canonical}, not both")
             if isinstance(value, bool) or not isinstance(value, numbers.Real):
                 raise ValueError(f"{key} must be a number {_hint(key, 'X')}, got {value!r}")
+            if not low < float(value) <= high:
+                raise ValueError(f"{key} must be in ({low:g}, {high:g}] {_hint(key, 'X')}, "
+                                 f"got {value!r}")
             value = convert(float(value))
             key = canonical
         out[key] = value
@@ -356,17 +361,13 @@ class Config:
             raise ValueError(f"preset must be one of {', '.join(p.value for p in Preset)}, "
                              f"got {self.preset!r}") from None
         if not isinstance(self.device, str) or not self.device.startswith(("CPU:", "CUDA:")):
-            raise ValueError(f"device must be 'CPU:n' or 'CUDA:n' {_hint('device', 'CPU:0')}, "
-                             f"got {self.device!r}")
+            raise ValueError(f"device must be 'CPU:0' or 'CUDA:0' (--device CPU:0, or "
+                             f"--set device=CPU:0), got {self.device!r}")
         _check_int(self, "seed", 0)
         for stage, cls in STAGE_TYPES.items():
             if not isinstance(getattr(self, stage), cls):
                 raise TypeError(f"Config.{stage} must be a {cls.__name__}, got "
                                 f"{type(getattr(self, stage)).__name__}")
-
-    @property
-    def voxel_size_m(self) -> float:
-        return self.volume.voxel_size_m
 
     @classmethod
     def from_preset(cls, name: str = "full", **overrides: Any) -> Config:

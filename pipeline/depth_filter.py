@@ -62,7 +62,6 @@ from numba.extending import register_jitable
 
 from arlight.checks import CheckError, check_image
 from arlight.pipeline.camera import PinholeCamera
-from arlight.pipeline.color import intensity_from_rgb
 from arlight.pipeline.config import MAX_WINDOW, FilterParams
 
 __all__ = [
@@ -70,7 +69,6 @@ __all__ = [
     "MAX_WINDOW",
     "cuda_available",
     "filter_depth",
-    "intensity_from_rgb",
     "joint_bilateral_median",
     "median_depth",
     "merge_depth",

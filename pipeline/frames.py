@@ -81,20 +81,3 @@ class FrameResult:
     composite: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     diagnostics: dict = field(default_factory=dict)
-
-    def to_json_dict(self) -> dict:
-        """Plain JSON-serialisable record (one line of results.jsonl)."""
-        out = {
-            "timestamp": float(self.timestamp),
-            "sh": [float(x) for x in self.sh],
-            "sh_camera": [float(x) for x in self.sh_camera],
-            "dominant_direction_camera": [float(x) for x in self.dominant_direction_camera],
-            "dominant_direction_world": [float(x) for x in self.dominant_direction_world],
-            "intensity": float(self.intensity),
-            "confidence": self.confidence.to_dict(),
-            "pose": np.asarray(self.pose, dtype=float).tolist(),
-            "timings_ms": {k: round(float(v), 3) for k, v in self.timings_ms.items()},
-        }
-        if self.sh_rgb is not None:
-            out["sh_rgb"] = np.asarray(self.sh_rgb, dtype=float).tolist()
-        return out

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from arlight.pipeline import sh
-from arlight.pipeline.color import LUMA, srgb_to_linear  # noqa: F401 (srgb_to_linear: re-export)
+from arlight.pipeline.color import LUMA
 from arlight.pipeline.config import EstimationParams, TemporalParams
 from arlight.pipeline.frames import Confidence
 

@@ -67,15 +67,19 @@ def require_device(device: str) -> None:
         return
     import open3d as o3d
 
+    hint = "(--device CPU:0, or --set device=CPU:0 for a streamed session)"
     try:
         index = int(device.split(":", 1)[1])
     except ValueError:
-        raise ValueError(f"device {device!r}: expected CPU:0 or CUDA:N (--device)") from None
+        raise ValueError(f"device {device!r}: expected CPU:0 or CUDA:0 {hint}") from None
+    if index != 0:
+        raise ValueError(f"device {device}: the kernels run on the first GPU only; use CUDA:0 "
+                         f"or the CPU {hint}")
     count = o3d.core.cuda.device_count() if o3d.core.cuda.is_available() else 0
     if index >= count:
         seen = "no CUDA device" if count == 0 else f"only {count} CUDA device(s)"
         raise ValueError(f"device {device}: Open3D sees {seen} on this machine (a CPU-only "
-                         "build or no GPU driver); run on the CPU with --device CPU:0")
+                         f"build or no GPU driver); run on the CPU {hint}")
     try:
         from numba import cuda
 
@@ -84,7 +88,7 @@ def require_device(device: str) -> None:
         numba_ok = False
     if not numba_ok:
         raise ValueError(f"device {device}: numba sees no CUDA GPU (driver or CUDA toolkit "
-                         "missing), so the kernels cannot run there; use --device CPU:0")
+                         f"missing), so the kernels cannot run there; use the CPU {hint}")
 
 
 def concurrent_pipelines_safe() -> bool:

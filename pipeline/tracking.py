@@ -4,8 +4,9 @@ current depth against the previous frame's D_v (the model).
 
 A frame that cannot be tracked is reported with the reason (`TrackingResult.reason`), never
 swallowed. Open3D's odometry sums its normal equations with a TBB parallel reduction: poses
-are reproducible only with Open3D on one thread, which the entry point sets once
-(`arlight.pipeline.runtime.configure_open3d_threads`).
+are reproducible only with Open3D on one thread, which an entry point may choose once
+(`arlight --open3d-threads 1`, `arlight.pipeline.runtime.configure_open3d_threads`); the
+default (all cores) leaves run-to-run pose differences of ~1e-5 m.
 """
 
 from __future__ import annotations
@@ -48,10 +49,14 @@ class TrackingResult:
         return out
 
 
+MAX_REASON_CHARS = 300  # a reason travels in Result.diagnostics (strings <= 1024 there)
+
+
 def _open3d_message(exc: Exception) -> str:
-    """Open3D's error text without its terminal colours and C++ source location."""
+    """Open3D's error text without its terminal colours and C++ source location, bounded."""
     text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).strip()
-    return re.sub(r"^\[Open3D Error\] \(.*?\) \S+:\d+: ", "", text, flags=re.S)
+    text = re.sub(r"^\[Open3D Error\] \(.*?\) \S+:\d+: ", "", text, flags=re.S)
+    return text if len(text) <= MAX_REASON_CHARS else text[:MAX_REASON_CHARS - 3] + "..."
 
 
 def _rotation_angle(rot: np.ndarray) -> float:

@@ -19,8 +19,9 @@ depth (tests/test_reconstruction.py); `OPEN3D_SUPPORTED` is checked at import:
   a hang): cast a padded image;
 - its fragment buffer drops a fragment whenever it grows (holes that vary from run to run):
   reserve it once per session;
-- odometry sums with a TBB reduction (tracking.py): entry points run Open3D on one thread
-  (`arlight.pipeline.runtime.configure_open3d_threads`); no module here changes that
+- odometry sums with a TBB reduction (tracking.py): poses are reproducible only with Open3D
+  on one thread, which an entry point may choose once (`arlight --open3d-threads 1`,
+  `arlight.pipeline.runtime.configure_open3d_threads`); no module here changes that
   process-wide setting.
 """
 

@@ -39,6 +39,7 @@ from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import FrameInput, FrameResult
 from arlight.pipeline.pipeline import FrameError, Pipeline
+from arlight.pipeline.runtime import require_device
 from arlight.protocols import (
     Error,
     Frame,
@@ -73,10 +74,15 @@ def pipeline_config(config: SessionConfig) -> Config:
     """The pipeline Config a session asks for (preset + overrides); SessionSetupError if bad."""
     overrides = dict(config.overrides or {})
     try:
-        return Config.from_preset(config.preset, **overrides)
+        pipeline = Config.from_preset(config.preset, **overrides)
     except (TypeError, ValueError) as exc:
         field = "preset" if "preset" in str(exc) else "overrides"
         raise SessionSetupError(field, str(exc)) from None
+    try:
+        require_device(pipeline.device)  # refused at Hello, not by every frame
+    except ValueError as exc:
+        raise SessionSetupError("overrides", str(exc)) from None
+    return pipeline
 
 
 def camera_from_config(config: SessionConfig, max_pixels: int) -> PinholeCamera:

@@ -54,6 +54,7 @@ BAD_INPUT = [
     (["estimate", "--set", "no_such_key=1"], "--set"),
     (["estimate", "--set", "rt_visibility_ramp=sideways"], "--set rt_visibility_ramp"),
     (["estimate", "--set", "sh_bands=0"], "--set sh_bands"),
+    (["estimate", "--set", "change_reset_deg=200"], "change_reset_deg must be in (0, 180]"),
     (["estimate", "/no/such/folder"], "no such file"),
     (["estimate", "{d}/noise_color.png", "--depth", "{d}/noise_depth.png"], "not an image"),
     (["estimate", "{d}/shot_color.png", "--depth", "{d}/noise_depth.png",
@@ -65,6 +66,7 @@ BAD_INPUT = [
     (["stream", "synthetic", "--size", "100000x100000"], "--size"),
     (["stream", "synthetic", "--size", "4x4"], "--size"),
     (["stream", "synthetic", "--max-frames", "0"], "--max-frames"),
+    (["stream", "synthetic", "--jpeg-quality", "0"], "--jpeg-quality"),
     (["stream", "synthetic", "--server", "localhost:5555"], "--server"),
     (["record", "synthetic", "--out", "{d}/stream.txt"], "--out"),
     (["serve", "--bind", "5555"], "--bind"),
@@ -89,6 +91,18 @@ def test_cuda_device_without_cuda_is_a_usage_error(capsys):
     code, text = run_cli(["estimate", "--device", "CUDA:0", "--max-frames", "1"], capsys)
     assert code == EXIT_BAD_INPUT and "Traceback" not in text
     assert "--device CPU:0" in text, text
+
+
+@pytest.mark.skipif(o3c.cuda.is_available(), reason="CUDA is available here")
+def test_a_session_asking_for_cuda_is_refused_at_hello():
+    """The server checks the device when the session is set up, not on every frame."""
+    from types import SimpleNamespace
+
+    from arlight.server.session import SessionSetupError, pipeline_config
+
+    with pytest.raises(SessionSetupError) as caught:
+        pipeline_config(SimpleNamespace(preset="fast", overrides={"device": "CUDA:0"}))
+    assert caught.value.field == "overrides" and "--set device=CPU:0" in str(caught.value)
 
 
 def test_tiny_demo_runs_and_reports_what_it_could_not_measure(tmp_path, capsys):

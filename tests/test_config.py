@@ -100,7 +100,7 @@ class TestValidation:
         ("horizon_ground_albedo", 1.5, "horizon_ground_albedo must be <= 1"),
         ("temporal_half_life_frames", 0.0, "temporal_half_life_frames must be > 0"),
         ("change_reset_rad", 4.0, "change_reset_rad must be <="),
-        ("device", "GPU", "device must be 'CPU:n' or 'CUDA:n'"),
+        ("device", "GPU", "device must be 'CPU:0' or 'CUDA:0'"),
         ("seed", -1, "seed must be >= 0"),
     ])
     def test_bad_values_name_the_key(self, key, value, match):

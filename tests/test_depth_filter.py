@@ -15,6 +15,7 @@ import pytest
 
 from arlight.pipeline import depth_filter as df
 from arlight.pipeline.camera import PinholeCamera
+from arlight.pipeline.color import intensity_from_rgb
 from arlight.pipeline.config import Config
 
 DARK, BRIGHT = 50.0, 200.0  # grey levels far apart compared with lambda_I = 7
@@ -47,13 +48,13 @@ def _plane_depth(camera, normal, offset_m):
 class TestIntensity:
     def test_rec709_weights_on_8bit_values(self):
         color = np.array([[[255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 255]]], np.uint8)
-        grey = df.intensity_from_rgb(color)
+        grey = intensity_from_rgb(color)
         assert grey.dtype == np.float32 and grey.shape == (1, 4)
         np.testing.assert_allclose(grey[0], [54.213, 182.376, 18.411, 255.0], rtol=1e-5)
 
     def test_black_and_saturated(self):
-        assert df.intensity_from_rgb(np.zeros((2, 3, 3), np.uint8)).max() == 0
-        np.testing.assert_allclose(df.intensity_from_rgb(np.full((2, 3, 3), 255, np.uint8)),
+        assert intensity_from_rgb(np.zeros((2, 3, 3), np.uint8)).max() == 0
+        np.testing.assert_allclose(intensity_from_rgb(np.full((2, 3, 3), 255, np.uint8)),
                                    255.0, rtol=1e-6)
 
     @pytest.mark.parametrize("bad, message", [
@@ -63,7 +64,7 @@ class TestIntensity:
     ])
     def test_rejects(self, bad, message):
         with pytest.raises(ValueError, match="color_rgb_u8.*" + message):
-            df.intensity_from_rgb(bad)
+            intensity_from_rgb(bad)
 
 
 class TestMergeDepth:

@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pytest
 
+from arlight.pipeline import color, sh
 from arlight.pipeline import light_estimation as le
-from arlight.pipeline import sh
 from arlight.pipeline.config import EstimationParams, TemporalParams
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
@@ -55,14 +55,14 @@ def _angle_deg(a, b):
 
 class TestSrgb:
     def test_known_values(self):
-        lin = le.srgb_to_linear(np.array([0, 10, 128, 255], np.uint8))
+        lin = color.srgb_to_linear(np.array([0, 10, 128, 255], np.uint8))
         assert lin.dtype == np.float32
         np.testing.assert_allclose(lin, [0.0, 10 / 255 / 12.92, 0.21586050, 1.0], rtol=1e-6,
                                    atol=1e-9)
 
     def test_monotonic_and_shape_kept(self):
         img = np.arange(256, dtype=np.uint8).reshape(16, 16)[..., None].repeat(3, axis=2)
-        lin = le.srgb_to_linear(img)
+        lin = color.srgb_to_linear(img)
         assert lin.shape == (16, 16, 3)
         assert np.all(np.diff(lin[..., 0].reshape(-1)) > 0)
 
