@@ -13,6 +13,7 @@ fixed. The report (report.json, report.md, trade.png) is written by arlight.repo
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -238,9 +239,13 @@ def run_benchmark(data: list[str], presets: list[str], sweeps: list[tuple[str, l
     bar = _progress_bar(total, progress)
     results = []
     try:
-        for bench in configs:
-            bar.set_description(bench.name)
+        for k, bench in enumerate(configs, 1):
             seqs = sized[bench.size] if bench.size else base_data
+            bar.set_description(bench.name)
+            if not progress:  # no terminal for a bar: a line per configuration
+                print(f"arlight bench: [{k}/{len(configs)}] {bench.name}: "
+                      f"{sum(len(s.frames) for s in seqs)} frames of {len(seqs)} sequence(s)",
+                      file=sys.stderr, flush=True)
             results.append(run_config(bench, seqs, warmup, on_frame=lambda: bar.update(1)))
     finally:
         bar.close()
