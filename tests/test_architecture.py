@@ -56,7 +56,7 @@ def _imported_packages(path: Path) -> set[str]:
             sub = parts[1] if len(parts) > 1 else "version"
             if sub == "__version__":
                 sub = "version"
-            elif sub in ("cli", "demo", "bench"):
+            elif sub not in ALLOWED:  # a module of the top package: cli, demo, bench, ...
                 sub = "arlight"
             found.add(sub)
     return found
