@@ -154,7 +154,7 @@ def test_one_plane_filling_the_view(scene, preset, plane):
     assert c.bands_estimated < 4
     assert c.bands_estimated == 1 or c.condition_number > 1e4
     if plane == "floor" and preset == "full":
-        # what holds today; the xfail below is the honest confidence it lacks
+        # what holds today; the assertion after this is what it lacks (the xfail)
         assert c.bands_estimated == 2 and c.condition_number > 1e4
     assert c.value < LOW_CONFIDENCE, f"{c.value:.3f} for one plane"
     assert "no direction" in c.reason or "ill-conditioned" in c.reason
