@@ -342,6 +342,22 @@ def _plane_arrays(plane: SupportPlane | None,
     return np.array([*plane.up, plane.offset], dtype=np.float64), ground
 
 
+REMAP_MAX_CHANNELS = 128  # cv2 (5.0) reads an (H, W, C > 128) array as a 2-D image
+
+
+def _remap_channels(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """Bilinear cv2.remap of an (h, w, C) image for any C >= 1, as (H, W, C) float32: cv2
+    drops a single channel's axis (sh_bands 1) and mistakes more than 128 channels for a
+    2-D image (sh_bands 12), so those go in chunks; C <= 128 is one call, as before."""
+    c = image.shape[2]
+    chunks = []
+    for start in range(0, c, REMAP_MAX_CHANNELS):
+        part = np.ascontiguousarray(image[..., start:start + REMAP_MAX_CHANNELS])
+        out = cv2.remap(part, map_x, map_y, cv2.INTER_LINEAR)
+        chunks.append(out.reshape(*map_x.shape, part.shape[2]))
+    return chunks[0] if len(chunks) == 1 else np.concatenate(chunks, axis=2)
+
+
 def upsample_transfer(result: TransferResult, valid_full: np.ndarray) -> TransferResult:
     """Sub-sampled transfer -> every pixel of the image ("OursFast": up-sampling in image
     space), by normalised bilinear interpolation between the valid grid points.
@@ -360,7 +376,7 @@ def upsample_transfer(result: TransferResult, valid_full: np.ndarray) -> Transfe
     map_x = np.ascontiguousarray(np.broadcast_to(map_u[None, :], (h, w)))
     map_y = np.ascontiguousarray(np.broadcast_to(map_v[:, None], (h, w)))
     weight = result.valid.astype(np.float32)
-    num = cv2.remap(result.transfer * weight[..., None], map_x, map_y, cv2.INTER_LINEAR)
+    num = _remap_channels(result.transfer * weight[..., None], map_x, map_y)
     den = cv2.remap(weight, map_x, map_y, cv2.INTER_LINEAR)
     keep = valid_full & (den > 0.999)
     transfer = np.where(keep[..., None], num / np.maximum(den, 1e-6)[..., None], 0.0)
