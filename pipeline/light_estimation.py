@@ -142,7 +142,9 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: Estim
     Returns an estimate with zero coefficients and confidence 0 when too few usable pixels
     (Confidence.reason says why, as it does whenever the confidence is low).
     """
-    t = np.asarray(transfer, dtype=np.float64)
+    t = np.asarray(transfer)  # float64 only for the rows used (below): exact either way
+    if not np.issubdtype(t.dtype, np.floating):
+        t = t.astype(np.float64)
     n_coeffs = t.shape[-1]
     samples = _usable_samples(t.reshape(-1, n_coeffs), color_linear, bounce, segments,
                               params.light_max_samples, seed)
@@ -179,7 +181,7 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: Estim
 class _Samples:
     """The pixels a fit uses (usable, randomly sub-sampled above the limit)."""
 
-    transfer: np.ndarray  # (M, C) float64
+    transfer: np.ndarray  # (M, C) float64 (converted after the subset is chosen)
     lum: np.ndarray  # (M,) linear luminance
     rgb: np.ndarray  # (M, 3) linear RGB
     bounce: np.ndarray | None  # (M,)
@@ -196,7 +198,7 @@ def _usable_samples(t: np.ndarray, color_linear: np.ndarray, bounce: np.ndarray 
     finite = np.all(np.isfinite(t), axis=1) & np.isfinite(lum)
     clipped = rgb.max(axis=1) >= CLIP_LEVEL
     dark = ~(lum > DARK_LEVEL)
-    no_transfer = ~(t[:, 0] > 1e-6)
+    no_transfer = ~(t[:, 0].astype(np.float64) > 1e-6)
     usable = finite & ~clipped & ~dark & ~no_transfer
     keep = np.flatnonzero(usable)
     if len(keep) > max_samples:
@@ -208,7 +210,7 @@ def _usable_samples(t: np.ndarray, color_linear: np.ndarray, bounce: np.ndarray 
         _, labels = np.unique(np.asarray(segments).reshape(-1)[keep], return_inverse=True)
     left_out = (f"of {len(lum)}: {int(clipped.sum())} clipped, {int(dark.sum())} too dark, "
                 f"{int(no_transfer.sum())} without transfer, {int((~finite).sum())} not finite")
-    return _Samples(t[keep], lum[keep], rgb[keep], b, labels, left_out)
+    return _Samples(t[keep].astype(np.float64), lum[keep], rgb[keep], b, labels, left_out)
 
 
 def _fit_light(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
