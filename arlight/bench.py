@@ -12,7 +12,6 @@ fixed. The report (report.json, report.md, trade.png) is written by arlight.repo
 
 from __future__ import annotations
 
-import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +24,7 @@ from arlight.checks import depth_metres
 from arlight.pipeline.config import Config
 from arlight.pipeline.depth_filter import normals_from_depth
 from arlight.pipeline.pipeline import STAGES, Pipeline, smooth_depth_for_normals
+from arlight.sources.synthetic import parse_size
 
 BUILT_IN = "synthetic"
 COMPARATORS = {"baseline": ("full", {"visibility": False})}  # K = 1: no visibility at all
@@ -78,34 +78,12 @@ def parse_sweep(text: str) -> tuple[str, list[Any]]:
     items = [v.strip() for v in values.split(",") if v.strip()]
     if not items:
         raise BenchError(f"--sweep {key}= has no values")
-    if key == "size":
-        return key, [_parse_size(v) for v in items]
-    types = Config.flat_key_types()
-    if key not in types:
-        raise BenchError(f"--sweep: unknown key {key!r}; use size or one of: "
-                         f"{', '.join(sorted(types))}")
-    return key, [_typed(key, v, types[key]) for v in items]
-
-
-def _typed(key: str, text: str, kind: type) -> Any:
     try:
-        if kind is bool:
-            if text.lower() not in ("true", "false", "1", "0", "on", "off"):
-                raise ValueError(text)
-            return text.lower() in ("true", "1", "on")
-        return kind(text)
-    except ValueError:
-        raise BenchError(f"--sweep {key}: {text!r} is not a {kind.__name__}") from None
-
-
-def _parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise BenchError(f"--sweep size: expected WIDTHxHEIGHT, got {text!r}") from None
-    if w < 8 or h < 8 or w * h > 3840 * 2160:
-        raise BenchError(f"--sweep size: {w}x{h} is outside 8x8 .. 3840x2160")
-    return w, h
+        if key == "size":
+            return key, [parse_size(v) for v in items]
+        return key, [Config.parse_flat_value(key, v) for v in items]
+    except ValueError as exc:
+        raise BenchError(f"--sweep {key}: {exc}") from None
 
 
 def make_configs(presets: list[str], sweeps: list[tuple[str, list[Any]]],
@@ -258,9 +236,3 @@ def _progress_bar(total: int, enabled: bool):
 
     return tqdm(total=total, unit="frame", disable=not enabled, dynamic_ncols=True,
                 leave=False)
-
-
-def frames_per_second(total_ms: list[float]) -> float:
-    """1000 / the median pipeline milliseconds per frame (nan without frames)."""
-    return 1000.0 / float(np.median(total_ms)) if total_ms else math.nan
-

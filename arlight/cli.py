@@ -28,25 +28,10 @@ def _parse_override(text: str) -> tuple[str, object]:
     if "=" not in text:
         raise argparse.ArgumentTypeError(f"--set expects KEY=VALUE, got {text!r}")
     key, value = text.split("=", 1)
-    types = Config.flat_key_types()  # the flat keys of every stage's parameters
-    if key not in types:
-        raise argparse.ArgumentTypeError(
-            f"unknown config key {key!r}; keys: {', '.join(sorted(types))}")
-    kind = types[key]
     try:
-        if kind is bool:
-            if value.lower() not in ("true", "false", "1", "0"):
-                raise ValueError(value)
-            return key, value.lower() in ("true", "1")
-        if kind is int:
-            return key, int(value)
-        if kind is float:
-            return key, float(value)
-    except ValueError:
-        what = {bool: "true or false", int: "an integer", float: "a number"}[kind]
-        raise argparse.ArgumentTypeError(
-            f"{key} expects {what} (--set {key}=VALUE), got {value!r}") from None
-    return key, value
+        return key, Config.parse_flat_value(key, value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{exc} (--set {key}=VALUE)") from None
 
 
 def _build_config(args: argparse.Namespace):
@@ -174,21 +159,13 @@ def _check_address(address: str, option: str) -> str:
     return address
 
 
-MAX_SYNTHETIC_PIXELS = 3840 * 2160  # 4K: the built-in scene renders in memory (~1 KiB/pixel)
-
-
 def _parse_size(text: str) -> tuple[int, int]:
+    from arlight.sources.synthetic import parse_size
+
     try:
-        w, h = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 320x240, got {text!r}")\
-            from None
-    if w < 8 or h < 8:
-        raise argparse.ArgumentTypeError(f"size must be at least 8x8, got {w}x{h}")
-    if w * h > MAX_SYNTHETIC_PIXELS:
-        raise argparse.ArgumentTypeError(f"size {w}x{h} is larger than the built-in scene "
-                                         "renders (at most 3840x2160 pixels)")
-    return w, h
+        return parse_size(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _positive_float(text: str) -> float:

@@ -399,6 +399,25 @@ class Config:
         return out
 
     @staticmethod
+    def parse_flat_value(key: str, text: str) -> Any:
+        """The value of flat key `key` from command-line text (bool: true/false/1/0/on/off);
+        ValueError naming the key (unknown keys list the valid ones)."""
+        types = Config.flat_key_types()
+        if key not in types:
+            raise ValueError(f"unknown config key {key!r}; keys: {', '.join(sorted(types))}")
+        kind = types[key]
+        try:
+            if kind is bool:
+                if text.lower() not in ("true", "false", "1", "0", "on", "off"):
+                    raise ValueError(text)
+                return text.lower() in ("true", "1", "on")
+            return kind(text)
+        except ValueError:
+            what = {bool: "true or false", int: "an integer", float: "a number"}.get(
+                kind, kind.__name__)
+            raise ValueError(f"{key} expects {what}, got {text!r}") from None
+
+    @staticmethod
     def flat_key_types() -> dict[str, type]:
         """Flat key -> bool, int, float or str (Enum options are given as their strings);
         what a command line needs to parse `--set KEY=VALUE`."""

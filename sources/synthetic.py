@@ -613,6 +613,23 @@ class SyntheticSequence:
         return len(self.frames)
 
 
+MAX_PIXELS = 3840 * 2160  # 4K: the scene renders in memory (~1 KiB per pixel)
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """(width, height) of "WIDTHxHEIGHT" for the scene: 8x8 up to MAX_PIXELS; ValueError."""
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"expected WIDTHxHEIGHT, e.g. 320x240, got {text!r}") from None
+    if w < 8 or h < 8:
+        raise ValueError(f"size must be at least 8x8, got {w}x{h}")
+    if w * h > MAX_PIXELS:
+        raise ValueError(f"size {w}x{h} is larger than the built-in scene renders (at most "
+                         "3840x2160 pixels)")
+    return w, h
+
+
 def _check_arguments(num_frames: int, width: int, height: int,
                      light_change_frame: int | None) -> None:
     if num_frames < 1:
