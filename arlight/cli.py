@@ -104,8 +104,10 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                     f"conf={result.confidence.value:.2f}  bands={result.confidence.bands_estimated}"
                     f"  {ms:.0f} ms")
             if truth is not None:
-                err = _angle_deg(result.dominant_direction_world,
-                                 truth.dominant_direction_world[i])
+                # in the camera frame: tracking's world is the first camera, the scene's
+                # world is its own, and the camera frame is the one both share
+                err = _angle_deg(result.dominant_direction_camera,
+                                 truth.dominant_direction_camera[i])
                 errors.append(err)
                 record["angular_error_deg"] = err
                 line += f"  error={err:.1f} deg"

@@ -120,3 +120,13 @@ def test_no_traceback_as_a_process():
                          capture_output=True, text=True)
     assert run.returncode == EXIT_BAD_INPUT
     assert "Traceback" not in run.stderr and "--frames" in run.stderr, run.stderr
+
+
+def test_estimate_on_the_built_in_scene_compares_in_the_camera_frame(capsys):
+    """Tracking's world is the first camera, the scene's is its own: compared in the camera
+    frame both share, the error is the estimator's (about 7 deg), not the frames' (80)."""
+    code, text = run_cli(["--open3d-threads", "1", "estimate", "--preset", "fast",
+                          "--max-frames", "3"], capsys)
+    assert code == 0, text
+    median = float(text.split("median angular error of the dominant light: ")[1].split()[0])
+    assert median < 25.0, text
