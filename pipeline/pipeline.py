@@ -140,6 +140,7 @@ class Pipeline:
             self._volume = VolumeReconstruction.from_config(config, camera)
         self._pose = np.eye(4)
         self._light_world: np.ndarray | None = None
+        self._up_world: np.ndarray | None = None  # of the support plane, last seen
 
     def process(self, frame: FrameInput) -> FrameResult:
         """Estimate the lighting of one frame. Raises FrameError on malformed input."""
@@ -160,7 +161,10 @@ class Pipeline:
             estimate = self._estimate(transfer, color_linear, geometry.depth_m, plane, up_world,
                                       below_horizon_unseen=self.config.transfer.rt_horizon)
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
-            direction_world, intensity_value = sh.dominant_light(coeffs)
+            if up_world is not None:
+                self._up_world = up_world
+            direction_world = self._light_direction(coeffs)
+            intensity_value = sh.intensity_along(coeffs, direction_world)
             if np.any(direction_world):
                 self._light_world = direction_world
         timings["Rendering"] = 0.0
@@ -173,6 +177,14 @@ class Pipeline:
             dominant_direction_camera=rotation.T @ direction_world,
             intensity=intensity_value, confidence=estimate.confidence, pose=pose.copy(),
             sh_rgb=estimate.sh_rgb, composite=None, timings_ms=timings, diagnostics=diagnostics)
+
+    def _light_direction(self, coeffs: np.ndarray) -> np.ndarray:
+        """The dominant direction reported (world): of the light above the horizon of the
+        surface the scene stands on, once one has been seen (the estimate's glow from below
+        taken out, sh.above_horizon_direction), else of the whole sphere."""
+        if self._up_world is None:
+            return sh.dominant_direction(coeffs)
+        return sh.above_horizon_direction(coeffs, self._up_world)
 
     def _reconstruct(self, valid: ValidFrame, timings: dict[str, float], diagnostics: dict,
                      ) -> tuple[np.ndarray, np.ndarray | None, list]:
@@ -261,8 +273,8 @@ class Pipeline:
             "horizon_prior_used": bool(estimate.horizon_prior_used),
             "support_plane_up_world": (None if up_world is None
                                        else [float(x) for x in up_world]),
-            "raw_dominant_direction_world": [
-                float(x) for x in sh.dominant_direction(estimate.sh)],
+            "raw_dominant_direction_world": [  # before the temporal filter
+                float(x) for x in self._light_direction(estimate.sh)],
             "bands_requested": int(self.config.transfer.sh_bands),
             "bands_estimated": int(estimate.confidence.bands_estimated),
             "confidence_reason": estimate.confidence.reason,

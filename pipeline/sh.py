@@ -28,6 +28,7 @@ arlight are *radiance* (the light arriving from a direction, per steradian);
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 
@@ -154,18 +155,59 @@ def dominant_direction(coeffs: np.ndarray) -> np.ndarray:
     return np.divide(v, n, out=np.zeros_like(v), where=n > 1e-300)
 
 
+_MOMENT_SAMPLES = 8192  # directions of the quadrature below the horizon (< 0.5 degree)
+
+
+@lru_cache(maxsize=16)
+def _moment_quadrature(bands: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fixed directions (K, 3) and their SH basis times the solid angle (K, bands^2)."""
+    dirs = fibonacci_sphere(_MOMENT_SAMPLES)
+    return dirs, sh_basis(dirs, bands) * (4.0 * math.pi / _MOMENT_SAMPLES)
+
+
+def above_horizon_direction(coeffs: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Unit vector towards the light that reaches a scene standing on a surface facing `up`.
+
+    An estimate fitted to what a scene shows is the light its surfaces receive, and below
+    the horizon of the ground they stand on that is the ground's glow, not the sky: the
+    direction of the first moment, integral L(w) w dw, is pulled down by it. This takes it
+    out as a uniform glow of the expansion's mean radiance below the horizon, G:
+    normalize(integral L(w) w dw + G pi up) (pi up = the moment of a unit uniform hemisphere),
+    the moment of the light above the horizon alone, as the ground truth's `*_upper_*` fields
+    define it. On those fields' own SH (bands 0..3) it is within 6 degrees of their direction
+    (the moment of the band-limited hemisphere itself is up to 11 off: its ringing below the
+    horizon is not uniform). `up`: unit, frame of `coeffs`. Zeros when the moment vanishes.
+    """
+    c = np.asarray(coeffs, dtype=np.float64)
+    if c.shape[-1] < 4 or not np.any(c[1:4]):
+        return np.zeros(3)  # no band 1: no direction, not "up"
+    dirs, weighted_basis = _moment_quadrature(bands_of(c.shape[-1]))
+    up = np.asarray(up, dtype=np.float64)
+    radiance_dw = weighted_basis @ c  # L(w_k) dw_k
+    glow = float(radiance_dw[dirs @ up < 0.0].sum()) / (2.0 * math.pi)
+    moment = radiance_dw @ dirs + glow * math.pi * up
+    n = float(np.linalg.norm(moment))
+    return moment / n if n > 1e-300 else np.zeros(3)
+
+
+def intensity_along(coeffs: np.ndarray, direction: np.ndarray) -> float:
+    """Integrated radiance of the delta light along unit `direction` that best fits `coeffs`:
+    argmin_I |c - I Y(d)|^2 = (c . Y(d)) / |Y(d)|^2 (Sloan's extraction), clipped at 0."""
+    c = np.asarray(coeffs, dtype=np.float64)
+    if not np.any(direction):
+        return 0.0
+    y = sh_basis(np.asarray(direction, dtype=np.float64), bands_of(c.shape[-1]))
+    return max(0.0, float(c @ y / (y @ y)))
+
+
 def dominant_light(coeffs: np.ndarray) -> tuple[np.ndarray, float]:
     """Dominant direction and the intensity of the delta light along it that best fits `coeffs`.
 
     Intensity = argmin_I |c - I Y(d)|^2 = (c . Y(d)) / |Y(d)|^2 (Sloan's extraction), clipped
     at 0 so a dark dominant lobe never gives negative intensity.
     """
-    c = np.asarray(coeffs, dtype=np.float64)
-    d = dominant_direction(c)
-    if not np.any(d):
-        return d, 0.0
-    y = sh_basis(d, bands_of(c.shape[-1]))
-    return d, max(0.0, float(c @ y / (y @ y)))
+    d = dominant_direction(coeffs)
+    return d, intensity_along(coeffs, d)
 
 
 def toggle_condon_shortley(coeffs: np.ndarray) -> np.ndarray:

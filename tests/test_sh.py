@@ -147,3 +147,52 @@ class TestLayouts:
     def test_bad_shape(self):
         with pytest.raises(ValueError, match="shape"):
             sh.to_arcore_27(np.zeros((3, 4)))
+
+
+class TestAboveHorizonDirection:
+    """sh.above_horizon_direction: the dominant direction of the light above the horizon."""
+
+    @staticmethod
+    def _sky(sun_elevation_deg: float, glow: float, up=(0.0, 1.0, 0.0)):
+        """A sky (bright lobe at the sun's elevation + even blue) above the horizon of `up`,
+        a uniform ground glow below: (SH bands 0..3, moment of the part above, up)."""
+        up = np.asarray(up, float)
+        e = math.radians(sun_elevation_deg)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+        side = np.cross(up, helper)
+        side /= np.linalg.norm(side)
+        sun = math.cos(e) * side + math.sin(e) * up
+
+        def radiance(w):
+            above = w @ up > 0
+            lobe = np.exp(8.0 * (w @ sun - 1.0))
+            return np.where(above, 0.3 + 4.0 * lobe, glow)
+
+        dirs = sh.fibonacci_sphere(60000)
+        values = radiance(dirs)
+        above = dirs @ up > 0
+        moment = (values[above][:, None] * dirs[above]).sum(axis=0)
+        return sh.project(radiance, 4, 60000), moment / np.linalg.norm(moment), up
+
+    @pytest.mark.parametrize("elevation", [15.0, 40.0, 70.0])
+    @pytest.mark.parametrize("glow", [0.0, 0.3, 1.0])
+    def test_the_glow_below_does_not_move_it(self, elevation, glow):
+        coeffs, truth, up = self._sky(elevation, glow)
+        d = sh.above_horizon_direction(coeffs, up)
+        assert math.degrees(math.acos(np.clip(d @ truth, -1, 1))) < 6.0
+        # what it corrects: the whole-sphere moment sinks towards the horizon with the glow
+        if glow >= 0.3:
+            whole = sh.dominant_direction(coeffs)
+            assert whole @ up < d @ up
+
+    def test_follows_a_tilted_support_plane(self):
+        up = np.array([0.3, 0.9, -0.2])
+        coeffs, truth, up = self._sky(35.0, 0.5, up / np.linalg.norm(up))
+        d = sh.above_horizon_direction(coeffs, up)
+        assert math.degrees(math.acos(np.clip(d @ truth, -1, 1))) < 6.0
+
+    def test_no_first_band_is_no_direction(self):
+        assert not np.any(sh.above_horizon_direction(np.array([1.0]), np.array([0, 1.0, 0])))
+        assert not np.any(sh.above_horizon_direction(np.r_[1.0, np.zeros(8)],
+                                                     np.array([0, 1.0, 0])))
+        assert not np.any(sh.above_horizon_direction(np.zeros(16), np.array([0, 1.0, 0])))
