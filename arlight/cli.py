@@ -46,17 +46,18 @@ def _build_config(args: argparse.Namespace):
 
 
 def _open_source(args: argparse.Namespace):
-    """(sequence-like with .camera, len(), frame(i)), ground truth or None."""
+    """(camera, frames, per-frame ground truth (arlight.evaluation.FrameTruth) or None)."""
     from arlight.sources.image_pair import open_pair, without_poses
     from arlight.sources.sequence import open_sequence
 
     use_poses = args.poses == "groundtruth"
     if args.path == "synthetic":
+        from arlight.evaluation import scene_truth
         from arlight.sources.synthetic import make_sequence
 
         seq = make_sequence(num_frames=args.max_frames or 12)
         frames = [f if use_poses else dataclasses.replace(f, pose=None) for f in seq.frames]
-        return seq.camera, frames, seq
+        return seq.camera, frames, scene_truth(seq)
     if args.depth:
         seq = without_poses(open_pair(args.path, args.depth, args.depth_encoding), use_poses)
     else:
@@ -105,9 +106,10 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                     f"  {ms:.0f} ms")
             if truth is not None:
                 # in the camera frame: tracking's world is the first camera, the scene's
-                # world is its own, and the camera frame is the one both share
+                # world is its own, and the camera frame is the one both share; against the
+                # light that can reach the scene (its upper hemisphere), as `arlight bench`
                 err = _angle_deg(result.dominant_direction_camera,
-                                 truth.dominant_direction_camera[i])
+                                 truth[i].dominant_upper_camera)
                 errors.append(err)
                 record["angular_error_deg"] = err
                 line += f"  error={err:.1f} deg"

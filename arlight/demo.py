@@ -5,7 +5,8 @@ the built-in synthetic scene (known light) into that session in lossless mode wi
 composites, and writes what the display received: `frames/` (composites: the input frame with
 the estimated light drawn as a lit sphere; there are no virtual objects to render yet),
 `results.jsonl`, and `summary.json` (frames per second, latencies, median per-stage
-timings, the angular error of the dominant light against the scene's ground truth).
+timings, the angular error of the dominant light against the light that can reach the
+scene, its upper hemisphere).
 The server, the display and the capture client talk over real TCP sockets, exactly as they
 would across machines.
 """
@@ -49,12 +50,15 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
     out.mkdir(parents=True, exist_ok=True)
     scene = make_sequence(num_frames=frames, width=size[0], height=size[1])
     source = sequence_source("synthetic", scene.camera, scene.frames)
-    truth = scene.dominant_direction_world
+    from arlight.evaluation import scene_truth
+
+    # the light that can reach the scene (its upper hemisphere), camera frame
+    truth = [t.dominant_upper_camera for t in scene_truth(scene)]
     errors: dict[int, float] = {}
     pipeline_ms: list[float] = []
 
     def on_result(result, record) -> None:
-        err = _angle_deg(result.dominant_direction_world, truth[result.seq])
+        err = _angle_deg(result.dominant_direction_camera, truth[result.seq])
         errors[result.seq] = err
         pipeline_ms.append(record["pipeline_ms"])
         d = result.dominant_direction_camera

@@ -1,9 +1,11 @@
 """Accuracy against ground truth on ../shared/data/synthetic, pinned so it cannot regress.
 
-Runs the `full` and `fast` presets over every frame with the ground-truth poses and checks
-the median angular error of dominant_direction_camera against the medians measured with
-`benchmarks/accuracy.py` plus a 3 degree margin, and never above the issue's targets
-(12 degrees full, 15 fast).
+Runs the `full` and `fast` presets over the first FRAMES frames of all 15 sequences with the
+ground-truth poses and checks, against the light that can reach the scene
+(`dominant_dir_upper_camera`), the median of the per-sequence median angular errors and the
+90th percentile over all those frames: each at most the figure measured with
+`benchmarks/accuracy.py --configs full fast --max-frames 4` plus a 3 degree margin. The
+issue's targets (10 / 12 degrees median, 20 p90) are not reached yet: the pins hold what is.
 """
 
 import sys
@@ -17,30 +19,26 @@ from arlight.pipeline.config import Config
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from accuracy import DATA, evaluate_sequence  # noqa: E402
 
+FRAMES = 4
 MARGIN_DEG = 3.0
-TARGET_DEG = {"full": 12.0, "fast": 15.0}
-# measured median (degrees), `.venv/bin/python benchmarks/accuracy.py --configs full fast`
-MEASURED_MEDIAN_DEG = {
-    ("full", "dev_a_static_venice"): 4.2,
-    ("full", "dev_b_dynamic_potsdamer"): 7.7,
-    ("full", "dev_c_lightswitch_forest_kiara"): 7.0,
-    ("full", "dev_d_indoor_warehouse"): 4.3,
-    ("full", "dev_e_fewnormals_studio"): 5.2,
-    ("fast", "dev_a_static_venice"): 7.3,
-    ("fast", "dev_b_dynamic_potsdamer"): 14.2,
-    ("fast", "dev_c_lightswitch_forest_kiara"): 8.1,
-    ("fast", "dev_d_indoor_warehouse"): 7.0,
-    ("fast", "dev_e_fewnormals_studio"): 2.8,
-}
+# measured (degrees): median of the per-sequence medians, 90th percentile over all frames
+MEASURED_DEG = {"full": (12.1, 26.5), "fast": (12.1, 31.4)}
 
 pytestmark = [pytest.mark.slow, pytest.mark.data,
               pytest.mark.skipif(not DATA.is_dir(),
                                  reason=f"ground-truth data not found at {DATA}")]
 
 
-@pytest.mark.parametrize(("preset", "sequence"), sorted(MEASURED_MEDIAN_DEG))
-def test_median_angular_error_does_not_regress(preset, sequence):
-    errors = evaluate_sequence(DATA / sequence, Config.from_preset(preset))
-    assert np.all(np.isfinite(errors))
-    limit = min(MEASURED_MEDIAN_DEG[preset, sequence] + MARGIN_DEG, TARGET_DEG[preset])
-    assert np.median(errors) <= limit
+@pytest.mark.parametrize("preset", sorted(MEASURED_DEG))
+def test_angular_error_does_not_regress(preset):
+    sequences = sorted(p for p in DATA.iterdir() if (p / "lighting_gt.json").is_file())
+    assert len(sequences) == 15
+    errors = [evaluate_sequence(folder, Config.from_preset(preset), FRAMES)
+              for folder in sequences]
+    every = np.concatenate(errors)
+    assert np.all(np.isfinite(every))
+    median_of_medians = float(np.median([np.median(e) for e in errors]))
+    p90 = float(np.percentile(every, 90))
+    measured_median, measured_p90 = MEASURED_DEG[preset]
+    assert median_of_medians <= measured_median + MARGIN_DEG, (median_of_medians, p90)
+    assert p90 <= measured_p90 + MARGIN_DEG, (median_of_medians, p90)

