@@ -162,67 +162,64 @@ def object_space_transfer(points_cam: np.ndarray, normals_cam: np.ndarray,
     nrm = np.asarray(normals_cam, np.float32)[np.ix_(v, u)].reshape(-1, 3).astype(np.float64)
     valid = (pts[:, 2] > 0.0) & np.any(nrm != 0.0, axis=1)
     world_from_cam = np.asarray(world_from_cam, np.float64)
-    dirs = np.asarray(pattern.directions, np.float64)  # (N, 3), camera frame
+    dirs = np.ascontiguousarray(pattern.directions, np.float64)  # (N, 3), camera frame
     ysh = sh.sh_basis(dirs @ world_from_cam[:3, :3].T, params.sh_bands)  # world-frame basis
     transfer = np.zeros((hs * ws, ysh.shape[1]))
     bounce = np.zeros(hs * ws)
-    ground_lum = 0.0
-    if plane is not None and luminance is not None and np.any(plane.on_plane):
-        ground_lum = float(np.median(luminance[plane.on_plane]))
+    up, ground_lum = np.zeros(3), 0.0
+    above = np.zeros(hs * ws, bool)
+    if plane is not None:  # points on or above the plane: its horizon hides the light
+        up = np.asarray(plane.up, np.float64)
+        above = pts @ up + plane.offset > -HORIZON_BELOW_M
+        if luminance is not None and np.any(plane.on_plane):
+            ground_lum = float(np.median(luminance[plane.on_plane]))
     cast = scene if params.visibility else None
-    mesh_from_cam = (world_from_cam if cast is not None and cast.in_world else np.eye(4))
-    weight = 4.0 * math.pi / len(dirs)
+    mesh_from_cam = world_from_cam if cast is not None and cast.in_world else np.eye(4)
     rows = np.flatnonzero(valid)
     per_batch = max(1, RAY_BATCH // len(dirs))
     for start in range(0, len(rows), per_batch):
         batch = rows[start:start + per_batch]
-        x, n = pts[batch], nrm[batch]
-        f = np.maximum(n @ dirs.T, 0.0) * weight  # (B, N): max(0, n . w) 4 pi / N
-        below = np.zeros_like(f, dtype=bool)
-        if plane is not None:  # points on or above the plane: its horizon hides the light
-            above = x @ plane.up + plane.offset > -HORIZON_BELOW_M
-            below = above[:, None] & (dirs @ plane.up < 0.0)[None, :]
+        x, n = pts[batch], np.ascontiguousarray(nrm[batch])
+        counts = np.zeros(len(batch), np.int64)
+        _count_lit(n, dirs, counts)  # directions with n . w > 0, per pixel
+        offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        blocked = np.zeros(int(counts.sum()), bool)
+        ray_lum = np.zeros(len(blocked))
         if cast is not None:
             origins = x + (BIAS_ABS_M + BIAS_REL * x[:, 2:3]) * n  # off the surface, along n
-            pi, dj, blocked_f, hit_lum = _cast(cast, origins, dirs, f > 0.0, mesh_from_cam,
-                                               camera, params.rt_radius_m, luminance)
-            if hit_lum is not None:
-                bounce[batch] += np.bincount(pi[blocked_f], f[pi[blocked_f], dj[blocked_f]]
-                                             * hit_lum, minlength=len(batch))
-            f[pi[blocked_f], dj[blocked_f]] = 0.0  # V = 0
-        if luminance is not None and plane is not None:
-            bounce[batch] += (f * below).sum(axis=1) * ground_lum
-        transfer[batch] = np.where(below, 0.0, f) @ ysh
+            blocked, ray_lum = _cast(cast, origins, n, dirs, offsets, len(blocked),
+                                     mesh_from_cam, camera, params.rt_radius_m, luminance)
+        sub_t, sub_b = transfer[batch], bounce[batch]
+        _accumulate(n, above[batch], dirs, up, ysh, 4.0 * math.pi / len(dirs), offsets,
+                    blocked, ray_lum, ground_lum, sub_t, sub_b)
+        transfer[batch], bounce[batch] = sub_t, sub_b
     return TransferResult(transfer.reshape(hs, ws, -1).astype(np.float32), valid.reshape(hs, ws),
                           u, v,
                           None if luminance is None else bounce.reshape(hs, ws).astype(np.float32))
 
 
-def _cast(scene: OcclusionScene, origins_cam: np.ndarray, dirs_cam: np.ndarray,
-          lit: np.ndarray, mesh_from_cam: np.ndarray, camera: PinholeCamera,
-          radius_m: float, luminance: np.ndarray | None,
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """A ray from origins_cam[p] (B, 3) towards dirs_cam[j] (N, 3) wherever lit[p, j]:
-    their pixel p and direction j (R,) each, blocked (R,) bool, and the image luminance at
-    the projection of each blocked ray's first hit (None without an image)."""
+def _cast(scene: OcclusionScene, origins_cam: np.ndarray, normals_cam: np.ndarray,
+          dirs_cam: np.ndarray, offsets: np.ndarray, count: int, mesh_from_cam: np.ndarray,
+          camera: PinholeCamera, radius_m: float, luminance: np.ndarray | None,
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """The `count` rays from origins_cam[p] (B, 3) towards each dirs_cam[j] (N, 3) with
+    normals_cam[p] . w > 0, in that order from offsets[p] on: blocked (R,) bool, and the
+    image luminance at the projection of each blocked ray's first hit (R,) (0 elsewhere,
+    and everywhere without an image)."""
     rot, trans = mesh_from_cam[:3, :3], mesh_from_cam[:3, 3]
-    counts = lit.sum(axis=1)
-    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-    rays = np.empty((int(counts.sum()), 6), np.float32)
-    pi = np.empty(len(rays), np.int64)
-    dj = np.empty(len(rays), np.int64)
-    _fill_rays((origins_cam @ rot.T + trans).astype(np.float32),
-               (dirs_cam @ rot.T).astype(np.float32), lit, offsets, rays, pi, dj)
+    rays = np.empty((count, 6), np.float32)
+    _fill_rays((origins_cam @ rot.T + trans).astype(np.float32), normals_cam, dirs_cam,
+               (dirs_cam @ rot.T).astype(np.float32), offsets, rays)
     blocked = scene.blocked(rays, BIAS_ABS_M, radius_m)
+    lum = np.zeros(count)
     if luminance is None:
-        return pi, dj, blocked, None
+        return blocked, lum
     hit_rays = rays[blocked]
     hit_rays[:, :3] += BIAS_ABS_M * hit_rays[:, 3:]  # the first hit beyond tnear
     t = scene.first_hit(hit_rays).astype(np.float64)
     t = np.where(np.isfinite(t), t, radius_m - BIAS_ABS_M)  # (a blocked ray cannot miss)
     hits_m = hit_rays[:, :3].astype(np.float64) + t[:, None] * hit_rays[:, 3:]
     hits_cam = (hits_m - trans) @ rot  # back into the camera frame (rot is a rotation)
-    lum = np.zeros(len(hits_cam))
     z = hits_cam[:, 2]
     front = z > 1e-6
     col = np.full(len(z), -1, np.int64)
@@ -230,23 +227,61 @@ def _cast(scene: OcclusionScene, origins_cam: np.ndarray, dirs_cam: np.ndarray,
     col[front] = np.rint(camera.fx * hits_cam[front, 0] / z[front] + camera.cx)
     row[front] = np.rint(camera.fy * hits_cam[front, 1] / z[front] + camera.cy)
     inside = front & (col >= 0) & (col < camera.width) & (row >= 0) & (row < camera.height)
-    lum[inside] = luminance[row[inside], col[inside]]
-    return pi, dj, blocked, lum
+    hit_lum = np.zeros(len(z))
+    hit_lum[inside] = luminance[row[inside], col[inside]]
+    lum[blocked] = hit_lum
+    return blocked, lum
+
+
+# The per-pixel loops are Numba kernels (no BLAS: its thread pool fights numba's for two
+# cores); each visits the directions with n . w > 0 of one pixel in the same order, so the
+# k-th ray of pixel p is offsets[p] + k in every array.
+@numba.njit(parallel=True, cache=True)
+def _count_lit(normals, dirs, counts):
+    for p in numba.prange(normals.shape[0]):
+        c = 0
+        for j in range(dirs.shape[0]):
+            if (normals[p, 0] * dirs[j, 0] + normals[p, 1] * dirs[j, 1]
+                    + normals[p, 2] * dirs[j, 2]) > 0.0:
+                c += 1
+        counts[p] = c
 
 
 @numba.njit(parallel=True, cache=True)
-def _fill_rays(origins, dirs, lit, offsets, rays, pixel, direction):
-    """rays[offsets[p] + k] = (origins[p], dirs[j]) for the k-th j with lit[p, j]."""
-    for p in numba.prange(lit.shape[0]):
+def _fill_rays(origins_m, normals, dirs, dirs_m, offsets, rays):
+    for p in numba.prange(normals.shape[0]):
         k = offsets[p]
-        for j in range(lit.shape[1]):
-            if lit[p, j]:
+        for j in range(dirs.shape[0]):
+            if (normals[p, 0] * dirs[j, 0] + normals[p, 1] * dirs[j, 1]
+                    + normals[p, 2] * dirs[j, 2]) > 0.0:
                 for c in range(3):
-                    rays[k, c] = origins[p, c]
-                    rays[k, 3 + c] = dirs[j, c]
-                pixel[k] = p
-                direction[k] = j
+                    rays[k, c] = origins_m[p, c]
+                    rays[k, 3 + c] = dirs_m[j, c]
                 k += 1
+
+
+@numba.njit(parallel=True, cache=True)
+def _accumulate(normals, above, dirs, up, ysh, weight, offsets, blocked, ray_lum, ground_lum,
+                transfer, bounce):
+    """transfer[p] += V max(0, n . w) Y(w) weight over the directions (V = not blocked,
+    and nothing below the plane's horizon for a point `above` it); bounce[p] += the same
+    factor times the hit's luminance (blocked) or ground_lum (below the horizon)."""
+    for p in numba.prange(normals.shape[0]):
+        k = offsets[p]
+        for j in range(dirs.shape[0]):
+            cos_n = (normals[p, 0] * dirs[j, 0] + normals[p, 1] * dirs[j, 1]
+                     + normals[p, 2] * dirs[j, 2])
+            if cos_n <= 0.0:
+                continue
+            f = cos_n * weight
+            if blocked[k]:
+                bounce[p] += f * ray_lum[k]
+            elif above[p] and up[0] * dirs[j, 0] + up[1] * dirs[j, 1] + up[2] * dirs[j, 2] < 0.0:
+                bounce[p] += f * ground_lum
+            else:
+                for c in range(ysh.shape[1]):
+                    transfer[p, c] += f * ysh[j, c]
+            k += 1
 
 
 class ObjectSpaceTransfer:

@@ -245,3 +245,32 @@ def test_bench_runs_it_as_a_comparator():
     assert bench.config.transfer.rt_method is RtMethod.RAYCAST
     # as `full` otherwise, less the auxiliary buffers only SSDO reads
     assert bench.config.replace(aux_buffers=True, rt_method="ssdo") == Config.from_preset("full")
+
+
+def test_below_the_support_plane_is_the_ground():
+    """rt_horizon: for a wall point above the ground, the lower half of its hemisphere goes
+    from the transfer to the bounce, at the ground's median luminance (no occluder here)."""
+    from arlight.pipeline.horizon import SupportPlane
+
+    camera = PinholeCamera(2, 2, 2.0, 2.0, 0.5, 0.5)
+    points = np.zeros((2, 2, 3), np.float32)
+    normals = np.zeros((2, 2, 3), np.float32)
+    points[0, 0] = (0.0, 0.0, 1.0)
+    normals[0, 0] = (0.0, 0.0, -1.0)  # a wall facing the camera
+    up = np.array([0.0, -1.0, 0.0])  # camera y points down
+    on_plane = np.zeros((2, 2), bool)
+    on_plane[1, 1] = True
+    plane = SupportPlane(up, 1.0, on_plane)  # the ground 1 m below the point
+    lum = np.full((2, 2), 0.2, np.float32)
+    lum[1, 1] = 0.8
+    cfg = Config().replace(rt_method="raycast", rt_directions=1024)
+    pattern = make_sampling_pattern(cfg.transfer, cfg.seed)
+    args = (points, normals, camera, np.eye(4), pattern, None, cfg.transfer)
+    whole = ost.object_space_transfer(*args, luminance=lum)
+    upper = ost.object_space_transfer(*args, luminance=lum, plane=plane)
+    assert whole.bounce[0, 0] == 0.0 and upper.valid[0, 0] and not upper.valid[1, 1]
+    y00 = sh.sh_basis(UP, 1)[0]
+    # half the cosine-weighted hemisphere (pi / 2) each, by quadrature
+    assert whole.transfer[0, 0, 0] / y00 == pytest.approx(math.pi, rel=0.02)
+    assert upper.transfer[0, 0, 0] / y00 == pytest.approx(math.pi / 2, rel=0.03)
+    assert upper.bounce[0, 0] == pytest.approx(0.8 * math.pi / 2, rel=0.03)
