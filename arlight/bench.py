@@ -27,7 +27,13 @@ from arlight.pipeline.pipeline import STAGES, Pipeline, smooth_depth_for_normals
 from arlight.sources.synthetic import parse_size
 
 BUILT_IN = "synthetic"
-COMPARATORS = {"baseline": ("full", {"visibility": False})}  # K = 1: no visibility at all
+# configurations that are not presets: a preset and what they change in it
+COMPARATORS = {
+    "baseline": ("full", {"visibility": False}),  # K = 1: no visibility at all
+    # object-space visibility (GR12/GR14 style): rays against the volume's mesh; the
+    # auxiliary buffers serve only SSDO, so they are not rendered for it
+    "raycast": ("full", {"rt_method": "raycast", "aux_buffers": False}),
+}
 NORMAL_SAMPLES = 4000  # observed normals per frame for the shading error
 NORMAL_WINDOW = 15  # pixels, the pipeline's default smoothing before normals
 

@@ -665,9 +665,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="'synthetic' (the built-in scene, default), a sequence folder with "
                             "lighting_gt.json, or a folder of them (../shared/data/synthetic)")
     bench.add_argument("--presets", nargs="+", default=["full", "fast"],
-                       choices=("full", "fast", "mobile", "baseline"),
+                       choices=("full", "fast", "mobile", "baseline", "raycast"),
                        help="configurations to compare (default full fast; baseline = full "
-                            "without visibility, K = 1)")
+                            "without visibility, K = 1; raycast = full with object-space "
+                            "visibility, rays against the volume's mesh, rt_method=raycast)")
     bench.add_argument("--sweep", action="append", default=[], metavar="KEY=V1,V2,...",
                        help="a curve: the first preset with KEY set to each value in turn "
                             "(any --set key, or size=WxH,... for the built-in scene); repeatable")

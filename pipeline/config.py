@@ -49,6 +49,13 @@ class VisibilityRamp(_StrEnum):
     HALF = "half"  # c = 1 - chi: K ramps over half the angle between neighbouring directions
 
 
+class RtMethod(_StrEnum):
+    """How RadTransfer decides visibility V(x, w)."""
+
+    SSDO = "ssdo"  # image space: SSDO samples against G_r and the aux buffers (eq. 6-9)
+    RAYCAST = "raycast"  # object space: rays against the reconstructed mesh (GR12/GR14)
+
+
 class SegmentFeatures(_StrEnum):
     INVARIANT = "invariant"  # log chromaticity across the Planckian locus (sun/sky robust)
     CHROMA = "chroma"  # rg chromaticity (sensitive to sun/sky colour)
@@ -186,8 +193,13 @@ class FilterParams:
 
 @dataclass(frozen=True)
 class TransferParams:
-    """RadTransfer: image-space SSDO radiance transfer into SH (section 5.1, eq. 6-9)."""
+    """RadTransfer: image-space SSDO radiance transfer into SH (section 5.1, eq. 6-9), or
+    object-space ray casting as a comparator (rt_method "raycast")."""
 
+    # "ssdo": the paper's image-space visibility; "raycast": rays of length rt_radius_m
+    # against the volume's mesh (or the depth image's) in the same directions
+    # (pipeline/object_space_transfer.py); both give the same kind of transfer
+    rt_method: RtMethod = RtMethod.SSDO
     sh_bands: int = 4  # L: L*L coefficients (the light estimate solves for as many)
     rt_directions: int = 64  # N jittered directions on the sphere
     rt_radius_m: float = 0.5  # largest sample displacement along a direction
@@ -207,6 +219,7 @@ class TransferParams:
     rt_horizon: bool = False
 
     def __post_init__(self) -> None:
+        _check_enum(self, "rt_method", RtMethod)
         _check_int(self, "sh_bands", 1, 12)
         _check_int(self, "rt_directions", 4)
         _check_float(self, "rt_radius_m", 0.0, low_open=True)

@@ -21,11 +21,12 @@ from arlight.checks import CheckError, check_finite, check_image, check_rigid, d
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.color import intensity_from_rgb, luminance, srgb_to_linear
-from arlight.pipeline.config import Config
+from arlight.pipeline.config import Config, RtMethod
 from arlight.pipeline.depth_filter import backend_for_device, filter_depth, normals_from_depth
 from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
 from arlight.pipeline.horizon import SupportPlane, support_plane
 from arlight.pipeline.light_estimation import LightEstimate, TemporalFilter, estimate_light
+from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer
 from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
     TransferResult,
@@ -226,13 +227,20 @@ class Pipeline:
 
     def _transfer(self, geometry: _Geometry, color_linear: np.ndarray, pose: np.ndarray,
                   aux_buffers: list) -> TransferResult:
-        """RadTransfer (eq. 6-9), up-sampled to every pixel when sub-sampled (OursFast)."""
+        """RadTransfer (eq. 6-9, or rays against the surface with rt_method "raycast"),
+        up-sampled to every pixel when sub-sampled (OursFast)."""
         p = self.config.transfer
-        aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
         lum = luminance(color_linear) if p.rt_bounce else None
-        transfer = compute_transfer(geometry.points, geometry.normals, self.camera, pose,
-                                    self.pattern, aux, p, lum,
-                                    geometry.plane if p.rt_horizon else None)
+        plane = geometry.plane if p.rt_horizon else None
+        if p.rt_method is RtMethod.RAYCAST:
+            if getattr(self, "_raycaster", None) is None:  # the session's scene, made once
+                self._raycaster = ObjectSpaceTransfer(self.config.aux.aux_update_interval)
+            transfer = self._raycaster.compute(geometry.points, geometry.normals, self.camera,
+                                               pose, self.pattern, p, lum, plane, self._volume)
+        else:
+            aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
+            transfer = compute_transfer(geometry.points, geometry.normals, self.camera, pose,
+                                        self.pattern, aux, p, lum, plane)
         if p.rt_upsample and p.rt_subsample > 1:
             has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
             transfer = upsample_transfer(transfer, has_geometry)

@@ -109,6 +109,10 @@ class VolumeReconstruction:
         """Zero crossings of V (`TsdfVolume.surface_points`)."""
         return self._volume.surface_points(stride)
 
+    def triangle_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """V as a world-frame triangle mesh (`TsdfVolume.triangle_mesh`)."""
+        return self._volume.triangle_mesh()
+
     # ---------------------------------------------------------------- per frame
     def process(self, color_rgb_u8: np.ndarray, depth_m: np.ndarray, pose: np.ndarray | None,
                 light_direction_world: np.ndarray | None = None) -> SurfaceOutput:

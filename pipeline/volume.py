@@ -230,6 +230,27 @@ class TsdfVolume:
             result["mask"].cpu().numpy()[:h, :w], result["interp_ratio"].cpu().numpy()[:h, :w],
             world_from_cam, cam, c.voxel_size_m)
 
+    def triangle_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """V's zero level set as a triangle mesh (Open3D's marching cubes over the voxels
+        seen as often as the ray caster requires, `weight_threshold`).
+
+        Returns world vertices (M, 3) float32 metres and triangles (K, 3) int32, both on the
+        host; empty arrays while V holds no surface. Cost: one pass over every allocated
+        block (about 0.3 s for a room at 256^3 on two CPU cores).
+        """
+        empty = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
+        if self.num_blocks == 0:
+            return empty
+        # Open3D keeps voxels of weight > threshold (strictly) and raises instead of
+        # returning an empty mesh (0.20, without a colour attribute); weights count the
+        # frames that saw a voxel, whole numbers, so threshold - 0.5 keeps weight >= threshold
+        try:
+            mesh = self._grid.extract_triangle_mesh(self.weight_threshold() - 0.5)
+        except RuntimeError:
+            return empty
+        return (mesh.vertex.positions.cpu().numpy().astype(np.float32, copy=False),
+                mesh.triangle.indices.cpu().numpy().astype(np.int32, copy=False))
+
     def surface_points(self, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Zero crossings of the TSDF of V, on the voxel grid sub-sampled every `stride` voxels.
 
