@@ -142,6 +142,9 @@ class Pipeline:
         self._pose = np.eye(4)
         self._light_world: np.ndarray | None = None
         self._up_world: np.ndarray | None = None  # of the support plane, last seen
+        # rt_method raycast: the session's ray-casting scene, rebuilt as the volume grows
+        self._raycaster = (ObjectSpaceTransfer(config.aux.aux_update_interval)
+                           if config.transfer.rt_method is RtMethod.RAYCAST else None)
 
     def process(self, frame: FrameInput) -> FrameResult:
         """Estimate the lighting of one frame. Raises FrameError on malformed input."""
@@ -233,8 +236,6 @@ class Pipeline:
         lum = luminance(color_linear) if p.rt_bounce else None
         plane = geometry.plane if p.rt_horizon else None
         if p.rt_method is RtMethod.RAYCAST:
-            if getattr(self, "_raycaster", None) is None:  # the session's scene, made once
-                self._raycaster = ObjectSpaceTransfer(self.config.aux.aux_update_interval)
             transfer = self._raycaster.compute(geometry.points, geometry.normals, self.camera,
                                                pose, self.pattern, p, lum, plane, self._volume)
         else:
