@@ -72,14 +72,11 @@ def main(argv=None) -> int:
         return 2
     overrides = {}
     for kv in args.set:
-        k, v = kv.split("=", 1)
-        if v in ("True", "False"):
-            overrides[k] = v == "True"
-        else:
-            try:
-                overrides[k] = json.loads(v)
-            except json.JSONDecodeError:
-                overrides[k] = v  # a plain string, e.g. rt_visibility_ramp=half
+        k, _, v = kv.partition("=")
+        try:
+            overrides[k] = Config.parse_flat_value(k, v)  # as `arlight --set` reads it
+        except ValueError as exc:
+            parser.error(f"--set {kv}: {exc}")
     seqs = sorted(p for p in DATA.iterdir() if (p / "lighting_gt.json").exists())
     if args.sequences:
         seqs = [p for p in seqs if p.name in args.sequences]

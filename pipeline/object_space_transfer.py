@@ -60,6 +60,7 @@ from arlight.pipeline.radiance_transfer import (
     HORIZON_BELOW_M,
     SamplingPattern,
     TransferResult,
+    plane_arrays,
 )
 
 if TYPE_CHECKING:
@@ -169,13 +170,11 @@ def object_space_transfer(points_cam: np.ndarray, normals_cam: np.ndarray,
     ysh = sh.sh_basis(dirs @ world_from_cam[:3, :3].T, params.sh_bands)  # world-frame basis
     transfer = np.zeros((hs * ws, ysh.shape[1]))
     bounce = np.zeros(hs * ws)
-    up, ground_lum = np.zeros(3), 0.0
+    plane_arr, ground_lum = plane_arrays(plane, luminance)
+    up = plane_arr[:3]
     above = np.zeros(hs * ws, bool)
     if plane is not None:  # points on or above the plane: its horizon hides the light
-        up = np.asarray(plane.up, np.float64)
-        above = pts @ up + plane.offset > -HORIZON_BELOW_M
-        if luminance is not None and np.any(plane.on_plane):
-            ground_lum = float(np.median(luminance[plane.on_plane]))
+        above = pts @ up + plane_arr[3] > -HORIZON_BELOW_M
     cast = scene if params.visibility else None
     mesh_from_cam = world_from_cam if cast is not None and cast.in_world else np.eye(4)
     rows = np.flatnonzero(valid)

@@ -318,7 +318,7 @@ def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: Pi
         check_image(luminance, "luminance", size=(w, h))
     lum = (np.zeros((1, 1), np.float32) if luminance is None
            else np.ascontiguousarray(luminance, dtype=np.float32))
-    plane_arr, ground_lum = _plane_arrays(plane, lum if luminance is not None else None)
+    plane_arr, ground_lum = plane_arrays(plane, lum if luminance is not None else None)
     _transfer_cpu(points, np.ascontiguousarray(normals_cam, dtype=np.float32), depth,
                   camera.fx, camera.fy, camera.cx, camera.cy, pattern.directions, ysh,
                   pattern.radii, aux.depth, aux.buffer_from_cam, aux.pixel_size,
@@ -331,8 +331,8 @@ def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: Pi
                           bounce.astype(np.float32) if luminance is not None else None)
 
 
-def _plane_arrays(plane: SupportPlane | None,
-                  luminance: np.ndarray | None) -> tuple[np.ndarray, float]:
+def plane_arrays(plane: SupportPlane | None,
+                 luminance: np.ndarray | None) -> tuple[np.ndarray, float]:
     """(up, offset) as a (4,) array (zeros: no plane) and the ground's median luminance."""
     if plane is None:
         return np.zeros(4), 0.0
