@@ -56,6 +56,13 @@ class RtMethod(_StrEnum):
     RAYCAST = "raycast"  # object space: rays against the reconstructed mesh (GR12/GR14)
 
 
+class DiffMode(_StrEnum):
+    """How the differential rendering applies the virtual objects' shading change to I_c."""
+
+    RATIO = "ratio"  # I_c R'_d / R_d: exact for a Lambertian surface under the same light
+    PAPER = "paper"  # eq. 13: I_c (1 + T(R'_d) - T(R_d)), Reinhard T keyed on each buffer
+
+
 class SegmentFeatures(_StrEnum):
     INVARIANT = "invariant"  # log chromaticity across the Planckian locus (sun/sky robust)
     CHROMA = "chroma"  # rg chromaticity (sensitive to sun/sky colour)
@@ -284,6 +291,34 @@ class TemporalParams:
         _check_float(self, "change_reset_rad", 0.0, math.pi, low_open=True)
 
 
+@dataclass(frozen=True)
+class RenderParams:
+    """Rendering: differential rendering of the virtual objects (section 5.4, eq. 10-15).
+
+    The shading of real and real + virtual is computed only around the objects (within
+    rt_radius_m of their bounding spheres, where a sample can meet them), with the SSDO
+    transfer of RadTransfer's directions."""
+
+    render_mode: DiffMode = DiffMode.RATIO
+    render_subsample: int = 1  # image-space sub-sampling of the differential buffers (fast: 4)
+    render_blur_radius_px: int = 8  # Gaussian radius of the up-sampling (the paper: 8)
+    render_steps: int = 4  # samples along each direction (more: smoother shadows)
+    render_indirect: bool = True  # one-bounce light between real and virtual (eq. 10-12, 14)
+    # the real scene's mean albedo: the light estimate knows albedo x light only, so a
+    # virtual albedo is shaded relative to this (0.5: mid-grey, a prior, not fitted)
+    render_real_albedo: float = 0.5
+    tone_key: float = 0.18  # render_mode "paper": Reinhard's key value a
+
+    def __post_init__(self) -> None:
+        _check_enum(self, "render_mode", DiffMode)
+        _check_int(self, "render_subsample", 1)
+        _check_int(self, "render_blur_radius_px", 0)
+        _check_int(self, "render_steps", 1)
+        _check_bool(self, "render_indirect")
+        _check_float(self, "render_real_albedo", 0.0, 1.0, low_open=True)
+        _check_float(self, "tone_key", 0.0, low_open=True)
+
+
 STAGE_TYPES: dict[str, type] = {
     "volume": VolumeParams,
     "aux": AuxBufferParams,
@@ -291,6 +326,7 @@ STAGE_TYPES: dict[str, type] = {
     "transfer": TransferParams,
     "estimation": EstimationParams,
     "temporal": TemporalParams,
+    "render": RenderParams,
 }
 
 
@@ -343,9 +379,10 @@ def _flat_overrides(changes: dict[str, Any]) -> dict[str, Any]:
 
 def _preset_overrides(preset: Preset) -> dict[str, Any]:
     if preset is Preset.FAST:
-        return {"rt_subsample": 4}
+        return {"rt_subsample": 4, "render_subsample": 4}
     if preset is Preset.MOBILE:
-        return {"volume_resolution": 64, "denoise": False, "rt_subsample": 4}
+        return {"volume_resolution": 64, "denoise": False, "rt_subsample": 4,
+                "render_subsample": 4}
     return {}
 
 
@@ -366,6 +403,7 @@ class Config:
     transfer: TransferParams = field(default_factory=TransferParams)
     estimation: EstimationParams = field(default_factory=EstimationParams)
     temporal: TemporalParams = field(default_factory=TemporalParams)
+    render: RenderParams = field(default_factory=RenderParams)
 
     def __post_init__(self) -> None:
         try:

@@ -3,7 +3,8 @@
 Data flow: docs/architecture.md, "Data flow".
 
 Stages, named as the rows of the paper's table 1: Input, Reconstruct, Surface, DynGeo,
-RadTransfer, LightEst (Rendering is skipped while there is no virtual scene to render).
+RadTransfer, LightEst, Rendering (differential rendering of the virtual scene; skipped,
+at no cost, when there is none).
 """
 
 from __future__ import annotations
@@ -34,8 +35,15 @@ from arlight.pipeline.radiance_transfer import (
     make_sampling_pattern,
     upsample_transfer,
 )
+from arlight.pipeline.rendering import (
+    DifferentialRenderer,
+    RenderInputs,
+    RenderOutput,
+    luminance_light_rgb,
+)
 from arlight.pipeline.runtime import require_device
 from arlight.pipeline.segmentation import material_segments
+from arlight.pipeline.virtual_scene import VirtualScene, resolve_anchors
 
 log = logging.getLogger(__name__)
 
@@ -122,15 +130,22 @@ class Pipeline:
     """Holds one session's state (volume, pose, temporal filter); see docs/architecture.md.
 
     config: all parameters (Config.from_preset); camera: intrinsics of the (registered)
-    colour and depth images; scene: virtual objects to render (not used yet: no
-    differential rendering until a scene is given). Not thread-safe (pipeline.runtime).
+    colour and depth images; scene: virtual objects to render into each frame (the
+    composite of FrameResult; None or empty: nothing is rendered and the composite is left
+    None, meaning the input frame). Not thread-safe (pipeline.runtime).
     """
 
-    def __init__(self, config: Config, camera: PinholeCamera, scene=None):
+    def __init__(self, config: Config, camera: PinholeCamera,
+                 scene: VirtualScene | None = None):
         require_device(config.device)  # a clear error, not Open3D's, when there is no GPU
         self.config = config
         self.camera = camera
-        self.scene = scene
+        self.scene = scene if scene else None
+        # the renderer of the placed objects; anchored ones wait for a support plane
+        self._renderer: DifferentialRenderer | None = None
+        if self.scene is not None and not self.scene.anchored:
+            self._renderer = DifferentialRenderer(self.scene, camera, config)
+        self.last_render: tuple[RenderInputs, RenderOutput] | None = None
         self.pattern = make_sampling_pattern(config.transfer, config.seed)
         self.filter = TemporalFilter(config.temporal)
         self.frames_processed = 0
@@ -171,7 +186,13 @@ class Pipeline:
             intensity_value = sh.intensity_along(coeffs, direction_world)
             if np.any(direction_world):
                 self._light_world = direction_world
-        timings["Rendering"] = 0.0
+        composite = None
+        if self.scene is None:
+            timings["Rendering"] = 0.0
+        else:
+            with _stage(timings, "Rendering"):
+                composite = self._render(valid, color_linear, geometry, pose, aux_buffers,
+                                         coeffs, estimate)
         self.frames_processed += 1
         diagnostics.update(self._estimate_diagnostics(estimate, up_world))
         rotation = pose[:3, :3]
@@ -180,7 +201,39 @@ class Pipeline:
             dominant_direction_world=direction_world,
             dominant_direction_camera=rotation.T @ direction_world,
             intensity=intensity_value, confidence=estimate.confidence, pose=pose.copy(),
-            sh_rgb=estimate.sh_rgb, composite=None, timings_ms=timings, diagnostics=diagnostics)
+            sh_rgb=estimate.sh_rgb, composite=composite, timings_ms=timings,
+            diagnostics=diagnostics)
+
+    def _render(self, valid: ValidFrame, color_linear: np.ndarray, geometry: _Geometry,
+                pose: np.ndarray, aux_buffers: list, coeffs: np.ndarray,
+                estimate: LightEstimate) -> np.ndarray | None:
+        """Rendering: the composite (H, W, 3) uint8 of the placed virtual objects, or None
+        (the input) while none is placed. The estimate knows albedo x light only (its mean
+        albedo is 1): the light is scaled by pi / render_real_albedo into image units."""
+        if self._renderer is None:
+            self._place_anchored(geometry, pose)
+            if self._renderer is None:
+                return None
+        light = np.asarray(coeffs, np.float64) * (math.pi
+                                                  / self.config.render.render_real_albedo)
+        inputs = RenderInputs(valid.color, color_linear, geometry.depth_m, geometry.normals,
+                              pose, list(aux_buffers), geometry.plane, light,
+                              luminance_light_rgb(estimate.sh_rgb))
+        output = self._renderer.render(inputs)
+        self.last_render = (inputs, output)
+        return output.composite
+
+    def _place_anchored(self, geometry: _Geometry, pose: np.ndarray) -> None:
+        """Resolve anchored objects on this frame's support plane; build the renderer once
+        every object is placed."""
+        plane = geometry.plane
+        if plane is None:
+            plane = support_plane(geometry.normals, geometry.points)
+        if plane is None:
+            return
+        self.scene = resolve_anchors(self.scene, plane.up, plane.offset, pose, self.camera)
+        if not self.scene.anchored:
+            self._renderer = DifferentialRenderer(self.scene, self.camera, self.config)
 
     def _light_direction(self, coeffs: np.ndarray) -> np.ndarray:
         """The dominant direction reported (world): of the light above the horizon of the

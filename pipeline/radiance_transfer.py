@@ -168,9 +168,9 @@ def _visibility(px, py, pz, wx, wy, wz, radius, depth, fx, fy, cx, cy,
 
 
 @register_jitable
-def _ground_luminance(px, py, pz, wx, wy, wz, t, depth, luminance, fx, fy, cx, cy, fallback):
-    """Luminance of the ground where the ray x + t w meets it, when the camera sees that
-    spot (in the image, depth within 5 %), else `fallback`."""
+def _ground_pixel(px, py, pz, wx, wy, wz, t, depth, fx, fy, cx, cy):
+    """(u, v) of the ground where the ray x + t w meets it, when the camera sees that spot
+    (in the image, depth within 5 %), else (-1, -1)."""
     hz = pz + t * wz
     if hz > 1e-6:
         u = int(round(fx * (px + t * wx) / hz + cx))
@@ -178,34 +178,37 @@ def _ground_luminance(px, py, pz, wx, wy, wz, t, depth, luminance, fx, fy, cx, c
         if 0 <= u < depth.shape[1] and 0 <= v < depth.shape[0]:
             d = depth[v, u]
             if d > 0.0 and abs(d - hz) < 0.05 * hz:
-                return luminance[v, u]
-    return fallback
+                return u, v
+    return -1, -1
 
 
 @register_jitable
 def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii,
                     aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness,
-                    use_visibility, luminance, plane, ground_lum, out):
-    """Fill out (C,) with the SH transfer vector of pixel (ui, vi).
+                    use_visibility, radiance, plane, ground, out, bounce):
+    """Fill out (C,) with the SH transfer vector of pixel (ui, vi) and bounce (B,) with
+    sum_j (1 - K_j) max(0, w_j . n) I(s_j) 4 pi / N, the one-bounce light from the occluders,
+    I(s_j) the radiance image (H, W, B) where the blocking sample projects (no bounce when
+    radiance is not image-sized, e.g. (1, 1, B)). Returns False where the pixel has no
+    geometry (out and bounce zero).
 
-    Returns (valid, bounce): bounce = sum_j (1 - K_j) max(0, w_j . n) I(s_j) 4 pi / N, the
-    one-bounce light from the occluders, with I(s_j) the image luminance where the
-    blocking sample projects (0 when no luminance image is given, luminance.size == 1).
     plane (4,): (up, offset) of the support plane, camera frame, or zeros (none): for a
     point above it, a direction below its horizon meets the ground, so it adds the ground's
-    luminance (where the ray hits it, if seen there, else `ground_lum`) to the bounce and
+    radiance (where the ray hits it, if seen there, else `ground` (B,)) to the bounce and
     nothing to the transfer.
     """
     for c in range(out.shape[0]):
         out[c] = 0.0
+    for c in range(bounce.shape[0]):
+        bounce[c] = 0.0
     pz = points[vi, ui, 2]
     nx, ny, nz = normals[vi, ui, 0], normals[vi, ui, 1], normals[vi, ui, 2]
     if not (pz > 0.0) or (nx == 0.0 and ny == 0.0 and nz == 0.0):
-        return False, 0.0
+        return False
     px, py = points[vi, ui, 0], points[vi, ui, 1]
     h, w = depth.shape
-    with_bounce = luminance.shape[0] == h and luminance.shape[1] == w
-    bounce = 0.0
+    with_bounce = radiance.shape[0] == h and radiance.shape[1] == w
+    nb = bounce.shape[0]
     ux, uy, uz = plane[0], plane[1], plane[2]
     height = ux * px + uy * py + uz * pz + plane[3]
     # points clearly under the plane (a floor seen past a table's edge) are not shadowed by it
@@ -233,8 +236,10 @@ def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, r
         cos_up = wx * ux + wy * uy + wz * uz
         if use_plane and cos_up < 0.0:
             if with_bounce and f > 0.0:
-                bounce += f * _ground_luminance(px, py, pz, wx, wy, wz, max(height, 0.0) / -cos_up,
-                                                depth, luminance, fx, fy, cx, cy, ground_lum)
+                gu, gv = _ground_pixel(px, py, pz, wx, wy, wz, max(height, 0.0) / -cos_up,
+                                       depth, fx, fy, cx, cy)
+                for c in range(nb):
+                    bounce[c] += f * (radiance[gv, gu, c] if gu >= 0 else ground[c])
         elif f > 0.0:
             for c in range(out.shape[0]):
                 out[c] += f * ysh[j, c]
@@ -244,24 +249,37 @@ def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, r
                 u = int(round(fx * (px + blocker * wx) / yz + cx))
                 v = int(round(fy * (py + blocker * wy) / yz + cy))
                 if 0 <= u < w and 0 <= v < h:
-                    bounce += (1.0 - k) * cos_n * weight * luminance[v, u]
-    return True, bounce
+                    for c in range(nb):
+                        bounce[c] += (1.0 - k) * cos_n * weight * radiance[v, u, c]
+    return True
 
 
 @numba.njit(parallel=True, cache=True)
 def _transfer_cpu(points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
                   aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness, use_visibility,
-                  luminance, plane, ground_lum, step, transfer, bounce, valid):
+                  radiance, plane, ground, step, transfer, bounce, valid):
     hs, ws = valid.shape
     h, w = depth.shape
     for i in numba.prange(hs):
         vi = min(i * step + step // 2, h - 1)
         for jj in range(ws):
             ui = min(jj * step + step // 2, w - 1)
-            valid[i, jj], bounce[i, jj] = _transfer_pixel(
+            valid[i, jj] = _transfer_pixel(
                 ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
                 aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness, use_visibility,
-                luminance, plane, ground_lum, transfer[i, jj])
+                radiance, plane, ground, transfer[i, jj], bounce[i, jj])
+
+
+@numba.njit(parallel=True, cache=True)
+def _transfer_list_cpu(points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
+                       aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness,
+                       use_visibility, radiance, plane, ground, us, vs, transfer, bounce,
+                       valid):
+    for p in numba.prange(us.shape[0]):
+        valid[p] = _transfer_pixel(
+            us[p], vs[p], points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii,
+            aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness,
+            use_visibility, radiance, plane, ground, transfer[p], bounce[p])
 
 
 @dataclass
@@ -306,39 +324,90 @@ def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: Pi
     h, w = points_cam.shape[:2]
     step = params.rt_subsample
     hs, ws = (h + step - 1) // step, (w + step - 1) // step
-    dirs_world = pattern.directions @ np.asarray(world_from_cam, np.float64)[:3, :3].T
-    ysh = sh.sh_basis(dirs_world, params.sh_bands)
-    aux = aux if aux is not None else AuxBufferArrays.empty()
-    transfer = np.zeros((hs, ws, ysh.shape[1]), np.float64)
-    valid = np.zeros((hs, ws), np.bool_)
-    bounce = np.zeros((hs, ws), np.float64)
-    points = np.ascontiguousarray(points_cam, dtype=np.float32)
-    depth = np.ascontiguousarray(points[..., 2])
     if luminance is not None:  # a public entry: the one image not made from points_cam
         check_image(luminance, "luminance", size=(w, h))
-    lum = (np.zeros((1, 1), np.float32) if luminance is None
-           else np.ascontiguousarray(luminance, dtype=np.float32))
-    plane_arr, ground_lum = plane_arrays(plane, lum if luminance is not None else None)
-    _transfer_cpu(points, np.ascontiguousarray(normals_cam, dtype=np.float32), depth,
-                  camera.fx, camera.fy, camera.cx, camera.cy, pattern.directions, ysh,
-                  pattern.radii, aux.depth, aux.buffer_from_cam, aux.pixel_size,
-                  visibility_ramp(pattern, params),
-                  BIAS_ABS_M, BIAS_REL, params.rt_thickness_m, params.visibility, lum,
-                  plane_arr, ground_lum, step, transfer, bounce, valid)
+        luminance = np.asarray(luminance)[..., None]
+    k = _KernelInputs.make(points_cam, normals_cam, world_from_cam, pattern, aux, params,
+                           luminance, plane)
+    transfer = np.zeros((hs, ws, k.ysh.shape[1]), np.float64)
+    valid = np.zeros((hs, ws), np.bool_)
+    bounce = np.zeros((hs, ws, 1), np.float64)
+    _transfer_cpu(*k.args(camera, params, pattern), step, transfer, bounce, valid)
     u = np.minimum(np.arange(ws) * step + step // 2, w - 1)
     v = np.minimum(np.arange(hs) * step + step // 2, h - 1)
     return TransferResult(transfer.astype(np.float32), valid, u, v,
-                          bounce.astype(np.float32) if luminance is not None else None)
+                          bounce[..., 0].astype(np.float32) if luminance is not None else None)
+
+
+def transfer_at_pixels(points_cam: np.ndarray, normals_cam: np.ndarray, camera: PinholeCamera,
+                       world_from_cam: np.ndarray, pattern: SamplingPattern,
+                       aux: AuxBufferArrays | None, params: TransferParams,
+                       pixels_u: np.ndarray, pixels_v: np.ndarray,
+                       radiance: np.ndarray | None = None,
+                       plane: SupportPlane | None = None,
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The transfer of :func:`compute_transfer` at the listed pixels only (the renderer's
+    region around the virtual objects): (transfer (K, C) float64, bounce (K, B) float64,
+    valid (K,) bool). radiance: optional (H, W, B) linear image whose light the occluders
+    bounce (B channels, e.g. RGB); without it bounce is (K, 0)."""
+    us = np.ascontiguousarray(pixels_u, dtype=np.int64)
+    vs = np.ascontiguousarray(pixels_v, dtype=np.int64)
+    k = _KernelInputs.make(points_cam, normals_cam, world_from_cam, pattern, aux, params,
+                           radiance, plane)
+    channels = 0 if radiance is None else radiance.shape[2]
+    transfer = np.zeros((len(us), k.ysh.shape[1]), np.float64)
+    bounce = np.zeros((len(us), max(channels, 1)), np.float64)
+    valid = np.zeros(len(us), np.bool_)
+    if len(us):
+        _transfer_list_cpu(*k.args(camera, params, pattern), us, vs, transfer, bounce, valid)
+    return transfer, bounce[:, :channels], valid
+
+
+@dataclass
+class _KernelInputs:
+    """The arrays the transfer kernels take, contiguous and typed once."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    depth: np.ndarray
+    ysh: np.ndarray
+    aux: AuxBufferArrays
+    radiance: np.ndarray
+    plane: np.ndarray
+    ground: np.ndarray
+
+    @classmethod
+    def make(cls, points_cam, normals_cam, world_from_cam, pattern, aux, params, radiance,
+             plane) -> _KernelInputs:
+        dirs_world = pattern.directions @ np.asarray(world_from_cam, np.float64)[:3, :3].T
+        points = np.ascontiguousarray(points_cam, dtype=np.float32)
+        rad = (np.zeros((1, 1, 1), np.float32) if radiance is None
+               else np.ascontiguousarray(radiance, dtype=np.float32))
+        plane_arr, ground = plane_arrays(plane, rad if radiance is not None else None)
+        return cls(points, np.ascontiguousarray(normals_cam, dtype=np.float32),
+                   np.ascontiguousarray(points[..., 2]), sh.sh_basis(dirs_world, params.sh_bands),
+                   aux if aux is not None else AuxBufferArrays.empty(), rad, plane_arr,
+                   np.broadcast_to(np.asarray(ground, np.float64), (rad.shape[2],)).copy())
+
+    def args(self, camera: PinholeCamera, params: TransferParams,
+             pattern: SamplingPattern) -> tuple:
+        return (self.points, self.normals, self.depth, camera.fx, camera.fy, camera.cx,
+                camera.cy, pattern.directions, self.ysh, pattern.radii, self.aux.depth,
+                self.aux.buffer_from_cam, self.aux.pixel_size, visibility_ramp(pattern, params),
+                BIAS_ABS_M, BIAS_REL, params.rt_thickness_m, params.visibility, self.radiance,
+                self.plane, self.ground)
 
 
 def plane_arrays(plane: SupportPlane | None,
-                 luminance: np.ndarray | None) -> tuple[np.ndarray, float]:
-    """(up, offset) as a (4,) array (zeros: no plane) and the ground's median luminance."""
+                 luminance: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | float]:
+    """(up, offset) as a (4,) array (zeros: no plane) and the ground's median luminance:
+    a float for an (H, W) image, per channel (B,) for an (H, W, B) one; 0 without either."""
     if plane is None:
         return np.zeros(4), 0.0
     ground = 0.0
     if luminance is not None and np.any(plane.on_plane):
-        ground = float(np.median(luminance[plane.on_plane]))
+        values = np.median(luminance[plane.on_plane], axis=0)
+        ground = float(values) if np.ndim(values) == 0 else values.astype(np.float64)
     return np.array([*plane.up, plane.offset], dtype=np.float64), ground
 
 
