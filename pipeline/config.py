@@ -61,6 +61,7 @@ class DiffMode(_StrEnum):
 
     RATIO = "ratio"  # I_c R'_d / R_d: exact for a Lambertian surface under the same light
     PAPER = "paper"  # eq. 13: I_c (1 + T(R'_d) - T(R_d)), Reinhard T keyed on each buffer
+    PASTE = "paste"  # the baseline: objects shaded by the light, pasted; no shadows, no bounce
 
 
 class SegmentFeatures(_StrEnum):
@@ -302,7 +303,9 @@ class RenderParams:
     render_mode: DiffMode = DiffMode.RATIO
     render_subsample: int = 1  # image-space sub-sampling of the differential buffers (fast: 4)
     render_blur_radius_px: int = 8  # Gaussian radius of the up-sampling (the paper: 8)
-    render_steps: int = 4  # samples along each direction (more: smoother shadows)
+    # samples along each direction; 2 beat 1 and 4 against path-traced truth on dev_a and
+    # dev_d alike (ground-truth light, affected pixels: a 30.9 / 31.2 / 29.0 dB for 1 / 2 / 4)
+    render_steps: int = 2
     render_indirect: bool = True  # one-bounce light between real and virtual (eq. 10-12, 14)
     # the real scene's mean albedo: the light estimate knows albedo x light only, so a
     # virtual albedo is shaded relative to this (0.5: mid-grey, a prior, not fitted)

@@ -11,7 +11,8 @@ composite is the input frame bit for bit.
 
 Real pixels (render_mode "ratio", default): I = I_c R'_d / R_d, exact for a Lambertian
 surface; "paper": eq. 13, I_d = I_c (1 + T(R'_d) - T(R_d)), T Reinhard's operator keyed on
-each buffer's mean. Virtual pixels: albedo / pi times R'_d (their own SSDO visibility).
+each buffer's mean; "paste" is the baseline that only pastes the objects, shaded by the
+unshadowed light. Virtual pixels: albedo / pi times R'_d (their own SSDO visibility).
 Indirect light (eq. 10-12, 14): the one bounce that SSDO gathers where a direction is
 blocked, from the radiance of the blocking surface: the observed image for real surfaces,
 the virtual albedo under the estimated light for virtual ones; only the change that the
@@ -143,6 +144,9 @@ class DifferentialRenderer:
             e = np.maximum(sh.evaluate(sh.irradiance_from_radiance(frame.light_sh), n_world),
                            0.0)
             radiance_c[virtual] = (g.albedo[virtual] / math.pi * e[:, None] * light_rgb)
+        if r.render_mode is DiffMode.PASTE:
+            composite[virtual] = linear_to_srgb_u8(radiance_c[virtual])
+            return RenderOutput(composite, virtual, virtual.copy(), g)
         u0, v0, u1, v1 = rect
         step = r.render_subsample
         gu = np.minimum(np.arange(u0, u1, step) + step // 2, u1 - 1)
@@ -197,8 +201,11 @@ class DifferentialRenderer:
         shape = points_cam.shape[:2]
         pts = points_cam.reshape(-1, 3).astype(np.float64)
         world = pts @ pose[:3, :3].T + pose[:3, 3]
-        near = self.raycaster.distance_to_objects(world) <= self.transfer_params.rt_radius_m
-        return (near & (pts[:, 2] > 0)).reshape(shape)
+        reach = self.transfer_params.rt_radius_m
+        near = (pts[:, 2] > 0) & (self.raycaster.distance_to_spheres(world) <= reach)
+        # the exact distance to the meshes only for what the bounding spheres let through
+        near[near] = self.raycaster.distance_to_objects(world[near]) <= reach
+        return near.reshape(shape)
 
     def _aux_with_virtual(self, buffers: list[OrthoBuffer],
                           pose: np.ndarray) -> AuxBufferArrays | None:

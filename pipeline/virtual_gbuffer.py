@@ -166,10 +166,17 @@ class VirtualRaycaster:
         return np.where(np.isfinite(t), t, 0.0).astype(np.float32).reshape(resolution,
                                                                            resolution)
 
-    def distance_to_objects(self, points_world: np.ndarray) -> np.ndarray:
+    def distance_to_spheres(self, points_world: np.ndarray) -> np.ndarray:
         """(K,) distance (metres) from each world point to the nearest object's bounding
-        sphere surface (negative inside): a cheap bound for the renderer's region."""
+        sphere (negative inside): a cheap lower bound of `distance_to_objects`."""
         best = np.full(len(points_world), np.inf)
         for centre, radius in self._spheres:
             best = np.minimum(best, np.linalg.norm(points_world - centre, axis=1) - radius)
         return best
+
+    def distance_to_objects(self, points_world: np.ndarray) -> np.ndarray:
+        """(K,) distance (metres) from each world point to the nearest virtual surface."""
+        if not len(points_world):
+            return np.zeros(0)
+        query = o3c.Tensor(np.ascontiguousarray(points_world, dtype=np.float32))
+        return self._rays.compute_distance(query).numpy().astype(np.float64)
