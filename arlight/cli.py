@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from arlight import __version__
@@ -85,7 +86,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     n = len(frames)
     print(f"arlight estimate: {args.path} ({_count(n, 'frame')}, {camera.width}x{camera.height}), "
           f"preset {config.preset}, poses {args.poses}", file=sys.stderr)
-    pipeline = Pipeline(config, camera)
+    pipeline = Pipeline(config, camera, _load_scene(args))
+    composites = _composite_folder(args.composite_out)
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
     errors = []
     try:
@@ -116,6 +118,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
             print(line, flush=True)
             if out:
                 out.write(json.dumps(record) + "\n")
+            if composites is not None:
+                image = result.composite if result.composite is not None else frame.color
+                cv2.imwrite(str(composites / f"{i:06d}.png"), image[..., ::-1])
     finally:
         if out:
             out.close()
@@ -124,7 +129,38 @@ def cmd_estimate(args: argparse.Namespace) -> int:
               f"(90th percentile {np.nanpercentile(errors, 90):.1f})", file=sys.stderr)
     if args.out:
         print(f"wrote {_count(n, 'result')} to {args.out}", file=sys.stderr)
+    if composites is not None:
+        print(f"wrote {_count(n, 'composite')} to {composites}/", file=sys.stderr)
     return 0
+
+
+def _load_scene(args: argparse.Namespace):
+    """The virtual scene of --scene (a file, or 'demo'), or None; its frame from
+    --scene-frame, else world with ground-truth poses and cam0 (the first camera) when
+    tracking. A SceneError (bad file) is the user's error, reported without a traceback."""
+    if not getattr(args, "scene", None):
+        return None
+    if args.scene == "demo":
+        from arlight.pipeline.virtual_scene import demo_scene
+
+        return demo_scene()
+    from arlight.sources.virtual_scene_file import load_virtual_scene
+
+    frame = args.scene_frame or ("world" if args.poses == "groundtruth" else "cam0")
+    return load_virtual_scene(args.scene, frame=frame)
+
+
+def _composite_folder(path: str | None) -> Path | None:
+    """--composite-out DIR, created; None when not asked for."""
+    if not path:
+        return None
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise _BadInput(f"--composite-out {path}: cannot create the folder ({exc.strerror})"
+                        ) from None
+    return folder
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -478,6 +514,19 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
                         "(default in lossless mode); recordings keep theirs")
 
 
+def _add_scene_options(p: argparse.ArgumentParser) -> None:
+    """--scene and --scene-frame, shared by estimate and stream."""
+    p.add_argument("--scene", metavar="FILE",
+                   help="virtual objects to render into the frames: a scene file (JSON or "
+                        "TOML, see docs/scene-files.md; e.g. a data set's ar/virtual_scene."
+                        "json), or 'demo' (a sphere and a torus standing on the detected "
+                        "ground)")
+    p.add_argument("--scene-frame", choices=("world", "cam0"),
+                   help="frame of the scene file's poses: 'world' = the data set's pose frame "
+                        "(default with --poses groundtruth), 'cam0' = the first camera "
+                        "(default when tracking, whose world is the first camera)")
+
+
 def _add_reconnect_timeout(p: argparse.ArgumentParser) -> None:
     """--reconnect-timeout, shared by the two clients (stream, display)."""
     p.add_argument("--reconnect-timeout", type=_positive_float, default=30.0, metavar="S",
@@ -651,6 +700,11 @@ def build_parser() -> argparse.ArgumentParser:
     est.add_argument("--device", help="Open3D device for the volume, e.g. CUDA:0 (default CPU:0)")
     est.add_argument("--set", action="append", type=_parse_override, metavar="KEY=VALUE",
                      help="override any Config field, e.g. --set rt_directions=128")
+    _add_scene_options(est)
+    est.add_argument("--composite-out", metavar="DIR",
+                     help="write each frame's composite (the virtual objects rendered in) as "
+                          "DIR/NNNNNN.png, NNNNNN the frame's index; without --scene, the "
+                          "input frames")
     est.set_defaults(func=cmd_estimate)
 
     bench = sub.add_parser(

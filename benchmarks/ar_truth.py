@@ -1,0 +1,207 @@
+"""Differential rendering against path-traced truth: the `ar/` pairs of the shared sequences.
+
+For each sequence with an `ar/` folder (dev_a, dev_d in ../shared/data/synthetic) and each
+preset, the Pipeline runs over the sequence's `rgb/` frames with the ground-truth poses and
+the virtual scene `ar/virtual_scene.json`; at every frame with a pair it scores the
+composite against `ar/real_virtual/NNNNNN.png`, as PSNR (dB) and SSIM inside
+`mask_affected` and inside the shadow pixels (affected minus virtual), for
+  (a) "estimated": the light the pipeline estimated (what users get),
+  (b) "gt_light": the same frame re-rendered with the ground-truth light (lighting_gt.json,
+      exposure applied): rendering error without light-estimation error,
+  (c) "paste": the objects shaded by the estimated light and pasted, no shadows or bounce;
+and "input" (the frame without objects) for scale. It writes side-by-side images (input,
+ours, truth, 4x difference) of each sequence's first pair to --out, with report.json.
+
+    .venv/bin/python benchmarks/ar_truth.py [SEQ ...] [--presets full fast] [--out DIR]
+                                            [--set KEY=VALUE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from arlight.pipeline import sh
+from arlight.pipeline.color import LUMA
+from arlight.pipeline.config import Config, DiffMode
+from arlight.pipeline.pipeline import Pipeline
+from arlight.pipeline.rendering import DifferentialRenderer
+from arlight.pipeline.runtime import configure_process
+from arlight.sources.sequence import open_sequence
+from arlight.sources.virtual_scene_file import load_virtual_scene
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
+VARIANTS = ("input", "estimated", "gt_light", "paste")
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR (dB, peak 255) of two uint8 images over the mask's pixels (all channels)."""
+    if not np.any(mask):
+        return float("nan")
+    d = a.astype(np.float64)[mask] - b.astype(np.float64)[mask]
+    return 10.0 * math.log10(255.0 ** 2 / max(float(np.mean(d * d)), 1e-12))
+
+
+def ssim_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-pixel SSIM (Wang et al. 2004: Gaussian window sigma 1.5, K1 0.01, K2 0.03) of two
+    uint8 RGB images, averaged over the channels."""
+    c1, c2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
+    x, y = a.astype(np.float64), b.astype(np.float64)
+
+    def blur(img):
+        return cv2.GaussianBlur(img, (11, 11), 1.5)
+
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    return s.mean(axis=2)
+
+
+def truth_light(frame_truth: dict, exposure: float) -> tuple[np.ndarray, np.ndarray]:
+    """(luminance SH in linear image units, our basis, world; per-channel factor (3,))."""
+    l_gt = sh.toggle_condon_shortley(np.asarray(frame_truth["sh_lum_world"])) * exposure
+    rgb = frame_truth["sh_rgb_world"]
+    dc = np.maximum(np.asarray(json.loads(rgb) if isinstance(rgb, str) else rgb)[:, 0], 0.0)
+    return l_gt, dc / max(float(LUMA @ dc), 1e-12)
+
+
+def side_by_side(images: list[np.ndarray], names: list[str]) -> np.ndarray:
+    """The images in a row with their names written in, BGR for cv2.imwrite."""
+    tiles = []
+    for image, name in zip(images, names):
+        tile = np.ascontiguousarray(image[..., ::-1])
+        cv2.putText(tile, name, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2,
+                    cv2.LINE_AA)
+        tiles.append(tile)
+    return np.concatenate(tiles, axis=1)
+
+
+def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> list[dict]:
+    """One row per frame with a pair: PSNR/SSIM of every variant in both masks."""
+    ar = folder / "ar"
+    info = json.loads((ar / "virtual_scene.json").read_text())
+    truth = json.loads((folder / "lighting_gt.json").read_text())
+    pairs = set(info["frames_rendered"])
+    seq = open_sequence(folder, use_poses=True, max_frames=max(pairs) + 1)
+    config = Config.from_preset(preset, **overrides)
+    pipeline = Pipeline(config, seq.camera, load_virtual_scene(ar / "virtual_scene.json"))
+    paste = DifferentialRenderer(pipeline.scene, seq.camera,
+                                 config.replace(render_mode=DiffMode.PASTE))
+    rows = []
+    for index, frame in enumerate(seq.frames):
+        result = pipeline.process(frame)
+        if index not in pairs:
+            continue
+        inputs, output = pipeline.last_render
+        l_gt, rgb_gt = truth_light(truth["frames"][index], truth["exposure_scale"])
+        t0 = time.perf_counter()
+        with_gt = pipeline._renderer.render(dataclasses.replace(inputs, light_sh=l_gt,
+                                                                light_rgb=rgb_gt)).composite
+        gt_ms = 1e3 * (time.perf_counter() - t0)
+        images = {"input": inputs.color, "estimated": output.composite, "gt_light": with_gt,
+                  "paste": paste.render(inputs).composite}
+        name = f"{index:06d}.png"
+        real_virtual = cv2.imread(str(ar / "real_virtual" / name), cv2.IMREAD_COLOR)[..., ::-1]
+        affected = cv2.imread(str(ar / "mask_affected" / name), cv2.IMREAD_GRAYSCALE) > 127
+        virtual = cv2.imread(str(ar / "mask_virtual" / name), cv2.IMREAD_GRAYSCALE) > 127
+        shadow = affected & ~virtual
+        row = {"sequence": folder.name, "preset": preset, "frame": index,
+               "rendering_ms": result.timings_ms["Rendering"], "rendering_gt_ms": gt_ms,
+               "virtual_iou": float((output.virtual_mask & virtual).sum()
+                                    / max(1, (output.virtual_mask | virtual).sum()))}
+        for variant, image in images.items():
+            s = ssim_map(image, real_virtual)
+            row[f"{variant}_psnr_affected"] = psnr(image, real_virtual, affected)
+            row[f"{variant}_psnr_shadow"] = psnr(image, real_virtual, shadow)
+            row[f"{variant}_ssim_affected"] = float(s[affected].mean())
+            row[f"{variant}_ssim_shadow"] = float(s[shadow].mean()) if shadow.any() else None
+        rows.append(row)
+        if out is not None and index == min(pairs):
+            diff = np.clip(4 * np.abs(output.composite.astype(int) - real_virtual), 0,
+                           255).astype(np.uint8)
+            cv2.imwrite(str(out / f"{folder.name}_{preset}_{name}"),
+                        side_by_side([inputs.color, output.composite, with_gt, real_virtual,
+                                      diff], ["input", "ours (estimated light)",
+                                              "ours (true light)", "path-traced truth",
+                                              "4x |ours - truth|"]))
+        print(f"  {folder.name} {preset} frame {index}: affected PSNR "
+              + "  ".join(f"{v} {row[f'{v}_psnr_affected']:.1f}" for v in VARIANTS)
+              + f"  rendering {row['rendering_ms']:.0f} ms", flush=True)
+    return rows
+
+
+def summary_table(rows: list[dict]) -> str:
+    """Markdown: per sequence and preset, the median over frames of each figure."""
+    lines = ["| sequence | preset | region | " + " | ".join(VARIANTS) + " |",
+             "|---|---|---|" + "---|" * len(VARIANTS)]
+    keys = sorted({(r["sequence"], r["preset"]) for r in rows})
+    for seq, preset in keys:
+        sel = [r for r in rows if r["sequence"] == seq and r["preset"] == preset]
+        for region in ("affected", "shadow"):
+            cells = []
+            for v in VARIANTS:
+                p = np.nanmedian([r[f"{v}_psnr_{region}"] for r in sel])
+                s = np.nanmedian([np.nan if r[f"{v}_ssim_{region}"] is None
+                                  else r[f"{v}_ssim_{region}"] for r in sel])
+                cells.append(f"{p:.1f} dB / {s:.3f}")
+            lines.append(f"| {seq} | {preset} | {region} | " + " | ".join(cells) + " |")
+        ms = np.median([r["rendering_ms"] for r in sel])
+        lines.append(f"| {seq} | {preset} | Rendering ms (median) | {ms:.0f} |" + " |" * 3)
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("sequences", nargs="*", metavar="SEQ",
+                        help="sequence folders with an ar/ folder (default: all of "
+                             f"{DATA} that have one)")
+    parser.add_argument("--presets", nargs="+", default=["full", "fast"],
+                        choices=("full", "fast", "mobile"))
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a Config field for every preset")
+    parser.add_argument("--out", type=Path, default=Path("ar_truth_report"),
+                        help="folder for report.json, report.md and the side-by-side images "
+                             "(default ar_truth_report/)")
+    args = parser.parse_args(argv)
+    configure_process()
+    overrides = {}
+    for kv in args.set:
+        key, _, value = kv.partition("=")
+        try:
+            overrides[key] = Config.parse_flat_value(key, value)
+        except ValueError as exc:
+            parser.error(f"--set {kv}: {exc}")
+    folders = [Path(s) for s in args.sequences] or sorted(
+        p for p in DATA.glob("*") if (p / "ar" / "virtual_scene.json").is_file())
+    if not folders:
+        print(f"no sequences with an ar/ folder at {DATA} (see ../shared/data/README.md)",
+              file=sys.stderr)
+        return 2
+    for f in folders:
+        if not (f / "ar" / "virtual_scene.json").is_file():
+            parser.error(f"{f} has no ar/virtual_scene.json")
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for folder in folders:
+        for preset in args.presets:
+            rows.extend(evaluate(folder, preset, overrides, args.out))
+    table = summary_table(rows)
+    (args.out / "report.json").write_text(json.dumps({"rows": rows, "overrides": {
+        k: str(v) for k, v in overrides.items()}}, indent=1))
+    (args.out / "report.md").write_text("PSNR / SSIM against ar/real_virtual (median over "
+                                        "the frames with a pair)\n\n" + table + "\n")
+    print(table)
+    print(f"wrote {args.out}/report.json, report.md and side-by-side images")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
