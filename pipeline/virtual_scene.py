@@ -130,7 +130,7 @@ def check_object(obj: VirtualObject) -> None:
         raise SceneError(f"{where}: world_from_object has no positive scale (det <= 0)")
     try:
         rigid = np.eye(4)
-        rigid[:3, :3], rigid[:3, 3] = m[:3, :3] / scale, m[:3, 3]
+        rigid[:3, :3], rigid[:3, 3], rigid[3] = m[:3, :3] / scale, m[:3, 3], m[3]
         check_rigid(rigid, f"{where} world_from_object / scale")
     except CheckError as exc:
         raise SceneError(f"{where}: world_from_object must be a rotation times one uniform "

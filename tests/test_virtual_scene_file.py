@@ -283,6 +283,7 @@ OBJECT_CASES = [
     ("pose_mirror", {"world_from_object": rotation_pose([-1, 1, 1])}, "det <= 0"),
     ("pose_non_uniform_scale", {"world_from_object": rotation_pose([1, 2, 1])},
      "uniform scale"),
+    ("pose_last_row", {"world_from_object": EYE[:3] + [[0.5, 0, 0, 1]]}, "uniform scale"),
     ("scale_zero", {"scale": 0}, "\"scale\" must be > 0"),
     ("scale_string", {"scale": "2"}, "scale must be a number"),
     ("unknown_key", {"colour": [1, 0, 0]}, "unknown key(s) colour; valid keys: name, mesh"),
