@@ -134,6 +134,8 @@ def _load_object(entry: dict, folder: Path, frame: str, strict: bool, budget: in
         mesh = _read_mesh(folder / entry["mesh"], budget, where)
     else:
         mesh = _primitive(entry["primitive"], where)
+    if len(mesh.triangles) > budget:
+        raise _too_many(len(mesh.triangles), budget, where)
     world_from_object, anchor = _pose(entry, frame, where)
     if "scale" in entry:
         scale = _numbers(entry["scale"], (), where, "scale")
@@ -145,13 +147,17 @@ def _load_object(entry: dict, folder: Path, frame: str, strict: bool, budget: in
 
 
 def _read_mesh(file: Path, budget: int, where: str) -> o3d.geometry.TriangleMesh:
-    """A triangle mesh read by Open3D, checked: not empty, not truncated, within budget."""
+    """A triangle mesh read by Open3D, checked: not empty, not truncated; a PLY whose header
+    announces more than `budget` triangles is refused before it is read."""
     if file.suffix.lower() not in MESH_SUFFIXES:
         raise SceneError(f"{where}: mesh {file} must be one of {', '.join(MESH_SUFFIXES)}")
     if not file.is_file():
         raise SceneError(f"{where}: mesh file {file} not found (mesh paths are relative to "
                          "the scene file)")
-    counts = _ply_counts(file) if file.suffix.lower() == ".ply" else None
+    try:
+        counts = _ply_counts(file) if file.suffix.lower() == ".ply" else None
+    except OSError as exc:
+        raise SceneError(f"{where}: mesh {file} cannot be read ({exc})") from None
     if counts is not None and counts[1] > budget:
         raise _too_many(counts[1], budget, where)
     try:
@@ -167,8 +173,6 @@ def _read_mesh(file: Path, budget: int, where: str) -> o3d.geometry.TriangleMesh
         raise SceneError(f"{where}: mesh {file} is truncated or broken: its header lists "
                          f"{counts[0]} vertices and {counts[1]} faces, {len(mesh.vertices)} and "
                          f"{triangles} could be read; re-export it")
-    if triangles > budget:
-        raise _too_many(triangles, budget, where)
     return mesh
 
 
@@ -264,7 +268,10 @@ def _material(entry: dict, where: str) -> Material:
 def _numbers(value: Any, shape: tuple[int, ...], where: str, field: str) -> np.ndarray:
     """`value` (nested lists of JSON numbers) as a finite float64 array of `shape`."""
     expected = "a number" if shape == () else "numbers of shape " + "x".join(map(str, shape))
-    a = np.array(value, dtype=object)
+    try:
+        a = np.array(value, dtype=object)
+    except ValueError:
+        a = np.array(None)
     if a.shape != shape or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
                                    for x in a.flat):
         raise SceneError(f"{where}: {field} must be {expected}, got {value!r}")

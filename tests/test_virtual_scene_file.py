@@ -335,9 +335,11 @@ class TestBadInput:
     def test_broken_ply(self, tmp_path: Path, content: bytes, capfd):
         path = obj_scene(tmp_path)
         (tmp_path / "thing.ply").write_bytes(content)
+        before = o3d.utility.get_verbosity_level()
         with pytest.raises(SceneError, match=r"'thing'.*holds no triangles"):
             load_virtual_scene(path)
         assert "Open3D WARNING" not in capfd.readouterr().out  # silenced during the read
+        assert o3d.utility.get_verbosity_level() == before  # and restored
 
     @pytest.mark.parametrize("fraction", [0.5, 0.97], ids=["in_vertices", "in_faces"])
     def test_truncated_ply(self, tmp_path: Path, fraction: float):
@@ -387,6 +389,13 @@ class TestBadInput:
             {"name": "first", "mesh": "thing.ply", "world_from_object": EYE},
             {"name": "second", "mesh": "ball.obj", "world_from_object": EYE}])
         with pytest.raises(SceneError, match=r"'second': 12 triangles.*\(8 left"):
+            load_virtual_scene(path)
+
+    def test_triangle_budget_counts_primitives(self, tmp_path: Path, monkeypatch):
+        monkeypatch.setattr(virtual_scene_file, "MAX_TRIANGLES", 3000)  # a sphere: 2208
+        ball = {"primitive": {"shape": "sphere"}, "world_from_object": EYE}
+        path = write_scene(tmp_path, [{"name": "first", **ball}, {"name": "second", **ball}])
+        with pytest.raises(SceneError, match=r"'second': 2208 triangles.*\(792 left"):
             load_virtual_scene(path)
 
     def test_duplicate_names(self, tmp_path: Path):
