@@ -30,6 +30,13 @@ MAX_OBJECTS = 64
 class SceneError(CheckError):
     """A virtual scene that cannot be rendered; the message names the object and the cause."""
 
+    def __init__(self, message: str):  # one argument: the message names its own field
+        ValueError.__init__(self, message)
+        self.field, self.message = "virtual scene", message
+
+    def __reduce__(self):
+        return (type(self), (self.message,))
+
 
 @dataclass(frozen=True)
 class Material:
@@ -123,7 +130,7 @@ def check_object(obj: VirtualObject) -> None:
         raise SceneError(f"{where}: world_from_object has no positive scale (det <= 0)")
     try:
         rigid = np.eye(4)
-        rigid[:3, :3], rigid[:3, 3] = m[:3, :3] / scale, m[:3, 3]
+        rigid[:3, :3], rigid[:3, 3], rigid[3] = m[:3, :3] / scale, m[:3, 3], m[3]
         check_rigid(rigid, f"{where} world_from_object / scale")
     except CheckError as exc:
         raise SceneError(f"{where}: world_from_object must be a rotation times one uniform "

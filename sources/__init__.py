@@ -7,6 +7,8 @@
 - MCAP recordings made by `arlight record` (`recording`, the reader; the writer is the
   capture client's, `arlight.client.recording`);
 - `source.Source`: any of these as the capture client streams it (`open_source`).
+- virtual-scene files, the objects to render into the image (`virtual_scene_file`,
+  docs/scene-files.md).
 
 Depth leaves every source as the sensor's integers: (H, W) uint16 with `depth_scale` units
 per metre (`FrameInput.depth_scale`; TUM 5000, millimetres 1000). Where the stored values are
