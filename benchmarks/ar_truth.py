@@ -76,7 +76,7 @@ def truth_light(frame_truth: dict, exposure: float) -> tuple[np.ndarray, np.ndar
 def side_by_side(images: list[np.ndarray], names: list[str]) -> np.ndarray:
     """The images in a row with their names written in, BGR for cv2.imwrite."""
     tiles = []
-    for image, name in zip(images, names):
+    for image, name in zip(images, names, strict=True):
         tile = np.ascontiguousarray(image[..., ::-1])
         cv2.putText(tile, name, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2,
                     cv2.LINE_AA)
