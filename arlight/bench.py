@@ -158,14 +158,15 @@ def observed_normals_world(frame, camera, rng: np.random.Generator) -> np.ndarra
 
 
 def run_config(bench: BenchConfig, sequences: list[BenchSequence], warmup: int,
-               on_frame=None) -> ConfigResult:
-    """Process every sequence's frames with one configuration; time and score each frame."""
+               on_frame=None, scene=None) -> ConfigResult:
+    """Process every sequence's frames with one configuration; time and score each frame.
+    scene: a VirtualScene rendered into every frame (the Rendering stage), or None."""
     overrides = {k: v for k, v in bench.config.flat().items()
                  if v != Config.from_preset(_preset_name(bench.config)).flat().get(k)}
     result = ConfigResult(bench.name, overrides, bench.sweep, bench.value)
     rng = np.random.default_rng(0)
     for seq in sequences:
-        pipeline = Pipeline(bench.config, seq.camera)
+        pipeline = Pipeline(bench.config, seq.camera, scene)
         scores: dict[str, list[float]] = {"angle_upper_deg": [], "angle_deg": [],
                                           "sh_error": [], "shading_error": []}
         for i, frame in enumerate(seq.frames):
@@ -202,10 +203,12 @@ def _score(scores: dict[str, list[float]], out, truth: evaluation.FrameTruth, fr
 
 def run_benchmark(data: list[str], presets: list[str], sweeps: list[tuple[str, list[Any]]],
                   frames: int | None, warmup: int, overrides: dict[str, Any],
-                  progress: bool = True, size: tuple[int, int] = (640, 480)) -> dict:
+                  progress: bool = True, size: tuple[int, int] = (640, 480),
+                  scene=None) -> dict:
     """Every configuration over every DATA sequence; the report's figures (a plain dict).
 
-    size: image size of the built-in scene (pixels) where no size sweep sets it.
+    size: image size of the built-in scene (pixels) where no size sweep sets it;
+    scene: virtual objects rendered into every frame (VirtualScene), or None (Rendering 0).
     """
     from arlight.report import summarise
 
@@ -230,7 +233,8 @@ def run_benchmark(data: list[str], presets: list[str], sweeps: list[tuple[str, l
                 print(f"arlight bench: [{k}/{len(configs)}] {bench.name}: "
                       f"{sum(len(s.frames) for s in seqs)} frames of {len(seqs)} sequence(s)",
                       file=sys.stderr, flush=True)
-            results.append(run_config(bench, seqs, warmup, on_frame=lambda: bar.update(1)))
+            results.append(run_config(bench, seqs, warmup, on_frame=lambda: bar.update(1),
+                                      scene=scene))
     finally:
         bar.close()
     return summarise(results, data=[s.name for s in base_data], frames=frames, warmup=warmup,

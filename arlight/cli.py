@@ -146,7 +146,8 @@ def _load_scene(args: argparse.Namespace):
         return demo_scene()
     from arlight.sources.virtual_scene_file import load_virtual_scene
 
-    frame = args.scene_frame or ("world" if args.poses == "groundtruth" else "cam0")
+    poses = getattr(args, "poses", "groundtruth")  # bench: always the data set's poses
+    frame = getattr(args, "scene_frame", None) or ("world" if poses == "groundtruth" else "cam0")
     return load_virtual_scene(args.scene, frame=frame)
 
 
@@ -170,7 +171,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     try:
         sweeps = [parse_sweep(text) for text in args.sweep]
         report = run_benchmark(args.data, args.presets, sweeps, args.frames, args.warmup,
-                               dict(args.set or []), progress=sys.stderr.isatty())
+                               dict(args.set or []), progress=sys.stderr.isatty(),
+                               scene=_load_scene(args))
     except BenchError as exc:
         raise _BadInput(str(exc)) from None
     print(speed_table(report))
@@ -736,6 +738,11 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", default="bench-report", metavar="DIR",
                        help="write DIR/report.json, report.md, trade.png (default bench-report)")
     bench.add_argument("--json", metavar="FILE", help="also write report.json to FILE")
+    bench.add_argument("--scene", metavar="FILE",
+                       help="render these virtual objects into every frame, so the Rendering "
+                            "stage is timed: a scene file (docs/scene-files.md) or 'demo' (a "
+                            "sphere and a torus on the detected ground); poses in each "
+                            "sequence's pose frame")
     bench.set_defaults(func=cmd_bench)
     _add_streaming_parsers(sub)
     return parser

@@ -176,8 +176,9 @@ class DifferentialRenderer:
         weight = np.ones(guu.shape)
         ratio_grid[real_grid], delta_grid[real_grid] = ratio, delta
         weight[virtual[gvv, guu]] = 0.0
-        ratio_full, delta_full = self._upsample(ratio_grid, delta_grid, weight, rect, step,
-                                                r.render_blur_radius_px)
+        ratio_full, delta_full = self._upsample(
+            ratio_grid, delta_grid, weight, rect, step,
+            r.render_blur_radius_px if step > 1 else r.render_denoise_px)
         linear = frame.color_linear[v0:v1, u0:u1].astype(np.float64)
         out = linear * ratio_full[..., None] + delta_full
         # virtual pixels: albedo / pi (direct with SSDO visibility + bounce from around)
@@ -254,15 +255,15 @@ class DifferentialRenderer:
                   rect: tuple[int, int, int, int], step: int,
                   blur_radius: int) -> tuple[np.ndarray, np.ndarray]:
         """Grid buffers -> every pixel of the rect: bicubic, then a Gaussian of the given
-        radius, normalised by the up-sampled weights (virtual pixels carry none); identity
-        when step is 1."""
+        radius, normalised by the up-sampled weights (virtual pixels carry none); at step 1
+        only the Gaussian (identity with radius 0)."""
         u0, v0, u1, v1 = rect
-        if step == 1:
+        if step == 1 and blur_radius == 0:
             return ratio, delta
         size = (ratio.shape[1] * step, ratio.shape[0] * step)
         stack = np.concatenate([(ratio * weight)[..., None], delta * weight[..., None],
                                 weight[..., None]], axis=2).astype(np.float32)
-        up = cv2.resize(stack, size, interpolation=cv2.INTER_CUBIC)
+        up = stack if step == 1 else cv2.resize(stack, size, interpolation=cv2.INTER_CUBIC)
         if blur_radius > 0:
             up = cv2.GaussianBlur(up, (2 * blur_radius + 1, 2 * blur_radius + 1), 0)
         up = up[: v1 - v0, : u1 - u0].astype(np.float64)
