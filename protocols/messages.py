@@ -607,7 +607,7 @@ class SceneSpec:
             joined = arrays[0] if len(arrays) == 1 else np.concatenate(
                 arrays or [np.empty((0, 3), _U32 if key == "triangles" else _F32)])
             out[key] = len(parts)
-            parts.append(memoryview(joined).cast("B"))
+            parts.append(memoryview(joined.reshape(-1).view(np.uint8)))
         out["objects"] = [p[0] for p in packed]
         return out
 
