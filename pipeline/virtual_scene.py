@@ -30,6 +30,13 @@ MAX_OBJECTS = 64
 class SceneError(CheckError):
     """A virtual scene that cannot be rendered; the message names the object and the cause."""
 
+    def __init__(self, message: str):  # one argument: the message names its own field
+        ValueError.__init__(self, message)
+        self.field, self.message = "virtual scene", message
+
+    def __reduce__(self):
+        return (type(self), (self.message,))
+
 
 @dataclass(frozen=True)
 class Material:
