@@ -1031,6 +1031,14 @@ class TestVirtualScene:
         np.testing.assert_array_equal(results[1].composite, second)
 
 
+def test_a_hello_that_cannot_be_sent_is_a_stream_error():
+    """Refused by encode() before any socket opens: scene and virtual_scene together."""
+    options = StreamOptions(server="tcp://127.0.0.1:9", session="unsendable",
+                            virtual_scene="demo", scene=_virtual_scene())
+    with pytest.raises(StreamError, match=r"cannot be sent: bad_field \(hello.config.scene\)"):
+        run_with_timeout(lambda: stream(flat_source(1), options), timeout_s=10)
+
+
 def _virtual_scene():
     from arlight.pipeline.virtual_scene import VirtualObject, VirtualScene
 
