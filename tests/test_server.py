@@ -954,6 +954,23 @@ class TestVirtualScene:
         peer.close()
         plain.close()
 
+    def test_a_reconnect_with_the_same_scene_resumes_the_session(self, make_server):
+        server = make_server(process=identity_step())
+        first, again, other = (RawPeer(server.connect_address) for _ in range(3))
+        first.send(_scene_hello())
+        assert isinstance(first.receive(), Welcome)
+        session = server.sessions["scene"]
+        again.send(_scene_hello())  # equal arrays, other buffers: the same configuration
+        assert isinstance(again.receive(), Welcome)
+        assert server.sessions["scene"] is session
+        moved = SceneSpec((_scene_object(world_from_object=np.diag([1.0, 1.0, 1.0, 1.0])
+                                         + np.eye(4, k=3)),))
+        other.send(_scene_hello(moved))
+        error = other.receive()
+        assert (error.code, error.field) == ("bad_state", "hello.config.session")
+        for peer in (first, again, other):
+            peer.close()
+
     def test_bad_scenes_are_refused_and_the_server_keeps_serving(self, make_server):
         server = make_server(process=identity_step())
         bystander = RawPeer(server.connect_address)
