@@ -2,8 +2,8 @@
 
 It starts a server on a free loopback port, subscribes a display client to a session, streams
 the built-in synthetic scene (known light) into that session in lossless mode with
-composites, and writes what the display received: `frames/` (composites: the input frame with
-the estimated light drawn as a lit sphere; there are no virtual objects to render yet),
+composites, and writes what the display received: `frames/` (composites: without a virtual
+scene, the input frame unchanged),
 `results.jsonl`, and `summary.json` (frames per second, latencies, median per-stage
 timings, the angular error of the dominant light against the light that can reach the
 scene, its upper hemisphere).
@@ -147,8 +147,7 @@ def _summary(shown: dict, stream, errors: dict[int, float], pipeline_ms: list[fl
             "p90": round(float(np.percentile(valid_errors, 90)), 3) if valid_errors else None},
         "frames_dropped": shown["frames_dropped"], "reconnects": stream.reconnects,
         "wall_time_s": round(wall_time_s, 3),
-        "composite": "input frame with the estimated light drawn as a lit sphere (top left); "
-                     "no virtual objects are rendered yet",
+        "composite": "the input frame unchanged (no virtual scene in this session)",
         "latency_note": "end-to-end = display receive time - capture timestamp (one clock); "
                         "lossless mode queues up to `credits` frames, so it includes waiting; "
                         "pipeline_ms is the pipeline alone",

@@ -34,8 +34,10 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import msgpack
+import numpy as np
 import zmq
 
 from arlight.client.connection import Received, open_dealer, receive_message
@@ -52,13 +54,20 @@ from arlight.protocols import (
     Frame,
     Heartbeat,
     Hello,
+    ProtocolError,
     Result,
+    SceneAnchorSpec,
+    SceneObjectSpec,
+    SceneSpec,
     SessionConfig,
     Welcome,
     encode,
     peek_header,
 )
 from arlight.sources.source import Source
+
+if TYPE_CHECKING:  # hints only: virtual_scene loads Open3D, which streaming does not need
+    from arlight.pipeline.virtual_scene import VirtualObject, VirtualScene
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +130,32 @@ def encoded_frames(source: Source, options: StreamOptions, timestamps: str
         offset_s += last_ts - first_ts + period
 
 
+def scene_spec(scene: VirtualScene) -> SceneSpec:
+    """The Hello's `scene` of a virtual scene (what the server turns back into it)."""
+    return SceneSpec(tuple(object_spec(obj) for obj in scene.objects))
+
+
+def object_spec(obj: VirtualObject) -> SceneObjectSpec:
+    """One object as the wire carries it. The wire gives an anchored object no pose (the
+    anchor places it); the uniform scale its world_from_object carries, the one part of it
+    an anchor keeps, is applied to its vertices instead."""
+    vertices = obj.vertices
+    pose = np.asarray(obj.world_from_object, np.float64)
+    anchor = None
+    if obj.anchor is not None:
+        anchor = SceneAnchorSpec(None if obj.anchor.pixel is None else
+                                 tuple(float(x) for x in obj.anchor.pixel),
+                                 float(obj.anchor.yaw_deg))
+        scale = float(np.cbrt(np.linalg.det(pose[:3, :3])))
+        if scale != 1.0:
+            vertices = (np.asarray(vertices, np.float64) * scale).astype(np.float32)
+        pose = None
+    m = obj.material
+    return SceneObjectSpec(obj.name, vertices, obj.triangles, obj.normals, pose, anchor,
+                           tuple(float(a) for a in m.albedo), float(m.roughness),
+                           float(m.metalness), bool(m.mirror))
+
+
 # --------------------------------------------------------------------------- client
 
 
@@ -152,7 +187,8 @@ class StreamOptions:
     preset: str = "full"
     overrides: dict = field(default_factory=dict)
     want_composite: bool = False
-    virtual_scene: str | None = None
+    virtual_scene: str | None = None  # a scene the server has built in ("demo")
+    scene: VirtualScene | None = None  # or the scene itself, sent in the Hello
     timestamps: str | None = None
     max_frames: int | None = None  # stop after this many frames (with --loop: in total)
     heartbeat_interval_s: float = 1.0  # until the server's Welcome says otherwise
@@ -240,7 +276,8 @@ class CaptureClient:
             session=self.session, client_name=opts.client_name, role="capture",
             calibration=self.source.calibration, depth_scale=self.source.depth_scale,
             preset=opts.preset, overrides=dict(opts.overrides), virtual_scene=opts.virtual_scene,
-            mode=opts.mode, want_composite=opts.want_composite)
+            mode=opts.mode, want_composite=opts.want_composite,
+            scene=None if opts.scene is None else scene_spec(opts.scene))
         if base is not None:  # a recording: its calibration and depth scale always hold
             config = dataclasses.replace(config, calibration=base.calibration,
                                          depth_scale=base.depth_scale)
@@ -273,9 +310,13 @@ class CaptureClient:
         opts = self.options
         deadline = time.monotonic() + opts.reconnect_timeout_s
         backoff = opts.backoff_initial_s
+        try:  # once: a scene may be tens of MB
+            hello_parts = encode(self.hello)
+        except ProtocolError as exc:
+            raise StreamError(f"the Hello of session {self.session!r} cannot be sent: "
+                              f"{exc.code} ({exc.field}): {exc.message}") from None
         while not self._stop.is_set():
             self._open_socket()
-            hello_parts = encode(self.hello)
             self._send(hello_parts, block=False)
             wait_until = time.monotonic() + max(opts.liveness * self.heartbeat_interval_s, 1.0)
             while time.monotonic() < wait_until and not self._stop.is_set():

@@ -40,10 +40,19 @@ from arlight.pipeline.config import Config
 from arlight.pipeline.frames import FrameInput, FrameResult
 from arlight.pipeline.pipeline import FrameError, Pipeline
 from arlight.pipeline.runtime import require_device
+from arlight.pipeline.virtual_scene import (
+    Anchor,
+    Material,
+    SceneError,
+    VirtualObject,
+    VirtualScene,
+    demo_scene,
+)
 from arlight.protocols import (
     Error,
     Frame,
     ProtocolError,
+    SceneObjectSpec,
     SessionConfig,
     decode,
     encode,
@@ -105,6 +114,47 @@ def camera_from_config(config: SessionConfig, max_pixels: int) -> PinholeCamera:
         raise SessionSetupError("calibration", str(exc)) from None
 
 
+# the scenes SessionConfig.virtual_scene may name; any other scene travels in config.scene
+BUILT_IN_SCENES: dict[str, Callable[[], VirtualScene]] = {"demo": demo_scene}
+
+
+def scene_from_config(config: SessionConfig) -> VirtualScene | None:
+    """The session's virtual scene: a built-in one by name (`virtual_scene`), the one the
+    Hello carries (`scene`), or None. SessionSetupError names the field (the object) when the
+    name is unknown or an object cannot be rendered (virtual_scene.SceneError)."""
+    if config.virtual_scene is not None:
+        make = BUILT_IN_SCENES.get(config.virtual_scene)
+        if make is None:
+            raise SessionSetupError(
+                "virtual_scene", f"unknown virtual scene name {config.virtual_scene[:64]!r} "
+                f"(the server's built-in scenes: {', '.join(sorted(BUILT_IN_SCENES))}); send "
+                "the scene itself: arlight stream --scene FILE")
+        return make()
+    if config.scene is None:
+        return None
+    objects = []
+    for i, spec in enumerate(config.scene.objects):
+        try:
+            objects.append(virtual_object(spec))
+        except SceneError as exc:
+            raise SessionSetupError(f"scene.objects[{i}]", str(exc)) from None
+    try:
+        return VirtualScene(tuple(objects))
+    except SceneError as exc:
+        raise SessionSetupError("scene", str(exc)) from None
+
+
+def virtual_object(spec: SceneObjectSpec) -> VirtualObject:
+    """The pipeline's object of a wire object (SceneError if it cannot be rendered). The
+    arrays are shared, not copied: uint32 indices viewed as int32 (an index >= 2^31 then
+    reads negative and is refused by the object's own check)."""
+    anchor = None if spec.anchor is None else Anchor(spec.anchor.pixel, spec.anchor.yaw_deg)
+    pose = np.eye(4) if spec.world_from_object is None else spec.world_from_object
+    return VirtualObject(spec.name, spec.vertices, spec.triangles.view(np.int32), spec.normals,
+                         pose, Material(spec.albedo, spec.roughness, spec.metalness,
+                                        spec.mirror), anchor)
+
+
 def frame_to_input(frame: Frame, camera: PinholeCamera, depth_scale: float) -> FrameInput:
     """Pipeline input of a wire frame: its uint16 depth as received, with the session's
     depth_scale (units per metre); Pipeline.process turns it into metres, once.
@@ -164,11 +214,13 @@ class Session:
         self.max_message_bytes = max_message_bytes
         self.pipeline_config = pipeline_config(config)
         self.camera = camera_from_config(config, max_pixels)
+        self.scene = scene_from_config(config)  # None: nothing to render
         if not (np.isfinite(config.depth_scale) and config.depth_scale > 0):
             raise SessionSetupError("depth_scale", f"must be a finite number of units per metre "
                                                    f"> 0, got {config.depth_scale}")
         self.lossless = config.mode == "lossless"
         self._process = process or default_process
+        self._told_no_render = False  # logged once: a scene but no composite from the pipeline
         self._pipeline: Pipeline | None = None
         self.pending: collections.deque[Job] = collections.deque()
         self.in_flight: Job | None = None
@@ -195,8 +247,7 @@ class Session:
     def pipeline(self) -> Pipeline:
         """The session's Pipeline, built on first use (in a worker: it allocates the volume)."""
         if self._pipeline is None:
-            self._pipeline = Pipeline(self.pipeline_config, self.camera,
-                                      scene=self.config.virtual_scene)
+            self._pipeline = Pipeline(self.pipeline_config, self.camera, scene=self.scene)
         return self._pipeline
 
     def same_setup(self, config: SessionConfig) -> bool:
@@ -298,12 +349,8 @@ class Session:
                 raise ProtocolError("bad_state", f"expected a Frame, got {type(frame).__name__}")
             frame_input = frame_to_input(frame, self.camera, self.config.depth_scale)
             result = self._process(frame_input, self)
-            composite = None
-            if self.config.want_composite:
-                from arlight.server.composite import composite_with_light_inset
-
-                composite = (result.composite if result.composite is not None else
-                             composite_with_light_inset(frame_input.color, result.sh_camera))
+            composite = self.composite(frame_input, result) if self.config.want_composite \
+                else None
         except Exception as exc:  # noqa: BLE001 - every failure becomes an Error reply
             return self._failed(job, frame_error(exc, job.seq))
         finish_wall = time.time()
@@ -313,12 +360,26 @@ class Session:
         try:
             message = result_message(result, seq=job.seq, counters=counters,
                                      receive_time_wall=job.receive_time_wall,
-                                     finish_time_wall=finish_wall, composite=composite)
+                                     finish_time_wall=finish_wall, composite=composite,
+                                     composite_codec=frame.color_codec,
+                                     jpeg_quality=frame.jpeg_quality)
             return JobOutcome(self, job, encode(message), True, time.monotonic())
         except Exception as exc:  # noqa: BLE001 - e.g. a non-finite estimate
             return self._failed(job, Error(
                 code="internal", seq=job.seq,
                 message=f"the server could not send the Result of this frame ({exc})"))
+
+    def composite(self, frame: FrameInput, result: FrameResult) -> np.ndarray:
+        """The frame a Result carries: without a virtual scene the input colour frame,
+        unchanged; with one the pipeline's rendering of it (the input frame while the
+        pipeline makes none)."""
+        if self.scene and result.composite is not None:
+            return result.composite
+        if self.scene and not self._told_no_render:
+            self._told_no_render = True
+            log.info("session %s: the pipeline rendered no composite; the Results carry the "
+                     "input frame", self.name)
+        return frame.color
 
     def _failed(self, job: Job, error: Error) -> JobOutcome:
         if error.code == "internal":

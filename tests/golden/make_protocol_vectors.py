@@ -31,6 +31,9 @@ from arlight.protocols import (
     Heartbeat,
     Hello,
     Result,
+    SceneAnchorSpec,
+    SceneObjectSpec,
+    SceneSpec,
     SessionConfig,
     Welcome,
     encode,
@@ -72,6 +75,24 @@ def pose() -> np.ndarray:
     )
 
 
+def scene() -> SceneSpec:
+    """A tetrahedron at a scaled pose and one anchored triangle (exact binary fractions)."""
+    tetra = SceneObjectSpec(
+        "tetra",
+        np.array([[0, 0, 0], [0.25, 0, 0], [0, 0.25, 0], [0, 0, 0.25]], np.float32),
+        np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint32),
+        np.array([[-0.5, -0.5, -0.5], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32),
+        world_from_object=np.array([[0, 0, 2, 0.5], [0, 2, 0, -0.25], [-2, 0, 0, 1.5],
+                                    [0, 0, 0, 1]], np.float64),
+        albedo=(0.75, 0.5, 0.25), roughness=0.5, metalness=0.0, mirror=False)
+    card = SceneObjectSpec(
+        "card", np.array([[0, 0, 0], [0.125, 0, 0], [0, 0.125, 0]], np.float32),
+        np.array([[0, 1, 2]], np.uint32), np.array([[0, 0, 1]] * 3, np.float32),
+        anchor=SceneAnchorSpec((4.5, 3.0), 30.0), albedo=(1.0, 1.0, 1.0), roughness=0.0,
+        metalness=1.0, mirror=True)
+    return SceneSpec((tetra, card))
+
+
 def vectors() -> dict[str, object]:
     cal = CameraCalibration(8, 6, 5.25, 5.5, 3.5, 2.5, "plumb_bob", (0.1, -0.05, 0.0, 0.0, 0.01))
     rgb, depth = color_8x6(), depth_8x6()
@@ -92,6 +113,9 @@ def vectors() -> dict[str, object]:
                 want_composite=True,
             ),
         ),
+        "hello_scene": Hello(PROTOCOL_VERSION, SessionConfig(
+            session="golden-scene", role="capture", calibration=cal, depth_scale=1000.0,
+            want_composite=True, scene=scene())),
         "hello_display": Hello(PROTOCOL_VERSION, SessionConfig(session="golden-1", role="display")),
         "welcome": Welcome(PROTOCOL_VERSION, "golden-1", 8, 1.0, "arlight"),
         "frame_raw_raw": Frame(7, 1234.5, rgb, depth, pose(), None, "raw", "raw"),
