@@ -306,7 +306,8 @@ def _stream_options(args: argparse.Namespace, source) -> object:
         depth_codec=args.depth_codec, jpeg_quality=args.jpeg_quality, preset=preset,
         overrides=overrides, want_composite=composite, timestamps=args.timestamps,
         max_frames=args.max_frames if getattr(args, "loop", False) else None,
-        reconnect_timeout_s=getattr(args, "reconnect_timeout", 30.0))
+        reconnect_timeout_s=getattr(args, "reconnect_timeout", 30.0),
+        scene=_load_scene(args))
 
 
 def _open_stream_source(args: argparse.Namespace):
@@ -514,6 +515,7 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
                    help="frame timestamps: 'capture' = time.time() when sent (end-to-end "
                         "latency measurable; default in live mode), 'source' = the data set's "
                         "(default in lossless mode); recordings keep theirs")
+    _add_scene_options(p)
 
 
 def _add_scene_options(p: argparse.ArgumentParser) -> None:

@@ -166,6 +166,8 @@ HELLO_FIELD_FLAGS = {
     "hello.config.overrides": "--set",
     "hello.config.calibration": "--size (synthetic) or the data set's calibration",
     "hello.config.mode": "--mode",
+    "hello.config.scene": "--scene",
+    "hello.config.virtual_scene": "--scene",
 }
 
 

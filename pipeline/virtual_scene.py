@@ -278,13 +278,14 @@ def _scale(obj: VirtualObject) -> float:
     return float(np.cbrt(np.linalg.det(obj.world_from_object[:3, :3])))
 
 
-def demo_scene(anchor_pixels: tuple[tuple[float, float], ...] | None = None) -> VirtualScene:
+def demo_scene(image_size: tuple[int, int] = (640, 480)) -> VirtualScene:
     """The demo's objects: a grey sphere and an upright orange torus (non-convex), anchored
-    on the support plane at the given pixels (default: left and right of the view's centre
-    for a 640x480 frame)."""
-    pixels = anchor_pixels or ((250.0, 330.0), (400.0, 330.0))
+    on the support plane left and right of the view's centre, a little below it, for an
+    image of image_size (width, height) pixels."""
+    w, h = image_size
     sphere = object_from_open3d("sphere", sphere_mesh(0.12), np.eye(4),
-                                Material((0.6, 0.6, 0.6)), Anchor(pixels[0]))
+                                Material((0.6, 0.6, 0.6)), Anchor((0.39 * w, 0.69 * h)))
     torus = object_from_open3d("torus", torus_mesh(0.1, 0.035), np.eye(4),
-                               Material((0.8, 0.3, 0.08)), Anchor(pixels[1], yaw_deg=30.0))
+                               Material((0.8, 0.3, 0.08)),
+                               Anchor((0.625 * w, 0.69 * h), yaw_deg=30.0))
     return VirtualScene((sphere, torus))
