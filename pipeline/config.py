@@ -303,8 +303,10 @@ class RenderParams:
     render_mode: DiffMode = DiffMode.RATIO
     render_subsample: int = 1  # image-space sub-sampling of the differential buffers (fast: 4)
     render_blur_radius_px: int = 8  # Gaussian radius of the up-sampling (the paper: 8)
-    # render_subsample 1: Gaussian radius against the sampling noise of the shadows (0: none)
-    render_denoise_px: int = 0
+    # render_subsample 1: Gaussian radius against the sampling noise of the shadows (0: none);
+    # 2 raised PSNR and SSIM on dev_a and dev_d alike (true light, affected: 31.2 -> 31.5 and
+    # 29.4 -> 29.7 dB; shadow SSIM 0.866 -> 0.892 and 0.805 -> 0.824)
+    render_denoise_px: int = 2
     # samples along each direction; 2 beat 1 and 4 against path-traced truth on dev_a and
     # dev_d alike (ground-truth light, affected pixels: a 30.9 / 31.2 / 29.0 dB for 1 / 2 / 4)
     render_steps: int = 2
