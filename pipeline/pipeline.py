@@ -140,6 +140,7 @@ class Pipeline:
         require_device(config.device)  # a clear error, not Open3D's, when there is no GPU
         self.config = config
         self.camera = camera
+        self.requested_scene = scene  # as given; `scene` holds the objects as placed
         self.scene = scene if scene else None
         # the renderer of the placed objects; anchored ones wait for a support plane
         self._renderer: DifferentialRenderer | None = None

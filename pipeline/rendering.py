@@ -229,14 +229,16 @@ class DifferentialRenderer:
         r = self.config.render
         lit = ok & (e_r > MIN_SHADING)
         ratio = np.ones(len(e_r))
+        # visibility only drops where an object is added: where R'_d > R_d, the object
+        # blocked directions in which the band-limited light rings negative; no brightening
         if r.render_mode is DiffMode.RATIO:
-            ratio[lit] = np.maximum(e_c[lit], 0.0) / e_r[lit]
+            ratio[lit] = np.clip(e_c[lit], 0.0, e_r[lit]) / e_r[lit]
         else:
             # eq. 13 keyed on each buffer's mean over the region
             mean_r = float(np.mean(np.maximum(e_r[lit], 0.0))) if np.any(lit) else 1.0
             mean_c = float(np.mean(np.maximum(e_c[lit], 0.0))) if np.any(lit) else 1.0
-            ratio = 1.0 + reinhard(np.maximum(e_c, 0.0), mean_c, r.tone_key) \
-                - reinhard(np.maximum(e_r, 0.0), mean_r, r.tone_key)
+            ratio = 1.0 + np.minimum(reinhard(np.maximum(e_c, 0.0), mean_c, r.tone_key)
+                                     - reinhard(np.maximum(e_r, 0.0), mean_r, r.tone_key), 0.0)
             ratio[~ok] = 1.0
         # indirect: the change of the one-bounce irradiance, times albedo / pi; the albedo
         # of a real pixel from the observation, I_c / (R_d / pi), at most 1

@@ -923,7 +923,7 @@ class TestVirtualScene:
         seen = []
 
         def on_result(result, _):
-            seen.append((result, server.sessions["scene"]._pipeline.scene))
+            seen.append((result, server.sessions["scene"]._pipeline.requested_scene))
 
         options = StreamOptions(server=server.connect_address, session="scene",
                                 mode="lossless", rate="max", preset="fast", overrides=SMALL,
