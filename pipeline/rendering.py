@@ -176,9 +176,17 @@ class DifferentialRenderer:
         weight = np.ones(guu.shape)
         ratio_grid[real_grid], delta_grid[real_grid] = ratio, delta
         weight[virtual[gvv, guu]] = 0.0
+        if step == 1:
+            # denoising only among the pixels the objects changed, and only there: nothing
+            # bleeds onto surfaces they do not touch (a hand in front, the far side of an edge)
+            touched = (ratio_grid != 1.0) | np.any(delta_grid != 0.0, axis=2)
+            weight = weight * touched
         ratio_full, delta_full = self._upsample(
             ratio_grid, delta_grid, weight, rect, step,
             r.render_blur_radius_px if step > 1 else r.render_denoise_px)
+        if step == 1:
+            ratio_full = np.where(touched, ratio_full, 1.0)
+            delta_full = np.where(touched[..., None], delta_full, 0.0)
         linear = frame.color_linear[v0:v1, u0:u1].astype(np.float64)
         out = linear * ratio_full[..., None] + delta_full
         # virtual pixels: albedo / pi (direct with SSDO visibility + bounce from around)

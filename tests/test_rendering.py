@@ -62,13 +62,6 @@ AMBIENT_RADIANCE = 0.1  # constant over the sphere: band 0 only
 UP = np.array([0.0, 1.0, 0.0])
 SMALL = dict(volume_resolution=64, aux_resolution=32)  # Pipeline tests, as test_pipeline
 
-SCENE_ERROR_BUG = (
-    "virtual_scene.py raises SceneError(message) with one argument, but SceneError is a "
-    "CheckError whose __init__ takes (field, message): every check in check_object and "
-    "VirtualScene.__post_init__ raises TypeError ('missing 1 required positional argument: "
-    "message') instead of the SceneError naming the object. Fix: SceneError(where, cause), "
-    "e.g. SceneError(\"virtual object 'x'\", \"vertices or normals are not all finite\")")
-
 
 # ------------------------------------------------------------------ the analytic scene
 @dataclasses.dataclass
@@ -434,7 +427,6 @@ class TestBadInput:
         undecided = ~above & ~hidden
         assert undecided.sum() < 0.3 * above.sum()
 
-    @pytest.mark.xfail(strict=True, raises=TypeError, reason=SCENE_ERROR_BUG)
     def test_too_many_triangles_in_an_object_is_refused_naming_it(self, monkeypatch):
         """MAX_TRIANGLES (lowered here, instead of allocating millions): a SceneError that
         names the object and says to simplify the mesh."""
@@ -443,7 +435,6 @@ class TestBadInput:
         with pytest.raises(SceneError, match="'huge'.*triangles.*simplify"):
             object_from_open3d("huge", mesh, np.eye(4))
 
-    @pytest.mark.xfail(strict=True, raises=TypeError, reason=SCENE_ERROR_BUG)
     def test_too_many_triangles_in_the_scene_is_refused(self, monkeypatch):
         """Objects each under MAX_TRIANGLES but over it together: SceneError."""
         n = len(sphere_mesh(0.1).triangles)
@@ -453,7 +444,6 @@ class TestBadInput:
         with pytest.raises(SceneError, match="triangles.*simplify"):
             VirtualScene((a, b))
 
-    @pytest.mark.xfail(strict=True, raises=TypeError, reason=SCENE_ERROR_BUG)
     def test_nan_vertices_are_refused_naming_the_object(self):
         good = sphere("nan_ball")
         vertices = good.vertices.copy()
@@ -564,13 +554,6 @@ class TestAnchoredInPipeline:
 
 # ------------------------------------------------------------------ known defects
 class TestVirtualOccluderOnlyRemovesDirectLight:
-    @pytest.mark.xfail(strict=True, reason=(
-        "rendering.py ratio mode: a virtual occluder brightens real pixels' direct light. "
-        "R'_d = T'.l exceeds R_d = T.l where the object blocks directions in which the "
-        "4-band SH light is negative (~90 deg from the delta), so ratio = R'_d / R_d > 1: "
-        "ground in front of the sphere gets up to +7 % (4 LSB; +18 % with no ambient) with "
-        "render_indirect off. Visibility can only drop, so the direct ratio should be "
-        "min(R'_d, R_d) / R_d"))
     def test_ground_never_brighter_without_indirect_light(self, view):
         """With the one-bounce term off, adding a virtual object can only take light away
         from a real surface: no real pixel ends brighter than the input (1 LSB slack)."""
