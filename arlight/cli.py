@@ -86,7 +86,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     n = len(frames)
     print(f"arlight estimate: {args.path} ({_count(n, 'frame')}, {camera.width}x{camera.height}), "
           f"preset {config.preset}, poses {args.poses}", file=sys.stderr)
-    pipeline = Pipeline(config, camera, _load_scene(args))
+    pipeline = Pipeline(config, camera, _load_scene(args, (camera.width, camera.height)))
     composites = _composite_folder(args.composite_out)
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
     errors = []
@@ -134,21 +134,24 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_scene(args: argparse.Namespace):
-    """The virtual scene of --scene (a file, or 'demo'), or None; its frame from
-    --scene-frame, else world with ground-truth poses and cam0 (the first camera) when
-    tracking. A SceneError (bad file) is the user's error, reported without a traceback."""
+def _load_scene(args: argparse.Namespace, image_size: tuple[int, int] = (640, 480)):
+    """The virtual scene of --scene (a file, or 'demo' anchored for image_size), or None;
+    its frame from --scene-frame, else world with ground-truth poses and cam0 (the first
+    camera) when tracking. A bad file is the user's error, named by its flag."""
     if not getattr(args, "scene", None):
         return None
-    if args.scene == "demo":
-        from arlight.pipeline.virtual_scene import demo_scene
+    from arlight.pipeline.virtual_scene import SceneError, demo_scene
 
-        return demo_scene()
+    if args.scene == "demo":
+        return demo_scene(image_size)
     from arlight.sources.virtual_scene_file import load_virtual_scene
 
     poses = getattr(args, "poses", "groundtruth")  # bench: always the data set's poses
     frame = getattr(args, "scene_frame", None) or ("world" if poses == "groundtruth" else "cam0")
-    return load_virtual_scene(args.scene, frame=frame)
+    try:
+        return load_virtual_scene(args.scene, frame=frame)
+    except SceneError as exc:
+        raise _BadInput(f"--scene {args.scene}: {exc}") from None
 
 
 def _composite_folder(path: str | None) -> Path | None:

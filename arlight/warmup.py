@@ -1,9 +1,10 @@
 """Compile the Numba kernels once, at set-up, so that no user's first frame waits for it.
 
 `python -m arlight.warmup` (run by scripts/bootstrap.sh after installing) pushes two small
-frames of the built-in scene through the pipeline with every preset and through the depth
-codecs. Numba writes what it compiles to its on-disk cache (`cache=True` on every kernel:
-`__pycache__/*.nbi`, `*.nbc` beside the sources), which later processes load in milliseconds.
+frames of the built-in scene, with the demo's virtual objects, through the pipeline with
+every preset and through the depth codecs. Numba writes what it compiles to its on-disk
+cache (`cache=True` on every kernel: `__pycache__/*.nbi`, `*.nbc` beside the sources), which
+later processes load in milliseconds.
 The image size does not matter to the cache: kernels are compiled per argument type.
 """
 
@@ -22,6 +23,7 @@ def warm_up() -> float:
     from arlight.pipeline.config import PRESETS, Config
     from arlight.pipeline.pipeline import Pipeline
     from arlight.pipeline.runtime import configure_process
+    from arlight.pipeline.virtual_scene import demo_scene
     from arlight.protocols import decode_depth, encode_depth
     from arlight.sources.synthetic import make_sequence
 
@@ -29,7 +31,8 @@ def warm_up() -> float:
     t0 = time.perf_counter()
     scene = make_sequence(num_frames=2, width=WARMUP_SIZE[0], height=WARMUP_SIZE[1])
     for preset in PRESETS:
-        pipeline = Pipeline(Config.from_preset(preset), scene.camera)
+        # with the demo's objects, so the renderer's kernels compile here too
+        pipeline = Pipeline(Config.from_preset(preset), scene.camera, demo_scene(WARMUP_SIZE))
         for frame in scene.frames:
             pipeline.process(frame)
     depth = np.asarray(scene.frames[0].depth, dtype=np.uint16)

@@ -37,7 +37,7 @@ import numpy as np
 from arlight.pipeline import sh
 from arlight.pipeline.aux_buffers import OrthoBuffer
 from arlight.pipeline.camera import PinholeCamera
-from arlight.pipeline.color import LUMA, luminance
+from arlight.pipeline.color import LUMA
 from arlight.pipeline.config import Config, DiffMode
 from arlight.pipeline.horizon import SupportPlane
 from arlight.pipeline.radiance_transfer import (
@@ -193,9 +193,7 @@ class DifferentialRenderer:
         e_v = np.maximum(e_c[k:], 0.0)[:, None] * light_rgb + b_c[k:]
         e_v[~ok_c[k:]] = 0.0
         virtual_rgb = g.albedo[vv_all, uu_all] / math.pi * e_v
-        changed = np.zeros((v1 - v0, u1 - u0), bool)
-        near_full = (np.abs(ratio_full - 1.0) > 0) | np.any(delta_full != 0, axis=2)
-        changed |= near_full
+        changed = (ratio_full != 1.0) | np.any(delta_full != 0, axis=2)
         out[virtual[v0:v1, u0:u1]] = 0.0
         block = composite[v0:v1, u0:u1]
         block[changed] = linear_to_srgb_u8(out[changed])
@@ -299,4 +297,4 @@ def luminance_light_rgb(sh_rgb: np.ndarray | None) -> np.ndarray:
 
 
 __all__ = ["DifferentialRenderer", "RenderInputs", "RenderOutput", "linear_to_srgb_u8",
-           "luminance", "luminance_light_rgb", "reinhard"]
+           "luminance_light_rgb", "reinhard"]
