@@ -56,6 +56,22 @@ def jittered_directions(n: int, rng: np.random.Generator) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def unoccluded_quadrature_error(normals_world: np.ndarray, directions_world: np.ndarray,
+                                bands: int) -> np.ndarray:
+    """(K, C): the exact clamped-cosine transfer of unit normals (K, 3), A_l Y_lm(n)
+    (Ramamoorthi and Hanrahan 2001), minus the sampling pattern's estimate of it,
+    sum_j max(0, n . w_j) Y(w_j) 4 pi / N, both world frame.
+
+    Added to an SSDO transfer it is a control variate: the unoccluded part becomes exact and
+    only the blocked directions keep the N-direction sampling error (which, with one
+    direction set for every pixel, is a bias shared by a whole surface, not noise)."""
+    n = np.asarray(normals_world, np.float64).reshape(-1, 3)
+    dirs = np.asarray(directions_world, np.float64)
+    cos = np.maximum(n @ dirs.T, 0.0) * (4.0 * math.pi / len(dirs))
+    per_coeff = np.repeat(sh.lambert_band_factors(bands), [2 * l + 1 for l in range(bands)])
+    return sh.sh_basis(n, bands) * per_coeff - cos @ sh.sh_basis(dirs, bands)
+
+
 def visibility_threshold(directions: np.ndarray) -> float:
     """chi of eq. 9: cos of half the median angle between neighbours of the spherical
     Delaunay triangulation (the convex hull of points on the unit sphere)."""

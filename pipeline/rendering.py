@@ -12,7 +12,8 @@ composite is the input frame bit for bit.
 Real pixels (render_mode "ratio", default): I = I_c R'_d / R_d, exact for a Lambertian
 surface; "paper": eq. 13, I_d = I_c (1 + T(R'_d) - T(R_d)), T Reinhard's operator keyed on
 each buffer's mean; "paste" is the baseline that only pastes the objects, shaded by the
-unshadowed light. Virtual pixels: albedo / pi times R'_d (their own SSDO visibility).
+unshadowed light. Virtual pixels: albedo / pi times R'_d (their own SSDO visibility), whose
+unoccluded part is made exact (`unoccluded_quadrature_error`, a control variate).
 Indirect light (eq. 10-12, 14): the one bounce that SSDO gathers where a direction is
 blocked, from the radiance of the blocking surface: the observed image for real surfaces,
 the virtual albedo under the estimated light for virtual ones; only the change that the
@@ -44,6 +45,7 @@ from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
     make_sampling_pattern,
     transfer_at_pixels,
+    unoccluded_quadrature_error,
 )
 from arlight.pipeline.virtual_gbuffer import VirtualGBuffer, VirtualRaycaster
 from arlight.pipeline.virtual_scene import VirtualScene
@@ -165,9 +167,14 @@ class DifferentialRenderer:
                                             np.concatenate([rv, vv_all]), radiance_c, plane)
         if not r.render_indirect:
             b_r, b_c = np.zeros_like(b_r), np.zeros_like(b_c)
+        k = len(ru)
+        # virtual pixels are shaded absolutely: their unoccluded transfer made exact (real
+        # pixels take a ratio of two transfers of the same directions, whose errors cancel)
+        t_c[k:] += unoccluded_quadrature_error(g.normals_cam[vv_all, uu_all] @ pose[:3, :3].T,
+                                               self.pattern.directions @ pose[:3, :3].T,
+                                               p.sh_bands) * ok_c[k:, None]
         e_r = t_r @ frame.light_sh
         e_c = t_c @ frame.light_sh
-        k = len(ru)
         # real pixels: the direct change (ratio or eq. 13) and the indirect change (eq. 14)
         ratio, delta = self._real_change(frame, e_r, e_c[:k], b_r, b_c[:k], ok_r & ok_c[:k],
                                          ru, rv, light_rgb)

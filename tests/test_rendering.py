@@ -372,11 +372,10 @@ class TestVirtualPixels:
 
     def test_top_of_the_sphere_is_albedo_over_pi_times_irradiance(self, lit_from_plus_x):
         """Pixels facing up (within 20 deg) see nothing above them: their colour is
-        albedo / pi * E(n). Against the analytic E the tolerance is the SSDO quadrature's
-        own error (64 directions: sum of max(0, n . w) Y(w) 4 pi / N vs the exact clamped
-        cosine, computed here from the renderer's pattern, 4.4 % at the top) plus 1 % for
-        8-bit rounding (half a step of sRGB near 0.27 linear is 0.8 %); against that
-        quadrature it is the rounding alone."""
+        albedo / pi * E(n), the exact clamped-cosine irradiance, within 1 % (8-bit rounding:
+        half a step of sRGB near 0.27 linear is 0.8 %). The renderer's 64 directions alone
+        miss it by several per cent (4.4 % here, asserted below): the unoccluded part of the
+        virtual pixels' transfer is made exact (`unoccluded_quadrature_error`)."""
         inputs, out, renderer = lit_from_plus_x
         n = self._world_normals(out, inputs)
         top = out.virtual_mask & (n[..., 1] > math.cos(math.radians(20)))
@@ -384,13 +383,12 @@ class TestVirtualPixels:
         measured = srgb_to_linear(out.composite)[top].mean(axis=0)
         normals = n[top]
         analytic = SPHERE_ALBEDO / math.pi * irradiance(inputs.light_sh, normals).mean()
+        np.testing.assert_allclose(measured, analytic, rtol=0.01)
         dirs = renderer.pattern.directions @ inputs.world_from_cam[:3, :3].T
         basis = sh.sh_basis(dirs, 4) * (4.0 * math.pi / len(dirs))
         quadrature = SPHERE_ALBEDO / math.pi * np.mean(
             np.maximum(normals @ dirs.T, 0.0) @ basis @ inputs.light_sh)
-        quad_error = abs(quadrature - analytic) / analytic
-        np.testing.assert_allclose(measured, quadrature, rtol=0.01)
-        np.testing.assert_allclose(measured, analytic, rtol=quad_error + 0.01)
+        assert abs(quadrature - analytic) / analytic > 0.03
 
 
 # ------------------------------------------------------------------ 5. bad input
