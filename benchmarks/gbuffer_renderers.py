@@ -409,8 +409,9 @@ def main(argv: list[str] | None = None) -> int:
     for s in setups:
         fbos = ", ".join(f"{r['size']}: {r['moderngl']['framebuffer_ms']:.1f}" for r in rows
                          if r["triangles"] == s["triangles"] and "moderngl" in r) or "-"
+        gl_setup = f"{s['moderngl_setup_ms']:.1f}" if "moderngl_setup_ms" in s else "-"
         print(f"| {s['triangles']} | {s['scene_build_ms']:.1f} | {s['open3d_setup_ms']:.1f} | "
-              f"{s.get('moderngl_setup_ms', float('nan')):.1f} | {fbos} |")
+              f"{gl_setup} | {fbos} |")
     print("(Open3D builds its BVH on the first cast and Mesa compiles shaders on the first "
           "draw: both are in the first-frame column.)")
 
