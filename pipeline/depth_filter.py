@@ -44,8 +44,9 @@ Medians inside the kernels use a scratch buffer (``np.empty`` per row on the CPU
 ``cuda.local.array`` per thread on the GPU): an insertion sort for up to 16 samples (D''':
 4), Wirth's in-place selection above (D'': up to 25; a D' hole: up to k*k = 400; O(n) on
 average, no recursion; measured faster than insertion sort from about 16 samples). A D'
-hole stops scanning its window as soon as the volume-agreeing majority is certain,
-whatever the remaining rows hold.
+hole skips the rows of its window that hold no measured depth (an integral image of D_c > 0
+counts them) and stops as soon as the volume-agreeing majority is certain, whatever the
+samples left may hold; a hole with no measured depth in its window is answered at once.
 
 Slow NumPy references (``_*_reference``) mirror each kernel and serve as test oracles only.
 """
@@ -55,6 +56,7 @@ from __future__ import annotations
 import functools
 import math
 
+import cv2
 import numba
 import numpy as np
 from numba import prange
@@ -128,8 +130,16 @@ def _lower_median(buf, n):
 
 
 @register_jitable
-def _merge_pixel(depth_c, depth_v, intensity, y, x, k, lam_i, lam_d, scratch):
-    """D'(y, x) of eq. 3; scratch holds >= k*k float32 samples."""
+def _window_count(valid_sum, y0, y1, x0, x1):
+    """Valid samples in rows y0..y1-1, columns x0..x1-1, from the integral image."""
+    return valid_sum[y1, x1] - valid_sum[y0, x1] - valid_sum[y1, x0] + valid_sum[y0, x0]
+
+
+@register_jitable
+def _merge_pixel(depth_c, depth_v, intensity, valid_sum, y, x, k, lam_i, lam_d, scratch):
+    """D'(y, x) of eq. 3; scratch holds >= k*k float32 samples; valid_sum (H+1, W+1) is the
+    integral image of D_c > 0, so that windows and rows without a measured depth are
+    skipped (the result is the same as scanning them)."""
     dc = depth_c[y, x]
     dv = depth_v[y, x]
     if dc > 0:
@@ -141,10 +151,17 @@ def _merge_pixel(depth_c, depth_v, intensity, y, x, k, lam_i, lam_d, scratch):
     y1 = min(y - k // 2 + k, h)
     x0 = max(x - k // 2, 0)
     x1 = min(x - k // 2 + k, w)
+    left = _window_count(valid_sum, y0, y1, x0, x1)  # measured samples not yet scanned
+    if left == 0:  # no support at all
+        return dv if dv > 0 else dc
     ip = intensity[y, x]
     n_i = 0  # |Omega_I|
     n_d = 0  # |Omega_D|
     for qy in range(y0, y1):
+        in_row = _window_count(valid_sum, qy, qy + 1, x0, x1)
+        if in_row == 0:
+            continue
+        left -= in_row
         for qx in range(x0, x1):
             dq = depth_c[qy, qx]
             if dq > 0 and abs(ip - intensity[qy, qx]) < lam_i:
@@ -153,8 +170,8 @@ def _merge_pixel(depth_c, depth_v, intensity, y, x, k, lam_i, lam_d, scratch):
                 vq = depth_v[qy, qx]
                 if vq > 0 and abs(dq - vq) < lam_d:
                     n_d += 1
-        # Early out: the majority already agrees, whatever the rows left may hold.
-        if dv > 0 and n_i > 0 and 2 * n_d >= n_i + (y1 - qy - 1) * (x1 - x0):
+        # Early out: the majority already agrees, whatever the samples left may hold.
+        if dv > 0 and n_i > 0 and 2 * n_d >= n_i + left:
             return dv
     if n_i > 0:
         if dv > 0 and 2 * n_d >= n_i:
@@ -241,14 +258,14 @@ def _normal_pixel(depth, y, x, fx, fy, cx, cy, max_jump):
 
 
 @numba.njit(parallel=True, cache=True)
-def _merge_cpu(depth_c, depth_v, intensity, k, lam_i, lam_d, out):
+def _merge_cpu(depth_c, depth_v, intensity, valid_sum, k, lam_i, lam_d, out):
     h, w = out.shape
     for row in prange(h):
         y = np.int64(row)  # prange may type its index unsigned; int64 keeps the index maths
         scratch = np.empty(k * k, np.float32)
         for x in range(w):
-            out[y, x] = _merge_pixel(depth_c, depth_v, intensity, y, x, k, lam_i, lam_d,
-                                     scratch)
+            out[y, x] = _merge_pixel(depth_c, depth_v, intensity, valid_sum, y, x, k, lam_i,
+                                     lam_d, scratch)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -303,12 +320,12 @@ def _cuda_kernels(scratch_size: int):
     from numba import cuda
 
     @cuda.jit
-    def merge(depth_c, depth_v, intensity, k, lam_i, lam_d, out):
+    def merge(depth_c, depth_v, intensity, valid_sum, k, lam_i, lam_d, out):
         x, y = cuda.grid(2)
         if y < out.shape[0] and x < out.shape[1]:
             scratch = cuda.local.array(scratch_size, np.float32)
-            out[y, x] = _merge_pixel(depth_c, depth_v, intensity, y, x, k, lam_i, lam_d,
-                                     scratch)
+            out[y, x] = _merge_pixel(depth_c, depth_v, intensity, valid_sum, y, x, k, lam_i,
+                                     lam_d, scratch)
 
     @cuda.jit
     def support_median(depth, intensity, offsets, lam_i, gate, out):
@@ -424,9 +441,11 @@ def _window_offsets(window: int, subsample: int | None = None) -> np.ndarray:
 
 def _run_merge(dc, dv, inten, k, lam_i, lam_d, backend):
     out = np.empty_like(dc)
+    valid_sum = cv2.integral((dc > 0).astype(np.uint8))  # (H+1, W+1) int32
     if backend == "cuda":
-        return _cuda_launch(0, k * k, dc.shape, dc, dv, inten, k, lam_i, lam_d, out)
-    _merge_cpu(dc, dv, inten, k, lam_i, lam_d, out)
+        return _cuda_launch(0, k * k, dc.shape, dc, dv, inten, valid_sum, k, lam_i, lam_d,
+                            out)
+    _merge_cpu(dc, dv, inten, valid_sum, k, lam_i, lam_d, out)
     return out
 
 
