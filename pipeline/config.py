@@ -138,6 +138,9 @@ class VolumeParams:
     sdf_trunc_voxels: float = 4.0  # TSDF truncation, in voxels
     tracking_depth_diff_m: float = 0.07  # ICP correspondence gate
     use_volume: bool = True  # False: skip the volume; D_v is then empty (image-space only)
+    # Surface: V ray cast through every s-th pixel (s x s fewer rays), each pixel taking its
+    # block's sample (fast / mobile: 2)
+    surface_subsample: int = 1
 
     def __post_init__(self) -> None:
         _check_float(self, "volume_size_m", 0.0, low_open=True)
@@ -149,6 +152,7 @@ class VolumeParams:
         _check_float(self, "sdf_trunc_voxels", 0.0, low_open=True)
         _check_float(self, "tracking_depth_diff_m", 0.0, low_open=True)
         _check_bool(self, "use_volume")
+        _check_int(self, "surface_subsample", 1, 8)
 
     @property
     def voxel_size_m(self) -> float:
@@ -258,6 +262,7 @@ class EstimationParams:
     segment_features: SegmentFeatures = SegmentFeatures.INVARIANT
     segment_illuminant_weight: float = 4.0  # "invariant": weight of the sun/sky colour axis
     segment_split_ground: bool = True  # the support plane's pixels never share a segment
+    segment_scale: int = 2  # the segmentation runs at 1/segment_scale resolution
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
 
     def __post_init__(self) -> None:
@@ -276,6 +281,7 @@ class EstimationParams:
         _check_enum(self, "segment_features", SegmentFeatures)
         _check_float(self, "segment_illuminant_weight", 0.0)
         _check_bool(self, "segment_split_ground")
+        _check_int(self, "segment_scale", 1, 16)
         _check_bool(self, "estimate_rgb")
 
 

@@ -99,24 +99,39 @@ def solve_regularised(transfer: np.ndarray, target: np.ndarray, weights: np.ndar
     scene's mean albedo over pi, unknown); without `bounce` it is 0. P (C x C, optional) is
     an extra quadratic prior on l, relative to the mean diagonal of the normal matrix.
     """
+    design = _design(transfer, bands, bounce)
+    return _solve_weighted(design, weights, weights * target, bands, regularization,
+                           bounce is not None, prior)
+
+
+def _design(transfer: np.ndarray, bands: int, bounce: np.ndarray | None) -> np.ndarray:
+    """(M, n [+ 1]): the first bands^2 transfer columns, and B as the last column."""
+    t = transfer[:, : bands * bands]
+    return t if bounce is None else np.column_stack([t, bounce])
+
+
+def _solve_weighted(design: np.ndarray, gram_weights: np.ndarray, rhs_weights: np.ndarray,
+                    bands: int, regularization: float, with_bounce: bool,
+                    prior: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """The normal equations of `solve_regularised` from A = `design`: (A^T diag(g) A) x =
+    A^T r with g = gram_weights, r = rhs_weights (a model I = a (T l + beta B) with robust
+    weights w has g = w a^2, r = w a I: no scaled copy of A is made). beta < 0 (more bounce
+    than the data supports): the light alone is solved, from the same matrices."""
     n = bands * bands
-    t = transfer[:, :n]
+    gram = design.T @ (design * gram_weights[:, None])
+    rhs = design.T @ rhs_weights
     penalty = np.diag(regularization * _band_penalty(bands) ** 2)
     if prior is not None:
         penalty = penalty + prior[:n, :n]
-    if bounce is not None:
-        t = np.column_stack([t, bounce])
-        penalty = np.pad(penalty, ((0, 1), (0, 1)))
-        penalty[n, n] = regularization
-    gram = (t * weights[:, None]).T @ t
-    rhs = (t * weights[:, None]).T @ target
-    scale = float(np.mean(np.diag(gram))) or 1.0
-    x = np.linalg.solve(gram + scale * penalty, rhs)
-    if bounce is None:
-        return x, 0.0
-    if x[-1] < 0.0:  # more bounce than the data supports: fit without it
-        return solve_regularised(transfer, target, weights, bands, regularization, None, prior)
-    return x[:n], float(x[-1])
+    if with_bounce:
+        full = np.pad(penalty, ((0, 1), (0, 1)))
+        full[n, n] = regularization
+        scale = float(np.mean(np.diag(gram))) or 1.0
+        x = np.linalg.solve(gram + scale * full, rhs)
+        if x[-1] >= 0.0:
+            return x[:n], float(x[-1])
+    scale = float(np.mean(np.diag(gram)[:n])) or 1.0
+    return np.linalg.solve(gram[:n, :n] + scale * penalty, rhs[:n]), 0.0
 
 
 def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: EstimationParams,
@@ -192,13 +207,17 @@ class _Samples:
 def _usable_samples(t: np.ndarray, color_linear: np.ndarray, bounce: np.ndarray | None,
                     segments: np.ndarray | None, max_samples: int, seed: int) -> _Samples:
     """Clipped, near-black, non-finite and transfer-less pixels left out; above
-    max_samples a seeded random subset (neighbouring pixels repeat each other)."""
-    rgb = np.asarray(color_linear, dtype=np.float64).reshape(-1, 3)
-    lum = rgb @ LUMA
-    finite = np.all(np.isfinite(t), axis=1) & np.isfinite(lum)
-    clipped = rgb.max(axis=1) >= CLIP_LEVEL
-    dark = ~(lum > DARK_LEVEL)
-    no_transfer = ~(t[:, 0].astype(np.float64) > 1e-6)
+    max_samples a seeded random subset (neighbouring pixels repeat each other).
+
+    The tests run in the inputs' own precision over every pixel; only the rows kept are
+    converted to float64 (the fit's precision)."""
+    rgb_all = np.asarray(color_linear).reshape(-1, 3)
+    lum_all = rgb_all @ LUMA.astype(rgb_all.dtype, copy=False)
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(lum_all) & np.isfinite(t).all(axis=1)
+        clipped = rgb_all.max(axis=1) >= CLIP_LEVEL
+        dark = ~(lum_all > DARK_LEVEL)
+        no_transfer = ~(t[:, 0] > 1e-6)
     usable = finite & ~clipped & ~dark & ~no_transfer
     keep = np.flatnonzero(usable)
     if len(keep) > max_samples:
@@ -208,9 +227,11 @@ def _usable_samples(t: np.ndarray, color_linear: np.ndarray, bounce: np.ndarray 
     labels = None
     if segments is not None:
         _, labels = np.unique(np.asarray(segments).reshape(-1)[keep], return_inverse=True)
-    left_out = (f"of {len(lum)}: {int(clipped.sum())} clipped, {int(dark.sum())} too dark, "
-                f"{int(no_transfer.sum())} without transfer, {int((~finite).sum())} not finite")
-    return _Samples(t[keep].astype(np.float64), lum[keep], rgb[keep], b, labels, left_out)
+    left_out = (f"of {len(lum_all)}: {int(clipped.sum())} clipped, {int(dark.sum())} too "
+                f"dark, {int(no_transfer.sum())} without transfer, "
+                f"{int((~finite).sum())} not finite")
+    rgb = rgb_all[keep].astype(np.float64)
+    return _Samples(t[keep].astype(np.float64), rgb @ LUMA, rgb, b, labels, left_out)
 
 
 def _fit_light(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
@@ -248,27 +269,31 @@ def _alternate(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
     """Regularised solve, then `robust_iterations` rounds of per-segment albedo and Huber
     re-weighting (relative residuals), each followed by a new solve."""
     n = bands * bands
+    design = _design(t, bands, b)
     weights = np.ones(len(lum))
     albedo = np.ones(len(lum))
-    coeffs, beta = solve_regularised(t, lum, weights, bands, params.regularization, b, prior)
+
+    def solve() -> tuple[np.ndarray, float]:
+        return _solve_weighted(design, weights * albedo * albedo, weights * albedo * lum,
+                               bands, params.regularization, b is not None, prior)
 
     def shading() -> np.ndarray:
-        s = t[:, :n] @ coeffs
+        s = design[:, :n] @ coeffs
         return s + beta * b if b is not None else s
 
+    coeffs, beta = solve()
     for _ in range(params.robust_iterations):
+        shade = shading()
         if labels is not None:
-            albedo = _segment_albedo(shading(), lum, labels, weights)
-        pred = albedo * shading()
+            albedo = _segment_albedo(shade, lum, labels, weights)
+        pred = albedo * shade
         # relative to the prediction, not the observation: a wrongly bright patch then has
         # a large residual and a correct dark pixel a small one
         rel = (pred - lum) / np.maximum(pred, DARK_LEVEL)
         sigma = 1.4826 * np.median(np.abs(rel - np.median(rel))) + 1e-6
         a = np.abs(rel) / (1.345 * sigma)
         weights = np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))  # Huber
-        coeffs, beta = solve_regularised(t * albedo[:, None], lum, weights, bands,
-                                         params.regularization,
-                                         None if b is None else b * albedo, prior)
+        coeffs, beta = solve()
     return _Fit(coeffs, beta, albedo, weights, shading())
 
 

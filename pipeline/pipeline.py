@@ -312,12 +312,15 @@ class Pipeline:
         if not np.any(valid):
             return LightEstimate(np.zeros(n), Confidence(reason="no valid depth"),
                                  np.zeros((3, n)) if p.estimate_rgb else None)
-        grid = np.ix_(transfer.pixel_v, transfer.pixel_u)
+        h, w = depth.shape
+        full_grid = len(transfer.pixel_v) == h and len(transfer.pixel_u) == w
+        grid = (slice(None), slice(None)) if full_grid else np.ix_(transfer.pixel_v,
+                                                                    transfer.pixel_u)
         colors = color_linear[grid][valid]
         segments = None
         if p.albedo_segments:
             segments = material_segments(
-                color_linear, depth, features=p.segment_features.value,
+                color_linear, depth, scale=p.segment_scale, features=p.segment_features.value,
                 illuminant_weight=p.segment_illuminant_weight)
             if plane is not None and p.segment_split_ground:
                 # what stands on the ground is rarely made of the ground's material

@@ -461,16 +461,19 @@ def upsample_transfer(result: TransferResult, valid_full: np.ndarray) -> Transfe
     map_x = np.ascontiguousarray(np.broadcast_to(map_u[None, :], (h, w)))
     map_y = np.ascontiguousarray(np.broadcast_to(map_v[:, None], (h, w)))
     weight = result.valid.astype(np.float32)
-    num = _remap_channels(result.transfer * weight[..., None], map_x, map_y)
+    transfer = _remap_channels(np.asarray(result.transfer * weight[..., None], np.float32),
+                               map_x, map_y)
     den = cv2.remap(weight, map_x, map_y, cv2.INTER_LINEAR)
     keep = valid_full & (den > 0.999)
-    transfer = np.where(keep[..., None], num / np.maximum(den, 1e-6)[..., None], 0.0)
+    # normalised, and zero where not kept, in place (float32 throughout)
+    inv = np.where(keep, 1.0 / np.maximum(den, 1e-6), 0.0).astype(np.float32)
+    transfer *= inv[..., None]
     bounce = None
     if result.bounce is not None:
-        b = cv2.remap(result.bounce * weight, map_x, map_y, cv2.INTER_LINEAR)
-        bounce = np.where(keep, b / np.maximum(den, 1e-6), 0.0).astype(np.float32)
-    return TransferResult(transfer.astype(np.float32), keep, np.arange(w), np.arange(h),
-                          bounce)
+        bounce = cv2.remap(np.asarray(result.bounce * weight, np.float32), map_x, map_y,
+                           cv2.INTER_LINEAR)
+        bounce *= inv
+    return TransferResult(transfer, keep, np.arange(w), np.arange(h), bounce)
 
 
 def _occlusion_reference(x: np.ndarray, s: np.ndarray, w: np.ndarray, chi: float) -> float:

@@ -173,7 +173,7 @@ class VolumeReconstruction:
         self._volume.sync()
         t1 = time.perf_counter()
 
-        depth_v, normals_v = self._volume.ray_cast(self.pose)
+        depth_v, normals_v = self._volume.ray_cast(self.pose, c.surface_subsample)
         self._model_depth = (None if self.num_blocks == 0
                              else o3c.Tensor(depth_v, device=self.device))
         aux = self._aux.update(self._volume, self.pose, depth_v, light_direction_world)

@@ -28,7 +28,7 @@ ILLUMINANT_WEIGHT = 4.0  # feature levels per unit of log chromaticity along it
 
 
 def material_segments(color_linear: np.ndarray, depth_m: np.ndarray, *, scale: int = 2,
-                      k: float = 300.0, min_size: int = 50,
+                      k: float = 300.0, min_size_px: int = 200,
                       features: str = "invariant",
                       illuminant_weight: float = ILLUMINANT_WEIGHT) -> np.ndarray:
     """(H, W) int32 labels >= 0 of likely-uniform-albedo regions.
@@ -36,7 +36,10 @@ def material_segments(color_linear: np.ndarray, depth_m: np.ndarray, *, scale: i
     color_linear: (H, W, 3) linear RGB; depth_m: (H, W) metres (0 = missing);
     features: "invariant" or "chroma" (module docstring); illuminant_weight: "invariant"
     only, feature levels per unit of log chromaticity along the daylight direction.
-    Runs at 1/`scale` resolution for speed and upsamples the labels (nearest).
+    Runs at 1/`scale` resolution for speed and upsamples the labels (nearest); k (the
+    Felzenszwalb-Huttenlocher threshold, per pixel of a segment) is given for scale 2 and
+    min_size_px in full-resolution pixels, both converted so that segments keep their size
+    at any scale.
     """
     h, w = depth_m.shape
     small_c = color_linear[::scale, ::scale].astype(np.float32)
@@ -57,7 +60,11 @@ def material_segments(color_linear: np.ndarray, depth_m: np.ndarray, *, scale: i
     else:
         raise ValueError(f"features must be 'chroma' or 'invariant', got {features!r}")
     feat = np.ascontiguousarray(np.clip(feat, 0, 255).astype(np.uint8))
-    seg = cv2.ximgproc.segmentation.createGraphSegmentation(sigma=0.8, k=k, min_size=min_size)
+    # the smallest segment in full-resolution pixels, whatever the scale
+    min_size = max(1, round(min_size_px / (scale * scale)))
+    k_scaled = k * 4.0 / (scale * scale)
+    seg = cv2.ximgproc.segmentation.createGraphSegmentation(sigma=0.8, k=k_scaled,
+                                                            min_size=min_size)
     labels = seg.processImage(feat).astype(np.int32)
     full = np.repeat(np.repeat(labels, scale, axis=0), scale, axis=1)
     return np.ascontiguousarray(full[:h, :w])

@@ -204,18 +204,40 @@ class TsdfVolume:
         hashmap = self._grid.hashmap()
         return hashmap.key_tensor()[hashmap.active_buf_indices().to(o3c.int64)]
 
-    def ray_cast(self, world_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def ray_cast(self, world_from_cam: np.ndarray,
+                 subsample: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """D_v (H, W) float32 metres (0 = none) and N_v (H, W, 3) float32 (camera frame,
-        unit, towards the free side) of V seen from world_from_cam; zeros while V is empty."""
+        unit, towards the free side) of V seen from world_from_cam; zeros while V is empty.
+
+        subsample s > 1: cast through the pixel centres of the camera scaled by 1/s (s^2
+        fewer rays) and give each full-resolution pixel the sample of the s x s block it
+        lies in (nearest: no depth is invented across an edge)."""
         cam, c = self.camera, self.params
         h, w = cam.height, cam.width
         if self.num_blocks == 0:
             return np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32)
+        if subsample > 1:
+            cam = PinholeCamera(-(-w // subsample), -(-h // subsample), cam.fx / subsample,
+                                cam.fy / subsample, (cam.cx + 0.5) / subsample - 0.5,
+                                (cam.cy + 0.5) / subsample - 0.5)
+        depth, normals = self._cast(cam, world_from_cam)
+        if subsample > 1:
+            depth = np.repeat(np.repeat(depth, subsample, 0), subsample, 1)[:h, :w]
+            normals = np.repeat(np.repeat(normals, subsample, 0), subsample, 1)[:h, :w]
+        return np.ascontiguousarray(depth), np.ascontiguousarray(normals)
+
+    def _cast(self, cam: PinholeCamera, world_from_cam: np.ndarray,
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Open3D's ray cast of V through `cam`'s pixels, refined (`refine_ray_cast`)."""
+        c = self.params
+        h, w = cam.height, cam.width
+        intrinsic = (self.intrinsic if cam is self.camera
+                     else o3c.Tensor(cam.matrix, o3c.float64))
         hp, wp = _padded(h), _padded(w)
         # Open3D warns while it grows its range-map buffer; that is expected, not a problem
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             result = self._grid.ray_cast(
-                self._active_blocks(), self.intrinsic, o3c.Tensor(np.linalg.inv(world_from_cam)),
+                self._active_blocks(), intrinsic, o3c.Tensor(np.linalg.inv(world_from_cam)),
                 wp, hp, ["depth", "index", "mask", "interp_ratio"], 1.0, c.depth_min_m,
                 c.depth_max_m, self.weight_threshold(), c.sdf_trunc_voxels,
                 RANGE_MAP_DOWN_FACTOR)
