@@ -41,9 +41,10 @@ fallback). Both backends select the same float32 samples with the same float32 c
 so the depth passes agree bit for bit; normals agree to float32 rounding (~1e-6).
 
 Medians inside the kernels use a scratch buffer (``np.empty`` per row on the CPU,
-``cuda.local.array`` per thread on the GPU): an insertion sort for up to 16 samples (D''':
-4), Wirth's in-place selection above (D'': up to 25; a D' hole: up to k*k = 400; O(n) on
-average, no recursion; measured faster than insertion sort from about 16 samples). A D'
+``cuda.local.array`` per thread on the GPU): up to 32 samples (D''': 4, D'': up to 25) the
+one whose count of smaller samples is <= k < its count of smaller-or-equal ones (O(n^2)
+compares without branches: D'' in half the time of Wirth's selection), Wirth's in-place
+selection above (a D' hole: up to k*k = 400; O(n) on average, no recursion). A D'
 hole skips the rows of its window that hold no measured depth (an integral image of D_c > 0
 counts them) and stops as soon as the volume-agreeing majority is certain, whatever the
 samples left may hold; a hole with no measured depth in its window is answered at once.
@@ -80,7 +81,7 @@ __all__ = [
 BACKENDS = ("cpu", "cuda")
 NORMAL_MAX_RELATIVE_JUMP = 0.05  # a neighbour further than 5 % of the depth is another surface
 _CUDA_BLOCK = (16, 16)
-_SMALL_SORT = 16  # medians of up to this many samples use an insertion sort
+_RANK_SELECT = 32  # medians of up to this many samples by counting ranks (O(n^2), no branches)
 
 
 # --------------------------------------------------------------------------------------
@@ -90,19 +91,23 @@ _SMALL_SORT = 16  # medians of up to this many samples use an insertion sort
 
 @register_jitable
 def _lower_median(buf, n):
-    """Sample of rank (n - 1) // 2 of buf[:n] (n >= 1); reorders buf.
+    """Sample of rank (n - 1) // 2 of buf[:n] (n >= 1); may reorder buf.
 
-    Insertion sort up to _SMALL_SORT samples, Wirth's selection above."""
+    Up to _RANK_SELECT samples by counting ranks (the sample with fewer than k + 1 smaller
+    and more than k smaller-or-equal ones: branch-free inner loops, twice as fast as a
+    selection for the 25 samples of D''), Wirth's in-place selection above."""
     kth = (n - 1) // 2
-    if n <= _SMALL_SORT:
-        for i in range(1, n):
+    if n <= _RANK_SELECT:
+        for i in range(n):
             v = buf[i]
-            j = i - 1
-            while j >= 0 and buf[j] > v:
-                buf[j + 1] = buf[j]
-                j -= 1
-            buf[j + 1] = v
-        return buf[kth]
+            less = 0
+            leq = 0
+            for j in range(n):
+                less += buf[j] < v
+                leq += buf[j] <= v
+            if less <= kth < leq:
+                return v
+        return buf[kth]  # not reached: some sample holds the rank
     lo = 0
     hi = n - 1
     while lo < hi:

@@ -212,7 +212,7 @@ class TsdfVolume:
         subsample s > 1: cast through the pixel centres of the camera scaled by 1/s (s^2
         fewer rays) and give each full-resolution pixel the sample of the s x s block it
         lies in (nearest: no depth is invented across an edge)."""
-        cam, c = self.camera, self.params
+        cam = self.camera
         h, w = cam.height, cam.width
         if self.num_blocks == 0:
             return np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32)
