@@ -23,14 +23,19 @@ The operators (``OPERATORS``; ``arlight ibl --operator NAME``):
 ``boost``
     Ours: sRGB decoding (then every unclipped pixel is the true radiance, up to the global
     scale and 8-bit quantisation), and the pixels whose three channels are all saturated
-    (>= ``SATURATED_U8``: the white core of a light source, where the sensor lost the
-    energy) multiplied by ``SATURATION_BOOST``, so that clipped light sources carry a
-    plausible share of the energy instead of the clip level. Pixels with only one or two
-    channels clipped (coloured skies near the sun, sunsets) are left as decoded: on the
-    HDR truth their luminance is at most about the clip level (median 0.5-1.0 of it).
-    The boost, 5, is the geometric middle of the clipped cores' true mean radiance on the
-    shared HDR maps at the middle exposure (1.3-35 times the clip) and measured against
-    the other factors in ``benchmarks/ibl_truth.py --boost-sweep``.
+    (the white core of a light source, where the sensor lost the energy) multiplied by
+    ``SATURATION_BOOST``, so that clipped light sources carry a plausible share of the
+    energy instead of the clip level. "All three saturated" is a smooth weight of the
+    smallest channel, 0 at ``SATURATION_START_U8`` rising to 1 at ``SATURATION_FULL_U8``
+    (smoothstep): video codecs spread a clipped 255 over about 235-255 (on mp4v frames of
+    the shared maps the fully clipped pixels' smallest channel has median 248, 5th
+    percentile 232-240), and a smooth weight keeps a pixel that crosses a threshold from
+    frame to frame from flickering. Pixels with only one or two channels clipped (coloured
+    skies near the sun, sunsets) are left as decoded: on the HDR truth their luminance is
+    at most about the clip level (median 0.5-1.0 of it). The factor 5 is about the
+    geometric middle of the clipped cores' true mean radiance on the shared HDR maps at the
+    middle exposure (1.3 to 35 times the clip, one studio light 1300) and is measured
+    against the other factors in ``benchmarks/ibl_truth.py --boost-sweep``.
 
 ``DEFAULT_OPERATOR`` is the one the measurement against HDR truth favours (README,
 "Image-based lighting from 360-degree video").
@@ -47,8 +52,8 @@ from arlight.checks import check_image
 from arlight.pipeline.color import srgb_to_linear
 
 PAPER_LUMA = np.array([0.3, 0.59, 0.11], dtype=np.float32)  # eq. 1
-SATURATED_U8 = 250  # a channel at or above this 8-bit value is taken as clipped (codecs
-# spread a clipped 255 over 250-255)
+SATURATION_START_U8 = 235  # `boost`: smallest channel where the saturation weight starts
+SATURATION_FULL_U8 = 252  # ... and where it reaches 1 (fully clipped)
 SATURATION_BOOST = 5.0  # `boost`: radiance of a fully clipped pixel, in clip levels
 
 
@@ -76,17 +81,25 @@ def _linear(ldr: np.ndarray) -> np.ndarray:
     return srgb_to_linear(ldr)
 
 
-def saturated_mask(ldr: np.ndarray, threshold: int = SATURATED_U8) -> np.ndarray:
-    """(H, W) bool: pixels whose three channels are all >= `threshold` (fully clipped)."""
-    return np.min(ldr, axis=-1) >= threshold
+def saturation_weight(ldr: np.ndarray, start: int = SATURATION_START_U8,
+                      full: int = SATURATION_FULL_U8) -> np.ndarray:
+    """(H, W) float32 in [0, 1]: how fully clipped each pixel is, from its smallest channel
+    (smoothstep from `start`, 0, to `full`, 1; a step at `full` when start >= full)."""
+    smallest = np.min(ldr, axis=-1).astype(np.float32)
+    if start >= full:
+        return (smallest >= full).astype(np.float32)
+    t = np.clip((smallest - np.float32(start)) / np.float32(full - start), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
 
 
 def boost_saturated(ldr: np.ndarray, boost: float = SATURATION_BOOST,
-                    threshold: int = SATURATED_U8) -> np.ndarray:
-    """The `boost` operator with its two parameters open (for sweeps and tests)."""
+                    start: int = SATURATION_START_U8,
+                    full: int = SATURATION_FULL_U8) -> np.ndarray:
+    """The `boost` operator with its parameters open (for sweeps and tests): linear RGB
+    times 1 + (boost - 1) w, w = `saturation_weight`."""
     out = srgb_to_linear(ldr)
-    out[saturated_mask(ldr, threshold)] *= np.float32(boost)
-    return out
+    factor = 1.0 + np.float32(boost - 1.0) * saturation_weight(ldr, start, full)
+    return out * factor[..., None]
 
 
 def _boost(ldr: np.ndarray) -> np.ndarray:
