@@ -273,6 +273,12 @@ def print_tables(report: dict, keys: list[float]) -> None:
             print(f"| {name} | {v['frames_read']} | {'ok' if v['timestamps_ok'] else 'WRONG'} | "
                   + " | ".join(cells) + f" | {v['decode_ms']:.1f} | {v['wait_ms']:.1f} | "
                   f"{v['bytes'] / 1024:.0f} |")
+        videos = [m["video"] for m in maps.values()]
+        cells = [f"{np.median([v[k]['angle_deg'] for v in videos]):.1f} / "
+                 f"{100 * np.median([v[k]['irradiance_error'] for v in videos]):.0f} / "
+                 f"{np.median([v[k]['sh_error'] for v in videos]):.2f}"
+                 for k in ("video", "direct")]
+        print("| median over the maps | | | " + " | ".join(cells) + " | | | |")
     print("\n### Diffuse map resolution against the full-resolution brute-force reference "
           "(HDR maps, no tone mapping)\n")
     print("| method | mean relative error (median over maps) | worst map's max error | "
