@@ -503,7 +503,11 @@ def cmd_ibl(args: argparse.Namespace) -> int:
           f"{_count(total, 'frame') if total else 'frames'}, {source.size[0]}x"
           f"{source.size[1]}{', HDR' if source.hdr else ''}), operator {operator}, diffuse map "
           f"{args.diffuse_size[0]}x{args.diffuse_size[1]}", file=sys.stderr, flush=True)
-    out = open(args.out, "w") if args.out else sys.stdout  # noqa: SIM115
+    try:
+        out = open(args.out, "w") if args.out else sys.stdout  # noqa: SIM115
+    except OSError as exc:
+        source.close()
+        raise _BadInput(f"--out {args.out}: cannot write this file ({exc.strerror})") from None
     bar = tqdm(total=total, unit="frame", disable=not sys.stderr.isatty(), dynamic_ncols=True,
                leave=False)
     errors: list[float] = []

@@ -181,8 +181,8 @@ def lighting_from_hdr(hdr: np.ndarray, params: IblParams | None = None) -> IblRe
     if image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"hdr: expected an (H, W, 3) RGB map, got shape {image.shape}")
     image = np.asarray(image, dtype=np.float32)
-    if not np.all(np.isfinite(image)):
-        image = np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0)
+    if not np.all(np.isfinite(image)) or image.min() < 0.0:  # radiance is finite and >= 0
+        image = np.maximum(np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     sh_src = _fit_size(image, p.sh_source_size)

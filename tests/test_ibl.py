@@ -152,6 +152,12 @@ class TestLighting:
         fast = diffuse_map_sh(radiance_sh(equirect.downsample(hdr, 128, 64)), (64, 32))
         np.testing.assert_allclose(brute, fast, rtol=0.01)
 
+    def test_hdr_input_with_nan_inf_and_negative_values(self):
+        hdr = np.ones((32, 64, 3), np.float32)
+        hdr[0, 0], hdr[1, 1], hdr[2, 2] = np.nan, np.inf, -5.0
+        r = lighting_from_hdr(hdr)
+        assert np.all(np.isfinite(r.sh_rgb)) and np.all(r.diffuse_map >= 0)
+
     @pytest.mark.parametrize("value", [0, 255])
     def test_black_and_saturated_frames_give_finite_results(self, value):
         ldr = np.full((128, 256, 3), value, np.uint8)
@@ -306,6 +312,13 @@ class TestCli:
                            (tmp_path / "missing.png", "missing.png")):
             code, _, err = run_cli(["ibl", str(path)], capsys)
             assert code == EXIT_BAD_INPUT and text in err and "Traceback" not in err, err
+
+    def test_non_2_to_1_video_and_unwritable_out(self, tmp_path, capsys):
+        write_video(tmp_path / "tall.mp4", [np.zeros((96, 64, 3), np.uint8)] * 2)
+        code, _, err = run_cli(["ibl", str(tmp_path / "tall.mp4")], capsys)
+        assert code == EXIT_BAD_INPUT and "tall.mp4" in err and "got 64x96" in err, err
+        code, _, err = run_cli(["ibl", "--out", str(tmp_path / "no" / "dir.jsonl")], capsys)
+        assert code == EXIT_BAD_INPUT and "--out" in err and "Traceback" not in err, err
 
     def test_exr_folder_that_cannot_be_made(self, tmp_path, capsys):
         (tmp_path / "file").write_text("x")
