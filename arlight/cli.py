@@ -536,9 +536,10 @@ def cmd_ibl(args: argparse.Namespace) -> int:
         else:
             out.flush()
     elapsed = time.perf_counter() - t0
-    wait = f"; waited for decoding {np.median(source.wait_ms):.1f} ms/frame (decode " \
-           f"{np.median(source.decode_ms):.1f} ms/frame on its own thread)" \
-        if source.wait_ms and source.decode_ms else ""
+    wait = ""
+    if source.wait_ms and source.decode_ms:  # a video: decoding ran on its own thread
+        wait = (f"; waited for decoding {np.median(source.wait_ms):.1f} ms/frame (decode "
+                f"{np.median(source.decode_ms):.1f} ms/frame on its own thread)")
     print(f"arlight ibl: {_count(n, 'frame')} in {elapsed:.1f} s, processing median "
           f"{np.median(process_ms) if process_ms else float('nan'):.1f} ms/frame{wait}",
           file=sys.stderr)

@@ -26,8 +26,13 @@ def write_exr(path: str | Path, rgb: np.ndarray) -> None:
         raise ValueError(f"write_exr: expected an (H, W, 3) RGB map, got shape {a.shape}")
     half = np.clip(np.nan_to_num(a, nan=0.0, posinf=HALF_MAX), 0.0, HALF_MAX).astype(np.float16)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with OpenEXR.File(header, {"RGB": np.ascontiguousarray(half)}) as f:
-        f.write(str(path))
+    try:
+        with OpenEXR.File(header, {"RGB": np.ascontiguousarray(half)}) as f:
+            f.write(str(path))
+    except OSError:
+        raise
+    except Exception as exc:  # the binding raises plain RuntimeError when it cannot write
+        raise OSError(f"{path}: cannot write this OpenEXR file ({exc})") from None
 
 
 def read_exr(path: str | Path) -> np.ndarray:
