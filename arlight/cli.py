@@ -465,6 +465,144 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0 if complete else 1
 
 
+# --------------------------------------------------------------------------- 360 panoramas
+
+def _panorama_size(text: str) -> tuple[int, int]:
+    """--diffuse-size WxH: a 2:1 equirectangular size."""
+    from arlight.pipeline.ibl import MAX_DIFFUSE_HEIGHT
+
+    width, height = _parse_size(text)
+    if width != 2 * height:
+        raise argparse.ArgumentTypeError(f"an equirectangular map is twice as wide as high "
+                                         f"(e.g. 32x16), got {text!r}")
+    if height > MAX_DIFFUSE_HEIGHT:
+        raise argparse.ArgumentTypeError(f"at most {2 * MAX_DIFFUSE_HEIGHT}x{MAX_DIFFUSE_HEIGHT} "
+                                         f"(brute force grows as the 4th power), got {text!r}")
+    return width, height
+
+
+def cmd_ibl(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from arlight.ibl import SYNTHETIC, frame_record, run, synthetic_panorama, truth_error_deg
+    from arlight.pipeline.ibl import IblParams
+    from arlight.sources.exr import write_exr
+    from arlight.sources.panorama import open_panorama
+
+    params = IblParams(operator=args.operator, diffuse_size=args.diffuse_size)
+    exr_dir = _output_folder(args.exr, "--exr")
+    if args.panorama == SYNTHETIC:
+        source = synthetic_panorama(args.max_frames or 8)
+        truth = source.truth_directions
+    else:
+        source = open_panorama(args.panorama, fps=args.fps, max_frames=args.max_frames)
+        truth = None
+    operator = "none (HDR input)" if source.hdr else args.operator
+    total = source.num_frames
+    print(f"arlight ibl: {args.panorama} ({source.kind}, "
+          f"{_count(total, 'frame') if total else 'frames'}, {source.size[0]}x"
+          f"{source.size[1]}{', HDR' if source.hdr else ''}), operator {operator}, diffuse map "
+          f"{args.diffuse_size[0]}x{args.diffuse_size[1]}", file=sys.stderr, flush=True)
+    try:
+        out = open(args.out, "w") if args.out else sys.stdout  # noqa: SIM115
+    except OSError as exc:
+        source.close()
+        raise _BadInput(f"--out {args.out}: cannot write this file ({exc.strerror})") from None
+    bar = tqdm(total=total, unit="frame", disable=not sys.stderr.isatty(), dynamic_ncols=True,
+               leave=False)
+    errors: list[float] = []
+    process_ms: list[float] = []
+
+    def on_frame(frame) -> None:
+        record = frame_record(frame, operator)
+        err = truth_error_deg(frame, truth)
+        if err is not None:
+            record["angular_error_deg"] = err
+            errors.append(err)
+        out.write(json.dumps(record) + "\n")
+        if exr_dir is not None:
+            write_exr(exr_dir / f"{frame.index:06d}.exr", frame.hdr)
+        process_ms.append(frame.process_ms)
+        bar.update(1)
+
+    t0 = time.perf_counter()
+    try:
+        n = run(source, params, on_frame)
+    finally:
+        bar.close()
+        source.close()
+        if out is not sys.stdout:
+            out.close()
+        else:
+            out.flush()
+    elapsed = time.perf_counter() - t0
+    wait = ""
+    if source.wait_ms and source.decode_ms:  # a video: decoding ran on its own thread
+        wait = (f"; waited for decoding {np.median(source.wait_ms):.1f} ms/frame (decode "
+                f"{np.median(source.decode_ms):.1f} ms/frame on its own thread)")
+    print(f"arlight ibl: {_count(n, 'frame')} in {elapsed:.1f} s, processing median "
+          f"{np.median(process_ms) if process_ms else float('nan'):.1f} ms/frame{wait}",
+          file=sys.stderr)
+    if errors:
+        print(f"dominant direction against the HDR original: median {np.median(errors):.1f} "
+              f"deg (max {np.max(errors):.1f})", file=sys.stderr)
+    if args.out:
+        print(f"wrote {_count(n, 'result')} to {args.out}", file=sys.stderr)
+    if exr_dir is not None:
+        print(f"wrote {_count(n, 'HDR map')} to {exr_dir}/ (NNNNNN.exr, half float)",
+              file=sys.stderr)
+    return 0
+
+
+def _output_folder(path: str | None, option: str) -> Path | None:
+    """A folder to write into, created; None when not asked for; errors name `option`."""
+    if not path:
+        return None
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise _BadInput(f"{option} {path}: cannot create the folder ({exc.strerror})") from None
+    return folder
+
+
+def _add_ibl_parser(sub) -> None:
+    from arlight.pipeline.inverse_tone import DEFAULT_OPERATOR, OPERATORS
+
+    ibl = sub.add_parser(
+        "ibl", help="lighting from a 360-degree panorama (video, images): SH per frame",
+        description="Image-based lighting from an equirectangular 360-degree LDR video, "
+                    "image sequence or image: per frame, inverse tone mapping to an HDR "
+                    "radiance map, its SH radiance (16 luminance coefficients and 3x16 RGB, "
+                    "the project's convention), the dominant light direction and a "
+                    "low-resolution diffuse map; one JSON line per frame, in the panorama's "
+                    "frame (+y up; a direction d shows at column atan2(d.x, -d.z) / 2 pi, "
+                    "row acos(d.y) / pi, row 0 at the top). HDR inputs (.hdr, .exr) are used "
+                    "as they are.")
+    ibl.add_argument("panorama", nargs="?", default="synthetic", metavar="PANORAMA",
+                     help="a video file (any format OpenCV's FFmpeg backend reads), a folder "
+                          "of PNG/JPEG images (sorted by name), one image, or a Radiance "
+                          ".hdr / OpenEXR .exr; 'synthetic' (the default): a built-in sky "
+                          "turning about +y, with its known light")
+    ibl.add_argument("--out", metavar="FILE",
+                     help="write the JSON lines to FILE (default: standard output)")
+    ops = "; ".join(f"{op.name}: {op.summary}" for op in OPERATORS.values())
+    ibl.add_argument("--operator", choices=tuple(OPERATORS), default=DEFAULT_OPERATOR,
+                     help=f"inverse tone mapping (default {DEFAULT_OPERATOR}). {ops}")
+    ibl.add_argument("--exr", metavar="DIR",
+                     help="also write each frame's HDR map as DIR/NNNNNN.exr (OpenEXR, "
+                          "equirectangular, linear, half float)")
+    ibl.add_argument("--diffuse-size", type=_panorama_size, default=(32, 16), metavar="WxH",
+                     help="size of the diffuse map, brute force over the map area-averaged "
+                          "to the same size (default 32x16, the paper's)")
+    ibl.add_argument("--fps", type=_positive_float, metavar="F",
+                     help="frames per second for the timestamps of an image sequence "
+                          "(default 30), or instead of a video's own timestamps")
+    ibl.add_argument("--max-frames", type=_positive_int, metavar="N",
+                     help="only the first N frames (synthetic: its length, default 8)")
+    ibl.set_defaults(func=cmd_ibl)
+
+
 def _count(n: int, noun: str) -> str:
     """'1 frame', '2 frames'."""
     return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
@@ -749,6 +887,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "sphere and a torus on the detected ground); poses in each "
                             "sequence's pose frame")
     bench.set_defaults(func=cmd_bench)
+    _add_ibl_parser(sub)
     _add_streaming_parsers(sub)
     return parser
 

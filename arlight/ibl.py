@@ -1,0 +1,133 @@
+"""`arlight ibl`: a 360-degree panorama (video, image sequence, image) -> lighting per frame.
+
+Per frame: inverse tone mapping (LDR input; HDR input is used as it is), SH radiance
+(luminance and RGB), the dominant direction and the diffuse map (`pipeline/ibl.py`); one
+JSON record per frame, optionally the HDR map as OpenEXR. Decoding runs on the source's own
+thread (`sources/panorama.py`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from arlight.pipeline.ibl import IblParams, IblResult, angle_deg, lighting_from_hdr
+from arlight.pipeline.inverse_tone import expand
+from arlight.sources.synthetic_panorama import ldr_frame, sun_direction, synthetic_sky
+
+SYNTHETIC = "synthetic"
+SYNTHETIC_FRAMES = 8
+SYNTHETIC_STEP_RAD = math.radians(45.0)  # the sky turns by this about +y per frame
+SYNTHETIC_WIDTH = 512
+
+
+@dataclass
+class SyntheticPanorama:
+    """The built-in input: a procedural sky turning about +y, as 8-bit LDR frames, with the
+    dominant direction of each frame's HDR original (the truth)."""
+
+    frames: list[tuple[float, np.ndarray]]
+    truth_directions: list[np.ndarray]
+    hdr = False
+    kind = "synthetic"
+    path = SYNTHETIC
+    fps = 30.0
+    decode_ms: list[float] = field(default_factory=list)
+    wait_ms: list[float] = field(default_factory=list)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.frames)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        h, w = self.frames[0][1].shape[:2]
+        return w, h
+
+    def __iter__(self) -> Iterator[tuple[float, np.ndarray]]:
+        return iter(self.frames)
+
+    def close(self) -> None:
+        pass
+
+
+def synthetic_panorama(num_frames: int = SYNTHETIC_FRAMES, width: int = SYNTHETIC_WIDTH,
+                       key: float = 0.18) -> SyntheticPanorama:
+    """The built-in sky (sun 35 degrees up) turning by 45 degrees per frame at 30 fps; one
+    exposure for the whole clip (that of the first frame), as a camera with a locked
+    exposure records it."""
+    from arlight.pipeline.sh import dominant_direction
+    from arlight.sources.synthetic_panorama import keyed_exposure
+
+    first = synthetic_sky(width, sun_direction(math.radians(35), 0.0))
+    exposure = keyed_exposure(first, key)
+    frames, truth = [], []
+    for i in range(num_frames):
+        hdr = synthetic_sky(width, sun_direction(math.radians(35), i * SYNTHETIC_STEP_RAD))
+        frames.append((i / 30.0, ldr_frame(hdr, exposure=exposure)))
+        truth.append(dominant_direction(_luminance_sh(hdr)))
+    return SyntheticPanorama(frames, truth)
+
+
+def _luminance_sh(hdr: np.ndarray) -> np.ndarray:
+    from arlight.pipeline.color import LUMA
+    from arlight.pipeline.ibl import radiance_sh
+
+    return LUMA @ radiance_sh(hdr)  # every pixel of the HDR original
+
+
+@dataclass
+class FrameOutput:
+    """One processed frame: its index, timestamp, lighting and HDR map."""
+
+    index: int
+    timestamp_s: float
+    result: IblResult
+    hdr: np.ndarray
+    process_ms: float
+
+
+def process_frames(frames: Iterable[tuple[float, np.ndarray]], params: IblParams,
+                   hdr_input: bool) -> Iterator[FrameOutput]:
+    """Each (timestamp_s, image) -> FrameOutput; LDR images through `params.operator`."""
+    for i, (t, image) in enumerate(frames):
+        t0 = time.perf_counter()
+        hdr = image if hdr_input else expand(image, params.operator)
+        expand_ms = (time.perf_counter() - t0) * 1e3
+        result = lighting_from_hdr(hdr, params)
+        result.timings_ms = {"InverseTone": expand_ms, **result.timings_ms}
+        yield FrameOutput(i, float(t), result, hdr, (time.perf_counter() - t0) * 1e3)
+
+
+def frame_record(frame: FrameOutput, operator: str) -> dict:
+    """The JSON line of one frame (README, "Image-based lighting from 360-degree video")."""
+    r = frame.result
+    return {
+        "timestamp": frame.timestamp_s,
+        "frame": frame.index,
+        "sh": [float(v) for v in r.sh],
+        "sh_rgb": [[float(v) for v in row] for row in r.sh_rgb],
+        "dominant_direction": [float(v) for v in r.dominant_direction],
+        "operator": operator,
+        "timings_ms": {k: round(v, 3) for k, v in r.timings_ms.items()},
+    }
+
+
+def truth_error_deg(frame: FrameOutput, truth: list[np.ndarray] | None) -> float | None:
+    """Angle to the known dominant direction of the built-in sky, else None."""
+    if truth is None:
+        return None
+    return angle_deg(frame.result.dominant_direction, truth[frame.index])
+
+
+def run(source, params: IblParams, on_frame: Callable[[FrameOutput], None]) -> int:
+    """Process every frame of `source` in order, calling `on_frame`; returns the count."""
+    n = 0
+    for frame in process_frames(source, params, hdr_input=bool(source.hdr)):
+        on_frame(frame)
+        n += 1
+    return n
