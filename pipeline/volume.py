@@ -27,6 +27,8 @@ depth (tests/test_reconstruction.py); `OPEN3D_SUPPORTED` is checked at import:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
@@ -89,6 +91,21 @@ def _padded(size: int) -> int:
 
 
 
+@functools.cache
+def warm_open3d(device: str) -> None:
+    """Once per process and device: fuse and ray cast a tiny throwaway volume.
+
+    Open3D's first fusion and surface ray cast in a process pay a one-time cost (about
+    0.3 s on two CPU cores, more than a frame's whole Surface stage) that a session's own
+    first frame would otherwise pay; the volume's constructor calls this so that it is paid
+    when the session is made, not in a frame."""
+    cam = PinholeCamera.kinect_v1(64, 48)
+    params = VolumeParams(volume_resolution=64, block_count=64)
+    volume = TsdfVolume(params, cam, o3c.Device(device), warm=False)
+    volume.integrate(np.full((cam.height, cam.width), 1.0, np.float32), np.eye(4))
+    volume.ray_cast(np.eye(4))
+
+
 class TsdfVolume:
     """The TSDF volume V of one session: fusion, ray casting, zero crossings.
 
@@ -100,7 +117,10 @@ class TsdfVolume:
     camera: intrinsics of the depth images; device: an Open3D device ("CPU:0", "CUDA:0").
     """
 
-    def __init__(self, params: VolumeParams, camera: PinholeCamera, device: o3c.Device):
+    def __init__(self, params: VolumeParams, camera: PinholeCamera, device: o3c.Device,
+                 warm: bool = True):
+        if warm:
+            warm_open3d(str(device))
         self.params = params
         self.camera = camera
         self.device = device
