@@ -33,7 +33,7 @@ from arlight.pipeline.radiance_transfer import (
     TransferResult,
     compute_transfer,
     make_sampling_pattern,
-    upsample_transfer,
+    transfer_samples,
 )
 from arlight.pipeline.rendering import (
     DifferentialRenderer,
@@ -48,6 +48,9 @@ from arlight.pipeline.virtual_scene import VirtualScene, resolve_anchors
 log = logging.getLogger(__name__)
 
 STAGES = ("Input", "Reconstruct", "Surface", "DynGeo", "RadTransfer", "LightEst", "Rendering")
+# LightEst draws at most this many candidate pixels per sample it may use (light_max_samples):
+# enough that the clipped, dark and transfer-less ones it then leaves out rarely matter
+CANDIDATES_PER_SAMPLE = 2
 
 
 class FrameError(CheckError):
@@ -178,7 +181,8 @@ class Pipeline:
         with _stage(timings, "LightEst"):
             plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
-            estimate = self._estimate(transfer, color_linear, geometry.depth_m, plane, up_world,
+            estimate = self._estimate(transfer, color_linear, geometry.depth_m,
+                                      geometry.normals, plane, up_world,
                                       below_horizon_unseen=self.config.transfer.rt_horizon)
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:
@@ -296,27 +300,32 @@ class Pipeline:
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
             transfer = compute_transfer(geometry.points, geometry.normals, self.camera, pose,
                                         self.pattern, aux, p, lum, plane)
-        if p.rt_upsample and p.rt_subsample > 1:
-            has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
-            transfer = upsample_transfer(transfer, has_geometry)
         return transfer
 
     def _estimate(self, transfer: TransferResult, color_linear: np.ndarray, depth: np.ndarray,
-                  plane: SupportPlane | None = None,
+                  normals: np.ndarray, plane: SupportPlane | None = None,
                   up_world: np.ndarray | None = None,
                   below_horizon_unseen: bool = False) -> LightEstimate:
-        """LightEst (T l = I_c, section 5.2) on the pixels with transfer; albedo per segment."""
+        """LightEst (T l = I_c, section 5.2) on the pixels with transfer; albedo per segment.
+
+        A sub-sampled transfer (OursFast) is interpolated to the pixels with geometry
+        (rt_upsample), only at the ones the estimate may use: at most
+        CANDIDATES_PER_SAMPLE x light_max_samples pixels, chosen at random (seeded)."""
         p = self.config.estimation
-        valid = transfer.valid
         n = transfer.transfer.shape[-1]
-        if not np.any(valid):
+        if not np.any(transfer.valid):
             return LightEstimate(np.zeros(n), Confidence(reason="no valid depth"),
                                  np.zeros((3, n)) if p.estimate_rgb else None)
-        h, w = depth.shape
-        full_grid = len(transfer.pixel_v) == h and len(transfer.pixel_u) == w
-        grid = (slice(None), slice(None)) if full_grid else np.ix_(transfer.pixel_v,
-                                                                    transfer.pixel_u)
-        colors = color_linear[grid][valid]
+        t = self.config.transfer
+        geometry = ((depth > 0) & np.any(normals != 0, axis=2)
+                    if t.rt_upsample and t.rt_subsample > 1 else None)
+        samples = transfer_samples(transfer, geometry,
+                                   CANDIDATES_PER_SAMPLE * p.light_max_samples, self.config.seed)
+        if not len(samples.pixel_v):
+            return LightEstimate(np.zeros(n), Confidence(reason="no valid depth"),
+                                 np.zeros((3, n)) if p.estimate_rgb else None)
+        pixels = (samples.pixel_v, samples.pixel_u)
+        colors = color_linear[pixels]
         segments = None
         if p.albedo_segments:
             segments = material_segments(
@@ -325,9 +334,8 @@ class Pipeline:
             if plane is not None and p.segment_split_ground:
                 # what stands on the ground is rarely made of the ground's material
                 segments = segments * 2 + plane.on_plane
-            segments = segments[grid][valid]
-        bounce = transfer.bounce[valid] if transfer.bounce is not None else None
-        return estimate_light(transfer.transfer[valid], colors, p, segments, bounce,
+            segments = segments[pixels]
+        return estimate_light(samples.transfer, colors, p, segments, samples.bounce,
                               up_world, below_horizon_unseen, seed=self.config.seed)
 
     def _estimate_diagnostics(self, estimate: LightEstimate,
