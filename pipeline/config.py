@@ -138,8 +138,8 @@ class VolumeParams:
     sdf_trunc_voxels: float = 4.0  # TSDF truncation, in voxels
     tracking_depth_diff_m: float = 0.07  # ICP correspondence gate
     use_volume: bool = True  # False: skip the volume; D_v is then empty (image-space only)
-    # Surface: V ray cast through every s-th pixel (s x s fewer rays), each pixel taking its
-    # block's sample (fast / mobile: 2)
+    # Surface: V ray cast through every s-th pixel (s x s fewer rays), interpolated back
+    # where the surface is smooth (fast / mobile: 2; only while the cast keeps 320 columns)
     surface_subsample: int = 1
 
     def __post_init__(self) -> None:

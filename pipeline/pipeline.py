@@ -30,9 +30,11 @@ from arlight.pipeline.light_estimation import LightEstimate, TemporalFilter, est
 from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer
 from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
-    TransferResult,
+    TransferSamples,
     compute_transfer,
     make_sampling_pattern,
+    random_pixels,
+    transfer_at_pixels,
     transfer_samples,
 )
 from arlight.pipeline.rendering import (
@@ -48,8 +50,9 @@ from arlight.pipeline.virtual_scene import VirtualScene, resolve_anchors
 log = logging.getLogger(__name__)
 
 STAGES = ("Input", "Reconstruct", "Surface", "DynGeo", "RadTransfer", "LightEst", "Rendering")
-# LightEst draws at most this many candidate pixels per sample it may use (light_max_samples):
-# enough that the clipped, dark and transfer-less ones it then leaves out rarely matter
+# RadTransfer computes (or interpolates) the transfer at most at this many pixels per sample
+# LightEst may use (light_max_samples): enough that the clipped, dark and transfer-less ones
+# it then leaves out rarely matter
 CANDIDATES_PER_SAMPLE = 2
 
 
@@ -181,8 +184,8 @@ class Pipeline:
         with _stage(timings, "LightEst"):
             plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
-            estimate = self._estimate(transfer, color_linear, geometry.depth_m,
-                                      geometry.normals, plane, up_world,
+            estimate = self._estimate(transfer, color_linear, geometry.depth_m, plane,
+                                      up_world,
                                       below_horizon_unseen=self.config.transfer.rt_horizon)
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:
@@ -287,40 +290,43 @@ class Pipeline:
         return _Geometry(depth_filtered, normals, points, plane)
 
     def _transfer(self, geometry: _Geometry, color_linear: np.ndarray, pose: np.ndarray,
-                  aux_buffers: list) -> TransferResult:
-        """RadTransfer (eq. 6-9, or rays against the surface with rt_method "raycast"),
-        up-sampled to every pixel when sub-sampled (OursFast)."""
+                  aux_buffers: list) -> TransferSamples:
+        """RadTransfer (eq. 6-9, or rays against the surface with rt_method "raycast") where
+        the light estimate needs it: at most CANDIDATES_PER_SAMPLE x light_max_samples pixels
+        with geometry, chosen at random (seeded), the rest of the image being work nothing
+        reads. At every pixel (rt_subsample 1) the transfer is computed at those pixels
+        only; sub-sampled (OursFast) it is computed on the grid and interpolated to them
+        (rt_upsample; without it the grid points themselves are the samples)."""
         p = self.config.transfer
         lum = luminance(color_linear) if p.rt_bounce else None
         plane = geometry.plane if p.rt_horizon else None
+        budget = CANDIDATES_PER_SAMPLE * self.config.estimation.light_max_samples
+        seed = self.config.seed
+        has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
         if p.rt_method is RtMethod.RAYCAST:
-            transfer = self._raycaster.compute(geometry.points, geometry.normals, self.camera,
-                                               pose, self.pattern, p, lum, plane, self._volume)
+            grid = self._raycaster.compute(geometry.points, geometry.normals, self.camera,
+                                           pose, self.pattern, p, lum, plane, self._volume)
         else:
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
-            transfer = compute_transfer(geometry.points, geometry.normals, self.camera, pose,
-                                        self.pattern, aux, p, lum, plane)
-        return transfer
+            if p.rt_subsample == 1:
+                vs, us = random_pixels(has_geometry, budget, seed)
+                t, b, ok = transfer_at_pixels(
+                    geometry.points, geometry.normals, self.camera, pose, self.pattern, aux, p,
+                    us, vs, None if lum is None else lum[..., None], plane)
+                return TransferSamples(vs[ok], us[ok], t[ok].astype(np.float32),
+                                       None if lum is None else b[ok, 0].astype(np.float32))
+            grid = compute_transfer(geometry.points, geometry.normals, self.camera, pose,
+                                    self.pattern, aux, p, lum, plane)
+        interpolate_to = has_geometry if p.rt_upsample and p.rt_subsample > 1 else None
+        return transfer_samples(grid, interpolate_to, budget, seed)
 
-    def _estimate(self, transfer: TransferResult, color_linear: np.ndarray, depth: np.ndarray,
-                  normals: np.ndarray, plane: SupportPlane | None = None,
+    def _estimate(self, samples: TransferSamples, color_linear: np.ndarray,
+                  depth: np.ndarray, plane: SupportPlane | None = None,
                   up_world: np.ndarray | None = None,
                   below_horizon_unseen: bool = False) -> LightEstimate:
-        """LightEst (T l = I_c, section 5.2) on the pixels with transfer; albedo per segment.
-
-        A sub-sampled transfer (OursFast) is interpolated to the pixels with geometry
-        (rt_upsample), only at the ones the estimate may use: at most
-        CANDIDATES_PER_SAMPLE x light_max_samples pixels, chosen at random (seeded)."""
+        """LightEst (T l = I_c, section 5.2) on the sampled pixels; albedo per segment."""
         p = self.config.estimation
-        n = transfer.transfer.shape[-1]
-        if not np.any(transfer.valid):
-            return LightEstimate(np.zeros(n), Confidence(reason="no valid depth"),
-                                 np.zeros((3, n)) if p.estimate_rgb else None)
-        t = self.config.transfer
-        geometry = ((depth > 0) & np.any(normals != 0, axis=2)
-                    if t.rt_upsample and t.rt_subsample > 1 else None)
-        samples = transfer_samples(transfer, geometry,
-                                   CANDIDATES_PER_SAMPLE * p.light_max_samples, self.config.seed)
+        n = samples.transfer.shape[-1]
         if not len(samples.pixel_v):
             return LightEstimate(np.zeros(n), Confidence(reason="no valid depth"),
                                  np.zeros((3, n)) if p.estimate_rgb else None)

@@ -487,6 +487,16 @@ class TransferSamples:
     bounce: np.ndarray | None
 
 
+def random_pixels(mask: np.ndarray, max_pixels: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) int64 of the True pixels of `mask`, row-major; above `max_pixels` a
+    seeded uniform random subset of that many (still row-major)."""
+    flat = np.flatnonzero(mask)
+    if len(flat) > max_pixels:
+        flat = np.sort(np.random.default_rng(seed).choice(flat, max_pixels, replace=False))
+    rows, cols = np.divmod(flat, mask.shape[1])
+    return rows.astype(np.int64), cols.astype(np.int64)
+
+
 def transfer_samples(result: TransferResult, valid_full: np.ndarray | None,
                      max_pixels: int, seed: int) -> TransferSamples:
     """The pixels the light estimate may use, at most `max_pixels` of them (a seeded random
@@ -497,14 +507,9 @@ def transfer_samples(result: TransferResult, valid_full: np.ndarray | None,
     `upsample_transfer`, evaluated at the chosen pixels only (a pixel is kept when every
     grid point around it is valid). None: the grid points themselves.
     """
-    rng = np.random.default_rng(seed)
     hs, ws = result.valid.shape
     interpolate = valid_full is not None and (hs, ws) != valid_full.shape
-    mask = valid_full if interpolate else result.valid
-    flat = np.flatnonzero(mask)
-    if len(flat) > max_pixels:
-        flat = np.sort(rng.choice(flat, max_pixels, replace=False))
-    rows, cols = np.divmod(flat, mask.shape[1])
+    rows, cols = random_pixels(valid_full if interpolate else result.valid, max_pixels, seed)
     bounce = result.bounce
     if not interpolate:
         pv = np.asarray(result.pixel_v)[rows]
@@ -520,9 +525,9 @@ def transfer_samples(result: TransferResult, valid_full: np.ndarray | None,
     fu, fv = (gu - u0).astype(np.float32), (gv - v0).astype(np.float32)
     corners = [(v0, u0, (1 - fv) * (1 - fu)), (v0, u1, (1 - fv) * fu),
                (v1, u0, fv * (1 - fu)), (v1, u1, fv * fu)]
-    den = np.zeros(len(flat), np.float32)
-    num = np.zeros((len(flat), result.transfer.shape[-1]), np.float32)
-    num_b = None if bounce is None else np.zeros(len(flat), np.float32)
+    den = np.zeros(len(rows), np.float32)
+    num = np.zeros((len(rows), result.transfer.shape[-1]), np.float32)
+    num_b = None if bounce is None else np.zeros(len(rows), np.float32)
     for v, u, wgt in corners:
         wv = wgt * result.valid[v, u]
         den += wv
