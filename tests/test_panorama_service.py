@@ -331,3 +331,47 @@ class TestMalformedPanorama:
         assert set(server.snapshot()["sessions"]) >= {"only", "rgbd", "other"}
         for peer in (only, rgbd, other):
             peer.close()
+
+
+# --------------------------------------------------------------------------- rendering
+
+
+def test_pipeline_renders_with_the_given_light():
+    """Pipeline.process(render_light=...): the objects are lit by the given (panorama) SH
+    instead of the estimate, which is still made and returned unchanged."""
+    from arlight.pipeline.color import LUMA
+    from arlight.pipeline.config import Config
+    from arlight.pipeline.pipeline import Pipeline
+    from arlight.pipeline.virtual_scene import (
+        Anchor,
+        Material,
+        VirtualScene,
+        object_from_open3d,
+        sphere_mesh,
+    )
+    from arlight.sources.synthetic import make_sequence
+
+    seq = make_sequence(num_frames=1, width=160, height=120, sensor_noise=False)
+    frame = seq.frames[0]
+
+    def run(render_light):
+        obj = object_from_open3d("ball", sphere_mesh(0.08), np.eye(4),
+                                 Material((0.6, 0.6, 0.6)), Anchor((80.0, 85.0)))
+        pipe = Pipeline(Config.from_preset("full", volume_resolution=64, aux_resolution=32),
+                        seq.camera, VirtualScene((obj,)))
+        result = pipe.process(frame, render_light=render_light)
+        return result, pipe.last_render
+
+    estimate, (inputs_est, out_est) = run(None)
+    bright = np.zeros(16)
+    bright[0] = 4.0
+    rgb = np.stack([bright, bright * 0.5, bright * 0.25])
+    lit, (inputs_pano, out_pano) = run((bright, rgb))
+    np.testing.assert_array_equal(lit.sh, estimate.sh)  # the estimate does not change
+    np.testing.assert_array_equal(inputs_pano.light_sh, bright)
+    np.testing.assert_allclose(inputs_pano.light_rgb @ LUMA, 1.0,
+                               rtol=0.05)
+    assert inputs_pano.light_rgb[0] > inputs_pano.light_rgb[2]  # the panorama's colour
+    mask = out_pano.virtual_mask
+    assert mask.sum() > 20
+    assert np.any(out_pano.composite[mask] != out_est.composite[mask])
