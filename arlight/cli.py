@@ -380,7 +380,10 @@ def cmd_stream(args: argparse.Namespace) -> int:
         print(f"[{result.seq + 1:>5}/{total}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
               f"{d[2]:+.2f})  conf={result.confidence.get('value', 0):.2f}  "
               f"pipeline {pipeline_ms(result):5.0f} ms  in server {in_server_ms:5.0f} ms  "
-              f"received {result.frames_received}  dropped {result.frames_dropped}", flush=True)
+              f"received {result.frames_received}  dropped {result.frames_dropped}"
+              + ("" if result.panorama_dominant_direction is None else "  panorama light=("
+                 + ", ".join(f"{x:+.2f}" for x in result.panorama_dominant_direction) + ")"),
+              flush=True)
         if out:
             from arlight.protocols import received_record
 

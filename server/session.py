@@ -233,9 +233,10 @@ def panorama_only_result(frame: Frame, world: tuple[np.ndarray, np.ndarray, np.n
     and the camera frame is the world frame; confidence: the map's SH are a projection, not
     a fit (every pixel of the area-averaged map counts as a sample, condition number 1)."""
     sh_world, rgb_world, direction = world
-    samples = 1
-    for side in IblParams().sh_source_size:
-        samples *= side
+    # the SH are projected from the map area-averaged to sh_source_size (or as it came, when
+    # not larger): every pixel of that map is one sample
+    height = min(frame.panorama.shape[0], IblParams().sh_source_size[1])
+    samples = height * 2 * height
     bands = sh_lib.bands_of(len(sh_world))
     return FrameResult(
         timestamp=float(frame.timestamp), sh=sh_world, sh_camera=sh_world,
@@ -424,10 +425,8 @@ class Session:
             panorama = world = None
             self.render_light = None
             if frame.panorama is not None:  # first: a bad panorama fails before the pipeline
-                t0 = time.perf_counter()
                 panorama = self.panorama_light.light(frame.panorama)
                 world = self.panorama_light.to_world(panorama)
-                panorama_ms = (time.perf_counter() - t0) * 1e3
                 if self.panorama_light.light_source == "panorama":
                     self.render_light = (world[0], world[1])
             composite = None
@@ -443,9 +442,8 @@ class Session:
                 composite = self.composite(frame_input, result) if self.config.want_composite \
                     else None
             if panorama is not None:
-                result.timings_ms = {**result.timings_ms, **{
-                    f"Panorama{k}": v for k, v in panorama.timings_ms.items()},
-                    "Panorama": panorama_ms}
+                result.timings_ms = {**result.timings_ms, **{  # stages: they add up
+                    f"Panorama{k}": v for k, v in panorama.timings_ms.items()}}
                 result.diagnostics = {**result.diagnostics, "light_source": (
                     "panorama" if frame.color is None else self.panorama_light.light_source),
                     "panorama_operator": self.panorama_light.params.operator}

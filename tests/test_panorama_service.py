@@ -375,3 +375,12 @@ def test_pipeline_renders_with_the_given_light():
     mask = out_pano.virtual_mask
     assert mask.sum() > 20
     assert np.any(out_pano.composite[mask] != out_est.composite[mask])
+
+
+def test_the_json_record_carries_the_panorama_light():
+    from arlight.protocols import result_record
+
+    assert "panorama_sh" not in result_record(_result())
+    record = result_record(_result(**_pano_fields()))
+    assert record["panorama_dominant_direction"] == [0.0, 1.0, 0.0]
+    assert len(record["panorama_sh_rgb"]) == 3
