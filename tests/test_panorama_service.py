@@ -384,3 +384,27 @@ def test_the_json_record_carries_the_panorama_light():
     record = result_record(_result(**_pano_fields()))
     assert record["panorama_dominant_direction"] == [0.0, 1.0, 0.0]
     assert len(record["panorama_sh_rgb"]) == 3
+
+
+def test_arlight_stream_a_360_video(make_server, sky_video, tmp_path, capsys):
+    """`arlight stream pano.avi --server ...`: a 2:1 video as SOURCE streams panorama-only
+    frames; a non-2:1 image is refused before anything is sent (exit 2)."""
+    import json
+
+    from arlight.cli import main
+
+    server = make_server()
+    out = tmp_path / "results.jsonl"
+    assert main(["stream", str(sky_video), "--server", server.connect_address, "--mode",
+                 "lossless", "--rate", "max", "--color-codec", "png", "--panorama-operator",
+                 "paper", "--out", str(out)]) == 0
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    offline = _offline(sky_video, "paper")
+    assert len(records) == len(offline) == 4
+    for got, want in zip(records, offline, strict=True):
+        np.testing.assert_allclose(got["panorama_sh"], want.result.sh, rtol=1e-6, atol=1e-9)
+    assert "panorama light=(" in capsys.readouterr().out
+    narrow = tmp_path / "narrow.png"
+    cv2.imwrite(str(narrow), np.zeros((100, 150, 3), np.uint8))
+    assert main(["stream", str(narrow), "--server", server.connect_address]) == 2
+    assert "2:1" in capsys.readouterr().err
