@@ -4,7 +4,9 @@ Sources (`arlight.sources.source.open_source`): "synthetic" (the built-in scene 
 light), every folder layout `arlight estimate` reads (TUM RGB-D, Open3D/Redwood, 7-Scenes) and
 MCAP recordings made by `arlight record`, whose Frame messages are sent exactly as recorded.
 Depth goes out as the source gives it, uint16 with the source's depth_scale in the Hello's
-SessionConfig; the server turns it into metres once.
+SessionConfig; the server turns it into metres once. A frame may also carry a 360-degree
+panorama (sources/panorama_stream.py): beside the RGB-D images, or alone (a panorama-only
+source has no calibration; its Hello carries `config.panorama`, SPEC.md).
 
 Delivery (SessionConfig.mode):
 - live: frames go out as the source produces them (`rate="native"`: at the source's own

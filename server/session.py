@@ -226,8 +226,8 @@ def default_process(frame: FrameInput, session: Session) -> FrameResult:
     return session.pipeline.process(frame, render_light=session.render_light)
 
 
-def panorama_only_result(frame: Frame, world: tuple[np.ndarray, np.ndarray, np.ndarray],
-                         light: IblResult) -> FrameResult:
+def panorama_only_result(frame: Frame, world: tuple[np.ndarray, np.ndarray, np.ndarray]
+                         ) -> FrameResult:
     """The FrameResult of a frame without colour and depth (SPEC.md, "result"): the
     panorama's light in the world frame as the estimate; no camera, so pose is the identity
     and the camera frame is the world frame; confidence: the map's SH are a projection, not
@@ -431,7 +431,7 @@ class Session:
                     self.render_light = (world[0], world[1])
             composite = None
             if frame.color is None:  # panorama-only: no RGB-D pipeline
-                result = panorama_only_result(frame, world, panorama)
+                result = panorama_only_result(frame, world)
             else:
                 if self.camera is None:
                     raise FrameError("color", "this session has no camera calibration (a "
