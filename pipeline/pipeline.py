@@ -168,8 +168,14 @@ class Pipeline:
         self._raycaster = (ObjectSpaceTransfer(config.aux.aux_update_interval)
                            if config.transfer.rt_method is RtMethod.RAYCAST else None)
 
-    def process(self, frame: FrameInput) -> FrameResult:
-        """Estimate the lighting of one frame. Raises FrameError on malformed input."""
+    def process(self, frame: FrameInput,
+                render_light: tuple[np.ndarray, np.ndarray | None] | None = None) -> FrameResult:
+        """Estimate the lighting of one frame. Raises FrameError on malformed input.
+
+        render_light: optional (sh (n,), sh_rgb (3, n) or None), radiance SH in the WORLD
+        frame, that renders the virtual objects instead of this frame's estimate (a session
+        lit by its 360-degree panorama, `light_source` "panorama"); the estimate is still
+        made and returned. Its units are the light's own (no albedo scaling)."""
         timings: dict[str, float] = {}
         diagnostics: dict = {}
         with _stage(timings, "Input"):
@@ -200,7 +206,7 @@ class Pipeline:
         else:
             with _stage(timings, "Rendering"):
                 composite = self._render(valid, color_linear, geometry, pose, aux_buffers,
-                                         coeffs, estimate)
+                                         coeffs, estimate, render_light)
         self.frames_processed += 1
         diagnostics.update(self._estimate_diagnostics(estimate, up_world))
         rotation = pose[:3, :3]
@@ -214,7 +220,9 @@ class Pipeline:
 
     def _render(self, valid: ValidFrame, color_linear: np.ndarray, geometry: _Geometry,
                 pose: np.ndarray, aux_buffers: list, coeffs: np.ndarray,
-                estimate: LightEstimate) -> np.ndarray | None:
+                estimate: LightEstimate,
+                render_light: tuple[np.ndarray, np.ndarray | None] | None = None,
+                ) -> np.ndarray | None:
         """Rendering: the composite (H, W, 3) uint8 of the placed virtual objects, or None
         (the input) while none is placed. The estimate knows albedo x light only (its mean
         albedo is 1): the light is scaled by pi / render_real_albedo into image units."""
@@ -222,11 +230,18 @@ class Pipeline:
             self._place_anchored(geometry, pose)
             if self._renderer is None:
                 return None
-        light = np.asarray(coeffs, np.float64) * (math.pi
-                                                  / self.config.render.render_real_albedo)
+        if render_light is None:
+            light = np.asarray(coeffs, np.float64) * (math.pi
+                                                      / self.config.render.render_real_albedo)
+            light_rgb = luminance_light_rgb(estimate.sh_rgb)
+        else:  # an outside light (the panorama's), as many coefficients as the estimate
+            n = len(coeffs)
+            light = np.zeros(n)
+            given = np.asarray(render_light[0], np.float64)[:n]
+            light[:len(given)] = given
+            light_rgb = luminance_light_rgb(render_light[1])
         inputs = RenderInputs(valid.color, color_linear, geometry.depth_m, geometry.normals,
-                              pose, list(aux_buffers), geometry.plane, light,
-                              luminance_light_rgb(estimate.sh_rgb))
+                              pose, list(aux_buffers), geometry.plane, light, light_rgb)
         output = self._renderer.render(inputs)
         self.last_render = (inputs, output)
         return output.composite
