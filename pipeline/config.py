@@ -405,8 +405,11 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
     if preset is Preset.FAST:
         return {"rt_subsample": 4, "render_subsample": 4, **_SPEED_FIRST}
     if preset is Preset.MOBILE:
+        # and, speed first, segments at quarter resolution on at most 10000 pixels (all
+        # frames: median 20.1 -> 19.1 and 20.1, p90 32.8 -> 34.1 and 33.2)
         return {"volume_resolution": 64, "denoise": False, "rt_subsample": 4,
-                "render_subsample": 4, **_SPEED_FIRST}
+                "render_subsample": 4, **_SPEED_FIRST, "segment_scale": 4,
+                "light_max_samples": 10000}
     return {}
 
 
