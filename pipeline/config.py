@@ -139,8 +139,10 @@ class VolumeParams:
     tracking_depth_diff_m: float = 0.07  # ICP correspondence gate
     use_volume: bool = True  # False: skip the volume; D_v is then empty (image-space only)
     # Surface: V ray cast through every s-th pixel (s x s fewer rays), interpolated back
-    # where the surface is smooth (fast / mobile: 2; only while the cast keeps 320 columns)
-    surface_subsample: int = 1
+    # where the surface is smooth; only while the cast keeps 320 columns. 2 against 1 on the
+    # 15 shared sequences (all frames, upper-hemisphere median of the per-sequence medians):
+    # full 13.5 -> 12.8, fast 14.2 -> 14.2, mobile 20.0 -> 19.7 degrees; Surface -60 %
+    surface_subsample: int = 2
 
     def __post_init__(self) -> None:
         _check_float(self, "volume_size_m", 0.0, low_open=True)
@@ -394,11 +396,11 @@ def _flat_overrides(changes: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-# fast and mobile also ray cast the volume through every 2nd pixel and fit the light to at
-# most 20000 pixels: on the 15 shared sequences (all frames, upper-hemisphere median of the
-# per-sequence medians) fast 14.2 -> 14.2 and 14.6 degrees, mobile 20.0 -> 19.7 and 19.1,
-# for Surface about -60 % and LightEst about -30 % (`arlight bench ... --sweep`)
-_SPEED_FIRST = {"surface_subsample": 2, "light_max_samples": 20000}
+# fast and mobile fit the light to at most 20000 pixels (full: 50000): on the 15 shared
+# sequences (all frames, upper-hemisphere median of the per-sequence medians) fast 14.2 ->
+# 14.6 degrees, mobile 20.0 -> 19.1, full 13.5 -> 13.6, for LightEst about -30 % and
+# RadTransfer's transfer at that many fewer pixels (`arlight bench ... --sweep`)
+_SPEED_FIRST = {"light_max_samples": 20000}
 
 
 def _preset_overrides(preset: Preset) -> dict[str, Any]:
