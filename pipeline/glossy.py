@@ -267,6 +267,28 @@ def _specular_cpu(directions, modes, exponents, radii, data, offsets, heights, o
             out[i, c] = acc[c]
 
 
+@numba.njit(parallel=True, cache=True)
+def _lookup_cpu(directions, data, height, out):
+    for i in numba.prange(directions.shape[0]):
+        acc = np.zeros(3)
+        u, v = _uv(directions[i, 0], directions[i, 1], directions[i, 2])
+        _bilinear(data, 0, height, u, v, acc, 1.0)
+        for c in range(3):
+            out[i, c] = acc[c]
+
+
+def lookup(image: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Bilinear lookup (K, 3) float32 of an (H, W, 3) equirectangular map at unit
+    `directions` (K, 3), as ``equirect.sample_bilinear`` (which OpenCV limits to 32767
+    lookups per call) in the kernels' own code."""
+    image = equirect.check_equirect(image, "image")
+    data = np.ascontiguousarray(image, dtype=np.float32).reshape(-1, 3)
+    d = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros((len(d), 3), np.float32)
+    _lookup_cpu(d, data, image.shape[0], out)
+    return out
+
+
 def _unit_rows(directions: np.ndarray) -> np.ndarray:
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     n = np.linalg.norm(d, axis=1, keepdims=True)
