@@ -60,6 +60,7 @@ MONO_SIZE = (1280, 720)  # the paper's single camera view
 EYE_SIZE = (1182, 1464)  # per eye, the paper's Oculus DK2
 IPD_M = 0.064  # interpupillary distance
 MODE_NONE, MODE_MIRROR, MODE_GLOSSY = 0, 1, 2
+DEMO_ROUGHNESS = (0.1, 0.3)  # the demo's two glossy spheres
 
 
 @dataclass(frozen=True)
@@ -134,20 +135,23 @@ def eye_poses(world_from_cam: np.ndarray, ipd_m: float = IPD_M) -> tuple[np.ndar
     return left, right
 
 
-def demo_scene(forward: np.ndarray | None = None) -> VirtualScene:
+def demo_scene(forward: np.ndarray | None = None,
+               roughness: tuple[float, float] = DEMO_ROUGHNESS) -> VirtualScene:
     """The built-in 5 objects (as the paper shows five at once), 1.6 m in front of a camera
     at the origin looking along `forward` (default +z, the panorama's centre column), left to
-    right: diffuse sphere, glossy sphere (roughness 0.1), mirror sphere, glossy sphere
-    (roughness 0.3), and a torus mesh half diffuse, half glossy (roughness 0.2)."""
+    right: diffuse sphere, glossy sphere (roughness[0], default 0.1), mirror sphere, glossy
+    sphere (roughness[1], default 0.3), and a torus mesh half diffuse, half glossy (roughness
+    0.2). Roughness outside 0.01..0.5: ValueError."""
+    r1, r2 = (glossy.check_roughness(r, "demo roughness") for r in roughness)
     f = np.asarray(forward if forward is not None else [0.0, 0.0, 1.0], np.float64)
     f = f / np.linalg.norm(f)
     cam = look_along(f)
     right, down = cam[:3, 0], cam[:3, 1]
     specs = [
         ("diffuse", sphere_mesh(0.14, 48), Material((0.8, 0.8, 0.8))),
-        ("glossy_0.1", sphere_mesh(0.14, 48), Material((0.95, 0.8, 0.45), 0.1, 1.0)),
+        ("glossy_1", sphere_mesh(0.14, 48), Material((0.95, 0.8, 0.45), r1, 1.0)),
         ("mirror", sphere_mesh(0.14, 48), Material((0.95, 0.95, 0.95), mirror=True)),
-        ("glossy_0.3", sphere_mesh(0.14, 48), Material((0.9, 0.9, 0.9), 0.3, 1.0)),
+        ("glossy_2", sphere_mesh(0.14, 48), Material((0.9, 0.9, 0.9), r2, 1.0)),
         ("torus", torus_mesh(0.12, 0.045, 64), Material((0.8, 0.3, 0.1), 0.2, 0.5)),
     ]
     objects = []
