@@ -221,6 +221,12 @@ class IblRenderer:
     """Renders one virtual scene (panorama frame) lit by panorama frames (not thread-safe)."""
 
     def __init__(self, scene: VirtualScene):
+        for o in scene.objects:
+            if o.anchor is not None:
+                raise SceneError(f"virtual object {o.name!r}: an anchor needs a support plane, "
+                                 "which a panorama does not give; pose it with "
+                                 "world_from_object (the panorama's frame, +y up, metres, the "
+                                 "camera at the origin)")
         shadings = [shading_of(o.material, f"virtual object {o.name!r}") for o in scene.objects]
         self.scene = scene
         self._raycaster = VirtualRaycaster(scene)
