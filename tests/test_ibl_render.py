@@ -33,10 +33,10 @@ HDRI = Path(__file__).resolve().parents[2] / "shared" / "data" / "hdri"
 HDR_FILES = sorted(HDRI.glob("*.hdr")) if HDRI.is_dir() else []
 needs_hdri = pytest.mark.skipif(not HDR_FILES, reason=f"needs the shared HDR maps at {HDRI} "
                                 "(absent: a fresh clone has no ../shared/data); skipped")
-# relative error of the glossy luminance against the brute-force Phong lobe, sum |G - G_ref|
-# / sum G_ref over the test directions: benchmarks/ibl_render.py measures at most ~4 % over
-# the shared maps for roughness 0.05..0.5 (README); the bound leaves room
-GLOSSY_BOUND = 0.06
+# the glossy luminance against the brute-force Phong lobe, |G / G_ref - 1|, median over
+# spread directions: benchmarks/ibl_render.py measures it per map and roughness (README);
+# the bounds leave room above the largest of the maps the tests use
+SPREAD_BOUND = {0.05: 0.03, 0.2: 0.04, 0.5: 0.06}
 
 
 def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
@@ -56,24 +56,28 @@ def fibonacci_directions(n: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=1)
 
 
-def probe_directions(hdr: np.ndarray, n: int) -> np.ndarray:
-    """n spread directions plus 8 about the brightest pixel (where a lobe's error shows)."""
+def peak_directions(hdr: np.ndarray, n: int = 8) -> np.ndarray:
+    """n directions within a few degrees of the brightest pixel (where a lobe's error shows)."""
     lum = hdr @ LUMA.astype(np.float32)
     i, j = np.unravel_index(int(np.argmax(lum)), lum.shape)
     peak = equirect.pixel_directions(*lum.shape)[i, j]
-    rng = np.random.default_rng(1)
-    near = peak + 0.05 * rng.normal(size=(8, 3))
-    d = np.concatenate([fibonacci_directions(n), near])
+    d = peak + 0.05 * np.random.default_rng(1).normal(size=(n, 3))
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def relative_error(pyramid, hdr, dirs, roughness) -> tuple[float, float]:
-    """(glossy error, the error of a plain mirror lookup) against the brute-force lobe."""
-    ref = glossy.glossy_brute_force(hdr, dirs, roughness) @ LUMA
-    got = glossy.glossy(pyramid, dirs, roughness) @ LUMA
-    plain = glossy.mirror(pyramid, dirs) @ LUMA
-    return (float(np.abs(got - ref).sum() / ref.sum()),
-            float(np.abs(plain - ref).sum() / ref.sum()))
+def errors(pyramid, hdr, roughness, n: int = 48) -> dict[str, float]:
+    """The glossy lookup against the brute-force lobe: the median relative error over n spread
+    directions, the summed relative error near the brightest pixel, and both for a plain
+    mirror lookup instead (what the lobe changes)."""
+    out = {}
+    for name, dirs in (("spread", fibonacci_directions(n)), ("peak", peak_directions(hdr))):
+        ref = glossy.glossy_brute_force(hdr, dirs, roughness) @ LUMA
+        for label, got in (("glossy", glossy.glossy(pyramid, dirs, roughness) @ LUMA),
+                           ("mirror", glossy.mirror(pyramid, dirs) @ LUMA)):
+            out[f"{label}_{name}"] = float(
+                np.median(np.abs(got / ref - 1.0)) if name == "spread"
+                else np.abs(got - ref).sum() / ref.sum())
+    return out
 
 
 class TestPyramid:
@@ -123,24 +127,24 @@ class TestGlossy:
     def test_against_brute_force_on_the_built_in_sky(self):
         hdr = synthetic_sky(512)
         pyr = glossy.mip_pyramid(hdr)
-        dirs = probe_directions(hdr, 48)
-        for roughness in (0.05, 0.2, 0.5):
-            err, plain = relative_error(pyr, hdr, dirs, roughness)
-            assert err < GLOSSY_BOUND, (roughness, err)
-            assert err < 0.5 * plain, (roughness, err, plain)  # the lobe matters
+        for roughness, bound in SPREAD_BOUND.items():
+            e = errors(pyr, hdr, roughness)
+            assert e["glossy_spread"] < bound, (roughness, e)
+            assert e["glossy_spread"] < 0.5 * e["mirror_spread"], (roughness, e)  # the lobe
+            assert e["glossy_peak"] < e["mirror_peak"], (roughness, e)
 
     @needs_hdri
     def test_against_brute_force_on_the_shared_maps(self):
         from arlight.sources.panorama import read_panorama_image
 
-        for path in HDR_FILES[:2]:
+        for path in HDR_FILES[:1]:  # one map keeps the test short; the benchmark runs all
             hdr = read_panorama_image(path)
             pyr = glossy.mip_pyramid(hdr)
-            dirs = probe_directions(hdr, 40)
-            for roughness in (0.05, 0.2, 0.5):
-                err, plain = relative_error(pyr, hdr, dirs, roughness)
-                assert err < GLOSSY_BOUND, (path.name, roughness, err)
-                assert err < plain, (path.name, roughness, err, plain)
+            for roughness, bound in SPREAD_BOUND.items():
+                e = errors(pyr, hdr, roughness, n=32)
+                assert e["glossy_spread"] < bound, (path.name, roughness, e)
+                assert e["glossy_spread"] < 0.5 * e["mirror_spread"], (path.name, roughness, e)
+                assert e["glossy_peak"] < e["mirror_peak"], (path.name, roughness, e)
 
 
 def single_object(material: Material, centre=(0.0, 0.0, 1.0), radius=0.25) -> VirtualScene:
