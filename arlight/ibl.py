@@ -2,8 +2,9 @@
 
 Per frame: inverse tone mapping (LDR input; HDR input is used as it is), SH radiance
 (luminance and RGB), the dominant direction and the diffuse map (`pipeline/ibl.py`); one
-JSON record per frame, optionally the HDR map as OpenEXR. Decoding runs on the source's own
-thread (`sources/panorama.py`).
+JSON record per frame, optionally the HDR map as OpenEXR and, with `--render`, the virtual
+objects lit by the frame (`FrameRenderer`, `pipeline/ibl_render.py`). Decoding runs on the
+source's own thread (`sources/panorama.py`).
 """
 
 from __future__ import annotations
