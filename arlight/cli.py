@@ -561,7 +561,7 @@ def cmd_ibl(args: argparse.Namespace) -> int:
         w, h = renderer.setup.size
         layout = f"stereo side by side, {w}x{h} per eye" if args.stereo else f"{w}x{h}"
         print(f"wrote {_count(n, 'render')} to {render_dir}/ (NNNNNN.png, {layout}, "
-              f"{len(renderer.setup.scene.objects)} objects); render median "
+              f"{_count(len(renderer.setup.scene.objects), 'object')}); render median "
               f"{np.median([t['Render'] for t in renderer.timings_ms]):.0f} ms/frame",
               file=sys.stderr)
     return 0

@@ -167,10 +167,10 @@ def demo_scene(forward: np.ndarray | None = None,
 class ViewBuffers:
     """What a view needs per frame, made once per (scene, camera, pose).
 
-    pixels: (K,) flat indices of the pixels that show a virtual object; normals, views:
-    (K, 3) float64 world unit normals (facing the camera) and view directions; shading
-    tables gathered per pixel; uv: (H, W, 2) float32 panorama coordinates of every pixel's
-    ray (for the background); gbuffer_ms: the ray cast's time.
+    pixels: (K,) flat indices of the pixels that show a virtual object; normals,
+    mirror_dirs: (K, 3) float64 world unit normals (facing the camera) and mirror directions
+    of the view rays; the shading tables gathered per pixel; uv: (H, W, 2) float32 panorama
+    coordinates of every pixel's ray (for the background); gbuffer_ms: the ray cast's time.
     """
 
     camera: PinholeCamera
