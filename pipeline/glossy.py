@@ -132,9 +132,14 @@ def mip_pyramid(hdr: np.ndarray) -> MipPyramid:
 
 # --------------------------------------------------------------------------- per-sample logic
 
+# cos / sin of the samples' angles about r: (j + 0.5 (k % 2)) 60 degrees, even / odd rings
+_RING_PHI = (np.arange(RING_SAMPLES)[None, :] + 0.5 * np.arange(2)[:, None]) * (math.pi / 3.0)
+_RING_COS = np.cos(_RING_PHI)
+_RING_SIN = np.sin(_RING_PHI)
+
 @register_jitable
-def _bilinear(data, offset, height, u, v, out, weight):
-    """out += weight * the bilinear lookup of the level at (u, v) (u wraps, rows clamp)."""
+def _bilinear(data, offset, height, u, v):
+    """The bilinear lookup (r, g, b) of the level at (u, v) (u wraps, rows clamp)."""
     width = 2 * height
     x = u * width - 0.5
     y = v * height - 0.5
@@ -142,8 +147,14 @@ def _bilinear(data, offset, height, u, v, out, weight):
     y0f = math.floor(y)
     fx = x - x0f
     fy = y - y0f
-    x0 = int(x0f) % width
-    x1 = (x0 + 1) % width
+    x0 = int(x0f)
+    if x0 < 0:
+        x0 += width
+    elif x0 >= width:
+        x0 -= width
+    x1 = x0 + 1
+    if x1 >= width:
+        x1 = 0
     y0 = int(y0f)
     y1 = y0 + 1
     if y0 < 0:
@@ -154,17 +165,18 @@ def _bilinear(data, offset, height, u, v, out, weight):
         y0 = height - 1
     if y1 > height - 1:
         y1 = height - 1
-    w00 = (1.0 - fx) * (1.0 - fy) * weight
-    w01 = fx * (1.0 - fy) * weight
-    w10 = (1.0 - fx) * fy * weight
-    w11 = fx * fy * weight
+    w00 = (1.0 - fx) * (1.0 - fy)
+    w01 = fx * (1.0 - fy)
+    w10 = (1.0 - fx) * fy
+    w11 = fx * fy
     i00 = offset + y0 * width + x0
     i01 = offset + y0 * width + x1
     i10 = offset + y1 * width + x0
     i11 = offset + y1 * width + x1
-    for c in range(3):
-        out[c] += (w00 * data[i00, c] + w01 * data[i01, c] + w10 * data[i10, c]
-                   + w11 * data[i11, c])
+    r = w00 * data[i00, 0] + w01 * data[i01, 0] + w10 * data[i10, 0] + w11 * data[i11, 0]
+    g = w00 * data[i00, 1] + w01 * data[i01, 1] + w10 * data[i10, 1] + w11 * data[i11, 1]
+    b = w00 * data[i00, 2] + w01 * data[i01, 2] + w10 * data[i10, 2] + w11 * data[i11, 2]
+    return r, g, b
 
 
 @register_jitable
@@ -182,27 +194,26 @@ def _uv(dx, dy, dz):
 
 
 @register_jitable
-def _trilinear(data, offsets, heights, num_levels, u, v, level, out, weight):
-    """out += weight * the trilinear lookup at (u, v) and fractional `level`."""
+def _trilinear(data, offsets, heights, num_levels, u, v, level):
+    """The trilinear lookup (r, g, b) at (u, v) and fractional `level`."""
     if level <= 0.0:
-        _bilinear(data, offsets[0], heights[0], u, v, out, weight)
-        return
+        return _bilinear(data, offsets[0], heights[0], u, v)
     top = num_levels - 1
     if level >= top:
-        _bilinear(data, offsets[top], heights[top], u, v, out, weight)
-        return
+        return _bilinear(data, offsets[top], heights[top], u, v)
     l0 = int(math.floor(level))
     f = level - l0
-    _bilinear(data, offsets[l0], heights[l0], u, v, out, weight * (1.0 - f))
-    _bilinear(data, offsets[l0 + 1], heights[l0 + 1], u, v, out, weight * f)
+    r0, g0, b0 = _bilinear(data, offsets[l0], heights[l0], u, v)
+    r1, g1, b1 = _bilinear(data, offsets[l0 + 1], heights[l0 + 1], u, v)
+    return (r0 + f * (r1 - r0), g0 + f * (g1 - g0), b0 + f * (b1 - b0))
 
 
 @register_jitable
-def _glossy_pixel(rx, ry, rz, exponent, theta_r, data, offsets, heights, num_levels, out):
-    """out = the glossy radiance about the unit mirror direction r (see the module text)."""
-    out[0] = 0.0
-    out[1] = 0.0
-    out[2] = 0.0
+def _glossy_pixel(rx, ry, rz, exponent, theta_r, data, offsets, heights, num_levels):
+    """The glossy radiance (r, g, b) about the unit mirror direction r (the module text)."""
+    sum_r = 0.0
+    sum_g = 0.0
+    sum_b = 0.0
     # an orthonormal frame (t, b) about r
     if abs(ry) < 0.9:
         ax, ay, az = 0.0, 1.0, 0.0
@@ -230,29 +241,31 @@ def _glossy_pixel(rx, ry, rz, exponent, theta_r, data, offsets, heights, num_lev
         spacing = math.sqrt(alpha * theta_r / 3.0)
         level = math.log2(spacing / row_rad) if spacing > row_rad else 0.0
         for j in range(6):
-            phi = (j + 0.5 * (k % 2)) * (math.pi / 3.0)
-            cp = math.cos(phi) * sa
-            sp = math.sin(phi) * sa
+            cp = _RING_COS[k % 2, j] * sa
+            sp = _RING_SIN[k % 2, j] * sa
             dx = ca * rx + cp * tx + sp * bx
             dy = ca * ry + cp * ty + sp * by
             dz = ca * rz + cp * tz + sp * bz
             u, v = _uv(dx, dy, dz)
-            _trilinear(data, offsets, heights, num_levels, u, v, level, out, w)
+            cr, cg, cb = _trilinear(data, offsets, heights, num_levels, u, v, level)
+            sum_r += w * cr
+            sum_g += w * cg
+            sum_b += w * cb
             total += w
     if total > 0.0:
-        for c in range(3):
-            out[c] /= total
+        return sum_r / total, sum_g / total, sum_b / total
+    return 0.0, 0.0, 0.0
 
 
 @numba.njit(parallel=True, cache=True)
 def _glossy_cpu(directions, exponents, radii, data, offsets, heights, out):
     num_levels = len(heights)
     for i in numba.prange(directions.shape[0]):
-        acc = np.zeros(3)
-        _glossy_pixel(directions[i, 0], directions[i, 1], directions[i, 2], exponents[i],
-                      radii[i], data, offsets, heights, num_levels, acc)
-        for c in range(3):
-            out[i, c] = acc[c]
+        r, g, b = _glossy_pixel(directions[i, 0], directions[i, 1], directions[i, 2],
+                                exponents[i], radii[i], data, offsets, heights, num_levels)
+        out[i, 0] = r
+        out[i, 1] = g
+        out[i, 2] = b
 
 
 @numba.njit(parallel=True, cache=True)
@@ -260,25 +273,26 @@ def _specular_cpu(directions, modes, exponents, radii, data, offsets, heights, o
     """Per pixel: mode 1 = mirror (one lookup at level 0), 2 = glossy, 0 = none (zeros)."""
     num_levels = len(heights)
     for i in numba.prange(directions.shape[0]):
-        acc = np.zeros(3)
+        r, g, b = 0.0, 0.0, 0.0
         if modes[i] == 1:
             u, v = _uv(directions[i, 0], directions[i, 1], directions[i, 2])
-            _bilinear(data, offsets[0], heights[0], u, v, acc, 1.0)
+            r, g, b = _bilinear(data, offsets[0], heights[0], u, v)
         elif modes[i] == 2:
-            _glossy_pixel(directions[i, 0], directions[i, 1], directions[i, 2], exponents[i],
-                          radii[i], data, offsets, heights, num_levels, acc)
-        for c in range(3):
-            out[i, c] = acc[c]
+            r, g, b = _glossy_pixel(directions[i, 0], directions[i, 1], directions[i, 2],
+                                    exponents[i], radii[i], data, offsets, heights, num_levels)
+        out[i, 0] = r
+        out[i, 1] = g
+        out[i, 2] = b
 
 
 @numba.njit(parallel=True, cache=True)
 def _lookup_cpu(directions, data, height, out):
     for i in numba.prange(directions.shape[0]):
-        acc = np.zeros(3)
         u, v = _uv(directions[i, 0], directions[i, 1], directions[i, 2])
-        _bilinear(data, 0, height, u, v, acc, 1.0)
-        for c in range(3):
-            out[i, c] = acc[c]
+        r, g, b = _bilinear(data, 0, height, u, v)
+        out[i, 0] = r
+        out[i, 1] = g
+        out[i, 2] = b
 
 
 def lookup(image: np.ndarray, directions: np.ndarray) -> np.ndarray:
