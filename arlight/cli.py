@@ -310,12 +310,50 @@ def _stream_options(args: argparse.Namespace, source) -> object:
         overrides=overrides, want_composite=composite, timestamps=args.timestamps,
         max_frames=args.max_frames if getattr(args, "loop", False) else None,
         reconnect_timeout_s=getattr(args, "reconnect_timeout", 30.0),
-        scene=_load_scene(args))
+        scene=_load_scene(args), panorama=_panorama_config(args))
+
+
+def _panorama_config(args: argparse.Namespace):
+    """The Hello's config.panorama from --panorama-operator, --light-source and
+    --panorama-from-world (None when none is given: the server's defaults)."""
+    from arlight.protocols import PanoramaConfig
+
+    operator = getattr(args, "panorama_operator", None)
+    light_source = getattr(args, "light_source", None)
+    rotation = getattr(args, "panorama_from_world", None)
+    if operator is None and light_source is None and rotation is None:
+        return None
+    return PanoramaConfig(operator, light_source or "rgbd",
+                          rotation or PanoramaConfig().panorama_from_world)
+
+
+def _rotation_3x3(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 9:
+        raise argparse.ArgumentTypeError(f"expected 9 comma-separated numbers (a 3x3 rotation, "
+                                         f"row-major), got {text!r}")
+    return values
 
 
 def _open_stream_source(args: argparse.Namespace):
+    from arlight.sources.panorama_stream import (
+        is_panorama_input,
+        panorama_only_source,
+        with_panorama,
+    )
     from arlight.sources.source import open_source
 
+    if is_panorama_input(args.source):  # a 360-degree video or image: panorama-only frames
+        return panorama_only_source(args.source, max_frames=args.max_frames)
+    if getattr(args, "panorama", None):
+        return with_panorama(_open_stream_source_rgbd(args, open_source), args.panorama)
+    return _open_stream_source_rgbd(args, open_source)
+
+
+def _open_stream_source_rgbd(args: argparse.Namespace, open_source):
     source = open_source(args.source, use_poses=args.poses == "groundtruth",
                          max_frames=args.max_frames, depth_encoding=args.depth_encoding,
                          synthetic_size=args.size, synthetic_frames=args.max_frames or 12)
@@ -342,15 +380,20 @@ def cmd_stream(args: argparse.Namespace) -> int:
         print(f"[{result.seq + 1:>5}/{total}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
               f"{d[2]:+.2f})  conf={result.confidence.get('value', 0):.2f}  "
               f"pipeline {pipeline_ms(result):5.0f} ms  in server {in_server_ms:5.0f} ms  "
-              f"received {result.frames_received}  dropped {result.frames_dropped}", flush=True)
+              f"received {result.frames_received}  dropped {result.frames_dropped}"
+              + ("" if result.panorama_dominant_direction is None else "  panorama light=("
+                 + ", ".join(f"{x:+.2f}" for x in result.panorama_dominant_direction) + ")"),
+              flush=True)
         if out:
             from arlight.protocols import received_record
 
             out.write(json.dumps(received_record(result, receive_time_wall)) + "\n")
 
     client = CaptureClient(source, options, on_result=on_result, recorder=recorder)
+    size = ("panorama only" if source.calibration is None
+            else f"{source.calibration.width}x{source.calibration.height}")
     print(f"arlight stream: {args.source} ({_count(source.num_frames, 'frame')}, "
-          f"{source.calibration.width}x{source.calibration.height}) -> {options.server}, "
+          f"{size}) -> {options.server}, "
           f"session {client.session!r}, {options.mode}, rate {options.rate}, colour "
           f"{options.color_codec}, depth {options.depth_codec}"
           + ("" if source.recorded_config is None else " (recorded frames, sent as recorded)"),
@@ -856,6 +899,21 @@ def _add_stream_parser(sub) -> None:
     stream.add_argument("--out", metavar="FILE", help="also write the Results as JSON lines")
     stream.add_argument("--record", metavar="FILE.mcap",
                         help="also record the stream as sent to an MCAP file")
+    from arlight.pipeline.inverse_tone import OPERATORS
+
+    stream.add_argument("--panorama", metavar="FILE",
+                        help="also send this LDR 360-degree video (or images) with the RGB-D "
+                             "frames, paired by index; a SOURCE that is itself a video or "
+                             "image streams panorama-only frames")
+    stream.add_argument("--panorama-operator", choices=tuple(OPERATORS), metavar="NAME",
+                        help="the session's inverse tone mapping operator for the panorama "
+                             f"({', '.join(OPERATORS)}; default: the server's)")
+    stream.add_argument("--light-source", choices=("rgbd", "panorama"),
+                        help="which light renders the virtual objects when a frame has both "
+                             "RGB-D and a panorama (default rgbd)")
+    stream.add_argument("--panorama-from-world", type=_rotation_3x3, metavar="R00,...,R22",
+                        help="3x3 rotation, row-major: d_panorama = R d_world (default "
+                             "identity)")
     _add_reconnect_timeout(stream)
     stream.set_defaults(func=cmd_stream)
 

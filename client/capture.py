@@ -4,7 +4,9 @@ Sources (`arlight.sources.source.open_source`): "synthetic" (the built-in scene 
 light), every folder layout `arlight estimate` reads (TUM RGB-D, Open3D/Redwood, 7-Scenes) and
 MCAP recordings made by `arlight record`, whose Frame messages are sent exactly as recorded.
 Depth goes out as the source gives it, uint16 with the source's depth_scale in the Hello's
-SessionConfig; the server turns it into metres once.
+SessionConfig; the server turns it into metres once. A frame may also carry a 360-degree
+panorama (sources/panorama_stream.py): beside the RGB-D images, or alone (a panorama-only
+source has no calibration; its Hello carries `config.panorama`, SPEC.md).
 
 Delivery (SessionConfig.mode):
 - live: frames go out as the source produces them (`rate="native"`: at the source's own
@@ -54,6 +56,7 @@ from arlight.protocols import (
     Frame,
     Heartbeat,
     Hello,
+    PanoramaConfig,
     ProtocolError,
     Result,
     SceneAnchorSpec,
@@ -118,8 +121,8 @@ def encoded_frames(source: Source, options: StreamOptions, timestamps: str
                     restamp_seq(frame.parts, seq)
             else:
                 stamp_s = time.time() if timestamps == "capture" else ts  # goes on the wire
-                parts = encode(Frame(seq, stamp_s, frame.color, frame.depth, frame.pose, None,
-                                     options.color_codec, options.depth_codec,
+                parts = encode(Frame(seq, stamp_s, frame.color, frame.depth, frame.pose,
+                                     frame.panorama, options.color_codec, options.depth_codec,
                                      options.jpeg_quality))
             yield seq, ts, parts
             seq += 1
@@ -168,6 +171,8 @@ HELLO_FIELD_FLAGS = {
     "hello.config.mode": "--mode",
     "hello.config.scene": "--scene",
     "hello.config.virtual_scene": "--scene",
+    "hello.config.panorama.operator": "--panorama-operator",
+    "hello.config.panorama": "--light-source / --panorama-from-world",
 }
 
 
@@ -191,6 +196,9 @@ class StreamOptions:
     want_composite: bool = False
     virtual_scene: str | None = None  # a scene the server has built in ("demo")
     scene: VirtualScene | None = None  # or the scene itself, sent in the Hello
+    # the Hello's config.panorama (operator, light_source, panorama_from_world); a
+    # panorama-only source (calibration None) sends PanoramaConfig() when this is None
+    panorama: PanoramaConfig | None = None
     timestamps: str | None = None
     max_frames: int | None = None  # stop after this many frames (with --loop: in total)
     heartbeat_interval_s: float = 1.0  # until the server's Welcome says otherwise
@@ -279,7 +287,9 @@ class CaptureClient:
             calibration=self.source.calibration, depth_scale=self.source.depth_scale,
             preset=opts.preset, overrides=dict(opts.overrides), virtual_scene=opts.virtual_scene,
             mode=opts.mode, want_composite=opts.want_composite,
-            scene=None if opts.scene is None else scene_spec(opts.scene))
+            scene=None if opts.scene is None else scene_spec(opts.scene),
+            panorama=opts.panorama if opts.panorama is not None or
+            self.source.calibration is not None else PanoramaConfig())
         if base is not None:  # a recording: its calibration and depth scale always hold
             config = dataclasses.replace(config, calibration=base.calibration,
                                          depth_scale=base.depth_scale)

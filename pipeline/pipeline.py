@@ -30,10 +30,12 @@ from arlight.pipeline.light_estimation import LightEstimate, TemporalFilter, est
 from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer
 from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
-    TransferResult,
+    TransferSamples,
     compute_transfer,
     make_sampling_pattern,
-    upsample_transfer,
+    random_pixels,
+    transfer_at_pixels,
+    transfer_samples,
 )
 from arlight.pipeline.rendering import (
     DifferentialRenderer,
@@ -48,6 +50,10 @@ from arlight.pipeline.virtual_scene import VirtualScene, resolve_anchors
 log = logging.getLogger(__name__)
 
 STAGES = ("Input", "Reconstruct", "Surface", "DynGeo", "RadTransfer", "LightEst", "Rendering")
+# RadTransfer computes (or interpolates) the transfer at most at this many pixels per sample
+# LightEst may use (light_max_samples): enough that the clipped, dark and transfer-less ones
+# it then leaves out rarely matter
+CANDIDATES_PER_SAMPLE = 2
 
 
 class FrameError(CheckError):
@@ -162,8 +168,14 @@ class Pipeline:
         self._raycaster = (ObjectSpaceTransfer(config.aux.aux_update_interval)
                            if config.transfer.rt_method is RtMethod.RAYCAST else None)
 
-    def process(self, frame: FrameInput) -> FrameResult:
-        """Estimate the lighting of one frame. Raises FrameError on malformed input."""
+    def process(self, frame: FrameInput,
+                render_light: tuple[np.ndarray, np.ndarray | None] | None = None) -> FrameResult:
+        """Estimate the lighting of one frame. Raises FrameError on malformed input.
+
+        render_light: optional (sh (n,), sh_rgb (3, n) or None), radiance SH in the WORLD
+        frame, that renders the virtual objects instead of this frame's estimate (a session
+        lit by its 360-degree panorama, `light_source` "panorama"); the estimate is still
+        made and returned. Its units are the light's own (no albedo scaling)."""
         timings: dict[str, float] = {}
         diagnostics: dict = {}
         with _stage(timings, "Input"):
@@ -178,7 +190,8 @@ class Pipeline:
         with _stage(timings, "LightEst"):
             plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
-            estimate = self._estimate(transfer, color_linear, geometry.depth_m, plane, up_world,
+            estimate = self._estimate(transfer, color_linear, geometry.depth_m, plane,
+                                      up_world,
                                       below_horizon_unseen=self.config.transfer.rt_horizon)
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:
@@ -193,7 +206,7 @@ class Pipeline:
         else:
             with _stage(timings, "Rendering"):
                 composite = self._render(valid, color_linear, geometry, pose, aux_buffers,
-                                         coeffs, estimate)
+                                         coeffs, estimate, render_light)
         self.frames_processed += 1
         diagnostics.update(self._estimate_diagnostics(estimate, up_world))
         rotation = pose[:3, :3]
@@ -207,7 +220,9 @@ class Pipeline:
 
     def _render(self, valid: ValidFrame, color_linear: np.ndarray, geometry: _Geometry,
                 pose: np.ndarray, aux_buffers: list, coeffs: np.ndarray,
-                estimate: LightEstimate) -> np.ndarray | None:
+                estimate: LightEstimate,
+                render_light: tuple[np.ndarray, np.ndarray | None] | None = None,
+                ) -> np.ndarray | None:
         """Rendering: the composite (H, W, 3) uint8 of the placed virtual objects, or None
         (the input) while none is placed. The estimate knows albedo x light only (its mean
         albedo is 1): the light is scaled by pi / render_real_albedo into image units."""
@@ -215,11 +230,18 @@ class Pipeline:
             self._place_anchored(geometry, pose)
             if self._renderer is None:
                 return None
-        light = np.asarray(coeffs, np.float64) * (math.pi
-                                                  / self.config.render.render_real_albedo)
+        if render_light is None:
+            light = np.asarray(coeffs, np.float64) * (math.pi
+                                                      / self.config.render.render_real_albedo)
+            light_rgb = luminance_light_rgb(estimate.sh_rgb)
+        else:  # an outside light (the panorama's), as many coefficients as the estimate
+            n = len(coeffs)
+            light = np.zeros(n)
+            given = np.asarray(render_light[0], np.float64)[:n]
+            light[:len(given)] = given
+            light_rgb = luminance_light_rgb(render_light[1])
         inputs = RenderInputs(valid.color, color_linear, geometry.depth_m, geometry.normals,
-                              pose, list(aux_buffers), geometry.plane, light,
-                              luminance_light_rgb(estimate.sh_rgb))
+                              pose, list(aux_buffers), geometry.plane, light, light_rgb)
         output = self._renderer.render(inputs)
         self.last_render = (inputs, output)
         return output.composite
@@ -283,40 +305,48 @@ class Pipeline:
         return _Geometry(depth_filtered, normals, points, plane)
 
     def _transfer(self, geometry: _Geometry, color_linear: np.ndarray, pose: np.ndarray,
-                  aux_buffers: list) -> TransferResult:
-        """RadTransfer (eq. 6-9, or rays against the surface with rt_method "raycast"),
-        up-sampled to every pixel when sub-sampled (OursFast)."""
+                  aux_buffers: list) -> TransferSamples:
+        """RadTransfer (eq. 6-9, or rays against the surface with rt_method "raycast") where
+        the light estimate needs it: at most CANDIDATES_PER_SAMPLE x light_max_samples pixels
+        with geometry, chosen at random (seeded), the rest of the image being work nothing
+        reads. At every pixel (rt_subsample 1) the transfer is computed at those pixels
+        only; sub-sampled (OursFast) it is computed on the grid and interpolated to them
+        (rt_upsample; without it the grid points themselves are the samples)."""
         p = self.config.transfer
         lum = luminance(color_linear) if p.rt_bounce else None
         plane = geometry.plane if p.rt_horizon else None
+        budget = CANDIDATES_PER_SAMPLE * self.config.estimation.light_max_samples
+        seed = self.config.seed
+        has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
         if p.rt_method is RtMethod.RAYCAST:
-            transfer = self._raycaster.compute(geometry.points, geometry.normals, self.camera,
-                                               pose, self.pattern, p, lum, plane, self._volume)
+            grid = self._raycaster.compute(geometry.points, geometry.normals, self.camera,
+                                           pose, self.pattern, p, lum, plane, self._volume)
         else:
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
-            transfer = compute_transfer(geometry.points, geometry.normals, self.camera, pose,
-                                        self.pattern, aux, p, lum, plane)
-        if p.rt_upsample and p.rt_subsample > 1:
-            has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
-            transfer = upsample_transfer(transfer, has_geometry)
-        return transfer
+            if p.rt_subsample == 1:
+                vs, us = random_pixels(has_geometry, budget, seed)
+                t, b, ok = transfer_at_pixels(
+                    geometry.points, geometry.normals, self.camera, pose, self.pattern, aux, p,
+                    us, vs, None if lum is None else lum[..., None], plane)
+                return TransferSamples(vs[ok], us[ok], t[ok].astype(np.float32),
+                                       None if lum is None else b[ok, 0].astype(np.float32))
+            grid = compute_transfer(geometry.points, geometry.normals, self.camera, pose,
+                                    self.pattern, aux, p, lum, plane)
+        interpolate_to = has_geometry if p.rt_upsample and p.rt_subsample > 1 else None
+        return transfer_samples(grid, interpolate_to, budget, seed)
 
-    def _estimate(self, transfer: TransferResult, color_linear: np.ndarray, depth: np.ndarray,
-                  plane: SupportPlane | None = None,
+    def _estimate(self, samples: TransferSamples, color_linear: np.ndarray,
+                  depth: np.ndarray, plane: SupportPlane | None = None,
                   up_world: np.ndarray | None = None,
                   below_horizon_unseen: bool = False) -> LightEstimate:
-        """LightEst (T l = I_c, section 5.2) on the pixels with transfer; albedo per segment."""
+        """LightEst (T l = I_c, section 5.2) on the sampled pixels; albedo per segment."""
         p = self.config.estimation
-        valid = transfer.valid
-        n = transfer.transfer.shape[-1]
-        if not np.any(valid):
+        n = samples.transfer.shape[-1]
+        if not len(samples.pixel_v):
             return LightEstimate(np.zeros(n), Confidence(reason="no valid depth"),
                                  np.zeros((3, n)) if p.estimate_rgb else None)
-        h, w = depth.shape
-        full_grid = len(transfer.pixel_v) == h and len(transfer.pixel_u) == w
-        grid = (slice(None), slice(None)) if full_grid else np.ix_(transfer.pixel_v,
-                                                                    transfer.pixel_u)
-        colors = color_linear[grid][valid]
+        pixels = (samples.pixel_v, samples.pixel_u)
+        colors = color_linear[pixels]
         segments = None
         if p.albedo_segments:
             segments = material_segments(
@@ -325,9 +355,8 @@ class Pipeline:
             if plane is not None and p.segment_split_ground:
                 # what stands on the ground is rarely made of the ground's material
                 segments = segments * 2 + plane.on_plane
-            segments = segments[grid][valid]
-        bounce = transfer.bounce[valid] if transfer.bounce is not None else None
-        return estimate_light(transfer.transfer[valid], colors, p, segments, bounce,
+            segments = segments[pixels]
+        return estimate_light(samples.transfer, colors, p, segments, samples.bounce,
                               up_world, below_horizon_unseen, seed=self.config.seed)
 
     def _estimate_diagnostics(self, estimate: LightEstimate,

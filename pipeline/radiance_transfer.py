@@ -476,6 +476,71 @@ def upsample_transfer(result: TransferResult, valid_full: np.ndarray) -> Transfe
     return TransferResult(transfer, keep, np.arange(w), np.arange(h), bounce)
 
 
+@dataclass
+class TransferSamples:
+    """The transfer at a list of pixels: pixel_v, pixel_u (K,) int64 full-resolution
+    coordinates; transfer (K, C) float32; bounce (K,) float32 or None."""
+
+    pixel_v: np.ndarray
+    pixel_u: np.ndarray
+    transfer: np.ndarray
+    bounce: np.ndarray | None
+
+
+def random_pixels(mask: np.ndarray, max_pixels: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) int64 of the True pixels of `mask`, row-major; above `max_pixels` a
+    seeded uniform random subset of that many (still row-major)."""
+    flat = np.flatnonzero(mask)
+    if len(flat) > max_pixels:
+        flat = np.sort(np.random.default_rng(seed).choice(flat, max_pixels, replace=False))
+    rows, cols = np.divmod(flat, mask.shape[1])
+    return rows.astype(np.int64), cols.astype(np.int64)
+
+
+def transfer_samples(result: TransferResult, valid_full: np.ndarray | None,
+                     max_pixels: int, seed: int) -> TransferSamples:
+    """The pixels the light estimate may use, at most `max_pixels` of them (a seeded random
+    subset above that; neighbouring pixels repeat each other), with their transfer.
+
+    valid_full: (H, W) bool pixels with geometry, for a sub-sampled grid to be interpolated
+    at every such pixel ("OursFast"): the same normalised bilinear interpolation as
+    `upsample_transfer`, evaluated at the chosen pixels only (a pixel is kept when every
+    grid point around it is valid). None: the grid points themselves.
+    """
+    hs, ws = result.valid.shape
+    interpolate = valid_full is not None and (hs, ws) != valid_full.shape
+    rows, cols = random_pixels(valid_full if interpolate else result.valid, max_pixels, seed)
+    bounce = result.bounce
+    if not interpolate:
+        pv = np.asarray(result.pixel_v)[rows]
+        pu = np.asarray(result.pixel_u)[cols]
+        return TransferSamples(pv.astype(np.int64), pu.astype(np.int64),
+                               result.transfer[rows, cols],
+                               None if bounce is None else bounce[rows, cols])
+    gu = np.interp(cols, result.pixel_u, np.arange(ws))  # fractional grid coordinates
+    gv = np.interp(rows, result.pixel_v, np.arange(hs))
+    u0 = np.minimum(np.floor(gu).astype(np.int64), ws - 1)
+    v0 = np.minimum(np.floor(gv).astype(np.int64), hs - 1)
+    u1, v1 = np.minimum(u0 + 1, ws - 1), np.minimum(v0 + 1, hs - 1)
+    fu, fv = (gu - u0).astype(np.float32), (gv - v0).astype(np.float32)
+    corners = [(v0, u0, (1 - fv) * (1 - fu)), (v0, u1, (1 - fv) * fu),
+               (v1, u0, fv * (1 - fu)), (v1, u1, fv * fu)]
+    den = np.zeros(len(rows), np.float32)
+    num = np.zeros((len(rows), result.transfer.shape[-1]), np.float32)
+    num_b = None if bounce is None else np.zeros(len(rows), np.float32)
+    for v, u, wgt in corners:
+        wv = wgt * result.valid[v, u]
+        den += wv
+        num += wv[:, None] * result.transfer[v, u]
+        if num_b is not None:
+            num_b += wv * bounce[v, u]
+    keep = den > 0.999
+    inv = 1.0 / den[keep]
+    return TransferSamples(rows[keep].astype(np.int64), cols[keep].astype(np.int64),
+                           num[keep] * inv[:, None],
+                           None if num_b is None else num_b[keep] * inv)
+
+
 def _occlusion_reference(x: np.ndarray, s: np.ndarray, w: np.ndarray, chi: float) -> float:
     """K of eq. 7-8 (NumPy): occluding surface point s (3,) seen from x (3,) towards w (3,)."""
     t = s - x

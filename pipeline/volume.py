@@ -27,6 +27,8 @@ depth (tests/test_reconstruction.py); `OPEN3D_SUPPORTED` is checked at import:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
@@ -75,6 +77,36 @@ def unique_block_keys(keys: np.ndarray) -> np.ndarray:
     return out.astype(np.int32)
 
 
+# coarse samples within this fraction of each other count as one smooth surface
+UPSAMPLE_SMOOTH_REL = 0.03
+
+
+def upsample_depth(coarse: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) float32 depth from a cast through the centres of factor x factor blocks.
+
+    A pixel between four coarse samples that all exist and agree within
+    UPSAMPLE_SMOOTH_REL of the nearest gets their bilinear interpolation (pixel centres
+    aligned: full-resolution x sits at (x + 0.5) / factor - 0.5 on the coarse grid);
+    elsewhere (an edge, a hole) the sample of its own block, so no depth is made up between
+    two surfaces. 0 = none."""
+    h, w = shape
+    hc, wc = coarse.shape
+    gy = np.clip((np.arange(h) + 0.5) / factor - 0.5, 0, hc - 1)
+    gx = np.clip((np.arange(w) + 0.5) / factor - 0.5, 0, wc - 1)
+    y0, x0 = np.floor(gy).astype(np.int64), np.floor(gx).astype(np.int64)
+    y1, x1 = np.minimum(y0 + 1, hc - 1), np.minimum(x0 + 1, wc - 1)
+    fy = (gy - y0).astype(np.float32)[:, None]
+    fx = (gx - x0).astype(np.float32)[None, :]
+    d00, d01 = coarse[y0][:, x0], coarse[y0][:, x1]
+    d10, d11 = coarse[y1][:, x0], coarse[y1][:, x1]
+    own = coarse[np.arange(h) // factor][:, np.arange(w) // factor]
+    lo = np.minimum(np.minimum(d00, d01), np.minimum(d10, d11))
+    hi = np.maximum(np.maximum(d00, d01), np.maximum(d10, d11))
+    smooth = (lo > 0) & (hi - lo < UPSAMPLE_SMOOTH_REL * lo)
+    bilinear = ((1 - fy) * ((1 - fx) * d00 + fx * d01) + fy * ((1 - fx) * d10 + fx * d11))
+    return np.where(smooth, bilinear, own).astype(np.float32)
+
+
 def _padded(size: int) -> int:
     """`size` rounded up to a multiple of RANGE_MAP_DOWN_FACTOR.
 
@@ -89,6 +121,21 @@ def _padded(size: int) -> int:
 
 
 
+@functools.cache
+def warm_open3d(device: str) -> None:
+    """Once per process and device: fuse and ray cast a tiny throwaway volume.
+
+    Open3D's first fusion and surface ray cast in a process pay a one-time cost (about
+    0.3 s on two CPU cores, more than a frame's whole Surface stage) that a session's own
+    first frame would otherwise pay; the volume's constructor calls this so that it is paid
+    when the session is made, not in a frame."""
+    cam = PinholeCamera.kinect_v1(64, 48)
+    params = VolumeParams(volume_resolution=64, block_count=64)
+    volume = TsdfVolume(params, cam, o3c.Device(device), warm=False)
+    volume.integrate(np.full((cam.height, cam.width), 1.0, np.float32), np.eye(4))
+    volume.ray_cast(np.eye(4))
+
+
 class TsdfVolume:
     """The TSDF volume V of one session: fusion, ray casting, zero crossings.
 
@@ -100,7 +147,10 @@ class TsdfVolume:
     camera: intrinsics of the depth images; device: an Open3D device ("CPU:0", "CUDA:0").
     """
 
-    def __init__(self, params: VolumeParams, camera: PinholeCamera, device: o3c.Device):
+    def __init__(self, params: VolumeParams, camera: PinholeCamera, device: o3c.Device,
+                 warm: bool = True):
+        if warm:
+            warm_open3d(str(device))
         self.params = params
         self.camera = camera
         self.device = device
@@ -222,8 +272,9 @@ class TsdfVolume:
         unit, towards the free side) of V seen from world_from_cam; zeros while V is empty.
 
         subsample s > 1: cast through the pixel centres of the camera scaled by 1/s (s^2
-        fewer rays) and give each full-resolution pixel the sample of the s x s block it
-        lies in (nearest: no depth is invented across an edge)."""
+        fewer rays) and interpolate (`upsample_depth`): bilinear on smooth surfaces, the
+        block's own sample across depth edges (no depth is invented there); normals are the
+        block's."""
         cam = self.camera
         h, w = cam.height, cam.width
         if self.num_blocks == 0:
@@ -234,7 +285,7 @@ class TsdfVolume:
                                 (cam.cy + 0.5) / subsample - 0.5)
         depth, normals = self._cast(cam, world_from_cam)
         if subsample > 1:
-            depth = np.repeat(np.repeat(depth, subsample, 0), subsample, 1)[:h, :w]
+            depth = upsample_depth(depth, subsample, (h, w))
             normals = np.repeat(np.repeat(normals, subsample, 0), subsample, 1)[:h, :w]
         return np.ascontiguousarray(depth), np.ascontiguousarray(normals)
 

@@ -16,6 +16,7 @@ from .container import read_container, write_container
 from .errors import ERROR_CODES, ProtocolError
 from .messages import (
     DEFAULT_MAX_MESSAGE_BYTES,
+    LIGHT_SOURCES,
     MAX_HEADER_BYTES,
     MESSAGE_TYPES,
     MODES,
@@ -33,6 +34,7 @@ from .messages import (
     Heartbeat,
     Hello,
     Message,
+    PanoramaConfig,
     Result,
     SceneAnchorSpec,
     SceneObjectSpec,
@@ -51,6 +53,7 @@ __all__ = [
     "COLOR_CODECS",
     "DEFAULT_COLOR_CODEC",
     "DEFAULT_DEPTH_CODEC",
+    "LIGHT_SOURCES",
     "DEFAULT_JPEG_QUALITY",
     "DEFAULT_MAX_MESSAGE_BYTES",
     "DEFAULT_MAX_PIXELS",
@@ -74,6 +77,7 @@ __all__ = [
     "Hello",
     "Message",
     "ProtocolError",
+    "PanoramaConfig",
     "Result",
     "SceneAnchorSpec",
     "SceneObjectSpec",

@@ -715,6 +715,49 @@ def _scene_object_fields(om: _Map) -> dict:
     return out
 
 
+# Hello.config.panorama (SPEC.md section 4, "hello: the panorama light"): optional.
+LIGHT_SOURCES = ("rgbd", "panorama")
+_IDENTITY_3X3 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class PanoramaConfig:
+    """How a session lights with the Frames' 360-degree panoramas.
+
+    operator: the inverse tone mapping operator (the server's names, pipeline/inverse_tone.py;
+    None: the server's default). light_source: which light renders the virtual objects when
+    a frame has both RGB-D and a panorama, "rgbd" (the estimate) or "panorama".
+    panorama_from_world: 3 x 3 rotation, row-major, d_panorama = R d_world (directions); the
+    panorama's light in the world frame is its SH rotated by R^T. Identity by default.
+    """
+
+    operator: str | None = None
+    light_source: str = "rgbd"
+    panorama_from_world: tuple[float, ...] = _IDENTITY_3X3
+
+    def _pack(self, name: str) -> dict:
+        rotation = _float_list(self.panorama_from_world, f"{name}.panorama_from_world")
+        rotation = np.asarray(rotation, dtype=np.float64).reshape(-1).tolist()
+        return {"operator": self.operator, "light_source": self.light_source,
+                "panorama_from_world": rotation}
+
+    @classmethod
+    def _unpack(cls, m: _Map) -> PanoramaConfig:
+        operator = m.str("operator", 64, _NAME_RE, nullable=True)
+        light_source = m.str("light_source", 32, choices=LIGHT_SOURCES)
+        values = m.floats("panorama_from_world", 9)
+        rows = [values[0:3] + [0.0], values[3:6] + [0.0], values[6:9] + [0.0],
+                [0.0, 0.0, 0.0, 1.0]]
+        try:
+            check_rigid(rows, m.f("panorama_from_world"), RIGID_TOLERANCE)
+        except CheckError:
+            raise ProtocolError(
+                "bad_field", f"not a rotation (orthonormal rows, determinant +1, each within "
+                f"{RIGID_TOLERANCE:g}): {values}", m.f("panorama_from_world")) from None
+        m.done()
+        return cls(operator, light_source, tuple(values))
+
+
 @dataclass
 class SessionConfig:
     session: str  # session name, [A-Za-z0-9_.-]{1,64}
@@ -728,6 +771,8 @@ class SessionConfig:
     mode: str = "live"  # "live" | "lossless"
     want_composite: bool = False
     scene: SceneSpec | None = None  # the virtual scene itself (not with virtual_scene)
+    # the panorama light (optional key); with calibration None: a panorama-only session
+    panorama: PanoramaConfig | None = None
 
     def _pack(self, parts: list) -> dict:
         out = {
@@ -744,6 +789,8 @@ class SessionConfig:
         }
         if self.scene is not None:  # optional key: absent when there is no scene
             out["scene"] = self.scene._pack(parts, "hello.config.scene")
+        if self.panorama is not None:  # optional key: absent when the session has none
+            out["panorama"] = self.panorama._pack("hello.config.panorama")
         return out
 
     @classmethod
@@ -753,8 +800,14 @@ class SessionConfig:
         role = c.str("role", choices=ROLES)
         cal = c.map("calibration", nullable=True)
         calibration = None if cal is None else CameraCalibration._unpack(cal)
-        if role == "capture" and calibration is None:
-            raise ProtocolError("bad_field", "required for role capture", c.f("calibration"))
+        panorama = None
+        if "panorama" in c.d:  # optional key (SPEC.md section 2): absent = nil
+            pm = c.map("panorama", nullable=True)
+            panorama = None if pm is None else PanoramaConfig._unpack(pm)
+        if role == "capture" and calibration is None and panorama is None:
+            raise ProtocolError("bad_field", "required for role capture (nil only for a "
+                                "panorama-only session: give config.panorama)",
+                                c.f("calibration"))
         depth_scale = c.float("depth_scale", 1e-6, 1e9)
         preset = c.str("preset", 64, _NAME_RE)
         overrides = _read_overrides(c.raw("overrides"), c.f("overrides"))
@@ -771,7 +824,7 @@ class SessionConfig:
                 f"{virtual_scene[:64]!r}) or scene (the scene itself), not both", c.f("scene"))
         c.done()
         return cls(session, client_name, role, calibration, depth_scale, preset, overrides,
-                   virtual_scene, mode, want_composite, scene)
+                   virtual_scene, mode, want_composite, scene, panorama)
 
 
 def _read_overrides(v: Any, name: str) -> dict[str, bool | int | float | str]:
@@ -842,8 +895,9 @@ class Frame:
     TYPE: ClassVar[str] = "frame"
     seq: int  # >= 0, per session, increasing
     timestamp: float  # capture time, sender clock, seconds
-    color: np.ndarray  # (H, W, 3) uint8 RGB
-    depth: np.ndarray  # (H, W) uint16, SessionConfig.depth_scale units per metre, 0 = missing
+    color: np.ndarray | None  # (H, W, 3) uint8 RGB; None with depth: a panorama-only frame
+    depth: np.ndarray | None  # (H, W) uint16, SessionConfig.depth_scale units per metre,
+    # 0 = missing; None together with color (then panorama is required)
     pose: np.ndarray | None = None  # (4, 4) float64 camera-to-world
     panorama: np.ndarray | None = None  # (h, w, 3) uint8 RGB equirectangular
     color_codec: str = DEFAULT_COLOR_CODEC  # also used for the panorama
@@ -866,10 +920,17 @@ class Frame:
             "timestamp": _to_plain(self.timestamp),
             "pose": None if self.pose is None else _pose_to_wire(self.pose, f"{nm}.pose"),
         }
-        out["color"] = _add_image(
+        if (color is None) != (depth is None):
+            missing = "color" if color is None else "depth"
+            raise ProtocolError("bad_field", "give both colour and depth, or neither (a "
+                                "panorama-only frame)", f"{nm}.{missing}")
+        if color is None and self.panorama is None:
+            raise ProtocolError("bad_field", "a frame without colour and depth must carry a "
+                                "panorama", f"{nm}.panorama")
+        out["color"] = None if color is None else _add_image(
             parts, *encode_color(color, self.color_codec, self.jpeg_quality, field=f"{nm}.color")
         )
-        out["depth"] = _add_image(
+        out["depth"] = None if depth is None else _add_image(
             parts, *encode_depth(depth, self.depth_codec, field=f"{nm}.depth")
         )
         out["panorama"] = None if self.panorama is None else _add_image(
@@ -885,10 +946,16 @@ class Frame:
         timestamp = h.float("timestamp")
         pose = h.raw("pose", nullable=True)
         pose = None if pose is None else _pose(pose, h.f("pose"))
-        dc = images.descriptor(h, "color", depth=False)
-        dd = images.descriptor(h, "depth", depth=True)
+        dc = images.descriptor(h, "color", depth=False, nullable=True)
+        dd = images.descriptor(h, "depth", depth=True, nullable=True)
         dp = images.descriptor(h, "panorama", depth=False, nullable=True)
-        if (dc[2], dc[3]) != (dd[2], dd[3]):
+        if (dc is None) != (dd is None):
+            raise ProtocolError("bad_field", "give both colour and depth, or neither (a "
+                                "panorama-only frame)", h.f("color" if dc is None else "depth"))
+        if dc is None and dp is None:
+            raise ProtocolError("bad_field", "a frame without colour and depth must carry a "
+                                "panorama", h.f("panorama"))
+        if dc is not None and (dc[2], dc[3]) != (dd[2], dd[3]):
             raise ProtocolError(
                 "bad_field",
                 f"depth is {dd[2]} x {dd[3]}, colour {dc[2]} x {dc[3]}: they must agree",
@@ -899,8 +966,10 @@ class Frame:
         color = images.decode(dc)
         depth = images.decode(dd)
         panorama = images.decode(dp)
-        quality = dc[0].get("quality", DEFAULT_JPEG_QUALITY)
-        return cls(seq, timestamp, color, depth, pose, panorama, dc[1], dd[1], quality)
+        first = dc if dc is not None else dp  # the colour codec: of the colour, else panorama
+        quality = first[0].get("quality", DEFAULT_JPEG_QUALITY)
+        depth_codec = DEFAULT_DEPTH_CODEC if dd is None else dd[1]
+        return cls(seq, timestamp, color, depth, pose, panorama, first[1], depth_codec, quality)
 
 
 @dataclass(kw_only=True)
@@ -933,6 +1002,11 @@ class Result:
     composite: np.ndarray | None = None  # (H, W, 3) uint8 RGB
     composite_codec: str = "jpeg"
     jpeg_quality: int = DEFAULT_JPEG_QUALITY
+    # the frame's panorama light (optional keys, all three or none: absent = no panorama),
+    # in the PANORAMA's frame (+y up, u = atan2(x, -z) / 2 pi), radiance of the HDR map
+    panorama_sh: list[float] | None = None  # luminance, L^2 coefficients
+    panorama_sh_rgb: list[list[float]] | None = None  # 3 x L^2, linear R, G, B
+    panorama_dominant_direction: list[float] | None = None  # unit, towards the light
 
     def _pack(self, parts: list) -> dict:
         out = {
@@ -958,8 +1032,20 @@ class Result:
             "frames_dropped": _to_plain(self.frames_dropped),
             "server_receive_time": _to_plain(self.server_receive_time),
             "server_finish_time": _to_plain(self.server_finish_time),
-            "composite": None,
         }
+        given = [self.panorama_sh is not None, self.panorama_sh_rgb is not None,
+                 self.panorama_dominant_direction is not None]
+        if any(given) and not all(given):
+            missing = [k for k, g in zip(_PANORAMA_RESULT_KEYS, given, strict=True) if not g]
+            raise ProtocolError("bad_field", "give panorama_sh, panorama_sh_rgb and "
+                                "panorama_dominant_direction together, or none",
+                                f"result.{missing[0]}")
+        if all(given):  # optional keys: absent when the frame had no panorama
+            out["panorama_sh"] = _float_list(self.panorama_sh, "result.panorama_sh")
+            out["panorama_sh_rgb"] = _float_list(self.panorama_sh_rgb, "result.panorama_sh_rgb")
+            out["panorama_dominant_direction"] = _float_list(
+                self.panorama_dominant_direction, "result.panorama_dominant_direction")
+        out["composite"] = None
         if self.composite is not None:
             out["composite"] = _add_image(
                 parts,
@@ -1005,6 +1091,7 @@ class Result:
             fields[key] = h.int(key)
         for key in ("server_receive_time", "server_finish_time"):
             fields[key] = h.float(key)
+        fields.update(_read_panorama_light(h))
         dc = images.descriptor(h, "composite", depth=False, nullable=True)
         h.done()
         images.done(h.name)
@@ -1012,6 +1099,33 @@ class Result:
             fields.update(composite=images.decode(dc), composite_codec=dc[1],
                           jpeg_quality=dc[0].get("quality", DEFAULT_JPEG_QUALITY))
         return cls(**fields)
+
+
+_PANORAMA_RESULT_KEYS = ("panorama_sh", "panorama_sh_rgb", "panorama_dominant_direction")
+
+
+def _read_panorama_light(h: _Map) -> dict:
+    """Result's optional panorama keys: all three or none (SPEC.md, "result")."""
+    present = [k in h.d for k in _PANORAMA_RESULT_KEYS]
+    if not any(present):
+        return {}
+    if not all(present):
+        missing = _PANORAMA_RESULT_KEYS[present.index(False)]
+        raise ProtocolError("bad_field", "missing (the panorama keys come all three or none)",
+                            h.f(missing))
+    coeffs = h.floats("panorama_sh", max_len=1024)
+    bands = math.isqrt(len(coeffs))
+    if not coeffs or bands * bands != len(coeffs):
+        raise ProtocolError(
+            "bad_field", f"{len(coeffs)} coefficients is not L^2 for L >= 1", h.f("panorama_sh"))
+    rgb = h.raw("panorama_sh_rgb")
+    if type(rgb) is not list or len(rgb) != 3:
+        raise ProtocolError("bad_field", "expected 3 arrays (R, G, B) of L^2 numbers",
+                            h.f("panorama_sh_rgb"))
+    rgb = [_floats(c, f"{h.f('panorama_sh_rgb')}[{i}]", len(coeffs)) for i, c in enumerate(rgb)]
+    direction = h.floats("panorama_dominant_direction", 3)
+    return {"panorama_sh": coeffs, "panorama_sh_rgb": rgb,
+            "panorama_dominant_direction": direction}
 
 
 @dataclass

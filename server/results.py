@@ -6,17 +6,22 @@ from __future__ import annotations
 import numpy as np
 
 from arlight.pipeline.frames import FrameResult
+from arlight.pipeline.ibl import IblResult
 from arlight.protocols import DEFAULT_JPEG_QUALITY, Result, plain_diagnostics
 
 
 def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, int],
                    receive_time_wall: float, finish_time_wall: float,
                    composite: np.ndarray | None = None, composite_codec: str = "jpeg",
-                   jpeg_quality: int = DEFAULT_JPEG_QUALITY) -> Result:
+                   jpeg_quality: int = DEFAULT_JPEG_QUALITY,
+                   panorama: IblResult | None = None) -> Result:
     """The Result of frame `seq`. counters: the session's (frames_received,
     frames_processed, frames_dropped); receive/finish times: wall clock, seconds;
     composite_codec, jpeg_quality: how the composite is encoded (the server: as the frame's
     colour came, so lossless colour gives a lossless composite).
+
+    panorama: the light of the frame's 360-degree panorama, in the panorama's frame (the
+    Result's optional panorama_* fields); None: the frame had none (the keys are omitted).
 
     Raises ProtocolError (bad_field, naming `result.diagnostics.KEY`) when the pipeline's
     diagnostics hold a value the protocol does not carry.
@@ -35,4 +40,9 @@ def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, i
         diagnostics=plain_diagnostics(result.diagnostics),
         frames_received=received, frames_processed=processed, frames_dropped=dropped,
         server_receive_time=receive_time_wall, server_finish_time=finish_time_wall,
-        composite=composite, composite_codec=composite_codec, jpeg_quality=jpeg_quality)
+        composite=composite, composite_codec=composite_codec, jpeg_quality=jpeg_quality,
+        panorama_sh=None if panorama is None else [float(x) for x in panorama.sh],
+        panorama_sh_rgb=None if panorama is None else np.asarray(panorama.sh_rgb,
+                                                                 float).tolist(),
+        panorama_dominant_direction=None if panorama is None else [
+            float(x) for x in panorama.dominant_direction])

@@ -438,9 +438,11 @@ class Server:
                                              message=str(exc)))
             return None
         self.sessions[name] = session
-        log.info("session %s: created (%s, %dx%d, preset %s, %d virtual objects) by capture "
-                 "peer %s %s", name, cfg.mode, session.camera.width, session.camera.height,
-                 cfg.preset, len(session.scene.objects) if session.scene else 0,
+        size = ("panorama only" if session.camera is None
+                else f"{session.camera.width}x{session.camera.height}")
+        log.info("session %s: created (%s, %s, preset %s, %d virtual objects) by capture "
+                 "peer %s %s", name, cfg.mode, size, cfg.preset,
+                 len(session.scene.objects) if session.scene else 0,
                  identity.hex(), repr(cfg.client_name) if cfg.client_name else "")
         return session
 

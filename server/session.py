@@ -35,9 +35,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from arlight.checks import CheckError, check_image
+from arlight.pipeline import sh as sh_lib
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
-from arlight.pipeline.frames import FrameInput, FrameResult
+from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
+from arlight.pipeline.ibl import IblParams, IblResult, lighting_from_ldr
+from arlight.pipeline.inverse_tone import DEFAULT_OPERATOR, OPERATORS
 from arlight.pipeline.pipeline import FrameError, Pipeline
 from arlight.pipeline.runtime import require_device
 from arlight.pipeline.virtual_scene import (
@@ -51,6 +54,7 @@ from arlight.pipeline.virtual_scene import (
 from arlight.protocols import (
     Error,
     Frame,
+    PanoramaConfig,
     ProtocolError,
     SceneObjectSpec,
     SessionConfig,
@@ -112,6 +116,48 @@ def camera_from_config(config: SessionConfig, max_pixels: int) -> PinholeCamera:
                              float(cal.cx), float(cal.cy))
     except (TypeError, ValueError) as exc:
         raise SessionSetupError("calibration", str(exc)) from None
+
+
+@dataclass(frozen=True)
+class PanoramaLight:
+    """How a session turns the Frames' panoramas into light (SessionConfig.panorama, or its
+    defaults when the Hello has none): the IBL parameters (the session's inverse tone
+    mapping operator), which light renders the virtual objects, and panorama_from_world
+    (3, 3): d_panorama = R d_world."""
+
+    params: IblParams
+    light_source: str
+    panorama_from_world: np.ndarray
+
+    def light(self, panorama: np.ndarray) -> IblResult:
+        """The light of one LDR panorama in ITS frame; FrameError (frame.panorama) when the
+        image is not a 2:1 equirectangular RGB frame."""
+        try:
+            return lighting_from_ldr(panorama, self.params)
+        except CheckError as exc:
+            raise FrameError("panorama", exc.message) from None
+        except ValueError as exc:
+            raise FrameError("panorama", str(exc)) from None
+
+    def to_world(self, result: IblResult) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(sh (n,), sh_rgb (3, n), dominant direction (3,)) of the panorama's light in the
+        world frame: L_world(d) = L_panorama(R d), i.e. the SH rotated by R^T."""
+        world_from_panorama = self.panorama_from_world.T
+        sh_world = sh_lib.rotate(result.sh, world_from_panorama)
+        rgb_world = sh_lib.rotate(result.sh_rgb, world_from_panorama)
+        return sh_world, rgb_world, world_from_panorama @ result.dominant_direction
+
+
+def panorama_light_from_config(config: SessionConfig) -> PanoramaLight:
+    """The session's PanoramaLight; SessionSetupError (hello.config.panorama.operator) for an
+    operator the server does not have."""
+    pano = config.panorama or PanoramaConfig()
+    operator = pano.operator or DEFAULT_OPERATOR
+    if operator not in OPERATORS:
+        raise SessionSetupError("panorama.operator", f"unknown inverse tone mapping operator "
+                                f"{operator[:64]!r}; the server's: {', '.join(OPERATORS)}")
+    rotation = np.asarray(pano.panorama_from_world, dtype=np.float64).reshape(3, 3)
+    return PanoramaLight(IblParams(operator=operator), pano.light_source, rotation)
 
 
 # the scenes SessionConfig.virtual_scene may name; any other scene travels in config.scene
@@ -177,7 +223,29 @@ def frame_to_input(frame: Frame, camera: PinholeCamera, depth_scale: float) -> F
 
 
 def default_process(frame: FrameInput, session: Session) -> FrameResult:
-    return session.pipeline.process(frame)
+    return session.pipeline.process(frame, render_light=session.render_light)
+
+
+def panorama_only_result(frame: Frame, world: tuple[np.ndarray, np.ndarray, np.ndarray]
+                         ) -> FrameResult:
+    """The FrameResult of a frame without colour and depth (SPEC.md, "result"): the
+    panorama's light in the world frame as the estimate; no camera, so pose is the identity
+    and the camera frame is the world frame; confidence: the map's SH are a projection, not
+    a fit (every pixel of the area-averaged map counts as a sample, condition number 1)."""
+    sh_world, rgb_world, direction = world
+    # the SH are projected from the map area-averaged to sh_source_size (or as it came, when
+    # not larger): every pixel of that map is one sample
+    height = min(frame.panorama.shape[0], IblParams().sh_source_size[1])
+    samples = height * 2 * height
+    bands = sh_lib.bands_of(len(sh_world))
+    return FrameResult(
+        timestamp=float(frame.timestamp), sh=sh_world, sh_camera=sh_world,
+        dominant_direction_world=direction, dominant_direction_camera=direction,
+        intensity=sh_lib.intensity_along(sh_world, direction) if np.any(direction) else 0.0,
+        confidence=Confidence(samples=samples, condition_number=1.0, bands_estimated=bands,
+                              value=1.0 if np.any(direction) else 0.0,
+                              reason="" if np.any(direction) else "black panorama"),
+        pose=np.eye(4), sh_rgb=rgb_world, timings_ms={}, diagnostics={})
 
 
 @dataclass
@@ -213,7 +281,11 @@ class Session:
         self.max_pixels = max_pixels
         self.max_message_bytes = max_message_bytes
         self.pipeline_config = pipeline_config(config)
-        self.camera = camera_from_config(config, max_pixels)
+        # a Hello without calibration (allowed with config.panorama): a panorama-only session
+        self.camera = None if config.calibration is None else camera_from_config(config,
+                                                                                 max_pixels)
+        self.panorama_light = panorama_light_from_config(config)
+        self.render_light: tuple[np.ndarray, np.ndarray] | None = None  # of the job in run()
         self.scene = scene_from_config(config)  # None: nothing to render
         if not (np.isfinite(config.depth_scale) and config.depth_scale > 0):
             raise SessionSetupError("depth_scale", f"must be a finite number of units per metre "
@@ -247,6 +319,9 @@ class Session:
     def pipeline(self) -> Pipeline:
         """The session's Pipeline, built on first use (in a worker: it allocates the volume)."""
         if self._pipeline is None:
+            if self.camera is None:
+                raise FrameError("color", "this session has no camera calibration (a "
+                                 "panorama-only session): send frames without colour and depth")
             self._pipeline = Pipeline(self.pipeline_config, self.camera, scene=self.scene)
         return self._pipeline
 
@@ -347,12 +422,35 @@ class Session:
                            max_pixels=self.max_pixels)
             if not isinstance(frame, Frame):
                 raise ProtocolError("bad_state", f"expected a Frame, got {type(frame).__name__}")
-            frame_input = frame_to_input(frame, self.camera, self.config.depth_scale)
-            result = self._process(frame_input, self)
-            composite = self.composite(frame_input, result) if self.config.want_composite \
-                else None
+            panorama = world = None
+            self.render_light = None
+            if frame.panorama is not None:  # first: a bad panorama fails before the pipeline
+                panorama = self.panorama_light.light(frame.panorama)
+                world = self.panorama_light.to_world(panorama)
+                if self.panorama_light.light_source == "panorama":
+                    self.render_light = (world[0], world[1])
+            composite = None
+            if frame.color is None:  # panorama-only: no RGB-D pipeline
+                result = panorama_only_result(frame, world)
+            else:
+                if self.camera is None:
+                    raise FrameError("color", "this session has no camera calibration (a "
+                                     "panorama-only session): send frames without colour "
+                                     "and depth")
+                frame_input = frame_to_input(frame, self.camera, self.config.depth_scale)
+                result = self._process(frame_input, self)
+                composite = self.composite(frame_input, result) if self.config.want_composite \
+                    else None
+            if panorama is not None:
+                result.timings_ms = {**result.timings_ms, **{  # stages: they add up
+                    f"Panorama{k}": v for k, v in panorama.timings_ms.items()}}
+                result.diagnostics = {**result.diagnostics, "light_source": (
+                    "panorama" if frame.color is None else self.panorama_light.light_source),
+                    "panorama_operator": self.panorama_light.params.operator}
         except Exception as exc:  # noqa: BLE001 - every failure becomes an Error reply
             return self._failed(job, frame_error(exc, job.seq))
+        finally:
+            self.render_light = None
         finish_wall = time.time()
         with self._lock:
             self.frames_processed += 1
@@ -362,7 +460,7 @@ class Session:
                                      receive_time_wall=job.receive_time_wall,
                                      finish_time_wall=finish_wall, composite=composite,
                                      composite_codec=frame.color_codec,
-                                     jpeg_quality=frame.jpeg_quality)
+                                     jpeg_quality=frame.jpeg_quality, panorama=panorama)
             return JobOutcome(self, job, encode(message), True, time.monotonic())
         except Exception as exc:  # noqa: BLE001 - e.g. a non-finite estimate
             return self._failed(job, Error(

@@ -30,24 +30,28 @@ from arlight.sources.synthetic import make_sequence
 class SourceFrame:
     """One frame as sent: timestamp (source clock, s), color (H, W, 3) uint8 RGB,
     depth (H, W) uint16 in the source's depth_scale units per metre, pose (4, 4) or None.
-    parts: for recordings, the encoded Frame exactly as recorded (sent verbatim)."""
+    parts: for recordings, the encoded Frame exactly as recorded (sent verbatim).
+    panorama: (h, 2h, 3) uint8 RGB equirectangular 360-degree frame, or None; a frame with
+    a panorama and neither colour nor depth is a panorama-only frame."""
 
     timestamp: float
     color: np.ndarray | None = None
     depth: np.ndarray | None = None
     pose: np.ndarray | None = None
     parts: list[bytes] | None = None
+    panorama: np.ndarray | None = None
 
 
 @dataclass
 class Source:
     """Frames plus what a Hello needs. frames(): a fresh iterator over all frames.
 
-    depth_scale: units per metre of every frame's uint16 depth.
+    depth_scale: units per metre of every frame's uint16 depth. calibration None: a
+    panorama-only source (sources/panorama_stream.py).
     """
 
     name: str
-    calibration: CameraCalibration
+    calibration: CameraCalibration | None
     depth_scale: float
     num_frames: int
     frames: Callable[[], Iterator[SourceFrame]]

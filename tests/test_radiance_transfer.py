@@ -368,6 +368,48 @@ class TestUpsampling:
         assert rt.upsample_transfer(full, np.ones((4, 5), bool)) is full
 
 
+class TestTransferSamples:
+    """`transfer_samples`: what the light estimate uses, the up-sampling done at the chosen
+    pixels only."""
+
+    _grid = TestUpsampling._grid
+
+    def test_every_pixel_matches_the_full_upsampling(self):
+        valid = np.ones((3, 4), bool)
+        valid[1, 1] = False
+        geometry = np.ones((10, 13), bool)
+        geometry[0, 0] = False
+        grid = self._grid(valid)
+        up = rt.upsample_transfer(grid, geometry)
+        got = rt.transfer_samples(grid, geometry, max_pixels=10 ** 6, seed=0)
+        kept = np.zeros((10, 13), bool)
+        kept[got.pixel_v, got.pixel_u] = True
+        np.testing.assert_array_equal(kept, up.valid)  # the same pixels kept
+        # cv2.remap places its taps to 1/32 pixel: its field is within that of the exact one
+        np.testing.assert_allclose(got.transfer, up.transfer[got.pixel_v, got.pixel_u],
+                                   atol=0.2)
+        inside = (got.pixel_u >= 2) & (got.pixel_v >= 2)
+        np.testing.assert_allclose(got.transfer[inside, 0], got.pixel_u[inside], atol=1e-4)
+        np.testing.assert_allclose(got.transfer[inside, 1], got.pixel_v[inside], atol=1e-4)
+
+    def test_at_most_max_pixels_seeded(self):
+        grid = self._grid(np.ones((3, 4), bool))
+        geometry = np.ones((10, 13), bool)
+        a = rt.transfer_samples(grid, geometry, max_pixels=20, seed=1)
+        b = rt.transfer_samples(grid, geometry, max_pixels=20, seed=1)
+        assert len(a.pixel_v) == 20
+        np.testing.assert_array_equal(a.pixel_u, b.pixel_u)
+        np.testing.assert_array_equal(a.transfer, b.transfer)
+
+    def test_without_interpolation_the_valid_grid_points(self):
+        valid = np.ones((3, 4), bool)
+        valid[2, 3] = False
+        got = rt.transfer_samples(self._grid(valid), None, max_pixels=100, seed=0)
+        assert len(got.pixel_v) == 11
+        assert (12, 9) not in set(zip(got.pixel_u.tolist(), got.pixel_v.tolist(), strict=True))
+        np.testing.assert_array_equal(got.transfer[:, 0], got.pixel_u)
+
+
 class TestBounce:
     def test_blocked_light_is_returned_by_the_occluders(self):
         """With a uniform luminance c, what a direction loses in K it gains as bounce:

@@ -616,3 +616,33 @@ def test_unique_block_keys_matches_numpy_rows_including_negative_and_far_blocks(
     keys[:10] = [[(1 << 20) - 1, -(1 << 20), 0]] * 10  # repeated, at the limits
     np.testing.assert_array_equal(unique_block_keys(keys), np.unique(keys, axis=0))
     assert unique_block_keys(keys).dtype == np.int32
+
+
+@pytest.mark.parametrize(("width", "asked", "used"),
+                         [(80, 2, 1), (320, 2, 1), (640, 2, 2), (1280, 4, 4), (960, 4, 3)])
+def test_surface_subsample_keeps_the_cast_320_columns_wide(width, asked, used):
+    from arlight.pipeline.reconstruction import surface_subsample
+
+    camera = PinholeCamera.kinect_v1(width, width * 3 // 4)
+    assert surface_subsample(Config.from_preset("fast", surface_subsample=asked).volume,
+                             camera) == used
+
+
+def test_upsample_depth_interpolates_smooth_surfaces_and_keeps_edges():
+    """A plane tilted in depth comes back bilinear (exact for a linear field between the
+    coarse samples); across a 1 m step each pixel keeps its own block's depth."""
+    from arlight.pipeline.volume import upsample_depth
+
+    coarse = np.tile(np.linspace(2.0, 2.3, 8, dtype=np.float32), (6, 1))
+    full = upsample_depth(coarse, 2, (12, 16))
+    x = (np.arange(16) + 0.5) / 2 - 0.5
+    expected = np.interp(np.clip(x, 0, 7), np.arange(8), coarse[0])
+    np.testing.assert_allclose(full[5], expected, atol=1e-6)
+    step = np.full((6, 8), 2.0, np.float32)
+    step[:, 4:] = 3.0
+    out = upsample_depth(step, 2, (12, 16))
+    assert set(np.unique(out).tolist()) == {2.0, 3.0}  # nothing in between
+    np.testing.assert_array_equal(out[:, :8], 2.0)
+    hole = step.copy()
+    hole[2, 2] = 0.0
+    assert upsample_depth(hole, 2, (12, 16))[4, 4] == 0.0  # its own block: missing
