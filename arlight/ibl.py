@@ -18,7 +18,12 @@ import numpy as np
 
 from arlight.pipeline.ibl import IblParams, IblResult, angle_deg, lighting_from_hdr
 from arlight.pipeline.inverse_tone import expand
-from arlight.sources.synthetic_panorama import ldr_frame, sun_direction, synthetic_sky
+from arlight.sources.synthetic_panorama import (
+    keyed_exposure,
+    ldr_frame,
+    sun_direction,
+    synthetic_sky,
+)
 
 SYNTHETIC = "synthetic"
 SYNTHETIC_FRAMES = 8
@@ -62,7 +67,6 @@ def synthetic_panorama(num_frames: int = SYNTHETIC_FRAMES, width: int = SYNTHETI
     exposure for the whole clip (that of the first frame), as a camera with a locked
     exposure records it."""
     from arlight.pipeline.sh import dominant_direction
-    from arlight.sources.synthetic_panorama import keyed_exposure
 
     first = synthetic_sky(width, sun_direction(math.radians(35), 0.0))
     exposure = keyed_exposure(first, key)
@@ -132,13 +136,23 @@ class FrameRenderer:
                  else (setup.world_from_cam,))
         self.views = [self.renderer.prepare_view(camera, pose) for pose in poses]
         self.timings_ms: list[dict[str, float]] = []
+        self._hdr_exposure: float | None = None
 
     def render(self, frame: FrameOutput) -> np.ndarray:
         """(H, W, 3) uint8 RGB (W doubled for stereo) of one frame."""
         r = self._ibl_render
         t0 = time.perf_counter()
         ldr = frame.image if frame.image is not None and frame.image.dtype == np.uint8 else None
-        light = r.frame_light(frame.hdr, frame.result.diffuse_map, ldr)
+        # LDR input: the HDR map is at the LDR's own scale (exposure 1); HDR input (no LDR to
+        # show): exposed as a camera with a locked exposure records it, the first frame's
+        # median luminance keyed to 0.18
+        if ldr is not None:
+            exposure = 1.0
+        else:
+            if self._hdr_exposure is None:
+                self._hdr_exposure = keyed_exposure(frame.hdr, 0.18)
+            exposure = self._hdr_exposure
+        light = r.frame_light(frame.hdr, frame.result.diffuse_map, ldr, exposure)
         images = [self.renderer.render(view, light).rgb for view in self.views]
         out = r.side_by_side(*images) if self.setup.stereo else images[0]
         self.timings_ms.append({"Pyramid": light.pyramid_ms,
