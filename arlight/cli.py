@@ -625,7 +625,7 @@ def _ibl_renderer(args: argparse.Namespace):
 
     azimuth, elevation = args.view or (180.0, 0.0)
     forward = ibl_render.direction_of(azimuth, elevation)
-    if args.scene:
+    if args.scene and args.scene != "demo":
         if args.roughness:
             raise _BadInput("--roughness sets the built-in scene's glossy objects; a --scene "
                             "file gives each object's own material.roughness")
@@ -642,7 +642,7 @@ def _ibl_renderer(args: argparse.Namespace):
     try:
         return FrameRenderer(setup)
     except SceneError as exc:
-        raise _BadInput(f"--scene {args.scene}: {exc}" if args.scene else str(exc)) from None
+        raise _BadInput(f"--scene {args.scene or 'demo'}: {exc}") from None
 
 
 def _roughness_pair(text: str) -> tuple[float, float]:
@@ -735,8 +735,9 @@ def _add_ibl_parser(sub) -> None:
     ibl.add_argument("--scene", metavar="FILE",
                      help="with --render: the virtual objects (a scene file, "
                           "docs/scene-files.md; poses in the panorama's frame, +y up, metres, "
-                          "the camera at the origin); default: 5 built-in objects (diffuse, "
-                          "glossy 0.1, mirror, glossy 0.3, a half-glossy torus) 1.6 m ahead")
+                          "the camera at the origin); default 'demo': 5 built-in objects "
+                          "(diffuse, glossy 0.1, mirror, glossy 0.3, a half-glossy torus) 1.6 m "
+                          "ahead")
     ibl.add_argument("--view", type=_view_angles, metavar="AZ,EL",
                      help="with --render: the view direction in degrees, azimuth (the "
                           "panorama's column u = AZ / 360) and elevation (default 180,0: the "

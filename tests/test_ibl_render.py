@@ -243,6 +243,13 @@ class TestCli:
         left, right = image[:, :1182], image[:, 1182:]
         assert not np.array_equal(left, right)  # the objects shift between the eyes
 
+    def test_scene_demo_is_the_built_in_one(self, tmp_path, capsys):
+        code, _, err = run_cli(["ibl", "--max-frames", "1", "--out", str(tmp_path / "r.jsonl"),
+                                "--render", str(tmp_path / "d"), "--render-size", "64x36",
+                                "--scene", "demo"], capsys)
+        assert code == 0, err
+        assert "5 objects" in err
+
     def test_scene_file_with_a_mesh(self, tmp_path, capsys):
         mesh = o3d.geometry.TriangleMesh.create_box(0.3, 0.3, 0.3)
         mesh.compute_vertex_normals()
