@@ -24,7 +24,7 @@ paper's 500 Hz (2 ms, GTX 980, mono 1280 x 720) and 75 Hz (13.3 ms, GTX 690, ste
 
     OPENBLAS_NUM_THREADS=1 NUMBA_NUM_THREADS=1 .venv/bin/python benchmarks/ibl_render.py \\
         [--hdri DIR] [--directions 256] [--repeats 5] [--pano-width 2048] \\
-        [--skip-accuracy] [--out ibl_render.json]
+        [--skip-accuracy] [--backend cpu|cuda] [--out ibl_render.json]
 
 Prints markdown tables; --out writes every number as JSON (with the commit and machine).
 """
@@ -137,7 +137,7 @@ def timed(fn, repeats: int) -> tuple[float, float]:
     return float(med), float(q3 - q1)
 
 
-def speed(hdr_map: np.ndarray, pano_width: int, repeats: int) -> list[dict]:
+def speed(hdr_map: np.ndarray, pano_width: int, repeats: int, backend: str) -> list[dict]:
     ldr = ldr_frame(hdr_map, 0.18)
     ldr = cv2.resize(ldr, (pano_width, pano_width // 2), interpolation=cv2.INTER_LINEAR)
     hdr = expand(ldr, "boost")
@@ -153,7 +153,7 @@ def speed(hdr_map: np.ndarray, pano_width: int, repeats: int) -> list[dict]:
         head = ibl_render.look_along([0.0, 0.0, 1.0])
         poses = ibl_render.eye_poses(head) if mode == "stereo" else (head,)
         for label, material in materials.items():
-            renderer = ibl_render.IblRenderer(scene_of(material))
+            renderer = ibl_render.IblRenderer(scene_of(material), backend)
             views = [renderer.prepare_view(camera, p) for p in poses]
             gbuffer_ms, _ = timed(lambda r=renderer, p=poses, c=camera: [r.prepare_view(c, q)
                                                                          for q in p], repeats)
@@ -175,7 +175,7 @@ def speed(hdr_map: np.ndarray, pano_width: int, repeats: int) -> list[dict]:
 
 
 def print_speed(rows: list[dict], threads: int, pano_width: int) -> None:
-    print(f"\nrender ms per frame (CPU, {threads} numba thread(s), panorama {pano_width}x"
+    print(f"\nrender ms per frame ({threads} numba CPU thread(s), panorama {pano_width}x"
           f"{pano_width // 2}; median of repeats, IQR in brackets):\n")
     print("| view | material | object px | G-buffer once | pyramid | render | per frame | "
           "Hz | paper | x paper |")
@@ -195,6 +195,10 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--pano-width", type=int, default=2048)
     ap.add_argument("--skip-accuracy", action="store_true")
+    ap.add_argument("--backend", choices=glossy.BACKENDS, default="cpu",
+                    help="the mirror / glossy lookups on the CPU or, where numba.cuda sees a "
+                         "GPU, in CUDA (each call copies the pyramid and the pixels to the "
+                         "device and back: timed as such)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     files = sorted(args.hdri.glob("*.hdr")) if args.hdri.is_dir() else []
@@ -209,7 +213,8 @@ def main() -> int:
         print_accuracy(report["accuracy"])
     threads = numba.get_num_threads()
     print(f"\nspeed (lit by {next(iter(maps))}):")
-    report["speed"] = speed(next(iter(maps.values())), args.pano_width, args.repeats)
+    report["speed"] = speed(next(iter(maps.values())), args.pano_width, args.repeats,
+                            args.backend)
     print_speed(report["speed"], threads, args.pano_width)
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
@@ -218,7 +223,8 @@ def main() -> int:
         commit = "unknown"
     report.update({"benchmark": "ibl_render", "commit": commit, "machine": platform.platform(),
                    "cpu_count": os.cpu_count(), "numba_threads": threads,
-                   "python": platform.python_version(), "repeats": args.repeats})
+                   "python": platform.python_version(), "repeats": args.repeats,
+                   "backend": args.backend})
     if args.out:
         args.out.write_text(json.dumps(report, indent=1) + "\n")
         print(f"\nwrote {args.out}")

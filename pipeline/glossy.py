@@ -46,6 +46,7 @@ for the approximation's error, ``benchmarks/ibl_render.py`` and the tests).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba
@@ -328,20 +329,82 @@ def glossy(pyramid: MipPyramid, directions: np.ndarray, roughness: float) -> np.
 
 
 def specular(pyramid: MipPyramid, directions: np.ndarray, modes: np.ndarray,
-             exponents: np.ndarray) -> np.ndarray:
+             exponents: np.ndarray, backend: str = "cpu") -> np.ndarray:
     """Per row: mirror (mode 1), glossy with its Phong exponent (mode 2) or 0 (mode 0).
 
     directions (K, 3) unit mirror directions; modes (K,) int; exponents (K,) float64 (used
-    where mode is 2). Returns (K, 3) float32 radiance.
+    where mode is 2); backend "cpu" (Numba, parallel) or "cuda" (numba.cuda, the same
+    per-pixel code; RuntimeError where no GPU is visible). Returns (K, 3) float32 radiance.
     """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "cuda" and not cuda_available():
+        raise RuntimeError("backend='cuda' requested but numba.cuda sees no GPU; "
+                           "use backend='cpu'")
     d = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 3)
     exps = np.ascontiguousarray(exponents, dtype=np.float64).reshape(-1)
     safe = np.where(exps > 0, exps, 1.0)
     radii = np.arccos(np.power(0.5, 1.0 / safe))
+    m = np.ascontiguousarray(modes, dtype=np.int64).reshape(-1)
     out = np.zeros((len(d), 3), np.float32)
-    _specular_cpu(d, np.ascontiguousarray(modes, dtype=np.int64).reshape(-1), safe, radii,
-                  pyramid.data, pyramid.offsets, pyramid.heights, out)
+    if backend == "cuda":
+        return _specular_cuda(d, m, safe, radii, pyramid, out)
+    _specular_cpu(d, m, safe, radii, pyramid.data, pyramid.offsets, pyramid.heights, out)
     return out
+
+
+BACKENDS = ("cpu", "cuda")
+_CUDA_BLOCK = 128
+
+
+def cuda_available() -> bool:
+    """True when numba.cuda can be imported and sees a usable GPU (or its simulator)."""
+    try:
+        from numba import cuda as _cuda
+    except Exception:  # any import failure means no CUDA backend
+        return False
+    try:
+        return bool(_cuda.is_available())
+    except Exception:  # a broken driver means no CUDA backend
+        return False
+
+
+cuda = None  # numba.cuda, bound on first use (a module global, as depth_filter's)
+
+
+@functools.cache
+def _cuda_kernel():
+    """The CUDA driver of the per-pixel logic above (built on first use)."""
+    global cuda
+    from numba import cuda
+
+    @cuda.jit
+    def specular_kernel(directions, modes, exponents, radii, data, offsets, heights, out):
+        i = cuda.grid(1)
+        if i < directions.shape[0]:
+            r, g, b = 0.0, 0.0, 0.0
+            if modes[i] == 1:
+                u, v = _uv(directions[i, 0], directions[i, 1], directions[i, 2])
+                r, g, b = _bilinear(data, offsets[0], heights[0], u, v)
+            elif modes[i] == 2:
+                r, g, b = _glossy_pixel(directions[i, 0], directions[i, 1], directions[i, 2],
+                                        exponents[i], radii[i], data, offsets, heights,
+                                        heights.shape[0])
+            out[i, 0] = r
+            out[i, 1] = g
+            out[i, 2] = b
+
+    return specular_kernel
+
+
+def _specular_cuda(d, modes, exponents, radii, pyramid: MipPyramid, out):
+    kernel = _cuda_kernel()
+    args = [cuda.to_device(a) for a in (d, modes, exponents, radii, pyramid.data,
+                                        pyramid.offsets, pyramid.heights, out)]
+    grid = max(1, (len(d) + _CUDA_BLOCK - 1) // _CUDA_BLOCK)
+    kernel[grid, _CUDA_BLOCK](*args)
+    cuda.synchronize()
+    return args[-1].copy_to_host()
 
 
 def mirror(pyramid: MipPyramid, directions: np.ndarray) -> np.ndarray:

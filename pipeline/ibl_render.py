@@ -220,7 +220,15 @@ def frame_light(hdr: np.ndarray, diffuse_map: np.ndarray, ldr: np.ndarray | None
 class IblRenderer:
     """Renders one virtual scene (panorama frame) lit by panorama frames (not thread-safe)."""
 
-    def __init__(self, scene: VirtualScene):
+    def __init__(self, scene: VirtualScene, backend: str = "cpu"):
+        """backend: "cpu" or "cuda" for the mirror / glossy lookups (``glossy.specular``; the
+        same per-pixel code on both; "cuda" without a visible GPU raises RuntimeError)."""
+        if backend not in glossy.BACKENDS:
+            raise ValueError(f"backend must be one of {glossy.BACKENDS}, got {backend!r}")
+        if backend == "cuda" and not glossy.cuda_available():
+            raise RuntimeError("backend='cuda' requested but numba.cuda sees no GPU; "
+                               "use backend='cpu'")
+        self.backend = backend
         for o in scene.objects:
             if o.anchor is not None:
                 raise SceneError(f"virtual object {o.name!r}: an anchor needs a support plane, "
@@ -267,7 +275,8 @@ class IblRenderer:
         radiance = np.zeros((cam.height * cam.width, 3), np.float32)
         if len(view.pixels):
             irradiance = glossy.lookup(light.diffuse_map, view.normals)
-            spec = glossy.specular(light.pyramid, view.mirror_dirs, view.modes, view.exponents)
+            spec = glossy.specular(light.pyramid, view.mirror_dirs, view.modes, view.exponents,
+                                   self.backend)
             radiance[view.pixels] = (view.diffuse_rgb * irradiance * (1.0 / math.pi)
                                      + view.specular_rgb * spec)
         t2 = time.perf_counter()

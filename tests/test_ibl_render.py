@@ -147,6 +147,47 @@ class TestGlossy:
                 assert e["glossy_peak"] < e["mirror_peak"], (path.name, roughness, e)
 
 
+_CUDA_CHECK = """
+import numpy as np
+from arlight.pipeline import glossy
+from arlight.sources.synthetic_panorama import synthetic_sky
+pyr = glossy.mip_pyramid(synthetic_sky({width}))
+rng = np.random.default_rng(3)
+d = rng.normal(size=({n}, 3))
+d /= np.linalg.norm(d, axis=1, keepdims=True)
+modes = np.resize(np.array([0, 1, 2, 2, 2, 2]), {n})
+ex = np.resize(np.array([0.0, 0.0, 6.0, 198.0, 48.0, 19998.0]), {n})
+a = glossy.specular(pyr, d, modes, ex, backend="cpu")
+b = glossy.specular(pyr, d, modes, ex, backend="cuda")
+np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-5 * float(np.abs(a).max()))
+print("CUDA == CPU")
+"""
+
+
+class TestCuda:
+    @pytest.mark.skipif(not glossy.cuda_available(), reason="no CUDA GPU visible to numba")
+    def test_gpu_matches_cpu(self):
+        exec(_CUDA_CHECK.format(width=1024, n=100_000), {})
+
+    def test_kernel_in_cuda_simulator_matches_cpu(self):
+        """The CUDA driver runs (as Python) in numba's simulator and matches the CPU one."""
+        import os
+        import subprocess
+        import sys
+
+        env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+        result = subprocess.run([sys.executable, "-c", _CUDA_CHECK.format(width=64, n=12)],
+                                env=env, capture_output=True, text=True, timeout=120)
+        assert result.returncode == 0, result.stderr[-3000:]
+        assert "CUDA == CPU" in result.stdout
+
+    def test_cuda_backend_without_gpu_raises(self):
+        if glossy.cuda_available():
+            pytest.skip("a GPU is present")
+        with pytest.raises(RuntimeError, match="backend='cuda'"):
+            ibl_render.IblRenderer(VirtualScene(), backend="cuda")
+
+
 def single_object(material: Material, centre=(0.0, 0.0, 1.0), radius=0.25) -> VirtualScene:
     pose = np.eye(4)
     pose[:3, 3] = np.asarray(centre) - [0.0, radius, 0.0]  # the mesh stands on its base
