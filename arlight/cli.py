@@ -610,6 +610,9 @@ def cmd_ibl(args: argparse.Namespace) -> int:
     return 0
 
 
+MAX_RENDER_PIXELS = 4096 * 4096  # per view of --render: about 1.4 GB of per-pixel buffers
+
+
 def _ibl_renderer(args: argparse.Namespace):
     """The FrameRenderer of --render (None without it); errors name the flag."""
     if not args.render:
@@ -638,6 +641,9 @@ def _ibl_renderer(args: argparse.Namespace):
     else:
         scene = ibl_render.demo_scene(forward, args.roughness or ibl_render.DEMO_ROUGHNESS)
     size = args.render_size or (ibl_render.EYE_SIZE if args.stereo else ibl_render.MONO_SIZE)
+    if size[0] * size[1] > MAX_RENDER_PIXELS:
+        raise _BadInput(f"--render-size {size[0]}x{size[1]}: at most {MAX_RENDER_PIXELS} "
+                        f"pixels per view (e.g. 4096x4096)")
     setup = RenderSetup(scene, ibl_render.look_along(forward), size, args.fov_deg, args.stereo)
     try:
         return FrameRenderer(setup)

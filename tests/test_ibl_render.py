@@ -313,6 +313,7 @@ class TestCli:
         (["--render", "{d}", "--roughness", "0.7,0.1"], "--roughness"),
         (["--render", "{d}", "--roughness", "0.1"], "--roughness"),
         (["--stereo"], "--stereo"),
+        (["--render", "{d}", "--render-size", "8192x8192"], "--render-size"),
         (["--render", "{d}", "--scene", "{d}/missing.json"], "--scene"),
         (["--render", "{d}", "--scene", "{d}/rough.json"], "--scene"),
         (["--render", "{d}", "--scene", "{d}/rough.json", "--roughness", "0.1,0.2"],
