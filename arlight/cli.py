@@ -533,7 +533,9 @@ def cmd_ibl(args: argparse.Namespace) -> int:
     from arlight.sources.panorama import open_panorama
 
     params = IblParams(operator=args.operator, diffuse_size=args.diffuse_size)
+    renderer = _ibl_renderer(args)  # before any output: a bad --scene stops here
     exr_dir = _output_folder(args.exr, "--exr")
+    render_dir = _output_folder(args.render, "--render")
     if args.panorama == SYNTHETIC:
         source = synthetic_panorama(args.max_frames or 8)
         truth = source.truth_directions
@@ -565,6 +567,10 @@ def cmd_ibl(args: argparse.Namespace) -> int:
         out.write(json.dumps(record) + "\n")
         if exr_dir is not None:
             write_exr(exr_dir / f"{frame.index:06d}.exr", frame.hdr)
+        if renderer is not None:
+            target = render_dir / f"{frame.index:06d}.png"
+            if not cv2.imwrite(str(target), renderer.render(frame)[..., ::-1]):
+                raise OSError(f"--render {args.render}: cannot write {target}")
         process_ms.append(frame.process_ms)
         bar.update(1)
 
@@ -594,7 +600,89 @@ def cmd_ibl(args: argparse.Namespace) -> int:
     if exr_dir is not None:
         print(f"wrote {_count(n, 'HDR map')} to {exr_dir}/ (NNNNNN.exr, half float)",
               file=sys.stderr)
+    if renderer is not None and renderer.timings_ms:
+        w, h = renderer.setup.size
+        layout = f"stereo side by side, {w}x{h} per eye" if args.stereo else f"{w}x{h}"
+        print(f"wrote {_count(n, 'render')} to {render_dir}/ (NNNNNN.png, {layout}, "
+              f"{_count(len(renderer.setup.scene.objects), 'object')}); render median "
+              f"{np.median([t['Render'] for t in renderer.timings_ms]):.0f} ms/frame",
+              file=sys.stderr)
     return 0
+
+
+MAX_RENDER_PIXELS = 4096 * 4096  # per view of --render: about 1.4 GB of per-pixel buffers
+
+
+def _ibl_renderer(args: argparse.Namespace):
+    """The FrameRenderer of --render (None without it); errors name the flag."""
+    if not args.render:
+        for flag, given in (("--stereo", args.stereo), ("--scene", args.scene),
+                            ("--render-size", args.render_size), ("--view", args.view),
+                            ("--roughness", args.roughness)):
+            if given:
+                raise _BadInput(f"{flag} needs --render DIR (it sets up the rendering)")
+        return None
+    from arlight.ibl import FrameRenderer, RenderSetup
+    from arlight.pipeline import ibl_render
+    from arlight.pipeline.virtual_scene import SceneError
+
+    azimuth, elevation = args.view or (180.0, 0.0)
+    forward = ibl_render.direction_of(azimuth, elevation)
+    if args.scene and args.scene != "demo":
+        if args.roughness:
+            raise _BadInput("--roughness sets the built-in scene's glossy objects; a --scene "
+                            "file gives each object's own material.roughness")
+        from arlight.sources.virtual_scene_file import load_virtual_scene
+
+        try:
+            scene = load_virtual_scene(args.scene, frame="world")
+        except SceneError as exc:
+            raise _BadInput(f"--scene {args.scene}: {exc}") from None
+    else:
+        scene = ibl_render.demo_scene(forward, args.roughness or ibl_render.DEMO_ROUGHNESS)
+    size = args.render_size or (ibl_render.EYE_SIZE if args.stereo else ibl_render.MONO_SIZE)
+    if size[0] * size[1] > MAX_RENDER_PIXELS:
+        raise _BadInput(f"--render-size {size[0]}x{size[1]}: at most {MAX_RENDER_PIXELS} "
+                        f"pixels per view (e.g. 4096x4096)")
+    setup = RenderSetup(scene, ibl_render.look_along(forward), size, args.fov_deg, args.stereo)
+    try:
+        return FrameRenderer(setup)
+    except SceneError as exc:
+        raise _BadInput(f"--scene {args.scene or 'demo'}: {exc}") from None
+
+
+def _roughness_pair(text: str) -> tuple[float, float]:
+    """--roughness R1,R2: the built-in scene's two glossy roughnesses, each in 0.01..0.5."""
+    from arlight.pipeline.glossy import check_roughness
+
+    parts = text.split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError(f"expected two numbers R1,R2, got {text!r}")
+        return tuple(check_roughness(float(p), "each roughness") for p in parts)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _view_angles(text: str) -> tuple[float, float]:
+    """--view AZ,EL in degrees: azimuth 0..360 (the panorama's column u = AZ / 360),
+    elevation -89..89."""
+    parts = text.split(",")
+    try:
+        az, el = (float(p) for p in parts) if len(parts) == 2 else (math.nan, math.nan)
+    except ValueError:
+        az = el = math.nan
+    if not (math.isfinite(az) and math.isfinite(el) and -89.0 <= el <= 89.0):
+        raise argparse.ArgumentTypeError(f"expected AZ,EL in degrees with EL in [-89, 89], "
+                                         f"got {text!r}")
+    return az % 360.0, el
+
+
+def _field_of_view(text: str) -> float:
+    value = _positive_float(text)
+    if not 1.0 <= value <= 170.0:
+        raise argparse.ArgumentTypeError(f"expected degrees in [1, 170], got {text!r}")
+    return value
 
 
 def _output_folder(path: str | None, option: str) -> Path | None:
@@ -643,6 +731,31 @@ def _add_ibl_parser(sub) -> None:
                           "(default 30), or instead of a video's own timestamps")
     ibl.add_argument("--max-frames", type=_positive_int, metavar="N",
                      help="only the first N frames (synthetic: its length, default 8)")
+    ibl.add_argument("--render", metavar="DIR",
+                     help="render virtual objects lit by each frame into a perspective view "
+                          "cut from the panorama: DIR/NNNNNN.png (diffuse map, mirror and "
+                          "glossy mipmap sampling)")
+    ibl.add_argument("--stereo", action="store_true",
+                     help="with --render: a stereo pair for head-mounted displays, side by "
+                          "side, 1182x1464 per eye (Oculus DK2), eyes 64 mm apart")
+    ibl.add_argument("--scene", metavar="FILE",
+                     help="with --render: the virtual objects (a scene file, "
+                          "docs/scene-files.md; poses in the panorama's frame, +y up, metres, "
+                          "the camera at the origin); default 'demo': 5 built-in objects "
+                          "(diffuse, glossy 0.1, mirror, glossy 0.3, a half-glossy torus) 1.6 m "
+                          "ahead")
+    ibl.add_argument("--view", type=_view_angles, metavar="AZ,EL",
+                     help="with --render: the view direction in degrees, azimuth (the "
+                          "panorama's column u = AZ / 360) and elevation (default 180,0: the "
+                          "centre of the panorama, +z)")
+    ibl.add_argument("--fov-deg", type=_field_of_view, default=75.0, metavar="DEG",
+                     help="with --render: horizontal field of view (default 75)")
+    ibl.add_argument("--render-size", type=_parse_size, metavar="WxH",
+                     help="with --render: the view's size, per eye with --stereo (default "
+                          "1280x720, stereo 1182x1464)")
+    ibl.add_argument("--roughness", type=_roughness_pair, metavar="R1,R2",
+                     help="with --render and the built-in scene: its two glossy spheres' "
+                          "roughness, each in 0.01..0.5 (default 0.1,0.3)")
     ibl.set_defaults(func=cmd_ibl)
 
 

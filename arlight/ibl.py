@@ -2,8 +2,9 @@
 
 Per frame: inverse tone mapping (LDR input; HDR input is used as it is), SH radiance
 (luminance and RGB), the dominant direction and the diffuse map (`pipeline/ibl.py`); one
-JSON record per frame, optionally the HDR map as OpenEXR. Decoding runs on the source's own
-thread (`sources/panorama.py`).
+JSON record per frame, optionally the HDR map as OpenEXR and, with `--render`, the virtual
+objects lit by the frame (`FrameRenderer`, `pipeline/ibl_render.py`). Decoding runs on the
+source's own thread (`sources/panorama.py`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,12 @@ import numpy as np
 
 from arlight.pipeline.ibl import IblParams, IblResult, angle_deg, lighting_from_hdr
 from arlight.pipeline.inverse_tone import expand
-from arlight.sources.synthetic_panorama import ldr_frame, sun_direction, synthetic_sky
+from arlight.sources.synthetic_panorama import (
+    keyed_exposure,
+    ldr_frame,
+    sun_direction,
+    synthetic_sky,
+)
 
 SYNTHETIC = "synthetic"
 SYNTHETIC_FRAMES = 8
@@ -61,7 +67,6 @@ def synthetic_panorama(num_frames: int = SYNTHETIC_FRAMES, width: int = SYNTHETI
     exposure for the whole clip (that of the first frame), as a camera with a locked
     exposure records it."""
     from arlight.pipeline.sh import dominant_direction
-    from arlight.sources.synthetic_panorama import keyed_exposure
 
     first = synthetic_sky(width, sun_direction(math.radians(35), 0.0))
     exposure = keyed_exposure(first, key)
@@ -89,6 +94,7 @@ class FrameOutput:
     result: IblResult
     hdr: np.ndarray
     process_ms: float
+    image: np.ndarray | None = None  # the source's frame (LDR uint8 RGB, or the HDR map)
 
 
 def process_frames(frames: Iterable[tuple[float, np.ndarray]], params: IblParams,
@@ -100,7 +106,58 @@ def process_frames(frames: Iterable[tuple[float, np.ndarray]], params: IblParams
         expand_ms = (time.perf_counter() - t0) * 1e3
         result = lighting_from_hdr(hdr, params)
         result.timings_ms = {"InverseTone": expand_ms, **result.timings_ms}
-        yield FrameOutput(i, float(t), result, hdr, (time.perf_counter() - t0) * 1e3)
+        yield FrameOutput(i, float(t), result, hdr, (time.perf_counter() - t0) * 1e3, image)
+
+
+@dataclass
+class RenderSetup:
+    """What `--render` draws: the scene (panorama frame, camera at `world_from_cam`), the
+    view size (per eye when stereo), the horizontal field of view."""
+
+    scene: object  # pipeline.virtual_scene.VirtualScene
+    world_from_cam: np.ndarray
+    size: tuple[int, int]
+    hfov_deg: float
+    stereo: bool = False
+
+
+class FrameRenderer:
+    """Renders each FrameOutput into one image (mono, or the stereo pair side by side);
+    the views' G-buffers are made once (the scene and the camera do not move)."""
+
+    def __init__(self, setup: RenderSetup):
+        from arlight.pipeline import ibl_render
+
+        self._ibl_render = ibl_render
+        self.setup = setup
+        self.renderer = ibl_render.IblRenderer(setup.scene)
+        camera = ibl_render.view_camera(setup.size, setup.hfov_deg)
+        poses = (ibl_render.eye_poses(setup.world_from_cam) if setup.stereo
+                 else (setup.world_from_cam,))
+        self.views = [self.renderer.prepare_view(camera, pose) for pose in poses]
+        self.timings_ms: list[dict[str, float]] = []
+        self._hdr_exposure: float | None = None
+
+    def render(self, frame: FrameOutput) -> np.ndarray:
+        """(H, W, 3) uint8 RGB (W doubled for stereo) of one frame."""
+        r = self._ibl_render
+        t0 = time.perf_counter()
+        ldr = frame.image if frame.image is not None and frame.image.dtype == np.uint8 else None
+        # LDR input: the HDR map is at the LDR's own scale (exposure 1); HDR input (no LDR to
+        # show): exposed as a camera with a locked exposure records it, the first frame's
+        # median luminance keyed to 0.18
+        if ldr is not None:
+            exposure = 1.0
+        else:
+            if self._hdr_exposure is None:
+                self._hdr_exposure = keyed_exposure(frame.hdr, 0.18)
+            exposure = self._hdr_exposure
+        light = r.frame_light(frame.hdr, frame.result.diffuse_map, ldr, exposure)
+        images = [self.renderer.render(view, light).rgb for view in self.views]
+        out = r.side_by_side(*images) if self.setup.stereo else images[0]
+        self.timings_ms.append({"Pyramid": light.pyramid_ms,
+                                "Render": (time.perf_counter() - t0) * 1e3})
+        return out
 
 
 def frame_record(frame: FrameOutput, operator: str) -> dict:

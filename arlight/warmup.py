@@ -2,7 +2,8 @@
 
 `python -m arlight.warmup` (run by scripts/bootstrap.sh after installing) pushes two small
 frames of the built-in scene, with the demo's virtual objects, through the pipeline with
-every preset and through the depth codecs. Numba writes what it compiles to its on-disk
+every preset and through the depth codecs, and the 360 path's mirror / glossy / diffuse
+lookups (`pipeline/glossy.py`) over a small map. Numba writes what it compiles to its on-disk
 cache (`cache=True` on every kernel: `__pycache__/*.nbi`, `*.nbc` beside the sources), which
 later processes load in milliseconds.
 The image size does not matter to the cache: kernels are compiled per argument type.
@@ -37,7 +38,21 @@ def warm_up() -> float:
             pipeline.process(frame)
     depth = np.asarray(scene.frames[0].depth, dtype=np.uint16)
     decode_depth(*encode_depth(depth, "rvl"))
+    _warm_up_glossy()
     return time.perf_counter() - t0
+
+
+def _warm_up_glossy() -> None:
+    """The kernels of `arlight ibl --render`: glossy, specular (mirror + glossy), lookup."""
+    import numpy as np
+
+    from arlight.pipeline import glossy
+
+    pyramid = glossy.mip_pyramid(np.ones((8, 16, 3), np.float32))
+    dirs = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+    glossy.glossy(pyramid, dirs, 0.2)
+    glossy.specular(pyramid, dirs, np.array([1, 2]), np.array([0.0, 48.0]))
+    glossy.lookup(pyramid.levels[0], dirs)
 
 
 def main() -> int:
