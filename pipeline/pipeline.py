@@ -9,8 +9,11 @@ at no cost, when there is none).
 
 from __future__ import annotations
 
+import concurrent.futures
+import functools
 import logging
 import math
+import os
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -51,9 +54,9 @@ log = logging.getLogger(__name__)
 
 STAGES = ("Input", "Reconstruct", "Surface", "DynGeo", "RadTransfer", "LightEst", "Rendering")
 # RadTransfer computes (or interpolates) the transfer at most at this many pixels per sample
-# LightEst may use (light_max_samples): enough that the clipped, dark and transfer-less ones
-# it then leaves out rarely matter
-CANDIDATES_PER_SAMPLE = 2
+# LightEst may use (light_max_samples): a margin for the clipped, dark and transfer-less ones
+# it then leaves out (typically under 10 %)
+CANDIDATES_PER_SAMPLE = 1.25
 
 
 class FrameError(CheckError):
@@ -132,6 +135,14 @@ def smooth_depth_for_normals(depth_m: np.ndarray, window: int) -> np.ndarray:
     return np.where(keep, mean, 0.0).astype(np.float32)
 
 
+@functools.cache
+def _side_work() -> concurrent.futures.ThreadPoolExecutor:
+    """The process's worker threads for work a frame can do beside its main thread (one
+    per core: several sessions' pipelines may ask at once)."""
+    return concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count() or 2,
+                                                 thread_name_prefix="arlight-side")
+
+
 class Pipeline:
     """Holds one session's state (volume, pose, temporal filter); see docs/architecture.md.
 
@@ -185,12 +196,21 @@ class Pipeline:
         pose, depth_volume, aux_buffers = self._reconstruct(valid, timings, diagnostics)
         with _stage(timings, "DynGeo"):
             geometry = self._dynamic_geometry(valid.depth_m, depth_volume, intensity)
-        with _stage(timings, "RadTransfer"):
-            transfer = self._transfer(geometry, color_linear, pose, aux_buffers)
+        # LightEst's material segments need only colour and geometry: they are made beside
+        # RadTransfer (OpenCV's segmentation runs on one core, outside the interpreter lock,
+        # while the transfer's NumPy steps leave the other idle)
+        segments = _side_work().submit(self._segments, color_linear, geometry)
+        try:
+            with _stage(timings, "RadTransfer"):
+                transfer = self._transfer(geometry, color_linear, pose, aux_buffers)
+        except BaseException:
+            concurrent.futures.wait([segments])  # nothing of this frame outlives it
+            raise
+        labels = segments.result()
         with _stage(timings, "LightEst"):
             plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
-            estimate = self._estimate(transfer, color_linear, geometry.depth_m, plane,
+            estimate = self._estimate(transfer, color_linear, labels,
                                       up_world,
                                       below_horizon_unseen=self.config.transfer.rt_horizon)
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
@@ -315,7 +335,7 @@ class Pipeline:
         p = self.config.transfer
         lum = luminance(color_linear) if p.rt_bounce else None
         plane = geometry.plane if p.rt_horizon else None
-        budget = CANDIDATES_PER_SAMPLE * self.config.estimation.light_max_samples
+        budget = int(CANDIDATES_PER_SAMPLE * self.config.estimation.light_max_samples)
         seed = self.config.seed
         has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
         if p.rt_method is RtMethod.RAYCAST:
@@ -335,28 +355,32 @@ class Pipeline:
         interpolate_to = has_geometry if p.rt_upsample and p.rt_subsample > 1 else None
         return transfer_samples(grid, interpolate_to, budget, seed)
 
+    def _segments(self, color_linear: np.ndarray, geometry: _Geometry) -> np.ndarray | None:
+        """(H, W) material labels for the light estimate (albedo_segments), or None."""
+        p = self.config.estimation
+        if not p.albedo_segments:
+            return None
+        segments = material_segments(
+            color_linear, geometry.depth_m, scale=p.segment_scale,
+            features=p.segment_features.value, illuminant_weight=p.segment_illuminant_weight)
+        if geometry.plane is not None and p.segment_split_ground:
+            # what stands on the ground is rarely made of the ground's material
+            segments = segments * 2 + geometry.plane.on_plane
+        return segments
+
     def _estimate(self, samples: TransferSamples, color_linear: np.ndarray,
-                  depth: np.ndarray, plane: SupportPlane | None = None,
-                  up_world: np.ndarray | None = None,
+                  segments: np.ndarray | None, up_world: np.ndarray | None = None,
                   below_horizon_unseen: bool = False) -> LightEstimate:
-        """LightEst (T l = I_c, section 5.2) on the sampled pixels; albedo per segment."""
+        """LightEst (T l = I_c, section 5.2) on the sampled pixels; albedo per segment
+        (segments: (H, W) labels or None)."""
         p = self.config.estimation
         n = samples.transfer.shape[-1]
         if not len(samples.pixel_v):
             return LightEstimate(np.zeros(n), Confidence(reason="no valid depth"),
                                  np.zeros((3, n)) if p.estimate_rgb else None)
         pixels = (samples.pixel_v, samples.pixel_u)
-        colors = color_linear[pixels]
-        segments = None
-        if p.albedo_segments:
-            segments = material_segments(
-                color_linear, depth, scale=p.segment_scale, features=p.segment_features.value,
-                illuminant_weight=p.segment_illuminant_weight)
-            if plane is not None and p.segment_split_ground:
-                # what stands on the ground is rarely made of the ground's material
-                segments = segments * 2 + plane.on_plane
-            segments = segments[pixels]
-        return estimate_light(samples.transfer, colors, p, segments, samples.bounce,
+        return estimate_light(samples.transfer, color_linear[pixels], p,
+                              None if segments is None else segments[pixels], samples.bounce,
                               up_world, below_horizon_unseen, seed=self.config.seed)
 
     def _estimate_diagnostics(self, estimate: LightEstimate,

@@ -528,12 +528,16 @@ def transfer_samples(result: TransferResult, valid_full: np.ndarray | None,
     den = np.zeros(len(rows), np.float32)
     num = np.zeros((len(rows), result.transfer.shape[-1]), np.float32)
     num_b = None if bounce is None else np.zeros(len(rows), np.float32)
+    flat_t = result.transfer.reshape(hs * ws, -1)
+    flat_valid = result.valid.reshape(-1)
+    flat_b = None if bounce is None else bounce.reshape(-1)
     for v, u, wgt in corners:
-        wv = wgt * result.valid[v, u]
+        at = v * ws + u  # np.take on the flattened grid: cheaper than 2-D fancy indexing
+        wv = wgt * np.take(flat_valid, at)
         den += wv
-        num += wv[:, None] * result.transfer[v, u]
+        num += wv[:, None] * np.take(flat_t, at, axis=0)
         if num_b is not None:
-            num_b += wv * bounce[v, u]
+            num_b += wv * np.take(flat_b, at)
     keep = den > 0.999
     inv = 1.0 / den[keep]
     return TransferSamples(rows[keep].astype(np.int64), cols[keep].astype(np.int64),
