@@ -86,6 +86,7 @@ class IblResult:
     dominant_direction: np.ndarray  # (3,) unit, towards the light; zeros for a black map
     diffuse_map: np.ndarray  # (h, w, 3) float32 irradiance E(n) per pixel direction n
     timings_ms: dict[str, float] = field(default_factory=dict)
+    hdr: np.ndarray | None = None  # (H, W, 3) float32 the HDR map itself (its radiance)
 
 
 def _fit_size(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -217,6 +218,7 @@ def lighting_from_ldr(ldr_rgb: np.ndarray, params: IblParams | None = None) -> I
     expand_ms = (time.perf_counter() - t0) * 1e3
     result = lighting_from_hdr(hdr, p)
     result.timings_ms = {"InverseTone": expand_ms, **result.timings_ms}
+    result.hdr = hdr
     return result
 
 

@@ -180,13 +180,15 @@ class Pipeline:
                            if config.transfer.rt_method is RtMethod.RAYCAST else None)
 
     def process(self, frame: FrameInput,
-                render_light: tuple[np.ndarray, np.ndarray | None] | None = None) -> FrameResult:
+                render_light: tuple | None = None) -> FrameResult:
         """Estimate the lighting of one frame. Raises FrameError on malformed input.
 
-        render_light: optional (sh (n,), sh_rgb (3, n) or None), radiance SH in the WORLD
-        frame, that renders the virtual objects instead of this frame's estimate (a session
-        lit by its 360-degree panorama, `light_source` "panorama"); the estimate is still
-        made and returned. Its units are the light's own (no albedo scaling)."""
+        render_light: optional (sh (n,), sh_rgb (3, n) or None[, environment]), radiance SH
+        in the WORLD frame, that renders the virtual objects instead of this frame's estimate
+        (a session lit by its 360-degree panorama, `light_source` "panorama"); the estimate
+        is still made and returned. Its units are the light's own (no albedo scaling).
+        environment: an optional `rendering.EnvironmentMap` (the panorama's HDR map) that
+        mirror and glossy objects reflect."""
         timings: dict[str, float] = {}
         diagnostics: dict = {}
         with _stage(timings, "Input"):
@@ -241,7 +243,7 @@ class Pipeline:
     def _render(self, valid: ValidFrame, color_linear: np.ndarray, geometry: _Geometry,
                 pose: np.ndarray, aux_buffers: list, coeffs: np.ndarray,
                 estimate: LightEstimate,
-                render_light: tuple[np.ndarray, np.ndarray | None] | None = None,
+                render_light: tuple | None = None,
                 ) -> np.ndarray | None:
         """Rendering: the composite (H, W, 3) uint8 of the placed virtual objects, or None
         (the input) while none is placed. The estimate knows albedo x light only (its mean
@@ -260,8 +262,11 @@ class Pipeline:
             given = np.asarray(render_light[0], np.float64)[:n]
             light[:len(given)] = given
             light_rgb = luminance_light_rgb(render_light[1])
+        environment = render_light[2] if render_light is not None and len(render_light) > 2 \
+            else None
         inputs = RenderInputs(valid.color, color_linear, geometry.depth_m, geometry.normals,
-                              pose, list(aux_buffers), geometry.plane, light, light_rgb)
+                              pose, list(aux_buffers), geometry.plane, light, light_rgb,
+                              environment)
         output = self._renderer.render(inputs)
         self.last_render = (inputs, output)
         return output.composite

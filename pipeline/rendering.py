@@ -40,6 +40,7 @@ from arlight.pipeline.aux_buffers import OrthoBuffer
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.color import LUMA
 from arlight.pipeline.config import Config, DiffMode
+from arlight.pipeline.glossy import MipPyramid, specular
 from arlight.pipeline.horizon import SupportPlane
 from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
@@ -64,7 +65,9 @@ class RenderInputs:
     camera frame (zeros = none); world_from_cam: (4, 4); aux_buffers: the auxiliary
     orthographic buffers of the volume (may be empty); plane: the support plane (used when
     rt_horizon is on, as in RadTransfer); light_sh: (C,) world-frame SH (see module doc);
-    light_rgb: (3,) per-channel factor of the light (ones: white).
+    light_rgb: (3,) per-channel factor of the light (ones: white); environment: optional
+    HDR map whose reflections objects with `mirror` or `metalness` > 0 show (without it every
+    object is diffuse).
     """
 
     color: np.ndarray
@@ -76,6 +79,18 @@ class RenderInputs:
     plane: SupportPlane | None
     light_sh: np.ndarray
     light_rgb: np.ndarray = dataclasses.field(default_factory=lambda: np.ones(3))
+    environment: EnvironmentMap | None = None
+
+
+@dataclass(frozen=True)
+class EnvironmentMap:
+    """An HDR environment for the objects' mirror and glossy reflections (a session lit by
+    its 360-degree panorama): pyramid, the mip pyramid (`glossy.mip_pyramid`) of an
+    equirectangular radiance map in its own frame, in the units of light_sh;
+    map_from_world (3, 3): d_map = R d_world."""
+
+    pyramid: MipPyramid
+    map_from_world: np.ndarray
 
 
 @dataclass
@@ -116,6 +131,7 @@ class DifferentialRenderer:
                                                    rt_subsample=1)
         self.pattern = make_sampling_pattern(self.transfer_params, config.seed + 1)
         self.raycaster = VirtualRaycaster(scene)
+        self._shadings = None  # per object, made when an environment map first lights them
 
     def render(self, frame: RenderInputs) -> RenderOutput:
         """The composite of one frame (see the module docstring)."""
@@ -199,7 +215,10 @@ class DifferentialRenderer:
         # virtual pixels: albedo / pi (direct with SSDO visibility + bounce from around)
         e_v = np.maximum(e_c[k:], 0.0)[:, None] * light_rgb + b_c[k:]
         e_v[~ok_c[k:]] = 0.0
-        virtual_rgb = g.albedo[vv_all, uu_all] / math.pi * e_v
+        if frame.environment is None:
+            virtual_rgb = g.albedo[vv_all, uu_all] / math.pi * e_v
+        else:
+            virtual_rgb = self._reflecting(frame.environment, g, vv_all, uu_all, e_v, pose)
         changed = (ratio_full != 1.0) | np.any(delta_full != 0, axis=2)
         out[virtual[v0:v1, u0:u1]] = 0.0
         block = composite[v0:v1, u0:u1]
@@ -208,6 +227,34 @@ class DifferentialRenderer:
         region[v0:v1, u0:u1] = changed
         region |= virtual
         return RenderOutput(composite, virtual, region, g)
+
+    def _reflecting(self, env: EnvironmentMap, g: VirtualGBuffer, vs: np.ndarray,
+                    us: np.ndarray, irradiance_rgb: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """(K, 3) linear radiance of virtual pixels that may reflect `env`: per object
+        (`ibl_render.shading_of`: specular weight s = 1 for a mirror, else metalness)
+        (1 - s) albedo / pi * irradiance + s albedo * the map seen along the view direction
+        mirrored about the normal (one lookup for a mirror, the Phong lobe of its roughness
+        for a glossy object)."""
+        from arlight.pipeline.ibl_render import shading_of  # it imports this module
+
+        if self._shadings is None:
+            self._shadings = [shading_of(o.material, f"virtual object {o.name!r}")
+                              for o in self.scene.objects]
+        index = g.object_index[vs, us]
+        diffuse = np.stack([s.diffuse_rgb for s in self._shadings])[index]
+        spec_rgb = np.stack([s.specular_rgb for s in self._shadings])[index]
+        modes = np.array([s.mode for s in self._shadings])[index]
+        exponents = np.array([s.exponent for s in self._shadings])[index]
+        cam = self.camera
+        rays = np.stack([(us - cam.cx) / cam.fx, (vs - cam.cy) / cam.fy, np.ones(len(us))],
+                        axis=1) @ pose[:3, :3].T
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        normals = g.normals_cam[vs, us].astype(np.float64) @ pose[:3, :3].T
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        mirrored = rays - 2.0 * np.sum(rays * normals, axis=1, keepdims=True) * normals
+        seen = specular(env.pyramid, mirrored @ np.asarray(env.map_from_world).T, modes,
+                        exponents)
+        return diffuse / math.pi * irradiance_rgb + spec_rgb * seen
 
     def _near_objects(self, points_cam: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """Grid pixels whose point is within rt_radius_m of a virtual object's bounding
@@ -303,5 +350,5 @@ def luminance_light_rgb(sh_rgb: np.ndarray | None) -> np.ndarray:
     return dc / lum if lum > 0 else np.ones(3)
 
 
-__all__ = ["DifferentialRenderer", "RenderInputs", "RenderOutput", "linear_to_srgb_u8",
-           "luminance_light_rgb", "reinhard"]
+__all__ = ["DifferentialRenderer", "EnvironmentMap", "RenderInputs", "RenderOutput",
+           "linear_to_srgb_u8", "luminance_light_rgb", "reinhard"]

@@ -39,9 +39,11 @@ from arlight.pipeline import sh as sh_lib
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
+from arlight.pipeline.glossy import mip_pyramid
 from arlight.pipeline.ibl import IblParams, IblResult, lighting_from_ldr
 from arlight.pipeline.inverse_tone import DEFAULT_OPERATOR, OPERATORS
 from arlight.pipeline.pipeline import FrameError, Pipeline
+from arlight.pipeline.rendering import EnvironmentMap
 from arlight.pipeline.runtime import require_device
 from arlight.pipeline.virtual_scene import (
     Anchor,
@@ -413,6 +415,15 @@ class Session:
                     "frames_dropped": self.frames_dropped,
                     "frames_failed": self.frames_failed}
 
+    def _environment(self, panorama: IblResult) -> EnvironmentMap | None:
+        """The panorama's HDR map as the environment mirror and glossy objects reflect, or
+        None when no virtual object reflects (the mip pyramid costs a pass over the map)."""
+        scene = self.scene
+        if panorama.hdr is None or not scene or not any(
+                o.material.mirror or o.material.metalness > 0 for o in scene.objects):
+            return None
+        return EnvironmentMap(mip_pyramid(panorama.hdr), self.panorama_light.panorama_from_world)
+
     # ------------------------------------------------------------------ worker thread
 
     def run(self, job: Job) -> JobOutcome:
@@ -428,7 +439,7 @@ class Session:
                 panorama = self.panorama_light.light(frame.panorama)
                 world = self.panorama_light.to_world(panorama)
                 if self.panorama_light.light_source == "panorama":
-                    self.render_light = (world[0], world[1])
+                    self.render_light = (world[0], world[1], self._environment(panorama))
             composite = None
             if frame.color is None:  # panorama-only: no RGB-D pipeline
                 result = panorama_only_result(frame, world)

@@ -289,11 +289,51 @@ class TestRgbdWithPanorama:
             if light_source == "rgbd":
                 assert lights == [None, None, None]
             else:
-                for i, (sh_world, rgb_world) in enumerate(lights):
+                for i, (sh_world, rgb_world, environment) in enumerate(lights):
+                    assert environment is None  # no virtual object reflects: no mip pyramid
                     np.testing.assert_allclose(sh_world, offline[i].result.sh, rtol=1e-6,
                                                atol=1e-9)
                     np.testing.assert_allclose(rgb_world, offline[i].result.sh_rgb, rtol=1e-6,
                                                atol=1e-9)
+
+
+class TestReflectingObjects:
+    def test_a_mirror_object_gets_the_panoramas_hdr_map_to_reflect(self, make_server,
+                                                                   sky_video):
+        """light_source "panorama" with a mirror among the virtual objects: the Pipeline is
+        also given the panorama's HDR map (its mip pyramid) and map_from_world."""
+        from arlight.pipeline.rendering import EnvironmentMap
+        from arlight.pipeline.virtual_scene import Material, VirtualScene, object_from_open3d
+        from arlight.pipeline.virtual_scene import sphere_mesh as ball
+
+        seen: list = []
+        identity = identity_step()
+
+        def step(frame, session):
+            seen.append(session.render_light)
+            return identity(frame, session)
+
+        server = make_server(process=step)
+        mirror = object_from_open3d("mirror", ball(0.1), np.eye(4),
+                                    Material((0.9, 0.9, 0.9), mirror=True))
+        options = StreamOptions(server=server.connect_address, session="reflect",
+                                mode="lossless", rate="max", color_codec="png",
+                                scene=VirtualScene((mirror,)),
+                                panorama=PanoramaConfig(light_source="panorama"))
+        summary = run_with_timeout(lambda: stream(
+            with_panorama(flat_source(2), str(sky_video)), options))
+        assert summary.errors == [] and len(seen) == 2
+        from arlight.pipeline.inverse_tone import expand
+
+        with open_panorama(str(sky_video)) as source:
+            frames = [image for _, image in source]
+        for i, (_, _, environment) in enumerate(seen):
+            assert isinstance(environment, EnvironmentMap)
+            np.testing.assert_array_equal(environment.map_from_world, np.eye(3))
+            assert environment.pyramid.num_levels > 3
+            # level 0 is the HDR map of the same frame (the session's operator, boost)
+            np.testing.assert_allclose(environment.pyramid.levels[0],
+                                       expand(frames[i], "boost"), rtol=1e-6, atol=1e-7)
 
 
 class TestMalformedPanorama:

@@ -560,3 +560,59 @@ class TestVirtualOccluderOnlyRemovesDirectLight:
         real = ~out.virtual_mask
         gain = out.composite[real].astype(int) - inputs.color[real].astype(int)
         assert gain.max() <= 1
+
+
+# ------------------------------------------------------------------ reflections of a panorama
+class TestEnvironmentReflections:
+    """A session lit by its 360-degree panorama: mirror and glossy objects reflect its HDR
+    map (`RenderInputs.environment`), diffuse ones are as before."""
+
+    @staticmethod
+    def _environment(rotation: np.ndarray | None = None):
+        """A 128 x 64 map: dark grey, a bright patch around world +X (rows 24-40, the
+        columns of azimuth 90 degrees +-22)."""
+        from arlight.pipeline.glossy import mip_pyramid
+        from arlight.pipeline.rendering import EnvironmentMap
+
+        hdr = np.full((64, 128, 3), 0.05, np.float32)
+        hdr[24:40, 24:40] = (4.0, 3.0, 2.0)  # u = atan2(x, -z) / 2 pi: +X at column 32
+        return hdr, EnvironmentMap(mip_pyramid(hdr), np.eye(3) if rotation is None
+                                   else rotation)
+
+    @pytest.mark.parametrize("turn_deg", [0.0, 90.0])
+    def test_mirror_sphere_shows_the_map_along_the_mirrored_view(self, view, turn_deg):
+        """Each mirror pixel is albedo x the map along the view direction mirrored about its
+        normal, taken into the map's frame by map_from_world (a map turned 90 degrees about
+        +y: a transposed or ignored rotation would show the patch elsewhere)."""
+        from arlight.pipeline import equirect
+
+        a = math.radians(turn_deg)
+        turn = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+        hdr, env = self._environment(turn)
+        coeffs = light_sh(light_direction(+1))
+        mirror_ball = object_from_open3d("mirror", sphere_mesh(SPHERE_RADIUS_M), np.eye(4),
+                                         Material((0.9, 0.9, 0.9), mirror=True))
+        inputs = dataclasses.replace(frame_inputs(view, coeffs), environment=env)
+        _, out, _ = render(view, coeffs, [mirror_ball], inputs)
+        vs_, us_ = np.nonzero(out.virtual_mask)
+        assert len(vs_) > 100
+        rays = np.stack([(us_ - view.camera.cx) / view.camera.fx,
+                         (vs_ - view.camera.cy) / view.camera.fy, np.ones(len(us_))], 1)
+        rays = rays @ view.world_from_cam[:3, :3].T
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        n = out.gbuffer.normals_cam[vs_, us_].astype(np.float64) @ view.world_from_cam[:3, :3].T
+        r = rays - 2 * np.sum(rays * n, axis=1, keepdims=True) * n
+        expected = 0.9 * equirect.sample_bilinear(hdr, r @ turn.T)  # albedo x the map
+        got = srgb_to_linear(out.composite)[vs_, us_]
+        assert (expected.min(axis=1) > 1.0).sum() > 5  # the patch, white in the 8-bit frame
+        assert (expected.max(axis=1) < 0.1).sum() > 50  # the dark rest of the map
+        np.testing.assert_allclose(got, np.clip(expected, 0, 1), atol=0.01)
+
+    def test_diffuse_objects_ignore_the_environment(self, view):
+        _, env = self._environment()
+        coeffs = light_sh(light_direction(+1))
+        plain = frame_inputs(view, coeffs)
+        _, without, _ = render(view, coeffs, [sphere()], plain)
+        _, with_env, _ = render(view, coeffs, [sphere()],
+                                dataclasses.replace(plain, environment=env))
+        np.testing.assert_array_equal(without.composite, with_env.composite)
