@@ -182,10 +182,15 @@ def to_filament_text(sh_world: np.ndarray,
 
     Sources: Filament ``tools/cmgen`` (output of ``cmgen --sh=N --sh-output``, measured
     against ours in benchmarks/ibl_cmgen.py and the README, "Cross-check against Filament's
-    cmgen": cmgen = ours with odd m negated); ``IndirectLight.cpp`` ``radiance()``
-    pre-scales by A_l K_lm / pi with the CS sign (the same factors as ARCore's sample) and
-    ``shading_lit``/``light_indirect.fs`` ``Irradiance_SphericalHarmonics`` evaluates
-    sh[0] + sh[1] n.y + sh[2] n.z + sh[3] n.x + ... = E(n) / pi.
+    cmgen": cmgen = ours with odd m negated); ``IndirectLight::Builder::radiance()``
+    convolves to irradiance (A_l) and pre-scales as cmgen's ``CubemapSH::
+    preprocessSHForShader`` does, by A[i] / pi with A = (1/(2 sqrt(pi)), -sqrt(3)/(2 sqrt(pi)),
+    sqrt(3)/(2 sqrt(pi)), -sqrt(3)/(2 sqrt(pi)), sqrt(15)/(2 sqrt(pi)), -sqrt(15)/(2 sqrt(pi)),
+    sqrt(5)/(4 sqrt(pi)), -sqrt(15)/(2 sqrt(pi)), sqrt(15)/(4 sqrt(pi))), the CS-signed K:
+    together the factors of ARCore's sample; ``light_indirect.fs``
+    ``Irradiance_SphericalHarmonics`` evaluates sh[0] + sh[1] n.y + sh[2] n.z + sh[3] n.x +
+    sh[4] n.y n.x + sh[5] n.y n.z + sh[6] (3 n.z^2 - 1) + sh[7] n.z n.x + sh[8] (n.x^2 - n.y^2)
+    = E(n) / pi.
 
     - basis: real SH WITH the CS phase; units: radiance c_lm (cmgen without
       ``--sh-irradiance``); every band of ``sh_world`` is written (cmgen ``--sh=bands``);

@@ -153,8 +153,9 @@ def unity_irradiance(sh_l2: list[list[float]], n: np.ndarray) -> np.ndarray:
 
 
 # --- Filament ------------------------------------------------------------------------------
-# filament/src/details/IndirectLight.cpp, Builder::radiance(): pre-scale by A[] (the same
-# factors as ARCore's), then light_indirect.fs Irradiance_SphericalHarmonics (the polynomial).
+# filament/src/details/IndirectLight.cpp, Builder::radiance(): convolve (pi, 2 pi/3, pi/4) and
+# pre-scale by A[i] / pi as cmgen's CubemapSH::preprocessSHForShader (A: the CS-signed basis
+# constants), together ARCore's factors; then light_indirect.fs Irradiance_SphericalHarmonics.
 _NUMBER = re.compile(r"[-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?")
 
 
