@@ -37,6 +37,7 @@ import math
 import numpy as np
 
 from . import sh
+from .color import LUMA
 
 # Unity's axes from an OpenCV-style frame: x right, y up, z forward (left-handed): y flips.
 UNITY_FROM_CV = np.diag([1.0, -1.0, 1.0])
@@ -204,6 +205,33 @@ def to_filament_text(sh_world: np.ndarray,
             r, g, b = c[:, sh.sh_index(l, m)]
             lines.append(f"({r: .15f}, {g: .15f}, {b: .15f}); // L{l}{m}")
     return "\n".join(lines) + "\n"
+
+
+def main_light(sh_world: np.ndarray, engine_from_world: np.ndarray | None = None
+               ) -> dict[str, list[float]]:
+    """The main directional light for ARCore ``getEnvironmentalHdrMainLightDirection`` /
+    ``...MainLightIntensity`` and WebXR ``XRLightEstimate.primaryLightDirection`` /
+    ``primaryLightIntensity``.
+
+    Sources: MDN / WebXR Lighting Estimation API Level 1, ``primaryLightDirection``: "the
+    direction to the primary light source from the probeSpace", default (0, 1, 0) "a light
+    shining straight down from above"; ARCore's ``LightEstimate`` reference (the same default,
+    world space); hello_ar passes both to its shader as the light's direction and colour.
+
+    - direction: unit vector TOWARDS the light in the engine's frame (``sh.dominant_direction``
+      of the luminance, after the frame change); (0, 1, 0) when band 1 vanishes, as the
+      engines' own default;
+    - intensity: linear RGB, the integrated radiance of the delta light along it that best
+      fits each channel (``sh.intensity_along``, Sloan's extraction): the irradiance on a
+      surface facing the light, in this project's units (no engine calibration);
+    - layout: {"direction": [x, y, z], "intensity": [r, g, b]}.
+    """
+    c = _engine_sh(sh_world, engine_from_world)
+    direction = sh.dominant_direction(LUMA @ c)
+    if not np.any(direction):
+        return {"direction": [0.0, 1.0, 0.0], "intensity": [0.0, 0.0, 0.0]}
+    return {"direction": _floats(direction),
+            "intensity": [sh.intensity_along(c[ch], direction) for ch in range(3)]}
 
 
 EXPORTERS = {"arcore": to_arcore, "webxr": to_webxr, "gltf": to_gltf_ibl, "unity": to_unity,

@@ -240,6 +240,18 @@ class TestLayoutsAndRegressions:
             with pytest.raises(ee.ExportError, match=match):
                 export(bad)
 
+    @pytest.mark.parametrize("frame", FRAMES)
+    def test_main_light_towards_the_light(self, frame):
+        """ARCore main light / WebXR primary light: the direction TO the light in the
+        engine's frame, the delta light's RGB intensity."""
+        c, d = _directional(3)
+        world_from_cam = FRAMES[frame]
+        engine_from_world = sh.GL_FROM_CV @ world_from_cam.T
+        light = ee.main_light(sh.rotate(c, world_from_cam), engine_from_world)
+        np.testing.assert_allclose(light["direction"], sh.GL_FROM_CV @ d, atol=1e-6)
+        np.testing.assert_allclose(light["intensity"], [3.0, 2.0, 1.0], rtol=1e-6)
+        assert ee.main_light(np.eye(1, 9)[0])["direction"] == [0.0, 1.0, 0.0]
+
     def test_bad_frame(self):
         with pytest.raises(ee.ExportError, match="orthogonal"):
             ee.to_unity(np.zeros(9), np.diag([1.0, 2.0, 1.0]))
