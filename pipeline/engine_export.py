@@ -166,7 +166,9 @@ def to_unity(sh_world: np.ndarray, engine_from_world: np.ndarray | None = None
 
     - basis: polynomial coefficients, no CS phase: sh[i] = E_lm K_lm / pi, so
       ShadeSH9(n) = E(n) / pi (the diffuse light for albedo 1, Unity's materials multiply
-      by albedo with no 1/pi);
+      by albedo with no 1/pi); consistent with ``SphericalHarmonicsL2.AddDirectionalLight``
+      (Y_lm(d) A_l K_lm x colour x intensity, as shivaduke28/shader-sh re-derives it) for a
+      Unity light intensity = our delta light's integrated radiance / pi;
     - units: irradiance / pi; order: l(l+1)+m (1: y, 2: z, 3: x); layout 3 x 9, [r, g, b][i];
     - frame: Unity's world (LEFT-handed, +y up, +z forward): from an OpenCV-style frame
       ``UNITY_FROM_CV @ R_cam_world`` (a reflection, det -1).
