@@ -290,19 +290,23 @@ def to_arcore_27(sh_rgb: np.ndarray, rotation: np.ndarray | None = None) -> list
     """ARCore `environmentalHdrAmbientSphericalHarmonics` layout: 27 floats.
 
     sh_rgb: (3, n >= 9) radiance SH per linear RGB channel (this module's basis, no phase).
-    Output: the first 9 coefficients (bands 0..2) interleaved by colour,
-    [R0, G0, B0, R1, G1, B1, ..., R8, G8, B8], raw radiance (not convolved, no pi factors),
-    order i = l(l+1)+m as here. ARCore's frame is OpenGL's (y up): pass `rotation` (3x3)
-    to rotate the light into that frame first, e.g. ``GL_FROM_CV @ R_cam_world`` for the
-    current camera's OpenGL frame.
+    Output: bands 0..2 in ARCore's basis, which carries the Condon-Shortley phase (hello_ar's
+    HelloArRenderer.kt factors -0.325735 on y and x): our odd-m coefficients negated,
+    interleaved by colour [R0, G0, B0, R1, G1, B1, ..., R8, G8, B8], raw radiance (not
+    convolved, no pi factors), order i = l(l+1)+m. ARCore's frame is OpenGL's (y up): pass
+    `rotation` (3x3) to rotate the light into that frame first, e.g. ``GL_FROM_CV @
+    R_cam_world``. The same numbers as `pipeline.engine_export.to_arcore`, which documents
+    and tests the convention.
     """
-    return [float(v) for v in _first_three_bands(sh_rgb, rotation).T.reshape(-1)]
+    c = toggle_condon_shortley(_first_three_bands(sh_rgb, rotation))
+    return [float(v) for v in c.T.reshape(-1)]
 
 
 def to_planar_27(sh_rgb: np.ndarray, rotation: np.ndarray | None = None) -> list[float]:
-    """ARKit / WebXR-style planar layout: 27 floats [R0..R8, G0..G8, B0..B8].
+    """Planar layout of this module's own coefficients: 27 floats [R0..R8, G0..G8, B0..B8].
 
-    Same basis, order, units (raw radiance) and optional frame rotation as
-    :func:`to_arcore_27`; only the memory layout differs (one plane per colour channel).
+    Our basis (no Condon-Shortley phase), order l(l+1)+m, raw radiance, optional frame
+    rotation as :func:`to_arcore_27`. Not an engine's layout as such: WebXR interleaves RGB
+    per coefficient, see `pipeline.engine_export` for each engine's numbers.
     """
     return [float(v) for v in _first_three_bands(sh_rgb, rotation).reshape(-1)]

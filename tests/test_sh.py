@@ -136,7 +136,7 @@ class TestLayouts:
         inter = sh.to_arcore_27(c)
         planar = sh.to_planar_27(c)
         assert len(inter) == len(planar) == 27
-        assert inter[:6] == [0.0, 16.0, 32.0, 1.0, 17.0, 33.0]
+        assert inter[:6] == [0.0, 16.0, 32.0, -1.0, -17.0, -33.0]  # ARCore: CS phase
         assert planar[:3] == [0.0, 1.0, 2.0] and planar[9] == 16.0
 
     def test_gl_frame_flips_y_and_z(self):
