@@ -88,6 +88,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
           f"preset {config.preset}, poses {args.poses}", file=sys.stderr)
     pipeline = Pipeline(config, camera, _load_scene(args, (camera.width, camera.height)))
     composites = _composite_folder(args.composite_out)
+    environments = _composite_folder(args.env_exr, "--env-exr")
+    if args.cubemap and environments is None:
+        raise _BadInput("--cubemap writes faces beside the --env-exr maps: give --env-exr DIR")
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
     errors = []
     try:
@@ -116,8 +119,12 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                 record["angular_error_deg"] = err
                 line += f"  error={err:.1f} deg"
             print(line, flush=True)
+            if args.export:
+                record["exports"] = _engine_exports(result, args.export)
             if out:
                 out.write(json.dumps(record) + "\n")
+            if environments is not None:
+                _write_environment(environments, i, result, args.env_size, args.cubemap)
             if composites is not None:
                 image = result.composite if result.composite is not None else frame.color
                 cv2.imwrite(str(composites / f"{i:06d}.png"), image[..., ::-1])
@@ -131,6 +138,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         print(f"wrote {_count(n, 'result')} to {args.out}", file=sys.stderr)
     if composites is not None:
         print(f"wrote {_count(n, 'composite')} to {composites}/", file=sys.stderr)
+    if environments is not None:
+        print(f"wrote {_count(n, 'environment map')} to {environments}/ (OpenEXR, half float"
+              f"{', with cubemap faces' if args.cubemap else ''})", file=sys.stderr)
     return 0
 
 
@@ -154,17 +164,60 @@ def _load_scene(args: argparse.Namespace, image_size: tuple[int, int] = (640, 48
         raise _BadInput(f"--scene {args.scene}: {exc}") from None
 
 
-def _composite_folder(path: str | None) -> Path | None:
-    """--composite-out DIR, created; None when not asked for."""
+def _composite_folder(path: str | None, option: str = "--composite-out") -> Path | None:
+    """An output folder named by `option` (e.g. --composite-out DIR), created; None when not
+    asked for."""
     if not path:
         return None
     folder = Path(path)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise _BadInput(f"--composite-out {path}: cannot create the folder ({exc.strerror})"
+        raise _BadInput(f"{option} {path}: cannot create the folder ({exc.strerror})"
                         ) from None
     return folder
+
+
+def _parse_exports(text: str) -> list[str]:
+    """--export arcore,webxr,...: engine layout names, checked."""
+    from arlight.pipeline.engine_export import EXPORTERS
+
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    bad = [n for n in names if n not in EXPORTERS]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(
+            f"unknown engine layout {', '.join(bad) or repr(text)}; choose from "
+            f"{', '.join(EXPORTERS)} (comma-separated)")
+    return names
+
+
+def _engine_exports(result, names: list[str]) -> dict:
+    """The frame's light in each engine's layout, in the CAMERA frame with OpenGL axes (x
+    right, y up, z back; Unity: its left-handed axes): an app turns it into its world with
+    its own camera pose."""
+    from arlight.pipeline import sh as sh_lib
+    from arlight.pipeline.engine_export import EXPORTERS, UNITY_FROM_CV
+
+    cam_from_world = np.asarray(result.pose, np.float64)[:3, :3].T
+    light = result.sh_rgb if result.sh_rgb is not None else result.sh
+    out = {}
+    for name in names:
+        axes = UNITY_FROM_CV if name == "unity" else sh_lib.GL_FROM_CV
+        out[name] = EXPORTERS[name](np.asarray(light, np.float64), axes @ cam_from_world)
+    return out
+
+
+def _write_environment(folder: Path, index: int, result, width: int, cubemap: bool) -> None:
+    """DIR/NNNNNN.exr: the estimated light as an equirectangular HDR map (world frame, the
+    SH's units), and with cubemap the six faces NNNNNN_px.exr ... (size width / 4)."""
+    from arlight.pipeline.environment_map import cubemap_from_sh, equirect_from_sh
+    from arlight.sources.exr import write_exr
+
+    light = result.sh_rgb if result.sh_rgb is not None else result.sh
+    write_exr(folder / f"{index:06d}.exr", equirect_from_sh(light, width))
+    if cubemap:
+        for face, image in cubemap_from_sh(light, max(1, width // 4)).items():
+            write_exr(folder / f"{index:06d}_{face}.exr", image)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -220,6 +273,13 @@ def _positive_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
     if not math.isfinite(value) or value <= 0:
         raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+def _int_at_least_2_even(text: str) -> int:
+    value = _int_at_least(text, 2)
+    if value % 2:
+        raise argparse.ArgumentTypeError(f"expected an even number of pixels, got {value}")
     return value
 
 
@@ -1021,6 +1081,18 @@ def build_parser() -> argparse.ArgumentParser:
                      help="write each frame's composite (the virtual objects rendered in) as "
                           "DIR/NNNNNN.png, NNNNNN the frame's index; without --scene, the "
                           "input frames")
+    est.add_argument("--export", type=_parse_exports, metavar="LAYOUTS",
+                     help="also put the light in these engines' layouts into each JSON line "
+                          "(\"exports\"; camera frame, the engine's axes): comma-separated "
+                          "from arcore, webxr, gltf, unity, filament")
+    est.add_argument("--env-exr", metavar="DIR",
+                     help="write the estimated light per frame as an equirectangular HDR map "
+                          "DIR/NNNNNN.exr (OpenEXR half float, world frame, +y up)")
+    est.add_argument("--env-size", type=_int_at_least_2_even, default=256, metavar="W",
+                     help="width of the --env-exr maps in pixels (even; default 256)")
+    est.add_argument("--cubemap", action="store_true",
+                     help="with --env-exr, also write the six cube faces NNNNNN_px.exr ... "
+                          "(OpenGL face order and orientation, W / 4 pixels a side)")
     est.set_defaults(func=cmd_estimate)
 
     bench = sub.add_parser(
