@@ -431,6 +431,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
         from arlight.client.recording import Recorder
 
         recorder = Recorder(args.record, source=args.source, depth_scale=source.depth_scale)
+    if args.export and not args.out:
+        raise _BadInput("--export adds to the lines --out writes: give --out FILE too")
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
     total = "loop" if options.loop else str(source.num_frames)
 
@@ -447,7 +449,10 @@ def cmd_stream(args: argparse.Namespace) -> int:
         if out:
             from arlight.protocols import received_record
 
-            out.write(json.dumps(received_record(result, receive_time_wall)) + "\n")
+            record = received_record(result, receive_time_wall)
+            if args.export:
+                record["exports"] = _engine_exports(result, args.export)
+            out.write(json.dumps(record) + "\n")
 
     client = CaptureClient(source, options, on_result=on_result, recorder=recorder)
     size = ("panorama only" if source.calibration is None
@@ -964,6 +969,10 @@ def _add_stream_parser(sub) -> None:
     stream.add_argument("--loop", action="store_true", help="start over at the end (until "
                         "--max-frames or Ctrl-C)")
     stream.add_argument("--out", metavar="FILE", help="also write the Results as JSON lines")
+    stream.add_argument("--export", type=_parse_exports, metavar="LAYOUTS",
+                        help="with --out, also the light in these engines' layouts in each "
+                             "line (\"exports\"; camera frame, the engine's axes): "
+                             "comma-separated from arcore, webxr, gltf, unity, filament")
     stream.add_argument("--record", metavar="FILE.mcap",
                         help="also record the stream as sent to an MCAP file")
     from arlight.pipeline.inverse_tone import OPERATORS

@@ -23,7 +23,7 @@ from streaming_support import (
 )
 
 from arlight.checks import depth_metres
-from arlight.cli import main
+from arlight.cli import EXIT_BAD_INPUT, main
 from arlight.client.capture import (
     CaptureClient,
     StreamOptions,
@@ -378,6 +378,31 @@ class TestCommands:
         assert [x["frame"] for x in lines] == [0, 1]
         assert all(list(x)[:len(core)] == core for x in lines)
         assert list(result_record(_dummy_result(Frame(0, 1.0, None, None)))) == core
+
+    def test_stream_export_writes_engine_layouts_matching_estimates(self, make_server,
+                                                                    tmp_path):
+        """`arlight stream --out F --export ...`: each line carries the layouts, the numbers
+        the exporters give for that line's own world SH and pose; --export without --out is
+        refused naming both flags."""
+        from arlight.pipeline import sh as sh_lib
+        from arlight.pipeline.engine_export import to_arcore, to_webxr
+
+        server = make_server(process=identity_step())
+        streamed = tmp_path / "s.jsonl"
+        assert main(["stream", "synthetic", "--server", server.connect_address, "--session",
+                     "export", "--mode", "lossless", "--rate", "max", "--max-frames", "2",
+                     "--size", "64x48", "--out", str(streamed), "--export",
+                     "arcore,webxr"]) == 0
+        for line in streamed.read_text().splitlines():
+            record = json.loads(line)
+            assert set(record["exports"]) == {"arcore", "webxr"}
+            light = np.asarray(record["sh_rgb"] if record["sh_rgb"] is not None
+                               else record["sh"], np.float64)
+            axes = sh_lib.GL_FROM_CV @ np.asarray(record["pose"])[:3, :3].T
+            np.testing.assert_allclose(record["exports"]["arcore"], to_arcore(light, axes))
+            np.testing.assert_allclose(record["exports"]["webxr"], to_webxr(light, axes))
+        assert main(["stream", "synthetic", "--server", server.connect_address,
+                     "--export", "arcore"]) == EXIT_BAD_INPUT
 
     def test_record_command(self, tmp_path):
         path = tmp_path / "r.mcap"
