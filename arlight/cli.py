@@ -192,19 +192,11 @@ def _parse_exports(text: str) -> list[str]:
 
 
 def _engine_exports(result, names: list[str]) -> dict:
-    """The frame's light in each engine's layout, in the CAMERA frame with OpenGL axes (x
-    right, y up, z back; Unity: its left-handed axes): an app turns it into its world with
-    its own camera pose."""
-    from arlight.pipeline import sh as sh_lib
-    from arlight.pipeline.engine_export import EXPORTERS, UNITY_FROM_CV
+    """--export: the frame's light in each engine's layout (`engine_export.camera_exports`)."""
+    from arlight.pipeline.engine_export import camera_exports
 
-    cam_from_world = np.asarray(result.pose, np.float64)[:3, :3].T
     light = result.sh_rgb if result.sh_rgb is not None else result.sh
-    out = {}
-    for name in names:
-        axes = UNITY_FROM_CV if name == "unity" else sh_lib.GL_FROM_CV
-        out[name] = EXPORTERS[name](np.asarray(light, np.float64), axes @ cam_from_world)
-    return out
+    return camera_exports(light, result.pose, names)
 
 
 def _write_environment(folder: Path, index: int, result, width: int, cubemap: bool) -> None:
@@ -522,7 +514,10 @@ def cmd_display(args: argparse.Namespace) -> int:
     _check_address(args.server, "--server")
     if args.video and not args.video.lower().endswith((".mp4", ".m4v", ".mov")):
         raise _BadInput(f"--video expects an .mp4 file, got {args.video!r}")
+    if args.export and not args.out:
+        raise _BadInput("--export adds to the results.jsonl that --out writes: give --out DIR")
     options = DisplayOptions(server=args.server, session=args.session, out_dir=args.out,
+                             exports=tuple(args.export or ()),
                              video=args.video, video_fps=args.video_fps,
                              max_results=args.max_results, idle_exit_s=args.idle_exit,
                              follow=args.follow, reconnect_timeout_s=args.reconnect_timeout)
@@ -1017,6 +1012,10 @@ def _add_display_parser(sub) -> None:
                       help="the session to show (as printed by `arlight stream`)")
     disp.add_argument("--out", metavar="DIR",
                       help="write DIR/results.jsonl and DIR/frames/NNNNNN.png")
+    disp.add_argument("--export", type=_parse_exports, metavar="LAYOUTS",
+                      help="with --out, also the light in these engines' layouts in each "
+                           "results.jsonl line (\"exports\"; camera frame, the engine's "
+                           "axes): comma-separated from arcore, webxr, gltf, unity, filament")
     disp.add_argument("--video", metavar="FILE.mp4", help="write the composites as a video")
     disp.add_argument("--video-fps", type=_positive_float, default=15.0, metavar="FPS",
                       help="frame rate written into the video (default 15)")

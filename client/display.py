@@ -67,6 +67,8 @@ class DisplayOptions:
     server: str
     session: str
     out_dir: str | None = None  # results.jsonl and frames/ go here
+    # engine layouts (pipeline/engine_export.EXPORTERS) added to each results.jsonl line
+    exports: tuple[str, ...] = ()
     video: str | None = None  # an .mp4 of the composites
     video_fps: float = 15.0
     max_results: int | None = None  # exit after this many Results
@@ -203,6 +205,11 @@ class DisplayClient:
             s.seq_gaps += result.seq - self._last_seq - 1
         self._last_seq = result.seq
         record = received_record(result, got.receive_time_wall)
+        if self.options.exports:
+            from arlight.pipeline.engine_export import camera_exports
+
+            light = result.sh_rgb if result.sh_rgb is not None else result.sh
+            record["exports"] = camera_exports(light, result.pose, self.options.exports)
         now_m = got.receive_time_mono
         s.results += 1
         s.first_receive = now_m if s.first_receive is None else s.first_receive

@@ -238,3 +238,17 @@ def main_light(sh_world: np.ndarray, engine_from_world: np.ndarray | None = None
 
 EXPORTERS = {"arcore": to_arcore, "webxr": to_webxr, "gltf": to_gltf_ibl, "unity": to_unity,
              "filament": to_filament_text}
+
+
+def camera_exports(sh_world: np.ndarray, world_from_cam: np.ndarray,
+                   names: list[str] | tuple[str, ...]) -> dict:
+    """The light of one frame in each named layout (EXPORTERS), in the CAMERA frame with the
+    engine's axes (OpenGL's x right, y up, z back: sh.GL_FROM_CV; Unity's left-handed
+    UNITY_FROM_CV): an app turns it into its own world with its camera pose.
+    sh_world: (n,) luminance or (3, n) RGB world-frame radiance SH; world_from_cam (4, 4)."""
+    cam_from_world = np.asarray(world_from_cam, np.float64)[:3, :3].T
+    out = {}
+    for name in names:
+        axes = UNITY_FROM_CV if name == "unity" else sh.GL_FROM_CV
+        out[name] = EXPORTERS[name](np.asarray(sh_world, np.float64), axes @ cam_from_world)
+    return out

@@ -325,6 +325,31 @@ class TestDisplay:
         assert info["results"] == 5 and info["latency_ms"]["kind"] == "end_to_end"
 
 
+    def test_export_adds_engine_layouts_to_results_jsonl(self, make_server, tmp_path):
+        """DisplayOptions.exports (`arlight display --out DIR --export ...`): each line
+        carries the layouts of its own SH and pose."""
+        from arlight.pipeline.engine_export import camera_exports
+
+        server = make_server(process=identity_step())
+        out = tmp_path / "out"
+        display = DisplayClient(DisplayOptions(server=server.connect_address, session="exp",
+                                               out_dir=str(out), exports=("gltf", "unity"),
+                                               idle_exit_s=30.0))
+        thread = threading.Thread(target=display.run, daemon=True)
+        thread.start()
+        assert display.subscribed.wait(10)
+        options = StreamOptions(server=server.connect_address, session="exp",
+                                mode="lossless", rate="max")
+        assert run_with_timeout(lambda: CaptureClient(flat_source(2), options).run()).results == 2
+        thread.join(30)
+        lines = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
+        assert len(lines) == 2
+        for line in lines:
+            expected = camera_exports(np.asarray(line["sh"]), np.asarray(line["pose"]),
+                                      ("gltf", "unity"))
+            assert json.loads(json.dumps(expected)) == line["exports"]
+
+
 class TestCommands:
     def test_demo_writes_frames_results_and_summary(self, tmp_path):
         out = tmp_path / "demo"
