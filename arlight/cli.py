@@ -588,6 +588,7 @@ def cmd_ibl(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from arlight.ibl import SYNTHETIC, frame_record, run, synthetic_panorama, truth_error_deg
+    from arlight.pipeline.environment_map import cubemap_from_equirect
     from arlight.pipeline.ibl import IblParams
     from arlight.sources.exr import write_exr
     from arlight.sources.panorama import open_panorama
@@ -595,6 +596,8 @@ def cmd_ibl(args: argparse.Namespace) -> int:
     params = IblParams(operator=args.operator, diffuse_size=args.diffuse_size)
     renderer = _ibl_renderer(args)  # before any output: a bad --scene stops here
     exr_dir = _output_folder(args.exr, "--exr")
+    if args.cubemap and exr_dir is None:
+        raise _BadInput("--cubemap writes faces beside the --exr maps: give --exr DIR")
     render_dir = _output_folder(args.render, "--render")
     if args.panorama == SYNTHETIC:
         source = synthetic_panorama(args.max_frames or 8)
@@ -627,6 +630,10 @@ def cmd_ibl(args: argparse.Namespace) -> int:
         out.write(json.dumps(record) + "\n")
         if exr_dir is not None:
             write_exr(exr_dir / f"{frame.index:06d}.exr", frame.hdr)
+            if args.cubemap:
+                for face, image in cubemap_from_equirect(
+                        frame.hdr, max(1, frame.hdr.shape[0] // 2)).items():
+                    write_exr(exr_dir / f"{frame.index:06d}_{face}.exr", image)
         if renderer is not None:
             target = render_dir / f"{frame.index:06d}.png"
             if not cv2.imwrite(str(target), renderer.render(frame)[..., ::-1]):
@@ -783,6 +790,10 @@ def _add_ibl_parser(sub) -> None:
     ibl.add_argument("--exr", metavar="DIR",
                      help="also write each frame's HDR map as DIR/NNNNNN.exr (OpenEXR, "
                           "equirectangular, linear, half float)")
+    ibl.add_argument("--cubemap", action="store_true",
+                     help="with --exr, also the six cube faces NNNNNN_px.exr ... of each HDR "
+                          "map (OpenGL face order and orientation, half the map's height a "
+                          "side)")
     ibl.add_argument("--diffuse-size", type=_panorama_size, default=(32, 16), metavar="WxH",
                      help="size of the diffuse map, brute force over the map area-averaged "
                           "to the same size (default 32x16, the paper's)")

@@ -6,7 +6,8 @@ clamped at 0 (a band-limited light rings negative):
 * equirectangular: (H, W = 2 H, 3) in the frame of the SH, +y up, the mapping of
   `pipeline/equirect.py` (direction d at column u = atan2(d.x, -d.z) / 2 pi, row v =
   acos(d.y) / pi, row 0 at the top), the one `arlight ibl --exr` writes;
-* cubemap: six (S, S, 3) faces in the OpenGL convention (the OpenGL 4.6 specification,
+* cubemap (from SH, or from an equirectangular map): six (S, S, 3) faces in the OpenGL
+  convention (the OpenGL 4.6 specification,
   table 8.19, "Selection of cube map images"): face +X, -X, +Y, -Y, +Z, -Z; texel (s, t)
   with s, t in [0, 1] from the left and from the TOP row looks along the major axis with
   sc, tc of that table (e.g. +X: direction (1, -tc, -sc) for sc, tc in [-1, 1]); the SH
@@ -59,3 +60,13 @@ def cubemap_from_sh(sh_rgb: np.ndarray, size: int = 64) -> dict[str, np.ndarray]
     if size < 1:
         raise ValueError(f"size must be >= 1 pixel, got {size}")
     return {f: _radiance_at(sh_rgb, cube_face_directions(f, size)) for f in CUBE_FACES}
+
+
+def cubemap_from_equirect(hdr: np.ndarray, size: int = 128) -> dict[str, np.ndarray]:
+    """The six faces (CUBE_FACES order, (size, size, 3) float32) of an equirectangular map
+    (`equirect`'s mapping), bilinear lookups at the texel centres' directions."""
+    if size < 1:
+        raise ValueError(f"size must be >= 1 pixel, got {size}")
+    image = equirect.check_equirect(np.asarray(hdr, np.float32), "hdr")
+    return {f: equirect.sample_bilinear(image, cube_face_directions(f, size)).astype(np.float32)
+            for f in CUBE_FACES}

@@ -101,3 +101,30 @@ def test_bad_environment_flags_exit_2_naming_the_flag(tmp_path, capsys, argv, fl
         code = exc.code
     text = capsys.readouterr().err
     assert code in (2, EXIT_BAD_INPUT) and flag in text and "Traceback" not in text
+
+
+def test_cubemap_of_an_equirect_map_puts_its_bright_patch_on_the_right_face():
+    """A patch around +X in the equirectangular map (column u = 0.25: atan2(x, -z) = 90 deg)
+    lands at the centre of the +X face, nowhere on -X."""
+    from arlight.pipeline.environment_map import cubemap_from_equirect
+
+    hdr = np.full((64, 128, 3), 0.1, np.float32)
+    hdr[28:36, 28:36] = 5.0
+    faces = cubemap_from_equirect(hdr, 16)
+    assert faces["px"][8, 8, 0] > 4.0 and faces["nx"].max() < 0.2
+    assert all(f.shape == (16, 16, 3) for f in faces.values())
+
+
+def test_ibl_cubemap_writes_six_faces_per_frame(tmp_path, capsys):
+    code = main(["ibl", "--max-frames", "1", "--exr", str(tmp_path / "hdr"), "--cubemap"])
+    capsys.readouterr()
+    assert code == 0
+    hdr = read_exr(tmp_path / "hdr" / "000000.exr")
+    for face in CUBE_FACES:
+        assert read_exr(tmp_path / "hdr" / f"000000_{face}.exr").shape == (
+            hdr.shape[0] // 2, hdr.shape[0] // 2, 3)
+    try:
+        code = main(["ibl", "--max-frames", "1", "--cubemap"])
+    except SystemExit as exc:
+        code = exc.code
+    assert code in (2, EXIT_BAD_INPUT) and "--exr" in capsys.readouterr().err
