@@ -87,8 +87,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     print(f"arlight estimate: {args.path} ({_count(n, 'frame')}, {camera.width}x{camera.height}), "
           f"preset {config.preset}, poses {args.poses}", file=sys.stderr)
     pipeline = Pipeline(config, camera, _load_scene(args, (camera.width, camera.height)))
-    composites = _composite_folder(args.composite_out)
-    environments = _composite_folder(args.env_exr, "--env-exr")
+    composites = _output_folder(args.composite_out, "--composite-out")
+    environments = _output_folder(args.env_exr, "--env-exr")
     if args.cubemap and environments is None:
         raise _BadInput("--cubemap writes faces beside the --env-exr maps: give --env-exr DIR")
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
@@ -162,20 +162,6 @@ def _load_scene(args: argparse.Namespace, image_size: tuple[int, int] = (640, 48
         return load_virtual_scene(args.scene, frame=frame)
     except SceneError as exc:
         raise _BadInput(f"--scene {args.scene}: {exc}") from None
-
-
-def _composite_folder(path: str | None, option: str = "--composite-out") -> Path | None:
-    """An output folder named by `option` (e.g. --composite-out DIR), created; None when not
-    asked for."""
-    if not path:
-        return None
-    folder = Path(path)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise _BadInput(f"{option} {path}: cannot create the folder ({exc.strerror})"
-                        ) from None
-    return folder
 
 
 def _parse_exports(text: str) -> list[str]:

@@ -54,6 +54,7 @@ import numpy as np
 from numba.extending import register_jitable
 
 from arlight.pipeline import equirect
+from arlight.pipeline.depth_filter import cuda_available  # the one probe of numba.cuda
 
 ROUGHNESS_MIN = 0.01  # the paper's fig. 6 range
 ROUGHNESS_MAX = 0.5
@@ -355,18 +356,6 @@ def specular(pyramid: MipPyramid, directions: np.ndarray, modes: np.ndarray,
 
 BACKENDS = ("cpu", "cuda")
 _CUDA_BLOCK = 128
-
-
-def cuda_available() -> bool:
-    """True when numba.cuda can be imported and sees a usable GPU (or its simulator)."""
-    try:
-        from numba import cuda as _cuda
-    except Exception:  # any import failure means no CUDA backend
-        return False
-    try:
-        return bool(_cuda.is_available())
-    except Exception:  # a broken driver means no CUDA backend
-        return False
 
 
 cuda = None  # numba.cuda, bound on first use (a module global, as depth_filter's)
