@@ -103,7 +103,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
             # the record `arlight stream --out` writes, from the Result the server would send
             record = result_record(result_message(
                 result, seq=i, counters=(i + 1, i + 1, 0), receive_time_wall=start_wall,
-                finish_time_wall=time.time()))
+                finish_time_wall=time.time(), exports=tuple(args.export or ())))
             d = result.dominant_direction_camera
             line = (f"[{i + 1:>4}/{n}] t={result.timestamp:.3f}s  light(cam)=({d[0]:+.2f}, "
                     f"{d[1]:+.2f}, {d[2]:+.2f})  intensity={result.intensity:.3g}  "
@@ -119,8 +119,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                 record["angular_error_deg"] = err
                 line += f"  error={err:.1f} deg"
             print(line, flush=True)
-            if args.export:
-                record["exports"] = _engine_exports(result, args.export)
             if out:
                 out.write(json.dumps(record) + "\n")
             if environments is not None:
@@ -164,6 +162,11 @@ def _load_scene(args: argparse.Namespace, image_size: tuple[int, int] = (640, 48
         raise _BadInput(f"--scene {args.scene}: {exc}") from None
 
 
+# `--export` names (engine_export.EXPORTERS; tests/test_engine_export.py checks they agree),
+# written out so that the help does not import the pipeline
+LAYOUT_NAMES = "arcore, webxr, gltf, unity, filament, main_light"
+
+
 def _parse_exports(text: str) -> list[str]:
     """--export arcore,webxr,...: engine layout names, checked."""
     from arlight.pipeline.engine_export import EXPORTERS
@@ -175,14 +178,6 @@ def _parse_exports(text: str) -> list[str]:
             f"unknown engine layout {', '.join(bad) or repr(text)}; choose from "
             f"{', '.join(EXPORTERS)} (comma-separated)")
     return names
-
-
-def _engine_exports(result, names: list[str]) -> dict:
-    """--export: the frame's light in each engine's layout (`engine_export.camera_exports`)."""
-    from arlight.pipeline.engine_export import camera_exports
-
-    light = result.sh_rgb if result.sh_rgb is not None else result.sh
-    return camera_exports(light, result.pose, names)
 
 
 def _write_environment(folder: Path, index: int, result, width: int, cubemap: bool) -> None:
@@ -348,7 +343,9 @@ def _stream_options(args: argparse.Namespace, source) -> object:
         overrides=overrides, want_composite=composite, timestamps=args.timestamps,
         max_frames=args.max_frames if getattr(args, "loop", False) else None,
         reconnect_timeout_s=getattr(args, "reconnect_timeout", 30.0),
-        scene=_load_scene(args), panorama=_panorama_config(args))
+        scene=_load_scene(args), panorama=_panorama_config(args),
+        exports=tuple(getattr(args, "export", None) or
+                      (recorded.exports if recorded else ())))
 
 
 def _panorama_config(args: argparse.Namespace):
@@ -409,8 +406,6 @@ def cmd_stream(args: argparse.Namespace) -> int:
         from arlight.client.recording import Recorder
 
         recorder = Recorder(args.record, source=args.source, depth_scale=source.depth_scale)
-    if args.export and not args.out:
-        raise _BadInput("--export adds to the lines --out writes: give --out FILE too")
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
     total = "loop" if options.loop else str(source.num_frames)
 
@@ -427,9 +422,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
         if out:
             from arlight.protocols import received_record
 
-            record = received_record(result, receive_time_wall)
-            if args.export:
-                record["exports"] = _engine_exports(result, args.export)
+            record = received_record(result, receive_time_wall)  # with the server's exports
             out.write(json.dumps(record) + "\n")
 
     client = CaptureClient(source, options, on_result=on_result, recorder=recorder)
@@ -962,9 +955,10 @@ def _add_stream_parser(sub) -> None:
                         "--max-frames or Ctrl-C)")
     stream.add_argument("--out", metavar="FILE", help="also write the Results as JSON lines")
     stream.add_argument("--export", type=_parse_exports, metavar="LAYOUTS",
-                        help="with --out, also the light in these engines' layouts in each "
-                             "line (\"exports\"; camera frame, the engine's axes): "
-                             "comma-separated from arcore, webxr, gltf, unity, filament")
+                        help="ask the server for the light in these engines' layouts in every "
+                             "Result (\"exports\", also in the --out lines and what displays "
+                             "receive; camera frame, the engine's axes): comma-separated from "
+                             + LAYOUT_NAMES)
     stream.add_argument("--record", metavar="FILE.mcap",
                         help="also record the stream as sent to an MCAP file")
     from arlight.pipeline.inverse_tone import OPERATORS
@@ -1012,7 +1006,7 @@ def _add_display_parser(sub) -> None:
     disp.add_argument("--export", type=_parse_exports, metavar="LAYOUTS",
                       help="with --out, also the light in these engines' layouts in each "
                            "results.jsonl line (\"exports\"; camera frame, the engine's "
-                           "axes): comma-separated from arcore, webxr, gltf, unity, filament")
+                           "axes): comma-separated from " + LAYOUT_NAMES)
     disp.add_argument("--video", metavar="FILE.mp4", help="write the composites as a video")
     disp.add_argument("--video-fps", type=_positive_float, default=15.0, metavar="FPS",
                       help="frame rate written into the video (default 15)")
@@ -1089,7 +1083,7 @@ def build_parser() -> argparse.ArgumentParser:
     est.add_argument("--export", type=_parse_exports, metavar="LAYOUTS",
                      help="also put the light in these engines' layouts into each JSON line "
                           "(\"exports\"; camera frame, the engine's axes): comma-separated "
-                          "from arcore, webxr, gltf, unity, filament")
+                          "from " + LAYOUT_NAMES)
     est.add_argument("--env-exr", metavar="DIR",
                      help="write the estimated light per frame as an equirectangular HDR map "
                           "DIR/NNNNNN.exr (OpenEXR half float, world frame, +y up)")

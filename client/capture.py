@@ -199,6 +199,8 @@ class StreamOptions:
     # the Hello's config.panorama (operator, light_source, panorama_from_world); a
     # panorama-only source (calibration None) sends PanoramaConfig() when this is None
     panorama: PanoramaConfig | None = None
+    # engine layouts (protocols.EXPORT_LAYOUTS) every Result of the session carries
+    exports: tuple[str, ...] = ()
     timestamps: str | None = None
     max_frames: int | None = None  # stop after this many frames (with --loop: in total)
     heartbeat_interval_s: float = 1.0  # until the server's Welcome says otherwise
@@ -289,7 +291,8 @@ class CaptureClient:
             mode=opts.mode, want_composite=opts.want_composite,
             scene=None if opts.scene is None else scene_spec(opts.scene),
             panorama=opts.panorama if opts.panorama is not None or
-            self.source.calibration is not None else PanoramaConfig())
+            self.source.calibration is not None else PanoramaConfig(),
+            exports=tuple(opts.exports))
         if base is not None:  # a recording: its calibration and depth scale always hold
             config = dataclasses.replace(config, calibration=base.calibration,
                                          depth_scale=base.depth_scale)

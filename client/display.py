@@ -204,12 +204,13 @@ class DisplayClient:
         if self._last_seq is not None and result.seq > self._last_seq + 1:
             s.seq_gaps += result.seq - self._last_seq - 1
         self._last_seq = result.seq
-        record = received_record(result, got.receive_time_wall)
-        if self.options.exports:
+        record = received_record(result, got.receive_time_wall)  # with the session's exports
+        if self.options.exports:  # and the layouts this display asked for, computed here
             from arlight.pipeline.engine_export import camera_exports
 
             light = result.sh_rgb if result.sh_rgb is not None else result.sh
-            record["exports"] = camera_exports(light, result.pose, self.options.exports)
+            record["exports"] = {**(result.exports or {}),
+                                 **camera_exports(light, result.pose, self.options.exports)}
         now_m = got.receive_time_mono
         s.results += 1
         s.first_receive = now_m if s.first_receive is None else s.first_receive

@@ -236,8 +236,10 @@ def main_light(sh_world: np.ndarray, engine_from_world: np.ndarray | None = None
             "intensity": [sh.intensity_along(c[ch], direction) for ch in range(3)]}
 
 
+# the layouts by name (`--export`, the protocol's EXPORT_LAYOUTS); main_light: ARCore's main
+# light / WebXR's primary light, beside the SH of "arcore" or "webxr"
 EXPORTERS = {"arcore": to_arcore, "webxr": to_webxr, "gltf": to_gltf_ibl, "unity": to_unity,
-             "filament": to_filament_text}
+             "filament": to_filament_text, "main_light": main_light}
 
 
 def camera_exports(sh_world: np.ndarray, world_from_cam: np.ndarray,

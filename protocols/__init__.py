@@ -16,6 +16,7 @@ from .container import read_container, write_container
 from .errors import ERROR_CODES, ProtocolError
 from .messages import (
     DEFAULT_MAX_MESSAGE_BYTES,
+    EXPORT_LAYOUTS,
     LIGHT_SOURCES,
     MAX_HEADER_BYTES,
     MESSAGE_TYPES,
@@ -58,6 +59,7 @@ __all__ = [
     "DEFAULT_MAX_MESSAGE_BYTES",
     "DEFAULT_MAX_PIXELS",
     "DEPTH_CODECS",
+    "EXPORT_LAYOUTS",
     "ERROR_CODES",
     "MAX_HEADER_BYTES",
     "MESSAGE_TYPES",

@@ -715,6 +715,66 @@ def _scene_object_fields(om: _Map) -> dict:
     return out
 
 
+# Hello.config.exports / Result.exports (SPEC.md section 4, "engine layouts"): optional.
+# The names of arlight.pipeline.engine_export.EXPORTERS (the protocol does not import the
+# pipeline; tests/test_protocols.py checks the two lists agree).
+EXPORT_LAYOUTS = ("arcore", "webxr", "gltf", "unity", "filament", "main_light")
+MAX_FILAMENT_TEXT = 2**17  # characters: 1024 coefficients (Result.sh's limit) of ~70 each
+
+
+def _read_export_names(v: Any, name: str) -> tuple[str, ...]:
+    """Hello.config.exports: 1..6 distinct layout names, or nil (= none)."""
+    if v is None:
+        return ()
+    if type(v) is not list or not 1 <= len(v) <= len(EXPORT_LAYOUTS):
+        raise ProtocolError("bad_field", f"expected an array of 1..{len(EXPORT_LAYOUTS)} "
+                            f"layout names, got {_tn(v)}", name)
+    names = tuple(_str(x, f"{name}[{i}]", 64, choices=EXPORT_LAYOUTS) for i, x in enumerate(v))
+    if len(set(names)) != len(names):
+        raise ProtocolError("bad_field", f"a layout named twice: {list(names)}", name)
+    return names
+
+
+def _float_rows(v: Any, name: str, rows: int, cols: int) -> list[list[float]]:
+    if type(v) is not list or len(v) != rows:
+        raise ProtocolError("bad_field", f"expected {rows} arrays of {cols} numbers, "
+                            f"got {_tn(v)}", name)
+    return [_floats(r, f"{name}[{i}]", cols) for i, r in enumerate(v)]
+
+
+def _read_layout(layout: str, v: Any, name: str) -> Any:
+    """One engine layout's numbers, checked for shape and finiteness (SPEC.md table)."""
+    if layout in ("arcore", "webxr"):
+        return _floats(v, name, 27)
+    if layout == "unity":
+        return _float_rows(v, name, 3, 9)
+    if layout == "filament":
+        return _str(v, name, MAX_FILAMENT_TEXT)
+    keys = {"gltf": ("intensity", "rotation", "irradianceCoefficients"),
+            "main_light": ("direction", "intensity")}[layout]
+    if type(v) is not dict or set(v) != set(keys):
+        raise ProtocolError("bad_field", f"expected a map with keys {', '.join(keys)}, got "
+                            f"{sorted(map(str, v)) if type(v) is dict else _tn(v)}", name)
+    if layout == "main_light":
+        return {k: _floats(v[k], f"{name}.{k}", 3) for k in keys}
+    return {"intensity": _float(v["intensity"], f"{name}.intensity"),
+            "rotation": _floats(v["rotation"], f"{name}.rotation", 4),
+            "irradianceCoefficients": _float_rows(v["irradianceCoefficients"],
+                                                  f"{name}.irradianceCoefficients", 9, 3)}
+
+
+def _read_exports(v: Any, name: str) -> dict:
+    """Result.exports: layout name -> that layout's numbers (each layout at most once)."""
+    if type(v) is not dict or not 1 <= len(v) <= len(EXPORT_LAYOUTS):
+        raise ProtocolError("bad_field", f"expected a map of 1..{len(EXPORT_LAYOUTS)} "
+                            f"layouts, got {_tn(v)}", name)
+    out = {}
+    for k, x in v.items():
+        layout = _str(k, f"{name} key", 64, choices=EXPORT_LAYOUTS)
+        out[layout] = _read_layout(layout, x, f"{name}.{layout}")
+    return out
+
+
 # Hello.config.panorama (SPEC.md section 4, "hello: the panorama light"): optional.
 LIGHT_SOURCES = ("rgbd", "panorama")
 _IDENTITY_3X3 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
@@ -773,6 +833,9 @@ class SessionConfig:
     scene: SceneSpec | None = None  # the virtual scene itself (not with virtual_scene)
     # the panorama light (optional key); with calibration None: a panorama-only session
     panorama: PanoramaConfig | None = None
+    # engine layouts (EXPORT_LAYOUTS) every Result of the session carries (optional key,
+    # capture Hellos only); () = none
+    exports: tuple[str, ...] = ()
 
     def _pack(self, parts: list) -> dict:
         out = {
@@ -791,6 +854,10 @@ class SessionConfig:
             out["scene"] = self.scene._pack(parts, "hello.config.scene")
         if self.panorama is not None:  # optional key: absent when the session has none
             out["panorama"] = self.panorama._pack("hello.config.panorama")
+        if self.exports:  # optional key: absent when the session asks for no layout
+            out["exports"] = list(_read_export_names(list(self.exports),
+                                                     "hello.config.exports"))
+            _exports_role(self.role, "hello.config.exports")
         return out
 
     @classmethod
@@ -822,9 +889,22 @@ class SessionConfig:
             raise ProtocolError(
                 "bad_field", f"give virtual_scene (a built-in scene name, here "
                 f"{virtual_scene[:64]!r}) or scene (the scene itself), not both", c.f("scene"))
+        exports: tuple[str, ...] = ()
+        if "exports" in c.d:  # optional key: absent = nil = none
+            exports = _read_export_names(c.raw("exports", nullable=True), c.f("exports"))
+            if exports:
+                _exports_role(role, c.f("exports"))
         c.done()
         return cls(session, client_name, role, calibration, depth_scale, preset, overrides,
-                   virtual_scene, mode, want_composite, scene, panorama)
+                   virtual_scene, mode, want_composite, scene, panorama, exports)
+
+
+def _exports_role(role: str, name: str) -> None:
+    """The layouts are the session's: the capture client's Hello chooses them."""
+    if role != "capture":
+        raise ProtocolError("bad_field", "only a capture Hello chooses the session's engine "
+                            "layouts (a display receives them in every Result, or computes "
+                            "its own: arlight display --export)", name)
 
 
 def _read_overrides(v: Any, name: str) -> dict[str, bool | int | float | str]:
@@ -1007,6 +1087,9 @@ class Result:
     panorama_sh: list[float] | None = None  # luminance, L^2 coefficients
     panorama_sh_rgb: list[list[float]] | None = None  # 3 x L^2, linear R, G, B
     panorama_dominant_direction: list[float] | None = None  # unit, towards the light
+    # the light in the engine layouts the session's Hello asked for (optional key: absent
+    # when it asked for none): layout name -> numbers, CAMERA frame with the engine's axes
+    exports: dict | None = None
 
     def _pack(self, parts: list) -> dict:
         out = {
@@ -1045,6 +1128,8 @@ class Result:
             out["panorama_sh_rgb"] = _float_list(self.panorama_sh_rgb, "result.panorama_sh_rgb")
             out["panorama_dominant_direction"] = _float_list(
                 self.panorama_dominant_direction, "result.panorama_dominant_direction")
+        if self.exports is not None:  # optional key: absent when the session asked for none
+            out["exports"] = _read_exports(_to_plain(self.exports), "result.exports")
         out["composite"] = None
         if self.composite is not None:
             out["composite"] = _add_image(
@@ -1092,6 +1177,8 @@ class Result:
         for key in ("server_receive_time", "server_finish_time"):
             fields[key] = h.float(key)
         fields.update(_read_panorama_light(h))
+        if "exports" in h.d:  # optional key: absent = the session asked for no layout
+            fields["exports"] = _read_exports(h.raw("exports"), h.f("exports"))
         dc = images.descriptor(h, "composite", depth=False, nullable=True)
         h.done()
         images.done(h.name)

@@ -31,6 +31,7 @@ def result_record(result: Result) -> dict:
         **({} if result.panorama_sh is None else {  # a frame with a panorama
             "panorama_sh": result.panorama_sh, "panorama_sh_rgb": result.panorama_sh_rgb,
             "panorama_dominant_direction": result.panorama_dominant_direction}),
+        **({} if result.exports is None else {"exports": result.exports}),  # Hello asked
     }
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from arlight.pipeline.engine_export import camera_exports
 from arlight.pipeline.frames import FrameResult
 from arlight.pipeline.ibl import IblResult
 from arlight.protocols import DEFAULT_JPEG_QUALITY, Result, plain_diagnostics
@@ -14,7 +15,8 @@ def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, i
                    receive_time_wall: float, finish_time_wall: float,
                    composite: np.ndarray | None = None, composite_codec: str = "jpeg",
                    jpeg_quality: int = DEFAULT_JPEG_QUALITY,
-                   panorama: IblResult | None = None) -> Result:
+                   panorama: IblResult | None = None,
+                   exports: tuple[str, ...] = ()) -> Result:
     """The Result of frame `seq`. counters: the session's (frames_received,
     frames_processed, frames_dropped); receive/finish times: wall clock, seconds;
     composite_codec, jpeg_quality: how the composite is encoded (the server: as the frame's
@@ -23,10 +25,16 @@ def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, i
     panorama: the light of the frame's 360-degree panorama, in the panorama's frame (the
     Result's optional panorama_* fields); None: the frame had none (the keys are omitted).
 
+    exports: engine layouts (engine_export.EXPORTERS names) of the frame's light (RGB when the
+    pipeline has it, else luminance) in the camera frame with each engine's axes
+    (`engine_export.camera_exports`); () = none (the Result's optional key is omitted).
+
     Raises ProtocolError (bad_field, naming `result.diagnostics.KEY`) when the pipeline's
     diagnostics hold a value the protocol does not carry.
     """
     received, processed, dropped = counters
+    light = result.sh if result.sh_rgb is None else result.sh_rgb
+    layouts = camera_exports(light, result.pose, exports) if exports else None
     return Result(
         seq=seq, timestamp=float(result.timestamp),
         sh=[float(x) for x in result.sh],
@@ -45,4 +53,5 @@ def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, i
         panorama_sh_rgb=None if panorama is None else np.asarray(panorama.sh_rgb,
                                                                  float).tolist(),
         panorama_dominant_direction=None if panorama is None else [
-            float(x) for x in panorama.dominant_direction])
+            float(x) for x in panorama.dominant_direction],
+        exports=layouts)

@@ -283,6 +283,10 @@ class Session:
         self.max_pixels = max_pixels
         self.max_message_bytes = max_message_bytes
         self.pipeline_config = pipeline_config(config)
+        if config.exports and self.pipeline_config.transfer.sh_bands < 3:
+            raise SessionSetupError("exports", f"the engine layouts hold 3 SH bands and the "
+                                    f"session estimates {self.pipeline_config.transfer.sh_bands}"
+                                    f" (override sh_bands): ask for sh_bands >= 3 or no exports")
         # a Hello without calibration (allowed with config.panorama): a panorama-only session
         self.camera = None if config.calibration is None else camera_from_config(config,
                                                                                  max_pixels)
@@ -471,7 +475,8 @@ class Session:
                                      receive_time_wall=job.receive_time_wall,
                                      finish_time_wall=finish_wall, composite=composite,
                                      composite_codec=frame.color_codec,
-                                     jpeg_quality=frame.jpeg_quality, panorama=panorama)
+                                     jpeg_quality=frame.jpeg_quality, panorama=panorama,
+                                     exports=self.config.exports)
             return JobOutcome(self, job, encode(message), True, time.monotonic())
         except Exception as exc:  # noqa: BLE001 - e.g. a non-finite estimate
             return self._failed(job, Error(

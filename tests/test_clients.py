@@ -23,7 +23,7 @@ from streaming_support import (
 )
 
 from arlight.checks import depth_metres
-from arlight.cli import EXIT_BAD_INPUT, main
+from arlight.cli import main
 from arlight.client.capture import (
     CaptureClient,
     StreamOptions,
@@ -406,19 +406,29 @@ class TestCommands:
 
     def test_stream_export_writes_engine_layouts_matching_estimates(self, make_server,
                                                                     tmp_path):
-        """`arlight stream --out F --export ...`: each line carries the layouts, the numbers
-        the exporters give for that line's own world SH and pose; --export without --out is
-        refused naming both flags."""
+        """`arlight stream --out F --export ...`: the server puts the layouts into every
+        Result (Hello config.exports), the numbers the exporters give for that Result's own
+        world SH and pose; a display of the session receives them without asking."""
         from arlight.pipeline import sh as sh_lib
         from arlight.pipeline.engine_export import to_arcore, to_webxr
 
         server = make_server(process=identity_step())
-        streamed = tmp_path / "s.jsonl"
+        streamed, shown = tmp_path / "s.jsonl", tmp_path / "shown"
+        display = DisplayClient(DisplayOptions(server=server.connect_address, session="export",
+                                               out_dir=str(shown), idle_exit_s=30.0))
+        thread = threading.Thread(target=display.run, daemon=True)
+        thread.start()
+        assert display.subscribed.wait(10)
         assert main(["stream", "synthetic", "--server", server.connect_address, "--session",
                      "export", "--mode", "lossless", "--rate", "max", "--max-frames", "2",
                      "--size", "64x48", "--out", str(streamed), "--export",
                      "arcore,webxr"]) == 0
-        for line in streamed.read_text().splitlines():
+        thread.join(30)
+        lines = streamed.read_text().splitlines()
+        displayed = [json.loads(x) for x in (shown / "results.jsonl").read_text().splitlines()]
+        assert len(lines) == len(displayed) == 2
+        assert [d["exports"] for d in displayed] == [json.loads(x)["exports"] for x in lines]
+        for line in lines:
             record = json.loads(line)
             assert set(record["exports"]) == {"arcore", "webxr"}
             light = np.asarray(record["sh_rgb"] if record["sh_rgb"] is not None
@@ -426,8 +436,6 @@ class TestCommands:
             axes = sh_lib.GL_FROM_CV @ np.asarray(record["pose"])[:3, :3].T
             np.testing.assert_allclose(record["exports"]["arcore"], to_arcore(light, axes))
             np.testing.assert_allclose(record["exports"]["webxr"], to_webxr(light, axes))
-        assert main(["stream", "synthetic", "--server", server.connect_address,
-                     "--export", "arcore"]) == EXIT_BAD_INPUT
 
     def test_record_command(self, tmp_path):
         path = tmp_path / "r.mcap"

@@ -26,6 +26,7 @@ from arlight.protocols import (
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_PIXELS,
     DEPTH_CODECS,
+    EXPORT_LAYOUTS,
     MESSAGE_TYPES,
     PROTOCOL_VERSION,
     SCENE_MAX_OBJECTS,
@@ -924,6 +925,82 @@ class TestVersion2Fields:
     def test_result_is_built_with_keywords_only(self):
         with pytest.raises(TypeError):
             Result(3, 12.5, [0.1])
+
+
+class TestEngineLayouts:
+    """Hello config.exports and Result exports (SPEC.md section 4, "engine layouts"): optional
+    keys, absent when not asked for; each layout's shape checked both ways."""
+
+    def layouts(self) -> dict:
+        return _load_vector_script().exports()
+
+    def hello(self, **kw) -> Hello:
+        return Hello(PROTOCOL_VERSION, SessionConfig(session="s", role="capture",
+                                                     calibration=calibration(), **kw))
+
+    def test_round_trip_and_absent_when_not_asked(self):
+        back = decode(encode(self.hello(exports=("unity", "arcore"))))
+        assert back.config.exports == ("unity", "arcore")
+        assert "exports" not in msgpack.unpackb(bytes(encode(self.hello())[0]), raw=False)[
+            "config"]
+        assert decode(encode(self.hello())).config.exports == ()
+        got = decode(encode(result(exports=self.layouts())))
+        assert got.exports == self.layouts()
+        assert decode(encode(result())).exports is None
+        assert "exports" not in msgpack.unpackb(bytes(encode(result())[0]), raw=False)
+
+    def test_protocol_names_are_the_exporters(self):
+        from arlight.pipeline.engine_export import EXPORTERS
+
+        assert EXPORT_LAYOUTS == tuple(EXPORTERS)
+
+    @pytest.mark.parametrize("names, field", [
+        (("arcore", "arcore"), "hello.config.exports"),
+        (("opengl",), "hello.config.exports[0]"),
+        (tuple(EXPORT_LAYOUTS) + ("arcore",), "hello.config.exports"),
+    ], ids=["twice", "unknown", "too many"])
+    def test_bad_names_refused_both_ways(self, names, field):
+        expect("bad_field", encode, self.hello(exports=names), field=field)
+        parts = encode(self.hello(exports=("arcore",)))
+        expect("bad_field", decode,
+               tamper(parts, lambda h: h["config"].update(exports=list(names))), field=field)
+
+    def test_nil_is_none_and_displays_do_not_choose(self):
+        parts = encode(self.hello(exports=("arcore",)))
+        assert decode(tamper(parts, lambda h: h["config"].update(exports=None))
+                      ).config.exports == ()
+        display = Hello(PROTOCOL_VERSION, SessionConfig(session="s", role="display",
+                                                        exports=("arcore",)))
+        expect("bad_field", encode, display, field="hello.config.exports")
+        parts = encode(Hello(PROTOCOL_VERSION, SessionConfig(session="s", role="display")))
+        expect("bad_field", decode, tamper(parts, lambda h: h["config"].update(
+            exports=["arcore"])), field="hello.config.exports")
+
+    @pytest.mark.parametrize("layout, value, field", [
+        ("arcore", [0.0] * 26, "result.exports.arcore"),
+        ("webxr", [0.0] * 26 + [math.nan], "result.exports.webxr[26]"),
+        ("unity", [[0.0] * 9] * 2, "result.exports.unity"),
+        ("unity", [[0.0] * 9, [0.0] * 9, [0.0] * 8], "result.exports.unity[2]"),
+        ("gltf", {"intensity": 1.0, "rotation": [0.0] * 4}, "result.exports.gltf"),
+        ("gltf", {"intensity": 1.0, "rotation": [0.0] * 3,
+                  "irradianceCoefficients": [[0.0] * 3] * 9}, "result.exports.gltf.rotation"),
+        ("filament", 3.0, "result.exports.filament"),
+        ("main_light", {"direction": [0.0, 1.0], "intensity": [1.0] * 3},
+         "result.exports.main_light.direction"),
+        ("opengl", [0.0], "result.exports key"),
+    ], ids=["arcore short", "webxr nan", "unity rows", "unity cols", "gltf keys",
+            "gltf rotation", "filament type", "main light", "unknown layout"])
+    def test_bad_layouts_refused_both_ways(self, layout, value, field):
+        expect("bad_field", encode, result(exports={layout: value}), field=field)
+        parts = encode(result(exports={"arcore": [0.0] * 27}))
+        expect("bad_field", decode, tamper(parts, lambda h: h.update(exports={layout: value})),
+               field=field)
+
+    def test_empty_or_non_map_exports_refused(self):
+        parts = encode(result(exports={"arcore": [0.0] * 27}))
+        for bad in ({}, None, [1.0]):
+            expect("bad_field", decode, tamper(parts, lambda h, b=bad: h.update(exports=b)),
+                   field="result.exports")
 
 
 class TestRecords:

@@ -640,6 +640,7 @@ HOSTILE = [
     ("unknown preset", False, None, "bad_field", "hello.config.preset"),
     ("unknown override", False, None, "bad_field", "hello.config.overrides"),
     ("wrong override type", False, None, "bad_field", "hello.config.overrides"),
+    ("engine layouts with 2 SH bands", False, None, "bad_field", "hello.config.exports"),
     ("a client sending a Result", False, None, "bad_state", "type"),
     ("huge declared image", True, _edit(_frame_parts(), lambda h: _set_sizes(h, 60000, 60000)),
      "too_large", "frame.color"),
@@ -669,6 +670,8 @@ def _hello_case(name: str) -> list:
         return _hello_parts(**_calibrated(overrides={"no_such_field": 1}))
     if name == "wrong override type":
         return _hello_parts(**_calibrated(overrides={"sh_bands": "many"}))
+    if name == "engine layouts with 2 SH bands":
+        return _hello_parts(**_calibrated(overrides={"sh_bands": 2}, exports=("arcore",)))
     if name == "a client sending a Result":
         return encode(Result(seq=0, timestamp=1.0, sh=[0.0], dominant_direction_camera=[0, 0, 1],
                              dominant_direction_world=[0, 0, 1], intensity=0.0, confidence={},

@@ -94,6 +94,17 @@ def scene() -> SceneSpec:
     return SceneSpec((tetra, card))
 
 
+def exports() -> dict:
+    """One of each engine layout (SPEC.md, "result: engine layouts"): shapes, not physics."""
+    c = [0.25 - 0.03125 * i for i in range(9)]
+    return {"arcore": [x * k for x in c for k in (1.0, 0.5, 0.25)],
+            "gltf": {"intensity": 1.0, "rotation": [0.0, 0.0, 0.0, 1.0],
+                     "irradianceCoefficients": [[x, x * 0.5, x * 0.25] for x in c]},
+            "unity": [c, [x * 0.5 for x in c], [x * 0.25 for x in c]],
+            "filament": "( 0.250000000000000,  0.125000000000000,  0.062500000000000); // L00\n",
+            "main_light": {"direction": [0.0, 1.0, 0.0], "intensity": [1.5, 1.25, 1.0]}}
+
+
 def vectors() -> dict[str, object]:
     cal = CameraCalibration(8, 6, 5.25, 5.5, 3.5, 2.5, "plumb_bob", (0.1, -0.05, 0.0, 0.0, 0.01))
     rgb, depth = color_8x6(), depth_8x6()
@@ -124,6 +135,9 @@ def vectors() -> dict[str, object]:
         "hello_panorama_only": Hello(PROTOCOL_VERSION, SessionConfig(
             session="golden-pano-only", role="capture", mode="lossless",
             panorama=PanoramaConfig())),
+        "hello_exports": Hello(PROTOCOL_VERSION, SessionConfig(
+            session="golden-exports", role="capture", calibration=cal, depth_scale=1000.0,
+            exports=("arcore", "gltf", "unity", "filament", "main_light"))),
         "hello_display": Hello(PROTOCOL_VERSION, SessionConfig(session="golden-1", role="display")),
         "welcome": Welcome(PROTOCOL_VERSION, "golden-1", 8, 1.0, "arlight"),
         "frame_raw_raw": Frame(7, 1234.5, rgb, depth, pose(), None, "raw", "raw"),
@@ -165,6 +179,13 @@ def vectors() -> dict[str, object]:
             panorama_sh_rgb=[[x * 2.0 for x in sh], sh, [x * 0.5 for x in sh]],
             panorama_dominant_direction=[0.0, 0.6, -0.8],
         ),
+        "result_exports": Result(
+            seq=13, timestamp=1236.5, sh=sh, sh_camera=sh,
+            dominant_direction_camera=[0.0, 1.0, 0.0],
+            dominant_direction_world=[0.0, 1.0, 0.0], intensity=1.0, confidence={"value": 0.5},
+            pose=np.eye(4).tolist(), timings_ms={}, frames_received=1, frames_processed=1,
+            frames_dropped=0, server_receive_time=7.0, server_finish_time=7.25,
+            exports=exports()),
         "result_no_composite": Result(
             seq=7, timestamp=1234.5, sh=sh, dominant_direction_camera=[0.0, 0.0, 1.0],
             dominant_direction_world=[0.0, 0.0, 1.0], intensity=0.0,

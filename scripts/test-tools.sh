@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# Test-only tools from Debian's packages, installed when missing (best effort: the tests that
+# need a tool skip, saying which package to install, when it cannot be installed here):
+#   cmgen (libfilament-tools): the Filament cross-check of tests/test_engine_export.py
+set -uo pipefail
+
+need=()
+command -v cmgen >/dev/null || need+=(libfilament-tools)
+[ ${#need[@]} -eq 0 ] && exit 0
+if [ "$(id -u)" = 0 ]; then SUDO=""; elif sudo -n true 2>/dev/null; then SUDO="sudo -n"; else
+  echo "arlight tests: not root, skipping the test tools (${need[*]}); their tests skip" >&2
+  exit 0
+fi
+command -v apt-get >/dev/null || { echo "arlight tests: no apt-get; ${need[*]} not installed" >&2; exit 0; }
+echo "arlight tests: installing test tools: ${need[*]}" >&2
+{ $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq \
+    "${need[@]}" >/dev/null; } || echo "arlight tests: could not install ${need[*]}; their tests skip" >&2
+exit 0
