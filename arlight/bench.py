@@ -168,7 +168,8 @@ def run_config(bench: BenchConfig, sequences: list[BenchSequence], warmup: int,
     for seq in sequences:
         pipeline = Pipeline(bench.config, seq.camera, scene)
         scores: dict[str, list[float]] = {"angle_upper_deg": [], "angle_deg": [],
-                                          "sh_error": [], "shading_error": []}
+                                          "sh_error": [], "shading_error": [],
+                                          "confidence": []}
         for i, frame in enumerate(seq.frames):
             out = pipeline.process(frame)
             if i >= warmup or len(seq.frames) <= warmup:
@@ -194,6 +195,7 @@ def _score(scores: dict[str, list[float]], out, truth: evaluation.FrameTruth, fr
                                                             truth.dominant_camera))
     scores["angle_upper_deg"].append(evaluation.angular_error_deg(
         out.dominant_direction_camera, truth.dominant_upper_camera))
+    scores["confidence"].append(float(out.confidence.value))
     if truth.sh_upper_world is not None:
         scores["sh_error"].append(evaluation.sh_error(out.sh, truth.sh_upper_world))
         normals = observed_normals_world(frame, camera, rng)

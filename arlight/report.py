@@ -73,7 +73,22 @@ def _accuracy(per_sequence: dict[str, dict[str, list[float]]]) -> dict | None:
         out[key] = {"median_of_medians": float(np.median(medians)) if medians else None,
                     "p90_all_frames": float(np.percentile(every, 90)) if every else None,
                     "worst_sequence_median": float(max(medians)) if medians else None}
+    out["confidence_spearman"] = confidence_spearman(scored)
     return out
+
+
+def confidence_spearman(per_sequence: dict[str, dict[str, list[float]]]) -> float | None:
+    """Spearman rank correlation over all frames between confidence.value and the angular
+    error against the upper hemisphere (negative: confidence falls as the error grows);
+    None when fewer than 3 frames or either is constant."""
+    from scipy.stats import spearmanr
+
+    pairs = [(c, e) for s in per_sequence.values()
+             for c, e in zip(s.get("confidence", []), s["angle_upper_deg"], strict=False)
+             if math.isfinite(c) and math.isfinite(e)]
+    if len(pairs) < 3 or len({c for c, _ in pairs}) < 2 or len({e for _, e in pairs}) < 2:
+        return None
+    return float(spearmanr(*zip(*pairs, strict=True)).statistic)
 
 
 def summarise(results: list, data: list[str], frames: int | None, warmup: int,
@@ -128,8 +143,8 @@ def accuracy_table(report: dict) -> str:
     """The paper's table 2, per config: angular errors (degrees) against both truths, SH and
     shading errors (scale-free, 0 = exact), and the cost."""
     rows = ["| config | upper: median of medians / p90 / worst seq. | whole sphere: median / "
-            "p90 | SH error | shading error | ms/frame |",
-            "|---|---|---|---|---|---|"]
+            "p90 | SH error | shading error | confidence vs error (Spearman) | ms/frame |",
+            "|---|---|---|---|---|---|---|"]
     for name, c in report["configs"].items():
         a = c["accuracy"]
         if a is None:
@@ -140,6 +155,7 @@ def accuracy_table(report: dict) -> str:
             f"{_num(up['worst_sequence_median'])} | {_num(whole['median_of_medians'])} / "
             f"{_num(whole['p90_all_frames'])} | {_num(a['sh_error']['median_of_medians'], '.2f')}"
             f" | {_num(a['shading_error']['median_of_medians'], '.3f')} | "
+            f"{_num(a.get('confidence_spearman'), '+.2f')} | "
             f"{_num(c['total_ms']['median'], '.0f')} |")
     return "\n".join(rows) if len(rows) > 2 else ""
 

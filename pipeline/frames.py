@@ -35,7 +35,10 @@ class Confidence:
     samples: pixels used in the least-squares fit; condition_number: of the (unregularised,
     column-scaled) normal matrix; bands_estimated: SH bands solved for (the rest are zero);
     value: overall confidence in [0, 1] (0 = no estimate possible); reason: why the value is
-    low (below light_estimation.LOW_CONFIDENCE, or 0), naming the cause ("" otherwise).
+    low (below light_estimation.LOW_CONFIDENCE, or 0), naming the cause ("" otherwise);
+    normal_spread: 1 - |mean unit normal|^2 of the pixels fitted (0 = one plane);
+    horizon_disagreement_deg: degrees between the whole-sphere direction and the one above
+    the support plane's horizon (0 without a plane). light_estimation says how each counts.
     """
 
     samples: int = 0
@@ -43,6 +46,8 @@ class Confidence:
     bands_estimated: int = 0
     value: float = 0.0
     reason: str = ""
+    normal_spread: float = 0.0
+    horizon_disagreement_deg: float = 0.0
 
     def to_dict(self) -> dict:
         cond = self.condition_number
@@ -53,6 +58,8 @@ class Confidence:
             "bands_estimated": int(self.bands_estimated),
             "value": float(self.value),
             "reason": self.reason,
+            "normal_spread": float(self.normal_spread),
+            "horizon_disagreement_deg": float(self.horizon_disagreement_deg),
         }
 
 
