@@ -3,28 +3,39 @@ written as `arlight stream` would send it, no server needed).
 
 The format, and its reader, are arlight.sources.recording: one MCAP file, the Hello on
 `/arlight/hello`, every Frame exactly as sent on `/arlight/frame` (msgpack arrays of the
-ZeroMQ message parts), a JSON `/arlight/frame_info` channel for generic tools and an
-`arlight` metadata record.
+ZeroMQ message parts; the bit-exact replay reads these), a JSON `/arlight/frame_info`
+channel and an `arlight` metadata record. Beside them, for Foxglove and the `mcap` CLI,
+the same stream in Foxglove's own schemas (client/foxglove_messages.py): `/camera/color`,
+`/camera/depth`, `/camera/calibration`, `/tf`; and, where the recorder sees Results
+(`arlight stream --record`, `arlight display --record`), each Result as received on
+`/arlight/result` (msgpack parts) plus `/arlight/composite`, `/arlight/light` and the JSON
+`/arlight/lighting`.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 
 import msgpack
 
 from arlight import __version__
+from arlight.client import foxglove_messages as fx
 from arlight.client.capture import CaptureClient, encoded_frames
-from arlight.protocols import PROTOCOL_VERSION, encode, peek_header
+from arlight.client.foxglove_sinks import McapSink, publish_frame, publish_result
+from arlight.protocols import PROTOCOL_VERSION, Hello, ProtocolError, decode, encode, peek_header
 from arlight.sources.recording import (
     FRAME_TOPIC,
     HELLO_TOPIC,
     INFO_TOPIC,
     MESSAGE_ENCODING,
     PROFILE,
+    RESULT_TOPIC,
 )
+
+log = logging.getLogger(__name__)
 
 FRAME_INFO_SCHEMA = {
     "title": "arlight.FrameInfo",
@@ -47,9 +58,13 @@ def _pack_parts(parts) -> bytes:
 
 
 class Recorder:
-    """Writes one stream to an MCAP file. Use as a context manager, or call close()."""
+    """Writes one stream to an MCAP file. Use as a context manager, or call close().
 
-    def __init__(self, path: str | Path, source: str = "", depth_scale: float | None = None):
+    foxglove: also write the Foxglove channels (False: only arlight's own, as before).
+    """
+
+    def __init__(self, path: str | Path, source: str = "", depth_scale: float | None = None,
+                 foxglove: bool = True):
         from mcap.writer import CompressionType, Writer
 
         self.path = Path(path)
@@ -64,16 +79,30 @@ class Recorder:
         self._hello = self._writer.register_channel(HELLO_TOPIC, MESSAGE_ENCODING, 0, meta)
         self._frame = self._writer.register_channel(FRAME_TOPIC, MESSAGE_ENCODING, 0, meta)
         self._info = self._writer.register_channel(INFO_TOPIC, "json", info_schema)
+        self._result: int | None = None
+        self._meta = meta
+        self._foxglove = McapSink(self._writer) if foxglove else None
+        self._calibration = None
+        self._frame_poses = False
         self._writer.add_metadata("arlight", {
             "arlight_version": __version__, "protocol_version": str(PROTOCOL_VERSION),
             "source": source, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "depth_scale": "" if depth_scale is None else repr(float(depth_scale))})
         self.frames = 0
+        self.results = 0
         self._closed = False
 
     def write_hello(self, parts, log_time_ns: int) -> None:
         self._writer.add_message(self._hello, log_time=log_time_ns, data=_pack_parts(parts),
                                  publish_time=log_time_ns, sequence=0)
+        if self._foxglove is None:
+            return
+        hello = decode(parts)
+        if isinstance(hello, Hello):
+            self._calibration = hello.config.calibration
+            self._foxglove.set_channel_metadata(fx.DEPTH_TOPIC, {
+                "depth_scale": repr(float(hello.config.depth_scale)),
+                "units": "depth_scale units per metre; 0 = missing"})
 
     def write_frame(self, parts, log_time_ns: int | None = None) -> None:
         """One Frame as sent; log_time_ns None = the frame's own timestamp."""
@@ -91,6 +120,34 @@ class Recorder:
         self._writer.add_message(self._info, log_time=log_ns, data=json.dumps(info).encode(),
                                  publish_time=stamp_ns, sequence=self.frames)
         self.frames += 1
+        if self._foxglove is not None:
+            try:
+                frame = decode(parts)
+            except ProtocolError as exc:  # recorded as sent; the server will say so too
+                log.warning("frame %s not written to the Foxglove channels: %s",
+                            header.get("seq"), exc)
+                return
+            self._frame_poses = self._frame_poses or frame.pose is not None
+            publish_frame(self._foxglove, header, parts, frame, self._calibration, log_ns)
+
+    def write_result(self, result, record: dict, parts=None,
+                     log_time_ns: int | None = None) -> None:
+        """One Result as received: its message parts (when given) on /arlight/result, and
+        the Foxglove channels of it. record: protocols.received_record of it; log_time_ns
+        None = the receive time."""
+        log_ns = (int(round(record["receive_time"] * 1e9)) if log_time_ns is None
+                  else int(log_time_ns))
+        if parts is not None:
+            if self._result is None:
+                self._result = self._writer.register_channel(RESULT_TOPIC, MESSAGE_ENCODING, 0,
+                                                             self._meta)
+            self._writer.add_message(self._result, log_time=log_ns, data=_pack_parts(parts),
+                                     publish_time=int(round(result.timestamp * 1e9)),
+                                     sequence=self.results)
+        self.results += 1
+        if self._foxglove is not None:
+            publish_result(self._foxglove, result, record, log_ns,
+                           with_pose=not self._frame_poses)
 
     def close(self) -> None:
         if not self._closed:

@@ -1,0 +1,151 @@
+"""Where the Foxglove messages go: an MCAP file (`McapSink`, beside arlight's own channels)
+or Foxglove's WebSocket protocol, live (`LiveSink`, the foxglove-sdk's server); and the two
+publishers that feed either: `publish_frame` (a capture Frame) and `publish_result` (a Result).
+
+A sink has `log(topic, message, log_time_ns)` for a `foxglove.messages` object (protobuf,
+the schema from the class), `log_json(topic, schema, data, log_time_ns)` for a JSON message
+with its JSON Schema, and `close()`. log_time_ns: nanoseconds since the Unix epoch.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping
+
+import numpy as np
+
+from arlight.client import foxglove_messages as fx
+
+log = logging.getLogger(__name__)
+
+
+class McapSink:
+    """Foxglove channels in an open `mcap.writer.Writer`; schemas registered once per type,
+    channels once per topic (protobuf schema = the FileDescriptorSet foxglove-sdk ships)."""
+
+    def __init__(self, writer, channel_metadata: Mapping[str, Mapping[str, str]] | None = None):
+        self._writer = writer
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._sequence: dict[str, int] = {}
+        self._metadata = {k: dict(v) for k, v in (channel_metadata or {}).items()}
+
+    def _channel(self, topic: str, schema_name: str, schema_encoding: str, schema_data: bytes,
+                 message_encoding: str) -> int:
+        if topic not in self._channels:
+            if schema_name not in self._schemas:
+                self._schemas[schema_name] = self._writer.register_schema(
+                    name=schema_name, encoding=schema_encoding, data=schema_data)
+            self._channels[topic] = self._writer.register_channel(
+                topic, message_encoding, self._schemas[schema_name],
+                self._metadata.get(topic, {}))
+        return self._channels[topic]
+
+    def set_channel_metadata(self, topic: str, metadata: Mapping[str, str]) -> None:
+        """Metadata for `topic`'s channel (before its first message), e.g. depth_scale."""
+        self._metadata[topic] = dict(metadata)
+
+    def _write(self, topic: str, channel: int, data: bytes, log_time_ns: int) -> None:
+        seq = self._sequence.get(topic, 0)
+        self._sequence[topic] = seq + 1
+        self._writer.add_message(channel, log_time=int(log_time_ns), data=data,
+                                 publish_time=int(log_time_ns), sequence=seq)
+
+    def log(self, topic: str, message, log_time_ns: int) -> None:
+        schema = type(message).get_schema()
+        channel = self._channel(topic, schema.name, schema.encoding, bytes(schema.data),
+                                schema.encoding)
+        self._write(topic, channel, message.encode(), log_time_ns)
+
+    def log_json(self, topic: str, schema: Mapping, data: Mapping, log_time_ns: int) -> None:
+        channel = self._channel(topic, str(schema.get("title", topic)), "jsonschema",
+                                json.dumps(schema).encode(), "json")
+        self._write(topic, channel, json.dumps(data).encode(), log_time_ns)
+
+    def close(self) -> None:
+        """Nothing of its own: the writer's owner finishes the file."""
+
+
+class LiveSink:
+    """Foxglove's WebSocket server (foxglove-sdk `start_server`) on host:port, in its own
+    logging context, so that the Foxglove app (Open connection -> ws://HOST:PORT) shows the
+    session while it runs. port 0 = any free port (`self.port` says which)."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 8765, name: str = "arlight",
+                 channel_metadata: Mapping[str, Mapping[str, str]] | None = None):
+        import foxglove
+
+        self._foxglove = foxglove
+        self._context = foxglove.Context()
+        self._channels: dict[str, object] = {}
+        self._metadata = {k: dict(v) for k, v in (channel_metadata or {}).items()}
+        try:
+            self._server = foxglove.start_server(name=name, host=host, port=int(port),
+                                                 context=self._context)
+        except Exception as exc:  # the SDK raises its own error types for bind failures
+            raise OSError(f"cannot serve Foxglove's WebSocket protocol on {host}:{port}: "
+                          f"{exc}") from None
+        self.host = host
+        self.port = int(self._server.port)
+
+    def log(self, topic: str, message, log_time_ns: int) -> None:
+        channel = self._channels.get(topic)
+        if channel is None:
+            channel_type = getattr(self._foxglove.channels, type(message).__name__ + "Channel")
+            channel = channel_type(topic, context=self._context,
+                                   metadata=self._metadata.get(topic))
+            self._channels[topic] = channel
+        channel.log(message, log_time=int(log_time_ns))
+
+    def log_json(self, topic: str, schema: Mapping, data: Mapping, log_time_ns: int) -> None:
+        channel = self._channels.get(topic)
+        if channel is None:
+            channel = self._foxglove.Channel(topic, schema=dict(schema), context=self._context,
+                                             metadata=self._metadata.get(topic))
+            self._channels[topic] = channel
+        channel.log(dict(data), log_time=int(log_time_ns))
+
+    def close(self) -> None:
+        self._server.stop()
+
+
+def publish_frame(sink, header: Mapping, parts, frame, calibration,
+                  log_time_ns: int) -> None:
+    """One capture Frame on the camera topics: colour (its JPEG/PNG as sent, raw as rgb8),
+    depth (16UC1, wire units), the calibration (protocols CameraCalibration or None) and, when
+    the frame has a pose, /tf. header: the Frame's msgpack header (peek_header), parts: its
+    message parts, frame: the decoded protocols Frame. Panorama-only frames log nothing."""
+    if frame.color is None:
+        return
+    stamp_s = float(frame.timestamp)
+    descriptor = header.get("color") or {}
+    index = descriptor.get("buffer")
+    buffers = list(parts)[1:]  # the descriptor's "buffer" counts the parts after the header
+    payload = buffers[index] if isinstance(index, int) and 0 <= index < len(buffers) else None
+    sink.log(fx.COLOR_TOPIC, fx.color_image(descriptor, payload, frame.color, stamp_s),
+             log_time_ns)
+    sink.log(fx.DEPTH_TOPIC, fx.depth_image(frame.depth, stamp_s), log_time_ns)
+    if calibration is not None:
+        sink.log(fx.CALIBRATION_TOPIC, fx.camera_calibration(calibration, stamp_s),
+                 log_time_ns)
+    if frame.pose is not None:
+        sink.log(fx.TF_TOPIC, fx.camera_transform(frame.pose, stamp_s), log_time_ns)
+
+
+def publish_result(sink, result, record: Mapping, log_time_ns: int,
+                   with_pose: bool = True) -> None:
+    """One Result: the composite (if it carries one), the light in 3D, the lighting JSON and
+    (with_pose) its camera pose on /tf. record: protocols.received_record of the Result."""
+    stamp_s = float(result.timestamp)
+    if result.composite is not None:
+        sink.log(fx.COMPOSITE_TOPIC, fx.composite_image(result.composite, stamp_s),
+                 log_time_ns)
+    if with_pose and result.pose is not None:
+        sink.log(fx.TF_TOPIC, fx.camera_transform(np.asarray(result.pose), stamp_s),
+                 log_time_ns)
+    confidence = float((result.confidence or {}).get("value", 0.0) or 0.0)
+    sink.log(fx.LIGHT_TOPIC, fx.light_scene(result.dominant_direction_world, confidence,
+                                            stamp_s), log_time_ns)
+    sink.log_json(fx.LIGHTING_TOPIC, fx.LIGHTING_SCHEMA, fx.lighting_message(record),
+                  log_time_ns)
