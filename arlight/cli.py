@@ -424,12 +424,15 @@ def cmd_stream(args: argparse.Namespace) -> int:
               + ("" if result.panorama_dominant_direction is None else "  panorama light=("
                  + ", ".join(f"{x:+.2f}" for x in result.panorama_dominant_direction) + ")"),
               flush=True)
-        if out:
+        if out or recorder is not None:
             from arlight.protocols import received_record
 
             record = received_record(result, receive_time_wall)
+        if recorder is not None:  # the Foxglove channels of the Result beside the frames
+            recorder.write_result(result, record)
+        if out:
             if args.export:
-                record["exports"] = _engine_exports(result, args.export)
+                record = {**record, "exports": _engine_exports(result, args.export)}
             out.write(json.dumps(record) + "\n")
 
     client = CaptureClient(source, options, on_result=on_result, recorder=recorder)
@@ -502,16 +505,33 @@ def cmd_display(args: argparse.Namespace) -> int:
         raise _BadInput(f"--video expects an .mp4 file, got {args.video!r}")
     if args.export and not args.out:
         raise _BadInput("--export adds to the results.jsonl that --out writes: give --out DIR")
+    if args.record and not args.record.lower().endswith(".mcap"):
+        raise _BadInput(f"--record must name an .mcap file, got {args.record!r}")
+    if args.port is not None and not args.foxglove:
+        raise _BadInput("--port is the port of --foxglove: give --foxglove too")
+    foxglove = (args.foxglove_host, 8765 if args.port is None else args.port) \
+        if args.foxglove else None
+    http = None
+    if args.http:
+        from arlight.client.web_display import parse_http_address
+
+        try:
+            http = parse_http_address(args.http)
+        except ValueError as exc:
+            raise _BadInput(str(exc)) from None
     options = DisplayOptions(server=args.server, session=args.session, out_dir=args.out,
-                             exports=tuple(args.export or ()),
+                             exports=tuple(args.export or ()), record=args.record,
+                             foxglove=foxglove, http=http,
                              video=args.video, video_fps=args.video_fps,
                              max_results=args.max_results, idle_exit_s=args.idle_exit,
                              follow=args.follow, reconnect_timeout_s=args.reconnect_timeout)
     print(f"arlight display: session {args.session!r} on {args.server}"
           + (f", writing {args.out}/results.jsonl and {args.out}/frames/" if args.out else "")
-          + (f", video {args.video}" if args.video else ""), file=sys.stderr, flush=True)
+          + (f", video {args.video}" if args.video else "")
+          + (f", recording {args.record}" if args.record else ""), file=sys.stderr, flush=True)
+    client = DisplayClient(options, printer=print_line)
     try:
-        summary = DisplayClient(options, printer=print_line).run()
+        summary = client.run()
     except DisplayError as exc:
         print(f"arlight display: error: {exc}", file=sys.stderr)
         return 1
@@ -522,6 +542,12 @@ def cmd_display(args: argparse.Namespace) -> int:
     print(f"arlight display: {info['results']} results ({info['composites']} composites), "
           f"{info['fps']:.1f} fps, {latency}; {info['results_missed']} missed; "
           f"{'stream ended' if info['stream_ended'] else 'stopped'}", file=sys.stderr)
+    if client.plot_path is not None:
+        print(f"arlight display: latency and fps over time in {client.plot_path}",
+              file=sys.stderr)
+    if args.record:
+        print(f"arlight display: recorded {_count(info['results'], 'result')} to "
+              f"{args.record} (Foxglove opens it; topics in the README)", file=sys.stderr)
     return 0
 
 
@@ -997,6 +1023,16 @@ def _add_record_parser(sub) -> None:
     rec.set_defaults(func=cmd_record)
 
 
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port 0..65535, got {text!r}")
+    return value
+
+
 def _add_display_parser(sub) -> None:
     disp = sub.add_parser(
         "display", help="subscribe to a session: write its Results and composites, print fps",
@@ -1022,6 +1058,20 @@ def _add_display_parser(sub) -> None:
                       help="exit after S seconds without a result")
     disp.add_argument("--follow", action="store_true",
                       help="keep waiting when the stream ends (for the next stream)")
+    disp.add_argument("--record", metavar="FILE.mcap",
+                      help="record the Results to an MCAP file: as received (/arlight/result) "
+                           "and in Foxglove's schemas (composite, light, lighting JSON, /tf)")
+    disp.add_argument("--foxglove", action="store_true",
+                      help="serve the session live over Foxglove's WebSocket protocol (open "
+                           "ws://HOST:PORT in the Foxglove app)")
+    disp.add_argument("--port", type=_port, metavar="P",
+                      help="with --foxglove: its port (default 8765; 0 = any free port)")
+    disp.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
+                      help="with --foxglove: the address to bind (default 127.0.0.1; 0.0.0.0 "
+                           "for other machines)")
+    disp.add_argument("--http", metavar="[HOST:]PORT",
+                      help="serve a live page for a browser on this address (HOST default "
+                           "127.0.0.1; 0.0.0.0:PORT for a tablet on the network)")
     _add_reconnect_timeout(disp)
     disp.set_defaults(func=cmd_display)
 

@@ -24,6 +24,7 @@ class Received(NamedTuple):
     message: object
     receive_time_wall: float  # time.time(), seconds
     receive_time_mono: float  # time.monotonic(), seconds
+    parts: tuple = ()  # the message's parts as received (buffers), for recorders
 
 
 def open_dealer(context: zmq.Context, server: str, *, rcvhwm: int, sndhwm: int | None = None,
@@ -53,8 +54,9 @@ def receive_message(sock: zmq.Socket, timeout_s: float, log: logging.Logger
         return None
     parts = sock.recv_multipart(copy=False)
     wall, mono = time.time(), time.monotonic()
+    buffers = tuple(p.buffer for p in parts)
     try:
-        return Received(decode([p.buffer for p in parts]), wall, mono)
+        return Received(decode(list(buffers)), wall, mono, buffers)
     except ProtocolError as exc:
         log.warning("undecodable message from the server ignored: %s", exc)
         return Received(exc, wall, mono)
