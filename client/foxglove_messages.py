@@ -78,9 +78,13 @@ LIGHTING_SCHEMA = {
 
 
 def timestamp(seconds: float) -> fm.Timestamp:
-    """A Foxglove Timestamp of a time in seconds (float64, any epoch)."""
-    ns = int(round(float(seconds) * 1e9))
-    return fm.Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
+    """A Foxglove Timestamp of a time in seconds (float64, any epoch >= 0); whole seconds
+    split off first, so that nanoseconds survive at Unix-epoch magnitudes."""
+    whole = math.floor(float(seconds))
+    nsec = int(round((float(seconds) - whole) * 1e9))
+    if nsec >= 1_000_000_000:
+        whole, nsec = whole + 1, nsec - 1_000_000_000
+    return fm.Timestamp(sec=int(whole), nsec=nsec)
 
 
 def quaternion(rotation: np.ndarray) -> fm.Quaternion:

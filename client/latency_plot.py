@@ -14,15 +14,16 @@ FPS_WINDOW_S = 1.0
 
 
 def fps_over_time(receive_s: Sequence[float], window_s: float = FPS_WINDOW_S) -> np.ndarray:
-    """Results per second at each receive time: the Results received in the `window_s`
-    seconds up to it (receive_s: increasing, seconds on one clock)."""
+    """Results per second at each receive time (receive_s: increasing, seconds on one
+    clock): the intervals between the Results of the last `window_s` seconds (this one
+    included) over the time they span; 0 where there is no interval yet."""
     t = np.asarray(receive_s, dtype=np.float64)
     if t.size == 0:
         return np.zeros(0)
-    first = np.searchsorted(t, t - window_s, side="right")
-    count = np.arange(t.size) - first  # Results in (t - window, t), this one excluded
-    span = np.minimum(t - t[0], window_s)
-    return np.where(span > 0, count / np.maximum(span, 1e-9), 0.0)
+    first = np.searchsorted(t, t - window_s, side="left")
+    intervals = np.arange(t.size) - first
+    span = t - t[first]
+    return np.where(span > 0, intervals / np.maximum(span, 1e-12), 0.0)
 
 
 def write_latency_plot(path: str | Path, receive_s: Sequence[float],
