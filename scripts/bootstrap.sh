@@ -2,8 +2,17 @@
 # Set up everything arlight needs on a fresh Debian/Ubuntu machine (idempotent, quick when done):
 # the system libraries Open3D loads, a virtual environment in .venv, and arlight installed
 # into it in editable mode with its test tools, and the Numba kernels compiled into their cache.
+# --chromium (run-tests.sh passes it): also Debian's `chromium`, which the browser display's
+# test drives headless; where it cannot be installed (no apt, no root), that test skips.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+want_chromium=0
+for arg in "$@"; do
+  case "$arg" in
+    --chromium) want_chromium=1 ;;
+    *) echo "arlight: unknown option $arg (scripts/bootstrap.sh [--chromium])" >&2; exit 2 ;;
+  esac
+done
 
 PYTHON=${PYTHON:-python3}
 if ! command -v "$PYTHON" >/dev/null; then
@@ -40,4 +49,20 @@ if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; th
   # compile the Numba kernels now (a minute or two, once), not on a user's first frames
   .venv/bin/python -m arlight.warmup
   echo "$want" > "$stamp"
+fi
+
+if [ "$want_chromium" = 1 ] && [ -z "${ARLIGHT_NO_CHROMIUM:-}" ] \
+    && ! command -v chromium >/dev/null && ! command -v chromium-browser >/dev/null; then
+  if command -v apt-get >/dev/null && { [ "$(id -u)" = 0 ] || sudo -n true 2>/dev/null; }; then
+    SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo -n"
+    echo "arlight: installing chromium (headless) for the browser display's test" >&2
+    if ! { $SUDO apt-get update -qq \
+           && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium >/dev/null; }
+    then
+      echo "arlight: could not install chromium; the browser display's test will skip" >&2
+    fi
+  else
+    echo "arlight: no chromium and no apt/root to install it; the browser display's test" \
+         "will skip (apt-get install chromium to run it)" >&2
+  fi
 fi
