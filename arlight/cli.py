@@ -571,8 +571,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"{_figure(lat['median'], '.0f')} ms (p95 {_figure(lat['p95'], '.0f')}, lossless: "
           f"includes queueing); median stage ms: {stages}; dominant light error median "
           f"{_figure(err['median'], '.1f')} deg", file=sys.stderr)
+    plot = Path(args.out) / "latency.png"
     print(f"wrote {args.out}/frames/ ({summary['composites']} composites), "
-          f"{args.out}/results.jsonl, {args.out}/summary.json in "
+          f"{args.out}/results.jsonl, {args.out}/summary.json"
+          + (f", {plot} (latency and fps over time)" if plot.exists() else "") + " in "
           f"{time.perf_counter() - t0:.0f} s", file=sys.stderr)
     complete = summary["results"] == summary["frames_sent"] == args.frames
     if not complete:
