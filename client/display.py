@@ -192,7 +192,8 @@ class DisplayClient:
                 from arlight.client.recording import Recorder
 
                 Path(opts.record).parent.mkdir(parents=True, exist_ok=True)
-                self.recorder = Recorder(opts.record, source=f"display {opts.session}")
+                self.recorder = Recorder(opts.record, source=f"display {opts.session}",
+                                         frames=False)
             if opts.foxglove is not None:
                 from arlight.client.foxglove_sinks import LiveSink
 

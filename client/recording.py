@@ -61,10 +61,12 @@ class Recorder:
     """Writes one stream to an MCAP file. Use as a context manager, or call close().
 
     foxglove: also write the Foxglove channels (False: only arlight's own, as before).
+    frames: register the Hello, Frame and frame-info channels (False: a display's recording,
+    Results only; write_hello / write_frame then refuse).
     """
 
     def __init__(self, path: str | Path, source: str = "", depth_scale: float | None = None,
-                 foxglove: bool = True):
+                 foxglove: bool = True, frames: bool = True):
         from mcap.writer import CompressionType, Writer
 
         self.path = Path(path)
@@ -76,9 +78,11 @@ class Recorder:
             data=json.dumps(FRAME_INFO_SCHEMA).encode())
         meta = {"protocol_version": str(PROTOCOL_VERSION),
                 "data": "msgpack array of the ZeroMQ message parts as sent"}
-        self._hello = self._writer.register_channel(HELLO_TOPIC, MESSAGE_ENCODING, 0, meta)
-        self._frame = self._writer.register_channel(FRAME_TOPIC, MESSAGE_ENCODING, 0, meta)
-        self._info = self._writer.register_channel(INFO_TOPIC, "json", info_schema)
+        self._hello = self._frame = self._info = None
+        if frames:
+            self._hello = self._writer.register_channel(HELLO_TOPIC, MESSAGE_ENCODING, 0, meta)
+            self._frame = self._writer.register_channel(FRAME_TOPIC, MESSAGE_ENCODING, 0, meta)
+            self._info = self._writer.register_channel(INFO_TOPIC, "json", info_schema)
         self._result: int | None = None
         self._meta = meta
         self._foxglove = McapSink(self._writer) if foxglove else None
@@ -87,12 +91,15 @@ class Recorder:
         self._writer.add_metadata("arlight", {
             "arlight_version": __version__, "protocol_version": str(PROTOCOL_VERSION),
             "source": source, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "content": "stream" if frames else "results",
             "depth_scale": "" if depth_scale is None else repr(float(depth_scale))})
         self.frames = 0
         self.results = 0
         self._closed = False
 
     def write_hello(self, parts, log_time_ns: int) -> None:
+        if self._hello is None:
+            raise ValueError("this Recorder records Results only (frames=False)")
         self._writer.add_message(self._hello, log_time=log_time_ns, data=_pack_parts(parts),
                                  publish_time=log_time_ns, sequence=0)
         if self._foxglove is None:
@@ -106,6 +113,8 @@ class Recorder:
 
     def write_frame(self, parts, log_time_ns: int | None = None) -> None:
         """One Frame as sent; log_time_ns None = the frame's own timestamp."""
+        if self._frame is None:
+            raise ValueError("this Recorder records Results only (frames=False)")
         header = peek_header(parts)
         stamp_ns = int(round(float(header["timestamp"]) * 1e9))
         log_ns = stamp_ns if log_time_ns is None else int(log_time_ns)

@@ -187,6 +187,8 @@ class TestDisplayRecord:
         thread.join(30)
         assert not thread.is_alive()
         topics = read_topics(path)
+        assert set(topics) == {RESULT_TOPIC, fx.COMPOSITE_TOPIC, fx.TF_TOPIC, fx.LIGHT_TOPIC,
+                               fx.LIGHTING_TOPIC}  # no empty Hello / Frame channels
         results = [decode(unpack_parts(m.data, "r")) for _, m, _, _ in topics[RESULT_TOPIC]]
         assert [r.seq for r in results] == [r.seq for r in got] == list(range(5))
         assert [r.sh for r in results] == [r.sh for r in got]
