@@ -400,17 +400,29 @@ def _open_stream_source_rgbd(args: argparse.Namespace, open_source):
 
 def cmd_stream(args: argparse.Namespace) -> int:
     from arlight.client.capture import CaptureClient, StreamError
+    from arlight.client.foxglove_sinks import Recorders
     from arlight.protocols.records import pipeline_ms
 
     source = _open_stream_source(args)
     options = _stream_options(args, source)
+    if args.export and not args.out:
+        raise _BadInput("--export adds to the lines --out writes: give --out FILE too")
+    live = None
+    foxglove = _foxglove_address(args)
+    if foxglove is not None:
+        from arlight.client.foxglove_sinks import FoxgloveStream, LiveSink
+
+        try:
+            live = FoxgloveStream(LiveSink(*foxglove, name=f"arlight stream {args.source}"))
+        except OSError as exc:
+            raise _BadInput(f"--foxglove/--port: {exc}") from None
+        print(f"arlight stream: Foxglove WebSocket on ws://{foxglove[0]}:{live.sink.port}",
+              file=sys.stderr, flush=True)
     recorder = None
     if args.record:
         from arlight.client.recording import Recorder
 
         recorder = Recorder(args.record, source=args.source, depth_scale=source.depth_scale)
-    if args.export and not args.out:
-        raise _BadInput("--export adds to the lines --out writes: give --out FILE too")
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
     total = "loop" if options.loop else str(source.num_frames)
 
@@ -424,18 +436,21 @@ def cmd_stream(args: argparse.Namespace) -> int:
               + ("" if result.panorama_dominant_direction is None else "  panorama light=("
                  + ", ".join(f"{x:+.2f}" for x in result.panorama_dominant_direction) + ")"),
               flush=True)
-        if out or recorder is not None:
+        if out or recorder is not None or live is not None:
             from arlight.protocols import received_record
 
             record = received_record(result, receive_time_wall)
         if recorder is not None:  # the Foxglove channels of the Result beside the frames
             recorder.write_result(result, record)
+        if live is not None:
+            live.write_result(result, record, time.time_ns())
         if out:
             if args.export:
                 record = {**record, "exports": _engine_exports(result, args.export)}
             out.write(json.dumps(record) + "\n")
 
-    client = CaptureClient(source, options, on_result=on_result, recorder=recorder)
+    sinks = recorder if live is None else Recorders(recorder, live)
+    client = CaptureClient(source, options, on_result=on_result, recorder=sinks)
     size = ("panorama only" if source.calibration is None
             else f"{source.calibration.width}x{source.calibration.height}")
     print(f"arlight stream: {args.source} ({_count(source.num_frames, 'frame')}, "
@@ -455,6 +470,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
             out.close()
         if recorder is not None:
             recorder.close()
+        if live is not None:
+            live.close()
     lat = summary.latencies_s
     drops = (f"{summary.frames_dropped} dropped by the server (live: newest frame wins), "
              f"{summary.frames_not_sent} not sent (send queue full), "
@@ -507,10 +524,7 @@ def cmd_display(args: argparse.Namespace) -> int:
         raise _BadInput("--export adds to the results.jsonl that --out writes: give --out DIR")
     if args.record and not args.record.lower().endswith(".mcap"):
         raise _BadInput(f"--record must name an .mcap file, got {args.record!r}")
-    if args.port is not None and not args.foxglove:
-        raise _BadInput("--port is the port of --foxglove: give --foxglove too")
-    foxglove = (args.foxglove_host, 8765 if args.port is None else args.port) \
-        if args.foxglove else None
+    foxglove = _foxglove_address(args)
     http = None
     if args.http:
         from arlight.client.web_display import parse_http_address
@@ -995,6 +1009,8 @@ def _add_stream_parser(sub) -> None:
                              "comma-separated from arcore, webxr, gltf, unity, filament")
     stream.add_argument("--record", metavar="FILE.mcap",
                         help="also record the stream as sent to an MCAP file")
+    _add_foxglove_options(stream, "the camera (colour, depth, calibration, pose) and the "
+                                  "Results that come back")
     from arlight.pipeline.inverse_tone import OPERATORS
 
     stream.add_argument("--panorama", metavar="FILE",
@@ -1035,6 +1051,27 @@ def _port(text: str) -> int:
     return value
 
 
+def _add_foxglove_options(parser, what: str) -> None:
+    """--foxglove, --port, --foxglove-host (stream and display)."""
+    parser.add_argument("--foxglove", action="store_true",
+                        help=f"serve {what} live over Foxglove's WebSocket protocol (open "
+                             "ws://HOST:PORT in the Foxglove app)")
+    parser.add_argument("--port", type=_port, metavar="P",
+                        help="with --foxglove: its port (default 8765; 0 = any free port)")
+    parser.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
+                        help="with --foxglove: the address to bind (default 127.0.0.1; "
+                             "0.0.0.0 for other machines)")
+
+
+def _foxglove_address(args: argparse.Namespace) -> tuple[str, int] | None:
+    """(host, port) of --foxglove, or None; --port without --foxglove is refused."""
+    if args.port is not None and not args.foxglove:
+        raise _BadInput("--port is the port of --foxglove: give --foxglove too")
+    if not args.foxglove:
+        return None
+    return args.foxglove_host, 8765 if args.port is None else args.port
+
+
 def _add_display_parser(sub) -> None:
     disp = sub.add_parser(
         "display", help="subscribe to a session: write its Results and composites, print fps",
@@ -1063,14 +1100,7 @@ def _add_display_parser(sub) -> None:
     disp.add_argument("--record", metavar="FILE.mcap",
                       help="record the Results to an MCAP file: as received (/arlight/result) "
                            "and in Foxglove's schemas (composite, light, lighting JSON, /tf)")
-    disp.add_argument("--foxglove", action="store_true",
-                      help="serve the session live over Foxglove's WebSocket protocol (open "
-                           "ws://HOST:PORT in the Foxglove app)")
-    disp.add_argument("--port", type=_port, metavar="P",
-                      help="with --foxglove: its port (default 8765; 0 = any free port)")
-    disp.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
-                      help="with --foxglove: the address to bind (default 127.0.0.1; 0.0.0.0 "
-                           "for other machines)")
+    _add_foxglove_options(disp, "the session's Results (composite, light, lighting, pose)")
     disp.add_argument("--http", metavar="[HOST:]PORT",
                       help="serve a live page for a browser on this address (HOST default "
                            "127.0.0.1; 0.0.0.0:PORT for a tablet on the network)")

@@ -1,6 +1,8 @@
 """Where the Foxglove messages go: an MCAP file (`McapSink`, beside arlight's own channels)
-or Foxglove's WebSocket protocol, live (`LiveSink`, the foxglove-sdk's server); and the two
-publishers that feed either: `publish_frame` (a capture Frame) and `publish_result` (a Result).
+or Foxglove's WebSocket protocol, live (`LiveSink`, the foxglove-sdk's server); the two
+publishers that feed either: `publish_frame` (a capture Frame) and `publish_result` (a Result);
+and `FoxgloveStream`, one stream's state between them (the Hello's calibration, whether the
+frames carry poses), which the recorder and `arlight stream --foxglove` share.
 
 A sink has `log(topic, message, log_time_ns)` for a `foxglove.messages` object (protobuf,
 the schema from the class), `log_json(topic, schema, data, log_time_ns)` for a JSON message
@@ -16,6 +18,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from arlight.client import foxglove_messages as fx
+from arlight.protocols import Hello, ProtocolError, decode, peek_header
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +92,10 @@ class LiveSink:
         self.host = host
         self.port = int(self._server.port)
 
+    def set_channel_metadata(self, topic: str, metadata: Mapping[str, str]) -> None:
+        """Metadata for `topic`'s channel (before its first message), e.g. depth_scale."""
+        self._metadata[topic] = dict(metadata)
+
     def log(self, topic: str, message, log_time_ns: int) -> None:
         channel = self._channels.get(topic)
         if channel is None:
@@ -149,3 +156,56 @@ def publish_result(sink, result, record: Mapping, log_time_ns: int,
                                             stamp_s), log_time_ns)
     sink.log_json(fx.LIGHTING_TOPIC, fx.LIGHTING_SCHEMA, fx.lighting_message(record),
                   log_time_ns)
+
+
+class FoxgloveStream:
+    """One capture stream into a sink: the Hello (calibration, depth_scale), every Frame
+    as sent and, when the client gets them, the Results. Also the capture client's
+    `recorder` interface (write_hello, write_frame), so `arlight stream --foxglove` hands it
+    to CaptureClient as it hands a Recorder."""
+
+    def __init__(self, sink):
+        self.sink = sink
+        self.calibration = None
+        self.frame_poses = False  # the frames carry poses: /tf comes from them
+
+    def write_hello(self, parts, log_time_ns: int) -> None:
+        hello = decode(list(parts))
+        if isinstance(hello, Hello):
+            self.calibration = hello.config.calibration
+            self.sink.set_channel_metadata(fx.DEPTH_TOPIC, {
+                "depth_scale": repr(float(hello.config.depth_scale)),
+                "units": "depth_scale units per metre; 0 = missing"})
+
+    def write_frame(self, parts, log_time_ns: int | None = None) -> None:
+        header = peek_header(parts)
+        log_ns = (int(round(float(header["timestamp"]) * 1e9)) if log_time_ns is None
+                  else int(log_time_ns))
+        try:
+            frame = decode(list(parts))
+        except ProtocolError as exc:  # sent as it is; the server will say so too
+            log.warning("frame %s not on the Foxglove topics: %s", header.get("seq"), exc)
+            return
+        self.frame_poses = self.frame_poses or frame.pose is not None
+        publish_frame(self.sink, header, parts, frame, self.calibration, log_ns)
+
+    def write_result(self, result, record: Mapping, log_time_ns: int) -> None:
+        publish_result(self.sink, result, record, log_time_ns, with_pose=not self.frame_poses)
+
+    def close(self) -> None:
+        self.sink.close()
+
+
+class Recorders:
+    """Several recorders as one (the capture client takes one): each call goes to all."""
+
+    def __init__(self, *recorders):
+        self.recorders = [r for r in recorders if r is not None]
+
+    def write_hello(self, parts, log_time_ns: int) -> None:
+        for r in self.recorders:
+            r.write_hello(parts, log_time_ns)
+
+    def write_frame(self, parts, log_time_ns: int | None = None) -> None:
+        for r in self.recorders:
+            r.write_frame(parts, log_time_ns)

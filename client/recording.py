@@ -15,17 +15,15 @@ the same stream in Foxglove's own schemas (client/foxglove_messages.py): `/camer
 from __future__ import annotations
 
 import json
-import logging
 import time
 from pathlib import Path
 
 import msgpack
 
 from arlight import __version__
-from arlight.client import foxglove_messages as fx
 from arlight.client.capture import CaptureClient, encoded_frames
-from arlight.client.foxglove_sinks import McapSink, publish_frame, publish_result
-from arlight.protocols import PROTOCOL_VERSION, Hello, ProtocolError, decode, encode, peek_header
+from arlight.client.foxglove_sinks import FoxgloveStream, McapSink
+from arlight.protocols import PROTOCOL_VERSION, encode, peek_header
 from arlight.sources.recording import (
     FRAME_TOPIC,
     HELLO_TOPIC,
@@ -34,8 +32,6 @@ from arlight.sources.recording import (
     PROFILE,
     RESULT_TOPIC,
 )
-
-log = logging.getLogger(__name__)
 
 FRAME_INFO_SCHEMA = {
     "title": "arlight.FrameInfo",
@@ -85,9 +81,7 @@ class Recorder:
             self._info = self._writer.register_channel(INFO_TOPIC, "json", info_schema)
         self._result: int | None = None
         self._meta = meta
-        self._foxglove = McapSink(self._writer) if foxglove else None
-        self._calibration = None
-        self._frame_poses = False
+        self._foxglove = FoxgloveStream(McapSink(self._writer)) if foxglove else None
         self._writer.add_metadata("arlight", {
             "arlight_version": __version__, "protocol_version": str(PROTOCOL_VERSION),
             "source": source, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -102,14 +96,8 @@ class Recorder:
             raise ValueError("this Recorder records Results only (frames=False)")
         self._writer.add_message(self._hello, log_time=log_time_ns, data=_pack_parts(parts),
                                  publish_time=log_time_ns, sequence=0)
-        if self._foxglove is None:
-            return
-        hello = decode(parts)
-        if isinstance(hello, Hello):
-            self._calibration = hello.config.calibration
-            self._foxglove.set_channel_metadata(fx.DEPTH_TOPIC, {
-                "depth_scale": repr(float(hello.config.depth_scale)),
-                "units": "depth_scale units per metre; 0 = missing"})
+        if self._foxglove is not None:
+            self._foxglove.write_hello(parts, log_time_ns)
 
     def write_frame(self, parts, log_time_ns: int | None = None) -> None:
         """One Frame as sent; log_time_ns None = the frame's own timestamp."""
@@ -130,14 +118,7 @@ class Recorder:
                                  publish_time=stamp_ns, sequence=self.frames)
         self.frames += 1
         if self._foxglove is not None:
-            try:
-                frame = decode(parts)
-            except ProtocolError as exc:  # recorded as sent; the server will say so too
-                log.warning("frame %s not written to the Foxglove channels: %s",
-                            header.get("seq"), exc)
-                return
-            self._frame_poses = self._frame_poses or frame.pose is not None
-            publish_frame(self._foxglove, header, parts, frame, self._calibration, log_ns)
+            self._foxglove.write_frame(parts, log_ns)
 
     def write_result(self, result, record: dict, parts=None,
                      log_time_ns: int | None = None) -> None:
@@ -155,8 +136,7 @@ class Recorder:
                                      sequence=self.results)
         self.results += 1
         if self._foxglove is not None:
-            publish_result(self._foxglove, result, record, log_ns,
-                           with_pose=not self._frame_poses)
+            self._foxglove.write_result(result, record, log_ns)
 
     def close(self) -> None:
         if not self._closed:

@@ -305,6 +305,55 @@ class TestLiveFoxglove:
         assert not thread.is_alive() and display.foxglove is None  # closed at the end
 
 
+    def test_stream_serves_the_camera_over_foxglove_websocket(self, make_server):
+        """`arlight stream --foxglove`: the capture side's colour, depth and calibration go
+        live beside the Results (FoxgloveStream as the capture client's recorder)."""
+        from mcap.records import Schema
+
+        from arlight.client.foxglove_sinks import FoxgloveStream, LiveSink, Recorders
+        from arlight.protocols import received_record
+
+        server = make_server(process=identity_step())
+        live = FoxgloveStream(LiveSink("127.0.0.1", 0))
+        client = FoxgloveClient(live.sink.port)
+        options = StreamOptions(server=server.connect_address, session="cam", mode="lossless",
+                                rate="native", want_composite=True, timestamps="capture")
+        capture = CaptureClient(
+            flat_source(40, base=90), options, recorder=Recorders(None, live),
+            on_result=lambda r, t: live.write_result(r, received_record(r, t), time.time_ns()))
+        streamer = threading.Thread(target=lambda: run_with_timeout(capture.run), daemon=True)
+        try:
+            assert json.loads(client.frame()[1])["op"] == "serverInfo"
+            streamer.start()
+            channels: dict[str, dict] = {}
+            deadline = time.monotonic() + 20
+            while len(channels) < 7 and time.monotonic() < deadline:
+                opcode, data = client.frame()
+                if opcode == 1 and json.loads(data)["op"] == "advertise":
+                    channels.update({c["topic"]: c for c in json.loads(data)["channels"]})
+            assert set(CAMERA_TOPICS[:3]) | {fx.COMPOSITE_TOPIC, fx.LIGHTING_TOPIC} <= \
+                set(channels)
+            depth = channels[fx.DEPTH_TOPIC]
+            assert depth["metadata"]["depth_scale"] == "5000.0"  # flat_source's scale
+            time.sleep(0.3)  # the SDK refuses a subscribe that follows its advertise at once
+            client.send_json({"op": "subscribe", "subscriptions": [
+                {"id": 3, "channelId": depth["id"]}]})
+            schema = Schema(id=1, name=depth["schemaName"], encoding="protobuf",
+                            data=base64.b64decode(depth["schema"]))
+            decoder = DecoderFactory().decoder_for("protobuf", schema)
+            while time.monotonic() < deadline:
+                opcode, data = client.frame()
+                if opcode == 2 and data[0] == 1:
+                    image = decoder(data[13:])
+                    break
+            assert (image.encoding, image.width, image.height) == ("16UC1", 64, 48)
+            assert (np.frombuffer(image.data, "<u2") == 7500).all()  # flat_source: 1.5 m
+        finally:
+            client.close()
+            streamer.join(30)
+            live.close()
+
+
 class TestLatencyPlot:
     def test_fps_over_time(self):
         t = 0.03 + np.arange(30) * 0.1  # 10 Results per second
@@ -330,3 +379,18 @@ class TestCli:
         code = main(["display", "--server", "tcp://127.0.0.1:9", "--session", "s", *argv])
         assert code == EXIT_BAD_INPUT
         assert flag in capsys.readouterr().err
+
+    def test_stream_port_needs_foxglove(self, capsys):
+        code = main(["stream", "synthetic", "--server", "tcp://127.0.0.1:9", "--size", "32x24",
+                     "--max-frames", "1", "--port", "9000"])
+        assert code == EXIT_BAD_INPUT and "--foxglove" in capsys.readouterr().err
+
+    def test_foxglove_port_in_use_is_an_error_naming_the_flag(self, capsys):
+        with socket.socket() as busy:
+            busy.bind(("127.0.0.1", 0))
+            busy.listen()
+            port = busy.getsockname()[1]
+            code = main(["display", "--server", "tcp://127.0.0.1:9", "--session", "s",
+                         "--foxglove", "--port", str(port)])
+        err = capsys.readouterr().err
+        assert code == 1 and "--foxglove/--port" in err and "Traceback" not in err
