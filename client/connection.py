@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import zmq
 
-from arlight.protocols import ProtocolError, decode
+from arlight.protocols import ProtocolError, decode, peek_header
 
 
 class Received(NamedTuple):
@@ -60,3 +60,17 @@ def receive_message(sock: zmq.Socket, timeout_s: float, log: logging.Logger
     except ProtocolError as exc:
         log.warning("undecodable message from the server ignored: %s", exc)
         return Received(exc, wall, mono)
+
+
+def encoded_image(parts, key: str) -> tuple[str, bytes] | None:
+    """(format, bytes) of the JPEG or PNG image `key` of a received message (its parts as
+    received: the msgpack header, then the buffers), or None (raw, absent, no parts)."""
+    if not parts:
+        return None
+    descriptor = peek_header(parts).get(key) or {}
+    index = descriptor.get("buffer")
+    fmt = descriptor.get("format")
+    if fmt not in ("jpeg", "png") or not isinstance(index, int) \
+            or not 0 <= index < len(parts) - 1:
+        return None
+    return fmt, bytes(parts[1 + index])

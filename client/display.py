@@ -273,9 +273,10 @@ class DisplayClient:
         if self.foxglove is not None:
             from arlight.client.foxglove_sinks import publish_result
 
-            publish_result(self.foxglove, result, record, time.time_ns())
+            publish_result(self.foxglove, result, record, time.time_ns(),
+                           parts=got.parts or None)
         if self.web is not None:
-            self.web.update(result, record)
+            self.web.update(result, record, parts=got.parts or None)
         if self.on_result is not None:
             self.on_result(result, record)
 

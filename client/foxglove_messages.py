@@ -125,14 +125,14 @@ def x_axis_to(direction: Sequence[float]) -> fm.Quaternion:
     return fm.Quaternion(x=axis[0] * s, y=axis[1] * s, z=axis[2] * s, w=math.cos(half))
 
 
-def color_image(descriptor: Mapping, payload: bytes | memoryview | None, color: np.ndarray,
+def color_image(encoded: tuple[str, bytes] | None, color: np.ndarray,
                 stamp_s: float) -> fm.CompressedImage | fm.RawImage:
-    """The colour of a Frame: its JPEG/PNG bytes unchanged as a CompressedImage, or (raw
-    colour) the decoded (H, W, 3) uint8 RGB array as RawImage rgb8."""
-    fmt = str(descriptor.get("format", ""))
-    if fmt in ("jpeg", "png") and payload is not None:
+    """The colour of a Frame: its JPEG/PNG bytes as sent (`encoded` = (format, bytes), from
+    client.connection.encoded_image) as a CompressedImage, or (raw colour: encoded None) the
+    decoded (H, W, 3) uint8 RGB array as RawImage rgb8."""
+    if encoded is not None:
         return fm.CompressedImage(timestamp=timestamp(stamp_s), frame_id=CAMERA_FRAME,
-                                  data=bytes(payload), format=fmt)
+                                  data=encoded[1], format=encoded[0])
     return raw_rgb(color, stamp_s)
 
 
@@ -175,9 +175,14 @@ def camera_transform(world_from_cam: np.ndarray, stamp_s: float) -> fm.FrameTran
         rotation=quaternion(pose[:3, :3]))
 
 
-def composite_image(composite: np.ndarray, stamp_s: float,
-                    quality: int = 90) -> fm.CompressedImage:
-    """A Result's composite ((H, W, 3) uint8 RGB) as a JPEG CompressedImage."""
+def composite_image(composite: np.ndarray, stamp_s: float, quality: int = 90,
+                    encoded: tuple[str, bytes] | None = None) -> fm.CompressedImage:
+    """A Result's composite as a CompressedImage: its JPEG/PNG bytes as received
+    (`encoded`, from client.connection.encoded_image), else the (H, W, 3) uint8 RGB array
+    encoded as JPEG."""
+    if encoded is not None:
+        return fm.CompressedImage(timestamp=timestamp(stamp_s), frame_id=CAMERA_FRAME,
+                                  data=encoded[1], format=encoded[0])
     bgr = cv2.cvtColor(np.ascontiguousarray(composite, dtype=np.uint8), cv2.COLOR_RGB2BGR)
     ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:

@@ -18,6 +18,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from arlight.client import foxglove_messages as fx
+from arlight.client.connection import encoded_image
 from arlight.protocols import Hello, ProtocolError, decode, peek_header
 
 log = logging.getLogger(__name__)
@@ -117,21 +118,16 @@ class LiveSink:
         self._server.stop()
 
 
-def publish_frame(sink, header: Mapping, parts, frame, calibration,
-                  log_time_ns: int) -> None:
+def publish_frame(sink, parts, frame, calibration, log_time_ns: int) -> None:
     """One capture Frame on the camera topics: colour (its JPEG/PNG as sent, raw as rgb8),
     depth (16UC1, wire units), the calibration (protocols CameraCalibration or None) and, when
-    the frame has a pose, /tf. header: the Frame's msgpack header (peek_header), parts: its
-    message parts, frame: the decoded protocols Frame. Panorama-only frames log nothing."""
+    the frame has a pose, /tf. parts: the Frame's message parts, frame: the decoded
+    protocols Frame. Panorama-only frames log nothing."""
     if frame.color is None:
         return
     stamp_s = float(frame.timestamp)
-    descriptor = header.get("color") or {}
-    index = descriptor.get("buffer")
-    buffers = list(parts)[1:]  # the descriptor's "buffer" counts the parts after the header
-    payload = buffers[index] if isinstance(index, int) and 0 <= index < len(buffers) else None
-    sink.log(fx.COLOR_TOPIC, fx.color_image(descriptor, payload, frame.color, stamp_s),
-             log_time_ns)
+    sink.log(fx.COLOR_TOPIC, fx.color_image(encoded_image(parts, "color"), frame.color,
+                                            stamp_s), log_time_ns)
     sink.log(fx.DEPTH_TOPIC, fx.depth_image(frame.depth, stamp_s), log_time_ns)
     if calibration is not None:
         sink.log(fx.CALIBRATION_TOPIC, fx.camera_calibration(calibration, stamp_s),
@@ -141,13 +137,15 @@ def publish_frame(sink, header: Mapping, parts, frame, calibration,
 
 
 def publish_result(sink, result, record: Mapping, log_time_ns: int,
-                   with_pose: bool = True) -> None:
-    """One Result: the composite (if it carries one), the light in 3D, the lighting JSON and
+                   with_pose: bool = True, parts=None) -> None:
+    """One Result: the composite (if it carries one; its JPEG/PNG bytes as received when
+    `parts`, the message's parts, are given), the light in 3D, the lighting JSON and
     (with_pose) its camera pose on /tf. record: protocols.received_record of the Result."""
     stamp_s = float(result.timestamp)
     if result.composite is not None:
-        sink.log(fx.COMPOSITE_TOPIC, fx.composite_image(result.composite, stamp_s),
-                 log_time_ns)
+        image = fx.composite_image(result.composite, stamp_s,
+                                   encoded=encoded_image(parts, "composite"))
+        sink.log(fx.COMPOSITE_TOPIC, image, log_time_ns)
     if with_pose and result.pose is not None:
         sink.log(fx.TF_TOPIC, fx.camera_transform(np.asarray(result.pose), stamp_s),
                  log_time_ns)
@@ -187,10 +185,11 @@ class FoxgloveStream:
             log.warning("frame %s not on the Foxglove topics: %s", header.get("seq"), exc)
             return
         self.frame_poses = self.frame_poses or frame.pose is not None
-        publish_frame(self.sink, header, parts, frame, self.calibration, log_ns)
+        publish_frame(self.sink, parts, frame, self.calibration, log_ns)
 
-    def write_result(self, result, record: Mapping, log_time_ns: int) -> None:
-        publish_result(self.sink, result, record, log_time_ns, with_pose=not self.frame_poses)
+    def write_result(self, result, record: Mapping, log_time_ns: int, parts=None) -> None:
+        publish_result(self.sink, result, record, log_time_ns, with_pose=not self.frame_poses,
+                       parts=parts)
 
     def close(self) -> None:
         self.sink.close()

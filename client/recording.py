@@ -136,7 +136,7 @@ class Recorder:
                                      sequence=self.results)
         self.results += 1
         if self._foxglove is not None:
-            self._foxglove.write_result(result, record, log_ns)
+            self._foxglove.write_result(result, record, log_ns, parts=parts)
 
     def close(self) -> None:
         if not self._closed:

@@ -36,6 +36,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from arlight.client.connection import encoded_image
+
 log = logging.getLogger(__name__)
 
 WEB_DIR = Path(__file__).with_name("web")
@@ -96,8 +98,10 @@ class WebDisplay:
         host = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
         return f"http://{host}:{self.port}/"
 
-    def update(self, result, record: Mapping) -> None:
-        """A new Result (protocols Result) and its received record (received_record)."""
+    def update(self, result, record: Mapping, parts=None) -> None:
+        """A new Result (protocols Result) and its received record (received_record);
+        parts: the Result's message parts as received, whose JPEG composite is then streamed
+        as it came (else the composite is encoded here)."""
         now = time.monotonic()
         self._window.append(now)
         while self._window and self._window[0] < now - FPS_WINDOW_S:
@@ -105,7 +109,10 @@ class WebDisplay:
         span = self._window[-1] - self._window[0] if len(self._window) > 1 else 0.0
         fps = (len(self._window) - 1) / span if span > 0 else 0.0
         jpeg = None
-        if result.composite is not None:
+        encoded = encoded_image(parts, "composite")
+        if encoded is not None and encoded[0] == "jpeg":
+            jpeg = encoded[1]
+        elif result.composite is not None:
             bgr = cv2.cvtColor(np.ascontiguousarray(result.composite), cv2.COLOR_RGB2BGR)
             ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
             jpeg = buf.tobytes() if ok else None

@@ -200,6 +200,9 @@ class TestDisplayRecord:
         assert all(x["end_to_end_ms"] is not None for x in lighting)
         composites = [d for _, _, d, _ in topics[fx.COMPOSITE_TOPIC]]
         assert len(composites) == 5 and composites[0].format == "jpeg"
+        for (_, m, _, _), image in zip(topics[RESULT_TOPIC], composites, strict=True):
+            parts = unpack_parts(m.data, "r")  # the JPEG as the server sent it, not re-encoded
+            assert image.data == parts[1 + peek_header(parts)["composite"]["buffer"]]
         image = cv2.imdecode(np.frombuffer(composites[3].data, np.uint8), cv2.IMREAD_COLOR)
         assert image.shape == (48, 64, 3) and abs(float(image.mean()) - 13) < 3
         light = topics[fx.LIGHT_TOPIC][0][2]
