@@ -228,9 +228,22 @@ def light_scene(direction_world: Sequence[float], confidence: float,
 def lighting_message(record: Mapping) -> dict:
     """The JSON lighting message of one Result, from its received record
     (protocols.received_record); keys as LIGHTING_SCHEMA."""
-    ts = timestamp(record["timestamp"])
+    stamp_s = float(record["timestamp"])
+    sec = math.floor(stamp_s)
+    nsec = min(int(round((stamp_s - sec) * 1e9)), 999_999_999)
     keys = ("sh", "sh_camera", "dominant_direction_world", "dominant_direction_camera",
             "intensity", "confidence", "timings_ms", "pipeline_ms", "in_server_ms",
             "end_to_end_ms", "frames_dropped")
-    return {"timestamp": {"sec": ts.sec, "nsec": ts.nsec}, "frame": record["frame"],
-            **{k: record.get(k) for k in keys}}
+    return _finite({"timestamp": {"sec": int(sec), "nsec": nsec}, "frame": record["frame"],
+                    **{k: record.get(k) for k in keys}})
+
+
+def _finite(value):
+    """value with every non-finite float (inf condition numbers, NaN) as None: strict JSON."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value

@@ -97,6 +97,16 @@ class TestMapping:
         t = decoded(fx.composite_image(np.zeros((2, 2, 3), np.uint8), 1700000000.25)).timestamp
         assert (t.seconds, t.nanos) == (1700000000, 250000000)
 
+    def test_lighting_message_is_strict_json(self):
+        record = {"timestamp": 12.5, "frame": 3, "sh": [1.0, float("nan")],
+                  "confidence": {"condition_number": float("inf"), "value": 0.2},
+                  "timings_ms": {"LightEst": 2.0}, "end_to_end_ms": None}
+        message = fx.lighting_message(record)
+        text = json.dumps(message, allow_nan=False)  # raises on NaN / Infinity
+        assert json.loads(text)["confidence"] == {"condition_number": None, "value": 0.2}
+        assert message["timestamp"] == {"sec": 12, "nsec": 500000000}
+        assert message["sh"] == [1.0, None] and message["frame"] == 3
+
     def test_light_scene_arrow_points_towards_the_light(self):
         update = decoded(fx.light_scene([0.0, -1.0, 0.0], 0.7, 5.0))
         (entity,) = update.entities
