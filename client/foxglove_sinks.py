@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from typing import Protocol
 
 import numpy as np
 
@@ -22,6 +23,19 @@ from arlight.client.connection import encoded_image
 from arlight.protocols import Hello, ProtocolError, decode, peek_header
 
 log = logging.getLogger(__name__)
+
+
+class Sink(Protocol):
+    """What publish_frame / publish_result write to (McapSink, LiveSink)."""
+
+    def log(self, topic: str, message, log_time_ns: int) -> None: ...
+
+    def log_json(self, topic: str, schema: Mapping, data: Mapping, log_time_ns: int) -> None:
+        ...
+
+    def set_channel_metadata(self, topic: str, metadata: Mapping[str, str]) -> None: ...
+
+    def close(self) -> None: ...
 
 
 class McapSink:
@@ -118,7 +132,7 @@ class LiveSink:
         self._server.stop()
 
 
-def publish_frame(sink, parts, frame, calibration, log_time_ns: int) -> None:
+def publish_frame(sink: Sink, parts: Sequence, frame, calibration, log_time_ns: int) -> None:
     """One capture Frame on the camera topics: colour (its JPEG/PNG as sent, raw as rgb8),
     depth (16UC1, wire units), the calibration (protocols CameraCalibration or None) and, when
     the frame has a pose, /tf. parts: the Frame's message parts, frame: the decoded
@@ -136,8 +150,8 @@ def publish_frame(sink, parts, frame, calibration, log_time_ns: int) -> None:
         sink.log(fx.TF_TOPIC, fx.camera_transform(frame.pose, stamp_s), log_time_ns)
 
 
-def publish_result(sink, result, record: Mapping, log_time_ns: int,
-                   with_pose: bool = True, parts=None) -> None:
+def publish_result(sink: Sink, result, record: Mapping, log_time_ns: int,
+                   with_pose: bool = True, parts: Sequence | None = None) -> None:
     """One Result: the composite (if it carries one; its JPEG/PNG bytes as received when
     `parts`, the message's parts, are given), the light in 3D, the lighting JSON and
     (with_pose) its camera pose on /tf. record: protocols.received_record of the Result."""
@@ -162,7 +176,7 @@ class FoxgloveStream:
     `recorder` interface (write_hello, write_frame), so `arlight stream --foxglove` hands it
     to CaptureClient as it hands a Recorder."""
 
-    def __init__(self, sink):
+    def __init__(self, sink: Sink):
         self.sink = sink
         self.calibration = None
         self.frame_poses = False  # the frames carry poses: /tf comes from them
