@@ -1077,7 +1077,9 @@ def _add_display_parser(sub) -> None:
         "display", help="subscribe to a session: write its Results and composites, print fps",
         description="The thin display client: receives the Results of one session from the "
                     "server, prints frames per second and latency, and writes results.jsonl, "
-                    "composited frames and a video. Exits when the stream ends.")
+                    "composited frames, a video and latency.png; records the Results to MCAP "
+                    "(--record), serves them to Foxglove (--foxglove) and to a browser "
+                    "(--http). Exits when the stream ends.")
     disp.add_argument("--server", required=True, metavar="ADDRESS",
                       help="the server, tcp://HOST:PORT")
     disp.add_argument("--session", required=True, metavar="NAME",
