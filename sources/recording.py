@@ -82,6 +82,11 @@ class Recording:
             except Exception as exc:  # mcap raises many types for corrupt files
                 raise RecordingError(f"{self.path}: not a readable MCAP file "
                                      f"({type(exc).__name__}: {exc})") from None
+        if self.hello_parts is None and self.metadata.get("content") == "results":
+            raise RecordingError(f"{self.path}: a display's recording (`arlight display "
+                                 "--record`) holds Results, no frames to replay; open it in "
+                                 "Foxglove, or replay a capture-side recording (`arlight "
+                                 "record`, `arlight stream --record`)")
         if self.hello_parts is None:
             raise RecordingError(f"{self.path}: no {HELLO_TOPIC} message; this is not an "
                                  "arlight recording (make one with `arlight record`)")

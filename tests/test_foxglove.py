@@ -28,7 +28,13 @@ from arlight.client.display import DisplayClient, DisplayOptions
 from arlight.client.latency_plot import fps_over_time, write_latency_plot
 from arlight.client.recording import record
 from arlight.protocols import Result, decode, peek_header
-from arlight.sources.recording import FRAME_TOPIC, RESULT_TOPIC, Recording, unpack_parts
+from arlight.sources.recording import (
+    FRAME_TOPIC,
+    RESULT_TOPIC,
+    Recording,
+    RecordingError,
+    unpack_parts,
+)
 from arlight.sources.source import open_source
 from tests.streaming_support import flat_source, identity_step, run_with_timeout, server_factory
 
@@ -218,6 +224,8 @@ class TestDisplayRecord:
         light = topics[fx.LIGHT_TOPIC][0][2]
         assert len(light.entities) == 1 and len(light.entities[0].arrows) == 1
         assert topics[fx.TF_TOPIC][0][2].child_frame_id == "camera"
+        with pytest.raises(RecordingError, match="display's recording"):
+            Recording(path)  # not a stream to replay: the error says what it is
         plot = cv2.imread(str(out / "latency.png"))
         assert display.plot_path == out / "latency.png" and plot is not None
         assert plot.shape[0] > 300 and plot.std() > 10  # a drawn figure, not blank
