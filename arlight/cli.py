@@ -397,10 +397,22 @@ def _open_stream_source_rgbd(args: argparse.Namespace, open_source):
 
 def cmd_stream(args: argparse.Namespace) -> int:
     from arlight.client.capture import CaptureClient, StreamError
+    from arlight.client.foxglove_sinks import Recorders
     from arlight.protocols.records import pipeline_ms
 
     source = _open_stream_source(args)
     options = _stream_options(args, source)
+    live = None
+    foxglove = _foxglove_address(args)
+    if foxglove is not None:
+        from arlight.client.foxglove_sinks import FoxgloveStream, LiveSink
+
+        try:
+            live = FoxgloveStream(LiveSink(*foxglove, name=f"arlight stream {args.source}"))
+        except OSError as exc:
+            raise _BadInput(f"--foxglove/--port: {exc}") from None
+        print(f"arlight stream: Foxglove WebSocket on ws://{foxglove[0]}:{live.sink.port}",
+              file=sys.stderr, flush=True)
     recorder = None
     if args.record:
         from arlight.client.recording import Recorder
@@ -419,13 +431,19 @@ def cmd_stream(args: argparse.Namespace) -> int:
               + ("" if result.panorama_dominant_direction is None else "  panorama light=("
                  + ", ".join(f"{x:+.2f}" for x in result.panorama_dominant_direction) + ")"),
               flush=True)
-        if out:
+        if out or recorder is not None or live is not None:
             from arlight.protocols import received_record
 
             record = received_record(result, receive_time_wall)  # with the server's exports
+        if recorder is not None:  # the Foxglove channels of the Result beside the frames
+            recorder.write_result(result, record)
+        if live is not None:
+            live.write_result(result, record, time.time_ns())
+        if out:
             out.write(json.dumps(record) + "\n")
 
-    client = CaptureClient(source, options, on_result=on_result, recorder=recorder)
+    sinks = recorder if live is None else Recorders(recorder, live)
+    client = CaptureClient(source, options, on_result=on_result, recorder=sinks)
     size = ("panorama only" if source.calibration is None
             else f"{source.calibration.width}x{source.calibration.height}")
     print(f"arlight stream: {args.source} ({_count(source.num_frames, 'frame')}, "
@@ -445,6 +463,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
             out.close()
         if recorder is not None:
             recorder.close()
+        if live is not None:
+            live.close()
     lat = summary.latencies_s
     drops = (f"{summary.frames_dropped} dropped by the server (live: newest frame wins), "
              f"{summary.frames_not_sent} not sent (send queue full), "
@@ -495,16 +515,30 @@ def cmd_display(args: argparse.Namespace) -> int:
         raise _BadInput(f"--video expects an .mp4 file, got {args.video!r}")
     if args.export and not args.out:
         raise _BadInput("--export adds to the results.jsonl that --out writes: give --out DIR")
+    if args.record and not args.record.lower().endswith(".mcap"):
+        raise _BadInput(f"--record must name an .mcap file, got {args.record!r}")
+    foxglove = _foxglove_address(args)
+    http = None
+    if args.http:
+        from arlight.client.web_display import parse_http_address
+
+        try:
+            http = parse_http_address(args.http)
+        except ValueError as exc:
+            raise _BadInput(str(exc)) from None
     options = DisplayOptions(server=args.server, session=args.session, out_dir=args.out,
-                             exports=tuple(args.export or ()),
+                             exports=tuple(args.export or ()), record=args.record,
+                             foxglove=foxglove, http=http,
                              video=args.video, video_fps=args.video_fps,
                              max_results=args.max_results, idle_exit_s=args.idle_exit,
                              follow=args.follow, reconnect_timeout_s=args.reconnect_timeout)
     print(f"arlight display: session {args.session!r} on {args.server}"
           + (f", writing {args.out}/results.jsonl and {args.out}/frames/" if args.out else "")
-          + (f", video {args.video}" if args.video else ""), file=sys.stderr, flush=True)
+          + (f", video {args.video}" if args.video else "")
+          + (f", recording {args.record}" if args.record else ""), file=sys.stderr, flush=True)
+    client = DisplayClient(options, printer=print_line)
     try:
-        summary = DisplayClient(options, printer=print_line).run()
+        summary = client.run()
     except DisplayError as exc:
         print(f"arlight display: error: {exc}", file=sys.stderr)
         return 1
@@ -515,6 +549,12 @@ def cmd_display(args: argparse.Namespace) -> int:
     print(f"arlight display: {info['results']} results ({info['composites']} composites), "
           f"{info['fps']:.1f} fps, {latency}; {info['results_missed']} missed; "
           f"{'stream ended' if info['stream_ended'] else 'stopped'}", file=sys.stderr)
+    if client.plot_path is not None:
+        print(f"arlight display: latency and fps over time in {client.plot_path}",
+              file=sys.stderr)
+    if args.record:
+        print(f"arlight display: recorded {_count(info['results'], 'result')} to "
+              f"{args.record} (Foxglove opens it; topics in the README)", file=sys.stderr)
     return 0
 
 
@@ -538,8 +578,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"{_figure(lat['median'], '.0f')} ms (p95 {_figure(lat['p95'], '.0f')}, lossless: "
           f"includes queueing); median stage ms: {stages}; dominant light error median "
           f"{_figure(err['median'], '.1f')} deg", file=sys.stderr)
+    plot = Path(args.out) / "latency.png"
     print(f"wrote {args.out}/frames/ ({summary['composites']} composites), "
-          f"{args.out}/results.jsonl, {args.out}/summary.json in "
+          f"{args.out}/results.jsonl, {args.out}/summary.json"
+          + (f", {plot} (latency and fps over time)" if plot.exists() else "") + " in "
           f"{time.perf_counter() - t0:.0f} s", file=sys.stderr)
     complete = summary["results"] == summary["frames_sent"] == args.frames
     if not complete:
@@ -961,6 +1003,8 @@ def _add_stream_parser(sub) -> None:
                              + LAYOUT_NAMES)
     stream.add_argument("--record", metavar="FILE.mcap",
                         help="also record the stream as sent to an MCAP file")
+    _add_foxglove_options(stream, "the camera (colour, depth, calibration, pose) and the "
+                                  "Results that come back")
     from arlight.pipeline.inverse_tone import OPERATORS
 
     stream.add_argument("--panorama", metavar="FILE",
@@ -991,12 +1035,45 @@ def _add_record_parser(sub) -> None:
     rec.set_defaults(func=cmd_record)
 
 
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port 0..65535, got {text!r}")
+    return value
+
+
+def _add_foxglove_options(parser, what: str) -> None:
+    """--foxglove, --port, --foxglove-host (stream and display)."""
+    parser.add_argument("--foxglove", action="store_true",
+                        help=f"serve {what} live over Foxglove's WebSocket protocol (open "
+                             "ws://HOST:PORT in the Foxglove app)")
+    parser.add_argument("--port", type=_port, metavar="P",
+                        help="with --foxglove: its port (default 8765; 0 = any free port)")
+    parser.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
+                        help="with --foxglove: the address to bind (default 127.0.0.1; "
+                             "0.0.0.0 for other machines)")
+
+
+def _foxglove_address(args: argparse.Namespace) -> tuple[str, int] | None:
+    """(host, port) of --foxglove, or None; --port without --foxglove is refused."""
+    if args.port is not None and not args.foxglove:
+        raise _BadInput("--port is the port of --foxglove: give --foxglove too")
+    if not args.foxglove:
+        return None
+    return args.foxglove_host, 8765 if args.port is None else args.port
+
+
 def _add_display_parser(sub) -> None:
     disp = sub.add_parser(
         "display", help="subscribe to a session: write its Results and composites, print fps",
         description="The thin display client: receives the Results of one session from the "
                     "server, prints frames per second and latency, and writes results.jsonl, "
-                    "composited frames and a video. Exits when the stream ends.")
+                    "composited frames, a video and latency.png; records the Results to MCAP "
+                    "(--record), serves them to Foxglove (--foxglove) and to a browser "
+                    "(--http). Exits when the stream ends.")
     disp.add_argument("--server", required=True, metavar="ADDRESS",
                       help="the server, tcp://HOST:PORT")
     disp.add_argument("--session", required=True, metavar="NAME",
@@ -1016,6 +1093,13 @@ def _add_display_parser(sub) -> None:
                       help="exit after S seconds without a result")
     disp.add_argument("--follow", action="store_true",
                       help="keep waiting when the stream ends (for the next stream)")
+    disp.add_argument("--record", metavar="FILE.mcap",
+                      help="record the Results to an MCAP file: as received (/arlight/result) "
+                           "and in Foxglove's schemas (composite, light, lighting JSON, /tf)")
+    _add_foxglove_options(disp, "the session's Results (composite, light, lighting, pose)")
+    disp.add_argument("--http", metavar="[HOST:]PORT",
+                      help="serve a live page for a browser on this address (HOST default "
+                           "127.0.0.1; 0.0.0.0:PORT for a tablet on the network)")
     _add_reconnect_timeout(disp)
     disp.set_defaults(func=cmd_display)
 

@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import zmq
 
-from arlight.protocols import ProtocolError, decode
+from arlight.protocols import ProtocolError, decode, peek_header
 
 
 class Received(NamedTuple):
@@ -24,6 +24,7 @@ class Received(NamedTuple):
     message: object
     receive_time_wall: float  # time.time(), seconds
     receive_time_mono: float  # time.monotonic(), seconds
+    parts: tuple = ()  # the message's parts as received (buffers), for recorders
 
 
 def open_dealer(context: zmq.Context, server: str, *, rcvhwm: int, sndhwm: int | None = None,
@@ -53,8 +54,23 @@ def receive_message(sock: zmq.Socket, timeout_s: float, log: logging.Logger
         return None
     parts = sock.recv_multipart(copy=False)
     wall, mono = time.time(), time.monotonic()
+    buffers = tuple(p.buffer for p in parts)
     try:
-        return Received(decode([p.buffer for p in parts]), wall, mono)
+        return Received(decode(list(buffers)), wall, mono, buffers)
     except ProtocolError as exc:
         log.warning("undecodable message from the server ignored: %s", exc)
         return Received(exc, wall, mono)
+
+
+def encoded_image(parts, key: str) -> tuple[str, bytes] | None:
+    """(format, bytes) of the JPEG or PNG image `key` of a received message (its parts as
+    received: the msgpack header, then the buffers), or None (raw, absent, no parts)."""
+    if not parts:
+        return None
+    descriptor = peek_header(parts).get(key) or {}
+    index = descriptor.get("buffer")
+    fmt = descriptor.get("format")
+    if fmt not in ("jpeg", "png") or not isinstance(index, int) \
+            or not 0 <= index < len(parts) - 1:
+        return None
+    return fmt, bytes(parts[1 + index])

@@ -6,8 +6,12 @@ session from then on (a display that joins late starts from there; one that read
 loses Results at its own queue, never stalling the pipeline). Writes, when asked:
 `results.jsonl` (one line per Result: the record every `--out` writes, plus the delivery
 fields and latencies below), `frames/NNNNNN.png` (the
-composite each Result carries: only sessions started with want_composite send one) and a
-video of the composites (`--video out.mp4`, mp4v).
+composite each Result carries: only sessions started with want_composite send one), a
+video of the composites (`--video out.mp4`, mp4v) and, when it ends, `latency.png` (latency
+and fps over time, client/latency_plot.py). Live, when asked: an MCAP recording of the
+Results (`--record FILE.mcap`: client/recording.py), Foxglove's WebSocket protocol
+(`--foxglove`: client/foxglove_sinks.py) and a page for a browser (`--http`:
+client/web_display.py).
 
 Latency, all on one machine's clock or clocks kept in sync (protocols/records.py,
 `received_record`):
@@ -75,6 +79,9 @@ class DisplayOptions:
     idle_exit_s: float | None = None  # exit after this long without a Result
     follow: bool = False  # keep waiting for a new stream after the session ends
     print_interval_s: float = 1.0
+    record: str | None = None  # an MCAP file of the Results (protocol + Foxglove channels)
+    foxglove: tuple[str, int] | None = None  # (host, port): serve Foxglove's WebSocket protocol
+    http: tuple[str, int] | None = None  # (host, port): serve the browser display
     client_name: str = "arlight-display"
     heartbeat_interval_s: float = 1.0
     liveness: int = 3
@@ -89,6 +96,7 @@ class DisplaySummary:
     first_receive: float | None = None  # time.monotonic() of the first Result, seconds
     last_receive: float | None = None  # ... and of the last
     latencies_ms: list[float] = field(default_factory=list)  # the printed latency, per Result
+    receive_times_s: list[float] = field(default_factory=list)  # monotonic, per Result
     end_to_end: bool = False  # latencies_ms are capture -> display
     timings_ms: dict[str, list[float]] = field(default_factory=dict)
     frames_dropped: int = 0  # the session's count, from the last Result
@@ -144,6 +152,10 @@ class DisplayClient:
         self._frames_dir: Path | None = None
         self._video = None
         self._window: deque[tuple[float, float]] = deque()  # (monotonic receive, latency ms)
+        self.recorder = None  # client/recording.Recorder with --record
+        self.foxglove = None  # client/foxglove_sinks.LiveSink with --foxglove
+        self.web = None  # client/web_display.WebDisplay with --http
+        self.plot_path: Path | None = None  # latency.png, once written
 
     def stop(self) -> None:
         self._stop.set()
@@ -175,6 +187,33 @@ class DisplayClient:
             self._frames_dir = out / "frames"
             self._frames_dir.mkdir(parents=True, exist_ok=True)
             self._jsonl = open(out / "results.jsonl", "w")  # noqa: SIM115 - closed in run()
+        try:
+            if opts.record:
+                from arlight.client.recording import Recorder
+
+                Path(opts.record).parent.mkdir(parents=True, exist_ok=True)
+                self.recorder = Recorder(opts.record, source=f"display {opts.session}",
+                                         frames=False)
+            if opts.foxglove is not None:
+                from arlight.client.foxglove_sinks import LiveSink
+
+                self.foxglove = LiveSink(*opts.foxglove, name=f"arlight {opts.session}")
+            if opts.http is not None:
+                from arlight.client.web_display import WebDisplay
+
+                self.web = WebDisplay(*opts.http, session=opts.session)
+        except OSError as exc:
+            flag = ("--record" if self.recorder is None and opts.record else
+                    "--foxglove/--port" if self.foxglove is None and opts.foxglove else "--http")
+            self._close()
+            raise DisplayError(f"{flag}: {exc}") from None
+        if self.printer is not None:
+            if self.foxglove is not None:
+                self.printer(f"display {opts.session}: Foxglove WebSocket on "
+                             f"ws://{self.foxglove.host}:{self.foxglove.port} (Foxglove app: "
+                             "Open connection -> Foxglove WebSocket)")
+            if self.web is not None:
+                self.printer(f"display {opts.session}: browser display on {self.web.url}")
 
     def _write_composite(self, result: Result) -> None:
         image = result.composite
@@ -222,6 +261,7 @@ class DisplayClient:
         else:
             latency = record["in_server_ms"] + record["server_to_client_ms"]
         s.latencies_ms.append(latency)
+        s.receive_times_s.append(now_m)
         for k, v in result.timings_ms.items():
             s.timings_ms.setdefault(k, []).append(v)
         self._window.append((now_m, latency))
@@ -229,6 +269,15 @@ class DisplayClient:
             self._jsonl.write(json.dumps(record) + "\n")
             self._jsonl.flush()
         self._write_composite(result)
+        if self.recorder is not None:
+            self.recorder.write_result(result, record, parts=got.parts or None)
+        if self.foxglove is not None:
+            from arlight.client.foxglove_sinks import publish_result
+
+            publish_result(self.foxglove, result, record, time.time_ns(),
+                           parts=got.parts or None)
+        if self.web is not None:
+            self.web.update(result, record, parts=got.parts or None)
         if self.on_result is not None:
             self.on_result(result, record)
 
@@ -250,12 +299,12 @@ class DisplayClient:
         """Receive Results until the stream ends, a limit is reached or stop() is called."""
         opts = self.options
         self._setup_outputs()
-        self._open()
-        now_m = time.monotonic()
-        self._last_heard_mono = self._last_sent_mono = self._last_result_mono = now_m
-        self._lost_since_mono: float | None = None
-        next_print_mono = now_m + opts.print_interval_s
         try:
+            self._open()
+            now_m = time.monotonic()
+            self._last_heard_mono = self._last_sent_mono = self._last_result_mono = now_m
+            self._lost_since_mono: float | None = None
+            next_print_mono = now_m + opts.print_interval_s
             while not self._stop.is_set():
                 got = self._receive(0.1)
                 if got is not None and self._on_message(got) == "end":
@@ -345,8 +394,22 @@ class DisplayClient:
             self._socket = None
         if self._jsonl is not None:
             self._jsonl.close()
+            self._jsonl = None
         if self._video is not None:
             self._video.release()
+            self._video = None
+        for name in ("recorder", "foxglove", "web"):
+            output = getattr(self, name)
+            if output is not None:
+                output.close()
+                setattr(self, name, None)
+        if self.options.out_dir and self.summary.results:
+            from arlight.client.latency_plot import write_latency_plot
+
+            kind = "end-to-end" if self.summary.end_to_end else "server-receive-to-display"
+            self.plot_path = write_latency_plot(
+                Path(self.options.out_dir) / "latency.png", self.summary.receive_times_s,
+                self.summary.latencies_ms, kind, title=f"arlight display {self.options.session}")
 
     def _resubscribe(self, why: str) -> None:
         log.warning("display %s: %s; subscribing again", self.options.session, why)

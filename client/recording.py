@@ -3,8 +3,13 @@ written as `arlight stream` would send it, no server needed).
 
 The format, and its reader, are arlight.sources.recording: one MCAP file, the Hello on
 `/arlight/hello`, every Frame exactly as sent on `/arlight/frame` (msgpack arrays of the
-ZeroMQ message parts), a JSON `/arlight/frame_info` channel for generic tools and an
-`arlight` metadata record.
+ZeroMQ message parts; the bit-exact replay reads these), a JSON `/arlight/frame_info`
+channel and an `arlight` metadata record. Beside them, for Foxglove and the `mcap` CLI,
+the same stream in Foxglove's own schemas (client/foxglove_messages.py): `/camera/color`,
+`/camera/depth`, `/camera/calibration`, `/tf`; and, where the recorder sees Results
+(`arlight stream --record`, `arlight display --record`), each Result as received on
+`/arlight/result` (msgpack parts) plus `/arlight/composite`, `/arlight/light` and the JSON
+`/arlight/lighting`.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import msgpack
 
 from arlight import __version__
 from arlight.client.capture import CaptureClient, encoded_frames
+from arlight.client.foxglove_sinks import FoxgloveStream, McapSink
 from arlight.protocols import PROTOCOL_VERSION, encode, peek_header
 from arlight.sources.recording import (
     FRAME_TOPIC,
@@ -24,6 +30,7 @@ from arlight.sources.recording import (
     INFO_TOPIC,
     MESSAGE_ENCODING,
     PROFILE,
+    RESULT_TOPIC,
 )
 
 FRAME_INFO_SCHEMA = {
@@ -47,9 +54,15 @@ def _pack_parts(parts) -> bytes:
 
 
 class Recorder:
-    """Writes one stream to an MCAP file. Use as a context manager, or call close()."""
+    """Writes one stream to an MCAP file. Use as a context manager, or call close().
 
-    def __init__(self, path: str | Path, source: str = "", depth_scale: float | None = None):
+    foxglove: also write the Foxglove channels (False: only arlight's own, as before).
+    frames: register the Hello, Frame and frame-info channels (False: a display's recording,
+    Results only; write_hello / write_frame then refuse).
+    """
+
+    def __init__(self, path: str | Path, source: str = "", depth_scale: float | None = None,
+                 foxglove: bool = True, frames: bool = True):
         from mcap.writer import CompressionType, Writer
 
         self.path = Path(path)
@@ -61,22 +74,35 @@ class Recorder:
             data=json.dumps(FRAME_INFO_SCHEMA).encode())
         meta = {"protocol_version": str(PROTOCOL_VERSION),
                 "data": "msgpack array of the ZeroMQ message parts as sent"}
-        self._hello = self._writer.register_channel(HELLO_TOPIC, MESSAGE_ENCODING, 0, meta)
-        self._frame = self._writer.register_channel(FRAME_TOPIC, MESSAGE_ENCODING, 0, meta)
-        self._info = self._writer.register_channel(INFO_TOPIC, "json", info_schema)
+        self._hello = self._frame = self._info = None
+        if frames:
+            self._hello = self._writer.register_channel(HELLO_TOPIC, MESSAGE_ENCODING, 0, meta)
+            self._frame = self._writer.register_channel(FRAME_TOPIC, MESSAGE_ENCODING, 0, meta)
+            self._info = self._writer.register_channel(INFO_TOPIC, "json", info_schema)
+        self._result: int | None = None
+        self._meta = meta
+        self._foxglove = FoxgloveStream(McapSink(self._writer)) if foxglove else None
         self._writer.add_metadata("arlight", {
             "arlight_version": __version__, "protocol_version": str(PROTOCOL_VERSION),
             "source": source, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "content": "stream" if frames else "results",
             "depth_scale": "" if depth_scale is None else repr(float(depth_scale))})
         self.frames = 0
+        self.results = 0
         self._closed = False
 
     def write_hello(self, parts, log_time_ns: int) -> None:
+        if self._hello is None:
+            raise ValueError("this Recorder records Results only (frames=False)")
         self._writer.add_message(self._hello, log_time=log_time_ns, data=_pack_parts(parts),
                                  publish_time=log_time_ns, sequence=0)
+        if self._foxglove is not None:
+            self._foxglove.write_hello(parts, log_time_ns)
 
     def write_frame(self, parts, log_time_ns: int | None = None) -> None:
         """One Frame as sent; log_time_ns None = the frame's own timestamp."""
+        if self._frame is None:
+            raise ValueError("this Recorder records Results only (frames=False)")
         header = peek_header(parts)
         stamp_ns = int(round(float(header["timestamp"]) * 1e9))
         log_ns = stamp_ns if log_time_ns is None else int(log_time_ns)
@@ -91,6 +117,26 @@ class Recorder:
         self._writer.add_message(self._info, log_time=log_ns, data=json.dumps(info).encode(),
                                  publish_time=stamp_ns, sequence=self.frames)
         self.frames += 1
+        if self._foxglove is not None:
+            self._foxglove.write_frame(parts, log_ns)
+
+    def write_result(self, result, record: dict, parts=None,
+                     log_time_ns: int | None = None) -> None:
+        """One Result as received: its message parts (when given) on /arlight/result, and
+        the Foxglove channels of it. record: protocols.received_record of it; log_time_ns
+        None = the receive time."""
+        log_ns = (int(round(record["receive_time"] * 1e9)) if log_time_ns is None
+                  else int(log_time_ns))
+        if parts is not None:
+            if self._result is None:
+                self._result = self._writer.register_channel(RESULT_TOPIC, MESSAGE_ENCODING, 0,
+                                                             self._meta)
+            self._writer.add_message(self._result, log_time=log_ns, data=_pack_parts(parts),
+                                     publish_time=int(round(result.timestamp * 1e9)),
+                                     sequence=self.results)
+        self.results += 1
+        if self._foxglove is not None:
+            self._foxglove.write_result(result, record, log_ns, parts=parts)
 
     def close(self) -> None:
         if not self._closed:

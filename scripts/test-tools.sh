@@ -2,10 +2,16 @@
 # Test-only tools from Debian's packages, installed when missing (best effort: the tests that
 # need a tool skip, saying which package to install, when it cannot be installed here):
 #   cmgen (libfilament-tools): the Filament cross-check of tests/test_engine_export.py
+#   chromium: the browser display's page test (tests/test_web_display.py) drives it headless
+#             (ARLIGHT_NO_CHROMIUM=1 leaves it out)
 set -uo pipefail
 
 need=()
 command -v cmgen >/dev/null || need+=(libfilament-tools)
+if [ -z "${ARLIGHT_NO_CHROMIUM:-}" ] && ! command -v chromium >/dev/null \
+    && ! command -v chromium-browser >/dev/null; then
+  need+=(chromium)
+fi
 [ ${#need[@]} -eq 0 ] && exit 0
 if [ "$(id -u)" = 0 ]; then SUDO=""; elif sudo -n true 2>/dev/null; then SUDO="sudo -n"; else
   echo "arlight tests: not root, skipping the test tools (${need[*]}); their tests skip" >&2

@@ -6,8 +6,10 @@ One file holds one stream exactly as a capture client sends it:
 - channel `/arlight/hello`, message encoding `msgpack`: the session's Hello;
 - channel `/arlight/frame`, message encoding `msgpack`: every Frame;
 - channel `/arlight/frame_info`, message encoding `json` with a JSON Schema: seq, timestamp,
-  codecs and sizes of each frame, so generic tools (Foxglove, `mcap cat --json`) can list
-  and plot the stream without knowing our wire format;
+  codecs and sizes of each frame (Foxglove plots it);
+- the Foxglove channels (`/camera/*`, `/tf`, and with Results `/arlight/composite`,
+  `/arlight/light`, `/arlight/lighting`; client/foxglove_messages.py) and `/arlight/result`
+  (Results as received, msgpack), which this reader ignores;
 - a metadata record `arlight` (versions, source, depth scale).
 
 The data of a `msgpack` message is a msgpack array of the ZeroMQ message parts as sent
@@ -31,6 +33,7 @@ from arlight.protocols import Hello, ProtocolError, decode
 HELLO_TOPIC = "/arlight/hello"
 FRAME_TOPIC = "/arlight/frame"
 INFO_TOPIC = "/arlight/frame_info"
+RESULT_TOPIC = "/arlight/result"  # Results as received (display and stream --record)
 MESSAGE_ENCODING = "msgpack"
 PROFILE = "arlight"
 MAX_PARTS = 16
@@ -79,6 +82,11 @@ class Recording:
             except Exception as exc:  # mcap raises many types for corrupt files
                 raise RecordingError(f"{self.path}: not a readable MCAP file "
                                      f"({type(exc).__name__}: {exc})") from None
+        if self.hello_parts is None and self.metadata.get("content") == "results":
+            raise RecordingError(f"{self.path}: a display's recording (`arlight display "
+                                 "--record`) holds Results, no frames to replay; open it in "
+                                 "Foxglove, or replay a capture-side recording (`arlight "
+                                 "record`, `arlight stream --record`)")
         if self.hello_parts is None:
             raise RecordingError(f"{self.path}: no {HELLO_TOPIC} message; this is not an "
                                  "arlight recording (make one with `arlight record`)")

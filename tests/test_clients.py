@@ -192,7 +192,9 @@ class TestRecording:
             reader = make_reader(f)
             summary = reader.get_summary()
             topics = {c.topic: c for c in summary.channels.values()}
-            assert set(topics) == {HELLO_TOPIC, FRAME_TOPIC, INFO_TOPIC}
+            # arlight's own channels, and the Foxglove ones beside them (tests/test_foxglove.py)
+            assert set(topics) == {HELLO_TOPIC, FRAME_TOPIC, INFO_TOPIC, "/camera/color",
+                                   "/camera/depth", "/camera/calibration"}
             assert topics[FRAME_TOPIC].message_encoding == "msgpack"
             assert topics[INFO_TOPIC].message_encoding == "json"
             assert summary.schemas[topics[INFO_TOPIC].schema_id].encoding == "jsonschema"
