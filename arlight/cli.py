@@ -311,15 +311,6 @@ def cmd_serve(args: argparse.Namespace) -> int:
         else DEFAULT_MAX_MESSAGE_BYTES, shutdown_grace_s=args.shutdown_grace,
         keys_dir=args.keys, insecure=args.insecure, admin_token=admin_token)
     server = Server(options).start()  # InsecureBindError, SecurityError: exit 2
-    keys = (f"; clients need --server-key {Path(args.keys) / 'server.key'} --client-key "
-            f"{Path(args.keys) / 'NAME.key_secret'}" if args.keys else "")
-    print(f"arlight serve: listening on {server.endpoint} (clients: --server "
-          f"{server.connect_address}{keys}); Ctrl-C or SIGTERM stops it", file=sys.stderr,
-          flush=True)
-    if admin_token is None:  # generated: the operator's only way to learn it
-        print(f"arlight serve: admin token (a display with it may watch any session; keep it "
-              f"secret, or give your own with --admin-token-file): {server.admin_token}",
-              file=sys.stderr, flush=True)
     stop = threading.Event()
     signals_seen = []
 
@@ -332,6 +323,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
+    keys = (f"; clients need --server-key {Path(args.keys) / 'server.key'} --client-key "
+            f"{Path(args.keys) / 'NAME.key_secret'}" if args.keys else "")
+    print(f"arlight serve: listening on {server.endpoint} (clients: --server "
+          f"{server.connect_address}{keys}); Ctrl-C or SIGTERM stops it", file=sys.stderr,
+          flush=True)
+    if admin_token is None:  # generated: the operator's only way to learn it
+        print(f"arlight serve: admin token (a display with it may watch any session; keep it "
+              f"secret, or give your own with --admin-token-file): {server.admin_token}",
+              file=sys.stderr, flush=True)
     while not stop.is_set() and not server.wait(0.2):
         pass
     name = signal.Signals(signals_seen[0]).name if signals_seen else "server stopped"

@@ -52,15 +52,12 @@ class Dealer(zmq.Socket):
                 return ("the server refused this client's key: its public key (--client-key "
                         "NAME.key_secret) is not in the server's authorized/ folder; add it "
                         "with `arlight keys add DIR NAME` on the server and restart it")
-            if event == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL:
+            if not self.curve:  # a plain client: only a keyed server fails its handshake
                 return ("the handshake failed: the server wants CURVE keys (give --server-key "
-                        "DIR/server.key --client-key DIR/client.key_secret)" if not self.curve
-                        else "the handshake failed: this client has keys but the server runs "
-                        "without them (drop --server-key/--client-key, or run `arlight serve "
-                        "--keys DIR`)")
-            if event == zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL:
-                return ("the CURVE handshake failed: --server-key is not the key of the server "
-                        "at this address (or the key files are damaged)")
+                        "DIR/server.key --client-key DIR/client.key_secret)")
+            return ("the CURVE handshake failed: --server-key is not the key of the server "
+                    "at this address, or that server runs without keys (then drop "
+                    "--server-key/--client-key)")
         return None
 
     def close(self, linger: int | None = None) -> None:

@@ -50,6 +50,7 @@ from arlight.protocols import (
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_PIXELS,
     PROTOCOL_VERSION,
+    TOKEN_RE,
     Bye,
     ByeKind,
     Credit,
@@ -138,6 +139,9 @@ class ServerOptions:
                 flag = SERVE_FLAGS.get(name)
                 raise ValueError(f"server option {name}{f' ({flag})' if flag else ''} is out of "
                                  f"range: {getattr(self, name)!r}")
+        if self.admin_token is not None and not TOKEN_RE.fullmatch(self.admin_token):
+            raise ValueError("server option admin_token (--admin-token-file) must be 16..128 "
+                             "characters from A-Z a-z 0-9 _ -")  # the value is a secret: unsaid
 
 
 @dataclass
