@@ -232,8 +232,8 @@ class Server:
             router.close()
             self._stop_curve()
             self._ctx.term()
-            raise OSError(f"cannot bind {opts.bind!r}: {exc}; give --bind tcp://HOST:PORT or "
-                          "tcp://*:PORT with a free port") from None
+            raise OSError(f"cannot bind {opts.bind!r}: {exc}; give --bind tcp://127.0.0.1:PORT "
+                          "(or another address, with --keys) with a free port") from None
         self._router = router
         self.endpoint = router.getsockopt_string(zmq.LAST_ENDPOINT)
         self.port = int(self.endpoint.rsplit(":", 1)[1])
