@@ -24,7 +24,10 @@ from arlight.protocols import ProtocolError, decode
 from arlight.protocols.curve import ClientKeys
 
 _HANDSHAKE_EVENTS = (zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
-                     | zmq.EVENT_HANDSHAKE_FAILED_AUTH)
+                     | zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_SUCCEEDED)
+# failures without detail in a row before a CURVE client gives up: a connection that drops
+# during the handshake (a restarting server, a network cut) reports the same event once
+NO_DETAIL_FAILURES = 3
 _monitor_ids = itertools.count()
 
 
@@ -34,6 +37,7 @@ class Dealer(zmq.Socket):
     monitor_socket: zmq.Socket | None = None
     curve: bool = False  # CURVE keys were given
     error_type: type[Exception] = RuntimeError
+    no_detail_failures: int = 0  # since the last successful handshake
 
     def watch_handshakes(self) -> None:
         address = f"inproc://arlight-dealer-monitor-{next(_monitor_ids)}"
@@ -44,20 +48,36 @@ class Dealer(zmq.Socket):
         self.monitor_socket = pair
 
     def handshake_failure(self) -> str | None:
-        """What went wrong, if a handshake with the server failed since the last call."""
+        """Why the handshakes with the server fail, once that is certain, else None: the
+        server refused the key (ZAP), a plain client met a keyed server (mechanism
+        mismatch), a peer that does not speak ZMTP, or (CURVE) failures in a row."""
         pair = self.monitor_socket
         while pair is not None and pair.poll(0):
-            event = parse_monitor_message(pair.recv_multipart())["event"]
-            if event == zmq.EVENT_HANDSHAKE_FAILED_AUTH:
+            message = parse_monitor_message(pair.recv_multipart())
+            event, value = message["event"], message["value"]
+            if event == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+                self.no_detail_failures = 0
+            elif event == zmq.EVENT_HANDSHAKE_FAILED_AUTH:
                 return ("the server refused this client's key: its public key (--client-key "
                         "NAME.key_secret) is not in the server's authorized/ folder; add it "
                         "with `arlight keys add DIR NAME` on the server and restart it")
-            if not self.curve:  # a plain client: only a keyed server fails its handshake
-                return ("the handshake failed: the server wants CURVE keys (give --server-key "
-                        "DIR/server.key --client-key DIR/client.key_secret)")
-            return ("the CURVE handshake failed: --server-key is not the key of the server "
-                    "at this address, or that server runs without keys (then drop "
-                    "--server-key/--client-key)")
+            elif event == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL:
+                if value == zmq.PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH:
+                    return ("the handshake failed: the server wants CURVE keys (give "
+                            "--server-key DIR/server.key --client-key DIR/client.key_secret)"
+                            if not self.curve else "the handshake failed: the server runs "
+                            "without keys (drop --server-key/--client-key, or run `arlight "
+                            "serve --keys DIR`)")
+                return ("the handshake failed: the peer at this address does not speak the "
+                        "arlight protocol as this client does (check --server, and "
+                        "--server-key/--client-key against `arlight serve --keys`)")
+            elif self.curve:  # no detail: count; a plain client's is a dropped connection
+                self.no_detail_failures += 1
+                if self.no_detail_failures >= NO_DETAIL_FAILURES:
+                    return (f"the CURVE handshake failed {self.no_detail_failures} times: "
+                            "--server-key is not the key of the server at this address, or "
+                            "that server runs without keys (then drop "
+                            "--server-key/--client-key)")
         return None
 
     def close(self, linger: int | None = None) -> None:
