@@ -404,6 +404,22 @@ class TestTokens:
         assert client.session_token == first_socket_token == server.sessions["again"].token
         client._socket.close(linger=0)
 
+    def test_recordings_never_hold_the_token(self, make_server, tmp_path):
+        from arlight.client.recording import Recorder, record
+        from arlight.sources.source import open_source
+
+        path = tmp_path / "r.mcap"
+        record(flat_source(2), path, stream_opts("tcp://127.0.0.1:9", "rec", token=TOKEN))
+        assert open_source(str(path)).recorded_config.token is None
+        assert TOKEN.encode() not in path.read_bytes()
+        server = secure_server(make_server)
+        streamed = tmp_path / "s.mcap"
+        source = flat_source(2)
+        with Recorder(streamed, source=source.name, depth_scale=source.depth_scale) as rec:
+            CaptureClient(source, stream_opts(server.connect_address, "rec2", token=TOKEN),
+                          recorder=rec).run()
+        assert TOKEN.encode() not in streamed.read_bytes()
+
     def test_tokens_off_checks_nothing(self, make_server):
         server = make_server(process=identity_step())  # tests' default: session_tokens False
         assert isinstance(RawPeer(server.connect_address).hello("x", role="display"), Welcome)
