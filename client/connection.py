@@ -25,8 +25,9 @@ from arlight.protocols.curve import ClientKeys
 
 _HANDSHAKE_EVENTS = (zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
                      | zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_SUCCEEDED)
-# failures without detail in a row before a CURVE client gives up: a connection that drops
-# during the handshake (a restarting server, a network cut) reports the same event once
+# failures without detail in a row before a client gives up: a connection that drops during
+# the handshake (a restarting server, a network cut) reports the same event, once; a server
+# that refuses the mechanism may hang up before the client reads why, again and again
 NO_DETAIL_FAILURES = 3
 _monitor_ids = itertools.count()
 
@@ -50,7 +51,7 @@ class Dealer(zmq.Socket):
     def handshake_failure(self) -> str | None:
         """Why the handshakes with the server fail, once that is certain, else None: the
         server refused the key (ZAP), a plain client met a keyed server (mechanism
-        mismatch), a peer that does not speak ZMTP, or (CURVE) failures in a row."""
+        mismatch), a peer that does not speak ZMTP, or failures without detail in a row."""
         pair = self.monitor_socket
         while pair is not None and pair.poll(0):
             message = parse_monitor_message(pair.recv_multipart())
@@ -71,13 +72,15 @@ class Dealer(zmq.Socket):
                 return ("the handshake failed: the peer at this address does not speak the "
                         "arlight protocol as this client does (check --server, and "
                         "--server-key/--client-key against `arlight serve --keys`)")
-            elif self.curve:  # no detail: count; a plain client's is a dropped connection
+            else:  # no detail (the peer hung up): count, a single one may be a dropped link
                 self.no_detail_failures += 1
                 if self.no_detail_failures >= NO_DETAIL_FAILURES:
-                    return (f"the CURVE handshake failed {self.no_detail_failures} times: "
-                            "--server-key is not the key of the server at this address, or "
-                            "that server runs without keys (then drop "
-                            "--server-key/--client-key)")
+                    return (f"the handshake failed {self.no_detail_failures} times in a row: "
+                            + ("--server-key is not the key of the server at this address, "
+                               "or that server runs without keys (then drop "
+                               "--server-key/--client-key)" if self.curve else
+                               "the server probably wants CURVE keys (give --server-key "
+                               "DIR/server.key --client-key DIR/client.key_secret)"))
         return None
 
     def close(self, linger: int | None = None) -> None:
