@@ -112,6 +112,21 @@ def check_exposure(bind: str, keys_dir: str | None, insecure: bool) -> None:
                 "`arlight keys generate DIR` and --keys DIR instead", bind)
 
 
+class _ZapLog(logging.LoggerAdapter):
+    """pyzmq's ZAP handler logs every decision at DEBUG; a refused client is worth a WARNING
+    for the operator (which public key knocked; add it with `arlight keys add` if wanted)."""
+
+    def debug(self, msg, *args, **kwargs):
+        try:
+            text = str(msg) % args if args else str(msg)
+        except (TypeError, ValueError):
+            text = str(msg)
+        if text.startswith("DENIED"):
+            self.warning("refused a client: %s", text)
+        else:
+            super().debug(msg, *args, **kwargs)
+
+
 class CurveServer:
     """The server side of CURVE: the server's keys and the ZAP handler that admits the public
     keys in `keys_dir/authorized/` (read at start; restart the server after adding keys)."""
@@ -130,7 +145,8 @@ class CurveServer:
         self._auth: ThreadAuthenticator | None = None
 
     def start(self, context: zmq.Context) -> None:
-        self._auth = ThreadAuthenticator(context, log=logging.getLogger(__name__ + ".zap"))
+        self._auth = ThreadAuthenticator(context, log=_ZapLog(logging.getLogger(__name__ + ".zap"),
+                                                               {}))
         self._auth.start()
         self._auth.configure_curve(domain="*", location=str(self.authorized))
 

@@ -168,7 +168,7 @@ class TestCurve:
         thread.join(20)
         assert got == [0, 1, 2]
 
-    def test_unauthorised_key_is_refused_before_any_message(self, make_server, keys):
+    def test_unauthorised_key_is_refused_before_any_message(self, make_server, keys, caplog):
         server = secure_server(make_server, keys_dir=str(keys / "k"))
         t0 = time.monotonic()
         with pytest.raises(StreamError, match="refused this client's key") as caught:
@@ -177,6 +177,9 @@ class TestCurve:
         assert time.monotonic() - t0 < 5.0  # within its reconnect timeout
         assert "arlight keys add" in str(caught.value)
         assert server.stats.messages == 0 and not server.sessions
+        refused = [r for r in caplog.records if r.name == "arlight.server.security.zap"]
+        assert refused and refused[0].levelname == "WARNING"  # the operator sees who knocked
+        assert "DENIED (CURVE)" in refused[0].getMessage()
 
     def test_plain_client_against_keyed_server_gets_a_clear_error(self, make_server, keys):
         server = secure_server(make_server, keys_dir=str(keys / "k"))
