@@ -526,7 +526,10 @@ class Server:
             self._send_error(identity, Error(code=exc.code, field=f"hello.config.{exc.field}",
                                              message=str(exc)))
             return None
-        session.token = cfg.token or new_token()  # the client's own, or one the server makes
+        # the client's own token, or one the server makes (never the admin token: the Welcome
+        # tells it, and whoever learns a session's token should learn no more than that)
+        session.token = cfg.token if cfg.token and not tokens_equal(
+            cfg.token, self.admin_token) else new_token()
         self.sessions[name] = session
         self._check_subscribers(session)
         size = ("panorama only" if session.camera is None

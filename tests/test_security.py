@@ -387,6 +387,9 @@ class TestTokens:
         assert isinstance(resumed, Welcome) and resumed.token == token
         admin = RawPeer(server.connect_address).hello("own", token=ADMIN)
         assert isinstance(admin, Welcome) and admin.token == token  # admin learns it
+        fresh = RawPeer(server.connect_address).hello("new-by-admin", token=ADMIN)
+        assert isinstance(fresh, Welcome) and fresh.token != ADMIN  # a session token of its own
+        assert fresh.token == server.sessions["new-by-admin"].token
 
     def test_stream_cli_prints_the_display_command(self, make_server, capsys):
         server = secure_server(make_server)
@@ -422,6 +425,35 @@ class TestTokens:
             CaptureClient(source, stream_opts(server.connect_address, "rec2", token=TOKEN),
                           recorder=rec).run()
         assert TOKEN.encode() not in streamed.read_bytes()
+
+    def test_admin_token_file(self, tmp_path, capsys):
+        from arlight.server.security import read_token_file
+        from arlight.server.server import ServerOptions
+
+        good = tmp_path / "admin"
+        good.write_text(ADMIN + "\n")
+        assert read_token_file(str(good), "--admin-token-file") == ADMIN
+        bad = tmp_path / "bad"
+        bad.write_text("secret but short")
+        with pytest.raises(SecurityError, match="--admin-token-file") as caught:
+            read_token_file(str(bad), "--admin-token-file")
+        assert "secret but short" not in str(caught.value)
+        with pytest.raises(ValueError, match="--admin-token-file") as caught:
+            ServerOptions(admin_token="secret but short")
+        assert "secret but short" not in str(caught.value)
+        code, text = run_cli(["serve", "--admin-token-file", str(bad)], capsys)
+        assert code == EXIT_BAD_INPUT and "--admin-token-file" in text
+        assert "Traceback" not in text and "secret but short" not in text
+
+    def test_display_token_file(self, make_server, tmp_path):
+        server = secure_server(make_server)
+        token_file = tmp_path / "t"
+        token_file.write_text(TOKEN)
+        from arlight.cli import _token_of, build_parser
+
+        args = build_parser().parse_args(["display", "--server", server.connect_address,
+                                          "--session", "s", "--token-file", str(token_file)])
+        assert _token_of(args) == TOKEN
 
     def test_tokens_off_checks_nothing(self, make_server):
         server = make_server(process=identity_step())  # tests' default: session_tokens False
