@@ -289,6 +289,11 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from arlight.server.server import Server, ServerOptions
 
     _check_address(args.bind, "--bind")
+    admin_token = None
+    if args.admin_token_file:
+        from arlight.server.security import read_token_file
+
+        admin_token = read_token_file(args.admin_token_file, "--admin-token-file")
     logging.getLogger("arlight.server").setLevel(logging.INFO)
     for handler in logging.getLogger().handlers:
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: "
@@ -298,10 +303,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         heartbeat_interval_s=args.heartbeat, session_timeout_s=args.session_timeout,
         log_interval_s=args.log_interval, max_sessions=args.max_sessions,
         max_message_bytes=int(args.max_message_mb * 2**20) if args.max_message_mb
-        else DEFAULT_MAX_MESSAGE_BYTES, shutdown_grace_s=args.shutdown_grace)
-    server = Server(options).start()
-    print(f"arlight serve: listening on {server.endpoint} (clients: --server "
-          f"{server.connect_address}); Ctrl-C or SIGTERM stops it", file=sys.stderr, flush=True)
+        else DEFAULT_MAX_MESSAGE_BYTES, shutdown_grace_s=args.shutdown_grace,
+        keys_dir=args.keys, insecure=args.insecure, admin_token=admin_token)
+    server = Server(options).start()  # InsecureBindError, SecurityError: exit 2
     stop = threading.Event()
     signals_seen = []
 
@@ -314,6 +318,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
+    keys = (f"; clients need --server-key {Path(args.keys) / 'server.key'} --client-key "
+            f"{Path(args.keys) / 'NAME.key_secret'}" if args.keys else "")
+    print(f"arlight serve: listening on {server.endpoint} (clients: --server "
+          f"{server.connect_address}{keys}); Ctrl-C or SIGTERM stops it", file=sys.stderr,
+          flush=True)
+    if admin_token is None:  # generated: the operator's only way to learn it
+        print(f"arlight serve: admin token (a display with it may watch any session; keep it "
+              f"secret, or give your own with --admin-token-file): {server.admin_token}",
+              file=sys.stderr, flush=True)
     while not stop.is_set() and not server.wait(0.2):
         pass
     name = signal.Signals(signals_seen[0]).name if signals_seen else "server stopped"
@@ -345,7 +358,41 @@ def _stream_options(args: argparse.Namespace, source) -> object:
         reconnect_timeout_s=getattr(args, "reconnect_timeout", 30.0),
         scene=_load_scene(args), panorama=_panorama_config(args),
         exports=tuple(getattr(args, "export", None) or
-                      (recorded.exports if recorded else ())))
+                      (recorded.exports if recorded else ())),
+        token=_token_of(args), keys=_client_keys(args))
+
+
+def _client_keys(args: argparse.Namespace):
+    """CURVE keys from --server-key and --client-key (both or neither), or None."""
+    from arlight.protocols.curve import ClientKeys
+
+    server_key = getattr(args, "server_key", None)
+    client_key = getattr(args, "client_key", None)
+    if server_key is None and client_key is None:
+        return None
+    if server_key is None or client_key is None:
+        raise _BadInput("give both --server-key DIR/server.key and --client-key "
+                        "DIR/NAME.key_secret (made by `arlight keys generate DIR`), or neither")
+    return ClientKeys.load(server_key, client_key)
+
+
+def _token_of(args: argparse.Namespace) -> str | None:
+    """The session token from --token or --token-file (not both), or None."""
+    token = getattr(args, "token", None)
+    token_file = getattr(args, "token_file", None)
+    if token and token_file:
+        raise _BadInput("give --token or --token-file, not both")
+    if token_file:
+        from arlight.server.security import read_token_file
+
+        return read_token_file(token_file, "--token-file")
+    if token is not None:
+        from arlight.protocols import TOKEN_RE
+
+        if not TOKEN_RE.fullmatch(token):
+            raise _BadInput("--token expects 16..128 characters from A-Z a-z 0-9 _ - (as "
+                            "`arlight stream` prints it)")
+    return token
 
 
 def _panorama_config(args: argparse.Namespace):
@@ -452,6 +499,11 @@ def cmd_stream(args: argparse.Namespace) -> int:
           f"{options.color_codec}, depth {options.depth_codec}"
           + ("" if source.recorded_config is None else " (recorded frames, sent as recorded)"),
           file=sys.stderr, flush=True)
+    keys = (f" --server-key {args.server_key} --client-key DIR/NAME.key_secret"
+            if options.keys else "")
+    print(f"arlight stream: display with: arlight display --server {options.server} --session "
+          f"{client.session} --token {client.token}{keys}  (the token is a secret: whoever has "
+          "it sees this session)", file=sys.stderr, flush=True)
     try:
         summary = client.run()
     except StreamError as exc:
@@ -531,7 +583,8 @@ def cmd_display(args: argparse.Namespace) -> int:
                              foxglove=foxglove, http=http,
                              video=args.video, video_fps=args.video_fps,
                              max_results=args.max_results, idle_exit_s=args.idle_exit,
-                             follow=args.follow, reconnect_timeout_s=args.reconnect_timeout)
+                             follow=args.follow, reconnect_timeout_s=args.reconnect_timeout,
+                             token=_token_of(args), keys=_client_keys(args))
     print(f"arlight display: session {args.session!r} on {args.server}"
           + (f", writing {args.out}/results.jsonl and {args.out}/frames/" if args.out else "")
           + (f", video {args.video}" if args.video else "")
@@ -933,6 +986,7 @@ def _add_streaming_parsers(sub) -> None:
     _add_record_parser(sub)
     _add_display_parser(sub)
     _add_demo_parser(sub)
+    _add_keys_parser(sub)
 
 
 def _add_serve_parser(sub) -> None:
@@ -947,8 +1001,17 @@ def _add_serve_parser(sub) -> None:
                     "session. Logs each session's frame rate and latency. SIGINT/SIGTERM shut "
                     "it down cleanly.")
     serve.add_argument("--bind", default=DEFAULT_BIND, metavar="ADDRESS",
-                       help=f"ZeroMQ address to listen on (default {DEFAULT_BIND}; "
-                            "tcp://127.0.0.1:PORT for this machine only)")
+                       help=f"ZeroMQ address to listen on (default {DEFAULT_BIND}: this "
+                            "machine only); any other address needs --keys (or --insecure)")
+    serve.add_argument("--keys", metavar="DIR",
+                       help="CURVE keys from `arlight keys generate DIR`: encrypt the traffic "
+                            "and admit only clients whose public keys are in DIR/authorized/")
+    serve.add_argument("--insecure", action="store_true",
+                       help="allow a --bind other machines can reach without --keys (no "
+                            "encryption, any client admitted; warned at every start)")
+    serve.add_argument("--admin-token-file", metavar="FILE",
+                       help="a file holding the admin token (a display with it may watch any "
+                            "session); default: a random one, printed at start")
     serve.add_argument("--workers", type=_positive_int, default=defaults.workers,
                        help=f"worker threads running the pipeline (default {defaults.workers}; "
                             "one frame per session at a time)")
@@ -1020,8 +1083,22 @@ def _add_stream_parser(sub) -> None:
     stream.add_argument("--panorama-from-world", type=_rotation_3x3, metavar="R00,...,R22",
                         help="3x3 rotation, row-major: d_panorama = R d_world (default "
                              "identity)")
+    stream.add_argument("--token", metavar="T",
+                        help="the session token (16..128 of A-Z a-z 0-9 _ -): a new session "
+                             "takes it, resuming an existing one needs it; default random, "
+                             "printed for the displays")
+    stream.add_argument("--token-file", metavar="FILE", help="read --token from FILE")
+    _add_key_options(stream)
     _add_reconnect_timeout(stream)
     stream.set_defaults(func=cmd_stream)
+
+
+def _add_key_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--server-key", metavar="DIR/server.key",
+                   help="the server's public CURVE key (for a server run with --keys DIR)")
+    p.add_argument("--client-key", metavar="DIR/NAME.key_secret",
+                   help="this client's CURVE key pair; its public half must be in the "
+                        "server's DIR/authorized/")
 
 
 def _add_record_parser(sub) -> None:
@@ -1100,8 +1177,49 @@ def _add_display_parser(sub) -> None:
     disp.add_argument("--http", metavar="[HOST:]PORT",
                       help="serve a live page for a browser on this address (HOST default "
                            "127.0.0.1; 0.0.0.0:PORT for a tablet on the network)")
+    disp.add_argument("--token", metavar="T",
+                      help="the session's token, as `arlight stream` prints it (or the "
+                           "server's admin token); without it the server refuses")
+    disp.add_argument("--token-file", metavar="FILE", help="read --token from FILE (keeps "
+                      "it out of the process list)")
+    _add_key_options(disp)
     _add_reconnect_timeout(disp)
     disp.set_defaults(func=cmd_display)
+
+
+def _add_keys_parser(sub) -> None:
+    keys = sub.add_parser(
+        "keys", help="make CURVE keys for `arlight serve --keys` and its clients",
+        description="Make ZeroMQ CURVE certificates (zmq.auth format). `generate DIR` writes "
+                    "DIR/server.key (public: give it to clients), DIR/server.key_secret "
+                    "(the server's only), DIR/client.key and DIR/client.key_secret (a "
+                    "client's pair) and DIR/authorized/client.key (the keys the server "
+                    "admits). `add DIR NAME` makes another client's pair and authorises it.")
+    verbs = keys.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
+    gen = verbs.add_parser("generate", help="server and first client keys in DIR")
+    gen.add_argument("dir", metavar="DIR")
+    add = verbs.add_parser("add", help="another client's keys, authorised in DIR/authorized/")
+    add.add_argument("dir", metavar="DIR")
+    add.add_argument("name", metavar="NAME", help="the client's name (letters, digits, _ . -)")
+    keys.set_defaults(func=cmd_keys)
+
+
+def cmd_keys(args: argparse.Namespace) -> int:
+    from arlight.server.security import add_client_key, generate_keys
+
+    if args.keys_command == "generate":
+        written = generate_keys(args.dir)
+        d = Path(args.dir)
+        print(f"arlight keys: wrote {', '.join(str(p) for p in written)}\n"
+              f"  server:  arlight serve --bind tcp://*:5555 --keys {d}\n"
+              f"  clients: --server-key {d / 'server.key'} --client-key "
+              f"{d / 'client.key_secret'} (copy both files to the client; *.key_secret files "
+              "are secrets)", file=sys.stderr)
+    else:
+        written = add_client_key(args.dir, args.name)
+        print(f"arlight keys: wrote {', '.join(str(p) for p in written)}; restart the "
+              f"server to admit it (client: --client-key {written[1]})", file=sys.stderr)
+    return 0
 
 
 def _add_demo_parser(sub) -> None:

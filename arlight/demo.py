@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import secrets
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -73,6 +74,9 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
                 + ("-" if e2e is None else f"{e2e:6.0f} ms"))
 
     started = time.monotonic()
+    # the session's token, chosen here: the display subscribes before the session exists
+    # and presents it; the capture client gives it to the new session
+    token = secrets.token_urlsafe(24)
     server = Server(ServerOptions(bind="tcp://127.0.0.1:*", workers=1)).start()
     try:
         address = server.connect_address
@@ -81,12 +85,13 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
                 f"session {DEMO_SESSION!r}; display writes {out}/")
         display = DisplayClient(DisplayOptions(server=address, session=DEMO_SESSION,
                                                out_dir=str(out), video=video,
-                                               idle_exit_s=120.0), on_result=on_result)
+                                               idle_exit_s=120.0, token=token),
+                                on_result=on_result)
         with _display_in_background(display):
             capture = CaptureClient(source, StreamOptions(
                 server=address, session=DEMO_SESSION, client_name="arlight-demo",
                 mode="lossless", rate="max", preset=preset, want_composite=True,
-                timestamps="capture", overrides={}, scene=demo_scene(size)))
+                timestamps="capture", overrides={}, scene=demo_scene(size), token=token))
             stream = capture.run()
     finally:
         server.stop()

@@ -67,6 +67,7 @@ from arlight.protocols import (
     encode,
     peek_header,
 )
+from arlight.protocols.curve import ClientKeys
 from arlight.sources.source import Source
 
 if TYPE_CHECKING:  # hints only: virtual_scene loads Open3D, which streaming does not need
@@ -173,6 +174,7 @@ HELLO_FIELD_FLAGS = {
     "hello.config.virtual_scene": "--scene",
     "hello.config.panorama.operator": "--panorama-operator",
     "hello.config.panorama": "--light-source / --panorama-from-world",
+    "hello.config.token": "--token",
 }
 
 
@@ -213,6 +215,10 @@ class StreamOptions:
     # a full send queue; the server answers a duplicate once, when it has the outcome); the
     # wait doubles at each resend of the same frame
     resend_after_s: float = 20.0
+    # security (README "Security"): the session token this client gives a new session (and
+    # presents when resuming one; None: a random one); CURVE keys for a keyed server
+    token: str | None = None
+    keys: ClientKeys | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in ("live", "lossless"):
@@ -260,7 +266,11 @@ class CaptureClient:
         self._stop = threading.Event()
         self._timestamps = options.timestamps or ("capture" if options.mode == "live"
                                                   else "source")
-        self.hello = self._make_hello()
+        self.hello = self._make_hello()  # as recorded: without the token
+        # the session's token: displays present it (`arlight display --token`); the Hello
+        # carries it (a new session takes it, resuming one needs it); a secret
+        self.token = options.token or secrets.token_urlsafe(24)
+        self.session_token = self.token  # as the server's Welcome confirms it
         self.credits = 1
         self.heartbeat_interval_s = options.heartbeat_interval_s
         self.summary = StreamSummary(self.session)
@@ -307,7 +317,7 @@ class CaptureClient:
         if self._socket is not None:
             self._socket.close(linger=0)
         self._socket = open_dealer(self._ctx, self.options.server, sndhwm=64, rcvhwm=1000,
-                                   error=StreamError)
+                                   error=StreamError, keys=self.options.keys)
 
     def _send(self, parts: list, block: bool = False) -> bool:
         try:
@@ -326,7 +336,8 @@ class CaptureClient:
         deadline = time.monotonic() + opts.reconnect_timeout_s
         backoff = opts.backoff_initial_s
         try:  # once: a scene may be tens of MB
-            hello_parts = encode(self.hello)
+            hello_parts = encode(dataclasses.replace(self.hello, config=dataclasses.replace(
+                self.hello.config, token=self.token)))
         except ProtocolError as exc:
             raise StreamError(f"the Hello of session {self.session!r} cannot be sent: "
                               f"{exc.code} ({exc.field}): {exc.message}") from None
@@ -362,8 +373,10 @@ class CaptureClient:
         welcome = got.message
         self.credits = max(1, welcome.credits)
         self.heartbeat_interval_s = welcome.heartbeat_interval_s
-        if self.recorder is not None and not self._hello_recorded:
-            self.recorder.write_hello(hello_parts, time.time_ns())
+        if welcome.token is not None:  # the session's (differs from ours after an admin resume)
+            self.session_token = welcome.token
+        if self.recorder is not None and not self._hello_recorded:  # never the token
+            self.recorder.write_hello(encode(self.hello), time.time_ns())
             self._hello_recorded = True
         self._last_heard = got.receive_time_mono
         self._last_sent = time.monotonic()

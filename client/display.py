@@ -58,6 +58,7 @@ from arlight.protocols import (
     encode,
     received_record,
 )
+from arlight.protocols.curve import ClientKeys
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +87,10 @@ class DisplayOptions:
     heartbeat_interval_s: float = 1.0
     liveness: int = 3
     reconnect_timeout_s: float = 30.0
+    # security (README "Security"): the session's token (printed by `arlight stream`) or the
+    # server's admin token; CURVE keys for a keyed server
+    token: str | None = None
+    keys: ClientKeys | None = None
 
 
 @dataclass
@@ -164,10 +169,10 @@ class DisplayClient:
         if self._socket is not None:
             self._socket.close(linger=0)
         self._socket = open_dealer(self._ctx, self.options.server, rcvhwm=100,
-                                   error=DisplayError)
+                                   error=DisplayError, keys=self.options.keys)
         hello = Hello(PROTOCOL_VERSION, SessionConfig(
             session=self.options.session, client_name=self.options.client_name,
-            role="display"))
+            role="display", token=self.options.token))
         self._socket.send_multipart(encode(hello), copy=False)
         self._hello_sent = time.monotonic()
         self._welcomed = False
@@ -339,6 +344,10 @@ class DisplayClient:
         elif isinstance(message, Error):
             if message.retryable and message.field == ErrorField.SESSION:
                 self._resubscribe("the server does not know this display")
+            elif message.code == "unauthorized":  # refused, or unsubscribed: a new session
+                # of this name has another token
+                raise DisplayError(f"the server refused the subscription: {message.message} "
+                                   "(--token)")
             elif not self._welcomed:
                 raise DisplayError(f"the server refused the subscription: {message.code}: "
                                    f"{message.message}")

@@ -11,6 +11,7 @@ ERROR_CODES: tuple[str, ...] = (
     "bad_codec",  # unknown image format or pixel encoding
     "decode_failed",  # a payload does not decode to exactly the declared image
     "bad_state",  # a valid message at the wrong time (used by the server's session logic)
+    "unauthorized",  # a Hello without the session's token (or the admin token): refused
 )
 
 

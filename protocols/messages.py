@@ -57,6 +57,9 @@ MAX_CREDITS = 2**20
 _NAME_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 _KEY_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
 _CODE_RE = re.compile(r"[a-z0-9_]{1,32}")
+# a session token or the server's admin token (SPEC.md section 4, "session tokens"): the
+# alphabet of secrets.token_urlsafe, 16..128 characters (at least 96 bits when random)
+TOKEN_RE = re.compile(r"[A-Za-z0-9_\-]{16,128}")
 
 
 # --------------------------------------------------------------------------- field checks
@@ -150,6 +153,15 @@ def _str(v: Any, name: str, max_len: int = 1024, pattern=None, choices=None) -> 
         raise ProtocolError("bad_field", f"{v[:64]!r} is not one of {choices}", name)
     if pattern is not None and not pattern.fullmatch(v):
         raise ProtocolError("bad_field", f"{v[:64]!r} does not match {pattern.pattern}", name)
+    return v
+
+
+def _token(v: Any, name: str) -> str:
+    """A token (TOKEN_RE); the message never repeats the value (it may be a near-secret)."""
+    if type(v) is not str or not TOKEN_RE.fullmatch(v):
+        size = f" of {len(v)} characters" if type(v) is str else ""
+        raise ProtocolError("bad_field", f"not a token: expected 16..128 characters from "
+                            f"A-Z a-z 0-9 _ -, got a {_tn(v)}{size}", name)
     return v
 
 
@@ -836,6 +848,9 @@ class SessionConfig:
     # engine layouts (EXPORT_LAYOUTS) every Result of the session carries (optional key,
     # capture Hellos only); () = none
     exports: tuple[str, ...] = ()
+    # the session token (optional key, SPEC.md "session tokens"): a display's proof that it
+    # may watch the session; a capture client's token for a new session or proof for resuming
+    token: str | None = None
 
     def _pack(self, parts: list) -> dict:
         out = {
@@ -858,6 +873,8 @@ class SessionConfig:
             out["exports"] = list(_read_export_names(list(self.exports),
                                                      "hello.config.exports"))
             _exports_role(self.role, "hello.config.exports")
+        if self.token is not None:  # optional key: absent when the client has no token
+            out["token"] = _token(self.token, "hello.config.token")
         return out
 
     @classmethod
@@ -894,9 +911,13 @@ class SessionConfig:
             exports = _read_export_names(c.raw("exports", nullable=True), c.f("exports"))
             if exports:
                 _exports_role(role, c.f("exports"))
+        token = None
+        if "token" in c.d:  # optional key (SPEC.md section 2): absent = nil
+            raw = c.raw("token", nullable=True)
+            token = None if raw is None else _token(raw, c.f("token"))
         c.done()
         return cls(session, client_name, role, calibration, depth_scale, preset, overrides,
-                   virtual_scene, mode, want_composite, scene, panorama, exports)
+                   virtual_scene, mode, want_composite, scene, panorama, exports, token)
 
 
 def _exports_role(role: str, name: str) -> None:
@@ -950,23 +971,32 @@ class Welcome:
     credits: int  # frames the capture client may send before the next Credit (lossless)
     heartbeat_interval_s: float
     server_name: str = "arlight"
+    # the session's token (optional key): sent to a capture client whose Hello carried one;
+    # displays of the session present it (SPEC.md "session tokens")
+    token: str | None = None
 
     def _pack(self, parts: list) -> dict:
-        return {
+        out = {
             "session": self.session,
             "credits": _to_plain(self.credits),
             "heartbeat_interval_s": _to_plain(self.heartbeat_interval_s),
             "server_name": self.server_name,
         }
+        if self.token is not None:  # optional key: absent when no token is told
+            out["token"] = _token(self.token, "welcome.token")
+        return out
 
     @classmethod
     def _unpack(cls, h: _Map, v: int, images: _Images) -> Welcome:
+        raw = h.raw("token", nullable=True) if "token" in h.d else None
+        token = None if raw is None else _token(raw, h.f("token"))
         return cls(
             v,
             h.str("session", 64, _NAME_RE),
             h.int("credits", 0, MAX_CREDITS),
             h.float("heartbeat_interval_s", 1e-3, 3600.0),
             h.str("server_name", 128),
+            token,
         )
 
 

@@ -19,6 +19,12 @@ session survives for a reconnecting client). A session that receives no frames f
 `arlight serve`) finishes the lossless frames already received within `shutdown_grace_s`,
 reports the rest with an Error, says Bye to every peer and closes the socket.
 
+Security (server/security.py, README "Security"): the default bind is loopback; a bind other
+machines can reach needs CURVE keys (`keys_dir`: encryption, and only the clients whose public
+keys are authorised) or `insecure`. Session tokens keep sessions apart: a display sees a
+session's Results only with its token (or the admin token), and a capture Hello takes over an
+existing session only with them.
+
 Clocks: liveness, expiry, the heartbeat schedule and the shutdown deadline run on
 time.monotonic(); time.time() is read only for what goes on the wire (Heartbeat.time, a
 Result's server receive/finish times).
@@ -44,6 +50,7 @@ from arlight.protocols import (
     DEFAULT_MAX_MESSAGE_BYTES,
     DEFAULT_MAX_PIXELS,
     PROTOCOL_VERSION,
+    TOKEN_RE,
     Bye,
     ByeKind,
     Credit,
@@ -59,6 +66,12 @@ from arlight.protocols import (
     error_from_exception,
     peek_header,
 )
+from arlight.server.security import (
+    CurveServer,
+    check_exposure,
+    new_token,
+    tokens_equal,
+)
 from arlight.server.session import (
     OUTCOME_CACHE_EXTRA,
     Job,
@@ -71,7 +84,7 @@ from arlight.server.session import (
 log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 5555
-DEFAULT_BIND = f"tcp://*:{DEFAULT_PORT}"
+DEFAULT_BIND = f"tcp://127.0.0.1:{DEFAULT_PORT}"  # this machine only (README "Security")
 MAX_SESSION_NAME = 64
 MAX_MESSAGES_PER_POLL = 256  # fairness between reading the socket and sending results
 
@@ -80,7 +93,8 @@ MAX_MESSAGES_PER_POLL = 256  # fairness between reading the socket and sending r
 SERVE_FLAGS = {"bind": "--bind", "workers": "--workers", "credits": "--credits",
                "heartbeat_interval_s": "--heartbeat", "session_timeout_s": "--session-timeout",
                "log_interval_s": "--log-interval", "max_sessions": "--max-sessions",
-               "max_message_bytes": "--max-message-mb", "shutdown_grace_s": "--shutdown-grace"}
+               "max_message_bytes": "--max-message-mb", "shutdown_grace_s": "--shutdown-grace",
+               "keys_dir": "--keys", "admin_token": "--admin-token-file"}
 
 
 @dataclass(frozen=True)
@@ -101,6 +115,14 @@ class ServerOptions:
     receive_hwm: int = 256
     shutdown_grace_s: float = 10.0  # time given to lossless frames received before stop()
     name: str = "arlight"
+    # security (server/security.py): CURVE keys folder (server.key_secret, authorized/*.key);
+    # insecure: allow a non-loopback bind without keys (warned); admin_token: admits a display
+    # to any session (None: one is generated, Server.admin_token); session_tokens False: no
+    # token is checked (in-process tests of other features only)
+    keys_dir: str | None = None
+    insecure: bool = False
+    admin_token: str | None = None
+    session_tokens: bool = True
 
     def __post_init__(self) -> None:
         checks = {"workers": self.workers >= 1, "credits": self.credits >= 1,
@@ -117,6 +139,9 @@ class ServerOptions:
                 flag = SERVE_FLAGS.get(name)
                 raise ValueError(f"server option {name}{f' ({flag})' if flag else ''} is out of "
                                  f"range: {getattr(self, name)!r}")
+        if self.admin_token is not None and not TOKEN_RE.fullmatch(self.admin_token):
+            raise ValueError("server option admin_token (--admin-token-file) must be 16..128 "
+                             "characters from A-Z a-z 0-9 _ -")  # the value is a secret: unsaid
 
 
 @dataclass
@@ -129,6 +154,7 @@ class Peer:
     client_name: str
     last_seen: float  # time.monotonic() of its last message, seconds
     results_dropped: int = 0  # Results not delivered because its queue was full
+    token: str | None = None  # a display's token, checked again when its session is created
 
     @property
     def label(self) -> str:
@@ -175,6 +201,9 @@ class Server:
         self._compute_lock = threading.Lock()
         self._draining = False
         self._drain_deadline = math.inf
+        # admits a display to any session's Results (and a capture Hello to any session)
+        self.admin_token = self.options.admin_token or new_token()
+        self._curve: CurveServer | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -183,8 +212,15 @@ class Server:
         if self._thread is not None:
             raise RuntimeError("server already started")
         opts = self.options
+        check_exposure(opts.bind, opts.keys_dir, opts.insecure)  # InsecureBindError
+        curve = CurveServer(opts.keys_dir) if opts.keys_dir is not None else None
         self._ctx = zmq.Context()
+        if curve is not None:  # ZAP handler first: it must see the first handshake
+            curve.start(self._ctx)
+            self._curve = curve
         router = self._ctx.socket(zmq.ROUTER)
+        if curve is not None:
+            curve.apply(router)
         router.setsockopt(zmq.ROUTER_MANDATORY, 1)  # unknown peer / full queue: an error, not
         router.setsockopt(zmq.SNDHWM, opts.send_hwm)  # a silent drop (we count the drops)
         router.setsockopt(zmq.RCVHWM, opts.receive_hwm)
@@ -194,9 +230,10 @@ class Server:
             router.bind(opts.bind)
         except zmq.ZMQError as exc:
             router.close()
+            self._stop_curve()
             self._ctx.term()
-            raise OSError(f"cannot bind {opts.bind!r}: {exc}; give --bind tcp://HOST:PORT or "
-                          "tcp://*:PORT with a free port") from None
+            raise OSError(f"cannot bind {opts.bind!r}: {exc}; give --bind tcp://127.0.0.1:PORT "
+                          "(or another address, with --keys) with a free port") from None
         self._router = router
         self.endpoint = router.getsockopt_string(zmq.LAST_ENDPOINT)
         self.port = int(self.endpoint.rsplit(":", 1)[1])
@@ -204,9 +241,15 @@ class Server:
         self._thread = threading.Thread(target=self._run, name="arlight-server-io", daemon=True)
         self._thread.start()
         log.info("arlight server listening on %s (%d workers, credits %d, heartbeat %.1f s, "
-                 "session timeout %.0f s)", self.endpoint, opts.workers, opts.credits,
-                 opts.heartbeat_interval_s, opts.session_timeout_s)
+                 "session timeout %.0f s; %s)", self.endpoint, opts.workers, opts.credits,
+                 opts.heartbeat_interval_s, opts.session_timeout_s,
+                 "CURVE: authorised client keys only" if curve else "no encryption")
         return self
+
+    def _stop_curve(self) -> None:
+        if self._curve is not None:  # before the context ends: its ZAP socket lives there
+            self._curve.stop()
+            self._curve = None
 
     @property
     def connect_address(self) -> str:
@@ -376,7 +419,10 @@ class Server:
         if old is not None:
             self._detach_peer(old, reason="said Hello again")
         if cfg.role == "display":
-            self.peers[identity] = Peer(identity, "display", name, cfg.client_name, now)
+            if not self._display_admitted(identity, cfg):
+                return  # refused: the Error is sent
+            self.peers[identity] = Peer(identity, "display", name, cfg.client_name, now,
+                                        token=cfg.token)
             self.displays[name].add(identity)
             log.info("session %s: display peer %s subscribed", name, identity.hex())
             self._send_welcome(identity, name, credits=0)
@@ -393,17 +439,60 @@ class Server:
         session.ended = False
         session.last_activity = now
         self.peers[identity] = Peer(identity, "capture", name, cfg.client_name, now)
-        self._send_welcome(identity, name, credits=self.options.credits)
+        # the token goes only to a client that sent one (older clients refuse the key)
+        self._send_welcome(identity, name, credits=self.options.credits,
+                           token=session.token if cfg.token is not None else None)
 
-    def _send_welcome(self, identity: bytes, session: str, credits: int) -> None:
+    def _send_welcome(self, identity: bytes, session: str, credits: int,
+                      token: str | None = None) -> None:
         self._send(identity, encode(Welcome(PROTOCOL_VERSION, session, credits,
-                                            self.options.heartbeat_interval_s, self.options.name)))
+                                            self.options.heartbeat_interval_s, self.options.name,
+                                            token)))
+
+    # ------------------------------------------------------------------ session tokens
+
+    def _may_enter(self, token: str | None, session: Session | None) -> bool:
+        """The token admits to `session` (None: any, checked again when it is created)."""
+        if not self.options.session_tokens or tokens_equal(token, self.admin_token):
+            return True
+        return tokens_equal(token, session.token) if session is not None else token is not None
+
+    def _refuse_unauthorized(self, identity: bytes, name: str, role: str) -> None:
+        if role == "display":
+            what = (f"watching session {name!r} needs its token: give the one its capture "
+                    "client printed (`arlight display --token T`) or the server's admin token")
+        else:
+            what = (f"session {name!r} exists and belongs to another capture client: resuming "
+                    "or replacing it needs its token (`arlight stream --token T`) or the "
+                    "admin token; or choose another --session")
+        self._send_error(identity, Error(code="unauthorized", field="hello.config.token",
+                                         message=what))
+
+    def _display_admitted(self, identity: bytes, cfg: SessionConfig) -> bool:
+        """A display Hello's token: the session's, the admin token, or, for a session that
+        does not exist yet, any token (checked when the session is created)."""
+        if self._may_enter(cfg.token, self.sessions.get(cfg.session)):
+            return True
+        self._refuse_unauthorized(identity, cfg.session, "display")
+        return False
+
+    def _check_subscribers(self, session: Session) -> None:
+        """A new session: unsubscribe (with an Error) every display whose token does not
+        admit it, before any of its Results is sent."""
+        for identity in list(self.displays.get(session.name, ())):
+            peer = self.peers.get(identity)
+            if peer is not None and not self._may_enter(peer.token, session):
+                self._refuse_unauthorized(identity, session.name, "display")
+                self._detach_peer(peer, reason="wrong token")
 
     def _capture_session(self, identity: bytes, cfg: SessionConfig) -> Session | None:
         """The session a capture Hello resumes or creates (section 3 of SPEC.md, "Handshake");
         None after sending the Error that refuses it."""
         name = cfg.session
         session = self.sessions.get(name)
+        if session is not None and not self._may_enter(cfg.token, session):
+            self._refuse_unauthorized(identity, name, "capture")
+            return None
         if session is not None and not session.same_setup(cfg):
             owner = self.peers.get(session.capture_peer) if session.capture_peer else None
             if owner is not None:
@@ -437,7 +526,12 @@ class Server:
             self._send_error(identity, Error(code=exc.code, field=f"hello.config.{exc.field}",
                                              message=str(exc)))
             return None
+        # the client's own token, or one the server makes (never the admin token: the Welcome
+        # tells it, and whoever learns a session's token should learn no more than that)
+        session.token = cfg.token if cfg.token and not tokens_equal(
+            cfg.token, self.admin_token) else new_token()
         self.sessions[name] = session
+        self._check_subscribers(session)
         size = ("panorama only" if session.camera is None
                 else f"{session.camera.width}x{session.camera.height}")
         log.info("session %s: created (%s, %s, preset %s, %d virtual objects) by capture "
@@ -679,6 +773,7 @@ class Server:
         finally:
             router.close()
             self._executor.shutdown(wait=False, cancel_futures=True)
+            self._stop_curve()
             self._ctx.term()
             self._wake_r.close()
             self._wake_w.close()

@@ -303,6 +303,7 @@ class Session:
         self.pending: collections.deque[Job] = collections.deque()
         self.in_flight: Job | None = None
         self.capture_peer: bytes | None = None
+        self.token: str | None = None  # admits displays and capture Hellos (server.py sets it)
         self.ended = False  # the capture client said Bye: close once the queue is empty
         self.created_mono = time.monotonic()
         self.last_activity = self.created_mono  # time.monotonic() of the last frame or Hello
@@ -333,8 +334,8 @@ class Session:
 
     def same_setup(self, config: SessionConfig) -> bool:
         """True if `config` asks for the same session (a reconnecting client's Hello)."""
-        a = dataclasses.replace(self.config, client_name="")
-        b = dataclasses.replace(config, client_name="")
+        a = dataclasses.replace(self.config, client_name="", token=None)
+        b = dataclasses.replace(config, client_name="", token=None)
         return a == b
 
     def offer(self, job: Job) -> str:

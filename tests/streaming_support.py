@@ -36,8 +36,10 @@ def need_data(path: Path) -> Path:
 
 
 def server_options(**overrides) -> ServerOptions:
+    """Options of a loopback test server. Session tokens are off (these tests are about other
+    things and speak for several clients at once); tests/test_security.py turns them on."""
     base = dict(bind="tcp://127.0.0.1:*", heartbeat_interval_s=HEARTBEAT_S, log_interval_s=60.0,
-                shutdown_grace_s=5.0)
+                shutdown_grace_s=5.0, session_tokens=False)
     base.update(overrides)
     return ServerOptions(**base)
 

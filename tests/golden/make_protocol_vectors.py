@@ -43,6 +43,7 @@ from arlight.protocols import (
 
 OUT = Path(__file__).resolve().parent / f"protocol_v{PROTOCOL_VERSION}"
 JPEG_VECTORS = ("frame_jpeg_zstd",)  # pinned by decoding, not by re-encoding
+GOLDEN_TOKEN = "golden-token_0123456789"  # 23 characters of TOKEN_RE; not a secret
 
 
 def color_8x6() -> np.ndarray:
@@ -201,6 +202,15 @@ def vectors() -> dict[str, object]:
         "heartbeat": Heartbeat(100.125),
         "bye": Bye("end of recording", ByeKind.END_OF_STREAM),
         "bye_shutdown": Bye("server shutting down", ByeKind.SHUTDOWN),
+        # session tokens (issue 14): the optional keys config.token and Welcome token
+        "hello_display_token": Hello(PROTOCOL_VERSION, SessionConfig(
+            session="golden-1", role="display", token=GOLDEN_TOKEN)),
+        "hello_capture_token": Hello(PROTOCOL_VERSION, SessionConfig(
+            session="golden-1", role="capture", calibration=cal, depth_scale=1000.0,
+            token=GOLDEN_TOKEN)),
+        "welcome_token": Welcome(PROTOCOL_VERSION, "golden-1", 8, 1.0, "arlight", GOLDEN_TOKEN),
+        "error_unauthorized": Error("unauthorized", "session golden-1 needs its token",
+                                    "hello.config.token"),
     }
 
 
