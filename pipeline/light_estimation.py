@@ -187,7 +187,8 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: Estim
                 t * fit.albedo[:, None], rgb[:, ch], fit.weights, bands, params.regularization,
                 None if b is None else b * fit.albedo, prior)[0]
     evidence = _Evidence(len(lum), cond, bands, normal_spread(t),
-                         horizon_disagreement_deg(full, up), residual)
+                         horizon_disagreement_deg(full, up), residual,
+                         samples.clipped_fraction)
     value = _confidence_value(evidence)
     reason = _low_confidence_reason(evidence, max_bands, value)
     return LightEstimate(full, Confidence(len(lum), cond, bands, value, reason,
@@ -234,6 +235,7 @@ class _Samples:
     bounce: np.ndarray | None  # (M,)
     labels: np.ndarray | None  # (M,) segment index 0..G-1
     left_out: str  # why the others were not used, e.g. "10 clipped, 3 too dark"
+    clipped_fraction: float = 0.0  # of the pixels with transfer: bright emitters, highlights
 
 
 def _usable_samples(t: np.ndarray, color_linear: np.ndarray, bounce: np.ndarray | None,
@@ -263,7 +265,10 @@ def _usable_samples(t: np.ndarray, color_linear: np.ndarray, bounce: np.ndarray 
                 f"dark, {int(no_transfer.sum())} without transfer, "
                 f"{int((~finite).sum())} not finite")
     rgb = rgb_all[keep].astype(np.float64)
-    return _Samples(t[keep].astype(np.float64), rgb @ LUMA, rgb, b, labels, left_out)
+    with_transfer = int((~no_transfer).sum())
+    clipped_fraction = float((clipped & ~no_transfer).sum()) / max(with_transfer, 1)
+    return _Samples(t[keep].astype(np.float64), rgb @ LUMA, rgb, b, labels, left_out,
+                    clipped_fraction)
 
 
 def _fit_light(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
@@ -352,6 +357,7 @@ class _Evidence:
     normal_spread: float  # normal_spread(), 0..1
     horizon_deg: float  # horizon_disagreement_deg(), degrees
     residual_rel: float  # reported, not a factor (see _confidence_factors)
+    clipped_fraction: float = 0.0  # named in the reason, not a factor (no data to rank it)
 
 
 NORMAL_SPREAD_FULL = 0.3  # spread at which the normals factor reaches 1
@@ -409,7 +415,15 @@ def _low_confidence_reason(e: _Evidence, max_bands: int, value: float) -> str:
     }
     f = _confidence_factors(e)
     weak = [name for name, v in f.items() if v < WEAK_FACTOR] or [min(f, key=f.get)]
-    return "; ".join(text[name] for name in weak)
+    causes = [text[name] for name in weak]
+    if e.clipped_fraction > CLIPPED_NOTE:
+        causes.append(f"{100 * e.clipped_fraction:.0f} % of the pixels clipped (emitters, "
+                      "windows or highlights in view: left out, and the light they cast may "
+                      "be missing from the fit)")
+    return "; ".join(causes)
+
+
+CLIPPED_NOTE = 0.05  # a clipped fraction above this is named in a low confidence's reason
 
 
 class TemporalFilter:

@@ -325,3 +325,55 @@ class TestBounceTerm:
         est = le.estimate_light(t, _grey(np.maximum(t @ light - 0.1 * bounce, 0.01)),
                                 EstimationParams(), bounce=bounce)
         assert est.bounce_scale == 0.0
+
+
+class TestConfidenceEvidence:
+    """The confidence's factors: the spread of the normals, the horizon disagreement, and
+    the causes its reason names (README, "Confidence")."""
+
+    def test_normal_spread_of_known_layouts(self):
+        _, sphere = _synthetic(20000)
+        assert le.normal_spread(sphere) == pytest.approx(1.0, abs=0.01)
+        n = np.tile([[0.0, -1.0, 0.0]], (500, 1))  # a floor seen from above (y down)
+        plane = sh.sh_basis(n, 4) * LAMBERT_PER_COEFF
+        assert le.normal_spread(plane) == pytest.approx(0.0, abs=1e-9)
+        up = _synthetic(20000)[0]
+        up = up[up[:, 1] < 0]  # a hemisphere of normals: 1 - |mean|^2 = 1 - 1/4
+        assert le.normal_spread(sh.sh_basis(up, 4)) == pytest.approx(0.75, abs=0.02)
+        assert le.normal_spread(plane[:, :1]) == 0.0  # no band 1: nothing known
+
+    def test_horizon_disagreement(self):
+        up = np.array([0.0, -1.0, 0.0])
+        sky = _light((0.0, -1.0, 0.2), ambient=0.0)  # above the horizon: they agree
+        assert le.horizon_disagreement_deg(sky, up) < 5.0
+        below = _light((0.3, 0.9, 0.1), ambient=0.0)  # a lobe below the horizon
+        assert le.horizon_disagreement_deg(below, up) > 10.0 + le.horizon_disagreement_deg(sky, up)
+        assert le.horizon_disagreement_deg(below, None) == 0.0
+
+    def test_spread_and_horizon_rank_the_confidence(self):
+        """One plane or light below the horizon: lower confidence, each cause named."""
+        normals, t = _synthetic(40000)
+        up = np.array([0.0, -1.0, 0.0])
+        lit = _grey(t @ _light())
+        wide = le.estimate_light(t, lit, WEAK, up=up)
+        assert wide.confidence.normal_spread > 0.9 and wide.confidence.value >= le.LOW_CONFIDENCE
+        floor = normals[normals[:, 1] < -0.95]  # normals within 18 deg of up
+        tf = sh.sh_basis(floor, 4) * LAMBERT_PER_COEFF
+        narrow = le.estimate_light(tf, _grey(tf @ _light()), WEAK, up=up)
+        assert narrow.confidence.value < wide.confidence.value
+        assert narrow.confidence.value < le.LOW_CONFIDENCE
+        assert "few normal directions" in narrow.confidence.reason
+        low = le.estimate_light(t, _grey(t @ _light((0.2, 0.95, 0.2))), WEAK, up=up)
+        assert low.confidence.horizon_disagreement_deg > 10.0
+        assert low.confidence.value < wide.confidence.value
+        d = low.confidence.to_dict()
+        assert d["normal_spread"] > 0.9 and d["horizon_disagreement_deg"] > 10.0
+
+    def test_clipped_pixels_are_named(self):
+        normals, t = _synthetic(40000)
+        tf = t[normals[:, 1] < -0.95]
+        rgb = _grey(tf @ _light())
+        rgb[: len(rgb) // 4] = 1.0  # a quarter of the view saturated
+        est = le.estimate_light(tf, rgb, WEAK)
+        assert est.confidence.value < le.LOW_CONFIDENCE
+        assert "clipped (emitters" in est.confidence.reason
