@@ -27,6 +27,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -55,6 +56,7 @@ from arlight.pipeline.virtual_scene import (
 )
 from arlight.protocols import (
     Error,
+    ErrorField,
     Frame,
     PanoramaConfig,
     ProtocolError,
@@ -63,7 +65,10 @@ from arlight.protocols import (
     decode,
     encode,
     error_from_exception,
+    peek_header,
 )
+from arlight.protocols.messages import MAX_INT as MAX_SEQ
+from arlight.server.budget import SessionBudget
 from arlight.server.results import result_message
 
 log = logging.getLogger(__name__)
@@ -76,6 +81,10 @@ LOSSLESS_QUEUE_SLACK = 2  # frames beyond the credit window a lossless queue tol
 OUTCOME_CACHE_EXTRA = 4  # final outcomes kept for resending after a reconnect: credits + this
 
 
+class VolumeOverBudget(Exception):
+    """The session's volume outgrew its memory budget (the message says by how much)."""
+
+
 class SessionSetupError(ValueError):
     """A Hello whose config cannot make a session; `field` names the offending field."""
 
@@ -83,6 +92,31 @@ class SessionSetupError(ValueError):
         super().__init__(f"{field}: {message}")
         self.field = field
         self.code = code
+
+
+class FrameAbandoned(Exception):
+    """A frame given up between pipeline stages: past its deadline ("deadline") or the
+    server stopping ("shutdown"). stage: the stage it would have started next."""
+
+    def __init__(self, reason: str, stage: str, elapsed_s: float, limit_s: float):
+        super().__init__(f"{reason} before {stage} after {elapsed_s:.1f} s")
+        self.reason = reason
+        self.stage = stage
+        self.elapsed_s = elapsed_s
+        self.limit_s = limit_s
+
+
+def encode_error(error: Error) -> list:
+    """The parts of an Error; never raises. An Error that cannot be encoded (a seq outside
+    0..2^63-1, an over-long text) is replaced by an `internal` one that can."""
+    try:
+        return encode(error)
+    except Exception as exc:  # noqa: BLE001 - the fallback below always encodes
+        seq = error.seq if isinstance(error.seq, int) and 0 <= error.seq <= MAX_SEQ else None
+        log.error("an Error could not be encoded (%s); sent as internal", exc)
+        return encode(Error(code="internal", seq=seq,
+                            message=f"the server failed to report an error "
+                                    f"({type(exc).__name__})"))
 
 
 def pipeline_config(config: SessionConfig) -> Config:
@@ -225,7 +259,8 @@ def frame_to_input(frame: Frame, camera: PinholeCamera, depth_scale: float) -> F
 
 
 def default_process(frame: FrameInput, session: Session) -> FrameResult:
-    return session.pipeline.process(frame, render_light=session.render_light)
+    return session.pipeline.process(frame, render_light=session.render_light,
+                                    checkpoint=session.checkpoint)
 
 
 def panorama_only_result(frame: Frame, world: tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -276,7 +311,11 @@ class Session:
     """One session's state. Counters are read by workers and written by the I/O thread."""
 
     def __init__(self, config: SessionConfig, *, credits: int, max_pixels: int,
-                 max_message_bytes: int, process: ProcessStep | None = None):
+                 max_message_bytes: int, process: ProcessStep | None = None,
+                 budget: SessionBudget | None = None, cancel: threading.Event | None = None):
+        """budget: the per-frame time and per-session memory limits (server/budget.py;
+        None: unlimited); cancel: set when the server stops, so a frame in a worker is
+        abandoned at its next stage boundary. SessionSetupError for a config it refuses."""
         self.name = config.session
         self.config = config
         self.credits = credits
@@ -289,6 +328,13 @@ class Session:
         self.panorama_light = panorama_light_from_config(config)
         self.render_light: tuple[np.ndarray, np.ndarray] | None = None  # of the job in run()
         self.scene = scene_from_config(config)  # None: nothing to render
+        self.budget = budget
+        # refused here, at Hello, when its settings could not meet the server's budgets
+        self.cost = None if budget is None else budget.check(
+            config, self.pipeline_config, self.camera,
+            len(self.scene.objects) if self.scene else 0)
+        self._cancel = cancel
+        self._job_start = 0.0  # time.monotonic() when the job in run() started
         if not (np.isfinite(config.depth_scale) and config.depth_scale > 0):
             raise SessionSetupError("depth_scale", f"must be a finite number of units per metre "
                                                    f"> 0, got {config.depth_scale}")
@@ -426,9 +472,38 @@ class Session:
 
     # ------------------------------------------------------------------ worker thread
 
+    def checkpoint(self, stage: str) -> None:
+        """Called by the pipeline before each stage: FrameAbandoned when the frame is past
+        the budget's deadline or the server is stopping (the stage is not started)."""
+        elapsed = time.monotonic() - self._job_start
+        if self._cancel is not None and self._cancel.is_set():
+            raise FrameAbandoned("shutdown", stage, elapsed, 0.0)
+        limit = math.inf if self.budget is None else self.budget.frame_deadline_s
+        if elapsed > limit:
+            raise FrameAbandoned("deadline", stage, elapsed, limit)
+
+    def _check_declared_sizes(self, parts: list) -> None:
+        """A frame whose colour or depth is declared at another size than the calibration's
+        is refused before any payload is decoded (FrameError naming the image)."""
+        if self.camera is None:
+            return
+        header = peek_header(parts)
+        for key in ("color", "depth"):
+            d = header.get(key)
+            if not isinstance(d, dict):
+                continue
+            w, h = d.get("width"), d.get("height")
+            if type(w) is not int or type(h) is not int or w * h > self.max_pixels:
+                continue  # the decoder names these (bad_field, too_large)
+            if (w, h) != (self.camera.width, self.camera.height):
+                raise FrameError(key, f"{key} is {w} x {h}, the session's calibration "
+                                 f"{self.camera.width} x {self.camera.height}")
+
     def run(self, job: Job) -> JobOutcome:
         """Decode, check, process and encode one frame. Never raises: errors become Error."""
+        self._job_start = time.monotonic()
         try:
+            self._check_declared_sizes(job.parts)
             frame = decode(job.parts, max_message_bytes=self.max_message_bytes,
                            max_pixels=self.max_pixels)
             if not isinstance(frame, Frame):
@@ -458,6 +533,7 @@ class Session:
                 result.diagnostics = {**result.diagnostics, "light_source": (
                     "panorama" if frame.color is None else self.panorama_light.light_source),
                     "panorama_operator": self.panorama_light.params.operator}
+            self._check_volume_budget()
         except Exception as exc:  # noqa: BLE001 - every failure becomes an Error reply
             return self._failed(job, frame_error(exc, job.seq))
         finally:
@@ -490,6 +566,29 @@ class Session:
                      "input frame", self.name)
         return frame.color
 
+    def _check_volume_budget(self) -> None:
+        """The volume grows with the surface seen: past the session's memory budget it is
+        dropped (the next frame starts a new one) and this frame fails (over_budget)."""
+        volume = None if self._pipeline is None else self._pipeline._volume
+        if volume is None or self.budget is None:
+            return
+        used = volume.num_blocks * self.cost.bytes_per_block
+        if used > self.cost.volume_limit_bytes:
+            self._pipeline = None
+            raise VolumeOverBudget(
+                f"the session's volume grew to {volume.num_blocks} blocks ({used / 2**20:.0f} "
+                f"MiB), over its share of the per-session memory budget "
+                f"({self.cost.volume_limit_bytes / 2**20:.0f} MiB of "
+                f"{self.budget.session_memory_bytes / 2**20:.0f} MiB, `arlight serve "
+                "--session-memory-mb`); the volume is reset and the session goes on")
+
+    def crashed(self, job: Job, exc: BaseException | None) -> JobOutcome:
+        """The outcome of a job whose worker failed outside run()'s own handling."""
+        log.error("session %s: frame %d: worker failed: %r", self.name, job.seq, exc)
+        return self._failed(job, Error(code="internal", seq=job.seq,
+                                       message=f"the server failed to process this frame "
+                                               f"({type(exc).__name__})"))
+
     def _failed(self, job: Job, error: Error) -> JobOutcome:
         if error.code == "internal":
             log.error("session %s: frame %d failed: %s", self.name, job.seq, error.message)
@@ -497,7 +596,7 @@ class Session:
             log.info("session %s: frame %d rejected: %s", self.name, job.seq, error.message)
         with self._lock:
             self.frames_failed += 1
-        return JobOutcome(self, job, encode(error), False, time.monotonic(), error)
+        return JobOutcome(self, job, encode_error(error), False, time.monotonic(), error)
 
 
 def frame_error(exc: Exception, seq: int | None) -> Error:
@@ -507,6 +606,18 @@ def frame_error(exc: Exception, seq: int | None) -> Error:
         return dataclasses.replace(error, seq=seq)
     if isinstance(exc, FrameError):
         return Error(code="bad_field", message=str(exc), field=f"frame.{exc.field}", seq=seq)
+    if isinstance(exc, FrameAbandoned):
+        if exc.reason == "shutdown":
+            return Error(code="bad_state", field=ErrorField.SHUTDOWN, seq=seq, retryable=True,
+                         message="the server shut down before finishing this frame; send it "
+                                 "again after reconnecting")
+        return Error(code="deadline", seq=seq, message=(
+            f"frame abandoned before {exc.stage}: {exc.elapsed_s:.1f} s in the pipeline, over "
+            f"the server's per-frame deadline of {exc.limit_s:g} s (`arlight serve "
+            "--frame-deadline`); lower the session's cost (--preset fast, a smaller image, "
+            "fewer rt_directions or robust_iterations)"))
+    if isinstance(exc, VolumeOverBudget):
+        return Error(code="over_budget", seq=seq, field="frame", message=str(exc))
     log.error("frame %s: unexpected failure", seq, exc_info=exc)
     return Error(code="internal", message=f"the server failed to process this frame "
                                           f"({type(exc).__name__}: {exc})"[:4096], seq=seq)
