@@ -184,6 +184,11 @@ class Pipeline:
         self._raycaster = (ObjectSpaceTransfer(config.aux.aux_update_interval)
                            if config.transfer.rt_method is RtMethod.RAYCAST else None)
 
+    @property
+    def volume_blocks(self) -> int:
+        """Voxel blocks allocated in the session's volume so far (0 without a volume)."""
+        return 0 if self._volume is None else int(self._volume.num_blocks)
+
     def process(self, frame: FrameInput, render_light: tuple | None = None,
                 checkpoint: Callable[[str], None] | None = None) -> FrameResult:
         """Estimate the lighting of one frame. Raises FrameError on malformed input.

@@ -12,6 +12,11 @@ Limits on everything that crosses the wire (each a ServerOptions field): the lar
 sizes), the largest image, the credit window, the per-peer send queue (SNDHWM: a display that
 reads slowly loses Results, counted, and never stalls the pipeline), the number of sessions.
 
+Budgets (server/budget.py): a capture Hello whose settings could not meet the per-frame
+deadline or the per-session memory budget is refused (`over_budget`, naming the setting);
+a frame still in the pipeline past the deadline is abandoned between stages (`deadline`).
+Every frame accepted is answered: a worker that fails still hands back an Error for it.
+
 Liveness (zguide's Paranoid Pirate): the server sends a Heartbeat to every peer each
 `heartbeat_interval_s`; a peer silent for `liveness` intervals is dead and is detached (its
 session survives for a reconnecting client). A session that receives no frames for
@@ -77,6 +82,7 @@ DEFAULT_PORT = 5555
 DEFAULT_BIND = f"tcp://*:{DEFAULT_PORT}"
 MAX_SESSION_NAME = 64
 MAX_MESSAGES_PER_POLL = 256  # fairness between reading the socket and sending results
+ERROR_LOG_LINES_PER_S = 20  # log lines about Errors sent to peers (a flood is summarised)
 
 
 # the `arlight serve` flag of each ServerOptions field that has one (for error messages)
@@ -189,6 +195,9 @@ class Server:
         self._cancel = threading.Event()  # set at the end of a shutdown: workers give up
         self._busy = 0  # jobs in worker threads (under _busy_lock)
         self._busy_lock = threading.Condition()
+        self._error_log_second = 0  # int(time.monotonic()) of the lines counted below
+        self._error_log_count = 0
+        self._error_log_suppressed = 0
         self.budget = SessionBudget(self.options.frame_deadline_s,
                                     self.options.session_memory_bytes)
 
@@ -314,6 +323,7 @@ class Server:
                 if now >= next_housekeeping:
                     self._expire_peers(now)
                     self._expire_sessions(now)
+                    self._flush_error_log(now)
                     next_housekeeping = now + min(opts.heartbeat_interval_s, 1.0)
                 if now >= next_log:
                     self._log_rates(now, opts.log_interval_s)
@@ -615,9 +625,29 @@ class Server:
     def _send_error(self, identity: bytes, error: Error) -> None:
         self.stats.errors_sent += 1
         self.stats.error_codes[error.code] += 1
-        log.info("error to %s: %s%s: %s", identity.hex(), error.code,
-                 f" ({error.field})" if error.field else "", error.message[:512])
+        if self._error_log_allowed():
+            log.info("error to %s: %s%s: %s", identity.hex(), error.code,
+                     f" ({error.field})" if error.field else "", error.message[:512])
         self._send(identity, encode_error(error))
+
+    def _error_log_allowed(self) -> bool:
+        """At most ERROR_LOG_LINES_PER_S lines a second; then one line says how many were
+        not logged (a hostile flood does not flood the log)."""
+        self._flush_error_log(time.monotonic())
+        self._error_log_count += 1
+        if self._error_log_count > ERROR_LOG_LINES_PER_S:
+            self._error_log_suppressed += 1
+            return False
+        return True
+
+    def _flush_error_log(self, now: float) -> None:
+        """A new second: log how many Error lines the last one left out, count afresh."""
+        second = int(now)
+        if second != self._error_log_second:
+            if self._error_log_suppressed:
+                log.info("%d more error(s) to peers not logged", self._error_log_suppressed)
+            self._error_log_second, self._error_log_count = second, 0
+            self._error_log_suppressed = 0
 
     def _send_heartbeats(self) -> None:
         parts = encode(Heartbeat(time.time()))

@@ -569,14 +569,14 @@ class Session:
     def _check_volume_budget(self) -> None:
         """The volume grows with the surface seen: past the session's memory budget it is
         dropped (the next frame starts a new one) and this frame fails (over_budget)."""
-        volume = None if self._pipeline is None else self._pipeline._volume
-        if volume is None or self.budget is None:
+        if self._pipeline is None or self.budget is None:
             return
-        used = volume.num_blocks * self.cost.bytes_per_block
+        blocks = self._pipeline.volume_blocks
+        used = blocks * self.cost.bytes_per_block
         if used > self.cost.volume_limit_bytes:
             self._pipeline = None
             raise VolumeOverBudget(
-                f"the session's volume grew to {volume.num_blocks} blocks ({used / 2**20:.0f} "
+                f"the session's volume grew to {blocks} blocks ({used / 2**20:.0f} "
                 f"MiB), over its share of the per-session memory budget "
                 f"({self.cost.volume_limit_bytes / 2**20:.0f} MiB of "
                 f"{self.budget.session_memory_bytes / 2**20:.0f} MiB, `arlight serve "

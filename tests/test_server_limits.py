@@ -126,6 +126,27 @@ class TestSeqRange:
         assert decode(encode_error(Error(code="bad_field", message="y" * 5000, seq=3))).seq == 3
 
 
+def test_a_flood_of_bad_messages_is_summarised_in_the_log(make_server, caplog):
+    server = make_server(process=identity_step())
+    caplog.set_level(logging.INFO, logger="arlight")
+    peer = RawPeer(server.connect_address)
+    try:
+        for _ in range(200):  # one at a time: a peer's queue at the server holds send_hwm
+            peer.send([b"\x00 not msgpack"])
+            assert isinstance(peer.receive(), Error)  # every message is still answered
+    finally:
+        peer.close()
+
+    def accounted() -> int:
+        lines = [r.getMessage() for r in caplog.records]
+        logged = sum(line.startswith("error to ") for line in lines)
+        left_out = sum(int(line.split()[0]) for line in lines if "not logged" in line)
+        return logged + left_out
+
+    wait_for(lambda: accounted() == 200, 30, "every Error logged or counted")
+    assert sum(r.getMessage().startswith("error to ") for r in caplog.records) < 200
+
+
 class Boom(BaseException):
     """Not an Exception: escapes Session.run's own handling, as a bug in it would."""
 
