@@ -34,6 +34,9 @@ BYTES_PER_PIXEL = 450  # a frame's buffers while it is processed (a 2048^2 frame
 BYTES_PER_VOXEL = 8  # tsdf + weight, float32 (pipeline/volume.py)
 AUX_BYTES_PER_PIXEL = 6 * 32  # six orthographic buffers: depth, normals, colour
 SAMPLE_BYTES_PER_COEFFICIENT = 8 * 6  # float64 design matrix and its weighted copies
+# a panorama's light (pipeline/ibl.py lighting_from_ldr: 36 bytes per pixel at its peak,
+# measured with tracemalloc at 1024..4096 wide) plus the decoded image
+PANORAMA_BYTES_PER_PIXEL = 40
 
 
 class BudgetError(ValueError):

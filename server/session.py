@@ -68,7 +68,7 @@ from arlight.protocols import (
     peek_header,
 )
 from arlight.protocols.messages import MAX_INT as MAX_SEQ
-from arlight.server.budget import SessionBudget
+from arlight.server.budget import PANORAMA_BYTES_PER_PIXEL, SessionBudget
 from arlight.server.results import result_message
 
 log = logging.getLogger(__name__)
@@ -81,8 +81,13 @@ LOSSLESS_QUEUE_SLACK = 2  # frames beyond the credit window a lossless queue tol
 OUTCOME_CACHE_EXTRA = 4  # final outcomes kept for resending after a reconnect: credits + this
 
 
-class VolumeOverBudget(Exception):
-    """The session's volume outgrew its memory budget (the message says by how much)."""
+class OverBudget(Exception):
+    """A frame over the session's memory budget: `field` the frame's field ("frame" for
+    the volume it grew, "frame.panorama"), the message says by how much."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(message)
+        self.field = field
 
 
 class SessionSetupError(ValueError):
@@ -483,11 +488,24 @@ class Session:
             raise FrameAbandoned("deadline", stage, elapsed, limit)
 
     def _check_declared_sizes(self, parts: list) -> None:
-        """A frame whose colour or depth is declared at another size than the calibration's
-        is refused before any payload is decoded (FrameError naming the image)."""
+        """Before any payload is decoded: colour or depth declared at another size than the
+        calibration's is refused (FrameError naming the image), and a panorama larger than
+        the session's memory budget leaves room for (OverBudget, frame.panorama)."""
+        header = peek_header(parts)
+        pano = header.get("panorama")
+        if isinstance(pano, dict) and self.budget is not None:
+            w, h = pano.get("width"), pano.get("height")
+            if type(w) is int and type(h) is int and 0 < w * h <= self.max_pixels:
+                need = w * h * PANORAMA_BYTES_PER_PIXEL
+                room = self.budget.session_memory_bytes - self.cost.session_bytes
+                if need > room:
+                    raise OverBudget("frame.panorama", (
+                        f"a {w} x {h} panorama needs about {need / 2**20:.0f} MiB, over what "
+                        f"the session's memory budget leaves for it ({max(room, 0) / 2**20:.0f}"
+                        f" MiB of {self.budget.session_memory_bytes / 2**20:.0f} MiB, `arlight "
+                        "serve --session-memory-mb`); send a smaller panorama"))
         if self.camera is None:
             return
-        header = peek_header(parts)
         for key in ("color", "depth"):
             d = header.get(key)
             if not isinstance(d, dict):
@@ -575,7 +593,7 @@ class Session:
         used = blocks * self.cost.bytes_per_block
         if used > self.cost.volume_limit_bytes:
             self._pipeline = None
-            raise VolumeOverBudget(
+            raise OverBudget("frame",
                 f"the session's volume grew to {blocks} blocks ({used / 2**20:.0f} "
                 f"MiB), over its share of the per-session memory budget "
                 f"({self.cost.volume_limit_bytes / 2**20:.0f} MiB of "
@@ -616,8 +634,8 @@ def frame_error(exc: Exception, seq: int | None) -> Error:
             f"the server's per-frame deadline of {exc.limit_s:g} s (`arlight serve "
             "--frame-deadline`); lower the session's cost (--preset fast, a smaller image, "
             "fewer rt_directions or robust_iterations)"))
-    if isinstance(exc, VolumeOverBudget):
-        return Error(code="over_budget", seq=seq, field="frame", message=str(exc))
+    if isinstance(exc, OverBudget):
+        return Error(code="over_budget", seq=seq, field=exc.field, message=str(exc))
     log.error("frame %s: unexpected failure", seq, exc_info=exc)
     return Error(code="internal", message=f"the server failed to process this frame "
                                           f"({type(exc).__name__}: {exc})"[:4096], seq=seq)

@@ -337,7 +337,27 @@ class TestDeadline:
         assert np.all(np.isfinite(result.sh))
 
 
-class TestVolumeBudget:
+class TestSessionMemory:
+    def test_a_panorama_over_the_sessions_memory_is_refused_before_decoding(self,
+                                                                          make_server):
+        server = make_server(process=identity_step(), session_memory_bytes=200 * 2**20)
+        peer = RawPeer(server.connect_address)
+        try:
+            assert isinstance(_hello(peer, "pano"), Welcome)
+            color = np.zeros((48, 64, 3), np.uint8)
+            depth = np.full((48, 64), 7500, np.uint16)
+            big = np.zeros((1024, 2048, 3), np.uint8)
+            peer.send(encode(Frame(0, 1.0, color, depth, None, big, "png", "zstd")))
+            error = peer.receive()
+            assert isinstance(error, Error) and error.code == "over_budget", error
+            assert error.field == "frame.panorama" and error.seq == 0
+            assert "--session-memory-mb" in error.message
+            small = np.zeros((64, 128, 3), np.uint8)
+            peer.send(encode(Frame(1, 1.0, color, depth, None, small, "png", "zstd")))
+            assert isinstance(peer.receive(), Result)
+        finally:
+            peer.close()
+
     def test_a_volume_outgrowing_its_budget_is_reset_with_an_error(self):
         seq = make_sequence(2, 64, 48)
         calibration = calibration_of(seq.camera)
