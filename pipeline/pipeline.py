@@ -201,9 +201,10 @@ class Pipeline:
         mirror and glossy objects reflect.
 
         checkpoint: optional, called with each stage's name before it starts (not before
-        Input); whatever it raises abandons the frame there (the server's per-frame deadline).
-        A stage is never interrupted; the session's state keeps what the finished stages did
-        (the volume may hold the abandoned frame's depth)."""
+        Input), and with "LightEst" before each robust iteration; whatever it raises abandons
+        the frame there (the server's per-frame deadline). Nothing else is interrupted; the
+        session's state keeps what the finished stages did (the volume may hold the
+        abandoned frame's depth)."""
         check = checkpoint or _no_checkpoint
         timings: dict[str, float] = {}
         diagnostics: dict = {}
@@ -234,7 +235,8 @@ class Pipeline:
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
             estimate = self._estimate(transfer, color_linear, labels,
                                       up_world,
-                                      below_horizon_unseen=self.config.transfer.rt_horizon)
+                                      below_horizon_unseen=self.config.transfer.rt_horizon,
+                                      checkpoint=lambda: check("LightEst"))
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:
                 self._up_world = up_world
@@ -396,7 +398,8 @@ class Pipeline:
 
     def _estimate(self, samples: TransferSamples, color_linear: np.ndarray,
                   segments: np.ndarray | None, up_world: np.ndarray | None = None,
-                  below_horizon_unseen: bool = False) -> LightEstimate:
+                  below_horizon_unseen: bool = False,
+                  checkpoint: Callable[[], None] | None = None) -> LightEstimate:
         """LightEst (T l = I_c, section 5.2) on the sampled pixels; albedo per segment
         (segments: (H, W) labels or None)."""
         p = self.config.estimation
@@ -407,7 +410,8 @@ class Pipeline:
         pixels = (samples.pixel_v, samples.pixel_u)
         return estimate_light(samples.transfer, color_linear[pixels], p,
                               None if segments is None else segments[pixels], samples.bounce,
-                              up_world, below_horizon_unseen, seed=self.config.seed)
+                              up_world, below_horizon_unseen, seed=self.config.seed,
+                              checkpoint=checkpoint)
 
     def _estimate_diagnostics(self, estimate: LightEstimate,
                               up_world: np.ndarray | None) -> dict:

@@ -11,8 +11,9 @@ measured time for the `full` preset at 640 x 480 on the development machine (2 s
 `REFERENCE_STAGE_MS`), scaled by the ratio of the work its settings ask for to the
 reference's (pixels, window areas, directions, samples, iterations, ...). It refuses what is
 far out of reach (robust_iterations 10^6, a 4096^2 image on a small budget); what it lets
-through and still runs long is abandoned between stages at the deadline (server/session.py,
-`Session.checkpoint`): a stage itself is never interrupted.
+through and still runs long is abandoned at the deadline between stages and between the
+light estimate's robust iterations (server/session.py, `Session.checkpoint`); nothing else
+is interrupted.
 """
 
 from __future__ import annotations

@@ -322,17 +322,27 @@ class TestDeadline:
         pipeline = Pipeline(Config.from_preset("mobile", aux_resolution=32), seq.camera)
         stages: list[str] = []
         pipeline.process(seq.frames[0], checkpoint=stages.append)
-        assert stages == ["Reconstruct", "DynGeo", "RadTransfer", "LightEst"]
+        assert list(dict.fromkeys(stages)) == ["Reconstruct", "DynGeo", "RadTransfer",
+                                               "LightEst"]
+        # and before each robust iteration of the light estimate
+        assert stages.count("LightEst") >= 1 + pipeline.config.estimation.robust_iterations
 
         class Stop(Exception):
             pass
 
-        def stop_at_transfer(stage):
-            if stage == "RadTransfer":
-                raise Stop
+        def stop_at(stage_name, nth=1):
+            seen = []
 
-        with pytest.raises(Stop):
-            pipeline.process(seq.frames[0], checkpoint=stop_at_transfer)
+            def check(stage):
+                seen.append(stage)
+                if seen.count(stage_name) == nth:
+                    raise Stop
+
+            return check
+
+        for stage, nth in (("RadTransfer", 1), ("LightEst", 3)):
+            with pytest.raises(Stop):
+                pipeline.process(seq.frames[0], checkpoint=stop_at(stage, nth))
         result = pipeline.process(seq.frames[0])  # the session goes on
         assert np.all(np.isfinite(result.sh))
 
