@@ -100,8 +100,8 @@ class SessionSetupError(ValueError):
 
 
 class FrameAbandoned(Exception):
-    """A frame given up between pipeline stages: past its deadline ("deadline") or the
-    server stopping ("shutdown"). stage: the stage it would have started next."""
+    """A frame given up at a pipeline checkpoint: past its deadline ("deadline") or the
+    server stopping ("shutdown"). stage: the stage it would have started (or was in)."""
 
     def __init__(self, reason: str, stage: str, elapsed_s: float, limit_s: float):
         super().__init__(f"{reason} before {stage} after {elapsed_s:.1f} s")
@@ -478,8 +478,9 @@ class Session:
     # ------------------------------------------------------------------ worker thread
 
     def checkpoint(self, stage: str) -> None:
-        """Called by the pipeline before each stage: FrameAbandoned when the frame is past
-        the budget's deadline or the server is stopping (the stage is not started)."""
+        """Called by the pipeline before each stage (and each robust iteration of the
+        light estimate): FrameAbandoned when the frame is past the budget's deadline or the
+        server is stopping (the step is not started)."""
         elapsed = time.monotonic() - self._job_start
         if self._cancel is not None and self._cancel.is_set():
             raise FrameAbandoned("shutdown", stage, elapsed, 0.0)
