@@ -17,7 +17,12 @@ Runs `arlight serve` as a child process (the real pipeline, at a small image siz
   and bit-flipped frames, frames from no session, seq out of range, and Hellos over the
   budgets, which must be refused);
 - `--stuck-displays` display peers subscribe to the sessions, keep themselves alive with
-  heartbeats and never read (their queues fill; the sessions must not notice).
+  heartbeats and never read (their queues fill; the sessions must not notice);
+- one reading display per session (client/display.py, `--follow`) counts every Result the
+  server broadcasts: a seq it sees twice was processed twice, which happens only for a
+  frame in flight when the server was killed (its Result lost; the next server processes
+  it again). Reported, not a failure: delivery to the capture application stays
+  exactly-once.
 
 Then it stops the server with SIGTERM and reports, per session and in all: frames sent (taken
 from the source), Results received, lost (sent, never answered by a Result), final Errors,
@@ -48,6 +53,7 @@ import numpy as np
 import zmq
 
 from arlight.client.capture import CaptureClient, StreamOptions
+from arlight.client.display import DisplayClient, DisplayOptions
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Error,
@@ -367,6 +373,17 @@ def main(argv: list[str] | None = None) -> int:
         flood.start()
     for i in range(args.stuck_displays):
         StuckDisplay(address, tallies[i % len(tallies)].name, end).start()
+    watchers = []
+    for tally in tallies:
+        seen: dict[int, int] = {}
+        display = DisplayClient(
+            DisplayOptions(server=address, session=tally.name, follow=True,
+                           reconnect_timeout_s=120.0, print_interval_s=3600.0,
+                           client_name="soak-display"),
+            on_result=lambda result, _record, seen=seen: seen.__setitem__(
+                result.seq, seen.get(result.seq, 0) + 1), printer=lambda _line: None)
+        threading.Thread(target=display.run, daemon=True).start()
+        watchers.append((display, seen))
 
     killed_at = None
     if args.kill_at > 0:
@@ -387,11 +404,13 @@ def main(argv: list[str] | None = None) -> int:
     if flood:
         flood.join(30)
     time.sleep(1.0)
+    for display, _ in watchers:
+        display.stop()
     term_s = server.terminate()
     server.close()
 
     per_session = []
-    for tally, (_, _, box) in zip(tallies, clients, strict=True):
+    for tally, (_, _, box), (_, seen) in zip(tallies, clients, watchers, strict=True):
         summary = box.get("summary")
         sent = tally.generated
         lost = sent - len(tally.received) - len(tally.final_errors)
@@ -401,6 +420,8 @@ def main(argv: list[str] | None = None) -> int:
             "duplicated": tally.duplicates, "out_of_order": tally.out_of_order,
             "mixed": tally.mixed,
             "reconnects": summary.reconnects if summary else None,
+            "display_results": sum(seen.values()),
+            "display_processed_twice": sum(n > 1 for n in seen.values()),
             "client_error": box.get("error"), "errors": tally.final_errors[:5]})
     totals = {k: sum(s[k] for s in per_session) for k in
               ("sent", "received", "lost", "final_errors", "duplicated", "out_of_order",
@@ -425,6 +446,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{totals['duplicated']}, out of order {totals['out_of_order']}, mixed "
           f"{totals['mixed']}; {report['frames_per_s']} Results/s; SIGTERM exit in "
           f"{term_s:.1f} s", flush=True)
+    print(f"soak: displays received {sum(s['display_results'] for s in per_session)} "
+          f"Results; {sum(s['display_processed_twice'] for s in per_session)} frame(s) "
+          "processed twice (in flight at the kill)", flush=True)
     for i, life in enumerate(report["rss"]["lives"]):
         print(f"soak: server life {i + 1}: RSS start {life['start_mb']} MB, after warm-up "
               f"{life['after_warmup_mb']} MB, peak {life['peak_after_warmup_mb']} MB, end "
