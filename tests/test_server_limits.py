@@ -11,6 +11,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import msgpack
@@ -388,6 +389,31 @@ class TestSessionMemory:
         assert not outcome.ok and outcome.error.code == "over_budget", outcome.error
         assert "--session-memory-mb" in outcome.error.message
         assert session._pipeline is None  # dropped: the next frame starts a new volume
+
+
+class TestShutdownAbandons:
+    def test_a_cooperative_frame_is_abandoned_when_the_grace_ends(self, make_server):
+        started = threading.Event()
+
+        def endless(frame, session):  # a pipeline that never ends, checking in as it goes
+            started.set()
+            while True:
+                session.checkpoint("RadTransfer")
+                time.sleep(0.01)
+
+        server = make_server(process=endless, shutdown_grace_s=0.2)
+        peer = RawPeer(server.connect_address)
+        try:
+            assert isinstance(peer.hello("endless"), Welcome)
+            peer.send(frame_parts(0))
+            wait_for(started.is_set, 30, "the worker to start the frame")
+            server.stop(timeout=30)
+            error = peer.receive()
+            assert isinstance(error, Error) and error.field == "shutdown" and error.seq == 0
+            assert error.retryable  # not processed: a lossless client sends it again
+            assert server.wait_workers(30)  # the worker gave the frame up and is free
+        finally:
+            peer.close()
 
 
 class TestSigterm:
