@@ -304,7 +304,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
         log_interval_s=args.log_interval, max_sessions=args.max_sessions,
         max_message_bytes=int(args.max_message_mb * 2**20) if args.max_message_mb
         else DEFAULT_MAX_MESSAGE_BYTES, shutdown_grace_s=args.shutdown_grace,
-        keys_dir=args.keys, insecure=args.insecure, admin_token=admin_token)
+        keys_dir=args.keys, insecure=args.insecure, admin_token=admin_token,
+        **_budget_options(args))
     server = Server(options).start()  # InsecureBindError, SecurityError: exit 2
     stop = threading.Event()
     signals_seen = []
@@ -333,7 +334,29 @@ def cmd_serve(args: argparse.Namespace) -> int:
     print(f"arlight serve: {name}: shutting down (in-flight lossless frames finish, "
           f"at most {args.shutdown_grace:g} s)", file=sys.stderr, flush=True)
     server.stop()
+    _exit_if_workers_busy(server)
     return 0
+
+
+def _budget_options(args: argparse.Namespace) -> dict:
+    """ServerOptions' budget fields from `arlight serve --frame-deadline/--session-memory-mb`."""
+    return {"frame_deadline_s": args.frame_deadline,
+            "session_memory_bytes": int(args.session_memory_mb * 2**20)}
+
+
+WORKER_EXIT_WAIT_S = 2.0  # after the grace, for a worker to reach its next stage boundary
+
+
+def _exit_if_workers_busy(server) -> None:
+    """The server has stopped (every unfinished frame reported to its client); a worker
+    still inside a pipeline stage would keep the process alive: exit without it."""
+    if server.wait_workers(WORKER_EXIT_WAIT_S):
+        return
+    print("arlight serve: a worker is still inside a pipeline stage; exiting without it "
+          "(its frame was reported to the client as not processed)", file=sys.stderr,
+          flush=True)
+    logging.shutdown()
+    os._exit(0)
 
 
 def _stream_options(args: argparse.Namespace, source) -> object:
@@ -1041,7 +1064,24 @@ def _add_serve_parser(sub) -> None:
                                          "already received (default "
                                          f"{defaults.shutdown_grace_s:g}); the rest are "
                                          "reported to their clients")
+    _add_budget_options(serve, defaults)
     serve.set_defaults(func=cmd_serve)
+
+
+def _add_budget_options(serve, defaults) -> None:
+    """`arlight serve`'s budgets (README, "Limits and budgets")."""
+    serve.add_argument("--frame-deadline", type=_positive_float,
+                       default=defaults.frame_deadline_s, metavar="S",
+                       help="a frame still in the pipeline after S seconds is abandoned at "
+                            "the next stage (Error deadline), and a session whose settings "
+                            "could not meet it is refused at Hello (default "
+                            f"{defaults.frame_deadline_s:g})")
+    serve.add_argument("--session-memory-mb", type=_positive_float,
+                       default=defaults.session_memory_bytes / 2**20, metavar="MB",
+                       help="memory budget of one session (image buffers, volume): a Hello "
+                            "over it is refused; the sessions' memory is at most "
+                            "--max-sessions x this (default "
+                            f"{defaults.session_memory_bytes / 2**20:g})")
 
 
 def _add_stream_parser(sub) -> None:

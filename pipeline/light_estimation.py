@@ -21,6 +21,7 @@ luminance. Beyond the paper's plain least squares:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -138,7 +139,8 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: Estim
                    segments: np.ndarray | None = None,
                    bounce: np.ndarray | None = None,
                    up: np.ndarray | None = None,
-                   below_horizon_unseen: bool = False, *, seed: int = 0) -> LightEstimate:
+                   below_horizon_unseen: bool = False, *, seed: int = 0,
+                   checkpoint: Callable[[], None] | None = None) -> LightEstimate:
     """Solve T l = I_c for the distant light (section 5.2, made robust: module docstring).
 
     transfer: (M, C) SH transfer per pixel, C = L*L for L bands (as many are solved for, or
@@ -156,6 +158,8 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: Estim
     horizon), else only when the unconstrained fit puts the light there.
     Returns an estimate with zero coefficients and confidence 0 when too few usable pixels
     (Confidence.reason says why, as it does whenever the confidence is low).
+    checkpoint: optional, called before each robust iteration; whatever it raises ends the
+    fit there (a server's per-frame deadline).
     """
     t = np.asarray(transfer)  # float64 only for the rows used (below): exact either way
     if not np.issubdtype(t.dtype, np.floating):
@@ -173,7 +177,8 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: Estim
 
     max_bands = math.isqrt(n_coeffs)
     bands, cond = choose_bands(t, np.ones(len(lum)), max_bands)
-    fit, prior = _fit_light(t, lum, b, labels, bands, params, up, below_horizon_unseen)
+    fit, prior = _fit_light(t, lum, b, labels, bands, params, up, below_horizon_unseen,
+                            checkpoint)
     pred = fit.albedo * fit.shading
     residual = float(np.sqrt(np.average(((pred - lum) / np.maximum(lum, DARK_LEVEL)) ** 2,
                                         weights=fit.weights)))
@@ -274,11 +279,12 @@ def _usable_samples(t: np.ndarray, color_linear: np.ndarray, bounce: np.ndarray 
 def _fit_light(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
                labels: np.ndarray | None, bands: int, params: EstimationParams,
                up: np.ndarray | None, below_horizon_unseen: bool,
+               checkpoint: Callable[[], None] | None = None,
                ) -> tuple[_Fit, np.ndarray | None]:
     """The robust fit, with the below-horizon prior where it applies; (fit, prior or None)."""
     use_prior = up is not None and params.horizon_prior > 0
     if not (use_prior and below_horizon_unseen):
-        fit = _alternate(t, lum, b, labels, bands, params, None)
+        fit = _alternate(t, lum, b, labels, bands, params, None, checkpoint)
         # the data put the light below the horizon of the surface the scene stands on:
         # light from there cannot reach the scene, so that lobe is an artefact of what the
         # normals leave unconstrained; fit again with below-horizon radiance held to a
@@ -288,7 +294,7 @@ def _fit_light(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
             return fit, None
     # built only when used: it costs a 2048-direction SH evaluation
     prior = params.horizon_prior * below_horizon_gram(up, bands, params.horizon_ground_albedo)
-    return _alternate(t, lum, b, labels, bands, params, prior), prior
+    return _alternate(t, lum, b, labels, bands, params, prior, checkpoint), prior
 
 
 @dataclass
@@ -302,7 +308,8 @@ class _Fit:
 
 def _alternate(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
                labels: np.ndarray | None, bands: int, params: EstimationParams,
-               prior: np.ndarray | None) -> _Fit:
+               prior: np.ndarray | None,
+               checkpoint: Callable[[], None] | None = None) -> _Fit:
     """Regularised solve, then `robust_iterations` rounds of per-segment albedo and Huber
     re-weighting (relative residuals), each followed by a new solve."""
     n = bands * bands
@@ -320,6 +327,8 @@ def _alternate(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
 
     coeffs, beta = solve()
     for _ in range(params.robust_iterations):
+        if checkpoint is not None:
+            checkpoint()
         shade = shading()
         if labels is not None:
             albedo = _segment_albedo(shade, lum, labels, weights)

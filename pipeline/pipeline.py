@@ -15,6 +15,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -72,6 +73,10 @@ class ValidFrame:
     color: np.ndarray
     depth_m: np.ndarray
     pose: np.ndarray | None
+
+
+def _no_checkpoint(stage: str) -> None:
+    pass
 
 
 def validate_frame(frame: FrameInput, camera: PinholeCamera) -> ValidFrame:
@@ -179,8 +184,13 @@ class Pipeline:
         self._raycaster = (ObjectSpaceTransfer(config.aux.aux_update_interval)
                            if config.transfer.rt_method is RtMethod.RAYCAST else None)
 
-    def process(self, frame: FrameInput,
-                render_light: tuple | None = None) -> FrameResult:
+    @property
+    def volume_blocks(self) -> int:
+        """Voxel blocks allocated in the session's volume so far (0 without a volume)."""
+        return 0 if self._volume is None else int(self._volume.num_blocks)
+
+    def process(self, frame: FrameInput, render_light: tuple | None = None,
+                checkpoint: Callable[[str], None] | None = None) -> FrameResult:
         """Estimate the lighting of one frame. Raises FrameError on malformed input.
 
         render_light: optional (sh (n,), sh_rgb (3, n) or None[, environment]), radiance SH
@@ -188,19 +198,29 @@ class Pipeline:
         (a session lit by its 360-degree panorama, `light_source` "panorama"); the estimate
         is still made and returned. Its units are the light's own (no albedo scaling).
         environment: an optional `rendering.EnvironmentMap` (the panorama's HDR map) that
-        mirror and glossy objects reflect."""
+        mirror and glossy objects reflect.
+
+        checkpoint: optional, called with each stage's name before it starts (not before
+        Input), and with "LightEst" before each robust iteration; whatever it raises abandons
+        the frame there (the server's per-frame deadline). Nothing else is interrupted; the
+        session's state keeps what the finished stages did (the volume may hold the
+        abandoned frame's depth)."""
+        check = checkpoint or _no_checkpoint
         timings: dict[str, float] = {}
         diagnostics: dict = {}
         with _stage(timings, "Input"):
             valid = validate_frame(frame, self.camera)
             intensity = intensity_from_rgb(valid.color)
             color_linear = srgb_to_linear(valid.color)
+        check("Reconstruct")
         pose, depth_volume, aux_buffers = self._reconstruct(valid, timings, diagnostics)
+        check("DynGeo")
         with _stage(timings, "DynGeo"):
             geometry = self._dynamic_geometry(valid.depth_m, depth_volume, intensity)
         # LightEst's material segments need only colour and geometry: they are made beside
         # RadTransfer (OpenCV's segmentation runs on one core, outside the interpreter lock,
         # while the transfer's NumPy steps leave the other idle)
+        check("RadTransfer")
         segments = _side_work().submit(self._segments, color_linear, geometry)
         try:
             with _stage(timings, "RadTransfer"):
@@ -209,12 +229,14 @@ class Pipeline:
             concurrent.futures.wait([segments])  # nothing of this frame outlives it
             raise
         labels = segments.result()
+        check("LightEst")
         with _stage(timings, "LightEst"):
             plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
             estimate = self._estimate(transfer, color_linear, labels,
                                       up_world,
-                                      below_horizon_unseen=self.config.transfer.rt_horizon)
+                                      below_horizon_unseen=self.config.transfer.rt_horizon,
+                                      checkpoint=lambda: check("LightEst"))
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:
                 self._up_world = up_world
@@ -226,6 +248,7 @@ class Pipeline:
         if self.scene is None:
             timings["Rendering"] = 0.0
         else:
+            check("Rendering")
             with _stage(timings, "Rendering"):
                 composite = self._render(valid, color_linear, geometry, pose, aux_buffers,
                                          coeffs, estimate, render_light)
@@ -375,7 +398,8 @@ class Pipeline:
 
     def _estimate(self, samples: TransferSamples, color_linear: np.ndarray,
                   segments: np.ndarray | None, up_world: np.ndarray | None = None,
-                  below_horizon_unseen: bool = False) -> LightEstimate:
+                  below_horizon_unseen: bool = False,
+                  checkpoint: Callable[[], None] | None = None) -> LightEstimate:
         """LightEst (T l = I_c, section 5.2) on the sampled pixels; albedo per segment
         (segments: (H, W) labels or None)."""
         p = self.config.estimation
@@ -386,7 +410,8 @@ class Pipeline:
         pixels = (samples.pixel_v, samples.pixel_u)
         return estimate_light(samples.transfer, color_linear[pixels], p,
                               None if segments is None else segments[pixels], samples.bounce,
-                              up_world, below_horizon_unseen, seed=self.config.seed)
+                              up_world, below_horizon_unseen, seed=self.config.seed,
+                              checkpoint=checkpoint)
 
     def _estimate_diagnostics(self, estimate: LightEstimate,
                               up_world: np.ndarray | None) -> dict:

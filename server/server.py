@@ -12,6 +12,11 @@ Limits on everything that crosses the wire (each a ServerOptions field): the lar
 sizes), the largest image, the credit window, the per-peer send queue (SNDHWM: a display that
 reads slowly loses Results, counted, and never stalls the pipeline), the number of sessions.
 
+Budgets (server/budget.py): a capture Hello whose settings could not meet the per-frame
+deadline or the per-session memory budget is refused (`over_budget`, naming the setting);
+a frame still in the pipeline past the deadline is abandoned between stages (`deadline`).
+Every frame accepted is answered: a worker that fails still hands back an Error for it.
+
 Liveness (zguide's Paranoid Pirate): the server sends a Heartbeat to every peer each
 `heartbeat_interval_s`; a peer silent for `liveness` intervals is dead and is detached (its
 session survives for a reconnecting client). A session that receives no frames for
@@ -66,6 +71,8 @@ from arlight.protocols import (
     error_from_exception,
     peek_header,
 )
+from arlight.protocols.messages import MAX_INT as MAX_SEQ  # a Frame's seq: 0..2^63-1
+from arlight.server.budget import SessionBudget
 from arlight.server.security import (
     CurveServer,
     check_exposure,
@@ -79,6 +86,7 @@ from arlight.server.session import (
     ProcessStep,
     Session,
     SessionSetupError,
+    encode_error,
 )
 
 log = logging.getLogger(__name__)
@@ -87,6 +95,7 @@ DEFAULT_PORT = 5555
 DEFAULT_BIND = f"tcp://127.0.0.1:{DEFAULT_PORT}"  # this machine only (README "Security")
 MAX_SESSION_NAME = 64
 MAX_MESSAGES_PER_POLL = 256  # fairness between reading the socket and sending results
+ERROR_LOG_LINES_PER_S = 20  # log lines about Errors sent to peers (a flood is summarised)
 
 
 # the `arlight serve` flag of each ServerOptions field that has one (for error messages)
@@ -94,7 +103,9 @@ SERVE_FLAGS = {"bind": "--bind", "workers": "--workers", "credits": "--credits",
                "heartbeat_interval_s": "--heartbeat", "session_timeout_s": "--session-timeout",
                "log_interval_s": "--log-interval", "max_sessions": "--max-sessions",
                "max_message_bytes": "--max-message-mb", "shutdown_grace_s": "--shutdown-grace",
-               "keys_dir": "--keys", "admin_token": "--admin-token-file"}
+               "keys_dir": "--keys", "admin_token": "--admin-token-file",
+               "frame_deadline_s": "--frame-deadline",
+               "session_memory_bytes": "--session-memory-mb"}
 
 
 @dataclass(frozen=True)
@@ -123,6 +134,10 @@ class ServerOptions:
     insecure: bool = False
     admin_token: str | None = None
     session_tokens: bool = True
+    # budgets (server/budget.py): a frame in the pipeline longer than this is abandoned
+    # between stages (Error "deadline"); a Hello whose frames could not meet it is refused
+    frame_deadline_s: float = 60.0
+    session_memory_bytes: int = 1024 * 2**20  # per session; the server's: max_sessions x this
 
     def __post_init__(self) -> None:
         checks = {"workers": self.workers >= 1, "credits": self.credits >= 1,
@@ -133,7 +148,9 @@ class ServerOptions:
                   "receive_hwm": self.receive_hwm >= 1,
                   "max_message_bytes": self.max_message_bytes >= 1024,
                   "max_pixels": self.max_pixels >= 1,
-                  "shutdown_grace_s": self.shutdown_grace_s >= 0}
+                  "shutdown_grace_s": self.shutdown_grace_s >= 0,
+                  "frame_deadline_s": self.frame_deadline_s > 0,
+                  "session_memory_bytes": self.session_memory_bytes >= 2**20}
         for name, ok in checks.items():
             if not ok:
                 flag = SERVE_FLAGS.get(name)
@@ -204,6 +221,14 @@ class Server:
         # admits a display to any session's Results (and a capture Hello to any session)
         self.admin_token = self.options.admin_token or new_token()
         self._curve: CurveServer | None = None
+        self._cancel = threading.Event()  # set at the end of a shutdown: workers give up
+        self._busy = 0  # jobs in worker threads (under _busy_lock)
+        self._busy_lock = threading.Condition()
+        self._error_log_second = 0  # int(time.monotonic()) of the lines counted below
+        self._error_log_count = 0
+        self._error_log_suppressed = 0
+        self.budget = SessionBudget(self.options.frame_deadline_s,
+                                    self.options.session_memory_bytes)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -244,6 +269,11 @@ class Server:
                  "session timeout %.0f s; %s)", self.endpoint, opts.workers, opts.credits,
                  opts.heartbeat_interval_s, opts.session_timeout_s,
                  "CURVE: authorised client keys only" if curve else "no encryption")
+        log.info("budgets: %.0f s per frame (--frame-deadline), %.0f MiB per session "
+                 "(--session-memory-mb); sessions' memory at most %d x %.0f MiB = %.1f GiB "
+                 "(--max-sessions)", opts.frame_deadline_s, opts.session_memory_bytes / 2**20,
+                 opts.max_sessions, opts.session_memory_bytes / 2**20,
+                 opts.max_sessions * opts.session_memory_bytes / 2**30)
         return self
 
     def _stop_curve(self) -> None:
@@ -271,6 +301,13 @@ class Server:
     def wait(self, timeout: float | None = None) -> bool:
         """Block until the server has stopped; True if it has."""
         return self._stopped.wait(timeout)
+
+    def wait_workers(self, timeout: float) -> bool:
+        """After stop(): wait up to `timeout` seconds for the worker threads' jobs to end;
+        True if none is left (a job abandoned at shutdown ends at its next stage boundary;
+        one stuck inside a stage does not, and `arlight serve` then exits without it)."""
+        with self._busy_lock:
+            return self._busy_lock.wait_for(lambda: self._busy == 0, timeout)
 
     def __enter__(self) -> Server:
         return self.start() if self._thread is None else self
@@ -329,6 +366,7 @@ class Server:
                 if now >= next_housekeeping:
                     self._expire_peers(now)
                     self._expire_sessions(now)
+                    self._flush_error_log(now)
                     next_housekeeping = now + min(opts.heartbeat_interval_s, 1.0)
                 if now >= next_log:
                     self._log_rates(now, opts.log_interval_s)
@@ -521,7 +559,7 @@ class Server:
             session = Session(cfg, credits=self.options.credits,
                               max_pixels=self.options.max_pixels,
                               max_message_bytes=self.options.max_message_bytes,
-                              process=self._process)
+                              process=self._process, budget=self.budget, cancel=self._cancel)
         except SessionSetupError as exc:
             self._send_error(identity, Error(code=exc.code, field=f"hello.config.{exc.field}",
                                              message=str(exc)))
@@ -543,9 +581,11 @@ class Server:
     def _on_frame(self, identity: bytes, peer: Peer | None, header: dict, parts: list,
                   now: float, receive_time_wall: float) -> None:
         seq = header.get("seq")
-        if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+        if not isinstance(seq, int) or isinstance(seq, bool) or not 0 <= seq <= MAX_SEQ:
+            shown = repr(seq)[:64]
             self._send_error(identity, Error(code="bad_field", field="frame.seq",
-                                             message=f"seq must be an integer >= 0, got {seq!r}"))
+                                             message=f"seq must be an integer in 0..2^63-1, "
+                                                     f"got {shown}"))
             return
         session = self.sessions.get(peer.session) if peer is not None else None
         if peer is None or peer.role != "capture" or session is None or \
@@ -597,14 +637,30 @@ class Server:
             self._executor.submit(self._work, session, job)
 
     def _work(self, session: Session, job: Job) -> None:
-        """Worker thread: process one frame, hand the outcome to the I/O thread."""
-        if self.options.workers > 1 and not concurrent_pipelines_safe():
-            with self._compute_lock:
+        """Worker thread: process one frame, hand the outcome to the I/O thread. Every job
+        hands one back, whatever fails: the session's slot is always freed."""
+        with self._busy_lock:
+            self._busy += 1
+        outcome = None
+        try:
+            if self.options.workers > 1 and not concurrent_pipelines_safe():
+                with self._compute_lock:
+                    outcome = session.run(job)
+            else:
                 outcome = session.run(job)
-        else:
-            outcome = session.run(job)
-        self._completions.put(outcome)
-        self._wake()
+        except BaseException as exc:  # noqa: BLE001 - reported to the client as internal
+            outcome = session.crashed(job, exc)
+        finally:
+            if outcome is None:  # crashed() itself failed: the bare minimum, still answered
+                outcome = JobOutcome(session, job, encode(Error(
+                    code="internal", seq=job.seq, message="the server failed to process "
+                    "this frame")), False, time.monotonic(), Error("internal", "", None,
+                                                                   job.seq))
+            self._completions.put(outcome)
+            self._wake()
+            with self._busy_lock:
+                self._busy -= 1
+                self._busy_lock.notify_all()
 
     def _drain_completions(self) -> None:
         while True:
@@ -612,25 +668,33 @@ class Server:
                 outcome = self._completions.get_nowait()
             except queue.Empty:
                 return
-            session = outcome.session
-            session.finish(outcome)
-            if session.capture_peer is not None:
-                self._send(session.capture_peer, outcome.parts)
-            if outcome.ok:
-                for identity in list(self.displays.get(session.name, ())):
-                    if not self._send(identity, outcome.parts):
-                        session.display_drops += 1
-                        self.stats.display_results_dropped += 1
-            else:
-                self.stats.errors_sent += 1
-                self.stats.error_codes[outcome.error.code] += 1
-            if self.sessions.get(session.name) is not session:
-                continue  # closed or replaced meanwhile
-            if self._draining and not session.lossless:
-                session.drop_pending()
-            self._schedule(session)
-            if session.ended and session.idle:
-                self._close_session(session, "end of stream")
+            try:
+                self._complete(outcome)
+            except Exception:  # noqa: BLE001 - a bug: the other outcomes still go out
+                log.exception("session %s: failed to deliver the outcome of frame %d",
+                              outcome.session.name, outcome.job.seq)
+
+    def _complete(self, outcome: JobOutcome) -> None:
+        """Free the session's slot, send the outcome, schedule the session's next frame."""
+        session = outcome.session
+        session.finish(outcome)
+        if session.capture_peer is not None:
+            self._send(session.capture_peer, outcome.parts)
+        if outcome.ok:
+            for identity in list(self.displays.get(session.name, ())):
+                if not self._send(identity, outcome.parts):
+                    session.display_drops += 1
+                    self.stats.display_results_dropped += 1
+        else:
+            self.stats.errors_sent += 1
+            self.stats.error_codes[outcome.error.code] += 1
+        if self.sessions.get(session.name) is not session:
+            return  # closed or replaced meanwhile
+        if self._draining and not session.lossless:
+            session.drop_pending()
+        self._schedule(session)
+        if session.ended and session.idle:
+            self._close_session(session, "end of stream")
 
     # ------------------------------------------------------------------ sending
 
@@ -655,9 +719,29 @@ class Server:
     def _send_error(self, identity: bytes, error: Error) -> None:
         self.stats.errors_sent += 1
         self.stats.error_codes[error.code] += 1
-        log.info("error to %s: %s%s: %s", identity.hex(), error.code,
-                 f" ({error.field})" if error.field else "", error.message)
-        self._send(identity, encode(error))
+        if self._error_log_allowed():
+            log.info("error to %s: %s%s: %s", identity.hex(), error.code,
+                     f" ({error.field})" if error.field else "", error.message[:512])
+        self._send(identity, encode_error(error))
+
+    def _error_log_allowed(self) -> bool:
+        """At most ERROR_LOG_LINES_PER_S lines a second; then one line says how many were
+        not logged (a hostile flood does not flood the log)."""
+        self._flush_error_log(time.monotonic())
+        self._error_log_count += 1
+        if self._error_log_count > ERROR_LOG_LINES_PER_S:
+            self._error_log_suppressed += 1
+            return False
+        return True
+
+    def _flush_error_log(self, now: float) -> None:
+        """A new second: log how many Error lines the last one left out, count afresh."""
+        second = int(now)
+        if second != self._error_log_second:
+            if self._error_log_suppressed:
+                log.info("%d more error(s) to peers not logged", self._error_log_suppressed)
+            self._error_log_second, self._error_log_count = second, 0
+            self._error_log_suppressed = 0
 
     def _send_heartbeats(self) -> None:
         parts = encode(Heartbeat(time.time()))
@@ -740,7 +824,7 @@ class Server:
                 waiting += len(session.pending) + (session.in_flight is not None)
             else:
                 session.drop_pending()
-        log.info("shutting down: %d lossless frame(s) still to finish (grace %.0f s)", waiting,
+        log.info("shutting down: %d lossless frame(s) still to finish (grace %g s)", waiting,
                  self.options.shutdown_grace_s)
 
     def _drained(self) -> bool:
@@ -750,6 +834,7 @@ class Server:
     def _finish_shutdown(self) -> None:
         """Report unfinished lossless frames, say Bye to every peer, close the socket."""
         router = self._router
+        self._cancel.set()  # a frame still in a worker is abandoned at its next stage
         try:
             for session in list(self.sessions.values()):
                 unfinished = [session.in_flight] if session.in_flight else []

@@ -27,6 +27,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -55,6 +56,7 @@ from arlight.pipeline.virtual_scene import (
 )
 from arlight.protocols import (
     Error,
+    ErrorField,
     Frame,
     PanoramaConfig,
     ProtocolError,
@@ -63,7 +65,10 @@ from arlight.protocols import (
     decode,
     encode,
     error_from_exception,
+    peek_header,
 )
+from arlight.protocols.messages import MAX_INT as MAX_SEQ
+from arlight.server.budget import PANORAMA_BYTES_PER_PIXEL, SessionBudget
 from arlight.server.results import result_message
 
 log = logging.getLogger(__name__)
@@ -76,6 +81,15 @@ LOSSLESS_QUEUE_SLACK = 2  # frames beyond the credit window a lossless queue tol
 OUTCOME_CACHE_EXTRA = 4  # final outcomes kept for resending after a reconnect: credits + this
 
 
+class OverBudget(Exception):
+    """A frame over the session's memory budget: `field` the frame's field ("frame" for
+    the volume it grew, "frame.panorama"), the message says by how much."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(message)
+        self.field = field
+
+
 class SessionSetupError(ValueError):
     """A Hello whose config cannot make a session; `field` names the offending field."""
 
@@ -83,6 +97,31 @@ class SessionSetupError(ValueError):
         super().__init__(f"{field}: {message}")
         self.field = field
         self.code = code
+
+
+class FrameAbandoned(Exception):
+    """A frame given up at a pipeline checkpoint: past its deadline ("deadline") or the
+    server stopping ("shutdown"). stage: the stage it would have started (or was in)."""
+
+    def __init__(self, reason: str, stage: str, elapsed_s: float, limit_s: float):
+        super().__init__(f"{reason} before {stage} after {elapsed_s:.1f} s")
+        self.reason = reason
+        self.stage = stage
+        self.elapsed_s = elapsed_s
+        self.limit_s = limit_s
+
+
+def encode_error(error: Error) -> list:
+    """The parts of an Error; never raises. An Error that cannot be encoded (a seq outside
+    0..2^63-1, an over-long text) is replaced by an `internal` one that can."""
+    try:
+        return encode(error)
+    except Exception as exc:  # noqa: BLE001 - the fallback below always encodes
+        seq = error.seq if isinstance(error.seq, int) and 0 <= error.seq <= MAX_SEQ else None
+        log.error("an Error could not be encoded (%s); sent as internal", exc)
+        return encode(Error(code="internal", seq=seq,
+                            message=f"the server failed to report an error "
+                                    f"({type(exc).__name__})"))
 
 
 def pipeline_config(config: SessionConfig) -> Config:
@@ -225,7 +264,8 @@ def frame_to_input(frame: Frame, camera: PinholeCamera, depth_scale: float) -> F
 
 
 def default_process(frame: FrameInput, session: Session) -> FrameResult:
-    return session.pipeline.process(frame, render_light=session.render_light)
+    return session.pipeline.process(frame, render_light=session.render_light,
+                                    checkpoint=session.checkpoint)
 
 
 def panorama_only_result(frame: Frame, world: tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -276,7 +316,11 @@ class Session:
     """One session's state. Counters are read by workers and written by the I/O thread."""
 
     def __init__(self, config: SessionConfig, *, credits: int, max_pixels: int,
-                 max_message_bytes: int, process: ProcessStep | None = None):
+                 max_message_bytes: int, process: ProcessStep | None = None,
+                 budget: SessionBudget | None = None, cancel: threading.Event | None = None):
+        """budget: the per-frame time and per-session memory limits (server/budget.py;
+        None: unlimited); cancel: set when the server stops, so a frame in a worker is
+        abandoned at its next stage boundary. SessionSetupError for a config it refuses."""
         self.name = config.session
         self.config = config
         self.credits = credits
@@ -293,6 +337,13 @@ class Session:
         self.panorama_light = panorama_light_from_config(config)
         self.render_light: tuple[np.ndarray, np.ndarray] | None = None  # of the job in run()
         self.scene = scene_from_config(config)  # None: nothing to render
+        self.budget = budget
+        # refused here, at Hello, when its settings could not meet the server's budgets
+        self.cost = None if budget is None else budget.check(
+            config, self.pipeline_config, self.camera,
+            len(self.scene.objects) if self.scene else 0)
+        self._cancel = cancel
+        self._job_start = 0.0  # time.monotonic() when the job in run() started
         if not (np.isfinite(config.depth_scale) and config.depth_scale > 0):
             raise SessionSetupError("depth_scale", f"must be a finite number of units per metre "
                                                    f"> 0, got {config.depth_scale}")
@@ -431,9 +482,52 @@ class Session:
 
     # ------------------------------------------------------------------ worker thread
 
+    def checkpoint(self, stage: str) -> None:
+        """Called by the pipeline before each stage (and each robust iteration of the
+        light estimate): FrameAbandoned when the frame is past the budget's deadline or the
+        server is stopping (the step is not started)."""
+        elapsed = time.monotonic() - self._job_start
+        if self._cancel is not None and self._cancel.is_set():
+            raise FrameAbandoned("shutdown", stage, elapsed, 0.0)
+        limit = math.inf if self.budget is None else self.budget.frame_deadline_s
+        if elapsed > limit:
+            raise FrameAbandoned("deadline", stage, elapsed, limit)
+
+    def _check_declared_sizes(self, parts: list) -> None:
+        """Before any payload is decoded: colour or depth declared at another size than the
+        calibration's is refused (FrameError naming the image), and a panorama larger than
+        the session's memory budget leaves room for (OverBudget, frame.panorama)."""
+        header = peek_header(parts)
+        pano = header.get("panorama")
+        if isinstance(pano, dict) and self.budget is not None:
+            w, h = pano.get("width"), pano.get("height")
+            if type(w) is int and type(h) is int and 0 < w * h <= self.max_pixels:
+                need = w * h * PANORAMA_BYTES_PER_PIXEL
+                room = self.budget.session_memory_bytes - self.cost.session_bytes
+                if need > room:
+                    raise OverBudget("frame.panorama", (
+                        f"a {w} x {h} panorama needs about {need / 2**20:.0f} MiB, over what "
+                        f"the session's memory budget leaves for it ({max(room, 0) / 2**20:.0f}"
+                        f" MiB of {self.budget.session_memory_bytes / 2**20:.0f} MiB, `arlight "
+                        "serve --session-memory-mb`); send a smaller panorama"))
+        if self.camera is None:
+            return
+        for key in ("color", "depth"):
+            d = header.get(key)
+            if not isinstance(d, dict):
+                continue
+            w, h = d.get("width"), d.get("height")
+            if type(w) is not int or type(h) is not int or w * h > self.max_pixels:
+                continue  # the decoder names these (bad_field, too_large)
+            if (w, h) != (self.camera.width, self.camera.height):
+                raise FrameError(key, f"{key} is {w} x {h}, the session's calibration "
+                                 f"{self.camera.width} x {self.camera.height}")
+
     def run(self, job: Job) -> JobOutcome:
         """Decode, check, process and encode one frame. Never raises: errors become Error."""
+        self._job_start = time.monotonic()
         try:
+            self._check_declared_sizes(job.parts)
             frame = decode(job.parts, max_message_bytes=self.max_message_bytes,
                            max_pixels=self.max_pixels)
             if not isinstance(frame, Frame):
@@ -463,6 +557,7 @@ class Session:
                 result.diagnostics = {**result.diagnostics, "light_source": (
                     "panorama" if frame.color is None else self.panorama_light.light_source),
                     "panorama_operator": self.panorama_light.params.operator}
+            self._check_volume_budget()
         except Exception as exc:  # noqa: BLE001 - every failure becomes an Error reply
             return self._failed(job, frame_error(exc, job.seq))
         finally:
@@ -496,6 +591,29 @@ class Session:
                      "input frame", self.name)
         return frame.color
 
+    def _check_volume_budget(self) -> None:
+        """The volume grows with the surface seen: past the session's memory budget it is
+        dropped (the next frame starts a new one) and this frame fails (over_budget)."""
+        if self._pipeline is None or self.budget is None:
+            return
+        blocks = self._pipeline.volume_blocks
+        used = blocks * self.cost.bytes_per_block
+        if used > self.cost.volume_limit_bytes:
+            self._pipeline = None
+            raise OverBudget("frame",
+                f"the session's volume grew to {blocks} blocks ({used / 2**20:.0f} "
+                f"MiB), over its share of the per-session memory budget "
+                f"({self.cost.volume_limit_bytes / 2**20:.0f} MiB of "
+                f"{self.budget.session_memory_bytes / 2**20:.0f} MiB, `arlight serve "
+                "--session-memory-mb`); the volume is reset and the session goes on")
+
+    def crashed(self, job: Job, exc: BaseException | None) -> JobOutcome:
+        """The outcome of a job whose worker failed outside run()'s own handling."""
+        log.error("session %s: frame %d: worker failed: %r", self.name, job.seq, exc)
+        return self._failed(job, Error(code="internal", seq=job.seq,
+                                       message=f"the server failed to process this frame "
+                                               f"({type(exc).__name__})"))
+
     def _failed(self, job: Job, error: Error) -> JobOutcome:
         if error.code == "internal":
             log.error("session %s: frame %d failed: %s", self.name, job.seq, error.message)
@@ -503,7 +621,7 @@ class Session:
             log.info("session %s: frame %d rejected: %s", self.name, job.seq, error.message)
         with self._lock:
             self.frames_failed += 1
-        return JobOutcome(self, job, encode(error), False, time.monotonic(), error)
+        return JobOutcome(self, job, encode_error(error), False, time.monotonic(), error)
 
 
 def frame_error(exc: Exception, seq: int | None) -> Error:
@@ -513,6 +631,18 @@ def frame_error(exc: Exception, seq: int | None) -> Error:
         return dataclasses.replace(error, seq=seq)
     if isinstance(exc, FrameError):
         return Error(code="bad_field", message=str(exc), field=f"frame.{exc.field}", seq=seq)
+    if isinstance(exc, FrameAbandoned):
+        if exc.reason == "shutdown":
+            return Error(code="bad_state", field=ErrorField.SHUTDOWN, seq=seq, retryable=True,
+                         message="the server shut down before finishing this frame; send it "
+                                 "again after reconnecting")
+        return Error(code="deadline", seq=seq, message=(
+            f"frame abandoned before {exc.stage}: {exc.elapsed_s:.1f} s in the pipeline, over "
+            f"the server's per-frame deadline of {exc.limit_s:g} s (`arlight serve "
+            "--frame-deadline`); lower the session's cost (--preset fast, a smaller image, "
+            "fewer rt_directions or robust_iterations)"))
+    if isinstance(exc, OverBudget):
+        return Error(code="over_budget", seq=seq, field=exc.field, message=str(exc))
     log.error("frame %s: unexpected failure", seq, exc_info=exc)
     return Error(code="internal", message=f"the server failed to process this frame "
                                           f"({type(exc).__name__}: {exc})"[:4096], seq=seq)

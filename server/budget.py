@@ -1,0 +1,225 @@
+"""Per-session budgets: what one frame may cost in time and one session in memory.
+
+A capture Hello's settings (image size, preset, overrides, virtual objects) are priced by a
+coarse cost model before the session is made; a Hello whose frames could not meet the
+server's per-frame deadline, or whose session would not fit its memory budget, is refused
+(Error `over_budget`) naming the setting that costs most. The server's memory is then
+bounded by `max_sessions` x `session_memory_bytes` (plus the process's own, about 0.5 GB).
+
+The model is an order of magnitude, not a prediction: each stage's time is the stage's
+measured time for the `full` preset at 640 x 480 on the development machine (2 shared cores;
+`REFERENCE_STAGE_MS`), scaled by the ratio of the work its settings ask for to the
+reference's (pixels, window areas, directions, samples, iterations, ...). It refuses what is
+far out of reach (robust_iterations 10^6, a 4096^2 image on a small budget); what it lets
+through and still runs long is abandoned at the deadline between stages and between the
+light estimate's robust iterations (server/session.py, `Session.checkpoint`); nothing else
+is interrupted.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from arlight.pipeline.camera import PinholeCamera
+from arlight.pipeline.config import Config, RtMethod
+from arlight.pipeline.pipeline import CANDIDATES_PER_SAMPLE
+from arlight.protocols import SessionConfig
+
+REFERENCE_PIXELS = 640 * 480
+# ms per stage, `full` preset, 640 x 480 synthetic frames, warm, 1 Open3D thread, on the
+# 2-core development machine (benchmarks: `arlight bench`); Rendering: the demo scene
+REFERENCE_STAGE_MS = {"Input": 6.0, "Reconstruct": 95.0, "Surface": 175.0, "DynGeo": 200.0,
+                      "RadTransfer": 330.0, "LightEst": 135.0, "Rendering": 400.0}
+BYTES_PER_PIXEL = 450  # a frame's buffers while it is processed (a 2048^2 frame: 1.9 GB)
+BYTES_PER_VOXEL = 8  # tsdf + weight, float32 (pipeline/volume.py)
+AUX_BYTES_PER_PIXEL = 6 * 32  # six orthographic buffers: depth, normals, colour
+SAMPLE_BYTES_PER_COEFFICIENT = 8 * 6  # float64 design matrix and its weighted copies
+# a panorama's light (pipeline/ibl.py lighting_from_ldr: 36 bytes per pixel at its peak,
+# measured with tracemalloc at 1024..4096 wide) plus the decoded image
+PANORAMA_BYTES_PER_PIXEL = 40
+
+
+class BudgetError(ValueError):
+    """A session over a budget; `setting` names the override key (or `calibration`)."""
+
+    def __init__(self, setting: str, message: str):
+        super().__init__(message)
+        self.setting = setting
+
+
+@dataclass(frozen=True)
+class SessionCost:
+    """A session's modelled cost: seconds per frame by stage, bytes by item; the volume's
+    bytes per voxel block and the bytes its growth may reach within the budget."""
+
+    stage_s: dict[str, float]
+    memory_bytes: dict[str, float]
+    bytes_per_block: int
+    volume_limit_bytes: float
+
+    @property
+    def frame_s(self) -> float:
+        return sum(self.stage_s.values())
+
+    @property
+    def session_bytes(self) -> float:
+        return sum(self.memory_bytes.values())
+
+
+@dataclass(frozen=True)
+class SessionBudget:
+    """The server's limits per frame (seconds, in the pipeline) and per session (bytes)."""
+
+    frame_deadline_s: float = 60.0
+    session_memory_bytes: int = 1024 * 2**20
+
+    def check(self, config: SessionConfig, pipeline: Config, camera: PinholeCamera | None,
+              objects: int = 0) -> SessionCost:
+        """The session's cost; SessionSetupError (code over_budget) naming the setting that
+        costs most when it is over either budget."""
+        from arlight.server.session import SessionSetupError
+
+        try:
+            return check_cost(pipeline, camera, objects, self)
+        except BudgetError as exc:
+            keys = set(config.overrides or {})
+            field = ("calibration" if exc.setting == "calibration" or camera is None
+                     else f"overrides.{exc.setting}" if exc.setting in keys else "preset")
+            raise SessionSetupError(field, str(exc), code="over_budget") from None
+
+
+def _factors(c: Config, pixels: float, objects: int) -> dict[str, dict[str, float]]:
+    """Per stage: setting -> its ratio of work to the reference (the product scales the
+    stage's reference time)."""
+    v, f, t, e, r, a = c.volume, c.filter, c.transfer, c.estimation, c.render, c.aux
+    ref = Config()
+    px = pixels / REFERENCE_PIXELS
+
+    def window(k: int) -> float:
+        return (2 * k + 1) ** 2
+
+    ref_filter = (window(ref.filter.merge_window) + ref.filter.smooth_subsample ** 2
+                  + window(ref.filter.denoise_window))
+    filt = (window(f.merge_window) + f.smooth_subsample ** 2
+            + (window(f.denoise_window) if f.denoise else 0.0))
+    # ray-cast steps through the volume: depth range over the voxel size
+    steps = v.depth_max_m / v.voxel_size_m
+    ref_steps = ref.volume.depth_max_m / ref.volume.voxel_size_m
+    aux = (a.aux_resolution ** 2 / a.aux_update_interval if a.aux_buffers else 0.0)
+    ref_aux = ref.aux.aux_resolution ** 2 / ref.aux.aux_update_interval
+    # RadTransfer: at the sampled pixels (rt_subsample 1) or on the sub-sampled grid
+    ref_samples = min(REFERENCE_PIXELS, CANDIDATES_PER_SAMPLE * ref.estimation.light_max_samples)
+    samples = (min(pixels, CANDIDATES_PER_SAMPLE * e.light_max_samples)
+               if t.rt_subsample == 1 else pixels / t.rt_subsample ** 2)
+    coefficients = t.sh_bands ** 2 * (4 if e.estimate_rgb else 1)
+    ref_coefficients = ref.transfer.sh_bands ** 2
+    fit_samples = min(pixels, e.light_max_samples)
+    ref_fit = min(REFERENCE_PIXELS, ref.estimation.light_max_samples)
+    render = 0.0 if objects == 0 else 1.0
+    blur = max(1, r.render_blur_radius_px + r.render_denoise_px)
+    ref_blur = ref.render.render_blur_radius_px + ref.render.render_denoise_px
+    use_volume = 1.0 if v.use_volume else 0.05
+    return {
+        "Input": {"calibration": px},
+        "Reconstruct": {"calibration": px, "use_volume": use_volume},
+        "Surface": {"calibration": px / (v.surface_subsample / ref.volume.surface_subsample)
+                    ** 2 * use_volume,
+                    "depth_max_m": 0.5 * steps / ref_steps + 0.5 * aux / ref_aux},
+        "DynGeo": {"calibration": px, "merge_window": filt / ref_filter},
+        "RadTransfer": {"calibration": samples / ref_samples,
+                        "rt_directions": t.rt_directions / ref.transfer.rt_directions,
+                        "rt_steps": t.rt_steps / ref.transfer.rt_steps
+                        * (4.0 if t.rt_method is RtMethod.RAYCAST else 1.0)},
+        # half the stage is the fit (iterations x samples x coefficients^2), half the
+        # per-pixel material segmentation
+        "LightEst": {"robust_iterations": 0.5 * (e.robust_iterations + 1)
+                     / (ref.estimation.robust_iterations + 1) * fit_samples / ref_fit
+                     * (coefficients / ref_coefficients) ** 2
+                     + 0.5 * px / (e.segment_scale / ref.estimation.segment_scale) ** 2},
+        "Rendering": {"calibration": render * px / r.render_subsample ** 2
+                      * max(1.0, objects / 2),
+                      "rt_directions": t.rt_directions / ref.transfer.rt_directions,
+                      "render_steps": 0.5 * r.render_steps / ref.render.render_steps
+                      + 0.5 * blur / ref_blur},
+    }
+
+
+# the override keys behind each factor (named in a refusal: the one the session changed)
+_FACTOR_KEYS = {
+    "depth_max_m": ("depth_max_m", "volume_resolution", "volume_size_m", "aux_resolution",
+                    "aux_update_interval"),
+    "merge_window": ("merge_window", "denoise_window", "smooth_subsample"),
+    "robust_iterations": ("robust_iterations", "light_max_samples", "sh_bands",
+                          "estimate_rgb", "segment_scale"),
+    "rt_steps": ("rt_steps", "rt_method"),
+    "render_steps": ("render_steps", "render_blur_radius_px", "render_denoise_px"),
+    "calibration": ("calibration", "light_max_samples", "rt_subsample", "surface_subsample",
+                    "render_subsample"),
+}
+
+
+def _setting(factor: str, c: Config) -> str:
+    """The flat key a refusal names for a factor: the first of its keys set away from the
+    default (the preset's value counts as set), else the factor's own name."""
+    defaults = Config().flat()
+    values = c.flat()
+    for key in _FACTOR_KEYS.get(factor, (factor,)):
+        if key in values and values[key] != defaults[key]:
+            return key
+    return factor
+
+
+def check_cost(c: Config, camera: PinholeCamera | None, objects: int,
+               budget: SessionBudget) -> SessionCost:
+    """The modelled cost of a session; BudgetError naming the costliest setting when a
+    frame would take longer than the deadline or the session need more than its memory."""
+    pixels = 0.0 if camera is None else float(camera.width * camera.height)
+    stage_s: dict[str, float] = {}
+    blame: dict[str, str] = {}
+    for stage, factors in _factors(c, pixels, objects).items():
+        stage_s[stage] = REFERENCE_STAGE_MS[stage] / 1e3 * math.prod(factors.values())
+        blame[stage] = max(factors, key=lambda k: factors[k])
+    if camera is None:  # panorama-only: no RGB-D pipeline
+        stage_s = dict.fromkeys(stage_s, 0.0)
+    total = sum(stage_s.values())
+    if total > budget.frame_deadline_s:
+        stage = max(stage_s, key=lambda k: stage_s[k])
+        setting = _setting(blame[stage], c)
+        value = ("" if setting == "calibration" else f"={c.flat().get(setting)!r}")
+        size = "" if camera is None else f" at {camera.width} x {camera.height}"
+        raise BudgetError(setting, (
+            f"{setting}{value}: a frame{size} would take about {total:.0f} s "
+            f"({stage} {stage_s[stage]:.0f} s, by the server's cost model), over the "
+            f"per-frame deadline of {budget.frame_deadline_s:g} s (`arlight serve "
+            f"--frame-deadline`); lower {setting} or choose a cheaper preset"))
+    v = c.volume
+    block = v.block_resolution ** 3 * BYTES_PER_VOXEL
+    memory = {
+        "calibration": pixels * BYTES_PER_PIXEL,
+        "block_count": float(v.block_count * block) if v.use_volume and camera else 0.0,
+        "aux_resolution": (c.aux.aux_resolution ** 2 * AUX_BYTES_PER_PIXEL
+                           if c.aux.aux_buffers and camera else 0.0),
+        "light_max_samples": (min(pixels, CANDIDATES_PER_SAMPLE * c.estimation.light_max_samples)
+                              * c.transfer.sh_bands ** 2 * SAMPLE_BYTES_PER_COEFFICIENT),
+    }
+    need = sum(memory.values())
+    if need > budget.session_memory_bytes:
+        item = max(memory, key=lambda k: memory[k])
+        setting = item if item != "block_count" else _setting_of_volume(c)
+        value = "" if setting == "calibration" else f"={c.flat().get(setting)!r}"
+        size = "" if camera is None else f" ({camera.width} x {camera.height})"
+        raise BudgetError(setting, (
+            f"{setting}{value}: the session would need about {need / 2**20:.0f} MiB{size} "
+            f"({item} {memory[item] / 2**20:.0f} MiB, by the server's cost model), over the "
+            f"per-session memory budget of {budget.session_memory_bytes / 2**20:.0f} MiB "
+            f"(`arlight serve --session-memory-mb`); lower {setting}"))
+    volume_limit = budget.session_memory_bytes - need + memory["block_count"]
+    return SessionCost(stage_s, memory, block, volume_limit)
+
+
+def _setting_of_volume(c: Config) -> str:
+    defaults = Config()
+    if c.volume.block_resolution != defaults.volume.block_resolution:
+        return "block_resolution"
+    return "block_count"
