@@ -330,7 +330,8 @@ class Session:
         if config.exports and self.pipeline_config.transfer.sh_bands < 3:
             raise SessionSetupError("exports", f"the engine layouts hold 3 SH bands and the "
                                     f"session estimates {self.pipeline_config.transfer.sh_bands}"
-                                    f" (override sh_bands): ask for sh_bands >= 3 or no exports")
+                                    f" (override sh_bands, `--set sh_bands=N`): ask for 3 or "
+                                    f"more, or no exports")
         # a Hello without calibration (allowed with config.panorama): a panorama-only session
         self.camera = None if config.calibration is None else camera_from_config(config,
                                                                                  max_pixels)
