@@ -370,7 +370,13 @@ def run_batch(items: Sequence[BatchItem], out_dir: str | Path, options: BatchOpt
             todo.append(index)
     started_ray = False
     if todo and not ray.is_initialized():
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        local = {} if address else {"include_dashboard": False}  # a cluster keeps its own
+        try:
+            ray.init(address=address, log_to_driver=False, **local)
+        except Exception as exc:  # noqa: BLE001 - Ray raises many types for "cannot connect"
+            where = f"--ray {address}" if address else "a local Ray"
+            raise BatchUsageError(f"{where}: cannot start or connect "
+                                  f"({type(exc).__name__}: {exc})") from None
         started_ray = True
     try:
         if todo:
