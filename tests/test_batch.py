@@ -149,12 +149,21 @@ class TestBatchOnRay:
         doc = json.loads((out / "batch.json").read_text())
         assert doc["counts"] == {"ok": 0, "failed": 2, "skipped": 2}
 
-    def test_force_redoes_a_finished_stream(self, local_ray, inputs, tmp_path):
+    def test_force_redoes_a_finished_stream_with_progress(self, local_ray, inputs, tmp_path,
+                                                          capsys):
         items = collect_inputs([inputs["scene"]])
-        options = BatchOptions(preset=PRESET, max_frames=1)
+        options = BatchOptions(preset=PRESET, max_frames=2)
         assert run_batch(items, tmp_path, options, progress=False).streams[0].status == "ok"
-        again = run_batch(items, tmp_path, options, force=True, progress=False)
-        assert again.streams[0].status == "ok" and again.streams[0].frames == 1
+        first = (tmp_path / "scene.jsonl").read_text()
+        capsys.readouterr()
+        again = run_batch(items, tmp_path, options, force=True, progress=True)
+        assert again.streams[0].status == "ok" and again.streams[0].frames == 2
+        assert records(tmp_path / "scene.jsonl") == [
+            {k: v for k, v in json.loads(line).items() if k not in TIMING_KEYS}
+            for line in first.splitlines()]
+        # the bar counts the batch's frames (the actor reports them) and finished streams
+        bar = capsys.readouterr().err
+        assert "2/2" in bar and "1/1 streams, 0 failed" in bar
 
     def test_cli_exit_code_1_when_a_stream_failed(self, first_run, inputs, capsys):
         out, _, _ = first_run
