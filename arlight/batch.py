@@ -78,7 +78,8 @@ class BatchOptions:
 
 @dataclass
 class StreamSummary:
-    """What became of one stream: status "ok", "failed" or "skipped"; reason (failed: why,
+    """What became of one stream: status "ok", "failed", "skipped" (or "pending": not run,
+    the batch was interrupted); reason (failed: why,
     skipped: that its records exist); frames written; seconds of the actor's work;
     median_confidence of its frames (None without frames); output: the records file."""
 
@@ -307,7 +308,7 @@ def actor_resources(preset: str, device: str | None, cluster: dict) -> dict:
         gpus = float(cluster.get("GPU", 0))
         if gpus < 1:
             raise BatchUsageError(f"--device {device}: the Ray cluster offers no GPU "
-                                  f"(resources {sorted(cluster)}); use --device CPU:0")
+                                  f"({cpus:g} CPUs, 0 GPUs); use --device CPU:0")
         num_gpus = 1
         slots = min(slots, int(gpus))
     return {"num_cpus": num_cpus, "num_gpus": num_gpus, "slots": slots}
