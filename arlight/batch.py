@@ -66,6 +66,12 @@ class BatchOptions:
     max_frames: int | None = None
     depth_encoding: str | None = None
 
+    def settings(self) -> dict:
+        """What decides the records, as plain JSON (batch.json's "options")."""
+        return {"preset": self.preset, "device": self.device or "CPU:0",
+                "overrides": {k: repr(v) for k, v in self.overrides},
+                "max_frames": self.max_frames, "depth_encoding": self.depth_encoding}
+
     def config(self):
         """The pipeline Config of every stream (ValueError for a bad preset or override)."""
         from arlight.pipeline.config import Config
@@ -79,9 +85,9 @@ class BatchOptions:
 @dataclass
 class StreamSummary:
     """What became of one stream: status "ok", "failed", "skipped" (or "pending": not run,
-    the batch was interrupted); reason (failed: why,
-    skipped: that its records exist); frames written; seconds of the actor's work;
-    median_confidence of its frames (None without frames); output: the records file."""
+    the batch was interrupted); reason (failed: why, skipped: that its records exist);
+    frames written; seconds of the actor's work; median_confidence of its frames (None
+    without frames); output: the records file."""
 
     name: str
     input: str
@@ -318,8 +324,7 @@ def write_summary(out_dir: Path, report: BatchReport, options: BatchOptions) -> 
     """OUT/batch.json (atomically): options and each stream's summary."""
     path = out_dir / SUMMARY_FILE
     doc = {
-        "preset": options.preset,
-        "device": options.device or "CPU:0",
+        "options": options.settings(),
         "counts": {s: report.count(s) for s in ("ok", "failed", "skipped")},
         "streams": [asdict(s) for s in report.streams],
     }
@@ -336,6 +341,22 @@ def _failure_reason(exc: BaseException) -> str:
         return f"{type(cause).__name__}: {cause}".splitlines()[0]
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[-1] if text else ''}"
+
+
+def _check_same_options(out_dir: Path, options: BatchOptions, force: bool) -> None:
+    """BatchUsageError when DIR's records were made with other options (a rerun would skip
+    them and mix two configurations); --force redoes them instead."""
+    path = out_dir / SUMMARY_FILE
+    if force or not path.is_file():
+        return
+    try:
+        before = json.loads(path.read_text()).get("options")
+    except (OSError, ValueError, AttributeError):
+        return  # not ours to judge: the rerun rewrites it
+    if before is not None and before != options.settings():
+        raise BatchUsageError(f"{out_dir} holds results made with {before}, not "
+                              f"{options.settings()}: use another --out, or --force to "
+                              "redo every stream")
 
 
 def _count_lines(path: Path) -> int:
@@ -359,6 +380,7 @@ def run_batch(items: Sequence[BatchItem], out_dir: str | Path, options: BatchOpt
     ray = import_ray()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    _check_same_options(out_dir, options, force)
     report = BatchReport([StreamSummary(it.name, it.path, "pending") for it in items])
     todo = []
     for index, item in enumerate(items):

@@ -117,7 +117,8 @@ class TestBatchOnRay:
         out, _, report = first_run
         doc = json.loads((out / "batch.json").read_text())
         assert doc["counts"] == {"ok": 2, "failed": 2, "skipped": 0}
-        assert doc["preset"] == PRESET
+        assert doc["options"] == {"preset": PRESET, "device": "CPU:0", "overrides": {},
+                                  "max_frames": None, "depth_encoding": None}
         rows = {r["name"]: r for r in doc["streams"]}
         assert rows["scene"]["status"] == "ok" and rows["scene"]["frames"] == FRAMES
         assert rows["scene"]["seconds"] > 0
@@ -165,6 +166,11 @@ class TestBatchOnRay:
         bar = capsys.readouterr().err
         assert "2/2" in bar and "1/1 streams, 0 failed" in bar
 
+    def test_other_options_on_the_same_folder_are_refused(self, first_run):
+        out, items, _ = first_run
+        with pytest.raises(BatchUsageError, match="use another --out, or --force"):
+            run_batch(items, out, BatchOptions(preset="mobile"), progress=False)
+
     def test_cli_exit_code_1_when_a_stream_failed(self, first_run, inputs, capsys):
         out, _, _ = first_run
         code = main(["batch", str(inputs["scene"]), str(inputs["corrupt"]), "--out", str(out),
@@ -176,7 +182,7 @@ class TestBatchOnRay:
 
     def test_cli_exit_code_0_when_all_ok_or_skipped(self, first_run, inputs, capsys):
         out, _, _ = first_run
-        assert main(["batch", str(inputs["scene"]), "--out", str(out)]) == 0
+        assert main(["batch", str(inputs["scene"]), "--out", str(out), "--preset", PRESET]) == 0
         assert "0 failed, 1 skipped" in capsys.readouterr().err
 
 
