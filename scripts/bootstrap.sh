@@ -13,13 +13,14 @@ if ! "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 10))'; then
   echo "arlight: Python >= 3.10 is required, found $("$PYTHON" --version)" >&2; exit 1
 fi
 
-# Open3D's wheel loads libusb-1.0, libGL/libEGL and libgomp at import time.
+# Open3D's wheel loads libusb-1.0, libGL/libEGL and libgomp at import time; libOpenNI2 is the
+# OpenNI2 camera runtime (small), which tests/test_cameras.py runs without hardware.
 need=()
-for lib in libusb-1.0.so.0 libGL.so.1 libEGL.so.1 libgomp.so.1; do
+for lib in libusb-1.0.so.0 libGL.so.1 libEGL.so.1 libgomp.so.1 libOpenNI2.so.0; do
   ldconfig -p 2>/dev/null | grep -q "$lib" || need+=("$lib")
 done
 if [ ${#need[@]} -gt 0 ] || ! "$PYTHON" -c 'import venv, ensurepip' 2>/dev/null; then
-  pkgs="libusb-1.0-0 libgl1 libegl1 libgomp1 python3-venv"
+  pkgs="libusb-1.0-0 libgl1 libegl1 libgomp1 libopenni2-0 python3-venv"
   if [ "$(id -u)" = 0 ]; then SUDO=""; elif sudo -n true 2>/dev/null; then SUDO="sudo -n"; else
     echo "arlight: missing system libraries (${need[*]}); run: sudo apt-get install $pkgs" >&2
     exit 1

@@ -280,8 +280,13 @@ class _OpenNI2Camera:
         pair = []
         for stream, what in ((self.depth, "depth"), (self.color, "colour")):
             if self.openni2.wait_for_any_stream([stream], READ_TIMEOUT_S) is None:
-                if self.is_file:
+                if self.is_file and (not self.frames_in_file or
+                                     self.frames_read >= self.frames_in_file):
                     return None
+                if self.is_file:
+                    raise TimeoutError(f"the OpenNI2 player gave {self.frames_read} of the "
+                                       f"file's {self.frames_in_file} frames, then no {what} "
+                                       f"frame for {READ_TIMEOUT_S:g} s")
                 raise TimeoutError(f"no {what} frame for {READ_TIMEOUT_S:g} s")
             pair.append(stream.read_frame())
         d, c = pair
