@@ -188,6 +188,48 @@ class TestCameraFrames:
         assert "5 camera frame(s) were skipped" in caplog.text
 
 
+def test_device_lost_mid_stream_delivers_every_frame_sent(caplog):
+    """Lossless over a loopback server: a camera that goes away after 5 frames (its library
+    raising, as depthai's queue does with X_LINK_ERROR) ends the stream cleanly and each of
+    the 5 frames gets its Result. (The read is scripted: what is tested is the end of
+    stream through camera_frames and the capture client, not a device.)"""
+    from streaming_support import identity_step, run_with_timeout, server_options
+
+    from arlight.client.capture import CaptureClient, StreamOptions
+    from arlight.protocols import CameraCalibration
+    from arlight.server.server import Server
+    from arlight.sources.source import Source, SourceFrame
+
+    spec, closed, sent = CameraSpec("depthai", "TEST"), [], iter(range(5))
+
+    def read():
+        i = next(sent, None)
+        if i is None:
+            raise RuntimeError("Communication exception - possible device error/misconfiguration"
+                               ". Original message 'Couldn't read data from stream: X_LINK_ERROR'")
+        return SourceFrame(1000.0 + i / 30, np.full((48, 64, 3), 10 + i, np.uint8),
+                           np.full((48, 64), 1500, np.uint16))
+
+    counter = FrameCounter()
+    source = Source("oak-test", CameraCalibration(64, 48, 60.0, 60.0, 32.0, 24.0), 1000.0, 0,
+                    lambda: camera_frames(spec, read, lambda: closed.append(1),
+                                          (RuntimeError,), None, counter))
+    server = Server(server_options(), process=identity_step(delay_s=0.05)).start()
+    try:
+        results = []
+        options = StreamOptions(server=server.connect_address, session="lost",
+                                mode="lossless", rate="max")
+        summary = run_with_timeout(CaptureClient(
+            source, options, on_result=lambda r, t: results.append(r)).run)
+    finally:
+        server.stop(timeout=15)
+    assert summary.frames_sent == 5 and summary.results == 5 and summary.errors == []
+    assert [r.seq for r in results] == [0, 1, 2, 3, 4]
+    assert [round(r.sh[0]) for r in results] == [10, 11, 12, 13, 14]  # each frame's own
+    assert closed == [1]
+    assert "camera lost after 5 frame(s)" in caplog.text and "X_LINK_ERROR" in caplog.text
+
+
 def test_missing_library_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "depthai", None)  # what an absent package raises
     with pytest.raises(CameraError, match=r"pip install 'arlight\[depthai\]'"):
