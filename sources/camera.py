@@ -17,6 +17,7 @@ from __future__ import annotations
 import importlib
 import logging
 import math
+import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -31,6 +32,10 @@ CAMERA_KINDS = ("depthai", "openni2", "realsense")
 # the pip extra and the Python module of each camera library
 EXTRAS = {"depthai": ("depthai", "depthai"), "openni2": ("openni2", "openni"),
           "realsense": ("realsense", "pyrealsense2")}
+
+# what to do where a library is known not to work
+UNSUPPORTED = {"openni": "the openni binding builds its ctypes enums in a way Python 3.13 "
+                         "refuses; use Python 3.10-3.12 for OpenNI2 cameras (README, Cameras)"}
 
 DEVICE_LOST = "camera lost"  # the SourceFrame-free end of a camera stream, as logged
 
@@ -82,6 +87,13 @@ def import_library(kind: str) -> ModuleType:
         raise CameraError(
             f"SOURCE {kind}: the Python package {module!r} is not installed ({exc}); install "
             f"the camera extra: pip install 'arlight[{extra}]'") from None
+    except Exception as exc:  # installed but broken here (openni on Python >= 3.13)
+        version = ".".join(str(v) for v in sys.version_info[:3])
+        raise CameraError(
+            f"SOURCE {kind}: the Python package {module!r} is installed but cannot be imported "
+            f"on Python {version} ({type(exc).__name__}: {exc}); "
+            + (UNSUPPORTED.get(module) or "reinstall it: pip install --force-reinstall "
+               f"'arlight[{extra}]'")) from None
 
 
 def no_device_message(spec: CameraSpec, looked_for: str, found: list[str],

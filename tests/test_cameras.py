@@ -236,14 +236,39 @@ def test_missing_library_names_the_extra(monkeypatch):
         import_library("depthai")
 
 
+def test_broken_library_says_why(monkeypatch):
+    """openni on Python 3.13 raises TypeError at import: a CameraError, not a traceback."""
+    import importlib
+
+    real = importlib.import_module
+
+    def refuse(name, *args):
+        if name == "openni":
+            raise TypeError("abstract class")
+        return real(name, *args)
+
+    monkeypatch.setattr(importlib, "import_module", refuse)
+    with pytest.raises(CameraError, match=r"cannot be imported on Python .*3\.10-3\.12"):
+        import_library("openni2")
+
+
 # --------------------------------------------------------------------------- OpenNI2
 
-needs_openni = pytest.mark.skipif(not _has("openni"),
-                                  reason="the OpenNI2 binding: pip install 'arlight[openni2]'")
+def _openni_importable() -> bool:
+    try:
+        import_library("openni2")
+    except CameraError:
+        return False
+    return True
+
+
+needs_openni = pytest.mark.skipif(
+    not _openni_importable(), reason="the OpenNI2 binding: pip install 'arlight[openni2]' "
+                                     "(Python 3.10-3.12)")
 
 
 def _runtime():
-    if not _has("openni"):
+    if not _openni_importable():
         return None
     from arlight.sources.openni2_camera import find_runtime
 
