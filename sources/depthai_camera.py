@@ -143,7 +143,7 @@ def build_pipeline(dai, pipeline, spec: CameraSpec, with_imu: bool):
     imu_queue = None
     if with_imu:
         imu = pipeline.create(dai.node.IMU)
-        imu.enableIMUSensor(dai.IMUSensor.ACCELEROMETER, IMU_RATE_HZ)
+        imu.enableIMUSensor(dai.IMUSensor.ACCELEROMETER_CALIBRATED, IMU_RATE_HZ)
         imu.setBatchReportThreshold(1)
         imu.setMaxBatchReports(10)
         imu_queue = imu.out.createOutputQueue(maxSize=50, blocking=False)
@@ -156,6 +156,32 @@ def _get(queue, timeout_s: float):
     if message is None:
         raise TimeoutError(f"no frame from the device for {timeout_s:g} s")
     return message
+
+
+def lost_errors(dai) -> tuple[type[BaseException], ...]:
+    """What reading a queue raises once the device is gone: RuntimeError (XLink
+    communication errors), the queue's QueueException (closed), TimeoutError (_get)."""
+    return (RuntimeError, TimeoutError, dai.MessageQueue.QueueException)
+
+
+def rgbd_reader(dai, queue, counter: FrameCounter, imu_queue=None, rotation=None, first=None,
+                wall_offset_s: float | None = None):
+    """read() -> the next SourceFrame from a queue of Sync MessageGroups ("color": RGB888i,
+    "depth": RAW16 mm), `first` (already taken from the queue) first; timestamps are the
+    colour frame's host-synchronised steady-clock time plus wall_offset_s (default
+    monotonic_to_wall_offset(), taken now)."""
+    offset_s = monotonic_to_wall_offset() if wall_offset_s is None else wall_offset_s
+    pending = [] if first is None else [first]
+
+    def read() -> SourceFrame:
+        group = pending.pop() if pending else _get(queue, READ_TIMEOUT_S)
+        color, depth = group["color"], group["depth"]
+        counter.see(int(color.getSequenceNum()))
+        stamp = color.getTimestamp().total_seconds() + offset_s
+        return SourceFrame(stamp, color_from_imgframe(dai, color), depth_from_imgframe(depth),
+                           gravity=latest_gravity(imu_queue, rotation))
+
+    return read
 
 
 def open_depthai(spec: CameraSpec, max_frames: int | None = None) -> Source:
@@ -196,20 +222,15 @@ def _start(dai, device, spec: CameraSpec, max_frames: int | None) -> Source:
         raise CameraError(f"SOURCE {spec.text}: the depthai pipeline cannot start at "
                           f"{spec.size[0]}x{spec.size[1]} @ {spec.fps:g} Hz ({exc}); try "
                           "another --size / --fps") from None
-    wall_offset_s = monotonic_to_wall_offset()
     counter = FrameCounter()
-    first = _get(rgbd_queue, FIRST_FRAME_TIMEOUT_S)
+    try:
+        first = _get(rgbd_queue, FIRST_FRAME_TIMEOUT_S)
+    except lost_errors(dai) as exc:
+        raise CameraError(f"SOURCE {spec.text}: the device started but sent no frame ({exc}); "
+                          "replug it, or check its power (a USB 3 port or a powered hub)") from None
     fx, fy, cx, cy = intrinsics_of(first["color"])
     width, height = first["color"].getWidth(), first["color"].getHeight()
-    pending = [first]
-
-    def read() -> SourceFrame:
-        group = pending.pop() if pending else _get(rgbd_queue, READ_TIMEOUT_S)
-        color, depth = group["color"], group["depth"]
-        counter.see(int(color.getSequenceNum()))
-        stamp = color.getTimestamp().total_seconds() + wall_offset_s
-        return SourceFrame(stamp, color_from_imgframe(dai, color), depth_from_imgframe(depth),
-                           gravity=latest_gravity(imu_queue, rotation))
+    read = rgbd_reader(dai, rgbd_queue, counter, imu_queue, rotation, first)
 
     def close() -> None:
         try:
@@ -224,8 +245,7 @@ def _start(dai, device, spec: CameraSpec, max_frames: int | None) -> Source:
         if started:
             raise CameraError(f"SOURCE {spec.text}: a camera streams once (no --loop)")
         started = True
-        return camera_frames(spec, read, close, (RuntimeError, TimeoutError), max_frames,
-                             counter)
+        return camera_frames(spec, read, close, lost_errors(dai), max_frames, counter)
 
     for note in notes:
         log.warning("SOURCE %s: %s", spec.text, note)

@@ -490,6 +490,44 @@ class TestDepthai:
         np.testing.assert_allclose(camera_from_imu(calibration, dai.CameraBoardSocket.CAM_A),
                                    rotation)
 
+    def test_reader_over_a_depthai_queue_then_the_queue_closes(self, caplog):
+        """The read path over depthai's own MessageQueue of Sync MessageGroups, as the device
+        fills it; then the queue closes, as it does when the device goes away."""
+        import depthai as dai
+
+        from arlight.sources.depthai_camera import lost_errors, rgbd_reader
+
+        queue = dai.MessageQueue("rgbd", 8, False)
+        for seq in (3, 4, 6):
+            color = dai.ImgFrame()
+            color.setType(dai.ImgFrame.Type.RGB888i)
+            color.setWidth(4)
+            color.setHeight(2)
+            color.setData(np.full(2 * 4 * 3, seq, np.uint8))
+            color.setSequenceNum(seq)
+            color.setTimestamp(datetime.timedelta(seconds=100.0 + seq / 30))
+            depth = dai.ImgFrame()
+            depth.setType(dai.ImgFrame.Type.RAW16)
+            depth.setWidth(4)
+            depth.setHeight(2)
+            depth.setData(np.full(8, 1000 + seq, np.uint16).view(np.uint8))
+            group = dai.MessageGroup()
+            group["color"], group["depth"] = color, depth
+            queue.send(group)
+        counter, closed = FrameCounter(), []
+        read = rgbd_reader(dai, queue, counter, wall_offset_s=1.7e9)
+        frames = camera_frames(CameraSpec("depthai", "X"), read, lambda: closed.append(1),
+                               lost_errors(dai), None, counter)
+        got = [next(frames) for _ in range(3)]
+        assert [int(f.color[0, 0, 0]) for f in got] == [3, 4, 6]
+        assert [int(f.depth[1, 3]) for f in got] == [1003, 1004, 1006]
+        assert got[0].depth.dtype == np.uint16 and got[0].gravity is None
+        assert got[0].timestamp == pytest.approx(1.7e9 + 100.1)
+        queue.close()
+        assert list(frames) == [] and closed == [1]
+        assert counter.skipped == 1  # seq 5 never came
+        assert "camera lost after 3 frame(s) (MessageQueue was closed)" in caplog.text
+
     def test_timestamps_are_host_steady_clock(self):
         import depthai as dai
 
