@@ -240,4 +240,7 @@ def camera_frames(spec: CameraSpec, read: Callable[[], object | None],
         if counter.skipped:
             log.warning("SOURCE %s: %d camera frame(s) were skipped (not taken in time: in "
                         "lossless mode the server sets the pace)", spec.text, counter.skipped)
-        close()
+        try:
+            close()
+        except Exception as exc:  # a device already gone may refuse to stop
+            log.warning("SOURCE %s: closing the camera: %s", spec.text, exc)

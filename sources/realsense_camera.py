@@ -76,6 +76,23 @@ def rgbd_of(frameset) -> tuple[np.ndarray, np.ndarray]:
     return np.array(color), np.array(depth)
 
 
+def rgbd_reader(rs, wait, counter: FrameCounter, clock: DeviceClock | None = None):
+    """read() -> the next SourceFrame: wait() gives a frameset (depth + colour; the
+    pipeline's wait_for_frames, which raises RuntimeError once the device is gone), whose
+    depth `rs.align` reprojects into the colour camera."""
+    align = rs.align(rs.stream.color)
+    clock = DeviceClock(live=True) if clock is None else clock
+
+    def read() -> SourceFrame:
+        aligned = align.process(wait())
+        color_frame = aligned.get_color_frame()
+        counter.see(int(color_frame.get_frame_number()))
+        color, depth = rgbd_of(aligned)
+        return SourceFrame(timestamp_s(rs, color_frame, clock), color, depth)
+
+    return read
+
+
 def open_realsense(spec: CameraSpec, max_frames: int | None = None) -> Source:
     """A Source streaming an Intel RealSense camera (see the module docstring)."""
     rs = import_library("realsense")
@@ -100,18 +117,8 @@ def open_realsense(spec: CameraSpec, max_frames: int | None = None) -> Source:
     except BaseException:
         pipeline.stop()
         raise
-    align = rs.align(rs.stream.color)
-    clock = DeviceClock(live=True)
     counter = FrameCounter()
-
-    def read() -> SourceFrame:
-        frameset = pipeline.wait_for_frames(READ_TIMEOUT_MS)  # RuntimeError when it stops
-        aligned = align.process(frameset)
-        color_frame = aligned.get_color_frame()
-        counter.see(int(color_frame.get_frame_number()))
-        color, depth = rgbd_of(aligned)
-        return SourceFrame(timestamp_s(rs, color_frame, clock), color, depth)
-
+    read = rgbd_reader(rs, lambda: pipeline.wait_for_frames(READ_TIMEOUT_MS), counter)
     started = False
 
     def frames():

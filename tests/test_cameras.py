@@ -603,6 +603,93 @@ class TestRealSense:
         intrinsics.coeffs = [0.1, 0.0, 0.0, 0.0, 0.0]
         assert "distortion" in calibration_from_intrinsics(intrinsics)[1][0]
 
+    def test_reader_aligns_software_device_frames(self, caplog):
+        """The read path on frames from librealsense's own software_device (no hardware):
+        depth at 8x6 is aligned by rs.align into a 16x12 colour camera, timestamps of the
+        hardware clock are mapped to host time, a dropped frame number is counted, and the
+        RuntimeError a stopped device raises ends the stream."""
+        import pyrealsense2 as rs
+
+        from arlight.sources.realsense_camera import rgbd_reader
+
+        def intrinsics(w, h, f):
+            i = rs.intrinsics()
+            i.width, i.height, i.fx, i.fy, i.ppx, i.ppy = w, h, f, f, w / 2, h / 2
+            i.model, i.coeffs = rs.distortion.none, [0.0] * 5
+            return i
+
+        def stream(kind, uid, w, h, fmt, bpp, f):
+            s = rs.video_stream()
+            s.type, s.index, s.uid, s.width, s.height = kind, 0, uid, w, h
+            s.fps, s.bpp, s.fmt, s.intrinsics = 30, bpp, fmt, intrinsics(w, h, f)
+            return s
+
+        device = rs.software_device()
+        depth_sensor, color_sensor = device.add_sensor("Depth"), device.add_sensor("Color")
+        depth_profile = depth_sensor.add_video_stream(
+            stream(rs.stream.depth, 0, 8, 6, rs.format.z16, 2, 8.0))
+        color_profile = color_sensor.add_video_stream(
+            stream(rs.stream.color, 1, 16, 12, rs.format.rgb8, 3, 16.0))
+        same_place = rs.extrinsics()
+        same_place.rotation, same_place.translation = [1, 0, 0, 0, 1, 0, 0, 0, 1], [0, 0, 0]
+        depth_profile.register_extrinsics_to(color_profile, same_place)
+        depth_queue, color_queue = rs.frame_queue(10, True), rs.frame_queue(10, True)
+        depth_sensor.open(depth_profile)
+        color_sensor.open(color_profile)
+        depth_sensor.start(depth_queue)
+        color_sensor.start(color_queue)
+        held, framesets = [], rs.frame_queue(10, True)
+
+        def pair(frame, source):  # two frames -> one frameset, as the pipeline's syncer does
+            held.append(frame)
+            if len(held) == 2:
+                source.frame_ready(source.allocate_composite_frame(held[:]))
+                held.clear()
+
+        block = rs.processing_block(pair)
+        block.start(framesets)
+        depth = np.full((6, 8), 1500, np.uint16)
+        color = np.zeros((12, 16, 3), np.uint8)
+        color[..., 1] = 200
+        for number in (0, 1, 3):
+            for sensor, profile, pixels, bpp, width in (
+                    (depth_sensor, depth_profile, depth, 2, 8),
+                    (color_sensor, color_profile, color, 3, 16)):
+                f = rs.software_video_frame()
+                f.pixels, f.bpp, f.stride = pixels, bpp, bpp * width
+                f.timestamp, f.domain = 5000.0 + 33.0 * number, rs.timestamp_domain.hardware_clock
+                f.frame_number, f.profile = number, profile.as_video_stream_profile()
+                f.depth_units = 0.001
+                sensor.on_video_frame(f)
+        for _ in range(3):
+            block.invoke(depth_queue.wait_for_frame(2000))
+            block.invoke(color_queue.wait_for_frame(2000))
+
+        def wait():
+            frameset = framesets.poll_for_frame()
+            if not frameset:
+                raise RuntimeError("Frame didn't arrive within 2000")
+            return frameset.as_frameset()
+
+        # the frames were all made at once, so a live clock (least delay) would see them
+        # arrive faster than their stamps: the fixed clock keeps their spacing
+        counter, clock, closed = FrameCounter(), DeviceClock(live=False), []
+        read = rgbd_reader(rs, wait, counter, clock)
+        got = list(camera_frames(CameraSpec("realsense", "SW"), read,
+                                 lambda: closed.append(1), (RuntimeError,), None, counter))
+        for sensor in (depth_sensor, color_sensor):
+            sensor.stop()
+            sensor.close()
+        assert len(got) == 3 and closed == [1]
+        assert got[0].depth.shape == (12, 16) and got[0].depth.dtype == np.uint16
+        assert got[0].depth[6, 8] == 1500  # depth reprojected into the colour camera
+        assert got[0].color.shape == (12, 16, 3) and got[0].color[0, 0].tolist() == [0, 200, 0]
+        stamps = [f.timestamp for f in got]
+        assert abs(stamps[0] - time.time()) < 60  # host wall time, not the device's 5 s
+        np.testing.assert_allclose(np.diff(stamps), [0.033, 0.066], atol=1e-6)
+        assert counter.skipped == 1
+        assert "camera lost after 3 frame(s) (Frame didn't arrive within 2000)" in caplog.text
+
     @pytest.mark.skipif(_realsense_devices() > 0, reason="a RealSense device is attached")
     def test_no_device_is_a_clear_error(self):
         t0 = time.monotonic()
