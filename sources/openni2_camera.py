@@ -169,6 +169,11 @@ class _OpenNI2Camera:
         self.device = self._open_device()
         self.is_file = bool(self.device.is_file())
         self.depth = self.color = None
+        self.started = False  # the streams start with the first read, not at open
+        self.fps = spec.fps
+        self.frames_read = 0
+        self.clock = DeviceClock(live=not self.is_file)
+        self.counter = FrameCounter()
         try:
             self._setup()
         except Exception:
@@ -235,7 +240,6 @@ class _OpenNI2Camera:
         self._try(lambda: device.set_depth_color_sync_enabled(True),
                   "depth/colour frame sync cannot be enabled")
         self.fx, self.fy, self.cx, self.cy = self._intrinsics()
-        self.started = False  # the streams start with the first read, not at open
 
     def _try(self, action, note: str) -> bool:
         try:
@@ -302,31 +306,25 @@ class _OpenNI2Camera:
         """Streams stopped, then destroyed, then the device (the runtime crashes the other
         way round). A driver may raise one more frame after stop() (the runtime's own
         DummyDevice does: its frame thread is not joined), so destroying waits a little
-        over two frame periods."""
+        over two frame periods. Errors are logged: the device may be gone already."""
         streams = [s for s in (self.depth, self.color) if s is not None]
-        if not getattr(self, "started", False):
-            streams, started = [], streams  # never started: nothing to stop or wait for
-            for stream in started:
-                stream.close()
-        for stream in streams:
-            try:
-                stream.stop()
-            except Exception as exc:  # the device may be gone already
-                log.debug("stopping an OpenNI2 stream: %s", exc)
-        if streams:
-            time.sleep(2.5 / max(getattr(self, "fps", 30.0), 1.0))
-        for stream in streams:
-            try:
-                stream.close()
-            except Exception as exc:
-                log.debug("closing an OpenNI2 stream: %s", exc)
         self.depth = self.color = None
+        if self.started:
+            for stream in streams:
+                _quietly(stream.stop, "stopping an OpenNI2 stream")
+            time.sleep(2.5 / max(self.fps, 1.0))
+        for stream in streams:
+            _quietly(stream.close, "closing an OpenNI2 stream")
         if self.device is not None:
-            try:
-                self.device.close()
-            except Exception as exc:
-                log.debug("closing the OpenNI2 device: %s", exc)
+            _quietly(self.device.close, "closing the OpenNI2 device")
             self.device = None
+
+
+def _quietly(action, what: str) -> None:
+    try:
+        action()
+    except Exception as exc:  # OpenNIError from a device that is gone
+        log.debug("%s: %s", what, exc)
 
 
 def open_openni2(spec: CameraSpec, max_frames: int | None = None) -> Source:
@@ -334,12 +332,10 @@ def open_openni2(spec: CameraSpec, max_frames: int | None = None) -> Source:
     openni2 = initialize()
     cam = _OpenNI2Camera(openni2, spec)
     atexit.register(cam.close)  # a source never streamed: closed before the runtime unloads
-    cam.clock = DeviceClock(live=not cam.is_file)
-    cam.counter = FrameCounter()
-    cam.frames_read = 0
     info = cam.device.get_device_info()
+    label = [b.decode(errors="replace").strip() for b in (info.vendor, info.name)]
     name = Path(spec.device).stem if cam.is_file else \
-        f"openni2-{info.vendor.decode(errors='replace')}-{info.name.decode(errors='replace')}"
+        "-".join(["openni2", *[part for part in label if part]])
     n = cam.frames_in_file if cam.is_file and cam.frames_in_file and cam.frames_in_file > 0 \
         else None
     if max_frames is not None:
