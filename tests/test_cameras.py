@@ -398,6 +398,40 @@ class TestOpenNI2Runtime:
             np.testing.assert_array_equal(f.depth[0], 2000)
             assert (f.depth[1:] == 0).mean() > 0.99
 
+    def test_oni_file_opens_through_the_same_path(self, tmp_path):
+        """An .oni file recorded from the DummyDevice by the runtime's own Recorder opens as
+        a Source: its video modes, depth units and frame count come from the file. (The
+        runtime's player delivers no frames for this dummy-made file; that case ends the
+        stream with a warning naming how many of the file's frames came.)"""
+        oni = tmp_path / "dummy.oni"
+        script = f"""
+import json, time
+from arlight.sources.openni2_camera import initialize
+openni2 = initialize()
+device = openni2.Device(b"Dummy")
+depth, color = device.create_depth_stream(), device.create_color_stream()
+depth.start(); color.start()
+recorder = openni2.Recorder({str(oni)!r}.encode())
+recorder.attach(depth); recorder.attach(color); recorder.start()
+for _ in range(5):
+    depth.read_frame(); color.read_frame()
+recorder.stop(); recorder.close()
+depth.stop(); color.stop(); time.sleep(0.1); depth.close(); color.close(); device.close()
+from arlight.sources.source import open_source
+source = open_source({str(oni)!r})
+c = source.calibration
+print(json.dumps([source.name, c.width, c.height, c.cx, source.depth_scale,
+                  source.num_frames, source.notes]))
+"""
+        run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                             timeout=60, cwd=ROOT, env=ENV)
+        assert run.returncode == 0, run.stderr
+        import json
+
+        name, width, height, cx, scale, n, notes = json.loads(run.stdout.splitlines()[-1])
+        assert (name, width, height, cx, scale, n) == ("dummy", 320, 240, 160.0, 1000.0, 5)
+        assert any("keeps the registration it was recorded with" in note for note in notes)
+
     def test_stream_without_a_device(self):
         t0 = time.monotonic()
         run = _run("stream", "openni2", "--server", "tcp://127.0.0.1:9")
