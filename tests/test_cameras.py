@@ -416,7 +416,8 @@ recorder.attach(depth); recorder.attach(color); recorder.start()
 for _ in range(5):
     depth.read_frame(); color.read_frame()
 recorder.stop(); recorder.close()
-depth.stop(); color.stop(); time.sleep(0.1); depth.close(); color.close(); device.close()
+depth.stop(); color.stop(); time.sleep(0.5)  # the dummy's frame thread is not joined
+depth.close(); color.close(); device.close()
 from arlight.sources.source import open_source
 source = open_source({str(oni)!r})
 c = source.calibration
