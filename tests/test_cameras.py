@@ -433,6 +433,31 @@ print(json.dumps([source.name, c.width, c.height, c.cx, source.depth_scale,
         assert (name, width, height, cx, scale, n) == ("dummy", 320, 240, 160.0, 1000.0, 5)
         assert any("keeps the registration it was recorded with" in note for note in notes)
 
+    @pytest.mark.parametrize("mode", ["lossless", "live"])
+    def test_stream_the_dummy_device_json_on_stdout(self, mode):
+        """`arlight stream CAMERA --max-frames N --out -` (the README's camera check) over a
+        loopback server: the Results as JSON lines on stdout, the per-frame lines on stderr."""
+        import json
+
+        from streaming_support import identity_step, server_options
+
+        from arlight.server.server import Server
+
+        server = Server(server_options(), process=identity_step()).start()
+        try:
+            run = _run("stream", "openni2:Dummy", "--size", "320x240", "--max-frames", "3",
+                       "--mode", mode, "--server", server.connect_address, "--out", "-")
+        finally:
+            server.stop(timeout=15)
+        assert run.returncode == 0, run.stderr
+        records = [json.loads(line) for line in run.stdout.splitlines()]
+        frames = [r["frame"] for r in records]
+        if mode == "lossless":
+            assert frames == [0, 1, 2]
+        else:  # live: the newest frame wins; the last one is always answered
+            assert frames and frames[-1] == 2 and frames == sorted(frames)
+        assert "3 frames sent" in run.stderr and "/3] light(cam)" in run.stderr
+
     def test_stream_without_a_device(self):
         t0 = time.monotonic()
         run = _run("stream", "openni2", "--server", "tcp://127.0.0.1:9")
