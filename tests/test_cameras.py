@@ -354,14 +354,11 @@ class TestOpenNI2Modes:
 class TestOpenNI2Runtime:
     def test_initialise_and_enumerate(self):
         from arlight.sources.openni2_camera import initialize
-
-        t0 = time.monotonic()
         openni2 = initialize()
         assert openni2.is_initialized()
         assert openni2.get_version().major == 2
         uris = openni2.Device.enumerate_uris()
         assert isinstance(uris, list)  # empty on a server; real devices where plugged in
-        assert time.monotonic() - t0 < 5.0
 
     def test_missing_oni_file(self, tmp_path):
         from arlight.sources.source import open_source
@@ -459,12 +456,10 @@ print(json.dumps([source.name, c.width, c.height, c.cx, source.depth_scale,
         assert "3 frames sent" in run.stderr and "/3] light(cam)" in run.stderr
 
     def test_stream_without_a_device(self):
-        t0 = time.monotonic()
         run = _run("stream", "openni2", "--server", "tcp://127.0.0.1:9")
         assert run.returncode == 2
         assert "Traceback" not in run.stderr
         assert "no openni2 camera" in run.stderr and "udev" in run.stderr
-        assert time.monotonic() - t0 < 30  # process start included, on a loaded machine
 
     def test_wrong_size_names_the_flags(self):
         run = _run("record", "openni2:Dummy", "--size", "1280x720", "--out", "unused.mcap")
@@ -605,12 +600,10 @@ class TestDepthai:
 
     @pytest.mark.skipif(bool(_depthai_devices()), reason="a depthai device is attached")
     def test_no_device_is_a_clear_error(self):
-        t0 = time.monotonic()
         run = _run("stream", "depthai", "--server", "tcp://127.0.0.1:9")
         assert run.returncode == 2 and "Traceback" not in run.stderr
         assert "no depthai camera" in run.stderr and "udev" in run.stderr
         assert "getAllAvailableDevices" in run.stderr
-        assert time.monotonic() - t0 < 30
 
     @pytest.mark.hardware
     @pytest.mark.skipif(not _depthai_devices(), reason="no depthai (OAK) device attached")
@@ -752,12 +745,10 @@ class TestRealSense:
 
     @pytest.mark.skipif(_realsense_devices() > 0, reason="a RealSense device is attached")
     def test_no_device_is_a_clear_error(self):
-        t0 = time.monotonic()
         run = _run("record", "realsense:123456", "--out", "unused.mcap")
         assert run.returncode == 2 and "Traceback" not in run.stderr
         assert "no realsense camera (device '123456'" in run.stderr
         assert "udev" in run.stderr
-        assert time.monotonic() - t0 < 30
 
     @pytest.mark.hardware
     @pytest.mark.skipif(_realsense_devices() == 0, reason="no RealSense device attached")
