@@ -583,6 +583,27 @@ class TestDepthai:
         assert counter.skipped == 1  # seq 5 never came
         assert "camera lost after 3 frame(s) (MessageQueue was closed)" in caplog.text
 
+    def test_gravity_from_the_newest_imu_report(self):
+        """IMUData through depthai's own queue: the newest accelerometer report, rotated into
+        the colour camera; an empty queue gives None."""
+        import depthai as dai
+
+        from arlight.sources.depthai_camera import latest_gravity
+
+        queue = dai.MessageQueue("imu", 8, False)
+        rotation = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+        for reading in ((0.0, 9.8, 0.0), (9.81, 0.0, 0.0)):  # the older one is superseded
+            report = dai.IMUReportAccelerometer()
+            report.x, report.y, report.z = reading
+            packet = dai.IMUPacket()
+            packet.acceleroMeter = report
+            data = dai.IMUData()
+            data.packets = [packet]
+            queue.send(data)
+        np.testing.assert_allclose(latest_gravity(queue, rotation), [0.0, 0.0, -1.0], atol=1e-12)
+        assert latest_gravity(queue, rotation) is None  # nothing new
+        assert latest_gravity(None, rotation) is None
+
     def test_timestamps_are_host_steady_clock(self):
         import depthai as dai
 
