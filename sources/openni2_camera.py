@@ -53,6 +53,7 @@ NOMINAL_FOV_DEG = (58.0, 45.0)
 READ_TIMEOUT_S = 2.0  # a live device silent this long is gone
 DUMMY_URIS = ("Dummy", "Oz", "PingPong")  # the runtime's own test driver (DummyDevice)
 DUMMY_STOP_GRACE_S = 0.5
+FILE_CLOSE_GRACE_S = 0.2
 PERMISSIONS = ("the udev rules (Debian's libopenni2-0 installs /lib/udev/rules.d/"
                "60-libopenni2-0.rules; then replug) or run as a user in the plugdev group")
 
@@ -322,6 +323,8 @@ class _OpenNI2Camera:
         if self.device is not None:
             _quietly(self.device.close, "closing the OpenNI2 device")
             self.device = None
+            if self.is_file:  # the file player crashed the runtime's shutdown in about 1
+                time.sleep(FILE_CLOSE_GRACE_S)  # of 30 runs right after close (0 of 30 so)
 
 
 def _quietly(action, what: str) -> None:
