@@ -392,6 +392,11 @@ def _open_stream_source(args: argparse.Namespace):
 
 
 def _open_stream_source_rgbd(args: argparse.Namespace, open_source):
+    from arlight.sources.camera import parse_camera_spec
+
+    if getattr(args, "loop", False) and parse_camera_spec(args.source) is not None:
+        raise _BadInput(f"--loop does not apply to a camera (SOURCE {args.source}): it streams "
+                        "until --max-frames N or Ctrl-C")
     source = open_source(args.source, use_poses=args.poses == "groundtruth",
                          max_frames=args.max_frames, depth_encoding=args.depth_encoding,
                          synthetic_size=args.size, synthetic_frames=args.max_frames or 12,

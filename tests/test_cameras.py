@@ -230,6 +230,13 @@ def test_device_lost_mid_stream_delivers_every_frame_sent(caplog):
     assert "camera lost after 5 frame(s)" in caplog.text and "X_LINK_ERROR" in caplog.text
 
 
+def test_loop_does_not_apply_to_a_camera(capsys):
+    from arlight.cli import main
+
+    assert main(["stream", "depthai", "--loop", "--server", "tcp://127.0.0.1:9"]) == 2
+    assert "--loop does not apply to a camera (SOURCE depthai)" in capsys.readouterr().err
+
+
 def test_missing_library_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "depthai", None)  # what an absent package raises
     with pytest.raises(CameraError, match=r"pip install 'arlight\[depthai\]'"):
