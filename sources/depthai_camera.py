@@ -95,6 +95,17 @@ def intrinsics_of(frame) -> tuple[float, float, float, float]:
     return float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])
 
 
+def distortion_notes(frame) -> list[str]:
+    """A note when the frame's lens distortion is not zero: the wire's calibration is a
+    pinhole, so distortion is reported, not corrected."""
+    coeffs = [float(c) for c in frame.getTransformation().getDistortionCoefficients()]
+    if not any(abs(c) > 1e-9 for c in coeffs):
+        return []
+    shown = ", ".join(f"{c:.4g}" for c in coeffs[:5])
+    return [f"the colour output has lens distortion ({shown}, ...), not corrected: the "
+            "calibration sent is a pinhole"]
+
+
 def camera_from_imu(calibration, socket) -> np.ndarray | None:
     """(3, 3) rotation from the IMU's axes to the camera's, from the device calibration;
     None if the calibration links no IMU to that camera."""
@@ -230,6 +241,7 @@ def _start(dai, device, spec: CameraSpec, max_frames: int | None) -> Source:
                           "replug it, or check its power (a USB 3 port or a powered hub)") from None
     fx, fy, cx, cy = intrinsics_of(first["color"])
     width, height = first["color"].getWidth(), first["color"].getHeight()
+    notes += distortion_notes(first["color"])
     read = rgbd_reader(dai, rgbd_queue, counter, imu_queue, rotation, first)
 
     def close() -> None:

@@ -548,6 +548,19 @@ class TestDepthai:
         assert (fx, fy) == pytest.approx((1500 * 4 / 9, 1500 * 4 / 9), rel=1e-6)
         assert (cx, cy) == pytest.approx((950 * 4 / 9 - 106, 530 * 4 / 9), rel=1e-6)
 
+    def test_distortion_is_reported(self):
+        import depthai as dai
+
+        from arlight.sources.depthai_camera import distortion_notes
+
+        k = [[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]]
+        frame = dai.ImgFrame()
+        frame.setTransformation(dai.ImgTransformation(640, 480, k))
+        assert distortion_notes(frame) == []
+        frame.setTransformation(dai.ImgTransformation(
+            640, 480, k, dai.CameraModel.Perspective, [-0.12, 0.05] + [0.0] * 12))
+        assert "lens distortion (-0.12, 0.05" in distortion_notes(frame)[0]
+
     def test_imu_extrinsics_from_the_calibration(self):
         import depthai as dai
 
