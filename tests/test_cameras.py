@@ -480,9 +480,11 @@ print(json.dumps([source.name, c.width, c.height, c.cx, source.depth_scale,
         err = capsys.readouterr().err
         assert "no openni2 camera" in err and "udev" in err
 
-    def test_wrong_size_names_the_flags(self):
-        run = _run("record", "openni2:Dummy", "--size", "1280x720", "--out", "unused.mcap")
+    def test_wrong_size_names_the_flags(self, tmp_path):
+        out = tmp_path / "unused.mcap"
+        run = _run("record", "openni2:Dummy", "--size", "1280x720", "--out", str(out))
         assert run.returncode == 2 and "Traceback" not in run.stderr
+        assert not out.exists()
         assert "no 1280x720 mode" in run.stderr and "--size WxH" in run.stderr
 
 
