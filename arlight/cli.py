@@ -486,9 +486,15 @@ def _open_stream_source(args: argparse.Namespace):
 
 
 def _open_stream_source_rgbd(args: argparse.Namespace, open_source):
+    from arlight.sources.camera import parse_camera_spec
+
+    if getattr(args, "loop", False) and parse_camera_spec(args.source) is not None:
+        raise _BadInput(f"--loop does not apply to a camera (SOURCE {args.source}): it streams "
+                        "until --max-frames N or Ctrl-C")
     source = open_source(args.source, use_poses=args.poses == "groundtruth",
                          max_frames=args.max_frames, depth_encoding=args.depth_encoding,
-                         synthetic_size=args.size, synthetic_frames=args.max_frames or 12)
+                         synthetic_size=args.size, synthetic_frames=args.max_frames or 12,
+                         camera_fps=args.fps)
     return source  # its notes (defaults chosen for the data) were logged as warnings
 
 
@@ -515,8 +521,9 @@ def cmd_stream(args: argparse.Namespace) -> int:
         from arlight.client.recording import Recorder
 
         recorder = Recorder(args.record, source=args.source, depth_scale=source.depth_scale)
-    out = open(args.out, "w") if args.out else None  # noqa: SIM115
-    total = "loop" if options.loop else str(source.num_frames)
+    to_stdout = args.out == "-"  # the JSON lines on stdout, the per-frame lines on stderr
+    out = sys.stdout if to_stdout else open(args.out, "w") if args.out else None  # noqa: SIM115
+    total = "loop" if options.loop else str(source.num_frames or "live")
 
     def on_result(result, receive_time_wall: float) -> None:
         d = result.dominant_direction_camera
@@ -527,7 +534,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
               f"received {result.frames_received}  dropped {result.frames_dropped}"
               + ("" if result.panorama_dominant_direction is None else "  panorama light=("
                  + ", ".join(f"{x:+.2f}" for x in result.panorama_dominant_direction) + ")"),
-              flush=True)
+              file=sys.stderr if to_stdout else sys.stdout, flush=True)
         if out or recorder is not None or live is not None:
             from arlight.protocols import received_record
 
@@ -543,7 +550,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
     client = CaptureClient(source, options, on_result=on_result, recorder=sinks)
     size = ("panorama only" if source.calibration is None
             else f"{source.calibration.width}x{source.calibration.height}")
-    print(f"arlight stream: {args.source} ({_count(source.num_frames, 'frame')}, "
+    count = _count(source.num_frames, "frame") if source.num_frames else "live"
+    print(f"arlight stream: {args.source} ({count}, "
           f"{size}) -> {options.server}, "
           f"session {client.session!r}, {options.mode}, rate {options.rate}, colour "
           f"{options.color_codec}, depth {options.depth_codec}"
@@ -561,7 +569,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
         refused = "refused" in str(exc)
         return EXIT_BAD_INPUT if refused else 1
     finally:
-        if out:
+        if out and not to_stdout:
             out.close()
         if recorder is not None:
             recorder.close()
@@ -599,7 +607,8 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     def on_frame(seq: int, parts) -> None:
         size = sum(len(memoryview(p)) for p in parts)
-        print(f"[{seq + 1:>5}/{source.num_frames}] {size / 1024:8.1f} KiB", flush=True)
+        print(f"[{seq + 1:>5}/{source.num_frames or 'live'}] {size / 1024:8.1f} KiB",
+              flush=True)
 
     n, session = record(source, args.out, options, on_frame=on_frame)
     print(f"arlight record: wrote {_count(n, 'frame')} (session {session}, "
@@ -975,7 +984,10 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("source", metavar="SOURCE",
                    help="'synthetic' (the built-in scene), a TUM / Open3D-Redwood / 7-Scenes "
-                        "folder, or a recording FILE.mcap (sent exactly as recorded)")
+                        "folder, a recording FILE.mcap (sent exactly as recorded), or a "
+                        "camera: depthai[:DEVICE_ID] (Luxonis OAK), openni2[:URI] or FILE.oni "
+                        "(OpenNI2 device or recording), realsense[:SERIAL] (Intel RealSense); "
+                        "cameras need their extra: pip install 'arlight[depthai]' etc.")
     p.add_argument("--session", metavar="NAME", help="session name, [A-Za-z0-9_.-]{1,64} "
                    "(default: the source's name plus 4 random hex digits; a recording: its own)")
     p.add_argument("--mode", choices=("live", "lossless"),
@@ -1002,7 +1014,9 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth-encoding", choices=("tum", "mm", "sun", "nyu"),
                    help="depth encoding of a data set (default: from its layout)")
     p.add_argument("--size", type=_parse_size, default=(640, 480), metavar="WxH",
-                   help="image size of the synthetic scene (default 640x480)")
+                   help="image size of the synthetic scene or of a camera (default 640x480)")
+    p.add_argument("--fps", type=_positive_float, default=30.0, metavar="F",
+                   help="a camera's frame rate in Hz (default 30)")
     p.add_argument("--timestamps", choices=("capture", "source"),
                    help="frame timestamps: 'capture' = time.time() when sent (end-to-end "
                         "latency measurable; default in live mode), 'source' = the data set's "
@@ -1125,7 +1139,9 @@ def _add_stream_parser(sub) -> None:
                              "as the mode allows")
     stream.add_argument("--loop", action="store_true", help="start over at the end (until "
                         "--max-frames or Ctrl-C)")
-    stream.add_argument("--out", metavar="FILE", help="also write the Results as JSON lines")
+    stream.add_argument("--out", metavar="FILE",
+                        help="also write the Results as JSON lines ('-': standard output; "
+                             "the per-frame lines then go to standard error)")
     stream.add_argument("--export", type=_parse_exports, metavar="LAYOUTS",
                         help="ask the server for the light in these engines' layouts in every "
                              "Result (\"exports\", also in the --out lines and what displays "

@@ -2,8 +2,10 @@
 
 Specs: "synthetic" (the built-in scene with known light, arlight.sources.synthetic), every
 folder layout `arlight estimate` reads (TUM RGB-D, Open3D/Redwood, 7-Scenes, pairs;
-arlight.sources.sequence), and MCAP recordings made by `arlight record`
-(arlight.sources.recording), whose Frame messages are sent exactly as recorded.
+arlight.sources.sequence), MCAP recordings made by `arlight record`
+(arlight.sources.recording), whose Frame messages are sent exactly as recorded, and live
+cameras: "depthai[:DEVICE_ID]", "openni2[:URI]" or "FILE.oni", "realsense[:SERIAL]"
+(arlight.sources.camera and one module per library, imported only when opened).
 
 Depth goes out as the source gives it: the sensor's uint16 with the source's depth_scale
 (units per metre), which the Hello's SessionConfig carries; nothing is rescaled on the way.
@@ -32,7 +34,9 @@ class SourceFrame:
     depth (H, W) uint16 in the source's depth_scale units per metre, pose (4, 4) or None.
     parts: for recordings, the encoded Frame exactly as recorded (sent verbatim).
     panorama: (h, 2h, 3) uint8 RGB equirectangular 360-degree frame, or None; a frame with
-    a panorama and neither colour nor depth is a panorama-only frame."""
+    a panorama and neither colour nor depth is a panorama-only frame.
+    gravity: (3,) unit vector, the direction of gravity (down) in the colour camera's frame
+    (OpenCV axes) from a camera's IMU, or None; kept for later use (not yet on the wire)."""
 
     timestamp: float
     color: np.ndarray | None = None
@@ -40,6 +44,7 @@ class SourceFrame:
     pose: np.ndarray | None = None
     parts: list[bytes] | None = None
     panorama: np.ndarray | None = None
+    gravity: np.ndarray | None = None
 
 
 @dataclass
@@ -112,11 +117,19 @@ def open_recording_source(path: str | Path, max_frames: int | None = None) -> So
 
 def open_source(spec: str, *, use_poses: bool = False, max_frames: int | None = None,
                 depth_encoding: str | None = None, synthetic_size: tuple[int, int] = (640, 480),
-                synthetic_frames: int = 12) -> Source:
-    """A frame source: "synthetic", a data set folder (arlight.sources.sequence) or FILE.mcap.
+                synthetic_frames: int = 12, camera_fps: float = 30.0) -> Source:
+    """A frame source: "synthetic", a data set folder (arlight.sources.sequence), FILE.mcap,
+    or a camera (arlight.sources.camera; synthetic_size is then its image size, camera_fps
+    its frame rate).
 
-    Raises DatasetError (arlight.sources.errors) or RecordingError for unusable input.
+    Raises DatasetError (arlight.sources.errors), RecordingError or CameraError
+    (arlight.sources.camera) for unusable input.
     """
+    from arlight.sources.camera import open_camera, parse_camera_spec
+
+    camera = parse_camera_spec(spec, synthetic_size, camera_fps)
+    if camera is not None:
+        return open_camera(camera, max_frames=max_frames)
     if spec == "synthetic":
         n = max_frames or synthetic_frames
         seq = make_sequence(num_frames=n, width=synthetic_size[0], height=synthetic_size[1])
