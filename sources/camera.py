@@ -244,3 +244,21 @@ def camera_frames(spec: CameraSpec, read: Callable[[], object | None],
             close()
         except Exception as exc:  # a device already gone may refuse to stop
             log.warning("SOURCE %s: closing the camera: %s", spec.text, exc)
+
+
+def camera_stream(spec: CameraSpec, read: Callable[[], object | None],
+                  close: Callable[[], None], lost_errors: tuple[type[BaseException], ...],
+                  max_frames: int | None, counter: FrameCounter
+                  ) -> Callable[[], Iterator[object]]:
+    """A camera Source's `frames`: `camera_frames` the first time it is called; a second call
+    (a device streams once) is a CameraError saying there is no --loop."""
+    started = False
+
+    def frames() -> Iterator[object]:
+        nonlocal started
+        if started:
+            raise CameraError(f"SOURCE {spec.text}: a camera streams once (no --loop)")
+        started = True
+        return camera_frames(spec, read, close, lost_errors, max_frames, counter)
+
+    return frames

@@ -24,7 +24,7 @@ from arlight.sources.camera import (
     CameraError,
     CameraSpec,
     FrameCounter,
-    camera_frames,
+    camera_stream,
     gravity_in_camera,
     import_library,
     monotonic_to_wall_offset,
@@ -250,14 +250,7 @@ def _start(dai, device, spec: CameraSpec, max_frames: int | None) -> Source:
         finally:
             device.close()
 
-    started = False
-
-    def frames():
-        nonlocal started
-        if started:
-            raise CameraError(f"SOURCE {spec.text}: a camera streams once (no --loop)")
-        started = True
-        return camera_frames(spec, read, close, lost_errors(dai), max_frames, counter)
+    frames = camera_stream(spec, read, close, lost_errors(dai), max_frames, counter)
 
     for note in notes:
         log.warning("SOURCE %s: %s", spec.text, note)

@@ -28,7 +28,7 @@ from arlight.sources.camera import (
     CameraSpec,
     DeviceClock,
     FrameCounter,
-    camera_frames,
+    camera_stream,
     import_library,
     no_device_message,
     pinhole_from_fov,
@@ -350,19 +350,13 @@ def open_openni2(spec: CameraSpec, max_frames: int | None = None) -> Source:
     from openni.utils import OpenNIError
 
     lost = (TimeoutError, OpenNIError)
-    started = False
 
     def read():
         if cam.is_file and cam.frames_in_file and cam.frames_read >= cam.frames_in_file:
             return None  # every frame of the file has been read
         return cam.read()
 
-    def frames():
-        nonlocal started
-        if started:
-            raise CameraError(f"SOURCE {spec.text}: a camera streams once (no --loop)")
-        started = True
-        return camera_frames(spec, read, cam.close, lost, n, cam.counter)
+    frames = camera_stream(spec, read, cam.close, lost, n, cam.counter)
 
     calibration = CameraCalibration(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
     notes = list(cam.notes)

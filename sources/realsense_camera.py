@@ -20,7 +20,7 @@ from arlight.sources.camera import (
     CameraSpec,
     DeviceClock,
     FrameCounter,
-    camera_frames,
+    camera_stream,
     depth_units_per_metre,
     import_library,
     no_device_message,
@@ -119,14 +119,7 @@ def open_realsense(spec: CameraSpec, max_frames: int | None = None) -> Source:
         raise
     counter = FrameCounter()
     read = rgbd_reader(rs, lambda: pipeline.wait_for_frames(READ_TIMEOUT_MS), counter)
-    started = False
-
-    def frames():
-        nonlocal started
-        if started:
-            raise CameraError(f"SOURCE {spec.text}: a camera streams once (no --loop)")
-        started = True
-        return camera_frames(spec, read, pipeline.stop, (RuntimeError,), max_frames, counter)
+    frames = camera_stream(spec, read, pipeline.stop, (RuntimeError,), max_frames, counter)
 
     for note in notes:
         log.warning("SOURCE %s: %s", spec.text, note)
