@@ -276,6 +276,13 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _at_least_1_mb(text: str) -> float:
+    value = _positive_float(text)
+    if value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected at least 1 (MiB), got {text!r}")
+    return value
+
+
 def _int_at_least_2_even(text: str) -> int:
     value = _int_at_least(text, 2)
     if value % 2:
@@ -503,10 +510,13 @@ def cmd_stream(args: argparse.Namespace) -> int:
     from arlight.client.foxglove_sinks import Recorders
     from arlight.protocols.records import pipeline_ms
 
+    # the flags' own checks first: a camera opened (its pipeline started) before a usage
+    # error would only be released by its frames
+    _token_of(args), _client_keys(args)
+    foxglove = _foxglove_address(args)
     source = _open_stream_source(args)
     options = _stream_options(args, source)
     live = None
-    foxglove = _foxglove_address(args)
     if foxglove is not None:
         from arlight.client.foxglove_sinks import FoxgloveStream, LiveSink
 
@@ -559,9 +569,11 @@ def cmd_stream(args: argparse.Namespace) -> int:
           file=sys.stderr, flush=True)
     keys = (f" --server-key {args.server_key} --client-key DIR/NAME.key_secret"
             if options.keys else "")
+    token = (f"--token-file {args.token_file}" if getattr(args, "token_file", None)
+             else f"--token {client.token}")  # a token from a file stays off the screen
     print(f"arlight stream: display with: arlight display --server {options.server} --session "
-          f"{client.session} --token {client.token}{keys}  (the token is a secret: whoever has "
-          "it sees this session)", file=sys.stderr, flush=True)
+          f"{client.session} {token}{keys}  (the token is a secret: whoever has it sees this "
+          "session)", file=sys.stderr, flush=True)
     try:
         summary = client.run()
     except StreamError as exc:
@@ -637,6 +649,7 @@ def cmd_display(args: argparse.Namespace) -> int:
             http = parse_http_address(args.http)
         except ValueError as exc:
             raise _BadInput(str(exc)) from None
+        _warn_if_exposed("--http", *http)
     options = DisplayOptions(server=args.server, session=args.session, out_dir=args.out,
                              exports=tuple(args.export or ()), record=args.record,
                              foxglove=foxglove, http=http,
@@ -1117,7 +1130,7 @@ def _add_budget_options(serve, defaults) -> None:
                             "the next stage (Error deadline), and a session whose settings "
                             "could not meet it is refused at Hello (default "
                             f"{defaults.frame_deadline_s:g})")
-    serve.add_argument("--session-memory-mb", type=_positive_float,
+    serve.add_argument("--session-memory-mb", type=_at_least_1_mb,
                        default=defaults.session_memory_bytes / 2**20, metavar="MB",
                        help="memory budget of one session (image buffers, volume): a Hello "
                             "over it is refused; the sessions' memory is at most "
@@ -1223,7 +1236,20 @@ def _foxglove_address(args: argparse.Namespace) -> tuple[str, int] | None:
         raise _BadInput("--port is the port of --foxglove: give --foxglove too")
     if not args.foxglove:
         return None
-    return args.foxglove_host, 8765 if args.port is None else args.port
+    address = (args.foxglove_host, 8765 if args.port is None else args.port)
+    _warn_if_exposed("--foxglove-host", *address)
+    return address
+
+
+def _warn_if_exposed(flag: str, host: str, port: int) -> None:
+    """A viewer served beyond loopback has neither keys nor token: say so (README,
+    "Security")."""
+    from arlight.server.security import is_loopback
+
+    if not is_loopback(f"tcp://{host}:{port}"):
+        print(f"arlight: warning: {flag} {host}: what it shows (composite, light; a stream: "
+              f"the camera) is served on port {port} to anyone who can reach this machine, "
+              f"without keys or token (README, \"Security\")", file=sys.stderr, flush=True)
 
 
 def _add_display_parser(sub) -> None:
@@ -1252,7 +1278,8 @@ def _add_display_parser(sub) -> None:
     disp.add_argument("--idle-exit", type=_positive_float, metavar="S",
                       help="exit after S seconds without a result")
     disp.add_argument("--follow", action="store_true",
-                      help="keep waiting when the stream ends (for the next stream)")
+                      help="keep waiting when the stream ends (for the next stream: it must "
+                           "use the same token, `arlight stream --token-file F`)")
     disp.add_argument("--record", metavar="FILE.mcap",
                       help="record the Results to an MCAP file: as received (/arlight/result) "
                            "and in Foxglove's schemas (composite, light, lighting JSON, /tf)")

@@ -268,9 +268,10 @@ class Flood(threading.Thread):
 class StuckDisplay(threading.Thread):
     """A display that subscribes, heartbeats and never reads a Result."""
 
-    def __init__(self, address: str, session: str, end_mono: float):
+    def __init__(self, address: str, session: str, token: str, end_mono: float):
         super().__init__(daemon=True)
         self.address, self.session, self.end_mono = address, session, end_mono
+        self.token = token  # the session's: the server refuses a display without it
 
     def run(self) -> None:
         ctx = zmq.Context.instance()
@@ -280,7 +281,7 @@ class StuckDisplay(threading.Thread):
         s.setsockopt(zmq.RCVBUF, 4096)
         s.connect(self.address)
         hello = encode(Hello(PROTOCOL_VERSION, SessionConfig(session=self.session,
-                                                             role="display")))
+                                                             role="display", token=self.token)))
         last_hello = 0.0
         while time.monotonic() < self.end_mono:
             now = time.monotonic()
@@ -372,12 +373,13 @@ def main(argv: list[str] | None = None) -> int:
     if flood:
         flood.start()
     for i in range(args.stuck_displays):
-        StuckDisplay(address, tallies[i % len(tallies)].name, end).start()
+        StuckDisplay(address, tallies[i % len(tallies)].name,
+                     clients[i % len(tallies)][0].token, end).start()
     watchers = []
-    for tally in tallies:
+    for tally, (client, _, _) in zip(tallies, clients, strict=True):
         seen: dict[int, int] = {}
         display = DisplayClient(
-            DisplayOptions(server=address, session=tally.name, follow=True,
+            DisplayOptions(server=address, session=tally.name, follow=True, token=client.token,
                            reconnect_timeout_s=120.0, print_interval_s=3600.0,
                            client_name="soak-display"),
             on_result=lambda result, _record, seen=seen: seen.__setitem__(
@@ -459,7 +461,8 @@ def main(argv: list[str] | None = None) -> int:
             json.dump(report, f, indent=1, default=str)
     bad = (totals["lost"] or totals["final_errors"] or totals["duplicated"]
            or totals["out_of_order"] or totals["mixed"] or stuck_clients
-           or (flood is not None and flood.budget_welcomed))
+           or (flood is not None and flood.budget_welcomed)
+           or any(s["display_results"] == 0 for s in per_session))  # the displays watched
     return 1 if bad else 0
 
 

@@ -175,7 +175,19 @@ HELLO_FIELD_FLAGS = {
     "hello.config.panorama.operator": "--panorama-operator",
     "hello.config.panorama": "--light-source / --panorama-from-world",
     "hello.config.token": "--token",
+    "hello.config.exports": "--export",
 }
+
+
+def hello_field_flag(field: str | None) -> str | None:
+    """The flag of HELLO_FIELD_FLAGS for `field` or the nearest field above it (a refusal of
+    `hello.config.overrides.KEY` names --set)."""
+    name = field or ""
+    while name:
+        if name in HELLO_FIELD_FLAGS:
+            return HELLO_FIELD_FLAGS[name]
+        name = name.rpartition(".")[0]
+    return None
 
 
 @dataclass(frozen=True)
@@ -383,7 +395,7 @@ class CaptureClient:
 
     def _refusal_text(self, error: Error) -> str:
         """The StreamError text of a refused Hello, naming the command-line flag if any."""
-        flag = HELLO_FIELD_FLAGS.get(error.field or "")
+        flag = hello_field_flag(error.field)
         where = f" ({error.field}{', see ' + flag if flag else ''})" if error.field else ""
         return (f"the server refused session {self.session!r}: {error.code}{where}: "
                 f"{error.message}")

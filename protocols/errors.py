@@ -12,6 +12,8 @@ ERROR_CODES: tuple[str, ...] = (
     "decode_failed",  # a payload does not decode to exactly the declared image
     "bad_state",  # a valid message at the wrong time (used by the server's session logic)
     "unauthorized",  # a Hello without the session's token (or the admin token): refused
+    "over_budget",  # settings or data over the server's time or memory budget (server only)
+    "deadline",  # a frame abandoned past the server's per-frame deadline (server only)
 )
 
 

@@ -29,19 +29,6 @@ if [ ${#need[@]} -gt 0 ] || ! "$PYTHON" -c 'import venv, ensurepip' 2>/dev/null;
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq $pkgs >/dev/null
 fi
 
-# Optional: the OpenNI2 camera runtime (small), which tests/test_cameras.py runs without
-# hardware (its tests skip without it); installed where we may, never required.
-if ! ldconfig -p 2>/dev/null | grep -q libOpenNI2.so.0; then
-  if [ "$(id -u)" = 0 ]; then SUDO=""; elif sudo -n true 2>/dev/null; then SUDO="sudo -n"; else
-    SUDO=none; fi
-  export DEBIAN_FRONTEND=noninteractive
-  if [ "$SUDO" != none ] && { $SUDO apt-get install -y -qq libopenni2-0 >/dev/null 2>&1 ||
-      { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq libopenni2-0 >/dev/null; }; }
-  then echo "arlight: installed libopenni2-0 (the OpenNI2 camera runtime)" >&2
-  else echo "arlight: note: libopenni2-0 not installed; the OpenNI2 camera tests will skip" >&2
-  fi
-fi
-
 stamp=.venv/.arlight-installed
 want=$(cat pyproject.toml | sha1sum | cut -d' ' -f1)
 if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then

@@ -4,10 +4,13 @@
 #   cmgen (libfilament-tools): the Filament cross-check of tests/test_engine_export.py
 #   chromium: the browser display's page test (tests/test_web_display.py) drives it headless
 #             (ARLIGHT_NO_CHROMIUM=1 leaves it out)
+#   libopenni2-0: the OpenNI2 runtime, whose own DummyDevice driver tests/test_cameras.py runs
+#             (users of OpenNI2 cameras install it themselves: README, "Live cameras")
 set -uo pipefail
 
 need=()
 command -v cmgen >/dev/null || need+=(libfilament-tools)
+ldconfig -p 2>/dev/null | grep -q libOpenNI2.so.0 || need+=(libopenni2-0)
 if [ -z "${ARLIGHT_NO_CHROMIUM:-}" ] && ! command -v chromium >/dev/null \
     && ! command -v chromium-browser >/dev/null; then
   need+=(chromium)

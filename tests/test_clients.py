@@ -513,3 +513,16 @@ def test_lossless_frame_whose_result_was_lost_is_sent_again():
     assert summary.results == 3 and not summary.errors
     assert summary.reconnects == 0  # the frame came back by the resend timer, not a reconnect
     assert seen.count(1) == 2 and seen.count(0) == 1 and seen.count(2) == 1
+
+
+def test_refused_hello_fields_name_their_flag():
+    """A refusal of a field, or of a key below it (over_budget names
+    hello.config.overrides.KEY), names the `arlight stream` flag that sets it."""
+    from arlight.client.capture import hello_field_flag
+
+    assert hello_field_flag("hello.config.overrides.robust_iterations") == "--set"
+    assert hello_field_flag("hello.config.exports") == "--export"
+    assert hello_field_flag("hello.config.panorama.operator") == "--panorama-operator"
+    assert hello_field_flag("hello.config.panorama.panorama_from_world").startswith(
+        "--light-source")
+    assert hello_field_flag("frame.depth") is None and hello_field_flag(None) is None

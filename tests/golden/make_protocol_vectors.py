@@ -208,6 +208,10 @@ def vectors() -> dict[str, object]:
         "hello_capture_token": Hello(PROTOCOL_VERSION, SessionConfig(
             session="golden-1", role="capture", calibration=cal, depth_scale=1000.0,
             token=GOLDEN_TOKEN)),
+        # both optional keys at once: pins their order (exports, then token)
+        "hello_exports_token": Hello(PROTOCOL_VERSION, SessionConfig(
+            session="golden-1", role="capture", calibration=cal, depth_scale=1000.0,
+            exports=("webxr", "main_light"), token=GOLDEN_TOKEN)),
         "welcome_token": Welcome(PROTOCOL_VERSION, "golden-1", 8, 1.0, "arlight", GOLDEN_TOKEN),
         "error_unauthorized": Error("unauthorized", "session golden-1 needs its token",
                                     "hello.config.token"),
