@@ -7,9 +7,9 @@ ZeroMQ message parts; the bit-exact replay reads these), a JSON `/arlight/frame_
 channel and an `arlight` metadata record. Beside them, for Foxglove and the `mcap` CLI,
 the same stream in Foxglove's own schemas (client/foxglove_messages.py): `/camera/color`,
 `/camera/depth`, `/camera/calibration`, `/tf`; and, where the recorder sees Results
-(`arlight stream --record`, `arlight display --record`), each Result as received on
-`/arlight/result` (msgpack parts) plus `/arlight/composite`, `/arlight/light` and the JSON
-`/arlight/lighting`.
+(`arlight stream --record`, `arlight display --record`), `/arlight/composite`,
+`/arlight/light` and the JSON `/arlight/lighting`, plus, from a display (which keeps the
+message parts), each Result as received on `/arlight/result` (msgpack parts).
 """
 
 from __future__ import annotations
