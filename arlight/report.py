@@ -232,7 +232,9 @@ def trade_plot(report: dict, path: Path) -> bool:
             ax.annotate(name, (x, y), textcoords="offset points", xytext=(5, -10))
     ax.set_xlabel("milliseconds per frame (median, pipeline only)")
     ax.set_ylabel("median angular error, degrees (upper hemisphere)")
-    ax.set_title(f"speed / accuracy trade ({', '.join(report['data'])})", fontsize=9)
+    data = report["data"]
+    shown = ", ".join(data) if len(data) <= 3 else f"{len(data)} sequences"
+    ax.set_title(f"speed / accuracy trade ({shown})", fontsize=9)
     ax.grid(True, alpha=0.3)
     if report["sweeps"]:
         ax.legend(fontsize=8)
