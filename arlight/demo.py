@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import math
-import secrets
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -45,6 +44,7 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
     from arlight.client.capture import CaptureClient, StreamOptions
     from arlight.client.display import DisplayClient, DisplayOptions
     from arlight.pipeline.virtual_scene import demo_scene
+    from arlight.protocols import new_token
     from arlight.server.server import Server, ServerOptions
     from arlight.sources.source import sequence_source
     from arlight.sources.synthetic import make_sequence
@@ -76,7 +76,7 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
     started = time.monotonic()
     # the session's token, chosen here: the display subscribes before the session exists
     # and presents it; the capture client gives it to the new session
-    token = secrets.token_urlsafe(24)
+    token = new_token()
     server = Server(ServerOptions(bind="tcp://127.0.0.1:*", workers=1)).start()
     try:
         address = server.connect_address

@@ -65,6 +65,7 @@ from arlight.protocols import (
     SessionConfig,
     Welcome,
     encode,
+    new_token,
     peek_header,
 )
 from arlight.protocols.curve import ClientKeys
@@ -281,7 +282,7 @@ class CaptureClient:
         self.hello = self._make_hello()  # as recorded: without the token
         # the session's token: displays present it (`arlight display --token`); the Hello
         # carries it (a new session takes it, resuming one needs it); a secret
-        self.token = options.token or secrets.token_urlsafe(24)
+        self.token = options.token or new_token()
         self.session_token = self.token  # as the server's Welcome confirms it
         self.credits = 1
         self.heartbeat_interval_s = options.heartbeat_interval_s

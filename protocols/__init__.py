@@ -46,6 +46,7 @@ from .messages import (
     decode,
     encode,
     error_from_exception,
+    new_token,
     peek_header,
     plain_diagnostics,
 )
@@ -68,6 +69,7 @@ __all__ = [
     "PROTOCOL_VERSION",
     "ROLES",
     "TOKEN_RE",
+    "new_token",
     "SCENE_MAX_OBJECTS",
     "SCENE_MAX_TRIANGLES",
     "Bye",

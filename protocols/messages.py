@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import secrets
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
@@ -60,6 +61,12 @@ _CODE_RE = re.compile(r"[a-z0-9_]{1,32}")
 # a session token or the server's admin token (SPEC.md section 4, "session tokens"): the
 # alphabet of secrets.token_urlsafe, 16..128 characters (at least 96 bits when random)
 TOKEN_RE = re.compile(r"[A-Za-z0-9_\-]{16,128}")
+TOKEN_BYTES = 24  # random bytes of a generated token: 32 characters of token_urlsafe
+
+
+def new_token() -> str:
+    """A random session or admin token (192 bits, URL-safe, matching TOKEN_RE)."""
+    return secrets.token_urlsafe(TOKEN_BYTES)
 
 
 # --------------------------------------------------------------------------- field checks

@@ -22,7 +22,6 @@ import hmac
 import ipaddress
 import logging
 import os
-import secrets
 import shutil
 from pathlib import Path
 
@@ -38,7 +37,6 @@ log = logging.getLogger(__name__)
 SERVER_KEY = "server"  # DIR/server.key (public), DIR/server.key_secret
 CLIENT_KEY = "client"
 AUTHORIZED = "authorized"  # DIR/authorized/*.key: the client public keys the server admits
-TOKEN_BYTES = 24  # random bytes of a generated token: 32 characters of token_urlsafe
 
 
 class SecurityError(ValueError):
@@ -47,11 +45,6 @@ class SecurityError(ValueError):
 
 class InsecureBindError(SecurityError):
     """A non-loopback bind without CURVE keys (and without `insecure`)."""
-
-
-def new_token() -> str:
-    """A random session or admin token (192 bits, URL-safe)."""
-    return secrets.token_urlsafe(TOKEN_BYTES)
 
 
 def tokens_equal(given: str | None, expected: str | None) -> bool:

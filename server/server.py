@@ -69,6 +69,7 @@ from arlight.protocols import (
     decode,
     encode,
     error_from_exception,
+    new_token,
     peek_header,
 )
 from arlight.protocols.messages import MAX_INT as MAX_SEQ  # a Frame's seq: 0..2^63-1
@@ -76,7 +77,6 @@ from arlight.server.budget import SessionBudget
 from arlight.server.security import (
     CurveServer,
     check_exposure,
-    new_token,
     tokens_equal,
 )
 from arlight.server.session import (
