@@ -213,8 +213,7 @@ def process_stream(path: str, out_path: str | Path, options: BatchOptions,
     """
     from arlight.pipeline.pipeline import Pipeline
     from arlight.pipeline.runtime import require_device
-    from arlight.protocols import result_record
-    from arlight.server.results import result_message
+    from arlight.server.results import offline_record
 
     t0 = time.perf_counter()
     out_path = Path(out_path)
@@ -231,9 +230,7 @@ def process_stream(path: str, out_path: str | Path, options: BatchOptions,
             for i, frame in enumerate(frames):
                 start_wall = time.time()
                 result = pipeline.process(frame)
-                record = result_record(result_message(
-                    result, seq=i, counters=(i + 1, i + 1, 0), receive_time_wall=start_wall,
-                    finish_time_wall=time.time(), exports=()))
+                record = offline_record(result, i, start_wall)
                 out.write(json.dumps(record) + "\n")
                 confidences.append(result.confidence.value)
                 if on_frame is not None:

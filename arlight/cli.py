@@ -78,8 +78,7 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 def cmd_estimate(args: argparse.Namespace) -> int:
     from arlight.pipeline.pipeline import Pipeline
     from arlight.pipeline.runtime import require_device
-    from arlight.protocols import result_record
-    from arlight.server.results import result_message
+    from arlight.server.results import offline_record
 
     config = _build_config(args)
     require_device(config.device)  # before the source is read
@@ -102,9 +101,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
             result = pipeline.process(frame)
             ms = (time.perf_counter() - t0) * 1e3
             # the record `arlight stream --out` writes, from the Result the server would send
-            record = result_record(result_message(
-                result, seq=i, counters=(i + 1, i + 1, 0), receive_time_wall=start_wall,
-                finish_time_wall=time.time(), exports=tuple(args.export or ())))
+            record = offline_record(result, i, start_wall, tuple(args.export or ()))
             d = result.dominant_direction_camera
             line = (f"[{i + 1:>4}/{n}] t={result.timestamp:.3f}s  light(cam)=({d[0]:+.2f}, "
                     f"{d[1]:+.2f}, {d[2]:+.2f})  intensity={result.intensity:.3g}  "
@@ -189,8 +186,8 @@ def _load_scene(args: argparse.Namespace, image_size: tuple[int, int] = (640, 48
         raise _BadInput(f"--scene {args.scene}: {exc}") from None
 
 
-# `--export` names (engine_export.EXPORTERS; tests/test_engine_export.py checks they agree),
-# written out so that the help does not import the pipeline
+# `--export` names (protocols.EXPORT_LAYOUTS = engine_export.EXPORTERS; tests/test_protocols.py
+# checks all three agree), written out so that building the help imports neither
 LAYOUT_NAMES = "arcore, webxr, gltf, unity, filament, main_light"
 
 

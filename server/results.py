@@ -1,14 +1,17 @@
 """The pipeline's FrameResult as a protocol Result: the one conversion, used by the server's
-sessions and by `arlight estimate` (whose JSON record is built from the same Result)."""
+sessions and by `arlight estimate` / `arlight batch` (whose JSON records are built from the
+same Result, `offline_record`)."""
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 
 from arlight.pipeline.engine_export import camera_exports
 from arlight.pipeline.frames import FrameResult
 from arlight.pipeline.ibl import IblResult
-from arlight.protocols import DEFAULT_JPEG_QUALITY, Result, plain_diagnostics
+from arlight.protocols import DEFAULT_JPEG_QUALITY, Result, plain_diagnostics, result_record
 
 
 def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, int],
@@ -55,3 +58,13 @@ def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, i
         panorama_dominant_direction=None if panorama is None else [
             float(x) for x in panorama.dominant_direction],
         exports=layouts)
+
+
+def offline_record(result: FrameResult, index: int, start_wall: float,
+                   exports: tuple[str, ...] = ()) -> dict:
+    """The JSON record of frame `index` processed without a server (`arlight estimate`,
+    `arlight batch`): what `arlight stream --out` writes of the server's Result for it.
+    start_wall: time.time() when the frame's processing began, seconds."""
+    return result_record(result_message(
+        result, seq=index, counters=(index + 1, index + 1, 0), receive_time_wall=start_wall,
+        finish_time_wall=time.time(), exports=exports))
