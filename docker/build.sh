@@ -37,6 +37,13 @@ fi
 
 t0=$(date +%s)
 docker/build-base.sh
+if ! err=$(podman run --rm --entrypoint /bin/true localhost/arlight-base:bookworm 2>&1); then
+  echo "docker/build.sh: podman cannot run a container here: $err" >&2
+  echo "  (a VM or container without CAP_SYS_RESOURCE or with hybrid cgroups: in" \
+       "/etc/containers/containers.conf set [engine] runtime = \"runc\" (apt-get install runc)" \
+       "and [containers] default_ulimits = [\"nofile=16384:16384\", \"nproc=32768:32768\"])" >&2
+  exit 1
+fi
 
 # the build context: the package's sources only (no .venv, .git, tests, benchmarks, data)
 ctx=$(mktemp -d /var/tmp/arlight-context.XXXXXX)
