@@ -57,7 +57,8 @@ trap cleanup EXIT
 cleanup
 t_run=$(date +%s)
 podman network create "$P" >/dev/null
-podman volume create "$P-keys" >/dev/null
+podman volume create "$P-keys" >/dev/null  # one volume for all here, for brevity; compose.yaml
+# keeps the server's secret key out of the clients' volume
 podman volume create "$P-results" >/dev/null
 podman run --rm --user 0 -v "$P-keys:/keys" --entrypoint /bin/sh "$CLIENT" -ec '
   arlight keys generate /keys 2>/dev/null
