@@ -102,7 +102,10 @@ if ! command -v podman-compose >/dev/null; then
   echo "smoke-test: skipped docker/compose.yaml: no podman-compose (apt-get install podman-compose)"
 else
   C=(podman-compose -p "$P" -f docker/compose.yaml)
-  compose_down() { "${C[@]}" down -v >/dev/null 2>&1 || true; }
+  compose_down() {  # podman-compose 1.0.3's down leaves the project's network behind
+    "${C[@]}" down -v >/dev/null 2>&1 || true
+    podman network rm -f "${P}_default" >/dev/null 2>&1 || true
+  }
   trap 'compose_down; cleanup' EXIT
   compose_down
   t_compose=$(date +%s)
