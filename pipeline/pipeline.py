@@ -40,6 +40,7 @@ from arlight.pipeline.radiance_transfer import (
     random_pixels,
     transfer_at_pixels,
     transfer_samples,
+    with_exact_unoccluded,
 )
 from arlight.pipeline.rendering import (
     DifferentialRenderer,
@@ -225,6 +226,11 @@ class Pipeline:
         try:
             with _stage(timings, "RadTransfer"):
                 transfer = self._transfer(geometry, color_linear, pose, aux_buffers)
+                p = self.config.transfer
+                if p.rt_exact_unoccluded and not p.rt_horizon:  # (rt_horizon: below the
+                    # horizon is the ground's, the bounce term's, not the light's)
+                    transfer = with_exact_unoccluded(transfer, geometry.normals, pose,
+                                                     self.pattern)
         except BaseException:
             concurrent.futures.wait([segments])  # nothing of this frame outlives it
             raise

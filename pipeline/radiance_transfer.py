@@ -21,6 +21,7 @@ loop; a plain NumPy version (`transfer_reference`) is kept as the test oracle.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -485,6 +486,28 @@ class TransferSamples:
     pixel_u: np.ndarray
     transfer: np.ndarray
     bounce: np.ndarray | None
+
+
+def with_exact_unoccluded(samples: TransferSamples, normals_cam: np.ndarray,
+                          world_from_cam: np.ndarray, pattern: SamplingPattern,
+                          ) -> TransferSamples:
+    """The samples' transfer plus `unoccluded_quadrature_error` of their own normals (the
+    control variate, TransferParams.rt_exact_unoccluded): the unoccluded part of each
+    vector becomes the exact clamped-cosine transfer; blocked directions keep their SSDO
+    estimate. normals_cam: (H, W, 3) camera frame (the samples' pixels index it); the
+    transfer and the pattern's directions are rotated into the world frame here."""
+    if not len(samples.pixel_v):
+        return samples
+    rotation = np.asarray(world_from_cam, np.float64)[:3, :3]
+    n = np.asarray(normals_cam[samples.pixel_v, samples.pixel_u], np.float64) @ rotation.T
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    ok = norm[:, 0] > 1e-6
+    bands = sh.bands_of(samples.transfer.shape[1])
+    correction = np.zeros(samples.transfer.shape, np.float64)
+    correction[ok] = unoccluded_quadrature_error(n[ok] / norm[ok],
+                                                 pattern.directions @ rotation.T, bands)
+    transfer = (samples.transfer + correction).astype(samples.transfer.dtype)
+    return dataclasses.replace(samples, transfer=transfer)
 
 
 def random_pixels(mask: np.ndarray, max_pixels: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

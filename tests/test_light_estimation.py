@@ -18,7 +18,7 @@ from arlight.pipeline.config import EstimationParams, TemporalParams
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
 LIGHT_DIR = (0.3, -0.8, 0.5)
-# The default regularisation (1e-2) damps bands 2-3 hard: on real frames that is what holds
+# The default regularisation (4e-3) damps bands 2-3 hard: on real frames that is what holds
 # the direction (see README, accuracy), on the ideal point lights of these tests it costs a
 # few per cent of band-1 magnitude. Tests of exact recovery use a weak one.
 WEAK = EstimationParams(regularization=1e-3)

@@ -226,6 +226,59 @@ class TestVisibilityFree:
                                                         abs=0.02 * np.linalg.norm(light))
 
 
+class TestExactUnoccluded:
+    """rt_exact_unoccluded: the control variate makes the unoccluded part of the transfer
+    exact at any direction count, and leaves the occluded part's deficit in place."""
+
+    def _plane(self, visibility):
+        camera = _small_camera()
+        points = camera.unproject(np.full((9, 12), 1.0, np.float32))
+        normals = np.zeros_like(points)
+        normals[..., 2] = -1.0
+        world_from_cam = np.eye(4)
+        world_from_cam[:3, :3] = _random_rotation(np.random.default_rng(5))
+        cfg = Config().replace(rt_directions=64, visibility=visibility)
+        pattern = rt.make_sampling_pattern(cfg.transfer, cfg.seed)
+        res = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
+                                  cfg.transfer)
+        samples = rt.transfer_samples(res, None, 1000, 0)
+        n_world = world_from_cam[:3, :3] @ np.array([0.0, 0.0, -1.0])
+        return samples, normals, world_from_cam, pattern, n_world
+
+    def test_unoccluded_plane_is_exact_at_64_directions(self):
+        samples, normals, pose, pattern, n_world = self._plane(visibility=False)
+        expected = LAMBERT_PER_COEFF * sh.sh_basis(n_world, 4)
+        raw_error = np.abs(samples.transfer - expected).max()
+        assert raw_error > 0.01  # 64 directions alone miss (what the correction is for)
+        fixed = rt.with_exact_unoccluded(samples, normals, pose, pattern)
+        np.testing.assert_allclose(fixed.transfer, np.broadcast_to(expected,
+                                                                   fixed.transfer.shape),
+                                   atol=1e-5)
+        assert fixed.transfer.dtype == samples.transfer.dtype
+
+    def test_blocked_light_stays_blocked(self):
+        camera, points, normals, pose, _, on_wall = _floor_and_wall()
+        cfg = Config().replace(rt_directions=64)
+        pattern = rt.make_sampling_pattern(cfg.transfer, cfg.seed)
+        res = rt.compute_transfer(points, normals, camera, pose, pattern, None, cfg.transfer)
+        samples = rt.transfer_samples(res, None, 10**6, 0)
+        fixed = rt.with_exact_unoccluded(samples, normals, pose, pattern)
+        # band 0 is the visible fraction of the clamped cosine: the correction moves it by
+        # the quadrature error only, never restores what the wall blocks for the floor
+        floor_near_wall = ~on_wall[samples.pixel_v, samples.pixel_u]
+        exact_open = LAMBERT_PER_COEFF[0] * sh.sh_basis(np.array([0.0, 0.0, 1.0]), 4)[0]
+        blocked = samples.transfer[floor_near_wall, 0] < 0.8 * exact_open
+        assert blocked.any()
+        assert (fixed.transfer[floor_near_wall, 0][blocked] < 0.9 * exact_open).all()
+
+    def test_pixels_without_normals_are_untouched(self):
+        samples, normals, pose, pattern, _ = self._plane(visibility=False)
+        normals = normals.copy()
+        normals[samples.pixel_v[0], samples.pixel_u[0]] = 0.0
+        fixed = rt.with_exact_unoccluded(samples, normals, pose, pattern)
+        np.testing.assert_array_equal(fixed.transfer[0], samples.transfer[0])
+
+
 def _floor_and_wall(w=64, h=48, wall_y=0.5, wall_height=0.5):
     """Analytic depth of a floor z_w = 0 with a wall y_w = wall_y (0 <= z_w <= wall_height)
     facing a camera at (0, -1.6, 1.2) that looks down at (0, 0.2, 0).
