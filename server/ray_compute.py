@@ -77,6 +77,8 @@ def connect(address: str | None):
     if ray.is_initialized():
         return ray, False
     local = address in (None, "local")
+    if not local and address != "auto":
+        _check_reachable(address)
     try:
         if local:
             ray.init(include_dashboard=False, log_to_driver=False)
@@ -88,6 +90,23 @@ def connect(address: str | None):
         raise BatchUsageError(f"{where}: cannot start or connect ({type(exc).__name__}: "
                               f"{first})") from None
     return ray, True
+
+
+CONNECT_CHECK_S = 5.0
+
+
+def _check_reachable(address: str) -> None:
+    """BatchUsageError unless HOST:PORT (or ray://HOST:PORT) accepts a TCP connection within
+    CONNECT_CHECK_S: ray.init itself retries an unreachable address for minutes."""
+    import socket
+
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), CONNECT_CHECK_S).close()
+    except (OSError, ValueError) as exc:
+        raise BatchUsageError(f"--ray {address}: no Ray cluster answers there ({exc}); start "
+                              "one (`ray start --head`) or give its address (HEAD:6379, "
+                              "ray://HEAD:10001 or auto)") from None
 
 
 class RayCompute:
