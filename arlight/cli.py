@@ -335,11 +335,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
         keys_dir=args.keys, insecure=args.insecure, admin_token=admin_token,
         **_budget_options(args))
     compute, started_ray = None, False
-    if args.ray is not None:  # each session's pipeline in a Ray actor (server/ray_compute.py)
+    if args.ray is not None:  # each session's pipeline in a Ray actor (arlight/ray_serve.py)
         if not _RAY_ADDRESS.fullmatch(args.ray):
             raise _BadInput(f"--ray expects local, auto or a Ray address such as "
                             f"ray://HOST:10001 or HOST:6379, got {args.ray!r}")
-        from arlight.server.ray_compute import RayCompute, connect
+        from arlight.ray_serve import RayCompute, connect
+
+        logging.getLogger("arlight.ray_serve").setLevel(logging.INFO)
 
         ray, started_ray = connect(args.ray)  # BatchUsageError (exit 2): no Ray, no cluster
         compute = RayCompute(ray)

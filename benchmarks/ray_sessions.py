@@ -5,7 +5,7 @@
 
 For each Ray size (`ray.init(num_cpus=C)`: the fast preset's actors ask 1 CPU each, so C
 actors run at once; a session beyond that waits for a free one) and each number of
-sessions N, an in-process server (server/server.py with server/ray_compute.py's RayCompute,
+sessions N, an in-process server (server/server.py with arlight/ray_serve.py's RayCompute,
 the step `arlight serve --ray` uses) serves N capture clients (client/capture.py, lossless,
 rate max, credits 4) streaming the built-in synthetic scene with its poses. Reported: Results
 delivered per second over the run (first frame sent to last Result, every actor's start
@@ -117,7 +117,7 @@ def main() -> int:
     size = tuple(int(x) for x in args.size.split("x"))
     import ray
 
-    from arlight.server.ray_compute import RayCompute
+    from arlight.ray_serve import RayCompute
 
     report = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
               "size": args.size, "preset": args.preset, "frames": args.frames, "runs": []}

@@ -38,7 +38,7 @@ def local_ray():
 
 @pytest.fixture
 def ray_server(local_ray):
-    from arlight.server.ray_compute import RayCompute
+    from arlight.ray_serve import RayCompute
 
     compute = RayCompute(ray)
     server = Server(server_options(), process=compute).start()
