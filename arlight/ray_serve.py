@@ -80,8 +80,8 @@ def connect(address: str | None):
     if not local and address != "auto":
         _check_reachable(address)
     try:
-        if local:
-            ray.init(include_dashboard=False, log_to_driver=False)
+        if local:  # "local": always a new Ray of this machine, never a `ray start` one
+            ray.init(address="local", include_dashboard=False, log_to_driver=False)
         else:
             ray.init(address=address, log_to_driver=False)
     except Exception as exc:  # noqa: BLE001 - Ray raises many types for "cannot connect"

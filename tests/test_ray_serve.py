@@ -11,8 +11,13 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
+import signal
+import socket
+import subprocess
 import sys
 import threading
+import time
 
 import pytest
 
@@ -141,3 +146,44 @@ def test_bad_address_exits_2(address, says, capsys, monkeypatch):
     assert main(["serve", "--ray", address]) == EXIT_BAD_INPUT
     err = capsys.readouterr().err
     assert says in err and "Traceback" not in err
+
+
+def test_arlight_serve_ray_local_end_to_end(tmp_path):
+    """The command itself: `arlight serve --ray local` starts its own Ray, serves a lossless
+    stream, stops on SIGTERM (actors killed, Ray shut down) with exit code 0."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    log_path = tmp_path / "serve.log"
+    env = {**os.environ, "RAY_ADDRESS": ""}
+    with open(log_path, "w") as log_file:
+        proc = subprocess.Popen([sys.executable, "-m", "arlight.cli", "serve", "--ray", "local",
+                                 "--bind", f"tcp://127.0.0.1:{port}", "--heartbeat", "0.5"],
+                                stdout=log_file, stderr=subprocess.STDOUT, env=env)
+    try:
+        deadline = time.monotonic() + 60
+        while "listening on" not in log_path.read_text():
+            assert proc.poll() is None, log_path.read_text()
+            assert time.monotonic() < deadline, "serve --ray did not start"
+            time.sleep(0.2)
+        source = open_source("synthetic", use_poses=True, max_frames=4, synthetic_size=SIZE)
+        options = StreamOptions(server=f"tcp://127.0.0.1:{port}", session="cli",
+                                mode="lossless", rate="max", preset="fast",
+                                overrides=dict(SMALL))
+        seqs = []
+        thread = CaptureClientThread(CaptureClient(
+            source, options, on_result=lambda r, _w: seqs.append(r.seq)))
+        thread.start()
+        summary = thread.join(120)
+        assert summary.results == 4 and not summary.errors
+        received(seqs, 4)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            code = proc.wait(60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise
+    text = log_path.read_text()
+    assert code == 0, text
+    assert "pipeline in Ray actor" in text and "Traceback" not in text
