@@ -313,9 +313,6 @@ def _int_at_least(text: str, low: int) -> int:
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    import signal
-    import threading
-
     from arlight.protocols import DEFAULT_MAX_MESSAGE_BYTES
     from arlight.server.server import Server, ServerOptions
 
@@ -337,7 +334,31 @@ def cmd_serve(args: argparse.Namespace) -> int:
         else DEFAULT_MAX_MESSAGE_BYTES, shutdown_grace_s=args.shutdown_grace,
         keys_dir=args.keys, insecure=args.insecure, admin_token=admin_token,
         **_budget_options(args))
-    server = Server(options).start()  # InsecureBindError, SecurityError: exit 2
+    compute, started_ray = None, False
+    if args.ray is not None:  # each session's pipeline in a Ray actor (arlight/ray_serve.py)
+        if not _RAY_ADDRESS.fullmatch(args.ray):
+            raise _BadInput(f"--ray expects local, auto or a Ray address such as "
+                            f"ray://HOST:10001 or HOST:6379, got {args.ray!r}")
+        from arlight.ray_serve import RayCompute, connect
+
+        logging.getLogger("arlight.ray_serve").setLevel(logging.INFO)
+
+        ray, started_ray = connect(args.ray)  # BatchUsageError (exit 2): no Ray, no cluster
+        compute = RayCompute(ray)
+    try:
+        return _serve(args, Server(options, process=compute), admin_token)
+    finally:
+        if compute is not None:
+            compute.close()
+            if started_ray:
+                ray.shutdown()
+
+
+def _serve(args: argparse.Namespace, server, admin_token: str | None) -> int:
+    import signal
+    import threading
+
+    server.start()  # InsecureBindError, SecurityError: exit 2
     stop = threading.Event()
     signals_seen = []
 
@@ -1116,6 +1137,13 @@ def _add_serve_parser(sub) -> None:
                                          f"{defaults.shutdown_grace_s:g}); the rest are "
                                          "reported to their clients")
     _add_budget_options(serve, defaults)
+    serve.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                       help="run each session's pipeline in a Ray actor (pip install "
+                            "'arlight[ray]'): --ray or --ray local starts a local Ray, "
+                            "--ray auto joins this machine's cluster, --ray ray://HOST:10001 "
+                            "connects to one; the socket and I/O stay in this process. A lost "
+                            "actor's frames are reported retryable and go to a new actor "
+                            "(a fresh volume)")
     serve.set_defaults(func=cmd_serve)
 
 

@@ -452,6 +452,9 @@ class CaptureClient:
                 return "rehello"
             if error.field == ErrorField.CREDITS and error.seq in self._unacked:
                 self._after_result.append(error.seq)  # the server's queue was full: retry
+            if error.field == ErrorField.PIPELINE_LOST and error.seq in self._unacked:
+                # the session's pipeline was lost (`serve --ray`): send it again now, in order
+                self._resend = collections.deque(sorted({*self._resend, error.seq}))
             return None  # shutdown: the Bye follows, then a reconnect re-sends the frame
         if error.seq is not None:
             if self.options.mode == "lossless" and error.seq not in self._unacked:

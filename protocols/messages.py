@@ -463,6 +463,9 @@ class ErrorField(_WireEnum):
     SHUTDOWN = "shutdown"  # retryable: the server is shutting down
     CREDITS = "credits"  # retryable: a lossless frame refused for the credit window
     DUPLICATE = "duplicate"  # final: a resent frame whose answer is no longer kept
+    # retryable: the session's pipeline (a Ray actor, `arlight serve --ray`) was lost; the
+    # frame and the session's queued frames were not processed: send them again now
+    PIPELINE_LOST = "pipeline_lost"
 
 
 @dataclass(frozen=True)

@@ -200,6 +200,7 @@ class Server:
     def __init__(self, options: ServerOptions | None = None, process: ProcessStep | None = None):
         self.options = options or ServerOptions()
         self._process = process
+        self._remote = bool(getattr(process, "runs_elsewhere", False))  # `serve --ray`
         self.sessions: dict[str, Session] = {}
         self.peers: dict[bytes, Peer] = {}
         self.displays: dict[str, set[bytes]] = collections.defaultdict(set)
@@ -262,7 +263,10 @@ class Server:
         self._router = router
         self.endpoint = router.getsockopt_string(zmq.LAST_ENDPOINT)
         self.port = int(self.endpoint.rsplit(":", 1)[1])
-        self._executor = ThreadPoolExecutor(opts.workers, thread_name_prefix="arlight-worker")
+        # a remote step (RayCompute) only waits in its threads: one per session, so that
+        # sessions on different actors never queue behind each other here
+        threads = max(opts.workers, opts.max_sessions) if self._remote else opts.workers
+        self._executor = ThreadPoolExecutor(threads, thread_name_prefix="arlight-worker")
         self._thread = threading.Thread(target=self._run, name="arlight-server-io", daemon=True)
         self._thread.start()
         log.info("arlight server listening on %s (%d workers, credits %d, heartbeat %.1f s, "
@@ -643,7 +647,8 @@ class Server:
             self._busy += 1
         outcome = None
         try:
-            if self.options.workers > 1 and not concurrent_pipelines_safe():
+            if self.options.workers > 1 and not self._remote and \
+                    not concurrent_pipelines_safe():
                 with self._compute_lock:
                     outcome = session.run(job)
             else:
@@ -690,11 +695,28 @@ class Server:
             self.stats.error_codes[outcome.error.code] += 1
         if self.sessions.get(session.name) is not session:
             return  # closed or replaced meanwhile
+        if not outcome.ok and outcome.error.field == ErrorField.PIPELINE_LOST:
+            self._pipeline_lost(session, outcome)
         if self._draining and not session.lossless:
             session.drop_pending()
         self._schedule(session)
         if session.ended and session.idle:
             self._close_session(session, "end of stream")
+
+    def _pipeline_lost(self, session: Session, outcome: JobOutcome) -> None:
+        """The session's pipeline (a Ray actor) was lost with outcome's frame: its queued
+        frames are un-accepted and reported retryable too; the client sends them all again,
+        in seq order, to the session's next pipeline."""
+        queued = session.pipeline_lost(outcome.job)
+        log.warning("session %s: pipeline lost at frame %d; it and %d queued frame(s) reported "
+                    "retryable (pipeline_lost), to be sent again to a new pipeline",
+                    session.name, outcome.job.seq, len(queued))
+        for job in queued:
+            error = Error(code="bad_state", field=ErrorField.PIPELINE_LOST, seq=job.seq,
+                          retryable=True, message="the session's pipeline was lost before this "
+                          "frame was processed: send it again")
+            if session.capture_peer is not None:
+                self._send_error(session.capture_peer, error)
 
     # ------------------------------------------------------------------ sending
 
@@ -772,6 +794,12 @@ class Server:
         if self.sessions.get(session.name) is session:
             del self.sessions[session.name]
         self.stats.sessions_closed += 1
+        release = getattr(self._process, "release", None)  # `serve --ray`: the session's actor
+        if release is not None:
+            try:
+                release(session)
+            except Exception:  # noqa: BLE001 - the session is gone either way
+                log.exception("session %s: failed to release its pipeline", session.name)
         c = session.counters()
         log.info("session %s: closed (%s): %d received, %d processed, %d dropped, %d failed",
                  session.name, reason, c["frames_received"], c["frames_processed"],

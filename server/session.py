@@ -90,6 +90,12 @@ class OverBudget(Exception):
         self.field = field
 
 
+class PipelineLost(Exception):
+    """The session's pipeline was lost with the frame in it (`arlight serve --ray`: its Ray
+    actor died). The frame was not processed: reported retryable (`pipeline_lost`), the
+    session's queued frames are un-accepted, and the next frame gets a new pipeline."""
+
+
 class SessionSetupError(ValueError):
     """A Hello whose config cannot make a session; `field` names the offending field."""
 
@@ -452,6 +458,20 @@ class Session:
             self.recent.append((outcome.finish_time_mono,
                                 outcome.finish_time_mono - outcome.job.receive_time_mono))
 
+    def pipeline_lost(self, job: Job) -> list[Job]:
+        """After `job` failed with PipelineLost (its outcome already finished): un-accept it
+        and the queued frames, returned (the caller reports them retryable). Lossless: the
+        highest accepted seq goes back below job's, and frames above it are refused
+        (`credits`) until it comes again, so the resent frames keep their order."""
+        jobs = list(self.pending)
+        self.pending.clear()
+        with self._lock:
+            self.frames_received -= 1 + len(jobs)
+        if self.lossless:
+            self.highest_seq = min(self.highest_seq, job.seq - 1)
+            self.refused_from = job.seq
+        return jobs
+
     def drop_pending(self) -> list[Job]:
         """Remove and return the queued frames (shutdown); live frames count as dropped."""
         jobs = list(self.pending)
@@ -595,18 +615,26 @@ class Session:
     def _check_volume_budget(self) -> None:
         """The volume grows with the surface seen: past the session's memory budget it is
         dropped (the next frame starts a new one) and this frame fails (over_budget)."""
-        if self._pipeline is None or self.budget is None:
+        if self._pipeline is None:
             return
-        blocks = self._pipeline.volume_blocks
+        over = self.volume_budget_error(self._pipeline.volume_blocks)
+        if over is not None:
+            self._pipeline = None
+            raise over
+
+    def volume_budget_error(self, blocks: int) -> OverBudget | None:
+        """The over_budget error of a volume of `blocks` blocks, None within the budget."""
+        if self.budget is None:
+            return None
         used = blocks * self.cost.bytes_per_block
         if used > self.cost.volume_limit_bytes:
-            self._pipeline = None
-            raise OverBudget("frame",
+            return OverBudget("frame",
                 f"the session's volume grew to {blocks} blocks ({used / 2**20:.0f} "
                 f"MiB), over its share of the per-session memory budget "
                 f"({self.cost.volume_limit_bytes / 2**20:.0f} MiB of "
                 f"{self.budget.session_memory_bytes / 2**20:.0f} MiB, `arlight serve "
                 "--session-memory-mb`); the volume is reset and the session goes on")
+        return None
 
     def crashed(self, job: Job, exc: BaseException | None) -> JobOutcome:
         """The outcome of a job whose worker failed outside run()'s own handling."""
@@ -644,6 +672,10 @@ def frame_error(exc: Exception, seq: int | None) -> Error:
             "fewer rt_directions or robust_iterations)"))
     if isinstance(exc, OverBudget):
         return Error(code="over_budget", seq=seq, field=exc.field, message=str(exc))
+    if isinstance(exc, PipelineLost):
+        return Error(code="bad_state", field=ErrorField.PIPELINE_LOST, seq=seq, retryable=True,
+                     message=f"{exc}; this frame and the session's queued frames were not "
+                             "processed: send them again (a new pipeline, a fresh volume)")
     log.error("frame %s: unexpected failure", seq, exc_info=exc)
     return Error(code="internal", message=f"the server failed to process this frame "
                                           f"({type(exc).__name__}: {exc})"[:4096], seq=seq)

@@ -215,6 +215,9 @@ def vectors() -> dict[str, object]:
         "welcome_token": Welcome(PROTOCOL_VERSION, "golden-1", 8, 1.0, "arlight", GOLDEN_TOKEN),
         "error_unauthorized": Error("unauthorized", "session golden-1 needs its token",
                                     "hello.config.token"),
+        # `arlight serve --ray` (issue 20): a lost pipeline, retryable
+        "error_pipeline_lost": Error("bad_state", "the session's pipeline was lost: send it "
+                                     "again", ErrorField.PIPELINE_LOST, 14, retryable=True),
     }
 
 
