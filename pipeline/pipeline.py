@@ -37,6 +37,7 @@ from arlight.pipeline.radiance_transfer import (
     TransferSamples,
     compute_transfer,
     make_sampling_pattern,
+    quadrature_error_table,
     random_pixels,
     transfer_at_pixels,
     transfer_samples,
@@ -171,6 +172,7 @@ class Pipeline:
             self._renderer = DifferentialRenderer(self.scene, camera, config)
         self.last_render: tuple[RenderInputs, RenderOutput] | None = None
         self.pattern = make_sampling_pattern(config.transfer, config.seed)
+        self._quadrature_error_table: np.ndarray | None = None  # rt_exact_unoccluded
         self.filter = TemporalFilter(config.temporal)
         self.frames_processed = 0
         self._volume = None
@@ -184,6 +186,13 @@ class Pipeline:
         # rt_method raycast: the session's ray-casting scene, rebuilt as the volume grows
         self._raycaster = (ObjectSpaceTransfer(config.aux.aux_update_interval)
                            if config.transfer.rt_method is RtMethod.RAYCAST else None)
+
+    def _quadrature_table(self) -> np.ndarray:
+        """The session's `quadrature_error_table` (its pattern is fixed: made once)."""
+        if self._quadrature_error_table is None:
+            self._quadrature_error_table = quadrature_error_table(
+                self.pattern, self.config.transfer.sh_bands)
+        return self._quadrature_error_table
 
     @property
     def volume_blocks(self) -> int:
@@ -230,7 +239,7 @@ class Pipeline:
                 if p.rt_exact_unoccluded and not p.rt_horizon:  # (rt_horizon: below the
                     # horizon is the ground's, the bounce term's, not the light's)
                     transfer = with_exact_unoccluded(transfer, geometry.normals, pose,
-                                                     self.pattern)
+                                                     self._quadrature_table())
         except BaseException:
             concurrent.futures.wait([segments])  # nothing of this frame outlives it
             raise
