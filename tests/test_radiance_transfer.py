@@ -197,16 +197,23 @@ class TestKernelAgainstReference:
         assert np.all(dc_drop >= -1e-6) and dc_drop.mean() > 0.05
 
 
+def _plane_facing_camera(seed):
+    """A 12x9 plane at 1 m facing the camera, seen from a random camera pose: camera,
+    points, normals (camera frame), world_from_cam."""
+    camera = _small_camera()
+    points = camera.unproject(np.full((9, 12), 1.0, np.float32))
+    normals = np.zeros_like(points)
+    normals[..., 2] = -1.0
+    world_from_cam = np.eye(4)
+    world_from_cam[:3, :3] = _random_rotation(np.random.default_rng(seed))
+    return camera, points, normals, world_from_cam
+
+
 class TestVisibilityFree:
     """visibility=False: T(n) is the clamped-cosine transfer A_l Y_lm(n) (by quadrature)."""
 
     def test_plane_facing_camera_is_lambert_convolution(self):
-        camera = _small_camera()
-        points = camera.unproject(np.full((9, 12), 1.0, np.float32))
-        normals = np.zeros_like(points)
-        normals[..., 2] = -1.0
-        world_from_cam = np.eye(4)
-        world_from_cam[:3, :3] = _random_rotation(np.random.default_rng(3))
+        camera, points, normals, world_from_cam = _plane_facing_camera(3)
         cfg = Config().replace(rt_directions=512, visibility=False)
         tp = cfg.transfer
         res = rt.compute_transfer(points, normals, camera, world_from_cam,
@@ -231,12 +238,7 @@ class TestExactUnoccluded:
     exact at any direction count, and leaves the occluded part's deficit in place."""
 
     def _plane(self, visibility):
-        camera = _small_camera()
-        points = camera.unproject(np.full((9, 12), 1.0, np.float32))
-        normals = np.zeros_like(points)
-        normals[..., 2] = -1.0
-        world_from_cam = np.eye(4)
-        world_from_cam[:3, :3] = _random_rotation(np.random.default_rng(5))
+        camera, points, normals, world_from_cam = _plane_facing_camera(5)
         cfg = Config().replace(rt_directions=64, visibility=visibility)
         pattern = rt.make_sampling_pattern(cfg.transfer, cfg.seed)
         res = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
