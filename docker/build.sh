@@ -51,12 +51,16 @@ trap 'rm -rf "$ctx"' EXIT
 tar --exclude=__pycache__ --exclude='*.pyc' -c pyproject.toml README.md arlight server client \
     pipeline protocols sources | tar -x -C "$ctx"
 cp docker/Containerfile "$ctx/Containerfile"
+# the digest of what goes into the image: the Containerfile rebuilds from the wheel on when
+# it changes (podman's cache alone kept stale code)
+digest=$(cd "$ctx" && find . -type f ! -name Containerfile -print0 | sort -z \
+  | xargs -0 sha256sum | sha256sum | cut -c1-16)
 
 for t in "${targets[@]}"; do
   s=$(date +%s)
   echo "docker/build.sh: building localhost/arlight-$t" >&2
   nice -n 10 podman build --layers --target "$t" --secret "id=ca,src=$CA" \
-    --build-arg "CAMERAS=${CAMERAS:-}" -t "localhost/arlight-$t:latest" -f "$ctx/Containerfile" \
+    --build-arg "CAMERAS=${CAMERAS:-}" --build-arg "SOURCE_DIGEST=$digest" -t "localhost/arlight-$t:latest" -f "$ctx/Containerfile" \
     "$ctx"
   echo "docker/build.sh: arlight-$t built in $(( $(date +%s) - s )) s" >&2
 done
