@@ -172,7 +172,6 @@ class Pipeline:
             self._renderer = DifferentialRenderer(self.scene, camera, config)
         self.last_render: tuple[RenderInputs, RenderOutput] | None = None
         self.pattern = make_sampling_pattern(config.transfer, config.seed)
-        self._quadrature_error_table: np.ndarray | None = None  # rt_exact_unoccluded
         self.filter = TemporalFilter(config.temporal)
         self.frames_processed = 0
         self._volume = None
@@ -187,12 +186,11 @@ class Pipeline:
         self._raycaster = (ObjectSpaceTransfer(config.aux.aux_update_interval)
                            if config.transfer.rt_method is RtMethod.RAYCAST else None)
 
+    @functools.cached_property
     def _quadrature_table(self) -> np.ndarray:
-        """The session's `quadrature_error_table` (its pattern is fixed: made once)."""
-        if self._quadrature_error_table is None:
-            self._quadrature_error_table = quadrature_error_table(
-                self.pattern, self.config.transfer.sh_bands)
-        return self._quadrature_error_table
+        """The session's `quadrature_error_table` (rt_exact_unoccluded; its pattern is fixed
+        in the camera frame: made on first use, once)."""
+        return quadrature_error_table(self.pattern, self.config.transfer.sh_bands)
 
     @property
     def volume_blocks(self) -> int:
@@ -235,11 +233,6 @@ class Pipeline:
         try:
             with _stage(timings, "RadTransfer"):
                 transfer = self._transfer(geometry, color_linear, pose, aux_buffers)
-                p = self.config.transfer
-                if p.rt_exact_unoccluded and not p.rt_horizon:  # (rt_horizon: below the
-                    # horizon is the ground's, the bounce term's, not the light's)
-                    transfer = with_exact_unoccluded(transfer, geometry.normals, pose,
-                                                     self._quadrature_table())
         except BaseException:
             concurrent.futures.wait([segments])  # nothing of this frame outlives it
             raise
@@ -369,7 +362,18 @@ class Pipeline:
 
     def _transfer(self, geometry: _Geometry, color_linear: np.ndarray, pose: np.ndarray,
                   aux_buffers: list) -> TransferSamples:
-        """RadTransfer (eq. 6-9, or rays against the surface with rt_method "raycast") where
+        """RadTransfer: `_sampled_transfer`, its unoccluded part made exact
+        (rt_exact_unoccluded; not with rt_horizon, where below the horizon is the ground's,
+        the bounce term's, not the light's)."""
+        samples = self._sampled_transfer(geometry, color_linear, pose, aux_buffers)
+        p = self.config.transfer
+        if not p.rt_exact_unoccluded or p.rt_horizon:
+            return samples
+        return with_exact_unoccluded(samples, geometry.normals, pose, self._quadrature_table)
+
+    def _sampled_transfer(self, geometry: _Geometry, color_linear: np.ndarray,
+                          pose: np.ndarray, aux_buffers: list) -> TransferSamples:
+        """The transfer (eq. 6-9, or rays against the surface with rt_method "raycast") where
         the light estimate needs it: at most CANDIDATES_PER_SAMPLE x light_max_samples pixels
         with geometry, chosen at random (seeded), the rest of the image being work nothing
         reads. At every pixel (rt_subsample 1) the transfer is computed at those pixels
