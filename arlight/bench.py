@@ -27,6 +27,9 @@ from arlight.pipeline.pipeline import STAGES, Pipeline, smooth_depth_for_normals
 from arlight.sources.synthetic import parse_size
 
 BUILT_IN = "synthetic"
+# the built-in scene seen by a camera held still, the sun moving half-way through: what
+# reusing a still camera's work (ReuseParams) saves, and that the light is still followed
+BUILT_IN_HELD = "synthetic-held"
 # configurations that are not presets: a preset and what they change in it
 COMPARATORS = {
     "baseline": ("full", {"visibility": False}),  # K = 1: no visibility at all
@@ -72,6 +75,12 @@ class ConfigResult:
     stage_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
     total_ms: list[float] = field(default_factory=list)
     per_sequence: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+    # what the scene required of the model: per frame the SH bands solved for and which
+    # stage outputs a still camera reused; per sequence the volume's blocks at its end
+    bands_estimated: list[int] = field(default_factory=list)
+    reused: dict[str, list[bool]] = field(default_factory=lambda: {
+        "Surface": [], "RadTransfer": []})
+    volume_blocks: dict[str, int] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------- inputs
@@ -121,16 +130,20 @@ def open_data(paths: list[str], frames: int | None, warmup: int,
 
     out = []
     for p in paths:
-        if p == BUILT_IN:
-            scene = make_sequence(num_frames=warmup + (frames or 8), width=size[0],
-                                  height=size[1])
-            out.append(BenchSequence(BUILT_IN, scene.camera, scene.frames,
+        if p in (BUILT_IN, BUILT_IN_HELD):
+            n = warmup + (frames or 8)
+            held = p == BUILT_IN_HELD
+            scene = make_sequence(num_frames=n, width=size[0], height=size[1], held=held,
+                                  light_change_frame=warmup + (n - warmup) // 2 if held
+                                  else None)
+            out.append(BenchSequence(p, scene.camera, scene.frames,
                                      evaluation.scene_truth(scene)))
             continue
         folder = Path(p)
         if not folder.is_dir():
-            raise BenchError(f"DATA {p!r}: no such folder (give 'synthetic', a sequence "
-                             "folder, or a folder of sequence folders)")
+            raise BenchError(f"DATA {p!r}: no such folder (give 'synthetic', "
+                             f"'{BUILT_IN_HELD}', a sequence folder, or a folder of sequence "
+                             "folders)")
         children = sorted(c for c in folder.iterdir() if evaluation.has_ground_truth(c))
         for seq_folder in children if not evaluation.has_ground_truth(folder) else [folder]:
             seq = open_sequence(seq_folder, use_poses=True, max_frames=frames)
@@ -172,6 +185,9 @@ def run_config(bench: BenchConfig, sequences: list[BenchSequence], warmup: int,
                                           "confidence": []}
         for i, frame in enumerate(seq.frames):
             out = pipeline.process(frame)
+            result.bands_estimated.append(int(out.confidence.bands_estimated))
+            for stage, flags in result.reused.items():
+                flags.append(bool(out.diagnostics.get("reused", {}).get(stage, False)))
             if i >= warmup or len(seq.frames) <= warmup:
                 for stage in STAGES:
                     result.stage_ms[stage].append(out.timings_ms.get(stage, 0.0))
@@ -181,6 +197,7 @@ def run_config(bench: BenchConfig, sequences: list[BenchSequence], warmup: int,
             if on_frame is not None:
                 on_frame()
         result.per_sequence[seq.name] = scores
+        result.volume_blocks[seq.name] = pipeline.volume_blocks
     return result
 
 
@@ -240,7 +257,7 @@ def run_benchmark(data: list[str], presets: list[str], sweeps: list[tuple[str, l
     finally:
         bar.close()
     return summarise(results, data=[s.name for s in base_data], frames=frames, warmup=warmup,
-                     sweeps=[k for k, _ in sweeps])
+                     sweeps=[k for k, _ in sweeps], configs_used=[b.config for b in configs])
 
 
 def _progress_bar(total: int, enabled: bool):

@@ -1475,7 +1475,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "whole sphere and the upper hemisphere, the SH error and the diffuse-shading "
                     "error. Poses come from the data (tracking skipped).")
     bench.add_argument("data", nargs="*", default=["synthetic"], metavar="DATA",
-                       help="'synthetic' (the built-in scene, default), a sequence folder with "
+                       help="'synthetic' (the built-in scene, default), 'synthetic-held' (the "
+                            "same scene seen by a camera held still, the sun moving half-way: "
+                            "what a still camera's reuse saves), a sequence folder with "
                             "lighting_gt.json, or a folder of them (../shared/data/synthetic)")
     bench.add_argument("--presets", nargs="+", default=["full", "fast"],
                        choices=("full", "fast", "mobile", "baseline", "raycast"),

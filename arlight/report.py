@@ -91,11 +91,35 @@ def confidence_spearman(per_sequence: dict[str, dict[str, list[float]]]) -> floa
     return float(spearmanr(*zip(*pairs, strict=True)).statistic)
 
 
+def _model(result, config) -> dict:
+    """What the scene required of the model (bench.ConfigResult): the SH bands solved for
+    (frames per count), the share of frames whose stage outputs a still camera reused, and
+    the volume's allocated blocks (median over sequences) against its initial hash-map
+    capacity and against a dense grid of the same voxel size over volume_size_m."""
+    v = config.volume
+    block_bytes = v.block_resolution ** 3 * 8  # tsdf + weight, float32
+    dense_blocks = math.ceil(v.volume_resolution / v.block_resolution) ** 3
+    blocks = [b for b in result.volume_blocks.values() if b > 0]
+    frames = len(result.bands_estimated)
+    return {
+        "bands_requested": config.transfer.sh_bands,
+        "bands_estimated_frames": {str(b): result.bands_estimated.count(b)
+                                   for b in sorted(set(result.bands_estimated), reverse=True)},
+        "reused_share": {stage: (sum(flags) / frames if frames else 0.0)
+                         for stage, flags in result.reused.items()},
+        "volume_blocks_median": float(np.median(blocks)) if blocks else 0.0,
+        "volume_mb_median": float(np.median(blocks)) * block_bytes / 2**20 if blocks else 0.0,
+        "volume_capacity_mb": v.block_count * block_bytes / 2**20 if v.use_volume else 0.0,
+        "volume_dense_mb": dense_blocks * block_bytes / 2**20 if v.use_volume else 0.0,
+    }
+
+
 def summarise(results: list, data: list[str], frames: int | None, warmup: int,
-              sweeps: list[str]) -> dict:
-    """The report as plain JSON values (what report.json holds)."""
+              sweeps: list[str], configs_used: list | None = None) -> dict:
+    """The report as plain JSON values (what report.json holds). configs_used: the
+    pipeline Config of each result, in order (for the "model" figures; None: left out)."""
     configs = {}
-    for r in results:
+    for k, r in enumerate(results):
         total = _spread(r.total_ms)
         configs[r.name] = {
             "overrides": r.overrides, "sweep": r.sweep, "value": r.value,
@@ -104,6 +128,8 @@ def summarise(results: list, data: list[str], frames: int | None, warmup: int,
             "fps": 1000.0 / total["median"] if total["median"] else None,
             "accuracy": _accuracy(r.per_sequence),
         }
+        if configs_used is not None:
+            configs[r.name]["model"] = _model(r, configs_used[k])
     return {
         "arlight": __version__, "commit": _commit(), "machine": platform.machine(),
         "cpus": os.cpu_count(), "python": sys.version.split()[0], "libraries": _versions(),
@@ -174,6 +200,24 @@ def sequence_table(report: dict) -> str:
     return "\n".join(rows)
 
 
+def model_table(report: dict) -> str:
+    """Per config: SH bands solved for, still-camera reuse, the volume's memory."""
+    named = {n: c["model"] for n, c in report["configs"].items() if "model" in c}
+    if not named:
+        return ""
+    rows = ["| config | SH bands solved (of requested): frames | frames reusing a still "
+            "camera's Surface / RadTransfer | volume: allocated (median) / initial capacity / "
+            "dense grid, MB |", "|---|---|---|---|"]
+    for name, m in named.items():
+        bands = ", ".join(f"{b}: {n}" for b, n in m["bands_estimated_frames"].items())
+        reused = m["reused_share"]
+        rows.append(f"| {name} | ({m['bands_requested']}) {bands} | "
+                    f"{100 * reused['Surface']:.0f} % / {100 * reused['RadTransfer']:.0f} % | "
+                    f"{m['volume_mb_median']:.0f} / {m['volume_capacity_mb']:.0f} / "
+                    f"{m['volume_dense_mb']:.0f} |")
+    return "\n".join(rows)
+
+
 def markdown(report: dict) -> str:
     libs = ", ".join(f"{k} {v}" for k, v in report["libraries"].items())
     parts = [
@@ -198,6 +242,14 @@ def markdown(report: dict) -> str:
         seq = sequence_table(report)
         if seq:
             parts += ["", "## Per sequence (median degrees, upper hemisphere)", "", seq]
+    model = model_table(report)
+    if model:
+        parts += ["", "## What the scenes required", "",
+                  "SH bands: the light estimate solves only for the bands the observed normals "
+                  "constrain (condition of the normal matrix). Reuse: frames of a camera held "
+                  "still whose volume cast (Surface) and geometry and transfer (DynGeo, "
+                  "RadTransfer) were those of an earlier frame (ReuseParams). Volume: "
+                  "sparse blocks allocated only where depth was seen.", "", model]
     parts += ["", "![trade](trade.png)", ""]
     return "\n".join(parts)
 

@@ -185,9 +185,11 @@ class AuxBufferParams:
 class FilterParams:
     """DynGeo: the depth filter chain D' (eq. 1-3), D'' (eq. 4), D''' (eq. 5), normals."""
 
+    merge: bool = True  # D' (eq. 1-3); False: the raw depth passes on as D'
     merge_window: int = 20  # k
     merge_intensity_threshold: float = 7.0  # lambda_I, grey levels
     merge_depth_threshold_m: float = 0.05  # lambda_D
+    smooth: bool = True  # D'' (eq. 4); False: D' passes on as D''
     smooth_window: int = 8  # k
     smooth_intensity_threshold: float = 7.0  # lambda_I
     smooth_subsample: int = 5  # the k x k window is sub-sampled to this many per side
@@ -201,7 +203,8 @@ class FilterParams:
         for key in ("merge_intensity_threshold", "merge_depth_threshold_m",
                     "smooth_intensity_threshold"):
             _check_float(self, key, 0.0)
-        _check_bool(self, "denoise")
+        for key in ("merge", "smooth", "denoise"):
+            _check_bool(self, key)
         _check_int(self, "normal_window", 1)
 
 
@@ -222,6 +225,10 @@ class TransferParams:
     rt_visibility_ramp: VisibilityRamp = VisibilityRamp.PAPER
     rt_subsample: int = 1  # image-space sub-sampling (fast: 4)
     rt_upsample: bool = True  # sub-sampled transfer interpolated back to every pixel
+    # sub-sampled and up-sampled: pixels the grid cannot interpolate (an invalid grid point
+    # beside them, or grid transfers differing by more than this, relative) get their own
+    # transfer (radiance_transfer.interpolated_samples); 0: off
+    rt_refine_spread: float = 0.0
     visibility: bool = True  # False: K = 1 everywhere (the no-visibility baseline)
     # blocked directions bring the occluder's own (observed) light, as in SSDO's one-bounce
     # indirect term; its unknown scale (mean albedo / pi) is solved with the light
@@ -248,6 +255,7 @@ class TransferParams:
         _check_int(self, "rt_steps", 1)
         _check_enum(self, "rt_visibility_ramp", VisibilityRamp)
         _check_int(self, "rt_subsample", 1)
+        _check_float(self, "rt_refine_spread", 0.0)
         for key in ("rt_upsample", "visibility", "rt_bounce", "rt_horizon",
                     "rt_exact_unoccluded"):
             _check_bool(self, key)
@@ -315,6 +323,25 @@ class TemporalParams:
 
 
 @dataclass(frozen=True)
+class ReuseParams:
+    """A camera held still (pipeline/still.py): the volume's work (fusion, ray cast,
+    auxiliary buffers) and, while the depth image is unchanged too, the filtered geometry
+    and the radiance transfer are reused from the frame they were last made for; the light
+    estimate always runs on the new image. Never triggers on a moving camera."""
+
+    still_reuse_frames: int = 10  # at most this many frames in a row reuse (0: never)
+    still_translation_m: float = 0.005  # the camera moved less than this since ...
+    still_rotation_deg: float = 0.5  # ... and turned less than this
+    still_depth_change: float = 0.02  # share of 8x8-pixel depth blocks allowed to change
+
+    def __post_init__(self) -> None:
+        _check_int(self, "still_reuse_frames", 0)
+        _check_float(self, "still_translation_m", 0.0)
+        _check_float(self, "still_rotation_deg", 0.0, 180.0)
+        _check_float(self, "still_depth_change", 0.0, 1.0)
+
+
+@dataclass(frozen=True)
 class RenderParams:
     """Rendering: differential rendering of the virtual objects (section 5.4, eq. 10-15).
 
@@ -359,6 +386,7 @@ STAGE_TYPES: dict[str, type] = {
     "transfer": TransferParams,
     "estimation": EstimationParams,
     "temporal": TemporalParams,
+    "reuse": ReuseParams,
     "render": RenderParams,
 }
 
@@ -447,6 +475,7 @@ class Config:
     transfer: TransferParams = field(default_factory=TransferParams)
     estimation: EstimationParams = field(default_factory=EstimationParams)
     temporal: TemporalParams = field(default_factory=TemporalParams)
+    reuse: ReuseParams = field(default_factory=ReuseParams)
     render: RenderParams = field(default_factory=RenderParams)
 
     def __post_init__(self) -> None:

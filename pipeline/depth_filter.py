@@ -529,19 +529,24 @@ def backend_for_device(device: str) -> str:
 def filter_depth(depth_raw_m: np.ndarray, depth_volume_m: np.ndarray | None,
                  intensity: np.ndarray, params: FilterParams, *, backend: str = "cpu",
                  ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """The filter chain D' -> D'' (-> D''' when params.denoise) with the stage's parameters.
+    """The filter chain D' -> D'' -> D''' with the stage's parameters; a pass that is
+    off (params.merge, params.smooth, params.denoise) passes its input on unchanged.
 
     Returns the final depth (H, W) float32 metres (0 = missing) and the intermediate
     passes {"merged": D', "smoothed": D''[, "denoised": D''']}.
     backend: "cpu" or "cuda" (`backend_for_device`; "cuda" without a usable GPU raises
     RuntimeError).
     """
-    merged = merge_depth(depth_raw_m, depth_volume_m, intensity, params.merge_window,
-                         params.merge_intensity_threshold, params.merge_depth_threshold_m,
-                         backend=backend)
-    smoothed = joint_bilateral_median(merged, intensity, params.smooth_window,
-                                      params.smooth_intensity_threshold,
-                                      params.smooth_subsample, backend=backend)
+    merged = _check_depth("depth_raw_m", depth_raw_m)
+    if params.merge:
+        merged = merge_depth(depth_raw_m, depth_volume_m, intensity, params.merge_window,
+                             params.merge_intensity_threshold,
+                             params.merge_depth_threshold_m, backend=backend)
+    smoothed = merged
+    if params.smooth:
+        smoothed = joint_bilateral_median(merged, intensity, params.smooth_window,
+                                          params.smooth_intensity_threshold,
+                                          params.smooth_subsample, backend=backend)
     passes = {"merged": merged, "smoothed": smoothed}
     if not params.denoise:
         return smoothed, passes

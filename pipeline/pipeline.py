@@ -39,8 +39,8 @@ from arlight.pipeline.radiance_transfer import (
     make_sampling_pattern,
     quadrature_error_table,
     random_pixels,
+    interpolated_samples,
     transfer_at_pixels,
-    transfer_samples,
     with_exact_unoccluded,
 )
 from arlight.pipeline.rendering import (
@@ -51,6 +51,7 @@ from arlight.pipeline.rendering import (
 )
 from arlight.pipeline.runtime import require_device
 from arlight.pipeline.segmentation import material_segments
+from arlight.pipeline.still import StillCamera
 from arlight.pipeline.virtual_scene import VirtualScene, resolve_anchors
 
 log = logging.getLogger(__name__)
@@ -178,13 +179,22 @@ class Pipeline:
         if config.volume.use_volume:
             from arlight.pipeline.reconstruction import VolumeReconstruction
 
-            self._volume = VolumeReconstruction.from_config(config, camera)
+            # the auxiliary buffers serve SSDO's visibility and the virtual objects' shadows
+            # only: without either nothing reads them, and they are not rendered
+            aux_read = (config.transfer.visibility and config.transfer.rt_method is RtMethod.SSDO
+                        ) or self.scene is not None
+            self._volume = VolumeReconstruction.from_config(
+                config if aux_read else config.replace(aux_buffers=False), camera)
         self._pose = np.eye(4)
         self._light_world: np.ndarray | None = None
         self._up_world: np.ndarray | None = None  # of the support plane, last seen
         # rt_method raycast: the session's ray-casting scene, rebuilt as the volume grows
         self._raycaster = (ObjectSpaceTransfer(config.aux.aux_update_interval)
                            if config.transfer.rt_method is RtMethod.RAYCAST else None)
+        # a camera held still over an unchanged depth image: DynGeo and RadTransfer of the
+        # last frame that made them serve again (pipeline.still)
+        self._still = StillCamera(config.reuse, with_depth=True)
+        self._last_transfer: tuple[_Geometry, TransferSamples] | None = None
 
     @functools.cached_property
     def _quadrature_table(self) -> np.ndarray:
@@ -223,20 +233,20 @@ class Pipeline:
         check("Reconstruct")
         pose, depth_volume, aux_buffers = self._reconstruct(valid, timings, diagnostics)
         check("DynGeo")
-        with _stage(timings, "DynGeo"):
-            geometry = self._dynamic_geometry(valid.depth_m, depth_volume, intensity)
-        # LightEst's material segments need only colour and geometry: they are made beside
-        # RadTransfer (OpenCV's segmentation runs on one core, outside the interpreter lock,
-        # while the transfer's NumPy steps leave the other idle)
-        check("RadTransfer")
-        segments = _side_work().submit(self._segments, color_linear, geometry)
-        try:
-            with _stage(timings, "RadTransfer"):
-                transfer = self._transfer(geometry, color_linear, pose, aux_buffers)
-        except BaseException:
-            concurrent.futures.wait([segments])  # nothing of this frame outlives it
-            raise
-        labels = segments.result()
+        with _stage(timings, "DynGeo"):  # the test of a still camera costs ~1 ms
+            reuse = (self._last_transfer is not None and diagnostics["tracking_ok"]
+                     and self._still.may_reuse(pose, valid.depth_m))
+        if reuse:
+            geometry, transfer = self._last_transfer
+            timings["RadTransfer"] = 0.0
+            diagnostics["reused"].update(DynGeo=True, RadTransfer=True)
+            labels = self._segments(color_linear, geometry)
+        else:
+            geometry, transfer, labels = self._geometry_and_transfer(
+                valid, depth_volume, intensity, color_linear, pose, aux_buffers, timings,
+                check)
+            self._last_transfer = (geometry, transfer)
+            self._still.did_work(pose, valid.depth_m)
         check("LightEst")
         with _stage(timings, "LightEst"):
             plane = geometry.plane
@@ -270,6 +280,27 @@ class Pipeline:
             intensity=intensity_value, confidence=estimate.confidence, pose=pose.copy(),
             sh_rgb=estimate.sh_rgb, composite=composite, timings_ms=timings,
             diagnostics=diagnostics)
+
+    def _geometry_and_transfer(self, valid: ValidFrame, depth_volume: np.ndarray | None,
+                               intensity: np.ndarray, color_linear: np.ndarray,
+                               pose: np.ndarray, aux_buffers: list,
+                               timings: dict[str, float], check: Callable[[str], None],
+                               ) -> tuple[_Geometry, TransferSamples, np.ndarray | None]:
+        """DynGeo and RadTransfer, and LightEst's material segments beside RadTransfer."""
+        with _stage(timings, "DynGeo"):
+            geometry = self._dynamic_geometry(valid.depth_m, depth_volume, intensity)
+        # LightEst's material segments need only colour and geometry: they are made beside
+        # RadTransfer (OpenCV's segmentation runs on one core, outside the interpreter lock,
+        # while the transfer's NumPy steps leave the other idle)
+        check("RadTransfer")
+        segments = _side_work().submit(self._segments, color_linear, geometry)
+        try:
+            with _stage(timings, "RadTransfer"):
+                transfer = self._transfer(geometry, color_linear, pose, aux_buffers)
+        except BaseException:
+            concurrent.futures.wait([segments])  # nothing of this frame outlives it
+            raise
+        return geometry, transfer, segments.result()
 
     def _render(self, valid: ValidFrame, color_linear: np.ndarray, geometry: _Geometry,
                 pose: np.ndarray, aux_buffers: list, coeffs: np.ndarray,
@@ -324,7 +355,9 @@ class Pipeline:
 
     def _reconstruct(self, valid: ValidFrame, timings: dict[str, float], diagnostics: dict,
                      ) -> tuple[np.ndarray, np.ndarray | None, list]:
-        """Reconstruct + Surface: (pose, D_v or None, aux buffers); tracking diagnostics."""
+        """Reconstruct + Surface: (pose, D_v or None, aux buffers); tracking diagnostics and
+        `reused` ({stage: bool}: a still camera's stage outputs taken from an earlier frame)."""
+        diagnostics["reused"] = {"Surface": False, "DynGeo": False, "RadTransfer": False}
         depth_volume, aux_buffers = None, []
         if self._volume is None:
             timings["Reconstruct"] = timings["Surface"] = 0.0
@@ -340,6 +373,8 @@ class Pipeline:
             pose, depth_volume, aux_buffers = (surface.pose, surface.depth_volume_m,
                                                surface.aux_buffers)
             tracking = surface.tracking.to_dict()
+            # a still camera: fusion skipped, the last frame's cast and aux buffers reused
+            diagnostics["reused"]["Surface"] = surface.reused
         self._pose = pose
         diagnostics["tracking_ok"] = bool(tracking["ok"])
         diagnostics["tracking"] = tracking
@@ -400,7 +435,17 @@ class Pipeline:
             grid = compute_transfer(geometry.points, geometry.normals, self.camera, pose,
                                     self.pattern, aux, p, lum, plane)
         interpolate_to = has_geometry if p.rt_upsample and p.rt_subsample > 1 else None
-        return transfer_samples(grid, interpolate_to, budget, seed)
+        samples, (vs, us) = interpolated_samples(grid, interpolate_to, budget, seed,
+                                                 p.rt_refine_spread)
+        if not len(vs) or p.rt_method is RtMethod.RAYCAST:
+            return samples
+        t, b, ok = transfer_at_pixels(  # edges: their own transfer, not the grid's
+            geometry.points, geometry.normals, self.camera, pose, self.pattern, aux, p, us, vs,
+            None if lum is None else lum[..., None], plane)
+        return TransferSamples(
+            np.concatenate([samples.pixel_v, vs[ok]]), np.concatenate([samples.pixel_u, us[ok]]),
+            np.concatenate([samples.transfer, t[ok].astype(np.float32)]),
+            None if lum is None else np.concatenate([samples.bounce, b[ok, 0].astype(np.float32)]))
 
     def _segments(self, color_linear: np.ndarray, geometry: _Geometry) -> np.ndarray | None:
         """(H, W) material labels for the light estimate (albedo_segments), or None."""

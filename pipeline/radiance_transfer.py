@@ -569,6 +569,13 @@ def random_pixels(mask: np.ndarray, max_pixels: int, seed: int) -> tuple[np.ndar
 
 def transfer_samples(result: TransferResult, valid_full: np.ndarray | None,
                      max_pixels: int, seed: int) -> TransferSamples:
+    """`interpolated_samples` without edge refinement: the samples only."""
+    return interpolated_samples(result, valid_full, max_pixels, seed)[0]
+
+
+def interpolated_samples(result: TransferResult, valid_full: np.ndarray | None,
+                         max_pixels: int, seed: int, edge_spread: float = 0.0,
+                         ) -> tuple[TransferSamples, tuple[np.ndarray, np.ndarray]]:
     """The pixels the light estimate may use, at most `max_pixels` of them (a seeded random
     subset above that; neighbouring pixels repeat each other), with their transfer.
 
@@ -576,7 +583,15 @@ def transfer_samples(result: TransferResult, valid_full: np.ndarray | None,
     at every such pixel ("OursFast"): the same normalised bilinear interpolation as
     `upsample_transfer`, evaluated at the chosen pixels only (a pixel is kept when every
     grid point around it is valid). None: the grid points themselves.
+
+    edge_spread > 0 (TransferParams.rt_refine_spread): the chosen pixels whose grid points'
+    transfers differ by more than edge_spread (the largest distance of a corner's vector
+    from their mean, relative to the mean's length: a shadow or crease edge) are returned
+    apart, as (rows, cols), for their own transfer. (Pixels beside an invalid grid point
+    stay dropped: giving them their own transfer, on dev_d, raised the error by a degree;
+    they lie on depth edges, where depth and normals are least reliable.) 0: none.
     """
+    none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
     hs, ws = result.valid.shape
     interpolate = valid_full is not None and (hs, ws) != valid_full.shape
     rows, cols = random_pixels(valid_full if interpolate else result.valid, max_pixels, seed)
@@ -586,7 +601,7 @@ def transfer_samples(result: TransferResult, valid_full: np.ndarray | None,
         pu = np.asarray(result.pixel_u)[cols]
         return TransferSamples(pv.astype(np.int64), pu.astype(np.int64),
                                result.transfer[rows, cols],
-                               None if bounce is None else bounce[rows, cols])
+                               None if bounce is None else bounce[rows, cols]), none
     gu = np.interp(cols, result.pixel_u, np.arange(ws))  # fractional grid coordinates
     gv = np.interp(rows, result.pixel_v, np.arange(hs))
     u0 = np.minimum(np.floor(gu).astype(np.int64), ws - 1)
@@ -609,10 +624,21 @@ def transfer_samples(result: TransferResult, valid_full: np.ndarray | None,
         if num_b is not None:
             num_b += wv * np.take(flat_b, at)
     keep = den > 0.999
+    edges = none
+    if edge_spread > 0.0:
+        mean = num / np.maximum(den, 1e-6)[:, None]
+        spread = np.zeros(len(rows), np.float32)
+        for v, u, _ in corners:
+            at = v * ws + u
+            gap = np.linalg.norm(np.take(flat_t, at, axis=0) - mean, axis=1)
+            spread = np.maximum(spread, np.where(np.take(flat_valid, at), gap, 0.0))
+        sharp = keep & (spread > edge_spread * np.linalg.norm(mean, axis=1))
+        edges = (rows[sharp].astype(np.int64), cols[sharp].astype(np.int64))
+        keep &= ~sharp
     inv = 1.0 / den[keep]
     return TransferSamples(rows[keep].astype(np.int64), cols[keep].astype(np.int64),
                            num[keep] * inv[:, None],
-                           None if num_b is None else num_b[keep] * inv)
+                           None if num_b is None else num_b[keep] * inv), edges
 
 
 def _occlusion_reference(x: np.ndarray, s: np.ndarray, w: np.ndarray, chi: float) -> float:

@@ -24,7 +24,8 @@ import open3d.core as o3c
 from arlight.checks import CheckError, check_image, check_rigid
 from arlight.pipeline.aux_buffers import AuxBufferRenderer, OrthoBuffer
 from arlight.pipeline.camera import PinholeCamera
-from arlight.pipeline.config import AuxBufferParams, Config, VolumeParams
+from arlight.pipeline.config import AuxBufferParams, Config, ReuseParams, VolumeParams
+from arlight.pipeline.still import StillCamera
 from arlight.pipeline.tracking import FrameToModelTracker, TrackingResult
 from arlight.pipeline.volume import TsdfVolume
 
@@ -42,6 +43,8 @@ class SurfaceOutput:
     tracking_ok: False when the frame could not be tracked (the previous pose was kept and the
         frame was not fused into V); tracking says why (`TrackingResult.reason`).
     timings_ms: {"Reconstruct": track + integrate, "Surface": ray cast + aux buffers}.
+    reused: True when the camera was held still (ReuseParams): the frame was tracked but
+        not fused, and D_v, N_v and the aux buffers are those of the last frame that was.
     """
 
     pose: np.ndarray
@@ -51,6 +54,7 @@ class SurfaceOutput:
     tracking_ok: bool
     timings_ms: dict[str, float] = field(default_factory=dict)
     tracking: TrackingResult = field(default_factory=lambda: TrackingResult(True))
+    reused: bool = False
 
 
 # the Surface cast is sub-sampled only while it keeps at least this many columns: the size
@@ -69,14 +73,15 @@ class VolumeReconstruction:
     """One session's volume V: tracking, TSDF fusion, ray casting and auxiliary buffers.
 
     volume, aux: the stages' parameters (see TsdfVolume for the volume's); camera:
-    intrinsics of the depth images (registered to colour); device: Open3D device of V.
+    intrinsics of the depth images (registered to colour); device: Open3D device of V;
+    reuse: when a still camera's frames skip fusion and casting (None: never).
     `from_config` takes them from a Config.
 
     One instance per session; not safe to call from several threads at once.
     """
 
     def __init__(self, volume: VolumeParams, aux: AuxBufferParams, camera: PinholeCamera,
-                 device: str = "CPU:0"):
+                 device: str = "CPU:0", reuse: ReuseParams | None = None):
         self.params = volume
         self.aux_params = aux
         self.camera = camera
@@ -89,11 +94,12 @@ class VolumeReconstruction:
                                             volume.tracking_depth_diff_m)
         self._volume = TsdfVolume(volume, camera, self.device)
         self._aux = AuxBufferRenderer(aux)
+        self._still = StillCamera(reuse or ReuseParams(still_reuse_frames=0))
         self.reset()
 
     @classmethod
     def from_config(cls, config: Config, camera: PinholeCamera) -> VolumeReconstruction:
-        return cls(config.volume, config.aux, camera, config.device)
+        return cls(config.volume, config.aux, camera, config.device, config.reuse)
 
     def reset(self) -> None:
         """Forget the volume, the pose and the cached buffers (a new session)."""
@@ -102,6 +108,8 @@ class VolumeReconstruction:
         self.pose = np.eye(4)  # world_from_cam of the latest frame
         self.frame_index = 0  # frames processed
         self._model_depth: o3c.Tensor | None = None  # D_v of the previous frame, on device
+        self._last: SurfaceOutput | None = None  # of the last frame fused and cast
+        self._still.reset()
 
     @property
     def voxel_grid(self) -> o3d.t.geometry.VoxelBlockGrid:
@@ -180,6 +188,8 @@ class VolumeReconstruction:
             if tracking.ok:
                 self.pose = self.pose @ tracking.prev_from_cur
         # (pose None and V still empty: this frame starts the map at the current pose)
+        if tracking.ok and self._last is not None and self._still.may_reuse(self.pose):
+            return self._reused(tracking, (time.perf_counter() - t0) * 1e3)
         if tracking.ok and n_valid > 0:
             self._volume.integrate(depth_clean, self.pose)
         self._volume.sync()
@@ -193,11 +203,23 @@ class VolumeReconstruction:
         t2 = time.perf_counter()
 
         self.frame_index += 1
-        return SurfaceOutput(
+        out = SurfaceOutput(
             pose=self.pose.copy(), depth_volume_m=depth_v, normals_volume=normals_v,
             aux_buffers=aux, tracking_ok=tracking.ok,
             timings_ms={"Reconstruct": (t1 - t0) * 1e3, "Surface": (t2 - t1) * 1e3},
             tracking=tracking)
+        if tracking.ok and self.num_blocks > 0:
+            self._last = out
+            self._still.did_work(self.pose)
+        return out
+
+    def _reused(self, tracking: TrackingResult, elapsed_ms: float) -> SurfaceOutput:
+        """A still camera's frame: tracked, not fused; the last cast's D_v, N_v and aux."""
+        self.frame_index += 1
+        last = self._last
+        return SurfaceOutput(self.pose.copy(), last.depth_volume_m, last.normals_volume,
+                             list(last.aux_buffers), True,
+                             {"Reconstruct": elapsed_ms, "Surface": 0.0}, tracking, reused=True)
 
     def _without_volume(self, pose: np.ndarray | None) -> SurfaceOutput:
         """use_volume False: no V, no tracking; the given pose (or the last one) is kept."""

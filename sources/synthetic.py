@@ -583,6 +583,28 @@ def orbit_poses(num_frames: int, start_azimuth: float) -> list[np.ndarray]:
     return poses
 
 
+# a camera held in the hand: the first pose of the orbit, each frame off it by a tremor of
+# this size (1-sigma per axis, metres and radians; a held tablet: a millimetre, 0.05 deg)
+TREMOR_M = 0.001
+TREMOR_RAD = math.radians(0.05)
+
+
+def held_poses(num_frames: int, start_azimuth: float, rng: np.random.Generator,
+               ) -> list[np.ndarray]:
+    """Camera-to-world poses of a camera held still at the orbit's start (hand tremor)."""
+    from scipy.spatial.transform import Rotation
+
+    start = orbit_poses(1, start_azimuth)[0]
+    poses = []
+    for _ in range(num_frames):
+        pose = start.copy()
+        pose[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, TREMOR_RAD, 3)).as_matrix() \
+            @ start[:3, :3]
+        pose[:3, 3] += rng.normal(0.0, TREMOR_M, 3)
+        poses.append(pose)
+    return poses
+
+
 @dataclass
 class SyntheticSequence:
     """A rendered sequence and its ground truth (module docstring for the definitions).
@@ -643,8 +665,10 @@ def _check_arguments(num_frames: int, width: int, height: int,
 
 def make_sequence(num_frames: int = 12, width: int = 640, height: int = 480, seed: int = 0,
                   sensor_noise: bool = True,
-                  light_change_frame: int | None = None) -> SyntheticSequence:
-    """Render the procedural scene along an orbit (module docstring), deterministically.
+                  light_change_frame: int | None = None, held: bool = False,
+                  ) -> SyntheticSequence:
+    """Render the procedural scene along an orbit (module docstring), deterministically;
+    held: a camera held still at the orbit's start instead (`held_poses`).
 
     seed picks the sun (azimuth in [0, 2 pi), elevation 30-50 degrees; the orbit starts
     70 degrees round from the sun's azimuth) and the sensor noise. From
@@ -661,11 +685,15 @@ def make_sequence(num_frames: int = 12, width: int = 640, height: int = 480, see
 
     camera = PinholeCamera.kinect_v1(width, height)
     rays_cam = np.ascontiguousarray(camera.ray_directions().reshape(-1, 3).T)
-    seq = SyntheticSequence(name=f"arlight_synthetic_seed{seed}", camera=camera, frames=[],
+    seq = SyntheticSequence(name=f"arlight_synthetic{'_held' if held else ''}_seed{seed}",
+                            camera=camera, frames=[],
                             sh_world=[], dominant_direction_world=[],
                             dominant_direction_camera=[], exposure=exposure,
                             sun_direction_world=[], light_change_frame=light_change_frame)
-    for i, pose in enumerate(orbit_poses(num_frames, azimuth + ORBIT_START_FROM_SUN_RAD)):
+    start = azimuth + ORBIT_START_FROM_SUN_RAD
+    poses = (held_poses(num_frames, start, np.random.default_rng([seed, 2])) if held
+             else orbit_poses(num_frames, start))
+    for i, pose in enumerate(poses):
         changed = light_change_frame is not None and i >= light_change_frame
         light = lights[int(changed)]
         radiance, depth = render_frame(camera, pose, light, rays_cam=rays_cam)

@@ -269,6 +269,23 @@ class TestFilterDepth:
         assert set(passes) == {"merged", "smoothed"}
         np.testing.assert_array_equal(final, smoothed)
 
+    def test_each_pass_can_be_turned_off(self):
+        """merge / smooth / denoise false: that pass hands its input on unchanged."""
+        dc, dv, intensity = _random_inputs(6)
+        raw = np.nan_to_num(dc.astype(np.float32))
+        off = Config(device="CPU:0").replace(merge=False, smooth=False, denoise=False).filter
+        final, passes = df.filter_depth(dc, dv, intensity, off)
+        np.testing.assert_array_equal(final, raw)
+        np.testing.assert_array_equal(passes["merged"], raw)
+        only_smooth = Config().replace(merge=False, denoise=False).filter
+        final, passes = df.filter_depth(dc, dv, intensity, only_smooth)
+        np.testing.assert_array_equal(final, df.joint_bilateral_median(raw, intensity, 8,
+                                                                       7.0, 5))
+        merged = df.merge_depth(dc, dv, intensity, 20, 7.0, 0.05)
+        final, _ = df.filter_depth(dc, dv, intensity,
+                                   Config().replace(smooth=False, denoise=False).filter)
+        np.testing.assert_array_equal(final, merged)
+
     def test_all_missing_gives_zeros(self):
         zeros = np.zeros((24, 32), np.float32)
         final, passes = df.filter_depth(zeros, zeros, _flat(24, 32, DARK), Config().filter)

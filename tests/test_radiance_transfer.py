@@ -582,3 +582,34 @@ class TestHorizonPlane:
         # the wall's lower half of directions is gone from the transfer: about half its DC
         ratio = res.transfer[wall, 0] / free.transfer[wall, 0]
         assert 0.3 < np.median(ratio) < 0.7
+
+
+class TestEdgeRefinement:
+    """`interpolated_samples` with edge_spread: pixels between grid points whose transfers
+    differ (a shadow edge) are handed back for their own transfer, the rest interpolated."""
+
+    def _shadow_edge_grid(self) -> rt.TransferResult:
+        """The 3 x 4 grid of TestUpsampling, band 0 halved (shadowed) right of column 6."""
+        u, v = np.array([2, 6, 10, 12]), np.array([2, 6, 9])
+        transfer = np.ones((3, 4, 4), np.float32)
+        transfer[:, 2:, :] *= 0.5
+        return rt.TransferResult(transfer, np.ones((3, 4), bool), u, v)
+
+    def test_pixels_across_the_edge_are_refined_and_no_others(self):
+        grid = self._shadow_edge_grid()
+        geometry = np.ones((10, 13), bool)
+        samples, (vs, us) = rt.interpolated_samples(grid, geometry, 10 ** 6, 0,
+                                                    edge_spread=0.1)
+        # between grid columns 6 and 10 the corners differ: those pixels are the edge
+        assert len(us) and np.all((us > 6) & (us < 10))
+        assert not np.any((samples.pixel_u > 6) & (samples.pixel_u < 10))
+        assert len(samples.pixel_v) + len(vs) == 10 * 13  # every pixel, one way or the other
+        np.testing.assert_allclose(samples.transfer[samples.pixel_u <= 6, 0], 1.0, atol=1e-6)
+
+    def test_off_by_default_and_identical_to_transfer_samples(self):
+        grid = self._shadow_edge_grid()
+        geometry = np.ones((10, 13), bool)
+        samples, (vs, us) = rt.interpolated_samples(grid, geometry, 10 ** 6, 0)
+        plain = rt.transfer_samples(grid, geometry, 10 ** 6, 0)
+        assert len(vs) == len(us) == 0
+        np.testing.assert_array_equal(samples.transfer, plain.transfer)
