@@ -452,9 +452,12 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
     if preset is Preset.MOBILE:
         # and, speed first, segments at quarter resolution on at most 10000 pixels (all
         # frames: median 20.1 -> 19.1 and 20.1, p90 32.8 -> 34.1 and 33.2)
+        # and its 25 cm blocks need a tenth of the hash map's initial capacity (the map grows
+        # when full): 16 MB instead of 156 held from the start, every error the same
+        # (`arlight bench ... --presets mobile --sweep block_count=40000,4000`)
         return {"volume_resolution": 64, "denoise": False, "rt_subsample": 4,
                 "render_subsample": 4, **_SPEED_FIRST, "segment_scale": 4,
-                "light_max_samples": 10000}
+                "light_max_samples": 10000, "block_count": 4000}
     return {}
 
 
