@@ -101,6 +101,22 @@ def test_report_of_the_built_in_scene(tmp_path):
     assert "| RadTransfer |" in text and "| fast sh_bands=3 |" in text
 
 
+def test_a_held_camera_reports_its_reuse():
+    """synthetic-held: the reuse of a still camera's work shows in the report's "What the
+    scenes required" table, and not without reuse."""
+    report = run_benchmark(["synthetic-held"], ["fast"], [parse_sweep("still_reuse_frames=0")],
+                           frames=3, warmup=1, overrides={}, progress=False, size=(160, 120))
+    reused = report["configs"]["fast"]["model"]["reused_share"]
+    assert reused["Surface"] >= 0.5 and reused["RadTransfer"] >= 0.5  # 1 of 4 does the work
+    assert not any(report["configs"]["fast still_reuse_frames=0"]["model"]["reused_share"]
+                   .values())
+    model = report["configs"]["fast"]["model"]
+    bands = model["bands_estimated_frames"]  # at 160 x 120 fewer normals: often 2
+    assert sum(bands.values()) == 4 and set(bands) <= {"1", "2", "3", "4"}
+    assert 0 < model["volume_mb_median"] < model["volume_capacity_mb"]
+    assert "What the scenes required" in markdown(report)
+
+
 @pytest.mark.skipif(not SEQUENCE.is_dir(), reason="needs ../shared/data/synthetic")
 def test_report_of_a_ground_truth_sequence():
     report = run_benchmark([str(SEQUENCE)], ["fast"], [], frames=2, warmup=1, overrides={},
