@@ -36,10 +36,10 @@ from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
     TransferSamples,
     compute_transfer,
+    interpolated_samples,
     make_sampling_pattern,
     quadrature_error_table,
     random_pixels,
-    interpolated_samples,
     transfer_at_pixels,
     with_exact_unoccluded,
 )
