@@ -628,10 +628,11 @@ def interpolated_samples(result: TransferResult, valid_full: np.ndarray | None,
     if edge_spread > 0.0:
         mean = num / np.maximum(den, 1e-6)[:, None]
         spread = np.zeros(len(rows), np.float32)
-        for v, u, _ in corners:
+        for v, u, wgt in corners:  # the corners the pixel's interpolation reads
             at = v * ws + u
             gap = np.linalg.norm(np.take(flat_t, at, axis=0) - mean, axis=1)
-            spread = np.maximum(spread, np.where(np.take(flat_valid, at), gap, 0.0))
+            spread = np.maximum(spread, np.where(np.take(flat_valid, at) & (wgt > 0), gap,
+                                                 0.0))
         sharp = keep & (spread > edge_spread * np.linalg.norm(mean, axis=1))
         edges = (rows[sharp].astype(np.int64), cols[sharp].astype(np.int64))
         keep &= ~sharp

@@ -320,7 +320,9 @@ class TestDeadline:
 
     def test_the_pipeline_calls_the_checkpoint_between_stages(self):
         seq = make_sequence(1, 64, 48)
-        pipeline = Pipeline(Config.from_preset("mobile", aux_resolution=32), seq.camera)
+        # the same frame again and again: a still camera, whose reuse would skip stages
+        pipeline = Pipeline(Config.from_preset("mobile", aux_resolution=32,
+                                               still_reuse_frames=0), seq.camera)
         stages: list[str] = []
         pipeline.process(seq.frames[0], checkpoint=stages.append)
         assert list(dict.fromkeys(stages)) == ["Reconstruct", "DynGeo", "RadTransfer",
