@@ -4,7 +4,8 @@ For each sequence with an `ar/` folder (dev_a, dev_d in ../shared/data/synthetic
 preset, the Pipeline runs over the sequence's `rgb/` frames with the ground-truth poses and
 the virtual scene `ar/virtual_scene.json`; at every frame with a pair it scores the
 composite against `ar/real_virtual/NNNNNN.png`, as PSNR (dB) and SSIM inside
-`mask_affected` and inside the shadow pixels (affected minus virtual), for
+`mask_affected`, inside the shadow pixels (affected minus virtual) and on the virtual
+objects themselves (`mask_virtual`), for
   (a) "estimated": the light the pipeline estimated (what users get),
   (b) "gt_light": the same frame re-rendered with the ground-truth light (lighting_gt.json,
       exposure applied): rendering error without light-estimation error,
@@ -113,16 +114,16 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
         affected = cv2.imread(str(ar / "mask_affected" / name), cv2.IMREAD_GRAYSCALE) > 127
         virtual = cv2.imread(str(ar / "mask_virtual" / name), cv2.IMREAD_GRAYSCALE) > 127
         shadow = affected & ~virtual
+        regions = {"affected": affected, "shadow": shadow, "virtual": virtual}
         row = {"sequence": folder.name, "preset": preset, "frame": index,
                "rendering_ms": result.timings_ms["Rendering"], "rendering_gt_ms": gt_ms,
                "virtual_iou": float((output.virtual_mask & virtual).sum()
                                     / max(1, (output.virtual_mask | virtual).sum()))}
         for variant, image in images.items():
             s = ssim_map(image, real_virtual)
-            row[f"{variant}_psnr_affected"] = psnr(image, real_virtual, affected)
-            row[f"{variant}_psnr_shadow"] = psnr(image, real_virtual, shadow)
-            row[f"{variant}_ssim_affected"] = float(s[affected].mean())
-            row[f"{variant}_ssim_shadow"] = float(s[shadow].mean()) if shadow.any() else None
+            for region, mask in regions.items():
+                row[f"{variant}_psnr_{region}"] = psnr(image, real_virtual, mask)
+                row[f"{variant}_ssim_{region}"] = float(s[mask].mean()) if mask.any() else None
         rows.append(row)
         if out is not None and index == min(pairs):
             diff = np.clip(4 * np.abs(output.composite.astype(int) - real_virtual), 0,
@@ -145,7 +146,7 @@ def summary_table(rows: list[dict]) -> str:
     keys = sorted({(r["sequence"], r["preset"]) for r in rows})
     for seq, preset in keys:
         sel = [r for r in rows if r["sequence"] == seq and r["preset"] == preset]
-        for region in ("affected", "shadow"):
+        for region in ("affected", "shadow", "virtual"):
             cells = []
             for v in VARIANTS:
                 p = np.nanmedian([r[f"{v}_psnr_{region}"] for r in sel])
