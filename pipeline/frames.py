@@ -38,7 +38,10 @@ class Confidence:
     low (below light_estimation.LOW_CONFIDENCE, or 0), naming the cause ("" otherwise);
     normal_spread: 1 - |mean unit normal|^2 of the pixels fitted (0 = one plane);
     horizon_disagreement_deg: degrees between the whole-sphere direction and the one above
-    the support plane's horizon (0 without a plane). light_estimation says how each counts.
+    the support plane's horizon (0 without a plane); side_share: share of the fitted
+    pixels' normals facing sideways to the support plane (None: no plane seen yet);
+    jump_deg: degrees between this frame's direction and the filtered one before it.
+    light_estimation says how each counts (the last two: `with_view_and_steadiness`).
     """
 
     samples: int = 0
@@ -48,6 +51,8 @@ class Confidence:
     reason: str = ""
     normal_spread: float = 0.0
     horizon_disagreement_deg: float = 0.0
+    side_share: float | None = None
+    jump_deg: float = 0.0
 
     def to_dict(self) -> dict:
         cond = self.condition_number
@@ -60,6 +65,8 @@ class Confidence:
             "reason": self.reason,
             "normal_spread": float(self.normal_spread),
             "horizon_disagreement_deg": float(self.horizon_disagreement_deg),
+            "side_share": None if self.side_share is None else float(self.side_share),
+            "jump_deg": float(self.jump_deg),
         }
 
 

@@ -20,6 +20,7 @@ luminance. Beyond the paper's plain least squares:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -433,6 +434,57 @@ def _low_confidence_reason(e: _Evidence, max_bands: int, value: float) -> str:
 
 
 CLIPPED_NOTE = 0.05  # a clipped fraction above this is named in a low confidence's reason
+
+# What one fit cannot know of itself, multiplied into the confidence the pipeline reports
+# (not into the temporal filter's weights: the estimate is unchanged). Chosen on the 15
+# ground-truth sequences leaving one category out (README, "Confidence"): side-facing
+# normals constrain where the light stands (a view of mostly ground gives little), and an
+# estimate far from the last frames' is either a light change or an unreliable frame.
+SIDE_COS = 0.7  # |n . up| below this: a side-facing normal (over ~45 degrees off vertical)
+SIDE_SHARE_FULL = 0.2  # share of side-facing normals at which the "view" factor reaches 1
+JUMP_SCALE_DEG = 20.0  # "steadiness" factor exp(-jump / this)
+
+
+def side_share(normals_world: np.ndarray, up_world: np.ndarray | None) -> float | None:
+    """Share (0..1) of unit normals (K, 3) that face sideways (|n . up| < SIDE_COS) with
+    respect to the support plane's up (world frame); None without an up or normals."""
+    n = np.asarray(normals_world, np.float64).reshape(-1, 3)
+    length = np.linalg.norm(n, axis=1)
+    n = n[length > 0.5]
+    if up_world is None or not len(n):
+        return None
+    up = np.asarray(up_world, np.float64) / max(float(np.linalg.norm(up_world)), 1e-12)
+    return float(np.mean(np.abs(n @ up) / np.linalg.norm(n, axis=1) < SIDE_COS))
+
+
+def with_view_and_steadiness(conf: Confidence, side: float | None,
+                             jump_deg: float) -> Confidence:
+    """`conf` times the "view" factor (min(1, side / SIDE_SHARE_FULL); 1 when side is
+    None) and the "steadiness" factor (exp(-jump_deg / JUMP_SCALE_DEG); jump_deg: degrees
+    between this frame's direction and the filtered one before it, 0 on a first frame), each
+    floored at MIN_FACTOR; a low value's reason names them when they are weak."""
+    if conf.value <= 0.0:
+        return dataclasses.replace(conf, side_share=side, jump_deg=jump_deg)
+    factors = {
+        "view": 1.0 if side is None else max(MIN_FACTOR, min(1.0, side / SIDE_SHARE_FULL)),
+        "steadiness": max(MIN_FACTOR, math.exp(-jump_deg / JUMP_SCALE_DEG)),
+    }
+    value = float(np.clip(conf.value * math.prod(factors.values()), 0.0, 1.0))
+    reason = conf.reason
+    if value < LOW_CONFIDENCE:
+        text = {
+            "view": f"few side-facing surfaces ({100 * (side or 0.0):.0f} % of the normals: "
+                    "a view of mostly ground or table shows little of where the light "
+                    "stands)",
+            "steadiness": f"the estimate jumped {jump_deg:.0f} deg from the last frames' "
+                          "(the light changed, or this frame is unreliable)",
+        }
+        weak = [name for name, v in factors.items() if v < WEAK_FACTOR]
+        if not reason and not weak:
+            weak = [min(factors, key=factors.get)]
+        reason = "; ".join([reason] * bool(reason) + [text[name] for name in weak])
+    return dataclasses.replace(conf, value=value, reason=reason, side_share=side,
+                               jump_deg=jump_deg)
 
 
 class TemporalFilter:

@@ -30,7 +30,13 @@ from arlight.pipeline.config import Config, RtMethod
 from arlight.pipeline.depth_filter import backend_for_device, filter_depth, normals_from_depth
 from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
 from arlight.pipeline.horizon import SupportPlane, support_plane
-from arlight.pipeline.light_estimation import LightEstimate, TemporalFilter, estimate_light
+from arlight.pipeline.light_estimation import (
+    LightEstimate,
+    TemporalFilter,
+    estimate_light,
+    side_share,
+    with_view_and_steadiness,
+)
 from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer
 from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
@@ -258,6 +264,7 @@ class Pipeline:
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:
                 self._up_world = up_world
+            confidence = self._reported_confidence(estimate, transfer, geometry, pose)
             direction_world = self._light_direction(coeffs)
             intensity_value = sh.intensity_along(coeffs, direction_world)
             if np.any(direction_world):
@@ -271,15 +278,31 @@ class Pipeline:
                 composite = self._render(valid, color_linear, geometry, pose, aux_buffers,
                                          coeffs, estimate, render_light)
         self.frames_processed += 1
-        diagnostics.update(self._estimate_diagnostics(estimate, up_world))
+        diagnostics.update(self._estimate_diagnostics(estimate, up_world, confidence))
         rotation = pose[:3, :3]
         return FrameResult(
             timestamp=float(frame.timestamp), sh=coeffs, sh_camera=sh.rotate(coeffs, rotation.T),
             dominant_direction_world=direction_world,
             dominant_direction_camera=rotation.T @ direction_world,
-            intensity=intensity_value, confidence=estimate.confidence, pose=pose.copy(),
+            intensity=intensity_value, confidence=confidence, pose=pose.copy(),
             sh_rgb=estimate.sh_rgb, composite=composite, timings_ms=timings,
             diagnostics=diagnostics)
+
+    def _reported_confidence(self, estimate: LightEstimate, transfer: TransferSamples,
+                             geometry: _Geometry, pose: np.ndarray) -> Confidence:
+        """The estimate's confidence times what one fit cannot know of itself
+        (`light_estimation.with_view_and_steadiness`): the share of side-facing normals
+        among the fitted pixels (against this frame's support plane, or the last one seen)
+        and the jump of this frame's direction from the filtered one before it (called
+        before `_light_world` takes this frame's)."""
+        up = self._up_world
+        normals = geometry.normals[transfer.pixel_v, transfer.pixel_u].astype(np.float64)
+        side = side_share(normals @ pose[:3, :3].T, up)
+        jump = 0.0
+        raw = self._light_direction(estimate.sh)
+        if self._light_world is not None and np.any(raw):
+            jump = math.degrees(math.acos(float(np.clip(raw @ self._light_world, -1.0, 1.0))))
+        return with_view_and_steadiness(estimate.confidence, side, jump)
 
     def _geometry_and_transfer(self, valid: ValidFrame, depth_volume: np.ndarray | None,
                                intensity: np.ndarray, color_linear: np.ndarray,
@@ -477,8 +500,8 @@ class Pipeline:
                               up_world, below_horizon_unseen, seed=self.config.seed,
                               checkpoint=checkpoint)
 
-    def _estimate_diagnostics(self, estimate: LightEstimate,
-                              up_world: np.ndarray | None) -> dict:
+    def _estimate_diagnostics(self, estimate: LightEstimate, up_world: np.ndarray | None,
+                              confidence: Confidence) -> dict:
         """Plain JSON types (the wire carries them): what the light estimate did and why."""
         return {
             "residual_rel": _json_float(estimate.residual_rel),
@@ -490,5 +513,5 @@ class Pipeline:
                 float(x) for x in self._light_direction(estimate.sh)],
             "bands_requested": int(self.config.transfer.sh_bands),
             "bands_estimated": int(estimate.confidence.bands_estimated),
-            "confidence_reason": estimate.confidence.reason,
+            "confidence_reason": confidence.reason,  # the reported one
         }

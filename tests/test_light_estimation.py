@@ -15,6 +15,7 @@ import pytest
 from arlight.pipeline import color, sh
 from arlight.pipeline import light_estimation as le
 from arlight.pipeline.config import EstimationParams, TemporalParams
+from arlight.pipeline.frames import Confidence
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
 LIGHT_DIR = (0.3, -0.8, 0.5)
@@ -377,3 +378,36 @@ class TestConfidenceEvidence:
         est = le.estimate_light(tf, rgb, WEAK)
         assert est.confidence.value < le.LOW_CONFIDENCE
         assert "clipped (emitters" in est.confidence.reason
+
+
+class TestViewAndSteadiness:
+    """The factors the pipeline multiplies into a fit's confidence: side-facing normals and
+    the jump from the last frames' direction."""
+
+    def test_side_share_counts_normals_off_the_vertical(self):
+        up = np.array([0.0, 1.0, 0.0])
+        floor = np.tile(up, (30, 1))
+        wall = np.tile([1.0, 0.0, 0.0], (10, 1))
+        assert le.side_share(floor, up) == 0.0
+        assert le.side_share(np.vstack([floor, wall]), up) == pytest.approx(0.25)
+        assert le.side_share(wall, None) is None
+        assert le.side_share(np.zeros((5, 3)), up) is None  # no normals
+
+    def test_factors_multiply_and_are_named_when_low(self):
+        conf = Confidence(samples=5000, condition_number=10.0, bands_estimated=4, value=0.8)
+        same = le.with_view_and_steadiness(conf, 0.5, 0.0)
+        assert same.value == pytest.approx(0.8) and same.reason == ""
+        assert same.to_dict()["side_share"] == 0.5
+        ground = le.with_view_and_steadiness(conf, 0.02, 0.0)
+        assert ground.value == pytest.approx(0.8 * 0.02 / le.SIDE_SHARE_FULL)
+        assert "side-facing" in ground.reason
+        jumped = le.with_view_and_steadiness(conf, 0.5, 60.0)
+        assert jumped.value == pytest.approx(0.8 * math.exp(-60.0 / le.JUMP_SCALE_DEG))
+        assert "jumped 60 deg" in jumped.reason and "side-facing" not in jumped.reason
+        unknown = le.with_view_and_steadiness(conf, None, 0.0)  # no plane yet: no view factor
+        assert unknown.value == pytest.approx(0.8) and unknown.to_dict()["side_share"] is None
+
+    def test_no_estimate_stays_no_estimate(self):
+        none = Confidence(reason="no valid depth")
+        out = le.with_view_and_steadiness(none, 0.5, 10.0)
+        assert out.value == 0.0 and out.reason == "no valid depth"
