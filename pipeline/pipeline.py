@@ -264,7 +264,9 @@ class Pipeline:
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:
                 self._up_world = up_world
-            confidence = self._reported_confidence(estimate, transfer, geometry, pose)
+            raw_direction = self._light_direction(estimate.sh)  # before the filter
+            confidence = self._reported_confidence(estimate, raw_direction, transfer,
+                                                   geometry, pose)
             direction_world = self._light_direction(coeffs)
             intensity_value = sh.intensity_along(coeffs, direction_world)
             if np.any(direction_world):
@@ -278,7 +280,8 @@ class Pipeline:
                 composite = self._render(valid, color_linear, geometry, pose, aux_buffers,
                                          coeffs, estimate, render_light)
         self.frames_processed += 1
-        diagnostics.update(self._estimate_diagnostics(estimate, up_world, confidence))
+        diagnostics.update(self._estimate_diagnostics(estimate, up_world, confidence,
+                                                      raw_direction))
         rotation = pose[:3, :3]
         return FrameResult(
             timestamp=float(frame.timestamp), sh=coeffs, sh_camera=sh.rotate(coeffs, rotation.T),
@@ -288,18 +291,19 @@ class Pipeline:
             sh_rgb=estimate.sh_rgb, composite=composite, timings_ms=timings,
             diagnostics=diagnostics)
 
-    def _reported_confidence(self, estimate: LightEstimate, transfer: TransferSamples,
-                             geometry: _Geometry, pose: np.ndarray) -> Confidence:
+    def _reported_confidence(self, estimate: LightEstimate, raw: np.ndarray,
+                             transfer: TransferSamples, geometry: _Geometry,
+                             pose: np.ndarray) -> Confidence:
         """The estimate's confidence times what one fit cannot know of itself
         (`light_estimation.with_view_and_steadiness`): the share of side-facing normals
         among the fitted pixels (against this frame's support plane, or the last one seen)
-        and the jump of this frame's direction from the filtered one before it (called
+        and the jump of this frame's direction `raw` (world, before the filter) from the
+        filtered one before it (called
         before `_light_world` takes this frame's)."""
         up = self._up_world
         normals = geometry.normals[transfer.pixel_v, transfer.pixel_u].astype(np.float64)
         side = side_share(normals @ pose[:3, :3].T, up)
         jump = 0.0
-        raw = self._light_direction(estimate.sh)
         if self._light_world is not None and np.any(raw):
             jump = math.degrees(math.acos(float(np.clip(raw @ self._light_world, -1.0, 1.0))))
         return with_view_and_steadiness(estimate.confidence, side, jump)
@@ -501,7 +505,7 @@ class Pipeline:
                               checkpoint=checkpoint)
 
     def _estimate_diagnostics(self, estimate: LightEstimate, up_world: np.ndarray | None,
-                              confidence: Confidence) -> dict:
+                              confidence: Confidence, raw_direction: np.ndarray) -> dict:
         """Plain JSON types (the wire carries them): what the light estimate did and why."""
         return {
             "residual_rel": _json_float(estimate.residual_rel),
@@ -509,8 +513,7 @@ class Pipeline:
             "horizon_prior_used": bool(estimate.horizon_prior_used),
             "support_plane_up_world": (None if up_world is None
                                        else [float(x) for x in up_world]),
-            "raw_dominant_direction_world": [  # before the temporal filter
-                float(x) for x in self._light_direction(estimate.sh)],
+            "raw_dominant_direction_world": [float(x) for x in raw_direction],
             "bands_requested": int(self.config.transfer.sh_bands),
             "bands_estimated": int(estimate.confidence.bands_estimated),
             "confidence_reason": confidence.reason,  # the reported one
