@@ -51,6 +51,7 @@ from arlight.pipeline.radiance_transfer import (
 from arlight.pipeline.virtual_gbuffer import VirtualGBuffer, VirtualRaycaster
 from arlight.pipeline.virtual_scene import VirtualScene
 
+NEAR_BLOCK_PX = 4  # tile side of `within_reach` (grid pixels)
 MIN_SHADING = 1e-6  # R_d below this (linear image units): the ratio is left at 1
 # a virtual surface within this of the real depth counts as in front (contact with the ground)
 DEPTH_TEST_BIAS_M = 0.005
@@ -264,8 +265,10 @@ class DifferentialRenderer:
         world = pts @ pose[:3, :3].T + pose[:3, 3]
         reach = self.transfer_params.rt_radius_m
         near = (pts[:, 2] > 0) & (self.raycaster.distance_to_spheres(world) <= reach)
-        # the exact distance to the meshes only for what the bounding spheres let through
-        near[near] = self.raycaster.distance_to_objects(world[near]) <= reach
+        # the exact distance to the meshes only for what the bounding spheres let through,
+        # and of those only where the distance at the block's first pixel leaves it open
+        near[near] = within_reach(world.reshape(*shape, 3), near.reshape(shape),
+                                  self.raycaster.distance_to_objects, reach)
         return near.reshape(shape)
 
     def _aux_with_virtual(self, buffers: list[OrthoBuffer],
@@ -338,6 +341,35 @@ class DifferentialRenderer:
         ratio_full[np.abs(ratio_full - 1.0) < 1e-6] = 1.0
         delta_full[np.abs(delta_full) < 1e-9] = 0.0
         return ratio_full, delta_full
+
+
+def within_reach(points: np.ndarray, candidates: np.ndarray, distance, reach: float,
+                 block: int = NEAR_BLOCK_PX) -> np.ndarray:
+    """For the candidate grid points, whether distance(point) <= reach, the same answer as
+    evaluating `distance` at every one of them, with fewer evaluations.
+
+    points: (H, W, 3) world points (metres); candidates: (H, W) bool; distance: maps (K, 3)
+    points to (K,) distances to a set (1-Lipschitz: it changes by at most the distance
+    moved). Evaluated first at each block x block tile's top-left point (if a candidate);
+    a candidate whose distance from that anchor is d_q +/- |p - q| entirely on one side of
+    reach needs no evaluation of its own; the rest, and tiles without an anchor, are
+    evaluated. Returns (number of candidates,) bool, in candidates' row-major order.
+    """
+    h, w = candidates.shape
+    rows, cols = np.nonzero(candidates)
+    if len(rows) < 4 * block * block:  # too few for the anchors to pay
+        return distance(points[rows, cols]) <= reach
+    ar, ac = rows // block * block, cols // block * block
+    anchors = candidates[ar, ac]
+    tiles = np.unique((ar * w + ac)[anchors])
+    d_tile = np.full(h * w, np.nan)
+    d_tile[tiles] = distance(points.reshape(-1, 3)[tiles])
+    d_q = d_tile[ar * w + ac]
+    moved = np.linalg.norm(points[rows, cols] - points[ar, ac], axis=1)
+    result = d_q + moved <= reach
+    open_ = ~(result | (d_q - moved > reach))  # includes NaN: no anchor
+    result[open_] = distance(points[rows[open_], cols[open_]]) <= reach
+    return result
 
 
 def luminance_light_rgb(sh_rgb: np.ndarray | None) -> np.ndarray:

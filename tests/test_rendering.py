@@ -616,3 +616,43 @@ class TestEnvironmentReflections:
         _, with_env, _ = render(view, coeffs, [sphere()],
                                 dataclasses.replace(plain, environment=env))
         np.testing.assert_array_equal(without.composite, with_env.composite)
+
+
+class TestWithinReach:
+    """`rendering.within_reach` gives the brute-force answer with fewer distance queries."""
+
+    @staticmethod
+    def _scene_and_points():
+        import open3d as o3d
+
+        mesh = o3d.t.geometry.TriangleMesh.from_legacy(
+            o3d.geometry.TriangleMesh.create_sphere(radius=0.2, resolution=20))
+        rays = o3d.t.geometry.RaycastingScene()
+        rays.add_triangles(mesh)
+        # a 120 x 160 grid of ground points 4 mm apart with a 0.3 m step in height halfway
+        # (a depth edge: neighbours far apart in 3D)
+        v, u = np.mgrid[0:120, 0:160]
+        points = np.stack([(u - 80) * 0.004, np.where(u < 80, -0.25, 0.05),
+                           (v - 60) * 0.004], axis=-1).astype(np.float64)
+        calls = []
+
+        def distance(p):
+            calls.append(len(p))
+            q = o3d.core.Tensor(np.ascontiguousarray(p, dtype=np.float32))
+            return rays.compute_distance(q).numpy().astype(np.float64)
+
+        return points, distance, calls
+
+    @pytest.mark.parametrize("reach", [0.02, 0.05, 0.1])
+    def test_same_answer_as_every_point_with_fewer_queries(self, reach):
+        from arlight.pipeline.rendering import within_reach
+
+        points, distance, calls = self._scene_and_points()
+        candidates = np.ones(points.shape[:2], bool)
+        candidates[::7, ::5] = False  # holes: some tiles lose their anchor
+        brute = distance(points[candidates]) <= reach
+        calls.clear()
+        fast = within_reach(points, candidates, distance, reach)
+        np.testing.assert_array_equal(fast, brute)
+        assert 0 < brute.sum() < len(brute)  # the boundary crosses the grid
+        assert sum(calls) < 0.5 * len(brute)
