@@ -355,17 +355,15 @@ def within_reach(points: np.ndarray, candidates: np.ndarray, distance, reach: fl
     reach needs no evaluation of its own; the rest, and tiles without an anchor, are
     evaluated. Returns (number of candidates,) bool, in candidates' row-major order.
     """
-    h, w = candidates.shape
     rows, cols = np.nonzero(candidates)
     if len(rows) < 4 * block * block:  # too few for the anchors to pay
         return distance(points[rows, cols]) <= reach
-    ar, ac = rows // block * block, cols // block * block
-    anchors = candidates[ar, ac]
-    tiles = np.unique((ar * w + ac)[anchors])
-    d_tile = np.full(h * w, np.nan)
-    d_tile[tiles] = distance(points.reshape(-1, 3)[tiles])
-    d_q = d_tile[ar * w + ac]
-    moved = np.linalg.norm(points[rows, cols] - points[ar, ac], axis=1)
+    anchored = candidates[::block, ::block]  # per tile: is its top-left point a candidate
+    d_tile = np.full(anchored.shape, np.nan)
+    d_tile[anchored] = distance(points[::block, ::block][anchored])
+    d_q = d_tile[rows // block, cols // block]
+    moved = np.linalg.norm(points[rows, cols] - points[rows // block * block,
+                                                     cols // block * block], axis=1)
     result = d_q + moved <= reach
     open_ = ~(result | (d_q - moved > reach))  # includes NaN: no anchor
     result[open_] = distance(points[rows[open_], cols[open_]]) <= reach

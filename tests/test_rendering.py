@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import pytest
 
-from arlight.pipeline import sh
+from arlight.pipeline import rendering, sh
 from arlight.pipeline import virtual_scene as vs
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.color import luminance, srgb_to_linear
@@ -38,6 +38,7 @@ from arlight.pipeline.rendering import (
     linear_to_srgb_u8,
 )
 from arlight.pipeline.runtime import configure_open3d_threads
+from arlight.pipeline.virtual_gbuffer import VirtualRaycaster
 from arlight.pipeline.virtual_scene import (
     Anchor,
     Material,
@@ -619,16 +620,14 @@ class TestEnvironmentReflections:
 
 
 class TestWithinReach:
-    """`rendering.within_reach` gives the brute-force answer with fewer distance queries."""
+    """`rendering.within_reach` (not this module's helper of that name) gives the
+    brute-force answer with fewer distance queries."""
 
     @staticmethod
     def _scene_and_points():
-        import open3d as o3d
-
-        mesh = o3d.t.geometry.TriangleMesh.from_legacy(
-            o3d.geometry.TriangleMesh.create_sphere(radius=0.2, resolution=20))
-        rays = o3d.t.geometry.RaycastingScene()
-        rays.add_triangles(mesh)
+        # a sphere of radius 0.2 m centred on the origin, its distance as the renderer asks it
+        raycaster = VirtualRaycaster(VirtualScene((sphere(radius_m=0.2,
+                                                          base_world=(0.0, -0.2, 0.0)),)))
         # a 120 x 160 grid of ground points 4 mm apart with a 0.3 m step in height halfway
         # (a depth edge: neighbours far apart in 3D)
         v, u = np.mgrid[0:120, 0:160]
@@ -638,21 +637,18 @@ class TestWithinReach:
 
         def distance(p):
             calls.append(len(p))
-            q = o3d.core.Tensor(np.ascontiguousarray(p, dtype=np.float32))
-            return rays.compute_distance(q).numpy().astype(np.float64)
+            return raycaster.distance_to_objects(p)
 
         return points, distance, calls
 
     @pytest.mark.parametrize("reach", [0.02, 0.05, 0.1])
     def test_same_answer_as_every_point_with_fewer_queries(self, reach):
-        from arlight.pipeline.rendering import within_reach
-
         points, distance, calls = self._scene_and_points()
         candidates = np.ones(points.shape[:2], bool)
         candidates[::7, ::5] = False  # holes: some tiles lose their anchor
         brute = distance(points[candidates]) <= reach
         calls.clear()
-        fast = within_reach(points, candidates, distance, reach)
+        fast = rendering.within_reach(points, candidates, distance, reach)
         np.testing.assert_array_equal(fast, brute)
         assert 0 < brute.sum() < len(brute)  # the boundary crosses the grid
         assert sum(calls) < 0.5 * len(brute)
