@@ -219,20 +219,28 @@ def _write_environment(folder: Path, index: int, result, width: int, cubemap: bo
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from arlight.bench import BenchError, parse_sweep, run_benchmark
-    from arlight.report import accuracy_table, speed_table, write_report
+    from arlight.report import (
+        accuracy_table,
+        folds_table,
+        layout_table,
+        map_table,
+        speed_table,
+        write_report,
+    )
 
     try:
         sweeps = [parse_sweep(text) for text in args.sweep]
         report = run_benchmark(args.data, args.presets, sweeps, args.frames, args.warmup,
                                dict(args.set or []), progress=sys.stderr.isatty(),
-                               scene=_load_scene(args))
+                               scene=_load_scene(args), folds=args.folds)
     except BenchError as exc:
         raise _BadInput(str(exc)) from None
     print(speed_table(report))
-    accuracy = accuracy_table(report)
-    if accuracy:
-        print()
-        print(accuracy)
+    for table in (accuracy_table(report), map_table(report), layout_table(report),
+                  folds_table(report)):
+        if table:
+            print()
+            print(table)
     written = write_report(report, args.out)
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1) + "\n")
@@ -1410,6 +1418,12 @@ def _add_batch_parser(sub) -> None:
     batch.set_defaults(func=cmd_batch)
 
 
+def _add_synth_parser(sub) -> None:
+    from arlight.synth.command import add_parser
+
+    add_parser(sub)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="arlight", description="Probeless light estimation from RGB-D (recorded data "
@@ -1497,6 +1511,11 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", default="bench-report", metavar="DIR",
                        help="write DIR/report.json, report.md, trade.png (default bench-report)")
     bench.add_argument("--json", metavar="FILE", help="also write report.json to FILE")
+    bench.add_argument("--folds", action="store_true",
+                       help="leave one environment map out: for each map, the configuration "
+                            "(preset or sweep point) with the lowest median over the OTHER "
+                            "maps, and its error on the held-out map; shows whether choosing "
+                            "a configuration generalises to unseen lighting")
     bench.add_argument("--scene", metavar="FILE",
                        help="render these virtual objects into every frame, so the Rendering "
                             "stage is timed: a scene file (docs/scene-files.md) or 'demo' (a "
@@ -1505,6 +1524,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.set_defaults(func=cmd_bench)
     _add_batch_parser(sub)
     _add_ibl_parser(sub)
+    _add_synth_parser(sub)
     _add_streaming_parsers(sub)
     return parser
 

@@ -110,7 +110,8 @@ def cylinder(radius_m: float, height_m: float, segments: int = 64) -> TriangleMe
                               np.stack([phi / (2 * math.pi), np.ones_like(phi)], -1)])
     k = segments + 1
     i = np.arange(segments)
-    side_f = np.concatenate([np.stack([i, i + 1, i + k], 1), np.stack([i + 1, i + k + 1, i + k], 1)])
+    side_f = np.concatenate([np.stack([i, i + 1, i + k], 1),
+                             np.stack([i + 1, i + k + 1, i + k], 1)])
     parts = [_mesh(side_v, side_n, side_uv, side_f)]
     for y, sign in ((0.0, -1.0), (height_m, 1.0)):
         centre = [[0, y, 0]]

@@ -11,7 +11,6 @@ what this generator adds is written into ``lighting_gt.json`` itself (``layout``
 from __future__ import annotations
 
 import json
-import math
 import shutil
 import time
 from collections.abc import Callable
