@@ -7,7 +7,10 @@ ground truth (a `lighting_gt.json`, or the built-in scene) each frame is also sc
 (arlight.evaluation): the angular error of the dominant direction against the whole sphere
 and the upper hemisphere, the SH error and the diffuse-shading error. Poses are the data's
 own (tracking skipped), so accuracy measures the light estimate, not the tracker. Seeds are
-fixed. The report (report.json, report.md, trade.png) is written by arlight.report.
+fixed. Each scored frame keeps the name of the environment map that lit it and its sequence's
+layout, so the report groups errors by map and by layout as well as by sequence, and
+`folds=True` adds the leave-one-map-out choice among the configurations (arlight.folds). The
+report (report.json, report.md, trade.png) is written by arlight.report.
 """
 
 from __future__ import annotations
@@ -81,6 +84,10 @@ class ConfigResult:
     reused: dict[str, list[bool]] = field(default_factory=lambda: {
         "Surface": [], "RadTransfer": []})
     volume_blocks: dict[str, int] = field(default_factory=dict)
+    # per sequence: the environment map of each scored frame (aligned with per_sequence's
+    # lists; None: unknown) and the sequence's layout (None: unknown)
+    env_maps: dict[str, list[str | None]] = field(default_factory=dict)
+    layouts: dict[str, str | None] = field(default_factory=dict)
 
 
 # --------------------------------------------------------------------------- inputs
@@ -146,9 +153,12 @@ def open_data(paths: list[str], frames: int | None, warmup: int,
                              "folders)")
         children = sorted(c for c in folder.iterdir() if evaluation.has_ground_truth(c))
         for seq_folder in children if not evaluation.has_ground_truth(folder) else [folder]:
+            try:  # the truth first: a file that cannot be scored fails before any work
+                truth = (evaluation.load_ground_truth(seq_folder)
+                         if evaluation.has_ground_truth(seq_folder) else None)
+            except evaluation.GroundTruthError as exc:
+                raise BenchError(str(exc)) from None
             seq = open_sequence(seq_folder, use_poses=True, max_frames=frames)
-            truth = (evaluation.load_ground_truth(seq_folder)
-                     if evaluation.has_ground_truth(seq_folder) else None)
             out.append(BenchSequence(seq_folder.name, seq.camera, list(seq.frames), truth))
         if not children and not evaluation.has_ground_truth(folder):
             seq = open_sequence(folder, use_poses=True, max_frames=frames)
@@ -183,6 +193,7 @@ def run_config(bench: BenchConfig, sequences: list[BenchSequence], warmup: int,
         scores: dict[str, list[float]] = {"angle_upper_deg": [], "angle_deg": [],
                                           "sh_error": [], "shading_error": [],
                                           "confidence": []}
+        maps: list[str | None] = []
         for i, frame in enumerate(seq.frames):
             out = pipeline.process(frame)
             result.bands_estimated.append(int(out.confidence.bands_estimated))
@@ -194,10 +205,14 @@ def run_config(bench: BenchConfig, sequences: list[BenchSequence], warmup: int,
                 result.total_ms.append(sum(out.timings_ms.values()))
             if seq.truth is not None and i < len(seq.truth):
                 _score(scores, out, seq.truth[i], frame, seq.camera, rng)
+                maps.append(seq.truth[i].env_map)
             if on_frame is not None:
                 on_frame()
         result.per_sequence[seq.name] = scores
         result.volume_blocks[seq.name] = pipeline.volume_blocks
+        if seq.truth is not None:
+            result.env_maps[seq.name] = maps
+            result.layouts[seq.name] = seq.truth[0].layout if seq.truth else None
     return result
 
 
@@ -223,11 +238,12 @@ def _score(scores: dict[str, list[float]], out, truth: evaluation.FrameTruth, fr
 def run_benchmark(data: list[str], presets: list[str], sweeps: list[tuple[str, list[Any]]],
                   frames: int | None, warmup: int, overrides: dict[str, Any],
                   progress: bool = True, size: tuple[int, int] = (640, 480),
-                  scene=None) -> dict:
+                  scene=None, folds: bool = False) -> dict:
     """Every configuration over every DATA sequence; the report's figures (a plain dict).
 
     size: image size of the built-in scene (pixels) where no size sweep sets it;
-    scene: virtual objects rendered into every frame (VirtualScene), or None (Rendering 0).
+    scene: virtual objects rendered into every frame (VirtualScene), or None (Rendering 0);
+    folds: add the leave-one-map-out choice among the configurations (report "folds").
     """
     from arlight.report import summarise
 
@@ -257,7 +273,8 @@ def run_benchmark(data: list[str], presets: list[str], sweeps: list[tuple[str, l
     finally:
         bar.close()
     return summarise(results, data=[s.name for s in base_data], frames=frames, warmup=warmup,
-                     sweeps=[k for k, _ in sweeps], configs_used=[b.config for b in configs])
+                     sweeps=[k for k, _ in sweeps], configs_used=[b.config for b in configs],
+                     folds=folds)
 
 
 def _progress_bar(total: int, enabled: bool):

@@ -4,6 +4,11 @@ Ground truth per frame (`FrameTruth`) comes from a sequence folder's `lighting_g
 (../shared/data/synthetic: Sloan's SH basis WITH the Condon-Shortley phase, converted here)
 or from the built-in scene (`scene_truth`). Two references: the whole sphere, and the upper
 hemisphere only (world y > 0: the light that can reach a scene standing on the ground).
+Where the distant-light assumption fails (a room, a light close by), a file says
+`"truth_reference": "probe"` and each frame's `probe` object (same fields, same conventions)
+is the reference instead: the light at the scene, not the environment map's. Each frame
+also names the environment map that lit it (`env_map`) and its sequence's layout, so that
+`arlight bench` can group errors by map and hold maps out.
 
 Metrics, each a number per frame:
 - `angular_error_deg`: between unit directions towards the light (the paper's evaluation).
@@ -28,6 +33,17 @@ from arlight.pipeline import sh
 GT_FILE = "lighting_gt.json"
 
 
+# the shared set's categories (no "layout" key there) and the layout each stands for
+CATEGORY_LAYOUTS = {"a_static": "static", "b_dynamic_object": "dynamic",
+                    "c_light_change": "light_change", "d_indoor_env": "indoor",
+                    "e_few_normals": "few_normals"}
+PROBE_FIELDS = ("dominant_dir_upper_camera", "dominant_dir_camera", "sh_lum_upper_world")
+
+
+class GroundTruthError(ValueError):
+    """A lighting_gt.json that cannot be scored against (names the file and the frame)."""
+
+
 @dataclass(frozen=True)
 class FrameTruth:
     """The true light of one frame.
@@ -35,30 +51,76 @@ class FrameTruth:
     dominant_camera / dominant_upper_camera: (3,) unit, towards the light, camera frame, of
     the whole sphere and of the upper hemisphere. sh_upper_world: (16,) luminance radiance SH
     of the upper hemisphere (zero below), world frame, arlight's basis (no phase); None when
-    unknown.
+    unknown. All three are the light probe's where the file's truth_reference is "probe".
+    env_map: name of the environment map that lit this frame (e.g. "venice_sunset_1k"), None
+    when unknown (the built-in scene). layout: the sequence's scene layout ("static", "room",
+    ...; from its "category" where the file has no "layout"), None when unknown.
+    reference: "distant" (the environment map's own fields) or "probe".
     """
 
     dominant_camera: np.ndarray
     dominant_upper_camera: np.ndarray
     sh_upper_world: np.ndarray | None
+    env_map: str | None = None
+    layout: str | None = None
+    reference: str = "distant"
 
 
 def has_ground_truth(folder: str | Path) -> bool:
     return (Path(folder) / GT_FILE).is_file()
 
 
+def layout_of(data: dict) -> str | None:
+    """A lighting_gt.json's layout: its "layout", else derived from its "category"
+    ("a_static" -> "static", "b_dynamic_object" -> "dynamic", an unknown "x_name" -> "name"),
+    else None."""
+    if data.get("layout"):
+        return str(data["layout"])
+    category = data.get("category")
+    if not category:
+        return None
+    category = str(category)
+    if category in CATEGORY_LAYOUTS:
+        return CATEGORY_LAYOUTS[category]
+    head, _, rest = category.partition("_")
+    return rest if len(head) == 1 and rest else category
+
+
 def load_ground_truth(folder: str | Path) -> list[FrameTruth]:
-    """Per-frame truth of a sequence folder, in frame order (lighting_gt.json)."""
-    data = json.loads((Path(folder) / GT_FILE).read_text())
+    """Per-frame truth of a sequence folder, in frame order (lighting_gt.json).
+
+    With `"truth_reference": "probe"` every frame must carry a `probe` object with
+    PROBE_FIELDS; GroundTruthError names the first frame that does not.
+    """
+    path = Path(folder) / GT_FILE
+    data = json.loads(path.read_text())
+    reference = str(data.get("truth_reference", "distant"))
+    if reference not in ("distant", "probe"):
+        raise GroundTruthError(f"{path}: truth_reference {reference!r} is neither 'distant' "
+                               "nor 'probe'")
+    layout = layout_of(data)
     truths = []
-    for f in data["frames"]:
-        upper_sh = f.get("sh_lum_upper_world")
+    for k, f in enumerate(data["frames"]):
+        source = f
+        if reference == "probe":
+            source = f.get("probe")
+            missing = (list(PROBE_FIELDS) if not isinstance(source, dict)
+                       else [name for name in PROBE_FIELDS if name not in source])
+            if missing:
+                raise GroundTruthError(
+                    f"{path}: truth_reference is 'probe' but frame {f.get('index', k)} has "
+                    f"no probe {', '.join(missing)} (expected frames[i]['probe'] with "
+                    f"{', '.join(PROBE_FIELDS)})")
+        upper_sh = source.get("sh_lum_upper_world")
+        env_map = f.get("env_map")
         truths.append(FrameTruth(
-            dominant_camera=np.asarray(f["dominant_dir_camera"], float),
-            dominant_upper_camera=np.asarray(f.get("dominant_dir_upper_camera",
-                                                   f["dominant_dir_camera"]), float),
+            dominant_camera=np.asarray(source["dominant_dir_camera"], float),
+            dominant_upper_camera=np.asarray(source.get("dominant_dir_upper_camera",
+                                                        source["dominant_dir_camera"]), float),
             sh_upper_world=(None if upper_sh is None
-                            else sh.toggle_condon_shortley(np.asarray(upper_sh, float)))))
+                            else sh.toggle_condon_shortley(np.asarray(upper_sh, float))),
+            env_map=None if env_map is None else str(env_map),
+            layout=layout, reference=reference))
     return truths
 
 

@@ -3,6 +3,13 @@
 Tables in the style of the paper's tables 1 (milliseconds per stage) and 2 (accuracy); the
 plot puts every configuration at (milliseconds per frame, median angular error against the
 upper-hemisphere truth), sweeps joined in their order.
+
+Accuracy is grouped three ways, each on the angular error against the upper-hemisphere truth
+(degrees): per sequence, per environment map (the lighting: several sequences share a map,
+a light-change sequence has two) and per layout (the scene's arrangement). Per map, the
+median over that map's frames; over maps, the median of those medians, the 90th percentile
+over all frames and the worst map by name. With `folds`, the leave-one-map-out choice among
+the configurations (arlight.folds): what choosing a configuration is worth on unseen lighting.
 """
 
 from __future__ import annotations
@@ -55,11 +62,69 @@ def _finite(values: list[float]) -> list[float]:
     return [x for x in values if math.isfinite(x)]
 
 
-def _accuracy(per_sequence: dict[str, dict[str, list[float]]]) -> dict | None:
-    """Aggregates over sequences: median of per-sequence medians, p90 over all frames."""
+def _unique(items) -> list:
+    """Items in first-seen order, each once."""
+    return list(dict.fromkeys(items))
+
+
+def _map_figures(frames: list[tuple[str, float]]) -> dict:
+    """(map, error in degrees) per frame -> the median per map (maps sorted by name), the
+    median over maps of those, the 90th percentile over all frames and the worst map."""
+    errors: dict[str, list[float]] = {}
+    for env_map, error in sorted(frames, key=lambda f: f[0]):
+        errors.setdefault(env_map, []).append(error)
+    medians = {m: float(np.median(e)) for m, e in errors.items()}
+    worst = max(medians, key=lambda m: medians[m])
+    return {"maps": medians, "median_over_maps": float(np.median(list(medians.values()))),
+            "p90_all_frames": float(np.percentile([e for _, e in frames], 90)),
+            "worst_map": worst, "worst_map_median": medians[worst], "frames": len(frames)}
+
+
+def group_by_map(errors_deg: dict[str, list[float]], env_maps: dict[str, list[str | None]],
+                 layouts: dict[str, str | None] | None = None) -> dict | None:
+    """Per-frame errors grouped by the environment map that lit each frame, and by layout.
+
+    errors_deg: per sequence, per scored frame, the angular error (degrees) against the
+    upper-hemisphere truth; env_maps: per sequence, the map of each of those frames (the
+    same length; None = unknown, left out); layouts: per sequence its layout (None or absent:
+    "unknown"). Returns None when no frame names a map, else (degrees throughout):
+    maps: {map: median, p90, frames, sequences, layouts}; median_over_maps (the median of the
+    per-map medians), p90_all_frames, worst_map and worst_map_median; layouts: {layout: the
+    same figures over that layout's frames only, per-map medians under "maps"}.
+    """
+    layouts = layouts or {}
+    rows: list[tuple[str, str, str, float]] = []  # (map, sequence, layout, error)
+    for seq, errors in errors_deg.items():
+        maps = env_maps.get(seq)
+        if maps is None:
+            continue
+        layout = layouts.get(seq) or "unknown"
+        rows += [(m, seq, layout, float(e)) for m, e in zip(maps, errors, strict=True)
+                 if m is not None and math.isfinite(e)]
+    if not rows:
+        return None
+    whole = _map_figures([(m, e) for m, _, _, e in rows])
+    maps = {}
+    for env_map, median in whole.pop("maps").items():
+        mine = [r for r in rows if r[0] == env_map]
+        maps[env_map] = {"median": median,
+                         "p90": float(np.percentile([r[3] for r in mine], 90)),
+                         "frames": len(mine), "sequences": _unique(r[1] for r in mine),
+                         "layouts": _unique(r[2] for r in mine)}
+    by_layout = {layout: _map_figures([(m, e) for m, _, lay, e in rows if lay == layout])
+                 for layout in sorted({r[2] for r in rows})}
+    return {"metric": "angle_upper_deg", "maps": maps, **whole, "layouts": by_layout}
+
+
+def _accuracy(per_sequence: dict[str, dict[str, list[float]]],
+              env_maps: dict[str, list[str | None]] | None = None,
+              layouts: dict[str, str | None] | None = None) -> dict | None:
+    """Aggregates over sequences (median of per-sequence medians, p90 over all frames) and
+    over environment maps (`group_by_map`; "by_map" None without map names)."""
     scored = {name: s for name, s in per_sequence.items() if s["angle_upper_deg"]}
     if not scored:
         return None
+    env_maps, layouts = env_maps or {}, layouts or {}
     out: dict = {"sequences": {}}
     for name, s in scored.items():
         out["sequences"][name] = {
@@ -67,6 +132,9 @@ def _accuracy(per_sequence: dict[str, dict[str, list[float]]]) -> dict | None:
         out["sequences"][name]["p90_angle_upper_deg"] = float(
             np.percentile(s["angle_upper_deg"], 90))
         out["sequences"][name]["frames"] = len(s["angle_upper_deg"])
+        out["sequences"][name]["env_maps"] = _unique(
+            m for m in env_maps.get(name, []) if m is not None)
+        out["sequences"][name]["layout"] = layouts.get(name)
     for key in ("angle_upper_deg", "angle_deg", "sh_error", "shading_error"):
         medians = [m[key] for m in out["sequences"].values() if m[key] is not None]
         every = [x for s in scored.values() for x in _finite(s[key])]
@@ -74,7 +142,34 @@ def _accuracy(per_sequence: dict[str, dict[str, list[float]]]) -> dict | None:
                     "p90_all_frames": float(np.percentile(every, 90)) if every else None,
                     "worst_sequence_median": float(max(medians)) if medians else None}
     out["confidence_spearman"] = confidence_spearman(scored)
+    out["by_map"] = group_by_map({n: s["angle_upper_deg"] for n, s in scored.items()},
+                                 env_maps, layouts)
     return out
+
+
+def fold_figures(configs: dict[str, dict]) -> dict:
+    """report.json's "folds": the leave-one-map-out choice (arlight.folds) among the
+    configurations that have per-map figures, on their per-map median angular error against
+    the upper-hemisphere truth (degrees). "note" says why there is nothing to choose (one
+    configuration, fewer than two maps, no map names), else it is None."""
+    from arlight.folds import FoldsError, leave_one_map_out
+
+    per_map = {name: {m: v["median"] for m, v in c["accuracy"]["by_map"]["maps"].items()}
+               for name, c in configs.items()
+               if c.get("accuracy") and c["accuracy"].get("by_map")}
+    base = {"metric": "angle_upper_deg", "candidates": list(per_map),
+            "maps": sorted({m for maps in per_map.values() for m in maps})}
+    if not per_map:
+        return {**base, "note": "no scored frame names its environment map: nothing to hold "
+                                "out"}
+    if len(per_map) == 1:
+        return {**base, "note": "one configuration: nothing to choose (run several presets "
+                                "or a --sweep)"}
+    try:
+        folds = leave_one_map_out(per_map)
+    except FoldsError as exc:
+        return {**base, "note": str(exc)}
+    return {"metric": "angle_upper_deg", **folds.as_dict(), "note": None}
 
 
 def confidence_spearman(per_sequence: dict[str, dict[str, list[float]]]) -> float | None:
@@ -115,9 +210,11 @@ def _model(result, config) -> dict:
 
 
 def summarise(results: list, data: list[str], frames: int | None, warmup: int,
-              sweeps: list[str], configs_used: list | None = None) -> dict:
+              sweeps: list[str], configs_used: list | None = None,
+              folds: bool = False) -> dict:
     """The report as plain JSON values (what report.json holds). configs_used: the
-    pipeline Config of each result, in order (for the "model" figures; None: left out)."""
+    pipeline Config of each result, in order (for the "model" figures; None: left out);
+    folds: add "folds" (`fold_figures`)."""
     configs = {}
     for k, r in enumerate(results):
         total = _spread(r.total_ms)
@@ -126,16 +223,21 @@ def summarise(results: list, data: list[str], frames: int | None, warmup: int,
             "stages_ms": {s: _spread(v) for s, v in r.stage_ms.items()},
             "total_ms": total,
             "fps": 1000.0 / total["median"] if total["median"] else None,
-            "accuracy": _accuracy(r.per_sequence),
+            "accuracy": _accuracy(r.per_sequence, r.env_maps, r.layouts),
         }
         if configs_used is not None:
             configs[r.name]["model"] = _model(r, configs_used[k])
-    return {
+    maps = sorted({m for c in configs.values() if c["accuracy"] and c["accuracy"]["by_map"]
+                   for m in c["accuracy"]["by_map"]["maps"]})
+    report = {
         "arlight": __version__, "commit": _commit(), "machine": platform.machine(),
         "cpus": os.cpu_count(), "python": sys.version.split()[0], "libraries": _versions(),
-        "data": data, "frames": frames, "warmup": warmup, "sweeps": sweeps,
+        "data": data, "env_maps": maps, "frames": frames, "warmup": warmup, "sweeps": sweeps,
         "configs": configs,
     }
+    if folds:
+        report["folds"] = fold_figures(configs)
+    return report
 
 
 # --------------------------------------------------------------------------- tables
@@ -165,12 +267,26 @@ def speed_table(report: dict) -> str:
     return "\n".join(rows)
 
 
+def _worst(figures: dict) -> str:
+    """"12.3 (map_name)": the worst map's median (degrees) and its name."""
+    return f"{figures['worst_map_median']:.1f} ({figures['worst_map']})"
+
+
+def _by_map_cell(by_map: dict | None) -> str:
+    if not by_map:
+        return "-"
+    return (f"{by_map['median_over_maps']:.1f} / {by_map['p90_all_frames']:.1f} / "
+            f"{_worst(by_map)}")
+
+
 def accuracy_table(report: dict) -> str:
-    """The paper's table 2, per config: angular errors (degrees) against both truths, SH and
-    shading errors (scale-free, 0 = exact), and the cost."""
-    rows = ["| config | upper: median of medians / p90 / worst seq. | whole sphere: median / "
-            "p90 | SH error | shading error | confidence vs error (Spearman) | ms/frame |",
-            "|---|---|---|---|---|---|---|"]
+    """The paper's table 2, per config: angular errors (degrees) against both truths, by
+    sequence and by environment map, SH and shading errors (scale-free, 0 = exact), and the
+    cost."""
+    rows = ["| config | upper: median of medians / p90 / worst seq. | upper by map: median "
+            "over maps / p90 over frames / worst map | whole sphere: median / p90 | SH error | "
+            "shading error | confidence vs error (Spearman) | ms/frame |",
+            "|---|---|---|---|---|---|---|---|"]
     for name, c in report["configs"].items():
         a = c["accuracy"]
         if a is None:
@@ -178,7 +294,8 @@ def accuracy_table(report: dict) -> str:
         up, whole = a["angle_upper_deg"], a["angle_deg"]
         rows.append(
             f"| {name} | {_num(up['median_of_medians'])} / {_num(up['p90_all_frames'])} / "
-            f"{_num(up['worst_sequence_median'])} | {_num(whole['median_of_medians'])} / "
+            f"{_num(up['worst_sequence_median'])} | {_by_map_cell(a.get('by_map'))} | "
+            f"{_num(whole['median_of_medians'])} / "
             f"{_num(whole['p90_all_frames'])} | {_num(a['sh_error']['median_of_medians'], '.2f')}"
             f" | {_num(a['shading_error']['median_of_medians'], '.3f')} | "
             f"{_num(a.get('confidence_spearman'), '+.2f')} | "
@@ -197,6 +314,78 @@ def sequence_table(report: dict) -> str:
         rows.append(f"| {s} | " + " | ".join(
             _num(c["accuracy"]["sequences"].get(s, {}).get("angle_upper_deg"))
             for c in named.values()) + " |")
+    return "\n".join(rows)
+
+
+def _mapped(report: dict) -> dict[str, dict]:
+    """Config name -> its "by_map" figures, for the configs that have them."""
+    return {n: c["accuracy"]["by_map"] for n, c in report["configs"].items()
+            if c["accuracy"] and c["accuracy"].get("by_map")}
+
+
+def map_table(report: dict) -> str:
+    """Median angular error (degrees, upper truth) per environment map and config, then over
+    maps: the median of the per-map medians, the 90th percentile over frames, the worst map."""
+    mapped = _mapped(report)
+    if not mapped:
+        return ""
+    first = next(iter(mapped.values()))
+    rows = ["| environment map | layouts | frames | " + " | ".join(mapped) + " |",
+            "|---|---|---|" + "---|" * len(mapped)]
+    for m in sorted({m for b in mapped.values() for m in b["maps"]}):
+        info = first["maps"].get(m, {"layouts": [], "frames": 0})
+        rows.append(f"| {m} | {', '.join(info['layouts'])} | {info['frames']} | " + " | ".join(
+            _num(b["maps"].get(m, {}).get("median")) for b in mapped.values()) + " |")
+    rows.append("| median over maps | | | " + " | ".join(
+        _num(b["median_over_maps"]) for b in mapped.values()) + " |")
+    rows.append("| p90 over frames | | | " + " | ".join(
+        _num(b["p90_all_frames"]) for b in mapped.values()) + " |")
+    rows.append("| worst map | | | " + " | ".join(_worst(b) for b in mapped.values()) + " |")
+    return "\n".join(rows)
+
+
+def layout_table(report: dict) -> str:
+    """Per layout and config (degrees, upper truth): the median over that layout's maps of
+    their medians / the 90th percentile over its frames / its worst map."""
+    mapped = _mapped(report)
+    if not mapped:
+        return ""
+    rows = ["| layout | maps | " + " | ".join(mapped) + " |",
+            "|---|---|" + "---|" * len(mapped)]
+    first = next(iter(mapped.values()))
+    for layout in sorted({lay for b in mapped.values() for lay in b["layouts"]}):
+        maps = first["layouts"].get(layout, {}).get("maps", {})
+        rows.append(f"| {layout} | {len(maps)} | " + " | ".join(
+            _by_map_cell(b["layouts"].get(layout)) for b in mapped.values()) + " |")
+    return "\n".join(rows)
+
+
+def folds_table(report: dict) -> str:
+    """Leave one map out (report "folds"): per held-out map the candidate chosen on the other
+    maps, its error on the held-out map and every candidate's there (degrees, upper truth);
+    then the median over held-out maps, against each candidate kept fixed. Only the note
+    when there is nothing to choose; "" without folds."""
+    folds = report.get("folds")
+    if folds is None:
+        return ""
+    if folds.get("note"):
+        return f"Leave one map out: {folds['note']}."
+    names = folds["candidates"]
+    rows = ["| held-out map | chosen on the other maps (their median) | its error on the map | "
+            + " | ".join(names) + " |", "|---|---|---|" + "---|" * len(names)]
+    for f in folds["folds"]:
+        rows.append(f"| {f['held_out']} | {f['chosen']} ({f['in_sample']:.1f}) | "
+                    f"{f['chosen_error']:.1f} | "
+                    + " | ".join(f"{f['errors'][n]:.1f}" for n in names) + " |")
+    rows.append(f"| median over held-out maps | chosen per fold | "
+                f"{folds['held_out_median']:.1f} | "
+                + " | ".join(f"{folds['fixed_median'][n]:.1f}" for n in names) + " |")
+    best = folds["best_in_sample"]
+    differ = sum(f["chosen"] != best for f in folds["folds"])
+    rows += ["", f"Chosen on all maps: {best} ({folds['fixed_median'][best]:.1f} median over "
+             f"maps, in sample). Chosen without the map it is scored on: "
+             f"{folds['held_out_median']:.1f} median over {len(folds['folds'])} held-out maps; "
+             f"the choice differs from {best} in {differ} of them."]
     return "\n".join(rows)
 
 
@@ -242,6 +431,20 @@ def markdown(report: dict) -> str:
         seq = sequence_table(report)
         if seq:
             parts += ["", "## Per sequence (median degrees, upper hemisphere)", "", seq]
+        maps = map_table(report)
+        if maps:
+            parts += ["", "## Per environment map (median degrees, upper hemisphere)", "",
+                      f"Maps: {', '.join(report.get('env_maps', []))}. Each map's figure is "
+                      "the median over the frames it lit (any sequence); the rows below "
+                      "aggregate over maps, so a map seen in many sequences counts once.", "",
+                      maps, "", "### Per layout (median over maps / p90 over frames / worst "
+                      "map, degrees)", "", layout_table(report)]
+    folds = folds_table(report)
+    if folds:
+        parts += ["", "## Leave one map out (degrees, upper hemisphere)", "",
+                  "Each map in turn is held out: the configuration with the lowest median over "
+                  "the other maps is chosen and scored on the held-out map. Compare the "
+                  "median over held-out maps with each configuration kept fixed.", "", folds]
     model = model_table(report)
     if model:
         parts += ["", "## What the scenes required", "",
