@@ -253,7 +253,7 @@ def _write(spec: SequenceSpec, layout: Layout, entries: list[dict], camera, work
     frames = [dict(np.load(work / f"{i:06d}.npz")) for i in range(spec.frames)]
     exposure = sensor.choose_exposure([f["radiance"] for f in frames],
                                       [f["ids"] >= 0 for f in frames])
-    tmp = final.parent / (final.name + ".partial")
+    tmp = work.parent / (final.name + ".partial")  # inside .work: never seen as a sequence
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     rng = np.random.default_rng(spec.seed)
