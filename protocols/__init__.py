@@ -1,4 +1,11 @@
-"""arlight.protocols: the wire protocol (messages, image codecs, validation). Spec: SPEC.md."""
+"""arlight.protocols: the wire protocol (messages, image codecs, validation). Spec: SPEC.md.
+
+One module per concern: fields.py (version, limits, the schema reader), images.py and
+codecs.py (image descriptors, pixel codecs), session_config.py with scene.py and layouts.py
+(Hello), frame_result.py (Frame, Result), control.py (Welcome, Credit, Error, Heartbeat, Bye),
+diagnostics.py, wire.py (encode/decode of the multipart framing), errors.py, container.py,
+records.py. messages.py re-exports the messages for code that imports it by that name.
+"""
 
 from .codecs import (
     COLOR_CODECS,
@@ -13,44 +20,39 @@ from .codecs import (
     encode_depth,
 )
 from .container import read_container, write_container
-from .errors import ERROR_CODES, ProtocolError
-from .messages import (
-    DEFAULT_MAX_MESSAGE_BYTES,
-    EXPORT_LAYOUTS,
-    LIGHT_SOURCES,
-    MAX_HEADER_BYTES,
-    MESSAGE_TYPES,
-    MODES,
-    PROTOCOL_VERSION,
-    ROLES,
-    SCENE_MAX_OBJECTS,
-    SCENE_MAX_TRIANGLES,
-    TOKEN_RE,
+from .control import (
     Bye,
     ByeKind,
-    CameraCalibration,
     Credit,
     Error,
     ErrorField,
-    Frame,
     Heartbeat,
-    Hello,
-    Message,
-    PanoramaConfig,
-    Result,
+    Welcome,
+    error_from_exception,
+)
+from .diagnostics import plain_diagnostics
+from .errors import ERROR_CODES, ProtocolError
+from .fields import (
+    DEFAULT_MAX_MESSAGE_BYTES,
+    MAX_HEADER_BYTES,
+    MODES,
+    PROTOCOL_VERSION,
+    ROLES,
+    TOKEN_RE,
+    new_token,
+)
+from .frame_result import Frame, Result
+from .layouts import EXPORT_LAYOUTS
+from .records import received_record, result_record
+from .scene import (
+    SCENE_MAX_OBJECTS,
+    SCENE_MAX_TRIANGLES,
     SceneAnchorSpec,
     SceneObjectSpec,
     SceneSpec,
-    SessionConfig,
-    Welcome,
-    decode,
-    encode,
-    error_from_exception,
-    new_token,
-    peek_header,
-    plain_diagnostics,
 )
-from .records import received_record, result_record
+from .session_config import LIGHT_SOURCES, CameraCalibration, Hello, PanoramaConfig, SessionConfig
+from .wire import MESSAGE_TYPES, Message, decode, encode, peek_header
 
 __all__ = [
     "COLOR_CODECS",

@@ -8,7 +8,7 @@ FrameResult with the server's own conversion (arlight.server.results.result_mess
 
 from __future__ import annotations
 
-from .messages import Result
+from .frame_result import Result
 
 WALL_CLOCK_WINDOW_S = 3600.0  # timestamps within this of the receive time are capture times
 

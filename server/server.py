@@ -72,7 +72,7 @@ from arlight.protocols import (
     new_token,
     peek_header,
 )
-from arlight.protocols.messages import MAX_INT as MAX_SEQ  # a Frame's seq: 0..2^63-1
+from arlight.protocols.fields import MAX_INT as MAX_SEQ  # a Frame's seq: 0..2^63-1
 from arlight.server.budget import SessionBudget
 from arlight.server.security import (
     CurveServer,

@@ -67,7 +67,7 @@ from arlight.protocols import (
     error_from_exception,
     peek_header,
 )
-from arlight.protocols.messages import MAX_INT as MAX_SEQ
+from arlight.protocols.fields import MAX_INT as MAX_SEQ
 from arlight.server.budget import PANORAMA_BYTES_PER_PIXEL, SessionBudget
 from arlight.server.results import result_message
 

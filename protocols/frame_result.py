@@ -1,0 +1,279 @@
+"""The data messages (SPEC.md section 4): Frame (capture client -> server: colour, depth, pose,
+panorama) and Result (server -> clients: the lighting of one processed frame)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from .codecs import (
+    DEFAULT_COLOR_CODEC,
+    DEFAULT_DEPTH_CODEC,
+    DEFAULT_JPEG_QUALITY,
+    encode_color,
+    encode_depth,
+)
+from .diagnostics import read_diagnostics
+from .errors import ProtocolError
+from .fields import (
+    FieldReader,
+    float_list,
+    pose_to_wire,
+    read_float,
+    read_floats,
+    read_plain_map,
+    read_pose,
+    to_plain,
+)
+from .images import ImageParts, add_image
+from .layouts import read_exports
+
+
+@dataclass
+class Frame:
+    TYPE: ClassVar[str] = "frame"
+    seq: int  # >= 0, per session, increasing
+    timestamp: float  # capture time, sender clock, seconds
+    color: np.ndarray | None  # (H, W, 3) uint8 RGB; None with depth: a panorama-only frame
+    depth: np.ndarray | None  # (H, W) uint16, SessionConfig.depth_scale units per metre,
+    # 0 = missing; None together with color (then panorama is required)
+    pose: np.ndarray | None = None  # (4, 4) float64 camera-to-world
+    panorama: np.ndarray | None = None  # (h, w, 3) uint8 RGB equirectangular
+    color_codec: str = DEFAULT_COLOR_CODEC  # also used for the panorama
+    depth_codec: str = DEFAULT_DEPTH_CODEC
+    jpeg_quality: int = DEFAULT_JPEG_QUALITY
+
+    def _pack(self, parts: list) -> dict:
+        nm = "frame"
+        color, depth = self.color, self.depth
+        if isinstance(color, np.ndarray) and isinstance(depth, np.ndarray):
+            if color.shape[:2] != depth.shape[:2]:
+                raise ProtocolError(
+                    "bad_field",
+                    f"depth shape {depth.shape} and colour shape {color.shape} must agree in "
+                    "(H, W)",
+                    f"{nm}.depth",
+                )
+        out: dict[str, Any] = {
+            "seq": to_plain(self.seq),
+            "timestamp": to_plain(self.timestamp),
+            "pose": None if self.pose is None else pose_to_wire(self.pose, f"{nm}.pose"),
+        }
+        if (color is None) != (depth is None):
+            missing = "color" if color is None else "depth"
+            raise ProtocolError("bad_field", "give both colour and depth, or neither (a "
+                                "panorama-only frame)", f"{nm}.{missing}")
+        if color is None and self.panorama is None:
+            raise ProtocolError("bad_field", "a frame without colour and depth must carry a "
+                                "panorama", f"{nm}.panorama")
+        out["color"] = None if color is None else add_image(
+            parts, *encode_color(color, self.color_codec, self.jpeg_quality, field=f"{nm}.color")
+        )
+        out["depth"] = None if depth is None else add_image(
+            parts, *encode_depth(depth, self.depth_codec, field=f"{nm}.depth")
+        )
+        out["panorama"] = None if self.panorama is None else add_image(
+            parts,
+            *encode_color(self.panorama, self.color_codec, self.jpeg_quality,
+                          field=f"{nm}.panorama"),
+        )
+        return out
+
+    @classmethod
+    def _unpack(cls, h: FieldReader, v: int, images: ImageParts) -> Frame:
+        seq = h.int("seq")
+        timestamp = h.float("timestamp")
+        pose = h.raw("pose", nullable=True)
+        pose = None if pose is None else read_pose(pose, h.f("pose"))
+        dc = images.descriptor(h, "color", depth=False, nullable=True)
+        dd = images.descriptor(h, "depth", depth=True, nullable=True)
+        dp = images.descriptor(h, "panorama", depth=False, nullable=True)
+        if (dc is None) != (dd is None):
+            raise ProtocolError("bad_field", "give both colour and depth, or neither (a "
+                                "panorama-only frame)", h.f("color" if dc is None else "depth"))
+        if dc is None and dp is None:
+            raise ProtocolError("bad_field", "a frame without colour and depth must carry a "
+                                "panorama", h.f("panorama"))
+        if dc is not None and (dc[2], dc[3]) != (dd[2], dd[3]):
+            raise ProtocolError(
+                "bad_field",
+                f"depth is {dd[2]} x {dd[3]}, colour {dc[2]} x {dc[3]}: they must agree",
+                h.f("depth"),
+            )
+        h.done()
+        images.done(h.name)
+        color = images.decode(dc)
+        depth = images.decode(dd)
+        panorama = images.decode(dp)
+        first = dc if dc is not None else dp  # the colour codec: of the colour, else panorama
+        quality = first[0].get("quality", DEFAULT_JPEG_QUALITY)
+        depth_codec = DEFAULT_DEPTH_CODEC if dd is None else dd[1]
+        return cls(seq, timestamp, color, depth, pose, panorama, first[1], depth_codec, quality)
+
+
+@dataclass(kw_only=True)
+class Result:
+    """The lighting of one processed frame (server -> capture and display clients).
+
+    Built with keywords only. `diagnostics`: a bounded map of plain values (str, bool, int,
+    float, nil, arrays of numbers, maps of these; SPEC.md "diagnostics"), e.g. the pipeline's
+    `{"tracking": {"ok": True, "reason": ""}}`; anything else is refused by encode().
+    """
+
+    TYPE: ClassVar[str] = "result"
+    seq: int
+    timestamp: float  # the frame's capture timestamp, sender clock, seconds
+    sh: list[float]  # radiance SH, luminance, world frame, L^2 coefficients
+    sh_camera: list[float] | None = None  # the same light in this frame's camera frame
+    sh_rgb: list[list[float]] | None = None  # 3 x L^2, world frame
+    dominant_direction_camera: list[float]  # unit vector towards the light
+    dominant_direction_world: list[float]
+    intensity: float
+    confidence: dict
+    pose: list[list[float]]  # 4 x 4 camera-to-world
+    timings_ms: dict[str, float]
+    diagnostics: dict = dataclasses.field(default_factory=dict)
+    frames_received: int  # session counters so far
+    frames_processed: int
+    frames_dropped: int
+    server_receive_time: float  # server wall clock, seconds
+    server_finish_time: float
+    composite: np.ndarray | None = None  # (H, W, 3) uint8 RGB
+    composite_codec: str = "jpeg"
+    jpeg_quality: int = DEFAULT_JPEG_QUALITY
+    # the frame's panorama light (optional keys, all three or none: absent = no panorama),
+    # in the PANORAMA's frame (+y up, u = atan2(x, -z) / 2 pi), radiance of the HDR map
+    panorama_sh: list[float] | None = None  # luminance, L^2 coefficients
+    panorama_sh_rgb: list[list[float]] | None = None  # 3 x L^2, linear R, G, B
+    panorama_dominant_direction: list[float] | None = None  # unit, towards the light
+    # the light in the engine layouts the session's Hello asked for (optional key: absent
+    # when it asked for none): layout name -> numbers, CAMERA frame with the engine's axes
+    exports: dict | None = None
+
+    def _pack(self, parts: list) -> dict:
+        out = {
+            "seq": to_plain(self.seq),
+            "timestamp": to_plain(self.timestamp),
+            "sh": float_list(self.sh, "result.sh"),
+            "sh_camera": None if self.sh_camera is None else float_list(
+                self.sh_camera, "result.sh_camera"),
+            "sh_rgb": None if self.sh_rgb is None else float_list(self.sh_rgb, "result.sh_rgb"),
+            "dominant_direction_camera": float_list(
+                self.dominant_direction_camera, "result.dominant_direction_camera"
+            ),
+            "dominant_direction_world": float_list(
+                self.dominant_direction_world, "result.dominant_direction_world"
+            ),
+            "intensity": to_plain(self.intensity),
+            "confidence": to_plain(self.confidence),
+            "pose": pose_to_wire(self.pose, "result.pose"),
+            "timings_ms": to_plain(self.timings_ms),
+            "diagnostics": to_plain(self.diagnostics),
+            "frames_received": to_plain(self.frames_received),
+            "frames_processed": to_plain(self.frames_processed),
+            "frames_dropped": to_plain(self.frames_dropped),
+            "server_receive_time": to_plain(self.server_receive_time),
+            "server_finish_time": to_plain(self.server_finish_time),
+        }
+        given = [self.panorama_sh is not None, self.panorama_sh_rgb is not None,
+                 self.panorama_dominant_direction is not None]
+        if any(given) and not all(given):
+            missing = [k for k, g in zip(_PANORAMA_RESULT_KEYS, given, strict=True) if not g]
+            raise ProtocolError("bad_field", "give panorama_sh, panorama_sh_rgb and "
+                                "panorama_dominant_direction together, or none",
+                                f"result.{missing[0]}")
+        if all(given):  # optional keys: absent when the frame had no panorama
+            out["panorama_sh"] = float_list(self.panorama_sh, "result.panorama_sh")
+            out["panorama_sh_rgb"] = float_list(self.panorama_sh_rgb, "result.panorama_sh_rgb")
+            out["panorama_dominant_direction"] = float_list(
+                self.panorama_dominant_direction, "result.panorama_dominant_direction")
+        if self.exports is not None:  # optional key: absent when the session asked for none
+            out["exports"] = read_exports(to_plain(self.exports), "result.exports")
+        out["composite"] = None
+        if self.composite is not None:
+            out["composite"] = add_image(
+                parts,
+                *encode_color(self.composite, self.composite_codec, self.jpeg_quality,
+                              field="result.composite"),
+            )
+        return out
+
+    @classmethod
+    def _unpack(cls, h: FieldReader, v: int, images: ImageParts) -> Result:
+        seq = h.int("seq")
+        timestamp = h.float("timestamp")
+        sh = h.floats("sh", max_len=1024)
+        bands = math.isqrt(len(sh))
+        if not sh or bands * bands != len(sh):
+            raise ProtocolError(
+                "bad_field", f"{len(sh)} coefficients is not L^2 for L >= 1", h.f("sh")
+            )
+        sh_camera = h.raw("sh_camera", nullable=True)
+        if sh_camera is not None:
+            sh_camera = read_floats(sh_camera, h.f("sh_camera"), len(sh))
+        sh_rgb = h.raw("sh_rgb", nullable=True)
+        if sh_rgb is not None:
+            if type(sh_rgb) is not list or len(sh_rgb) != 3:
+                raise ProtocolError(
+                    "bad_field", "expected 3 arrays (R, G, B) of L^2 numbers", h.f("sh_rgb")
+                )
+            sh_rgb = [read_floats(c, f"{h.f('sh_rgb')}[{i}]", len(sh))
+                      for i, c in enumerate(sh_rgb)]
+        fields: dict[str, Any] = dict(
+            seq=seq, timestamp=timestamp, sh=sh, sh_camera=sh_camera, sh_rgb=sh_rgb,
+            dominant_direction_camera=h.floats("dominant_direction_camera", 3),
+            dominant_direction_world=h.floats("dominant_direction_world", 3),
+            intensity=h.float("intensity"),
+            confidence=read_plain_map(h.raw("confidence"), h.f("confidence"), 0, 64),
+            pose=read_pose(h.raw("pose"), h.f("pose")).tolist(),
+        )
+        timings = read_plain_map(h.raw("timings_ms"), h.f("timings_ms"), 0, 64)
+        fields["timings_ms"] = {
+            k: read_float(x, f"{h.f('timings_ms')}.{k}", 0.0) for k, x in timings.items()
+        }
+        fields["diagnostics"] = read_diagnostics(h.raw("diagnostics"), h.f("diagnostics"))
+        for key in ("frames_received", "frames_processed", "frames_dropped"):
+            fields[key] = h.int(key)
+        for key in ("server_receive_time", "server_finish_time"):
+            fields[key] = h.float(key)
+        fields.update(_read_panorama_light(h))
+        if "exports" in h.d:  # optional key: absent = the session asked for no layout
+            fields["exports"] = read_exports(h.raw("exports"), h.f("exports"))
+        dc = images.descriptor(h, "composite", depth=False, nullable=True)
+        h.done()
+        images.done(h.name)
+        if dc is not None:
+            fields.update(composite=images.decode(dc), composite_codec=dc[1],
+                          jpeg_quality=dc[0].get("quality", DEFAULT_JPEG_QUALITY))
+        return cls(**fields)
+
+
+_PANORAMA_RESULT_KEYS = ("panorama_sh", "panorama_sh_rgb", "panorama_dominant_direction")
+
+
+def _read_panorama_light(h: FieldReader) -> dict:
+    """Result's optional panorama keys: all three or none (SPEC.md, "result")."""
+    present = [k in h.d for k in _PANORAMA_RESULT_KEYS]
+    if not any(present):
+        return {}
+    if not all(present):
+        missing = _PANORAMA_RESULT_KEYS[present.index(False)]
+        raise ProtocolError("bad_field", "missing (the panorama keys come all three or none)",
+                            h.f(missing))
+    coeffs = h.floats("panorama_sh", max_len=1024)
+    bands = math.isqrt(len(coeffs))
+    if not coeffs or bands * bands != len(coeffs):
+        raise ProtocolError(
+            "bad_field", f"{len(coeffs)} coefficients is not L^2 for L >= 1", h.f("panorama_sh"))
+    rgb = h.raw("panorama_sh_rgb")
+    if type(rgb) is not list or len(rgb) != 3:
+        raise ProtocolError("bad_field", "expected 3 arrays (R, G, B) of L^2 numbers",
+                            h.f("panorama_sh_rgb"))
+    rgb = [read_floats(c, f"{h.f('panorama_sh_rgb')}[{i}]", len(coeffs)) for i, c in enumerate(rgb)]
+    direction = h.floats("panorama_dominant_direction", 3)
+    return {"panorama_sh": coeffs, "panorama_sh_rgb": rgb,
+            "panorama_dominant_direction": direction}
