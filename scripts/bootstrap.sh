@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up everything arlight needs on a fresh Debian/Ubuntu machine (idempotent, quick when done):
 # the system libraries Open3D loads, a virtual environment in .venv, and arlight installed
-# into it in editable mode with its test tools, and the Numba kernels compiled into their cache.
+# into it in editable mode with its test and docs tools, and the Numba kernels compiled into
+# their cache.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -36,7 +37,8 @@ if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; th
   "$PYTHON" -m venv .venv
   .venv/bin/python -m pip install -q --upgrade pip
   # PYTHONWARNINGS: setuptools' notes about editable installs are not for our users
-  PYTHONWARNINGS=ignore .venv/bin/python -m pip install -q -e ".[test]"
+  # [docs]: ./run-tests.sh builds the docs site (mkdocs) before the tests
+  PYTHONWARNINGS=ignore .venv/bin/python -m pip install -q -e ".[test,docs]"
   # compile the Numba kernels now (a minute or two, once), not on a user's first frames
   .venv/bin/python -m arlight.warmup
   echo "$want" > "$stamp"
