@@ -163,8 +163,8 @@ def publish_result(sink: Sink, result, record: Mapping, log_time_ns: int,
     if with_pose and result.pose is not None:
         sink.log(fx.TF_TOPIC, fx.camera_transform(np.asarray(result.pose), stamp_s),
                  log_time_ns)
-    confidence = float((result.confidence or {}).get("value", 0.0) or 0.0)
-    sink.log(fx.LIGHT_TOPIC, fx.light_scene(result.dominant_direction_world, confidence,
+    sink.log(fx.LIGHT_TOPIC, fx.light_scene(result.dominant_direction_world,
+                                            float(result.confidence.value),
                                             stamp_s), log_time_ns)
     sink.log_json(fx.LIGHTING_TOPIC, fx.LIGHTING_SCHEMA, fx.lighting_message(record),
                   log_time_ns)

@@ -119,7 +119,6 @@ class WebDisplay:
         e2e = record.get("end_to_end_ms")
         latency = e2e if e2e is not None else (record["in_server_ms"]
                                                + record["server_to_client_ms"])
-        confidence = dict(result.confidence or {})
         with self._cond:
             results = self._state.get("results", 0) + 1
             self._state = {
@@ -129,8 +128,8 @@ class WebDisplay:
                 "latency_kind": "end_to_end" if e2e is not None else "server_receive_to_display",
                 "pipeline_ms": record.get("pipeline_ms"),
                 "timings_ms": {k: round(float(v), 2) for k, v in result.timings_ms.items()},
-                "confidence": float(confidence.get("value", 0.0) or 0.0),
-                "confidence_detail": confidence,
+                "confidence": float(result.confidence.value),
+                "confidence_detail": result.confidence.to_dict(),
                 "dominant_direction_camera": [float(x) for x in
                                               result.dominant_direction_camera],
                 "sh_camera": [float(x) for x in (result.sh_camera or result.sh)],

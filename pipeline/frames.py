@@ -1,10 +1,21 @@
-"""Per-frame input and output of the pipeline (docs/architecture.md, "Data flow")."""
+"""Per-frame input and output of the pipeline (docs/architecture.md, "Data flow").
+
+Confidence and Diagnostics are the frame path's shared contracts (arlight.contracts: the
+protocol and the clients read the same types); they are re-exported here."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+
+from arlight.contracts import Confidence, Diagnostics
+
+if TYPE_CHECKING:
+    from arlight.pipeline.rendering import EnvironmentMap
+
+__all__ = ["Confidence", "Diagnostics", "FrameInput", "FrameResult", "RenderLight"]
 
 
 @dataclass
@@ -28,46 +39,18 @@ class FrameInput:
     depth_scale: float | None = None
 
 
-@dataclass
-class Confidence:
-    """What the data could constrain in one light estimate.
+class RenderLight(NamedTuple):
+    """An outside light that renders the virtual objects instead of the frame's estimate (a
+    session lit by its 360-degree panorama; `Pipeline.process(render_light=...)`).
 
-    samples: pixels used in the least-squares fit; condition_number: of the (unregularised,
-    column-scaled) normal matrix; bands_estimated: SH bands solved for (the rest are zero);
-    value: overall confidence in [0, 1] (0 = no estimate possible); reason: why the value is
-    low (below light_estimation.LOW_CONFIDENCE, or 0), naming the cause ("" otherwise);
-    normal_spread: 1 - |mean unit normal|^2 of the pixels fitted (0 = one plane);
-    horizon_disagreement_deg: degrees between the whole-sphere direction and the one above
-    the support plane's horizon (0 without a plane); side_share: share of the fitted
-    pixels' normals facing sideways to the support plane (None: no plane seen yet);
-    jump_deg: degrees between this frame's direction and the filtered one before it.
-    light_estimation says how each counts (the last two: `with_view_and_steadiness`).
+    sh: (n,) radiance SH, WORLD frame, the light's own units (no albedo scaling); sh_rgb:
+    (3, n) per linear RGB channel, or None; environment: a `rendering.EnvironmentMap` (the
+    panorama's HDR map) that mirror and glossy objects reflect, or None.
     """
 
-    samples: int = 0
-    condition_number: float = float("inf")
-    bands_estimated: int = 0
-    value: float = 0.0
-    reason: str = ""
-    normal_spread: float = 0.0
-    horizon_disagreement_deg: float = 0.0
-    side_share: float | None = None
-    jump_deg: float = 0.0
-
-    def to_dict(self) -> dict:
-        cond = self.condition_number
-        return {
-            "samples": int(self.samples),
-            # JSON has no infinity: a system that could not be set up reports null
-            "condition_number": float(cond) if np.isfinite(cond) else None,
-            "bands_estimated": int(self.bands_estimated),
-            "value": float(self.value),
-            "reason": self.reason,
-            "normal_spread": float(self.normal_spread),
-            "horizon_disagreement_deg": float(self.horizon_disagreement_deg),
-            "side_share": None if self.side_share is None else float(self.side_share),
-            "jump_deg": float(self.jump_deg),
-        }
+    sh: np.ndarray
+    sh_rgb: np.ndarray | None = None
+    environment: EnvironmentMap | None = None
 
 
 @dataclass
@@ -94,4 +77,4 @@ class FrameResult:
     sh_rgb: np.ndarray | None = None
     composite: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
-    diagnostics: dict = field(default_factory=dict)
+    diagnostics: Diagnostics = field(default_factory=Diagnostics)

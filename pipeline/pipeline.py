@@ -23,12 +23,13 @@ import cv2
 import numpy as np
 
 from arlight.checks import CheckError, check_finite, check_image, check_rigid, depth_metres
+from arlight.contracts import TrackingDiagnostics
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.color import intensity_from_rgb, luminance, srgb_to_linear
 from arlight.pipeline.config import Config, RtMethod
 from arlight.pipeline.depth_filter import backend_for_device, filter_depth, normals_from_depth
-from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
+from arlight.pipeline.frames import Confidence, Diagnostics, FrameInput, FrameResult, RenderLight
 from arlight.pipeline.horizon import SupportPlane, support_plane
 from arlight.pipeline.light_estimation import (
     LightEstimate,
@@ -213,16 +214,15 @@ class Pipeline:
         """Voxel blocks allocated in the session's volume so far (0 without a volume)."""
         return 0 if self._volume is None else int(self._volume.num_blocks)
 
-    def process(self, frame: FrameInput, render_light: tuple | None = None,
+    def process(self, frame: FrameInput, render_light: RenderLight | None = None,
                 checkpoint: Callable[[str], None] | None = None) -> FrameResult:
         """Estimate the lighting of one frame. Raises FrameError on malformed input.
 
-        render_light: optional (sh (n,), sh_rgb (3, n) or None[, environment]), radiance SH
-        in the WORLD frame, that renders the virtual objects instead of this frame's estimate
-        (a session lit by its 360-degree panorama, `light_source` "panorama"); the estimate
-        is still made and returned. Its units are the light's own (no albedo scaling).
-        environment: an optional `rendering.EnvironmentMap` (the panorama's HDR map) that
-        mirror and glossy objects reflect.
+        render_light: an optional `RenderLight` (radiance SH in the WORLD frame, and the
+        panorama's HDR map for mirror and glossy objects) that renders the virtual objects
+        instead of this frame's estimate (a session lit by its 360-degree panorama,
+        `light_source` "panorama"); the estimate is still made and returned. A plain
+        (sh, sh_rgb[, environment]) tuple is read as a RenderLight.
 
         checkpoint: optional, called with each stage's name before it starts (not before
         Input), and with "LightEst" before each robust iteration; whatever it raises abandons
@@ -230,17 +230,20 @@ class Pipeline:
         session's state keeps what the finished stages did (the volume may hold the
         abandoned frame's depth)."""
         check = checkpoint or _no_checkpoint
+        if render_light is not None and not isinstance(render_light, RenderLight):
+            render_light = RenderLight(*render_light)
         timings: dict[str, float] = {}
-        diagnostics: dict = {}
+        diagnostics: Diagnostics = {}
         with _stage(timings, "Input"):
             valid = validate_frame(frame, self.camera)
             intensity = intensity_from_rgb(valid.color)
             color_linear = srgb_to_linear(valid.color)
         check("Reconstruct")
-        pose, depth_volume, aux_buffers = self._reconstruct(valid, timings, diagnostics)
+        pose, depth_volume, aux_buffers, tracked = self._reconstruct(valid, timings,
+                                                                     diagnostics)
         check("DynGeo")
         with _stage(timings, "DynGeo"):  # the test of a still camera costs ~1 ms
-            reuse = (self._last_transfer is not None and diagnostics["tracking_ok"]
+            reuse = (self._last_transfer is not None and tracked
                      and self._still.may_reuse(pose, valid.depth_m))
         if reuse:
             geometry, transfer = self._last_transfer
@@ -332,7 +335,7 @@ class Pipeline:
     def _render(self, valid: ValidFrame, color_linear: np.ndarray, geometry: _Geometry,
                 pose: np.ndarray, aux_buffers: list, coeffs: np.ndarray,
                 estimate: LightEstimate,
-                render_light: tuple | None = None,
+                render_light: RenderLight | None = None,
                 ) -> np.ndarray | None:
         """Rendering: the composite (H, W, 3) uint8 of the placed virtual objects, or None
         (the input) while none is placed. The estimate knows albedo x light only (its mean
@@ -348,11 +351,10 @@ class Pipeline:
         else:  # an outside light (the panorama's), as many coefficients as the estimate
             n = len(coeffs)
             light = np.zeros(n)
-            given = np.asarray(render_light[0], np.float64)[:n]
+            given = np.asarray(render_light.sh, np.float64)[:n]
             light[:len(given)] = given
-            light_rgb = luminance_light_rgb(render_light[1])
-        environment = render_light[2] if render_light is not None and len(render_light) > 2 \
-            else None
+            light_rgb = luminance_light_rgb(render_light.sh_rgb)
+        environment = None if render_light is None else render_light.environment
         inputs = RenderInputs(valid.color, color_linear, geometry.depth_m, geometry.normals,
                               pose, list(aux_buffers), geometry.plane, light, light_rgb,
                               environment)
@@ -380,18 +382,21 @@ class Pipeline:
             return sh.dominant_direction(coeffs)
         return sh.above_horizon_direction(coeffs, self._up_world)
 
-    def _reconstruct(self, valid: ValidFrame, timings: dict[str, float], diagnostics: dict,
-                     ) -> tuple[np.ndarray, np.ndarray | None, list]:
-        """Reconstruct + Surface: (pose, D_v or None, aux buffers); tracking diagnostics and
+    def _reconstruct(self, valid: ValidFrame, timings: dict[str, float],
+                     diagnostics: Diagnostics,
+                     ) -> tuple[np.ndarray, np.ndarray | None, list, bool]:
+        """Reconstruct + Surface: (pose, D_v or None, aux buffers, tracked: the frame was
+        tracked or its pose given, else the last pose is kept); tracking diagnostics and
         `reused` ({stage: bool}: a still camera's stage outputs taken from an earlier frame)."""
         diagnostics["reused"] = {"Surface": False, "DynGeo": False, "RadTransfer": False}
         depth_volume, aux_buffers = None, []
         if self._volume is None:
             timings["Reconstruct"] = timings["Surface"] = 0.0
-            ok = valid.pose is not None or self.frames_processed == 0
+            tracked = valid.pose is not None or self.frames_processed == 0
             pose = valid.pose if valid.pose is not None else self._pose
-            tracking = {"ok": ok, "reason": "" if ok else "no volume (use_volume false) and "
-                                                          "no pose: the last pose is kept"}
+            tracking: TrackingDiagnostics = {
+                "ok": tracked, "reason": "" if tracked else "no volume (use_volume false) and "
+                                                            "no pose: the last pose is kept"}
         else:
             surface = self._volume.process_validated(valid.depth_m, valid.pose,
                                                      self._light_world)
@@ -399,13 +404,14 @@ class Pipeline:
             timings["Surface"] = surface.timings_ms.get("Surface", 0.0)
             pose, depth_volume, aux_buffers = (surface.pose, surface.depth_volume_m,
                                                surface.aux_buffers)
+            tracked = bool(surface.tracking.ok)
             tracking = surface.tracking.to_dict()
             # a still camera: fusion skipped, the last frame's cast and aux buffers reused
             diagnostics["reused"]["Surface"] = surface.reused
         self._pose = pose
-        diagnostics["tracking_ok"] = bool(tracking["ok"])
+        diagnostics["tracking_ok"] = tracked
         diagnostics["tracking"] = tracking
-        return pose, depth_volume, aux_buffers
+        return pose, depth_volume, aux_buffers, tracked
 
     def _dynamic_geometry(self, depth_m: np.ndarray, depth_volume: np.ndarray | None,
                           intensity: np.ndarray) -> _Geometry:
@@ -505,7 +511,8 @@ class Pipeline:
                               checkpoint=checkpoint)
 
     def _estimate_diagnostics(self, estimate: LightEstimate, up_world: np.ndarray | None,
-                              confidence: Confidence, raw_direction: np.ndarray) -> dict:
+                              confidence: Confidence, raw_direction: np.ndarray
+                              ) -> Diagnostics:
         """Plain JSON types (the wire carries them): what the light estimate did and why."""
         return {
             "residual_rel": _json_float(estimate.residual_rel),

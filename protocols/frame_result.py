@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
+
+from arlight.contracts import Confidence, Diagnostics
 
 from .codecs import (
     DEFAULT_COLOR_CODEC,
@@ -122,6 +125,11 @@ class Result:
     Built with keywords only. `diagnostics`: a bounded map of plain values (str, bool, int,
     float, nil, arrays of numbers, maps of these; SPEC.md "diagnostics"), e.g. the pipeline's
     `{"tracking": {"ok": True, "reason": ""}}`; anything else is refused by encode().
+
+    `confidence`: a `Confidence` (arlight.contracts), the type the pipeline makes. A plain
+    map is accepted too (the wire carries any map of plain values, SPEC.md "result"): it is
+    read with `Confidence.from_dict` and kept as it came, so that it goes out unchanged
+    (`confidence_map`); decode() builds every Result that way.
     """
 
     TYPE: ClassVar[str] = "result"
@@ -133,10 +141,10 @@ class Result:
     dominant_direction_camera: list[float]  # unit vector towards the light
     dominant_direction_world: list[float]
     intensity: float
-    confidence: dict
+    confidence: Confidence
     pose: list[list[float]]  # 4 x 4 camera-to-world
     timings_ms: dict[str, float]
-    diagnostics: dict = dataclasses.field(default_factory=dict)
+    diagnostics: Diagnostics = dataclasses.field(default_factory=Diagnostics)
     frames_received: int  # session counters so far
     frames_processed: int
     frames_dropped: int
@@ -154,6 +162,26 @@ class Result:
     # when it asked for none): layout name -> numbers, CAMERA frame with the engine's axes
     exports: dict | None = None
 
+    def __post_init__(self) -> None:
+        self._confidence_map: tuple[Confidence, dict] | None = None
+        given: Any = self.confidence
+        if isinstance(given, Mapping):  # as the wire carries it: read, and kept as it came
+            plain = to_plain(dict(given))
+            self.confidence = Confidence.from_dict(plain)
+            self._confidence_map = (self.confidence, plain)
+
+    @property
+    def confidence_map(self) -> Any:
+        """Result.confidence as the wire carries it: the map this Result was built or
+        decoded from (while `confidence` is still the Confidence read from it), else
+        `confidence.to_dict()`."""
+        kept = self._confidence_map
+        if kept is not None and kept[0] is self.confidence:
+            return kept[1]
+        if isinstance(self.confidence, Confidence):
+            return self.confidence.to_dict()
+        return self.confidence  # neither a Confidence nor a map: encode() refuses it
+
     def _pack(self, parts: list) -> dict:
         out = {
             "seq": to_plain(self.seq),
@@ -169,7 +197,7 @@ class Result:
                 self.dominant_direction_world, "result.dominant_direction_world"
             ),
             "intensity": to_plain(self.intensity),
-            "confidence": to_plain(self.confidence),
+            "confidence": to_plain(self.confidence_map),
             "pose": pose_to_wire(self.pose, "result.pose"),
             "timings_ms": to_plain(self.timings_ms),
             "diagnostics": to_plain(self.diagnostics),

@@ -24,7 +24,7 @@ def result_record(result: Result) -> dict:
         "dominant_direction_camera": result.dominant_direction_camera,
         "dominant_direction_world": result.dominant_direction_world,
         "intensity": result.intensity,
-        "confidence": result.confidence,
+        "confidence": result.confidence_map,  # as the wire carried it
         "pose": result.pose,
         "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},
         "diagnostics": result.diagnostics,

@@ -45,7 +45,7 @@ def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, i
         sh_rgb=None if result.sh_rgb is None else np.asarray(result.sh_rgb, float).tolist(),
         dominant_direction_camera=[float(x) for x in result.dominant_direction_camera],
         dominant_direction_world=[float(x) for x in result.dominant_direction_world],
-        intensity=float(result.intensity), confidence=result.confidence.to_dict(),
+        intensity=float(result.intensity), confidence=result.confidence,
         pose=np.asarray(result.pose, dtype=float).tolist(),
         timings_ms={k: float(v) for k, v in result.timings_ms.items()},
         diagnostics=plain_diagnostics(result.diagnostics),

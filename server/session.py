@@ -39,7 +39,7 @@ from arlight.checks import CheckError, check_image
 from arlight.pipeline import sh as sh_lib
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
-from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
+from arlight.pipeline.frames import Confidence, FrameInput, FrameResult, RenderLight
 from arlight.pipeline.glossy import mip_pyramid
 from arlight.pipeline.ibl import IblParams, IblResult, lighting_from_ldr
 from arlight.pipeline.inverse_tone import DEFAULT_OPERATOR, OPERATORS
@@ -342,7 +342,7 @@ class Session:
         self.camera = None if config.calibration is None else camera_from_config(config,
                                                                                  max_pixels)
         self.panorama_light = panorama_light_from_config(config)
-        self.render_light: tuple[np.ndarray, np.ndarray] | None = None  # of the job in run()
+        self.render_light: RenderLight | None = None  # of the job in run()
         self.scene = scene_from_config(config)  # None: nothing to render
         self.budget = budget
         # refused here, at Hello, when its settings could not meet the server's budgets
@@ -559,7 +559,7 @@ class Session:
                 panorama = self.panorama_light.light(frame.panorama)
                 world = self.panorama_light.to_world(panorama)
                 if self.panorama_light.light_source == "panorama":
-                    self.render_light = (world[0], world[1], self._environment(panorama))
+                    self.render_light = RenderLight(world[0], world[1], self._environment(panorama))
             composite = None
             if frame.color is None:  # panorama-only: no RGB-D pipeline
                 result = panorama_only_result(frame, world)

@@ -17,24 +17,27 @@ ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = {"pipeline": "pipeline", "protocols": "protocols", "sources": "sources",
            "client": "client", "server": "server", "arlight": "arlight"}
 
-# package -> the arlight packages it may import ("checks" = arlight.checks, the edge checks;
-# "version" = arlight.__version__)
+# package -> the arlight packages it may import. The lowest layer is a module of arlight/
+# each: "checks" = arlight.checks (the edge checks), "contracts" = arlight.contracts (the
+# frame path's typed contracts); "version" = arlight.__version__
 ALLOWED = {
     "checks": set(),
-    "pipeline": {"checks"},
-    "protocols": {"checks", "version"},
-    "sources": {"checks", "pipeline", "protocols", "version"},
-    "server": {"checks", "pipeline", "protocols", "version"},
-    "client": {"checks", "pipeline", "protocols", "sources", "version"},
-    "arlight": {"checks", "pipeline", "protocols", "sources", "server", "client", "version",
-                "arlight"},
+    "contracts": set(),
+    "pipeline": {"checks", "contracts"},
+    "protocols": {"checks", "contracts", "version"},
+    "sources": {"checks", "contracts", "pipeline", "protocols", "version"},
+    "server": {"checks", "contracts", "pipeline", "protocols", "version"},
+    "client": {"checks", "contracts", "pipeline", "protocols", "sources", "version"},
+    "arlight": {"checks", "contracts", "pipeline", "protocols", "sources", "server", "client",
+                "version", "arlight"},
 }
+LOWEST = ("checks", "contracts")  # the modules of arlight/ that are layers of their own
 
 
 def _package_of(path: Path) -> str:
     rel = path.relative_to(ROOT)
-    if rel.parts[0] == "arlight" and rel.name == "checks.py":
-        return "checks"
+    if rel.parts[0] == "arlight" and len(rel.parts) == 2 and rel.stem in LOWEST:
+        return rel.stem
     return FOLDERS[rel.parts[0]]
 
 
@@ -78,13 +81,23 @@ def test_imports_follow_the_package_table(path: Path):
                            f"allowed: {sorted(ALLOWED[package])}")
 
 
-def test_checks_module_needs_nothing_but_numpy():
-    tree = ast.parse((ROOT / "arlight" / "checks.py").read_text())
+def _top_modules(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text())
     modules = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import)
                for a in n.names}
     modules |= {n.module.split(".")[0] for n in ast.walk(tree)
                 if isinstance(n, ast.ImportFrom) and n.module}
+    return modules
+
+
+def test_checks_module_needs_nothing_but_numpy():
+    modules = _top_modules(ROOT / "arlight" / "checks.py")
     assert modules <= {"__future__", "math", "typing", "numpy"}, modules
+
+
+def test_contracts_module_needs_nothing_but_the_standard_library():
+    modules = _top_modules(ROOT / "arlight" / "contracts.py")
+    assert modules <= {"__future__", "collections", "dataclasses", "math", "typing"}, modules
 
 
 def test_package_table_has_no_cycles():

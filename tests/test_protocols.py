@@ -11,7 +11,7 @@ import math
 import random
 import struct
 import zlib
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import cv2
@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import zstandard
 
+from arlight.contracts import Confidence
 from arlight.protocols import (
     COLOR_CODECS,
     DEFAULT_DEPTH_CODEC,
@@ -230,7 +231,8 @@ class TestRoundTrip:
         back = decode(encode(msg))
         assert back.sh == msg.sh and back.sh_rgb == msg.sh_rgb
         assert back.pose == np.eye(4).tolist()
-        assert back.confidence == {"samples": 10, "condition": math.inf}
+        assert back.confidence_map == {"samples": 10, "condition": math.inf}
+        assert back.confidence == Confidence(samples=10)  # "condition" is no field of it
         assert back.timings_ms == {"render": 1.25}
         assert (back.frames_received, back.frames_processed, back.frames_dropped) == (4, 3, 1)
         assert back.composite_codec == "jpeg" and psnr(back.composite, msg.composite) > 30
@@ -241,7 +243,7 @@ class TestRoundTrip:
                      timings_ms={"a": np.float32(1.5)}, frames_received=np.int64(4),
                      dominant_direction_camera=np.array([0.0, 0.0, 1.0]))
         back = decode(encode(msg))
-        assert back.sh == [0.5] * 4 and back.confidence == {"n": 3, "v": [0, 1, 2]}
+        assert back.sh == [0.5] * 4 and back.confidence_map == {"n": 3, "v": [0, 1, 2]}
         assert back.frames_received == 4
 
     def test_zmq_frames_are_accepted(self):
@@ -489,8 +491,8 @@ def golden_parts(name: str) -> list[memoryview]:
 
 def assert_same_message(got, want):
     assert type(got) is type(want)
-    for key, value in vars(want).items():
-        other = getattr(got, key)
+    for key in (f.name for f in fields(want)):
+        value, other = getattr(want, key), getattr(got, key)
         if isinstance(value, np.ndarray):
             assert np.array_equal(other, value), key
         elif isinstance(value, float) and math.isinf(value):
@@ -1026,6 +1028,61 @@ class TestRecords:
         assert record["server_to_client_ms"] == 250.0 and record["receive_time"] == 101.0
         assert record["pipeline_ms"] == pytest.approx(sum(msg.timings_ms.values()), abs=1e-3)
         assert received_record(msg, 100.0 + 7200.0)["end_to_end_ms"] is None
+
+
+class TestConfidenceContract:
+    """Result.confidence is the pipeline's Confidence on both sides of the wire; the map on
+    the wire is `to_dict()`'s, and any other plain map still goes out as it came."""
+
+    FULL = Confidence(samples=1234, condition_number=56.5, bands_estimated=3, value=0.75,
+                      reason="few samples", normal_spread=0.25, horizon_disagreement_deg=4.0,
+                      side_share=0.125, jump_deg=2.5)
+
+    def test_the_pipelines_type_round_trips(self):
+        from arlight.pipeline.frames import Confidence as PipelineConfidence
+
+        assert PipelineConfidence is Confidence
+        back = decode(encode(result(confidence=self.FULL)))
+        assert isinstance(back.confidence, Confidence) and back.confidence == self.FULL
+        assert back.confidence_map == self.FULL.to_dict()
+        assert list(back.confidence_map) == list(self.FULL.to_dict())  # the key order too
+
+    def test_the_wire_map_is_to_dict(self):
+        header = msgpack.unpackb(bytes(encode(result(confidence=self.FULL))[0]), raw=False)
+        assert header["confidence"] == self.FULL.to_dict()
+
+    def test_infinite_condition_number_travels_as_nil(self):
+        msg = result(confidence=Confidence(samples=3))  # condition_number inf by default
+        header = msgpack.unpackb(bytes(encode(msg)[0]), raw=False)
+        assert header["confidence"]["condition_number"] is None
+        assert decode(encode(msg)).confidence.condition_number == math.inf
+
+    def test_from_dict_reads_known_keys_of_the_right_type(self):
+        got = Confidence.from_dict({"samples": 7, "value": 1, "reason": "r", "side_share": None,
+                                    "bands_estimated": True, "jump_deg": "3", "extra": [1]})
+        assert got == Confidence(samples=7, value=1.0, reason="r")  # bool, str: defaults
+        assert isinstance(got.value, float)
+        assert Confidence.from_dict(self.FULL.to_dict()) == self.FULL
+
+    def test_a_map_is_kept_as_it_came_until_replaced(self):
+        msg = result(confidence={"samples": 5, "custom": "x"})
+        assert msg.confidence == Confidence(samples=5)
+        assert msg.confidence_map == {"samples": 5, "custom": "x"}
+        msg.confidence = Confidence(samples=6)  # a new value: its own map goes out
+        assert msg.confidence_map == Confidence(samples=6).to_dict()
+        assert replace(msg).confidence_map == Confidence(samples=6).to_dict()
+
+    @pytest.mark.parametrize("name", [n for n in GOLDEN_NAMES if n.startswith("result")])
+    def test_decoded_golden_results_encode_to_the_same_bytes(self, name):
+        stored = [bytes(p) for p in golden_parts(name)]
+        assert as_bytes(encode(decode(golden_parts(name)))) == stored
+
+    def test_the_dict_style_read_still_answers(self):  # arlight/cli, arlight/demo use it
+        assert self.FULL.get("value", 0) == 0.75 and self.FULL.get("nope", 1) == 1
+
+    def test_records_write_the_wire_map(self):
+        assert result_record(result(confidence={"value": 0.5}))["confidence"] == {"value": 0.5}
+        assert result_record(result(confidence=self.FULL))["confidence"] == self.FULL.to_dict()
 
 
 # --------------------------------------------------------------------------- virtual scene

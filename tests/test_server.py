@@ -80,7 +80,8 @@ def _assert_result_equals(result: Result, expected) -> None:
     np.testing.assert_array_equal(result.dominant_direction_camera,
                                   expected.dominant_direction_camera)
     assert result.intensity == expected.intensity
-    assert result.confidence == expected.confidence.to_dict()
+    assert result.confidence == expected.confidence  # the same type on both sides
+    assert result.confidence_map == expected.confidence.to_dict()  # as on the wire
     np.testing.assert_array_equal(result.pose, expected.pose)
 
 
