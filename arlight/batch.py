@@ -28,7 +28,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -164,11 +164,14 @@ def open_frames(path: str, options: BatchOptions):
     """(camera, number of frames, iterator over FrameInputs) of a recording or sequence.
 
     Sequences are read as `arlight estimate PATH` reads them (tracking, no poses); a
-    recording's frames are decoded as the server decodes them (poses as recorded). Raises
-    DatasetError, RecordingError or ProtocolError (all ValueError) for unusable input.
+    recording's frames as the server receives them (`arlight.offline.open_recording`, poses
+    as recorded). Raises DatasetError, RecordingError or ProtocolError (all ValueError) for
+    unusable input.
     """
     if path.lower().endswith(".mcap"):
-        return _open_recording(path, options.max_frames)
+        from arlight.offline import open_recording
+
+        return open_recording(path, options.max_frames)
     from arlight.sources.sequence import open_sequence
 
     seq = open_sequence(path, depth_encoding=options.depth_encoding, use_poses=False,
@@ -177,43 +180,18 @@ def open_frames(path: str, options: BatchOptions):
     return seq.camera, len(frames), (frames[i] for i in range(len(frames)))
 
 
-def _open_recording(path: str, max_frames: int | None):
-    from arlight.protocols import Frame, decode
-    from arlight.server.session import camera_from_config, frame_to_input
-    from arlight.sources.recording import Recording, RecordingError
-
-    recording = Recording(path)
-    config = recording.hello.config
-    cal = config.calibration
-    camera = camera_from_config(config, max_pixels=max(1, cal.width * cal.height)
-                                if cal is not None else 1)
-    n = recording.num_frames if max_frames is None else min(max_frames, recording.num_frames)
-
-    def frames() -> Iterator:
-        for i, (_, parts) in enumerate(recording.frames()):
-            if i >= n:
-                return
-            message = decode(parts)
-            if not isinstance(message, Frame):
-                raise RecordingError(f"{path}: message {i} on the frame channel is a "
-                                     f"{type(message).__name__}, not a Frame")
-            yield frame_to_input(message, camera, config.depth_scale)
-
-    return camera, n, frames()
-
-
 def process_stream(path: str, out_path: str | Path, options: BatchOptions,
                    on_frame: Callable[[int, int], None] | None = None) -> StreamSummary:
     """Run a fresh Pipeline over one stream, writing its records to `out_path` atomically.
 
-    The records are `arlight estimate --out`'s (the server's Result conversion). They go to
+    The records are `arlight estimate --out`'s (`arlight.offline.frame_record`). They go to
     a temporary file beside `out_path`, renamed to it once every frame is written; on any
     error the temporary file is removed and the exception propagates. on_frame(done, total)
     is called after each frame.
     """
+    from arlight.offline import estimate_frames
     from arlight.pipeline.pipeline import Pipeline
     from arlight.pipeline.runtime import require_device
-    from arlight.server.results import offline_record
 
     t0 = time.perf_counter()
     out_path = Path(out_path)
@@ -227,14 +205,11 @@ def process_stream(path: str, out_path: str | Path, options: BatchOptions,
     confidences = []
     try:
         with open(tmp, "w") as out:
-            for i, frame in enumerate(frames):
-                start_wall = time.time()
-                result = pipeline.process(frame)
-                record = offline_record(result, i, start_wall)
-                out.write(json.dumps(record) + "\n")
-                confidences.append(result.confidence.value)
+            for done in estimate_frames(pipeline, frames):
+                out.write(json.dumps(done.record) + "\n")
+                confidences.append(done.result.confidence.value)
                 if on_frame is not None:
-                    on_frame(i + 1, n)
+                    on_frame(done.index + 1, n)
         os.replace(tmp, out_path)
     except BaseException:
         with contextlib.suppress(OSError):

@@ -54,11 +54,13 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
     scene = make_sequence(num_frames=frames, width=size[0], height=size[1])
     source = sequence_source("synthetic", scene.camera, scene.frames)
     from arlight.evaluation import scene_truth
+    from arlight.offline import FrameNotes
 
     # the light that can reach the scene (its upper hemisphere), camera frame
     truth = [t.dominant_upper_camera for t in scene_truth(scene)]
     errors: dict[int, float] = {}
     pipeline_ms: list[float] = []
+    notes = FrameNotes()  # why a confidence is low, printed where the reason changes
 
     def on_result(result, record) -> None:
         err = _angle_deg(result.dominant_direction_camera, truth[result.seq])
@@ -67,11 +69,14 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
         d = result.dominant_direction_camera
         e2e = record["end_to_end_ms"]
         printer(f"[{result.seq + 1:>3}/{frames}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
-                f"{d[2]:+.2f})  conf={result.confidence.get('value', 0):.2f}  "
+                f"{d[2]:+.2f})  conf={result.confidence.value:.2f}  "
                 f"error={f'{err:5.1f}' if np.isfinite(err) else '  -  '} deg  "
                 f"pipeline {record['pipeline_ms']:6.0f} ms  "
                 f"in server {record['in_server_ms']:6.0f} ms (incl. queue)  end-to-end "
                 + ("-" if e2e is None else f"{e2e:6.0f} ms"))
+        note = notes.note(result.confidence.value, result.confidence.reason)
+        if note:
+            printer(f"      {note}")
 
     started = time.monotonic()
     # the session's token, chosen here: the display subscribes before the session exists
@@ -95,6 +100,8 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
             stream = capture.run()
     finally:
         server.stop()
+    if notes.summary():
+        printer(f"arlight demo: {notes.summary()}")
     summary = _summary(display.summary.to_dict(), stream, errors, pipeline_ms, frames, size,
                        preset, time.monotonic() - started)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

@@ -6,6 +6,7 @@ user would type; argparse's own errors exit through SystemExit(2), ours return 2
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -33,6 +34,7 @@ def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("cli")
     cv2.imwrite(str(d / "shot_color.png"), np.full((12, 16, 3), 128, np.uint8))
     cv2.imwrite(str(d / "shot_depth.png"), np.full((12, 16), 5000, np.uint16))
+    cv2.imwrite(str(d / "blank_depth.png"), np.zeros((12, 16), np.uint16))
     rng = np.random.default_rng(0)
     (d / "noise_color.png").write_bytes(rng.bytes(300))
     (d / "noise_depth.png").write_bytes(rng.bytes(300))
@@ -132,3 +134,65 @@ def test_estimate_on_the_built_in_scene_compares_in_the_camera_frame(capsys):
     # 80 when the frames differ; the estimator itself is 15-35 deg off on this scene's first
     # frames (its sky below the horizon is not a ground's uniform glow: README)
     assert median < 45.0, text
+
+
+class TestFrontDoor:
+    """What `arlight --help`, `stream --help` and `estimate` tell a new user (issue 38)."""
+
+    def test_help_describes_what_exists(self, capsys):
+        code, text = run_cli(["--help"], capsys)
+        assert code == 0
+        assert "not there yet" not in text
+        for command in ("estimate", "serve", "stream", "ibl", "bench", "batch", "synth"):
+            assert command in text, command
+        assert "--scene" in text and "live cameras" in text
+
+    def test_composite_help_says_what_the_server_sends(self, capsys):
+        """The server's composite is the colour image with the virtual objects rendered in
+        (server/session.py, Session.composite), not the light drawn in."""
+        code, text = run_cli(["stream", "--help"], capsys)
+        assert code == 0
+        flat = " ".join(text.split())
+        assert "light drawn in" not in flat
+        assert "the --scene objects rendered in" in flat
+        assert "without --scene, the input colour image unchanged" in flat
+
+    def test_settings_over_the_servers_budget_are_refused_before_any_frame(self, capsys):
+        code, text = run_cli(["estimate", "--max-frames", "1", "--set",
+                              "rt_directions=100000000"], capsys)
+        assert code == EXIT_BAD_INPUT and "Traceback" not in text
+        assert "--set rt_directions=100000000" in text, text
+        assert "per-frame deadline of 60 s" in text and "--frame-deadline" in text, text
+        assert "[   1/1]" not in text  # refused before the pipeline ran
+
+    def test_the_deadline_is_the_users_to_set(self, capsys):
+        """--frame-deadline 0.001 prices even the defaults out: the error names what costs
+        most (here the image size) and the limit given."""
+        code, text = run_cli(["estimate", "--max-frames", "1", "--frame-deadline", "0.001"],
+                             capsys)
+        assert code == EXIT_BAD_INPUT and "Traceback" not in text
+        assert "image size 640x480" in text and "deadline of 0.001 s" in text, text
+
+    def test_a_frame_without_depth_says_so(self, files, tmp_path, capsys):
+        out = tmp_path / "blank.jsonl"
+        code, text = run_cli(["estimate", f"{files}/shot_color.png", "--depth",
+                              f"{files}/blank_depth.png", "--depth-encoding", "mm", "--out",
+                              str(out)], capsys)
+        assert code == 0, text
+        assert "[1/1] no usable depth" in text, text
+        assert "1 of 1 frames without usable depth" in text, text
+        record = json.loads(out.read_text())
+        assert record["confidence"]["value"] == 0.0  # the record itself is unchanged
+
+    def test_a_low_confidence_prints_its_reason(self, files, tmp_path, capsys):
+        """A flat wall of 16x12 pixels constrains no direction: the reason the pipeline gives
+        (Confidence.reason, also in the record) is on the terminal."""
+        out = tmp_path / "wall.jsonl"
+        code, text = run_cli(["estimate", f"{files}/shot_color.png", "--depth",
+                              f"{files}/shot_depth.png", "--depth-encoding", "mm", "--out",
+                              str(out)], capsys)
+        assert code == 0, text
+        confidence = json.loads(out.read_text())["confidence"]
+        assert confidence["value"] < 0.3 and confidence["reason"], confidence
+        assert f"[1/1] low confidence {confidence['value']:.2f}" in text, text
+        assert confidence["reason"] in text, text
