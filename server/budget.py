@@ -12,7 +12,7 @@ measured time for the `full` preset at 640 x 480 on the development machine (2 s
 reference's (pixels, window areas, directions, samples, iterations, ...). It refuses what is
 far out of reach (robust_iterations 10^6, a 4096^2 image on a small budget); what it lets
 through and still runs long is abandoned at the deadline between stages and between the
-light estimate's robust iterations (server/session.py, `Session.checkpoint`); nothing else
+light estimate's robust iterations (server/worker.py, `Deadline`); nothing else
 is interrupted.
 """
 

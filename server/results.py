@@ -1,17 +1,28 @@
-"""The pipeline's FrameResult as a protocol Result: the one conversion, used by the server's
-sessions and by `arlight estimate` / `arlight batch` (whose JSON records are built from the
-same Result, `offline_record`)."""
+"""The replies to a frame: its Result, from the pipeline's FrameResult (`result_message`, the
+one conversion, used by the server and by `offline_record`), or its Error (`encode_error`)."""
 
 from __future__ import annotations
 
+import logging
 import time
+from collections.abc import Mapping
 
 import numpy as np
 
 from arlight.pipeline.engine_export import camera_exports
-from arlight.pipeline.frames import FrameResult
+from arlight.pipeline.frames import Diagnostics, FrameResult
 from arlight.pipeline.ibl import IblResult
-from arlight.protocols import DEFAULT_JPEG_QUALITY, Result, plain_diagnostics, result_record
+from arlight.protocols import (
+    DEFAULT_JPEG_QUALITY,
+    Error,
+    Result,
+    encode,
+    plain_diagnostics,
+    result_record,
+)
+from arlight.protocols.fields import MAX_INT as MAX_SEQ
+
+log = logging.getLogger(__name__)
 
 
 def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, int],
@@ -19,7 +30,9 @@ def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, i
                    composite: np.ndarray | None = None, composite_codec: str = "jpeg",
                    jpeg_quality: int = DEFAULT_JPEG_QUALITY,
                    panorama: IblResult | None = None,
-                   exports: tuple[str, ...] = ()) -> Result:
+                   exports: tuple[str, ...] = (),
+                   extra_timings_ms: Mapping[str, float] | None = None,
+                   extra_diagnostics: Diagnostics | None = None) -> Result:
     """The Result of frame `seq`. counters: the session's (frames_received,
     frames_processed, frames_dropped); receive/finish times: wall clock, seconds;
     composite_codec, jpeg_quality: how the composite is encoded (the server: as the frame's
@@ -31,6 +44,9 @@ def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, i
     exports: engine layouts (engine_export.EXPORTERS names) of the frame's light (RGB when the
     pipeline has it, else luminance) in the camera frame with each engine's axes
     (`engine_export.camera_exports`); () = none (the Result's optional key is omitted).
+
+    extra_timings_ms, extra_diagnostics: what the server adds beside the pipeline's own
+    (the panorama path's stages and light source), after them; `result` is not changed.
 
     Raises ProtocolError (bad_field, naming `result.diagnostics.KEY`) when the pipeline's
     diagnostics hold a value the protocol does not carry.
@@ -47,8 +63,9 @@ def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, i
         dominant_direction_world=[float(x) for x in result.dominant_direction_world],
         intensity=float(result.intensity), confidence=result.confidence,
         pose=np.asarray(result.pose, dtype=float).tolist(),
-        timings_ms={k: float(v) for k, v in result.timings_ms.items()},
-        diagnostics=plain_diagnostics(result.diagnostics),
+        timings_ms={k: float(v) for k, v in {**result.timings_ms,
+                                             **(extra_timings_ms or {})}.items()},
+        diagnostics=plain_diagnostics({**result.diagnostics, **(extra_diagnostics or {})}),
         frames_received=received, frames_processed=processed, frames_dropped=dropped,
         server_receive_time=receive_time_wall, server_finish_time=finish_time_wall,
         composite=composite, composite_codec=composite_codec, jpeg_quality=jpeg_quality,
@@ -68,3 +85,16 @@ def offline_record(result: FrameResult, index: int, start_wall: float,
     return result_record(result_message(
         result, seq=index, counters=(index + 1, index + 1, 0), receive_time_wall=start_wall,
         finish_time_wall=time.time(), exports=exports))
+
+
+def encode_error(error: Error) -> list:
+    """The parts of an Error; never raises. An Error that cannot be encoded (a seq outside
+    0..2^63-1, an over-long text) is replaced by an `internal` one that can."""
+    try:
+        return encode(error)
+    except Exception as exc:  # noqa: BLE001 - the fallback below always encodes
+        seq = error.seq if isinstance(error.seq, int) and 0 <= error.seq <= MAX_SEQ else None
+        log.error("an Error could not be encoded (%s); sent as internal", exc)
+        return encode(Error(code="internal", seq=seq,
+                            message=f"the server failed to report an error "
+                                    f"({type(exc).__name__})"))

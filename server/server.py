@@ -2,10 +2,12 @@
 
 Transport (protocols/SPEC.md): every client, capture or display, talks to the one ROUTER
 through a DEALER; the ROUTER prepends the peer's identity frame. Only the I/O thread touches
-the socket. It routes frames to sessions (server/session.py), hands at most one frame per
-session to the worker pool (so a session's frames stay in order), and sends the workers'
-encoded Results back to the capture peer and to every display peer subscribed to the session.
-Workers report through a queue and wake the I/O thread through a socket pair it polls.
+the socket. It routes frames to their session's queue (server/frame_queue.py), hands at most
+one frame per session to the worker pool (so a session's frames stay in order), where
+`run_frame` (server/worker.py) processes it, and sends the replies back to the capture peer
+and to every display peer subscribed to the session. A worker turns the frame's outcome into
+its encoded Result (server/results.py), reports through a queue and wakes the I/O thread
+through a socket pair it polls.
 
 Limits on everything that crosses the wire (each a ServerOptions field): the largest message
 (zmq MAXMSGSIZE drops a connection that sends more, the protocol decoder checks declared
@@ -74,20 +76,15 @@ from arlight.protocols import (
 )
 from arlight.protocols.fields import MAX_INT as MAX_SEQ  # a Frame's seq: 0..2^63-1
 from arlight.server.budget import SessionBudget
+from arlight.server.frame_queue import Job, Offer
+from arlight.server.results import encode_error, result_message
 from arlight.server.security import (
     CurveServer,
     check_exposure,
     tokens_equal,
 )
-from arlight.server.session import (
-    OUTCOME_CACHE_EXTRA,
-    Job,
-    JobOutcome,
-    ProcessStep,
-    Session,
-    SessionSetupError,
-    encode_error,
-)
+from arlight.server.session import Session, SessionSetupError
+from arlight.server.worker import FrameOutcome, ProcessStep, Rejected, run_frame
 
 log = logging.getLogger(__name__)
 
@@ -177,6 +174,27 @@ class Peer:
     def label(self) -> str:
         name = f" {self.client_name!r}" if self.client_name else ""
         return f"{self.role} peer {self.identity.hex()}{name}"
+
+
+@dataclass
+class JobOutcome:
+    """What a worker hands back to the I/O thread: the frame's reply, encoded (a Result, or
+    the Error in `error`)."""
+
+    session: Session
+    job: Job
+    parts: list
+    finish_time_mono: float  # time.monotonic(), seconds
+    error: Error | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+    @property
+    def final(self) -> bool:
+        """The frame's last word (kept for a resent duplicate): not a retryable Error."""
+        return self.error is None or not self.error.retryable
 
 
 @dataclass
@@ -323,7 +341,8 @@ class Server:
         """Counters per session and the peers (for tests and logs; read from any thread)."""
         sessions = {name: {**s.counters(), "mode": s.config.mode,
                            "capture_attached": s.capture_peer is not None,
-                           "pending": len(s.pending)} for name, s in list(self.sessions.items())}
+                           "pending": len(s.queue.pending)}
+                    for name, s in list(self.sessions.items())}
         return {"sessions": sessions, "peers": len(self.peers),
                 "displays": {k: len(v) for k, v in list(self.displays.items())},
                 "errors_sent": self.stats.errors_sent,
@@ -550,7 +569,7 @@ class Server:
             if previous is not None and previous != identity and previous in self.peers:
                 self._detach_peer(self.peers[previous], reason="replaced by a reconnect")
             log.info("session %s: capture peer %s resumed it (last seq %d)", name,
-                     identity.hex(), session.highest_seq)
+                     identity.hex(), session.queue.highest_seq)
             return session
         if len(self.sessions) >= self.options.max_sessions:
             self._send_error(identity, Error(
@@ -605,17 +624,17 @@ class Server:
                                              message="the server is shutting down; frame "
                                                      "not processed"))
             return
-        outcome = session.offer(Job(seq, parts, receive_time_wall, now))
-        if outcome == "resend":  # its Result or final Error, again (the first may be lost)
-            self._send(identity, session.outcomes[seq])
-        elif outcome == "expired":  # answer it, or a lossless client would wait for it forever
+        frames = session.queue
+        offer = frames.offer(Job(seq, parts, receive_time_wall, now))
+        if offer is Offer.RESEND:  # its Result or final Error, again (the first may be lost)
+            self._send(identity, frames.reply(seq))
+        elif offer is Offer.EXPIRED:  # answer it, or a lossless client would wait forever
             self._send_error(identity, Error(
                 code="bad_state", field=ErrorField.DUPLICATE, seq=seq, retryable=False,
                 message=f"frame {seq} is not above the highest seq this session accepted "
-                        f"({session.highest_seq}) and its Result or Error is no longer kept "
-                        f"(only the last {self.options.credits + OUTCOME_CACHE_EXTRA} are); it "
-                        "is not processed again"))
-        elif outcome == "overflow":
+                        f"({frames.highest_seq}) and its Result or Error is no longer kept "
+                        f"(only the last {frames.keeps} are); it is not processed again"))
+        elif offer is Offer.OVERFLOW:
             self._send_error(identity, Error(
                 code="bad_state", field=ErrorField.CREDITS, seq=seq, retryable=True,
                 message=f"more than {self.options.credits} frames unacknowledged in lossless "
@@ -636,13 +655,20 @@ class Server:
     # ------------------------------------------------------------------ work
 
     def _schedule(self, session: Session) -> None:
-        job = session.next_job()
+        job = session.queue.next_job()
         if job is not None:
-            self._executor.submit(self._work, session, job)
+            self._submit(session, job)
+
+    def _submit(self, session: Session, job: Job) -> None:
+        """Hand `job`, now in its session's worker slot, to the worker pool."""
+        if self._executor is None:
+            raise RuntimeError("server not started")
+        self._executor.submit(self._work, session, job)
 
     def _work(self, session: Session, job: Job) -> None:
-        """Worker thread: process one frame, hand the outcome to the I/O thread. Every job
-        hands one back, whatever fails: the session's slot is always freed."""
+        """Worker thread: process one frame (`run_frame`, server/worker.py), turn its
+        outcome into the reply and hand that to the I/O thread. Every job hands one back,
+        whatever fails: the session's slot is always freed."""
         with self._busy_lock:
             self._busy += 1
         outcome = None
@@ -650,22 +676,57 @@ class Server:
             if self.options.workers > 1 and not self._remote and \
                     not concurrent_pipelines_safe():
                 with self._compute_lock:
-                    outcome = session.run(job)
+                    step = run_frame(job, session.compute)
             else:
-                outcome = session.run(job)
+                step = run_frame(job, session.compute)
+            outcome = self._reply(session, job, step)
         except BaseException as exc:  # noqa: BLE001 - reported to the client as internal
-            outcome = session.crashed(job, exc)
+            log.error("session %s: frame %d: worker failed: %r", session.name, job.seq, exc)
+            outcome = self._failed(session, job, Error(
+                code="internal", seq=job.seq, message=f"the server failed to process this "
+                                                      f"frame ({type(exc).__name__})"))
         finally:
-            if outcome is None:  # crashed() itself failed: the bare minimum, still answered
-                outcome = JobOutcome(session, job, encode(Error(
-                    code="internal", seq=job.seq, message="the server failed to process "
-                    "this frame")), False, time.monotonic(), Error("internal", "", None,
-                                                                   job.seq))
+            if outcome is None:  # _failed() itself failed: the bare minimum, still answered
+                error = Error("internal", "the server failed to process this frame", None,
+                              job.seq)
+                outcome = JobOutcome(session, job, encode(error), time.monotonic(), error)
             self._completions.put(outcome)
             self._wake()
             with self._busy_lock:
                 self._busy -= 1
                 self._busy_lock.notify_all()
+
+    def _reply(self, session: Session, job: Job, step: FrameOutcome) -> JobOutcome:
+        """The encoded reply of a frame's outcome: its Result (the session's counters
+        counted first), or its Error."""
+        if isinstance(step, Rejected):
+            return self._failed(session, job, step.error)
+        finish_wall = time.time()
+        counters = session.queue.count_processed()
+        used = step.panorama
+        try:
+            message = result_message(
+                step.result, seq=job.seq,
+                counters=(counters.received, counters.processed, counters.dropped),
+                receive_time_wall=job.receive_time_wall, finish_time_wall=finish_wall,
+                composite=step.composite, composite_codec=step.composite_codec,
+                jpeg_quality=step.jpeg_quality, panorama=None if used is None else used.light,
+                exports=session.config.exports,
+                extra_timings_ms=None if used is None else used.timings_ms,
+                extra_diagnostics=None if used is None else used.diagnostics)
+            return JobOutcome(session, job, encode(message), time.monotonic())
+        except Exception as exc:  # noqa: BLE001 - e.g. a non-finite estimate
+            return self._failed(session, job, Error(
+                code="internal", seq=job.seq,
+                message=f"the server could not send the Result of this frame ({exc})"))
+
+    def _failed(self, session: Session, job: Job, error: Error) -> JobOutcome:
+        if error.code == "internal":
+            log.error("session %s: frame %d failed: %s", session.name, job.seq, error.message)
+        else:
+            log.info("session %s: frame %d rejected: %s", session.name, job.seq, error.message)
+        session.queue.count_failed()
+        return JobOutcome(session, job, encode_error(error), time.monotonic(), error)
 
     def _drain_completions(self) -> None:
         while True:
@@ -680,39 +741,45 @@ class Server:
                               outcome.session.name, outcome.job.seq)
 
     def _complete(self, outcome: JobOutcome) -> None:
-        """Free the session's slot, send the outcome, schedule the session's next frame."""
-        session = outcome.session
-        session.finish(outcome)
+        """Free the session's slot, send the outcome, start the session's next frame."""
+        session, job, error = outcome.session, outcome.job, outcome.error
+        frames = session.queue
+        current = self.sessions.get(session.name) is session  # not closed or replaced
+        lost: list[Job] = []
+        if current and error is not None and error.field == ErrorField.PIPELINE_LOST:
+            lost = frames.unaccept(job)  # the queued frames go back to the client too
+        if current and self._draining and not session.lossless:
+            frames.drop_pending()
+        next_job = frames.finish(job, outcome.parts, final=outcome.final, processed=error is None,
+                                 finish_time_mono=outcome.finish_time_mono, start_next=current)
         if session.capture_peer is not None:
             self._send(session.capture_peer, outcome.parts)
-        if outcome.ok:
+        if error is None:
             for identity in list(self.displays.get(session.name, ())):
                 if not self._send(identity, outcome.parts):
                     session.display_drops += 1
                     self.stats.display_results_dropped += 1
         else:
             self.stats.errors_sent += 1
-            self.stats.error_codes[outcome.error.code] += 1
-        if self.sessions.get(session.name) is not session:
-            return  # closed or replaced meanwhile
-        if not outcome.ok and outcome.error.field == ErrorField.PIPELINE_LOST:
-            self._pipeline_lost(session, outcome)
-        if self._draining and not session.lossless:
-            session.drop_pending()
-        self._schedule(session)
+            self.stats.error_codes[error.code] += 1
+        if not current:
+            return
+        if error is not None and error.field == ErrorField.PIPELINE_LOST:
+            self._pipeline_lost(session, job, lost)
+        if next_job is not None:
+            self._submit(session, next_job)
         if session.ended and session.idle:
             self._close_session(session, "end of stream")
 
-    def _pipeline_lost(self, session: Session, outcome: JobOutcome) -> None:
-        """The session's pipeline (a Ray actor) was lost with outcome's frame: its queued
-        frames are un-accepted and reported retryable too; the client sends them all again,
-        in seq order, to the session's next pipeline."""
-        queued = session.pipeline_lost(outcome.job)
+    def _pipeline_lost(self, session: Session, job: Job, queued: list[Job]) -> None:
+        """The session's pipeline (a Ray actor) was lost with `job`: its `queued` frames,
+        un-accepted, are reported retryable too; the client sends them all again, in seq
+        order, to the session's next pipeline."""
         log.warning("session %s: pipeline lost at frame %d; it and %d queued frame(s) reported "
                     "retryable (pipeline_lost), to be sent again to a new pipeline",
-                    session.name, outcome.job.seq, len(queued))
-        for job in queued:
-            error = Error(code="bad_state", field=ErrorField.PIPELINE_LOST, seq=job.seq,
+                    session.name, job.seq, len(queued))
+        for other in queued:
+            error = Error(code="bad_state", field=ErrorField.PIPELINE_LOST, seq=other.seq,
                           retryable=True, message="the session's pipeline was lost before this "
                           "frame was processed: send it again")
             if session.capture_peer is not None:
@@ -828,7 +895,7 @@ class Server:
 
     def _log_rates(self, now: float, interval_s: float) -> None:
         for session in list(self.sessions.values()):
-            recent = [lat for t, lat in session.recent if t > now - interval_s]
+            recent = [lat for t, lat in session.queue.recent if t > now - interval_s]
             if not recent and session.idle:
                 continue
             c = session.counters()
@@ -848,15 +915,16 @@ class Server:
         self._drain_deadline = now + self.options.shutdown_grace_s
         waiting = 0
         for session in self.sessions.values():
-            if session.lossless:
-                waiting += len(session.pending) + (session.in_flight is not None)
+            frames = session.queue
+            if frames.lossless:
+                waiting += len(frames.pending) + (frames.in_flight is not None)
             else:
-                session.drop_pending()
+                frames.drop_pending()
         log.info("shutting down: %d lossless frame(s) still to finish (grace %g s)", waiting,
                  self.options.shutdown_grace_s)
 
     def _drained(self) -> bool:
-        return all(s.in_flight is None and not (s.lossless and s.pending)
+        return all(s.queue.in_flight is None and not (s.lossless and s.queue.pending)
                    for s in self.sessions.values())
 
     def _finish_shutdown(self) -> None:
@@ -865,8 +933,9 @@ class Server:
         self._cancel.set()  # a frame still in a worker is abandoned at its next stage
         try:
             for session in list(self.sessions.values()):
-                unfinished = [session.in_flight] if session.in_flight else []
-                unfinished += session.drop_pending()
+                in_flight = session.queue.in_flight
+                unfinished = [in_flight] if in_flight else []
+                unfinished += session.queue.drop_pending()
                 if session.capture_peer is not None:
                     for job in unfinished:
                         self._send_error(session.capture_peer, Error(

@@ -1,21 +1,15 @@
-"""One streaming session: its Pipeline, its queue of frames and its counters.
+"""One streaming session: what its Hello set up, its queue of frames, its pipeline.
 
-A session is created by a capture client's Hello and named by `SessionConfig.session`. The
-I/O thread owns the queue (`offer`, `next_job`, `finish`); a worker thread runs one job at a
-time per session (`run`), so a session's frames are processed in order and its Pipeline is
-never used by two threads at once. Sessions share nothing: each has its own Pipeline, queue,
-counters and outcome cache.
-
-Delivery modes (docs/architecture.md; drops are counted, never silent):
-- live: the queue holds the newest frame only; an older pending frame is replaced and
-  counted in `frames_dropped`, which every Result reports.
-- lossless: every frame is processed exactly once, in order. The client keeps at most
-  `credits` frames unacknowledged; a frame whose seq was already accepted is a duplicate
-  (a client resending after a reconnect): it is not processed again. Its final outcome, the
-  Result or the final Error, is cached for the last `credits + OUTCOME_CACHE_EXTRA` frames
-  and sent again; a duplicate still queued or in a worker is answered when it finishes; an
-  older one gets a final `bad_state` Error (field "duplicate"), so every frame the client
-  sends gets an answer and a lossless stream never waits forever.
+A session is created by a capture client's Hello and named by `SessionConfig.session`. Its
+three parts each have one job:
+- `SessionSetup` (here): what the Hello asked for, checked once (SessionSetupError names the
+  field): the pipeline Config, the camera, the panorama light, the virtual scene, the budget;
+- `FrameQueue` (server/frame_queue.py): the queue and credit state machine, the I/O thread's;
+- `SessionCompute` (server/worker.py): the session's pipeline, one frame at a time in a
+  worker (`run_frame`), so a session's frames are processed in order and its Pipeline is
+  never used by two threads at once.
+`Session` holds them and what the server keeps about the session's peers. Sessions share
+nothing: each has its own setup, queue, pipeline and counters.
 
 Clocks: liveness and expiry (`last_activity`, the latency log) run on time.monotonic();
 wall-clock times (`*_wall`) are only the timestamps that go on the wire (a Result's
@@ -24,10 +18,7 @@ server_receive_time and server_finish_time).
 
 from __future__ import annotations
 
-import collections
 import dataclasses
-import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -35,16 +26,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from arlight.checks import CheckError, check_image
+from arlight.checks import CheckError
 from arlight.pipeline import sh as sh_lib
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
-from arlight.pipeline.frames import Confidence, FrameInput, FrameResult, RenderLight
-from arlight.pipeline.glossy import mip_pyramid
+from arlight.pipeline.frames import RenderLight
 from arlight.pipeline.ibl import IblParams, IblResult, lighting_from_ldr
 from arlight.pipeline.inverse_tone import DEFAULT_OPERATOR, OPERATORS
-from arlight.pipeline.pipeline import FrameError, Pipeline
-from arlight.pipeline.rendering import EnvironmentMap
+from arlight.pipeline.pipeline import FrameError
 from arlight.pipeline.runtime import require_device
 from arlight.pipeline.virtual_scene import (
     Anchor,
@@ -54,46 +43,16 @@ from arlight.pipeline.virtual_scene import (
     VirtualScene,
     demo_scene,
 )
-from arlight.protocols import (
-    Error,
-    ErrorField,
-    Frame,
-    PanoramaConfig,
-    ProtocolError,
-    SceneObjectSpec,
-    SessionConfig,
-    decode,
-    encode,
-    error_from_exception,
-    peek_header,
+from arlight.protocols import PanoramaConfig, SceneObjectSpec, SessionConfig
+from arlight.server.budget import SessionBudget, SessionCost
+from arlight.server.frame_queue import FrameQueue, Job
+from arlight.server.worker import (  # PipelineLost: arlight/ray_serve.py imports it from here
+    OverBudget,
+    PipelineLost,
+    ProcessStep,
+    SessionCompute,
+    volume_budget_error,
 )
-from arlight.protocols.fields import MAX_INT as MAX_SEQ
-from arlight.server.budget import PANORAMA_BYTES_PER_PIXEL, SessionBudget
-from arlight.server.results import result_message
-
-log = logging.getLogger(__name__)
-
-# a compute step: (FrameInput, Session) -> FrameResult; the default runs the session's Pipeline.
-# Tests and the transport benchmark inject an identity step (they never ship in the server).
-ProcessStep = Callable[[FrameInput, "Session"], FrameResult]
-
-LOSSLESS_QUEUE_SLACK = 2  # frames beyond the credit window a lossless queue tolerates
-OUTCOME_CACHE_EXTRA = 4  # final outcomes kept for resending after a reconnect: credits + this
-
-
-class OverBudget(Exception):
-    """A frame over the session's memory budget: `field` the frame's field ("frame" for
-    the volume it grew, "frame.panorama"), the message says by how much."""
-
-    def __init__(self, field: str, message: str):
-        super().__init__(message)
-        self.field = field
-
-
-class PipelineLost(Exception):
-    """The session's pipeline was lost with the frame in it (`arlight serve --ray`: its Ray
-    actor died). The frame was not processed: reported retryable (`pipeline_lost`), the
-    session's queued frames are un-accepted, and the next frame gets a new pipeline."""
 
 
 class SessionSetupError(ValueError):
@@ -103,31 +62,6 @@ class SessionSetupError(ValueError):
         super().__init__(f"{field}: {message}")
         self.field = field
         self.code = code
-
-
-class FrameAbandoned(Exception):
-    """A frame given up at a pipeline checkpoint: past its deadline ("deadline") or the
-    server stopping ("shutdown"). stage: the stage it would have started (or was in)."""
-
-    def __init__(self, reason: str, stage: str, elapsed_s: float, limit_s: float):
-        super().__init__(f"{reason} before {stage} after {elapsed_s:.1f} s")
-        self.reason = reason
-        self.stage = stage
-        self.elapsed_s = elapsed_s
-        self.limit_s = limit_s
-
-
-def encode_error(error: Error) -> list:
-    """The parts of an Error; never raises. An Error that cannot be encoded (a seq outside
-    0..2^63-1, an over-long text) is replaced by an `internal` one that can."""
-    try:
-        return encode(error)
-    except Exception as exc:  # noqa: BLE001 - the fallback below always encodes
-        seq = error.seq if isinstance(error.seq, int) and 0 <= error.seq <= MAX_SEQ else None
-        log.error("an Error could not be encoded (%s); sent as internal", exc)
-        return encode(Error(code="internal", seq=seq,
-                            message=f"the server failed to report an error "
-                                    f"({type(exc).__name__})"))
 
 
 def pipeline_config(config: SessionConfig) -> Config:
@@ -248,147 +182,117 @@ def virtual_object(spec: SceneObjectSpec) -> VirtualObject:
                                         spec.mirror), anchor)
 
 
-def frame_to_input(frame: Frame, camera: PinholeCamera, depth_scale: float) -> FrameInput:
-    """Pipeline input of a wire frame: its uint16 depth as received, with the session's
-    depth_scale (units per metre); Pipeline.process turns it into metres, once.
+@dataclass(frozen=True, eq=False)
+class SessionSetup:
+    """What a capture Hello set up, checked once (`from_config`; SessionSetupError names the
+    field of a config the server refuses). camera None: a panorama-only session; scene None:
+    nothing to render; budget None: unlimited (else cost: the session's share of it)."""
 
-    Checks the image sizes against the session's calibration (FrameError names the field);
-    everything else (NaN poses, dtypes) is checked by Pipeline.process.
-    """
-    size = (camera.width, camera.height)
-    try:
-        for name, image in (("color", frame.color), ("depth", frame.depth)):
-            check_image(image, name, channels=3 if name == "color" else None, size=size,
-                        size_of="the session's calibration")
-    except CheckError as exc:
-        raise FrameError(exc.field, exc.message) from None
-    # the sources' integers and depth_scale, untouched: a stream of recorded depth gives the
-    # pipeline the metres that reading the recording directly gives, bit for bit
-    pose = None if frame.pose is None else np.asarray(frame.pose, dtype=np.float64)
-    return FrameInput(color=frame.color, depth=frame.depth, depth_scale=float(depth_scale),
-                      timestamp=float(frame.timestamp), pose=pose, panorama=frame.panorama)
+    name: str
+    config: SessionConfig
+    pipeline_config: Config
+    camera: PinholeCamera | None
+    panorama_light: PanoramaLight
+    scene: VirtualScene | None
+    max_pixels: int
+    max_message_bytes: int
+    budget: SessionBudget | None = None
+    cost: SessionCost | None = None
 
+    @classmethod
+    def from_config(cls, config: SessionConfig, *, max_pixels: int, max_message_bytes: int,
+                    budget: SessionBudget | None = None) -> SessionSetup:
+        """budget: the per-frame time and per-session memory limits (server/budget.py); a
+        Hello whose settings could not meet them is refused here (over_budget)."""
+        pipeline = pipeline_config(config)
+        if config.exports and pipeline.transfer.sh_bands < 3:
+            raise SessionSetupError("exports", f"the engine layouts hold 3 SH bands and the "
+                                    f"session estimates {pipeline.transfer.sh_bands}"
+                                    f" (override sh_bands, `--set sh_bands=N`): ask for 3 or "
+                                    f"more, or no exports")
+        # a Hello without calibration (allowed with config.panorama): a panorama-only session
+        camera = None if config.calibration is None else camera_from_config(config, max_pixels)
+        panorama_light = panorama_light_from_config(config)
+        scene = scene_from_config(config)
+        cost = None if budget is None else budget.check(
+            config, pipeline, camera, len(scene.objects) if scene else 0)
+        if not (np.isfinite(config.depth_scale) and config.depth_scale > 0):
+            raise SessionSetupError("depth_scale", f"must be a finite number of units per metre "
+                                                   f"> 0, got {config.depth_scale}")
+        return cls(config.session, config, pipeline, camera, panorama_light, scene, max_pixels,
+                   max_message_bytes, budget, cost)
 
-def default_process(frame: FrameInput, session: Session) -> FrameResult:
-    return session.pipeline.process(frame, render_light=session.render_light,
-                                    checkpoint=session.checkpoint)
-
-
-def panorama_only_result(frame: Frame, world: tuple[np.ndarray, np.ndarray, np.ndarray]
-                         ) -> FrameResult:
-    """The FrameResult of a frame without colour and depth (SPEC.md, "result"): the
-    panorama's light in the world frame as the estimate; no camera, so pose is the identity
-    and the camera frame is the world frame; confidence: the map's SH are a projection, not
-    a fit (every pixel of the area-averaged map counts as a sample, condition number 1)."""
-    sh_world, rgb_world, direction = world
-    # the SH are projected from the map area-averaged to sh_source_size (or as it came, when
-    # not larger): every pixel of that map is one sample
-    height = min(frame.panorama.shape[0], IblParams().sh_source_size[1])
-    samples = height * 2 * height
-    bands = sh_lib.bands_of(len(sh_world))
-    return FrameResult(
-        timestamp=float(frame.timestamp), sh=sh_world, sh_camera=sh_world,
-        dominant_direction_world=direction, dominant_direction_camera=direction,
-        intensity=sh_lib.intensity_along(sh_world, direction) if np.any(direction) else 0.0,
-        confidence=Confidence(samples=samples, condition_number=1.0, bands_estimated=bands,
-                              value=1.0 if np.any(direction) else 0.0,
-                              reason="" if np.any(direction) else "black panorama"),
-        pose=np.eye(4), sh_rgb=rgb_world, timings_ms={}, diagnostics={})
-
-
-@dataclass
-class Job:
-    """A received frame waiting for (or in) a worker. parts: the encoded message, undecoded."""
-
-    seq: int
-    parts: list
-    receive_time_wall: float  # time.time(), seconds: the Result's server_receive_time
-    receive_time_mono: float  # time.monotonic(), seconds: latency and liveness
-
-
-@dataclass
-class JobOutcome:
-    """What a worker hands back to the I/O thread: encoded Result or Error parts."""
-
-    session: Session
-    job: Job
-    parts: list
-    ok: bool
-    finish_time_mono: float  # time.monotonic(), seconds
-    error: Error | None = None
+    def volume_budget_error(self, blocks: int) -> OverBudget | None:
+        """The over_budget error of a volume of `blocks` blocks, None within the budget."""
+        return volume_budget_error(blocks, self.budget, self.cost)
 
 
 class Session:
-    """One session's state. Counters are read by workers and written by the I/O thread."""
+    """One session: `setup`, `queue` (its frames, credits and counters), `compute` (its
+    pipeline) and what the server keeps about its peers.
+
+    A ProcessStep given to the server is called with the Session: it reads what the Hello
+    set up (`name`, `config`, `pipeline_config`, `camera`, `scene`, `budget`), the frame's
+    light to render with (`render_light`), and calls `checkpoint(stage)` where the frame may
+    be abandoned and `volume_budget_error(blocks)` for a volume it holds elsewhere.
+    """
 
     def __init__(self, config: SessionConfig, *, credits: int, max_pixels: int,
                  max_message_bytes: int, process: ProcessStep | None = None,
                  budget: SessionBudget | None = None, cancel: threading.Event | None = None):
-        """budget: the per-frame time and per-session memory limits (server/budget.py;
-        None: unlimited); cancel: set when the server stops, so a frame in a worker is
-        abandoned at its next stage boundary. SessionSetupError for a config it refuses."""
-        self.name = config.session
-        self.config = config
-        self.credits = credits
-        self.max_pixels = max_pixels
-        self.max_message_bytes = max_message_bytes
-        self.pipeline_config = pipeline_config(config)
-        if config.exports and self.pipeline_config.transfer.sh_bands < 3:
-            raise SessionSetupError("exports", f"the engine layouts hold 3 SH bands and the "
-                                    f"session estimates {self.pipeline_config.transfer.sh_bands}"
-                                    f" (override sh_bands, `--set sh_bands=N`): ask for 3 or "
-                                    f"more, or no exports")
-        # a Hello without calibration (allowed with config.panorama): a panorama-only session
-        self.camera = None if config.calibration is None else camera_from_config(config,
-                                                                                 max_pixels)
-        self.panorama_light = panorama_light_from_config(config)
-        self.render_light: RenderLight | None = None  # of the job in run()
-        self.scene = scene_from_config(config)  # None: nothing to render
-        self.budget = budget
-        # refused here, at Hello, when its settings could not meet the server's budgets
-        self.cost = None if budget is None else budget.check(
-            config, self.pipeline_config, self.camera,
-            len(self.scene.objects) if self.scene else 0)
-        self._cancel = cancel
-        self._job_start = 0.0  # time.monotonic() when the job in run() started
-        if not (np.isfinite(config.depth_scale) and config.depth_scale > 0):
-            raise SessionSetupError("depth_scale", f"must be a finite number of units per metre "
-                                                   f"> 0, got {config.depth_scale}")
+        """credits: the lossless credit window; process: a compute step in place of the
+        Pipeline; budget: the server's limits (None: unlimited); cancel: set when the server
+        stops, so a frame in a worker is abandoned at its next stage boundary.
+        SessionSetupError for a config it refuses."""
+        setup = SessionSetup.from_config(config, max_pixels=max_pixels,
+                                         max_message_bytes=max_message_bytes, budget=budget)
+        self.setup = setup
+        # what the Hello set up, read-only (also a ProcessStep's view of the session)
+        self.name = setup.name
+        self.config = setup.config
+        self.pipeline_config = setup.pipeline_config
+        self.camera = setup.camera
+        self.scene = setup.scene
+        self.budget = setup.budget
         self.lossless = config.mode == "lossless"
-        self._process = process or default_process
-        self._told_no_render = False  # logged once: a scene but no composite from the pipeline
-        self._pipeline: Pipeline | None = None
-        self.pending: collections.deque[Job] = collections.deque()
-        self.in_flight: Job | None = None
+        self.created_mono = time.monotonic()
+        self.queue = FrameQueue(lossless=self.lossless, credits=credits,
+                                now=self.created_mono)
+        self.compute = SessionCompute(self.setup, process, owner=self, cancel=cancel)
         self.capture_peer: bytes | None = None
         self.token: str | None = None  # admits displays and capture Hellos (server.py sets it)
         self.ended = False  # the capture client said Bye: close once the queue is empty
-        self.created_mono = time.monotonic()
-        self.last_activity = self.created_mono  # time.monotonic() of the last frame or Hello
-        self.highest_seq = -1  # highest seq accepted (lossless duplicate detection)
-        self.refused_from: int | None = None  # lossless: first seq refused for credits
-        # lossless: seq -> encoded final reply (Result or final Error) of the last frames
-        self.outcomes: collections.OrderedDict[int, list] = collections.OrderedDict()
-        self._lock = threading.Lock()
-        self.frames_received = 0
-        self.frames_processed = 0
-        self.frames_dropped = 0
-        self.frames_failed = 0
-        self.display_drops = 0
-        # (monotonic finish time, receive-to-finish latency), seconds, for the periodic log
-        self.recent: collections.deque[tuple[float, float]] = collections.deque(maxlen=512)
-
-    # ------------------------------------------------------------------ I/O thread
+        self.display_drops = 0  # Results not delivered to a display (its queue full)
 
     @property
-    def pipeline(self) -> Pipeline:
-        """The session's Pipeline, built on first use (in a worker: it allocates the volume)."""
-        if self._pipeline is None:
-            if self.camera is None:
-                raise FrameError("color", "this session has no camera calibration (a "
-                                 "panorama-only session): send frames without colour and depth")
-            self._pipeline = Pipeline(self.pipeline_config, self.camera, scene=self.scene)
-        return self._pipeline
+    def render_light(self) -> RenderLight | None:
+        """The light a ProcessStep renders the frame it was called with by (None: the
+        frame's own estimate)."""
+        return self.compute.render_light
+
+    def checkpoint(self, stage: str) -> None:
+        """For a ProcessStep: FrameAbandoned when the frame it was called with is past the
+        server's per-frame deadline or the server is stopping."""
+        if self.compute.deadline is not None:
+            self.compute.deadline(stage)
+
+    def volume_budget_error(self, blocks: int) -> OverBudget | None:
+        return self.setup.volume_budget_error(blocks)
+
+    # what the server keeps
+
+    @property
+    def last_activity(self) -> float:
+        """time.monotonic() of the last frame, finished frame or Hello."""
+        return self.queue.last_activity
+
+    @last_activity.setter
+    def last_activity(self, now: float) -> None:
+        self.queue.last_activity = now
+
+    @property
+    def idle(self) -> bool:
+        return self.queue.idle
 
     def same_setup(self, config: SessionConfig) -> bool:
         """True if `config` asks for the same session (a reconnecting client's Hello)."""
@@ -396,287 +300,12 @@ class Session:
         b = dataclasses.replace(config, client_name="", token=None)
         return a == b
 
-    def offer(self, job: Job) -> str:
-        """Queue a received frame. Returns what happened:
-
-        "queued"; "replaced" (live: an older pending frame was dropped); "duplicate" (lossless:
-        seq already accepted, still queued or in a worker: its reply comes when it finishes);
-        "resend" (lossless: already finished, its Result or final Error is in `outcomes`);
-        "expired" (lossless: seq at or below the highest accepted, neither waiting nor in
-        `outcomes`: its outcome can no longer be sent again); "overflow" (lossless: the
-        client ignored its credit window; the frame is refused).
-        """
-        seq = job.seq
-        self.last_activity = job.receive_time_mono
-        if self.lossless:
-            if seq <= self.highest_seq:
-                if seq in self.outcomes:
-                    return "resend"
-                waiting = (self.in_flight is not None and self.in_flight.seq == seq) or any(
-                    job.seq == seq for job in self.pending)
-                return "duplicate" if waiting else "expired"
-            # once a frame is refused, later ones are refused too until it comes again: a
-            # client that retries in order then keeps its frames in order
-            if len(self.pending) >= self.credits + LOSSLESS_QUEUE_SLACK or (
-                    self.refused_from is not None and seq > self.refused_from):
-                self.refused_from = seq if self.refused_from is None else self.refused_from
-                return "overflow"
-            self.refused_from = None
-            with self._lock:
-                self.frames_received += 1
-            self.highest_seq = seq
-            self.pending.append(job)
-            return "queued"
-        with self._lock:
-            self.frames_received += 1
-            outcome = "queued"
-            if self.pending:
-                self.pending.clear()
-                self.frames_dropped += 1
-                outcome = "replaced"
-        self.highest_seq = max(self.highest_seq, seq)
-        self.pending.append(job)
-        return outcome
-
-    def next_job(self) -> Job | None:
-        """The next frame to process, if none of this session's frames is in a worker."""
-        if self.in_flight is not None or not self.pending:
-            return None
-        self.in_flight = self.pending.popleft()
-        return self.in_flight
-
-    def finish(self, outcome: JobOutcome) -> None:
-        self.in_flight = None
-        self.last_activity = max(self.last_activity, outcome.finish_time_mono)
-        if self.lossless and (outcome.ok or not outcome.error.retryable):
-            # the frame's final reply: a duplicate of this seq gets it again, so a reply lost
-            # on the way (the client disconnected) is recovered by resending the frame
-            self.outcomes[outcome.job.seq] = outcome.parts
-            while len(self.outcomes) > self.credits + OUTCOME_CACHE_EXTRA:
-                self.outcomes.popitem(last=False)
-        if outcome.ok:
-            self.recent.append((outcome.finish_time_mono,
-                                outcome.finish_time_mono - outcome.job.receive_time_mono))
-
-    def pipeline_lost(self, job: Job) -> list[Job]:
-        """After `job` failed with PipelineLost (its outcome already finished): un-accept it
-        and the queued frames, returned (the caller reports them retryable). Lossless: the
-        highest accepted seq goes back below job's, and frames above it are refused
-        (`credits`) until it comes again, so the resent frames keep their order."""
-        jobs = list(self.pending)
-        self.pending.clear()
-        with self._lock:
-            self.frames_received -= 1 + len(jobs)
-        if self.lossless:
-            self.highest_seq = min(self.highest_seq, job.seq - 1)
-            self.refused_from = job.seq
-        return jobs
-
-    def drop_pending(self) -> list[Job]:
-        """Remove and return the queued frames (shutdown); live frames count as dropped."""
-        jobs = list(self.pending)
-        self.pending.clear()
-        if not self.lossless:
-            with self._lock:
-                self.frames_dropped += len(jobs)
-        return jobs
-
-    @property
-    def idle(self) -> bool:
-        return self.in_flight is None and not self.pending
-
-    def counters(self) -> dict:
-        with self._lock:
-            return {"frames_received": self.frames_received,
-                    "frames_processed": self.frames_processed,
-                    "frames_dropped": self.frames_dropped,
-                    "frames_failed": self.frames_failed}
-
-    def _environment(self, panorama: IblResult) -> EnvironmentMap | None:
-        """The panorama's HDR map as the environment mirror and glossy objects reflect, or
-        None when no virtual object reflects (the mip pyramid costs a pass over the map)."""
-        scene = self.scene
-        if panorama.hdr is None or not scene or not any(
-                o.material.mirror or o.material.metalness > 0 for o in scene.objects):
-            return None
-        return EnvironmentMap(mip_pyramid(panorama.hdr), self.panorama_light.panorama_from_world)
-
-    # ------------------------------------------------------------------ worker thread
-
-    def checkpoint(self, stage: str) -> None:
-        """Called by the pipeline before each stage (and each robust iteration of the
-        light estimate): FrameAbandoned when the frame is past the budget's deadline or the
-        server is stopping (the step is not started)."""
-        elapsed = time.monotonic() - self._job_start
-        if self._cancel is not None and self._cancel.is_set():
-            raise FrameAbandoned("shutdown", stage, elapsed, 0.0)
-        limit = math.inf if self.budget is None else self.budget.frame_deadline_s
-        if elapsed > limit:
-            raise FrameAbandoned("deadline", stage, elapsed, limit)
-
-    def _check_declared_sizes(self, parts: list) -> None:
-        """Before any payload is decoded: colour or depth declared at another size than the
-        calibration's is refused (FrameError naming the image), and a panorama larger than
-        the session's memory budget leaves room for (OverBudget, frame.panorama)."""
-        header = peek_header(parts)
-        pano = header.get("panorama")
-        if isinstance(pano, dict) and self.budget is not None:
-            w, h = pano.get("width"), pano.get("height")
-            if type(w) is int and type(h) is int and 0 < w * h <= self.max_pixels:
-                need = w * h * PANORAMA_BYTES_PER_PIXEL
-                room = self.budget.session_memory_bytes - self.cost.session_bytes
-                if need > room:
-                    raise OverBudget("frame.panorama", (
-                        f"a {w} x {h} panorama needs about {need / 2**20:.0f} MiB, over what "
-                        f"the session's memory budget leaves for it ({max(room, 0) / 2**20:.0f}"
-                        f" MiB of {self.budget.session_memory_bytes / 2**20:.0f} MiB, `arlight "
-                        "serve --session-memory-mb`); send a smaller panorama"))
-        if self.camera is None:
-            return
-        for key in ("color", "depth"):
-            d = header.get(key)
-            if not isinstance(d, dict):
-                continue
-            w, h = d.get("width"), d.get("height")
-            if type(w) is not int or type(h) is not int or w * h > self.max_pixels:
-                continue  # the decoder names these (bad_field, too_large)
-            if (w, h) != (self.camera.width, self.camera.height):
-                raise FrameError(key, f"{key} is {w} x {h}, the session's calibration "
-                                 f"{self.camera.width} x {self.camera.height}")
-
-    def run(self, job: Job) -> JobOutcome:
-        """Decode, check, process and encode one frame. Never raises: errors become Error."""
-        self._job_start = time.monotonic()
-        try:
-            self._check_declared_sizes(job.parts)
-            frame = decode(job.parts, max_message_bytes=self.max_message_bytes,
-                           max_pixels=self.max_pixels)
-            if not isinstance(frame, Frame):
-                raise ProtocolError("bad_state", f"expected a Frame, got {type(frame).__name__}")
-            panorama = world = None
-            self.render_light = None
-            if frame.panorama is not None:  # first: a bad panorama fails before the pipeline
-                panorama = self.panorama_light.light(frame.panorama)
-                world = self.panorama_light.to_world(panorama)
-                if self.panorama_light.light_source == "panorama":
-                    self.render_light = RenderLight(world[0], world[1], self._environment(panorama))
-            composite = None
-            if frame.color is None:  # panorama-only: no RGB-D pipeline
-                result = panorama_only_result(frame, world)
-            else:
-                if self.camera is None:
-                    raise FrameError("color", "this session has no camera calibration (a "
-                                     "panorama-only session): send frames without colour "
-                                     "and depth")
-                frame_input = frame_to_input(frame, self.camera, self.config.depth_scale)
-                result = self._process(frame_input, self)
-                composite = self.composite(frame_input, result) if self.config.want_composite \
-                    else None
-            if panorama is not None:
-                result.timings_ms = {**result.timings_ms, **{  # stages: they add up
-                    f"Panorama{k}": v for k, v in panorama.timings_ms.items()}}
-                result.diagnostics = {**result.diagnostics, "light_source": (
-                    "panorama" if frame.color is None else self.panorama_light.light_source),
-                    "panorama_operator": self.panorama_light.params.operator}
-            self._check_volume_budget()
-        except Exception as exc:  # noqa: BLE001 - every failure becomes an Error reply
-            return self._failed(job, frame_error(exc, job.seq))
-        finally:
-            self.render_light = None
-        finish_wall = time.time()
-        with self._lock:
-            self.frames_processed += 1
-            counters = (self.frames_received, self.frames_processed, self.frames_dropped)
-        try:
-            message = result_message(result, seq=job.seq, counters=counters,
-                                     receive_time_wall=job.receive_time_wall,
-                                     finish_time_wall=finish_wall, composite=composite,
-                                     composite_codec=frame.color_codec,
-                                     jpeg_quality=frame.jpeg_quality, panorama=panorama,
-                                     exports=self.config.exports)
-            return JobOutcome(self, job, encode(message), True, time.monotonic())
-        except Exception as exc:  # noqa: BLE001 - e.g. a non-finite estimate
-            return self._failed(job, Error(
-                code="internal", seq=job.seq,
-                message=f"the server could not send the Result of this frame ({exc})"))
-
-    def composite(self, frame: FrameInput, result: FrameResult) -> np.ndarray:
-        """The frame a Result carries: without a virtual scene the input colour frame,
-        unchanged; with one the pipeline's rendering of it (the input frame while the
-        pipeline makes none)."""
-        if self.scene and result.composite is not None:
-            return result.composite
-        if self.scene and not self._told_no_render:
-            self._told_no_render = True
-            log.info("session %s: the pipeline rendered no composite; the Results carry the "
-                     "input frame", self.name)
-        return frame.color
-
-    def _check_volume_budget(self) -> None:
-        """The volume grows with the surface seen: past the session's memory budget it is
-        dropped (the next frame starts a new one) and this frame fails (over_budget)."""
-        if self._pipeline is None:
-            return
-        over = self.volume_budget_error(self._pipeline.volume_blocks)
-        if over is not None:
-            self._pipeline = None
-            raise over
-
-    def volume_budget_error(self, blocks: int) -> OverBudget | None:
-        """The over_budget error of a volume of `blocks` blocks, None within the budget."""
-        if self.budget is None:
-            return None
-        used = blocks * self.cost.bytes_per_block
-        if used > self.cost.volume_limit_bytes:
-            return OverBudget("frame",
-                f"the session's volume grew to {blocks} blocks ({used / 2**20:.0f} "
-                f"MiB), over its share of the per-session memory budget "
-                f"({self.cost.volume_limit_bytes / 2**20:.0f} MiB of "
-                f"{self.budget.session_memory_bytes / 2**20:.0f} MiB, `arlight serve "
-                "--session-memory-mb`); the volume is reset and the session goes on")
-        return None
-
-    def crashed(self, job: Job, exc: BaseException | None) -> JobOutcome:
-        """The outcome of a job whose worker failed outside run()'s own handling."""
-        log.error("session %s: frame %d: worker failed: %r", self.name, job.seq, exc)
-        return self._failed(job, Error(code="internal", seq=job.seq,
-                                       message=f"the server failed to process this frame "
-                                               f"({type(exc).__name__})"))
-
-    def _failed(self, job: Job, error: Error) -> JobOutcome:
-        if error.code == "internal":
-            log.error("session %s: frame %d failed: %s", self.name, job.seq, error.message)
-        else:
-            log.info("session %s: frame %d rejected: %s", self.name, job.seq, error.message)
-        with self._lock:
-            self.frames_failed += 1
-        return JobOutcome(self, job, encode_error(error), False, time.monotonic(), error)
+    def counters(self) -> dict[str, int]:
+        c = self.queue.counters()
+        return {"frames_received": c.received, "frames_processed": c.processed,
+                "frames_dropped": c.dropped, "frames_failed": c.failed}
 
 
-def frame_error(exc: Exception, seq: int | None) -> Error:
-    """The Error reply for an exception raised while handling frame `seq`."""
-    if isinstance(exc, ProtocolError):
-        error = error_from_exception(exc)
-        return dataclasses.replace(error, seq=seq)
-    if isinstance(exc, FrameError):
-        return Error(code="bad_field", message=str(exc), field=f"frame.{exc.field}", seq=seq)
-    if isinstance(exc, FrameAbandoned):
-        if exc.reason == "shutdown":
-            return Error(code="bad_state", field=ErrorField.SHUTDOWN, seq=seq, retryable=True,
-                         message="the server shut down before finishing this frame; send it "
-                                 "again after reconnecting")
-        return Error(code="deadline", seq=seq, message=(
-            f"frame abandoned before {exc.stage}: {exc.elapsed_s:.1f} s in the pipeline, over "
-            f"the server's per-frame deadline of {exc.limit_s:g} s (`arlight serve "
-            "--frame-deadline`); lower the session's cost (--preset fast, a smaller image, "
-            "fewer rt_directions or robust_iterations)"))
-    if isinstance(exc, OverBudget):
-        return Error(code="over_budget", seq=seq, field=exc.field, message=str(exc))
-    if isinstance(exc, PipelineLost):
-        return Error(code="bad_state", field=ErrorField.PIPELINE_LOST, seq=seq, retryable=True,
-                     message=f"{exc}; this frame and the session's queued frames were not "
-                             "processed: send them again (a new pipeline, a fresh volume)")
-    log.error("frame %s: unexpected failure", seq, exc_info=exc)
-    return Error(code="internal", message=f"the server failed to process this frame "
-                                          f"({type(exc).__name__}: {exc})"[:4096], seq=seq)
-
+__all__ = ["BUILT_IN_SCENES", "Job", "PanoramaLight", "PipelineLost", "Session",
+           "SessionSetup", "SessionSetupError", "camera_from_config", "panorama_light_from_config",
+           "pipeline_config", "scene_from_config", "virtual_object"]

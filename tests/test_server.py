@@ -927,7 +927,7 @@ class TestVirtualScene:
         seen = []
 
         def on_result(result, _):
-            seen.append((result, server.sessions["scene"]._pipeline.requested_scene))
+            seen.append((result, server.sessions["scene"].compute.pipeline.requested_scene))
 
         options = StreamOptions(server=server.connect_address, session="scene",
                                 mode="lossless", rate="max", preset="fast", overrides=SMALL,

@@ -38,7 +38,10 @@ from arlight.protocols import (
     encode,
 )
 from arlight.server.budget import SessionBudget
-from arlight.server.session import Job, Session, encode_error
+from arlight.server.frame_queue import Job
+from arlight.server.results import encode_error
+from arlight.server.session import Session
+from arlight.server.worker import Rejected, run_frame
 from arlight.sources.source import calibration_of
 from arlight.sources.synthetic import make_sequence
 
@@ -180,11 +183,11 @@ class TestWorkerFailures:
         finally:
             peer.close()
 
-    def test_session_run_failing_itself_still_answers(self, make_server, monkeypatch):
-        def broken_run(self, job):
+    def test_the_worker_step_failing_itself_still_answers(self, make_server, monkeypatch):
+        def broken_run(job, compute):
             raise Boom()
 
-        monkeypatch.setattr(Session, "run", broken_run)
+        monkeypatch.setattr("arlight.server.server.run_frame", broken_run)
         server = make_server(process=identity_step())
         peer = RawPeer(server.connect_address)
         try:
@@ -293,7 +296,8 @@ def _until_deadline_step(session_box: list):
         session_box.append(session)
         if len(session_box) == 1:
             deadline = session.budget.frame_deadline_s
-            while time.monotonic() - session._job_start <= deadline:
+            start = time.monotonic()
+            while time.monotonic() - start <= deadline:
                 time.sleep(0.01)
             session.checkpoint("LightEst")
         return step(frame, session)
@@ -389,10 +393,11 @@ class TestSessionMemory:
                           budget=budget)
         f = seq.frames[0]
         parts = encode(Frame(0, f.timestamp, f.color, f.depth, None, None, "raw", "raw"))
-        outcome = session.run(Job(0, parts, time.time(), time.monotonic()))
-        assert not outcome.ok and outcome.error.code == "over_budget", outcome.error
+        outcome = run_frame(Job(0, parts, time.time(), time.monotonic()), session.compute)
+        assert isinstance(outcome, Rejected), outcome
+        assert outcome.error.code == "over_budget", outcome.error
         assert "--session-memory-mb" in outcome.error.message
-        assert session._pipeline is None  # dropped: the next frame starts a new volume
+        assert not session.compute.pipeline_built  # dropped: the next frame starts anew
 
 
 class TestShutdownAbandons:
