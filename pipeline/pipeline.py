@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -248,7 +249,7 @@ class Pipeline:
         if reuse:
             geometry, transfer = self._last_transfer
             timings["RadTransfer"] = 0.0
-            diagnostics["reused"].update(DynGeo=True, RadTransfer=True)
+            diagnostics["reused"].update({"DynGeo": True, "RadTransfer": True})
             labels = self._segments(color_linear, geometry)
         else:
             geometry, transfer, labels = self._geometry_and_transfer(
@@ -405,7 +406,7 @@ class Pipeline:
             pose, depth_volume, aux_buffers = (surface.pose, surface.depth_volume_m,
                                                surface.aux_buffers)
             tracked = bool(surface.tracking.ok)
-            tracking = surface.tracking.to_dict()
+            tracking = cast(TrackingDiagnostics, surface.tracking.to_dict())
             # a still camera: fusion skipped, the last frame's cast and aux buffers reused
             diagnostics["reused"]["Surface"] = surface.reused
         self._pose = pose

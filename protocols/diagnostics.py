@@ -3,7 +3,9 @@ only, bounded in depth, entries, array length, string length and values in all."
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
+
+from arlight.contracts import Diagnostics
 
 from .errors import ProtocolError
 from .fields import KEY_RE, read_str, to_plain, type_name
@@ -17,16 +19,18 @@ DIAGNOSTICS_MAX_VALUES = 4096  # scalars plus array elements, in all
 _DIAGNOSTIC_TYPES = "nil, bool, int, float, str, arrays of numbers and maps of these"
 
 
-def plain_diagnostics(diagnostics: Any, name: str = "result.diagnostics") -> dict:
+def plain_diagnostics(diagnostics: Any, name: str = "result.diagnostics") -> Diagnostics:
     """Result.diagnostics as the wire carries it: numpy values and tuples made plain, then
     checked against the limits; ProtocolError (bad_field, naming the key) for anything else."""
     return read_diagnostics(to_plain(diagnostics), name)
 
 
-def read_diagnostics(v: Any, name: str) -> dict:
-    """Check a diagnostics map (decode, and encode before sending); arrays become floats."""
+def read_diagnostics(v: Any, name: str) -> Diagnostics:
+    """Check a diagnostics map (decode, and encode before sending); arrays become floats.
+    The keys are whatever came (a client must not fail on keys it does not know), typed as
+    the ones arlight sends (arlight.contracts.Diagnostics)."""
     budget = [DIAGNOSTICS_MAX_VALUES]
-    return _diagnostics_map(v, name, 1, budget)
+    return cast(Diagnostics, _diagnostics_map(v, name, 1, budget))
 
 
 def _diagnostics_map(v: Any, name: str, level: int, budget: list[int]) -> dict:

@@ -9,11 +9,12 @@ numpy values into what msgpack packs. Any value that breaks a rule raises Protoc
 
 from __future__ import annotations
 
+import builtins
 import math
 import re
 import secrets
 from enum import Enum
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -69,7 +70,18 @@ class FieldReader:
             raise ProtocolError("bad_field", "must not be nil", self.f(key))
         return value
 
-    def int(self, key: str, lo: int = 0, hi: int = MAX_INT, nullable: bool = False):
+    # the getters are named after the types they read: inside the class, the annotations
+    # name the types as builtins.int, builtins.str, ...
+    @overload
+    def int(self, key: builtins.str, lo: builtins.int = 0, hi: builtins.int = MAX_INT,
+            nullable: Literal[False] = False) -> builtins.int: ...
+
+    @overload
+    def int(self, key: builtins.str, lo: builtins.int = 0, hi: builtins.int = MAX_INT, *,
+            nullable: builtins.bool) -> builtins.int | None: ...
+
+    def int(self, key: builtins.str, lo: builtins.int = 0, hi: builtins.int = MAX_INT,
+            nullable: builtins.bool = False) -> builtins.int | None:
         v = self.raw(key, nullable)
         if v is None:
             return None
@@ -80,25 +92,45 @@ class FieldReader:
             raise ProtocolError("bad_field", f"{v} is outside {lo}..{hi}", self.f(key))
         return v
 
-    def float(self, key: str, lo: float = -math.inf, hi: float = math.inf) -> float:
+    def float(self, key: builtins.str, lo: builtins.float = -math.inf,
+              hi: builtins.float = math.inf) -> builtins.float:
         return read_float(self.raw(key), self.f(key), lo, hi)
 
-    def bool(self, key: str) -> bool:
+    def bool(self, key: builtins.str) -> builtins.bool:
         v = self.raw(key)
         if type(v) is not bool:
             raise ProtocolError("bad_field", f"expected a boolean, got {type_name(v)}", self.f(key))
         return v
 
-    def str(self, key: str, max_len: int = 1024, pattern=None, choices=None, nullable=False):
+    @overload
+    def str(self, key: builtins.str, max_len: builtins.int = 1024,
+            pattern: re.Pattern | None = None, choices: tuple | None = None,
+            nullable: Literal[False] = False) -> builtins.str: ...
+
+    @overload
+    def str(self, key: builtins.str, max_len: builtins.int = 1024,
+            pattern: re.Pattern | None = None, choices: tuple | None = None, *,
+            nullable: builtins.bool) -> builtins.str | None: ...
+
+    def str(self, key: builtins.str, max_len: builtins.int = 1024,
+            pattern: re.Pattern | None = None, choices: tuple | None = None,
+            nullable: builtins.bool = False) -> builtins.str | None:
         v = self.raw(key, nullable)
         if v is None:
             return None
         return read_str(v, self.f(key), max_len, pattern, choices)
 
-    def floats(self, key: str, n: int | None = None, max_len: int = 1024) -> list[float]:
+    def floats(self, key: builtins.str, n: builtins.int | None = None,
+               max_len: builtins.int = 1024) -> list[builtins.float]:
         return read_floats(self.raw(key), self.f(key), n, max_len)
 
-    def map(self, key: str, nullable: bool = False) -> FieldReader | None:
+    @overload
+    def map(self, key: builtins.str, nullable: Literal[False] = False) -> FieldReader: ...
+
+    @overload
+    def map(self, key: builtins.str, nullable: builtins.bool) -> FieldReader | None: ...
+
+    def map(self, key: builtins.str, nullable: builtins.bool = False) -> FieldReader | None:
         v = self.raw(key, nullable)
         return None if v is None else FieldReader(v, self.f(key))
 
@@ -127,7 +159,8 @@ def read_float(v: Any, name: str, lo: float = -math.inf, hi: float = math.inf) -
     return v
 
 
-def read_str(v: Any, name: str, max_len: int = 1024, pattern=None, choices=None) -> str:
+def read_str(v: Any, name: str, max_len: int = 1024, pattern: re.Pattern | None = None,
+             choices: tuple | None = None) -> str:
     if type(v) is not str:
         raise ProtocolError("bad_field", f"expected a string, got {type_name(v)}", name)
     if len(v) > max_len:

@@ -134,12 +134,14 @@ class SceneSpec:
     def _pack(self, parts: list, name: str) -> dict:
         packed = [obj._pack(f"{name}.objects[{i}]") for i, obj in enumerate(self.objects)]
         out: dict[str, Any] = {}
-        for k, key in enumerate(_SCENE_BUFFERS, start=1):
-            arrays = [p[k] for p in packed]
+        columns = {"vertices": [p[1] for p in packed], "triangles": [p[2] for p in packed],
+                   "normals": [p[3] for p in packed]}
+        for key in _SCENE_BUFFERS:
+            arrays = columns[key]
             joined = arrays[0] if len(arrays) == 1 else np.concatenate(
                 arrays or [np.empty((0, 3), _U32 if key == "triangles" else _F32)])
             out[key] = len(parts)
-            parts.append(memoryview(joined.reshape(-1).view(np.uint8)))
+            parts.append(joined.reshape(-1).view(np.uint8).data)  # a memoryview, zero-copy
         out["objects"] = [p[0] for p in packed]
         return out
 
@@ -175,18 +177,19 @@ class SceneSpec:
         m.done()
         if images.parts is None:  # descriptors only: no arrays to check
             return cls()
+        given = {key: buf for key, buf in buffers.items() if buf is not None}  # all, with parts
         counts = {"vertices": vertices_total, "triangles": triangles_total,
                   "normals": vertices_total}
-        for key, buf in buffers.items():
+        for key, buf in given.items():
             if len(buf) != counts[key] * _XYZ_BYTES:
                 what = "triangle_count" if key == "triangles" else "vertex_count"
                 raise ProtocolError(
                     "bad_field", f"the part holds {len(buf)} bytes; the objects' {what}s "
                     f"({counts[key]} in all, {_XYZ_BYTES} bytes each) need "
                     f"{counts[key] * _XYZ_BYTES}", m.f(key))
-        vertices = np.frombuffer(buffers["vertices"], _F32).reshape(-1, 3)
-        triangles = np.frombuffer(buffers["triangles"], _U32).reshape(-1, 3)
-        normals = np.frombuffer(buffers["normals"], _F32).reshape(-1, 3)
+        vertices = np.frombuffer(given["vertices"], _F32).reshape(-1, 3)
+        triangles = np.frombuffer(given["triangles"], _U32).reshape(-1, 3)
+        normals = np.frombuffer(given["normals"], _F32).reshape(-1, 3)
         objects = []
         for i, f in enumerate(fields):
             name = f"{where}[{i}]"

@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any, Union
 
-import msgpack
+import msgpack  # type: ignore[import-untyped]  # no stubs, no py.typed
 
 from .codecs import DEFAULT_MAX_PIXELS, as_bytes_view
 from .control import Bye, Credit, Error, Heartbeat, Welcome
@@ -36,8 +36,11 @@ from .images import ImageParts
 from .session_config import Hello
 
 Message = Union[Hello, Welcome, Frame, Result, Credit, Error, Heartbeat, Bye]  # noqa: UP007
+MessageClass = Union[  # noqa: UP007
+    type[Hello], type[Welcome], type[Frame], type[Result], type[Credit], type[Error],
+    type[Heartbeat], type[Bye]]
 
-MESSAGE_TYPES: dict[str, type] = {
+MESSAGE_TYPES: dict[str, MessageClass] = {
     cls.TYPE: cls for cls in (Hello, Welcome, Frame, Result, Credit, Error, Heartbeat, Bye)
 }
 _TYPE_NAMES = {cls: name for name, cls in MESSAGE_TYPES.items()}
@@ -57,7 +60,7 @@ def encode(
     name = _TYPE_NAMES.get(type(msg))
     if name is None:
         raise ProtocolError("unknown_type", f"{type(msg).__name__} is not a protocol message")
-    version = msg.protocol_version if name in ("hello", "welcome") else PROTOCOL_VERSION
+    version = msg.protocol_version if isinstance(msg, (Hello, Welcome)) else PROTOCOL_VERSION
     parts: list[bytes | memoryview] = []
     header: dict[str, Any] = {"v": to_plain(version), "type": name}
     header.update(msg._pack(parts))

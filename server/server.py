@@ -405,8 +405,15 @@ class Server:
         finally:
             self._stopped.set()
 
+    @property
+    def _socket(self) -> zmq.Socket:
+        """The ROUTER socket (the I/O thread's; there is one once started)."""
+        if self._router is None:
+            raise RuntimeError("server not started")
+        return self._router
+
     def _drain_router(self) -> None:
-        router = self._router
+        router = self._socket
         for _ in range(MAX_MESSAGES_PER_POLL):
             try:
                 message = router.recv_multipart(zmq.NOBLOCK, copy=False)
@@ -790,7 +797,7 @@ class Server:
     def _send(self, identity: bytes, parts: list) -> bool:
         """Send without blocking; False if the peer is gone or its queue is full (dropped)."""
         try:
-            self._router.send_multipart([identity, *parts], zmq.NOBLOCK, copy=False)
+            self._socket.send_multipart([identity, *parts], zmq.NOBLOCK, copy=False)
             return True
         except zmq.Again:
             peer = self.peers.get(identity)
@@ -929,7 +936,7 @@ class Server:
 
     def _finish_shutdown(self) -> None:
         """Report unfinished lossless frames, say Bye to every peer, close the socket."""
-        router = self._router
+        router = self._socket
         self._cancel.set()  # a frame still in a worker is abandoned at its next stage
         try:
             for session in list(self.sessions.values()):
@@ -954,9 +961,11 @@ class Server:
             log.exception("error while shutting down")
         finally:
             router.close()
-            self._executor.shutdown(wait=False, cancel_futures=True)
+            if self._executor is not None:
+                self._executor.shutdown(wait=False, cancel_futures=True)
             self._stop_curve()
-            self._ctx.term()
+            if self._ctx is not None:
+                self._ctx.term()
             self._wake_r.close()
             self._wake_w.close()
             self.sessions.clear()
