@@ -284,6 +284,11 @@ class EstimationParams:
     # otherwise only when the light comes out below that horizon
     horizon_prior: float = 0.1
     horizon_ground_albedo: float = 0.3  # of the prior's ground glow
+    # weight of the light prior learned from HDR maps (pipeline/light_prior.py), relative to
+    # the mean diagonal of T^T T (0 = off); docs/decisions/light-prior.md
+    light_prior: float = 0.0
+    # maps left out of that prior, comma-separated names (leave-one-map-out evaluation)
+    light_prior_exclude: str = ""
     robust_iterations: int = 8  # IRLS / albedo alternation passes (0 = plain least squares)
     albedo_segments: bool = True  # one unknown albedo per material segment (beyond the paper)
     segment_features: SegmentFeatures = SegmentFeatures.INVARIANT
@@ -303,6 +308,10 @@ class EstimationParams:
         _check_int(self, "light_max_samples", 1)
         _check_float(self, "horizon_prior", 0.0)
         _check_float(self, "horizon_ground_albedo", 0.0, 1.0)
+        _check_float(self, "light_prior", 0.0)
+        if not isinstance(self.light_prior_exclude, str):
+            raise ValueError("light_prior_exclude must be map names separated by commas "
+                             f"{_hint('light_prior_exclude', 'NAME,NAME')}")
         _check_int(self, "robust_iterations", 0)
         _check_bool(self, "albedo_segments")
         _check_enum(self, "segment_features", SegmentFeatures)

@@ -283,19 +283,34 @@ def _fit_light(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
                checkpoint: Callable[[], None] | None = None,
                ) -> tuple[_Fit, np.ndarray | None]:
     """The robust fit, with the below-horizon prior where it applies; (fit, prior or None)."""
+    learned = _learned_prior(params, up, bands)
     use_prior = up is not None and params.horizon_prior > 0
     if not (use_prior and below_horizon_unseen):
-        fit = _alternate(t, lum, b, labels, bands, params, None, checkpoint)
+        fit = _alternate(t, lum, b, labels, bands, params, learned, checkpoint)
         # the data put the light below the horizon of the surface the scene stands on:
         # light from there cannot reach the scene, so that lobe is an artefact of what the
         # normals leave unconstrained; fit again with below-horizon radiance held to a
         # ground's glow
         use_prior = use_prior and float(sh.dominant_direction(fit.coeffs) @ up) < 0.0
         if not use_prior:
-            return fit, None
+            return fit, learned
     # built only when used: it costs a 2048-direction SH evaluation
     prior = params.horizon_prior * below_horizon_gram(up, bands, params.horizon_ground_albedo)
+    if learned is not None:
+        prior = prior + learned
     return _alternate(t, lum, b, labels, bands, params, prior, checkpoint), prior
+
+
+def _learned_prior(params: EstimationParams, up: np.ndarray | None, bands: int
+                   ) -> np.ndarray | None:
+    """params.light_prior times the prior learned from HDR maps, in the frame where `up` is
+    up (pipeline.light_prior); None when off or without a support plane."""
+    if params.light_prior <= 0 or up is None:
+        return None
+    from arlight.pipeline.light_prior import prior_matrix
+
+    exclude = frozenset(n.strip() for n in params.light_prior_exclude.split(",") if n.strip())
+    return params.light_prior * prior_matrix(np.asarray(up, np.float64), bands, exclude)
 
 
 @dataclass

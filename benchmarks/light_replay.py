@@ -1,0 +1,201 @@
+"""Replay the light estimate (LightEst) on cached inputs: a choice of the fit judged in minutes.
+
+    python benchmarks/light_replay.py record DATA... --preset full --out CACHE
+    python benchmarks/light_replay.py replay CACHE [--set KEY=VALUE ...] [--hold-out-maps]
+
+`record` runs the pipeline once over ground-truth sequences (their poses; tracking skipped)
+and stores, per frame, exactly what `estimate_light` received (the rows it would use: the
+same seeded subset), the support plane's up, the pose and the truth. `replay` re-runs only
+`estimate_light` with the EstimationParams changed by --set, and reports the angular error of
+the reported direction (above the support plane's horizon, camera frame) against the upper-
+hemisphere truth (or the probe's where the sequence says so), before the temporal filter
+("raw") and after it: per map (median of the frames lit by it), the median over maps, the p90
+over frames and the worst map. --hold-out-maps leaves each frame's maps out of the learned
+light prior (light_prior_exclude), so the prior is judged on maps it never saw.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from arlight import evaluation
+from arlight.pipeline import light_estimation, sh
+from arlight.pipeline.config import Config
+from arlight.pipeline.light_estimation import TemporalFilter
+
+
+def record(data: list[str], preset: str, out: Path, frames: int | None,
+           overrides: dict) -> None:
+    import arlight.pipeline.pipeline as pipeline_module
+    from arlight.bench import open_data
+
+    out.mkdir(parents=True, exist_ok=True)
+    config = Config.from_preset(preset, **overrides)
+    captured: list[dict] = []
+    real = pipeline_module.estimate_light
+
+    def spy(transfer, color_linear, params, segments=None, bounce=None, up=None,
+            below_horizon_unseen=False, *, seed=0, checkpoint=None):
+        t = np.asarray(transfer).reshape(-1, np.asarray(transfer).shape[-1])
+        keep = _kept_rows(t, color_linear, bounce, segments, params, seed)
+        captured.append({
+            "transfer": t[keep], "color": np.asarray(color_linear).reshape(-1, 3)[keep],
+            "segments": None if segments is None else np.asarray(segments).reshape(-1)[keep],
+            "bounce": None if bounce is None else np.asarray(bounce).reshape(-1)[keep],
+            "up": None if up is None else np.asarray(up, float),
+            "below_horizon_unseen": bool(below_horizon_unseen), "seed": int(seed)})
+        return real(transfer, color_linear, params, segments, bounce, up,
+                    below_horizon_unseen, seed=seed, checkpoint=checkpoint)
+
+    pipeline_module.estimate_light = spy
+    try:
+        for seq in open_data(data, frames, 0):
+            pipe = pipeline_module.Pipeline(config, seq.camera)
+            captured.clear()
+            poses = []
+            for frame in seq.frames:
+                poses.append(pipe.process(frame).pose)
+            _save(out / f"{seq.name}.npz", seq, captured, poses)
+            print(f"recorded {seq.name}: {len(captured)} frames", file=sys.stderr, flush=True)
+    finally:
+        pipeline_module.estimate_light = real
+    (out / "config.json").write_text(json.dumps({"preset": preset, "overrides": overrides}))
+
+
+def _kept_rows(t, color_linear, bounce, segments, params, seed) -> np.ndarray:
+    """The rows estimate_light's own _usable_samples keeps (same rules, same seed)."""
+    rgb = np.asarray(color_linear).reshape(-1, 3)
+    s = light_estimation._usable_samples(t, rgb, bounce, segments, params.light_max_samples,
+                                         seed)
+    # recover the row indices: _usable_samples returns the rows, not their indices
+    lum_all = rgb @ light_estimation.LUMA.astype(rgb.dtype, copy=False)
+    with np.errstate(invalid="ignore"):
+        usable = (np.isfinite(lum_all) & np.isfinite(t).all(axis=1)
+                  & ~(rgb.max(axis=1) >= light_estimation.CLIP_LEVEL)
+                  & (lum_all > light_estimation.DARK_LEVEL) & (t[:, 0] > 1e-6))
+    keep = np.flatnonzero(usable)
+    if len(keep) > params.light_max_samples:
+        keep = np.sort(np.random.default_rng(seed).choice(keep, params.light_max_samples,
+                                                          replace=False))
+    assert len(keep) == len(s.lum)
+    return keep
+
+
+def _save(path: Path, seq, captured: list[dict], poses: list) -> None:
+    arrays: dict[str, np.ndarray] = {}
+    meta = []
+    for i, c in enumerate(captured):
+        for key in ("transfer", "color", "segments", "bounce"):
+            if c[key] is not None:
+                arrays[f"{i}_{key}"] = c[key]
+        truth = seq.truth[i]
+        meta.append({"up": None if c["up"] is None else c["up"].tolist(),
+                     "below_horizon_unseen": c["below_horizon_unseen"], "seed": c["seed"],
+                     "pose": np.asarray(poses[i]).tolist(),
+                     "truth_upper_camera": truth.dominant_upper_camera.tolist(),
+                     "env_map": truth.env_map, "layout": truth.layout})
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez(path, **arrays)
+
+
+def replay(cache: Path, overrides: dict, hold_out_maps: bool) -> dict:
+    """Per-frame errors (raw and filtered) of the fit with `overrides`; figures by map."""
+    base = json.loads((cache / "config.json").read_text())
+    config = Config.from_preset(base["preset"], **{**base["overrides"], **overrides})
+    rows = []
+    for file in sorted(cache.glob("*.npz")):
+        data = np.load(file)
+        meta = json.loads(str(data["meta"]))
+        filt = TemporalFilter(config.temporal)
+        up_seen = None
+        for i, m in enumerate(meta):
+            params = config.estimation
+            if hold_out_maps and m["env_map"]:
+                params = dataclasses.replace(params, light_prior_exclude=m["env_map"])
+            up = None if m["up"] is None else np.asarray(m["up"])
+            est = light_estimation.estimate_light(
+                data[f"{i}_transfer"], data[f"{i}_color"], params,
+                data[f"{i}_segments"] if f"{i}_segments" in data else None,
+                data[f"{i}_bounce"] if f"{i}_bounce" in data else None, up,
+                m["below_horizon_unseen"], seed=m["seed"])
+            if up is not None:
+                up_seen = up
+            filtered = filt.update(est.sh, est.confidence.value)
+            r = np.asarray(m["pose"])[:3, :3]
+            truth = np.asarray(m["truth_upper_camera"])
+
+            def err(c):
+                d = sh.dominant_direction(c) if up_seen is None else \
+                    sh.above_horizon_direction(c, up_seen)
+                return evaluation.angular_error_deg(r.T @ d, truth)
+
+            rows.append({"sequence": file.stem, "map": m["env_map"], "layout": m["layout"],
+                         "raw": err(est.sh), "filtered": err(filtered),
+                         "confidence": est.confidence.value})
+    return summarise(rows)
+
+
+def summarise(rows: list[dict]) -> dict:
+    out = {}
+    for kind in ("raw", "filtered"):
+        by_map: dict[str, list[float]] = {}
+        for r in rows:
+            by_map.setdefault(r["map"], []).append(r[kind])
+        medians = {k: float(np.median(v)) for k, v in by_map.items()}
+        worst = max(medians, key=medians.get)
+        by_seq: dict[str, list[float]] = {}
+        for r in rows:
+            by_seq.setdefault(r["sequence"], []).append(r[kind])
+        out[kind] = {"median_over_maps": float(np.median(list(medians.values()))),
+                     "p90_frames": float(np.percentile([r[kind] for r in rows], 90)),
+                     "worst_map": worst, "worst_map_deg": medians[worst],
+                     "median_of_sequence_medians": float(np.median(
+                         [np.median(v) for v in by_seq.values()])),
+                     "per_map": medians}
+    out["frames"] = len(rows)
+    return out
+
+
+def _override(text: str) -> tuple[str, object]:
+    key, value = text.split("=", 1)
+    return key, Config.parse_flat_value(key, value)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="verb", required=True)
+    rec = sub.add_parser("record")
+    rec.add_argument("data", nargs="+")
+    rec.add_argument("--preset", default="full")
+    rec.add_argument("--out", required=True)
+    rec.add_argument("--frames", type=int)
+    rec.add_argument("--set", action="append", type=_override, default=[])
+    rep = sub.add_parser("replay")
+    rep.add_argument("cache")
+    rep.add_argument("--set", action="append", type=_override, default=[])
+    rep.add_argument("--hold-out-maps", action="store_true")
+    rep.add_argument("--json")
+    args = parser.parse_args(argv)
+    if args.verb == "record":
+        record(args.data, args.preset, Path(args.out), args.frames, dict(args.set))
+        return 0
+    report = replay(Path(args.cache), dict(args.set), args.hold_out_maps)
+    for kind in ("raw", "filtered"):
+        r = report[kind]
+        print(f"{kind:9s} median over maps {r['median_over_maps']:5.1f}  p90 frames "
+              f"{r['p90_frames']:5.1f}  worst map {r['worst_map']} {r['worst_map_deg']:.1f}  "
+              f"(median of sequence medians {r['median_of_sequence_medians']:.1f}; "
+              f"{report['frames']} frames)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
