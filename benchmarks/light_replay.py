@@ -130,15 +130,18 @@ def replay(cache: Path, overrides: dict, hold_out_maps: bool) -> dict:
             r = np.asarray(m["pose"])[:3, :3]
             truth = np.asarray(m["truth_upper_camera"])
 
-            def err(c):
-                d = sh.dominant_direction(c) if up_seen is None else \
-                    sh.above_horizon_direction(c, up_seen)
-                return evaluation.angular_error_deg(r.T @ d, truth)
-
             rows.append({"sequence": file.stem, "map": m["env_map"], "layout": m["layout"],
-                         "raw": err(est.sh), "filtered": err(filtered),
+                         "raw": _error(est.sh, up_seen, r, truth),
+                         "filtered": _error(filtered, up_seen, r, truth),
                          "confidence": est.confidence.value})
     return summarise(rows)
+
+
+def _error(coeffs: np.ndarray, up: np.ndarray | None, world_from_cam_rot: np.ndarray,
+           truth_camera: np.ndarray) -> float:
+    """Degrees between the reported direction (above the horizon of `up`) and the truth."""
+    d = sh.dominant_direction(coeffs) if up is None else sh.above_horizon_direction(coeffs, up)
+    return evaluation.angular_error_deg(world_from_cam_rot.T @ d, truth_camera)
 
 
 def summarise(rows: list[dict]) -> dict:
