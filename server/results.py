@@ -1,11 +1,15 @@
 """The replies to a frame: its Result, from the pipeline's FrameResult (`result_message`, the
-one conversion, used by the server and by `offline_record`), or its Error (`encode_error`)."""
+one conversion, used by the server and by `offline_record`), or its Error (`encode_error`);
+`reply_to` turns a worker step's outcome (server/worker.py) into the encoded `Reply` a worker
+hands to the server's I/O thread."""
 
 from __future__ import annotations
 
 import logging
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,6 +25,11 @@ from arlight.protocols import (
     result_record,
 )
 from arlight.protocols.fields import MAX_INT as MAX_SEQ
+from arlight.server.frame_queue import Job
+from arlight.server.worker import FrameOutcome, Rejected
+
+if TYPE_CHECKING:
+    from arlight.server.session import Session
 
 log = logging.getLogger(__name__)
 
@@ -98,3 +107,92 @@ def encode_error(error: Error) -> list:
         return encode(Error(code="internal", seq=seq,
                             message=f"the server failed to report an error "
                                     f"({type(exc).__name__})"))
+
+
+@dataclass
+class Reply:
+    """What a worker hands back to the server's I/O thread: a frame's reply, encoded (a
+    Result, or the Error in `error`)."""
+
+    session: Session
+    job: Job
+    parts: list
+    finish_time_mono: float  # time.monotonic(), seconds
+    error: Error | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+    @property
+    def final(self) -> bool:
+        """The frame's last word (kept for a resent duplicate): not a retryable Error."""
+        return self.error is None or not self.error.retryable
+
+
+def reply_to(session: Session, job: Job, outcome: FrameOutcome) -> Reply:
+    """The encoded reply of a frame's outcome: its Result (the session's counters counted
+    first: the Result reports itself processed), or its Error."""
+    if isinstance(outcome, Rejected):
+        return error_reply(session, job, outcome.error)
+    finish_wall = time.time()
+    counters = session.queue.count_processed()
+    used = outcome.panorama
+    try:
+        message = result_message(
+            outcome.result, seq=job.seq,
+            counters=(counters.received, counters.processed, counters.dropped),
+            receive_time_wall=job.receive_time_wall, finish_time_wall=finish_wall,
+            composite=outcome.composite, composite_codec=outcome.composite_codec,
+            jpeg_quality=outcome.jpeg_quality, panorama=None if used is None else used.light,
+            exports=session.config.exports,
+            extra_timings_ms=None if used is None else used.timings_ms,
+            extra_diagnostics=None if used is None else used.diagnostics)
+        return Reply(session, job, encode(message), time.monotonic())
+    except Exception as exc:  # noqa: BLE001 - e.g. a non-finite estimate
+        return error_reply(session, job, Error(
+            code="internal", seq=job.seq,
+            message=f"the server could not send the Result of this frame ({exc})"))
+
+
+def error_reply(session: Session, job: Job, error: Error) -> Reply:
+    """The encoded Error reply of frame `job` (logged, counted as failed)."""
+    if error.code == "internal":
+        log.error("session %s: frame %d failed: %s", session.name, job.seq, error.message)
+    else:
+        log.info("session %s: frame %d rejected: %s", session.name, job.seq, error.message)
+    session.queue.count_failed()
+    return Reply(session, job, encode_error(error), time.monotonic(), error)
+
+
+ERROR_LOG_LINES_PER_S = 20  # log lines about Errors sent to peers (a flood is summarised)
+
+
+class ErrorLog:
+    """The log lines about Errors sent to peers: at most `lines_per_s` a second; then one line
+    says how many the second left out (a hostile flood does not flood the log). Times:
+    time.monotonic(), seconds."""
+
+    def __init__(self, lines_per_s: int = ERROR_LOG_LINES_PER_S):
+        self.lines_per_s = lines_per_s
+        self._second = 0  # int(time) of the lines counted below
+        self._count = 0
+        self._suppressed = 0
+
+    def sent(self, identity: bytes, error: Error, now: float) -> None:
+        """Log an Error sent to peer `identity`, unless this second has had its lines."""
+        self.flush(now)
+        self._count += 1
+        if self._count > self.lines_per_s:
+            self._suppressed += 1
+            return
+        log.info("error to %s: %s%s: %s", identity.hex(), error.code,
+                 f" ({error.field})" if error.field else "", error.message[:512])
+
+    def flush(self, now: float) -> None:
+        """A new second: log how many lines the last one left out, count afresh."""
+        second = int(now)
+        if second != self._second:
+            if self._suppressed:
+                log.info("%d more error(s) to peers not logged", self._suppressed)
+            self._second, self._count, self._suppressed = second, 0, 0

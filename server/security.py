@@ -29,7 +29,7 @@ import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
-from arlight.protocols import TOKEN_RE
+from arlight.protocols import TOKEN_RE, Error
 from arlight.protocols.curve import KeyFileError, load_secret_key
 
 log = logging.getLogger(__name__)
@@ -52,6 +52,19 @@ def tokens_equal(given: str | None, expected: str | None) -> bool:
     if given is None or expected is None:
         return False
     return hmac.compare_digest(given.encode(), expected.encode())
+
+
+def unauthorized_error(session: str, role: str) -> Error:
+    """The Error refusing a Hello whose token does not admit it to `session` (a "display"
+    watching it, or a "capture" client resuming or replacing it)."""
+    if role == "display":
+        what = (f"watching session {session!r} needs its token: give the one its capture "
+                "client printed (`arlight display --token T`) or the server's admin token")
+    else:
+        what = (f"session {session!r} exists and belongs to another capture client: resuming "
+                "or replacing it needs its token (`arlight stream --token T`) or the "
+                "admin token; or choose another --session")
+    return Error(code="unauthorized", field="hello.config.token", message=what)
 
 
 def read_token_file(path: str, flag: str) -> str:

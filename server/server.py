@@ -14,9 +14,8 @@ Limits on everything that crosses the wire (each a ServerOptions field): the lar
 sizes), the largest image, the credit window, the per-peer send queue (SNDHWM: a display that
 reads slowly loses Results, counted, and never stalls the pipeline), the number of sessions.
 
-Budgets (server/budget.py): a capture Hello whose settings could not meet the per-frame
-deadline or the per-session memory budget is refused (`over_budget`, naming the setting);
-a frame still in the pipeline past the deadline is abandoned between stages (`deadline`).
+Budgets (server/budget.py): a Hello whose settings could not meet them is refused
+(`over_budget`); a frame past the per-frame deadline is abandoned between stages (`deadline`).
 Every frame accepted is answered: a worker that fails still hands back an Error for it.
 
 Liveness (zguide's Paranoid Pirate): the server sends a Heartbeat to every peer each
@@ -26,11 +25,8 @@ session survives for a reconnecting client). A session that receives no frames f
 `arlight serve`) finishes the lossless frames already received within `shutdown_grace_s`,
 reports the rest with an Error, says Bye to every peer and closes the socket.
 
-Security (server/security.py, README "Security"): the default bind is loopback; a bind other
-machines can reach needs CURVE keys (`keys_dir`: encryption, and only the clients whose public
-keys are authorised) or `insecure`. Session tokens keep sessions apart: a display sees a
-session's Results only with its token (or the admin token), and a capture Hello takes over an
-existing session only with them.
+Security (server/security.py, README "Security"): a loopback bind by default, CURVE keys
+(`keys_dir`) for any other; session tokens keep sessions apart.
 
 Clocks: liveness, expiry, the heartbeat schedule and the shutdown deadline run on
 time.monotonic(); time.time() is read only for what goes on the wire (Heartbeat.time, a
@@ -49,15 +45,11 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
-import numpy as np
 import zmq
 
 from arlight.pipeline.runtime import concurrent_pipelines_safe
 from arlight.protocols import (
-    DEFAULT_MAX_MESSAGE_BYTES,
-    DEFAULT_MAX_PIXELS,
     PROTOCOL_VERSION,
-    TOKEN_RE,
     Bye,
     ByeKind,
     Credit,
@@ -77,85 +69,20 @@ from arlight.protocols import (
 from arlight.protocols.fields import MAX_INT as MAX_SEQ  # a Frame's seq: 0..2^63-1
 from arlight.server.budget import SessionBudget
 from arlight.server.frame_queue import Job, Offer
-from arlight.server.results import encode_error, result_message
+from arlight.server.options import DEFAULT_BIND, ServerOptions  # noqa: F401 - DEFAULT_BIND too
+from arlight.server.results import ErrorLog, Reply, encode_error, error_reply, reply_to
 from arlight.server.security import (
     CurveServer,
     check_exposure,
     tokens_equal,
+    unauthorized_error,
 )
 from arlight.server.session import Session, SessionSetupError
-from arlight.server.worker import FrameOutcome, ProcessStep, Rejected, run_frame
+from arlight.server.worker import ProcessStep, run_frame
 
 log = logging.getLogger(__name__)
 
-DEFAULT_PORT = 5555
-DEFAULT_BIND = f"tcp://127.0.0.1:{DEFAULT_PORT}"  # this machine only (README "Security")
-MAX_SESSION_NAME = 64
 MAX_MESSAGES_PER_POLL = 256  # fairness between reading the socket and sending results
-ERROR_LOG_LINES_PER_S = 20  # log lines about Errors sent to peers (a flood is summarised)
-
-
-# the `arlight serve` flag of each ServerOptions field that has one (for error messages)
-SERVE_FLAGS = {"bind": "--bind", "workers": "--workers", "credits": "--credits",
-               "heartbeat_interval_s": "--heartbeat", "session_timeout_s": "--session-timeout",
-               "log_interval_s": "--log-interval", "max_sessions": "--max-sessions",
-               "max_message_bytes": "--max-message-mb", "shutdown_grace_s": "--shutdown-grace",
-               "keys_dir": "--keys", "admin_token": "--admin-token-file",
-               "frame_deadline_s": "--frame-deadline",
-               "session_memory_bytes": "--session-memory-mb"}
-
-
-@dataclass(frozen=True)
-class ServerOptions:
-    """Every server limit and interval (seconds), with its default."""
-
-    bind: str = DEFAULT_BIND
-    workers: int = 2  # worker threads running Pipeline.process (one frame per session at a time)
-    credits: int = 4  # lossless credit window: frames a capture client may have unacknowledged
-    heartbeat_interval_s: float = 1.0
-    liveness: int = 3  # missed heartbeat intervals before a peer is declared dead
-    session_timeout_s: float = 60.0  # a session with no frames for this long expires
-    log_interval_s: float = 5.0  # per-session frame rate and latency log lines
-    max_sessions: int = 32
-    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
-    max_pixels: int = DEFAULT_MAX_PIXELS
-    send_hwm: int = 32  # messages queued per peer before sends to it are dropped
-    receive_hwm: int = 256
-    shutdown_grace_s: float = 10.0  # time given to lossless frames received before stop()
-    name: str = "arlight"
-    # security (server/security.py): CURVE keys folder (server.key_secret, authorized/*.key);
-    # insecure: allow a non-loopback bind without keys (warned); admin_token: admits a display
-    # to any session (None: one is generated, Server.admin_token); session_tokens False: no
-    # token is checked (in-process tests of other features only)
-    keys_dir: str | None = None
-    insecure: bool = False
-    admin_token: str | None = None
-    session_tokens: bool = True
-    # budgets (server/budget.py): a frame in the pipeline longer than this is abandoned
-    # between stages (Error "deadline"); a Hello whose frames could not meet it is refused
-    frame_deadline_s: float = 60.0
-    session_memory_bytes: int = 1024 * 2**20  # per session; the server's: max_sessions x this
-
-    def __post_init__(self) -> None:
-        checks = {"workers": self.workers >= 1, "credits": self.credits >= 1,
-                  "heartbeat_interval_s": self.heartbeat_interval_s > 0,
-                  "liveness": self.liveness >= 1, "session_timeout_s": self.session_timeout_s > 0,
-                  "log_interval_s": self.log_interval_s > 0,
-                  "max_sessions": self.max_sessions >= 1, "send_hwm": self.send_hwm >= 1,
-                  "receive_hwm": self.receive_hwm >= 1,
-                  "max_message_bytes": self.max_message_bytes >= 1024,
-                  "max_pixels": self.max_pixels >= 1,
-                  "shutdown_grace_s": self.shutdown_grace_s >= 0,
-                  "frame_deadline_s": self.frame_deadline_s > 0,
-                  "session_memory_bytes": self.session_memory_bytes >= 2**20}
-        for name, ok in checks.items():
-            if not ok:
-                flag = SERVE_FLAGS.get(name)
-                raise ValueError(f"server option {name}{f' ({flag})' if flag else ''} is out of "
-                                 f"range: {getattr(self, name)!r}")
-        if self.admin_token is not None and not TOKEN_RE.fullmatch(self.admin_token):
-            raise ValueError("server option admin_token (--admin-token-file) must be 16..128 "
-                             "characters from A-Z a-z 0-9 _ -")  # the value is a secret: unsaid
 
 
 @dataclass
@@ -174,27 +101,6 @@ class Peer:
     def label(self) -> str:
         name = f" {self.client_name!r}" if self.client_name else ""
         return f"{self.role} peer {self.identity.hex()}{name}"
-
-
-@dataclass
-class JobOutcome:
-    """What a worker hands back to the I/O thread: the frame's reply, encoded (a Result, or
-    the Error in `error`)."""
-
-    session: Session
-    job: Job
-    parts: list
-    finish_time_mono: float  # time.monotonic(), seconds
-    error: Error | None = None
-
-    @property
-    def ok(self) -> bool:
-        return self.error is None
-
-    @property
-    def final(self) -> bool:
-        """The frame's last word (kept for a resent duplicate): not a retryable Error."""
-        return self.error is None or not self.error.retryable
 
 
 @dataclass
@@ -227,7 +133,7 @@ class Server:
         self.port: int | None = None
         self._ctx: zmq.Context | None = None
         self._router: zmq.Socket | None = None
-        self._completions: queue.SimpleQueue[JobOutcome] = queue.SimpleQueue()
+        self._completions: queue.SimpleQueue[Reply] = queue.SimpleQueue()
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._stop_requested = threading.Event()
@@ -243,9 +149,7 @@ class Server:
         self._cancel = threading.Event()  # set at the end of a shutdown: workers give up
         self._busy = 0  # jobs in worker threads (under _busy_lock)
         self._busy_lock = threading.Condition()
-        self._error_log_second = 0  # int(time.monotonic()) of the lines counted below
-        self._error_log_count = 0
-        self._error_log_suppressed = 0
+        self._error_log = ErrorLog()  # Errors sent to peers: a flood is summarised
         self.budget = SessionBudget(self.options.frame_deadline_s,
                                     self.options.session_memory_bytes)
 
@@ -339,10 +243,7 @@ class Server:
 
     def snapshot(self) -> dict:
         """Counters per session and the peers (for tests and logs; read from any thread)."""
-        sessions = {name: {**s.counters(), "mode": s.config.mode,
-                           "capture_attached": s.capture_peer is not None,
-                           "pending": len(s.queue.pending)}
-                    for name, s in list(self.sessions.items())}
+        sessions = {name: s.snapshot() for name, s in list(self.sessions.items())}
         return {"sessions": sessions, "peers": len(self.peers),
                 "displays": {k: len(v) for k, v in list(self.displays.items())},
                 "errors_sent": self.stats.errors_sent,
@@ -389,7 +290,7 @@ class Server:
                 if now >= next_housekeeping:
                     self._expire_peers(now)
                     self._expire_sessions(now)
-                    self._flush_error_log(now)
+                    self._error_log.flush(now)
                     next_housekeeping = now + min(opts.heartbeat_interval_s, 1.0)
                 if now >= next_log:
                     self._log_rates(now, opts.log_interval_s)
@@ -476,13 +377,7 @@ class Server:
 
     def _on_hello(self, identity: bytes, hello: Hello, now: float) -> None:
         cfg = hello.config
-        name = cfg.session
-        if not name or len(name) > MAX_SESSION_NAME:
-            self._send_error(identity, Error(
-                code="bad_field", field="hello.config.session",
-                message=f"session name (--session) must be 1..{MAX_SESSION_NAME} characters, "
-                        f"got {len(name or '')}"))
-            return
+        name = cfg.session  # 1..64 characters of [A-Za-z0-9_.-]: decode() checked it
         old = self.peers.get(identity)
         if old is not None:
             self._detach_peer(old, reason="said Hello again")
@@ -526,15 +421,7 @@ class Server:
         return tokens_equal(token, session.token) if session is not None else token is not None
 
     def _refuse_unauthorized(self, identity: bytes, name: str, role: str) -> None:
-        if role == "display":
-            what = (f"watching session {name!r} needs its token: give the one its capture "
-                    "client printed (`arlight display --token T`) or the server's admin token")
-        else:
-            what = (f"session {name!r} exists and belongs to another capture client: resuming "
-                    "or replacing it needs its token (`arlight stream --token T`) or the "
-                    "admin token; or choose another --session")
-        self._send_error(identity, Error(code="unauthorized", field="hello.config.token",
-                                         message=what))
+        self._send_error(identity, unauthorized_error(name, role))
 
     def _display_admitted(self, identity: bytes, cfg: SessionConfig) -> bool:
         """A display Hello's token: the session's, the admin token, or, for a session that
@@ -674,8 +561,9 @@ class Server:
 
     def _work(self, session: Session, job: Job) -> None:
         """Worker thread: process one frame (`run_frame`, server/worker.py), turn its
-        outcome into the reply and hand that to the I/O thread. Every job hands one back,
-        whatever fails: the session's slot is always freed."""
+        outcome into its reply (`reply_to`, server/results.py) and hand that to the I/O
+        thread. Every job hands one back, whatever fails: the session's slot is always
+        freed."""
         with self._busy_lock:
             self._busy += 1
         outcome = None
@@ -686,54 +574,22 @@ class Server:
                     step = run_frame(job, session.compute)
             else:
                 step = run_frame(job, session.compute)
-            outcome = self._reply(session, job, step)
+            outcome = reply_to(session, job, step)
         except BaseException as exc:  # noqa: BLE001 - reported to the client as internal
             log.error("session %s: frame %d: worker failed: %r", session.name, job.seq, exc)
-            outcome = self._failed(session, job, Error(
+            outcome = error_reply(session, job, Error(
                 code="internal", seq=job.seq, message=f"the server failed to process this "
                                                       f"frame ({type(exc).__name__})"))
         finally:
-            if outcome is None:  # _failed() itself failed: the bare minimum, still answered
+            if outcome is None:  # error_reply itself failed: the bare minimum, still answered
                 error = Error("internal", "the server failed to process this frame", None,
                               job.seq)
-                outcome = JobOutcome(session, job, encode(error), time.monotonic(), error)
+                outcome = Reply(session, job, encode(error), time.monotonic(), error)
             self._completions.put(outcome)
             self._wake()
             with self._busy_lock:
                 self._busy -= 1
                 self._busy_lock.notify_all()
-
-    def _reply(self, session: Session, job: Job, step: FrameOutcome) -> JobOutcome:
-        """The encoded reply of a frame's outcome: its Result (the session's counters
-        counted first), or its Error."""
-        if isinstance(step, Rejected):
-            return self._failed(session, job, step.error)
-        finish_wall = time.time()
-        counters = session.queue.count_processed()
-        used = step.panorama
-        try:
-            message = result_message(
-                step.result, seq=job.seq,
-                counters=(counters.received, counters.processed, counters.dropped),
-                receive_time_wall=job.receive_time_wall, finish_time_wall=finish_wall,
-                composite=step.composite, composite_codec=step.composite_codec,
-                jpeg_quality=step.jpeg_quality, panorama=None if used is None else used.light,
-                exports=session.config.exports,
-                extra_timings_ms=None if used is None else used.timings_ms,
-                extra_diagnostics=None if used is None else used.diagnostics)
-            return JobOutcome(session, job, encode(message), time.monotonic())
-        except Exception as exc:  # noqa: BLE001 - e.g. a non-finite estimate
-            return self._failed(session, job, Error(
-                code="internal", seq=job.seq,
-                message=f"the server could not send the Result of this frame ({exc})"))
-
-    def _failed(self, session: Session, job: Job, error: Error) -> JobOutcome:
-        if error.code == "internal":
-            log.error("session %s: frame %d failed: %s", session.name, job.seq, error.message)
-        else:
-            log.info("session %s: frame %d rejected: %s", session.name, job.seq, error.message)
-        session.queue.count_failed()
-        return JobOutcome(session, job, encode_error(error), time.monotonic(), error)
 
     def _drain_completions(self) -> None:
         while True:
@@ -747,7 +603,7 @@ class Server:
                 log.exception("session %s: failed to deliver the outcome of frame %d",
                               outcome.session.name, outcome.job.seq)
 
-    def _complete(self, outcome: JobOutcome) -> None:
+    def _complete(self, outcome: Reply) -> None:
         """Free the session's slot, send the outcome, start the session's next frame."""
         session, job, error = outcome.session, outcome.job, outcome.error
         frames = session.queue
@@ -815,29 +671,8 @@ class Server:
     def _send_error(self, identity: bytes, error: Error) -> None:
         self.stats.errors_sent += 1
         self.stats.error_codes[error.code] += 1
-        if self._error_log_allowed():
-            log.info("error to %s: %s%s: %s", identity.hex(), error.code,
-                     f" ({error.field})" if error.field else "", error.message[:512])
+        self._error_log.sent(identity, error, time.monotonic())
         self._send(identity, encode_error(error))
-
-    def _error_log_allowed(self) -> bool:
-        """At most ERROR_LOG_LINES_PER_S lines a second; then one line says how many were
-        not logged (a hostile flood does not flood the log)."""
-        self._flush_error_log(time.monotonic())
-        self._error_log_count += 1
-        if self._error_log_count > ERROR_LOG_LINES_PER_S:
-            self._error_log_suppressed += 1
-            return False
-        return True
-
-    def _flush_error_log(self, now: float) -> None:
-        """A new second: log how many Error lines the last one left out, count afresh."""
-        second = int(now)
-        if second != self._error_log_second:
-            if self._error_log_suppressed:
-                log.info("%d more error(s) to peers not logged", self._error_log_suppressed)
-            self._error_log_second, self._error_log_count = second, 0
-            self._error_log_suppressed = 0
 
     def _send_heartbeats(self) -> None:
         parts = encode(Heartbeat(time.time()))
@@ -902,18 +737,9 @@ class Server:
 
     def _log_rates(self, now: float, interval_s: float) -> None:
         for session in list(self.sessions.values()):
-            recent = [lat for t, lat in session.queue.recent if t > now - interval_s]
-            if not recent and session.idle:
-                continue
-            c = session.counters()
-            lat_ms = np.asarray(recent) * 1e3
-            latency = (f"latency median {np.median(lat_ms):.0f} ms, p95 "
-                       f"{np.percentile(lat_ms, 95):.0f} ms" if recent else "no frames finished")
-            log.info("session %s: %.1f fps, %s (receive to finish); received %d, processed %d, "
-                     "dropped %d, failed %d; %d display(s), %d result(s) not delivered",
-                     session.name, len(recent) / interval_s, latency, c["frames_received"],
-                     c["frames_processed"], c["frames_dropped"], c["frames_failed"],
-                     len(self.displays.get(session.name, ())), session.display_drops)
+            line = session.rate_line(now, interval_s, len(self.displays.get(session.name, ())))
+            if line is not None:
+                log.info("%s", line)
 
     # ------------------------------------------------------------------ shutdown
 

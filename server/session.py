@@ -300,6 +300,27 @@ class Session:
         b = dataclasses.replace(config, client_name="", token=None)
         return a == b
 
+    def snapshot(self) -> dict:
+        """The session's counters and state, plain (Server.snapshot: tests and logs)."""
+        return {**self.counters(), "mode": self.config.mode,
+                "capture_attached": self.capture_peer is not None,
+                "pending": len(self.queue.pending)}
+
+    def rate_line(self, now: float, interval_s: float, displays: int) -> str | None:
+        """The periodic log line of the last `interval_s` seconds (None: nothing happened):
+        frame rate, receive-to-finish latency, counters, displays and their losses."""
+        recent = [lat for t, lat in self.queue.recent if t > now - interval_s]
+        if not recent and self.idle:
+            return None
+        c = self.queue.counters()
+        lat_ms = np.asarray(recent) * 1e3
+        latency = (f"latency median {np.median(lat_ms):.0f} ms, p95 "
+                   f"{np.percentile(lat_ms, 95):.0f} ms" if recent else "no frames finished")
+        return (f"session {self.name}: {len(recent) / interval_s:.1f} fps, {latency} (receive "
+                f"to finish); received {c.received}, processed {c.processed}, dropped "
+                f"{c.dropped}, failed {c.failed}; {displays} display(s), {self.display_drops} "
+                "result(s) not delivered")
+
     def counters(self) -> dict[str, int]:
         c = self.queue.counters()
         return {"frames_received": c.received, "frames_processed": c.processed,
