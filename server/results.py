@@ -120,15 +120,6 @@ class Reply:
     finish_time_mono: float  # time.monotonic(), seconds
     error: Error | None = None
 
-    @property
-    def ok(self) -> bool:
-        return self.error is None
-
-    @property
-    def final(self) -> bool:
-        """The frame's last word (kept for a resent duplicate): not a retryable Error."""
-        return self.error is None or not self.error.retryable
-
 
 def reply_to(session: Session, job: Job, outcome: FrameOutcome) -> Reply:
     """The encoded reply of a frame's outcome: its Result (the session's counters counted

@@ -613,7 +613,8 @@ class Server:
             lost = frames.unaccept(job)  # the queued frames go back to the client too
         if current and self._draining and not session.lossless:
             frames.drop_pending()
-        next_job = frames.finish(job, outcome.parts, final=outcome.final, processed=error is None,
+        final = error is None or not error.retryable  # kept for a resent duplicate
+        next_job = frames.finish(job, outcome.parts, final=final, processed=error is None,
                                  finish_time_mono=outcome.finish_time_mono, start_next=current)
         if session.capture_peer is not None:
             self._send(session.capture_peer, outcome.parts)
