@@ -952,7 +952,7 @@ class TestEngineLayouts:
         assert "exports" not in msgpack.unpackb(bytes(encode(result())[0]), raw=False)
 
     def test_protocol_names_are_the_exporters(self):
-        from arlight.cli import LAYOUT_NAMES
+        from arlight.cli.common import LAYOUT_NAMES
         from arlight.pipeline.engine_export import EXPORTERS
 
         assert EXPORT_LAYOUTS == tuple(EXPORTERS)
