@@ -88,11 +88,6 @@ class Confidence:
                 setattr(out, f.name, value)
         return out
 
-    def get(self, key: str, default: Any = None) -> Any:
-        """`to_dict().get(key, default)`: for code written when a client's confidence was a
-        plain map. Read the attributes instead (`confidence.value`)."""
-        return self.to_dict().get(key, default)
-
 
 _FIELD_KINDS: dict[str, type] = {
     "samples": int, "condition_number": float, "bands_estimated": int, "value": float,

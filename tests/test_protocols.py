@@ -1077,9 +1077,6 @@ class TestConfidenceContract:
         stored = [bytes(p) for p in golden_parts(name)]
         assert as_bytes(encode(decode(golden_parts(name)))) == stored
 
-    def test_the_dict_style_read_still_answers(self):  # arlight/cli, arlight/demo use it
-        assert self.FULL.get("value", 0) == 0.75 and self.FULL.get("nope", 1) == 1
-
     def test_records_write_the_wire_map(self):
         assert result_record(result(confidence={"value": 0.5}))["confidence"] == {"value": 0.5}
         assert result_record(result(confidence=self.FULL))["confidence"] == self.FULL.to_dict()
