@@ -227,13 +227,11 @@ class StreamWorker:
     (the actor runs two calls at once: max_concurrency=2)."""
 
     def __init__(self, num_cpus: int):
-        from arlight.pipeline.runtime import configure_process
+        from arlight.pipeline.runtime import configure_process, limit_numba_threads
 
         configure_process(num_cpus)  # Open3D on the actor's own cores
-        with contextlib.suppress(Exception):  # numba caps it at its own thread count
-            import numba
-
-            numba.set_num_threads(min(num_cpus, numba.config.NUMBA_NUM_THREADS))
+        with contextlib.suppress(Exception):  # and the kernels, where numba allows it
+            limit_numba_threads(num_cpus)
         self._lock = threading.Lock()
         self._done, self._total = 0, 0
 

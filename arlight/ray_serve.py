@@ -1,11 +1,13 @@
 """`arlight serve --ray`: each session's pipeline in a Ray actor, the server's I/O stays here.
 
 The server keeps its ZeroMQ socket, its I/O thread, the sessions' queues, credits and
-lossless bookkeeping; only the compute step (server/session.py `ProcessStep`) changes. A
-worker thread hands the decoded frame to the session's actor (`SessionActor.process`) and
-waits for the result, checking the frame deadline and shutdown between short waits
-(`Session.checkpoint`); the actor holds the session's `Pipeline` (volume, pose, temporal
-filter), so one server address serves as many sessions as the Ray cluster has room for.
+lossless bookkeeping; only the compute step (server/worker.py `ProcessStep`) changes. A
+worker thread hands the decoded frame and the light to render with to the session's actor
+(`SessionActor.process`) and waits for the result, calling the frame's deadline (its
+`Deadline`: past the per-frame limit or the server stopping) between short waits, as the
+built-in Pipeline calls it between stages; the actor holds the session's `Pipeline` (volume,
+pose, temporal filter), so one server address serves as many sessions as the Ray cluster has
+room for.
 
 Resources: one actor per session, asking Ray for the preset's CPUs and one GPU for a CUDA
 session (`arlight.batch.actor_resources`, the rule `arlight batch` uses). A session whose
@@ -30,9 +32,18 @@ import logging
 import os
 import threading
 import weakref
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from arlight.batch import BatchUsageError, actor_resources, import_ray
 from arlight.server.session import PipelineLost
+
+if TYPE_CHECKING:
+    from arlight.pipeline.camera import PinholeCamera
+    from arlight.pipeline.config import Config
+    from arlight.pipeline.frames import FrameInput, FrameResult, RenderLight
+    from arlight.pipeline.virtual_scene import VirtualScene
+    from arlight.server.session import Session
+    from arlight.server.worker import Deadline
 
 log = logging.getLogger(__name__)
 
@@ -43,19 +54,19 @@ MAX_LOSSES_IN_A_ROW = 3
 class SessionActor:
     """The body of one session's Ray actor: its Pipeline, one frame at a time."""
 
-    def __init__(self, config, camera, scene, num_cpus: int):
+    def __init__(self, config: Config, camera: PinholeCamera, scene: VirtualScene | None,
+                 num_cpus: int):
         from arlight.pipeline.pipeline import Pipeline
-        from arlight.pipeline.runtime import configure_process
+        from arlight.pipeline.runtime import configure_process, limit_numba_threads
 
         configure_process(num_cpus)  # Open3D on the actor's own cores
-        with contextlib.suppress(Exception):
-            import numba
-
-            numba.set_num_threads(min(num_cpus, numba.config.NUMBA_NUM_THREADS))
+        with contextlib.suppress(Exception):  # and the kernels, where numba allows it
+            limit_numba_threads(num_cpus)
         self._make = lambda: Pipeline(config, camera, scene=scene)
         self._pipeline = self._make()
 
-    def process(self, frame, render_light=None):
+    def process(self, frame: FrameInput, render_light: RenderLight | None = None
+                ) -> tuple[FrameResult, int]:
         """(FrameResult, the volume's block count after it) of one frame."""
         result = self._pipeline.process(frame, render_light=render_light)
         return result, self._pipeline.volume_blocks
@@ -68,7 +79,7 @@ class SessionActor:
         return os.getpid()
 
 
-def connect(address: str | None):
+def connect(address: str | None) -> tuple[Any, bool]:
     """The ray module, connected: `None`/"local" starts a local Ray (no dashboard), "auto" or
     HOST:PORT / ray://HOST:10001 joins a cluster; an existing connection is reused.
     Returns (ray, started: whether this call started the connection). BatchUsageError (a
@@ -76,8 +87,8 @@ def connect(address: str | None):
     ray = import_ray()
     if ray.is_initialized():
         return ray, False
-    local = address in (None, "local")
-    if not local and address != "auto":
+    local = address is None or address == "local"
+    if address is not None and address not in ("local", "auto"):
         _check_reachable(address)
     try:
         if local:  # "local": always a new Ray of this machine, never a `ray start` one
@@ -118,25 +129,27 @@ class RayCompute:
 
     runs_elsewhere = True  # the worker threads only wait: no compute lock, one per session
 
-    def __init__(self, ray):
+    def __init__(self, ray: Any):
         self._ray = ray
         self._cls = ray.remote(SessionActor)
         self._lock = threading.Lock()
-        self._actors: dict = {}  # Session -> actor handle
-        self._losses: dict = {}  # Session -> actors lost in a row without a finished frame
-        self._closed = weakref.WeakSet()  # sessions released: no new actor for them
+        self._actors: dict[Session, Any] = {}  # Session -> actor handle
+        # Session -> actors lost in a row without a finished frame
+        self._losses: dict[Session, int] = {}
+        # sessions released: no new actor for them
+        self._closed: weakref.WeakSet[Session] = weakref.WeakSet()
         self._count = 0
         self.actors_lost = 0
         cluster = ray.cluster_resources()
         log.info("Ray: %g CPUs, %g GPUs in the cluster; one actor per session",
                  cluster.get("CPU", 0), cluster.get("GPU", 0))
 
-    def actor(self, session):
+    def actor(self, session: Session) -> Any:
         """The session's actor (None if it has none now): tests and diagnostics."""
         with self._lock:
             return self._actors.get(session)
 
-    def _actor_for(self, session):
+    def _actor_for(self, session: Session) -> Any:
         with self._lock:
             if session in self._closed:
                 raise PipelineLost(f"session {session.name} is closed")
@@ -158,7 +171,10 @@ class RayCompute:
                  res["num_cpus"], res["num_gpus"])
         return actor
 
-    def __call__(self, frame, session):
+    def __call__(self, frame: FrameInput, session: Session, render_light: RenderLight | None,
+                 deadline: Deadline) -> FrameResult:
+        """The session's estimate of one frame (a ProcessStep, server/worker.py): its actor's
+        Pipeline.process(frame, render_light), `deadline` called while it waits."""
         from arlight.pipeline.pipeline import FrameError
 
         if session.camera is None:
@@ -166,10 +182,10 @@ class RayCompute:
                              "only session): send frames without colour and depth")
         ray = self._ray
         actor = self._actor_for(session)
-        ref = actor.process.remote(frame, session.render_light)
+        ref = actor.process.remote(frame, render_light)
         try:
             while not ray.wait([ref], timeout=WAIT_SLICE_S)[0]:
-                session.checkpoint("the Ray actor's result")  # FrameAbandoned
+                deadline("the Ray actor's result")  # FrameAbandoned
         except BaseException:
             with contextlib.suppress(Exception):
                 ray.cancel(ref)
@@ -191,7 +207,7 @@ class RayCompute:
             raise over
         return result
 
-    def _lost(self, session, actor, exc: BaseException):
+    def _lost(self, session: Session, actor: Any, exc: BaseException) -> NoReturn:
         with self._lock:
             if session in self._closed:  # killed by release(): the session is gone
                 raise PipelineLost(f"session {session.name} closed")
@@ -215,7 +231,7 @@ class RayCompute:
                                f"without finishing a frame (last: {why})")
         raise PipelineLost(f"the session's pipeline (a Ray actor) was lost: {why}")
 
-    def release(self, session) -> None:
+    def release(self, session: Session) -> None:
         """The session closed: kill its actor (its resources go back to Ray)."""
         with self._lock:
             actor = self._actors.pop(session, None)

@@ -47,7 +47,7 @@ from arlight.protocols import (
 WIDTH, HEIGHT = 640, 480
 
 
-def identity_step(frame, session):
+def identity_step(frame, session, render_light, deadline):
     """Stands in for Pipeline.process: a constant result, no compute."""
     from arlight.pipeline.frames import Confidence, FrameResult
 

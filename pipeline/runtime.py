@@ -48,7 +48,16 @@ def choose_numba_threading_layer() -> None:
         return
     import numba
 
-    numba.config.THREADING_LAYER_PRIORITY = list(NUMBA_LAYER_PRIORITY)
+    # numba.config makes its settings from the environment at import, by name (mypy sees none)
+    numba.config.THREADING_LAYER_PRIORITY = list(NUMBA_LAYER_PRIORITY)  # type: ignore[attr-defined]
+
+
+def limit_numba_threads(n: int) -> None:
+    """Run the kernels on at most `n` threads (a Ray actor: its own cores), within the pool
+    numba started with (NUMBA_NUM_THREADS, by default the machine's cores)."""
+    import numba
+
+    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
 
 
 def configure_process(open3d_threads: int | None = None) -> None:

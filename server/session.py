@@ -30,7 +30,6 @@ from arlight.checks import CheckError
 from arlight.pipeline import sh as sh_lib
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
-from arlight.pipeline.frames import RenderLight
 from arlight.pipeline.ibl import IblParams, IblResult, lighting_from_ldr
 from arlight.pipeline.inverse_tone import DEFAULT_OPERATOR, OPERATORS
 from arlight.pipeline.pipeline import FrameError
@@ -231,10 +230,10 @@ class Session:
     """One session: `setup`, `queue` (its frames, credits and counters), `compute` (its
     pipeline) and what the server keeps about its peers.
 
-    A ProcessStep given to the server is called with the Session: it reads what the Hello
-    set up (`name`, `config`, `pipeline_config`, `camera`, `scene`, `budget`), the frame's
-    light to render with (`render_light`), and calls `checkpoint(stage)` where the frame may
-    be abandoned and `volume_budget_error(blocks)` for a volume it holds elsewhere.
+    A ProcessStep given to the server (server/worker.py) is called with the frame, the
+    Session, the light to render with and the frame's deadline: it reads what the Hello set
+    up (`name`, `config`, `pipeline_config`, `camera`, `scene`, `budget`) and calls
+    `volume_budget_error(blocks)` for a volume it holds elsewhere.
     """
 
     def __init__(self, config: SessionConfig, *, credits: int, max_pixels: int,
@@ -263,18 +262,6 @@ class Session:
         self.token: str | None = None  # admits displays and capture Hellos (server.py sets it)
         self.ended = False  # the capture client said Bye: close once the queue is empty
         self.display_drops = 0  # Results not delivered to a display (its queue full)
-
-    @property
-    def render_light(self) -> RenderLight | None:
-        """The light a ProcessStep renders the frame it was called with by (None: the
-        frame's own estimate)."""
-        return self.compute.render_light
-
-    def checkpoint(self, stage: str) -> None:
-        """For a ProcessStep: FrameAbandoned when the frame it was called with is past the
-        server's per-frame deadline or the server is stopping."""
-        if self.compute.deadline is not None:
-            self.compute.deadline(stage)
 
     def volume_budget_error(self, blocks: int) -> OverBudget | None:
         return self.setup.volume_budget_error(blocks)

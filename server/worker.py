@@ -46,14 +46,17 @@ from arlight.server.budget import PANORAMA_BYTES_PER_PIXEL, SessionBudget, Sessi
 from arlight.server.frame_queue import Job
 
 if TYPE_CHECKING:
-    from arlight.server.session import SessionSetup
+    from arlight.server.session import Session, SessionSetup
 
 log = logging.getLogger(__name__)
 
-# a compute step given to the server in place of the session's Pipeline: (FrameInput, the
-# Session) -> FrameResult. It reads the frame's light to render with as `session.render_light`
-# and calls `session.checkpoint(stage)` where it may be abandoned (server/session.py).
-ProcessStep = Callable[[FrameInput, Any], FrameResult]
+# A compute step given to the server in place of the session's Pipeline, called as the
+# Pipeline is: step(frame, session, render_light, deadline) -> FrameResult. session: the
+# Session (what its Hello set up: name, config, pipeline_config, camera, scene, and
+# volume_budget_error for a volume held elsewhere); render_light: the light to render the
+# virtual objects with (None: the frame's own estimate); deadline: the frame's Deadline, called
+# with a stage's name where the frame may be abandoned (Pipeline.process's checkpoint).
+ProcessStep = Callable[[FrameInput, "Session", "RenderLight | None", "Deadline"], FrameResult]
 
 
 class OverBudget(Exception):
@@ -157,7 +160,7 @@ class SessionCompute:
     """A session's pipeline as the worker step uses it: `setup` (server/session.py,
     SessionSetup) and the compute, a `Pipeline` built on first use (in a worker: it
     allocates the volume), or `step` (a ProcessStep given to the server), called with
-    `owner` (the Session) as its second argument.
+    `owner` (the Session) as its session.
 
     Used by one worker at a time (the server runs one frame per session at a time)."""
 
@@ -169,10 +172,6 @@ class SessionCompute:
         self.cancel = cancel  # set when the server stops: frames are abandoned
         self._pipeline: Pipeline | None = None
         self._told_no_render = False  # logged once: a scene but no composite from the pipeline
-        # what a ProcessStep reads through its session during a call (Session.render_light,
-        # Session.checkpoint); None outside one
-        self.render_light: RenderLight | None = None
-        self.deadline: Deadline | None = None
 
     @property
     def pipeline(self) -> Pipeline:
@@ -199,11 +198,7 @@ class SessionCompute:
         """The session's estimate of one frame: its Pipeline, or its ProcessStep."""
         if self.step is None:
             return self.pipeline.process(frame, render_light=render_light, checkpoint=deadline)
-        self.render_light, self.deadline = render_light, deadline
-        try:
-            return self.step(frame, self.owner)
-        finally:
-            self.render_light = self.deadline = None
+        return self.step(frame, self.owner, render_light, deadline)
 
     def check_volume_budget(self) -> None:
         """The volume grows with the surface seen: past the session's memory budget it is

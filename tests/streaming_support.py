@@ -48,7 +48,7 @@ def identity_step(delay_s: float = 0.0):
     """A compute step standing in for the Pipeline: sh[0] = mean colour value, intensity =
     mean depth (metres), so every Result identifies the frame it came from."""
 
-    def step(frame: FrameInput, session) -> FrameResult:
+    def step(frame: FrameInput, session, render_light, deadline) -> FrameResult:
         if delay_s:
             time.sleep(delay_s)
         sh = np.zeros(16)

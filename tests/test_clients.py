@@ -141,9 +141,9 @@ class TestSources:
         received = []
         step = identity_step()
 
-        def process(frame, session):
+        def process(frame, session, render_light, deadline):
             received.append(depth_metres(frame.depth, frame.depth_scale))
-            return step(frame, session)
+            return step(frame, session, render_light, deadline)
 
         server = make_server(process=process)
         options = StreamOptions(server=server.connect_address, session="metres",

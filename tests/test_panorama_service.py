@@ -263,9 +263,9 @@ class TestRgbdWithPanorama:
         seen: list = []
         identity = identity_step()
 
-        def step(frame, session):  # what the Pipeline would be asked to render with
-            seen.append((session.name, session.render_light))
-            return identity(frame, session)
+        def step(frame, session, render_light, deadline):  # what the Pipeline would be given
+            seen.append((session.name, render_light))
+            return identity(frame, session, render_light, deadline)
 
         server = make_server(process=step)
         offline = _offline(sky_video, "boost")
@@ -309,9 +309,9 @@ class TestReflectingObjects:
         seen: list = []
         identity = identity_step()
 
-        def step(frame, session):
-            seen.append(session.render_light)
-            return identity(frame, session)
+        def step(frame, session, render_light, deadline):
+            seen.append(render_light)
+            return identity(frame, session, render_light, deadline)
 
         server = make_server(process=step)
         mirror = object_from_open3d("mirror", ball(0.1), np.eye(4),

@@ -214,13 +214,13 @@ class TestCurve:
         step, at_two, go = identity_step(), threading.Event(), threading.Event()
         seen: list[int] = []
 
-        def process(frame, session):
+        def process(frame, session, render_light, deadline):
             seq = int(round(float(frame.color[0, 0, 0]))) - 10  # flat_source: 10 + i
             seen.append(seq)
             if seq == 2:
                 at_two.set()
                 assert go.wait(10)
-            return step(frame, session)
+            return step(frame, session, render_light, deadline)
 
         server = secure_server(make_server, process=process, keys_dir=str(keys / "k"))
         proxy = CuttableProxy(server.port)

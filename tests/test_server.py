@@ -167,9 +167,9 @@ class TestLossless:
         gate = threading.Event()
         step = identity_step()
 
-        def process(frame, session):
+        def process(frame, session, render_light, deadline):
             assert gate.wait(10)
-            return step(frame, session)
+            return step(frame, session, render_light, deadline)
 
         server = make_server(process=process, heartbeat_interval_s=5.0)  # raw peers: no beats
         first = RawPeer(server.connect_address)
@@ -211,14 +211,14 @@ class TestLossless:
         calls: collections.Counter = collections.Counter()
         step = identity_step()
 
-        def process(frame, session):
+        def process(frame, session, render_light, deadline):
             seq = int(round(float(frame.color[0, 0, 0]))) - 10  # flat_source: 10 + i
             calls[seq] += 1
             if seq == bad_seq:
                 at_bad.set()
                 assert go.wait(10)
                 raise FrameError("pose", "not a rigid transform (test)")
-            return step(frame, session)
+            return step(frame, session, render_light, deadline)
 
         server = make_server(process=process)
         proxy = CuttableProxy(server.port)
@@ -274,9 +274,9 @@ class TestLossless:
         gate = threading.Event()
         step = identity_step()
 
-        def process(frame, session):
+        def process(frame, session, render_light, deadline):
             assert gate.wait(10)
-            return step(frame, session)
+            return step(frame, session, render_light, deadline)
 
         server = make_server(process=process, heartbeat_interval_s=5.0)
         peer = RawPeer(server.connect_address)
@@ -297,9 +297,9 @@ class TestLossless:
         calls: collections.Counter = collections.Counter()
         step = identity_step()
 
-        def process(frame, session):
+        def process(frame, session, render_light, deadline):
             calls[int(round(float(frame.color[0, 0, 0]))) - 10] += 1
-            return step(frame, session)
+            return step(frame, session, render_light, deadline)
 
         server = make_server(process=process, credits=1)
         options = StreamOptions(server=server.connect_address, session="again",
@@ -776,8 +776,8 @@ class TestTypedMeaning:
     def test_diagnostics_reach_capture_and_display_clients(self, make_server):
         step = identity_step()
 
-        def with_diagnostics(frame, session):
-            result = step(frame, session)
+        def with_diagnostics(frame, session, render_light, deadline):
+            result = step(frame, session, render_light, deadline)
             result.diagnostics = {"tracking": {"ok": True, "reason": ""},
                                   "residuals": np.array([0.5, 0.25]), "n": np.int64(3)}
             return result
@@ -804,8 +804,8 @@ class TestTypedMeaning:
     def test_non_plain_diagnostics_fail_the_frame_with_a_clear_error(self, make_server):
         step = identity_step()
 
-        def bad(frame, session):
-            result = step(frame, session)
+        def bad(frame, session, render_light, deadline):
+            result = step(frame, session, render_light, deadline)
             result.diagnostics = {"mesh": object()}
             return result
 
@@ -1027,8 +1027,8 @@ class TestVirtualScene:
         """The pipeline's composite when it makes one; the input frame while it makes none."""
         identity = identity_step()
 
-        def rendering(frame, session):
-            out = identity(frame, session)
+        def rendering(frame, session, render_light, deadline):
+            out = identity(frame, session, render_light, deadline)
             return dataclasses.replace(out, composite=255 - frame.color) \
                 if frame.timestamp > 1000.02 else out  # none for the first frame
 

@@ -162,11 +162,11 @@ class TestWorkerFailures:
         calls = []
         step = identity_step()
 
-        def failing_once(frame, session):
+        def failing_once(frame, session, render_light, deadline):
             calls.append(1)
             if len(calls) == 1:
                 raise exc
-            return step(frame, session)
+            return step(frame, session, render_light, deadline)
 
         server = make_server(process=failing_once)
         peer = RawPeer(server.connect_address)
@@ -292,15 +292,14 @@ def _until_deadline_step(session_box: list):
     reaches a stage boundary, as a slow pipeline would; frames after the first run normally."""
     step = identity_step()
 
-    def process(frame, session):
+    def process(frame, session, render_light, deadline):
         session_box.append(session)
         if len(session_box) == 1:
-            deadline = session.budget.frame_deadline_s
             start = time.monotonic()
-            while time.monotonic() - start <= deadline:
+            while time.monotonic() - start <= session.budget.frame_deadline_s:
                 time.sleep(0.01)
-            session.checkpoint("LightEst")
-        return step(frame, session)
+            deadline("LightEst")
+        return step(frame, session, render_light, deadline)
 
     return process
 
@@ -404,10 +403,10 @@ class TestShutdownAbandons:
     def test_a_cooperative_frame_is_abandoned_when_the_grace_ends(self, make_server):
         started = threading.Event()
 
-        def endless(frame, session):  # a pipeline that never ends, checking in as it goes
+        def endless(frame, session, render_light, deadline):  # never ends, checking in
             started.set()
             while True:
-                session.checkpoint("RadTransfer")
+                deadline("RadTransfer")
                 time.sleep(0.01)
 
         server = make_server(process=endless, shutdown_grace_s=0.2)
@@ -434,7 +433,7 @@ class TestSigterm:
         code = ("import sys, threading\n"
                 "from arlight.server import server as srv\n"
                 "init = srv.Server.__init__\n"
-                "def stuck(frame, session):\n"
+                "def stuck(frame, session, render_light, deadline):\n"
                 "    print('worker busy', file=sys.stderr, flush=True)\n"
                 "    threading.Event().wait()\n"
                 "srv.Server.__init__ = lambda self, options=None, process=None: init(\n"

@@ -61,8 +61,8 @@ class TestProcessed:
         returned: list[FrameResult] = []
         step = identity_step()
 
-        def record(frame, s):
-            returned.append(step(frame, s))
+        def record(frame, s, render_light, deadline):
+            returned.append(step(frame, s, render_light, deadline))
             return returned[-1]
 
         out = run_frame(frame_job(3), session(record).compute)
@@ -82,15 +82,14 @@ class TestProcessed:
         seen = []
         step = identity_step()
 
-        def record(frame, s):
-            seen.append(s.render_light)
-            return step(frame, s)
+        def record(frame, s, render_light, deadline):
+            seen.append(render_light)
+            return step(frame, s, render_light, deadline)
 
         s = session(record, panorama=PanoramaConfig(light_source="panorama"))
         out = run_frame(frame_job(panorama=sky()), s.compute)
         assert isinstance(out, Processed), out
         assert isinstance(seen[0], RenderLight) and seen[0].environment is None
-        assert s.render_light is None  # only while the step runs
         assert out.result.diagnostics == {}  # not edited
         assert out.result.timings_ms == {"Identity": 0.0}
         assert out.panorama is not None and out.panorama.light_source == "panorama"
@@ -105,7 +104,7 @@ class TestProcessed:
 
     def test_a_panorama_only_frame_needs_no_pipeline(self):
         calls = []
-        s = session(lambda frame, s: calls.append(frame),
+        s = session(lambda frame, *_: calls.append(frame),
                     panorama=PanoramaConfig(), calibration=None)
         out = run_frame(frame_job(panorama=sky(), rgbd=False), s.compute)
         assert isinstance(out, Processed) and not calls
@@ -130,7 +129,7 @@ class TestRejected:
         assert out.error.code == "bad_field" and out.error.field == "frame.color"
 
     def test_a_failing_step_becomes_an_internal_error(self):
-        def boom(frame, s):
+        def boom(frame, s, render_light, deadline):
             raise RuntimeError("kaput")
 
         out = run_frame(frame_job(7), session(boom).compute)
@@ -140,10 +139,10 @@ class TestRejected:
 
 class TestDeadline:
     def test_a_checkpoint_past_the_deadline_abandons_the_frame(self):
-        def slow(frame, s):
+        def slow(frame, s, render_light, deadline):
             time.sleep(0.1)
-            s.checkpoint("LightEst")
-            return identity_step()(frame, s)
+            deadline("LightEst")
+            return identity_step()(frame, s, render_light, deadline)
 
         s = session(slow, budget=SessionBudget(frame_deadline_s=0.05))
         out = run_frame(frame_job(), s.compute)
@@ -154,9 +153,9 @@ class TestDeadline:
         cancel = threading.Event()
         cancel.set()
 
-        def step(frame, s):
-            s.checkpoint("DynGeo")
-            return identity_step()(frame, s)
+        def step(frame, s, render_light, deadline):
+            deadline("DynGeo")
+            return identity_step()(frame, s, render_light, deadline)
 
         out = run_frame(frame_job(), session(step, cancel=cancel).compute)
         assert isinstance(out, Rejected) and out.error.retryable
