@@ -34,7 +34,7 @@ BUILT_IN = "synthetic"
 # reusing a still camera's work (ReuseParams) saves, and that the light is still followed
 BUILT_IN_HELD = "synthetic-held"
 # configurations that are not presets: a preset and what they change in it
-COMPARATORS = {
+COMPARATORS: dict[str, tuple[str, dict[str, Any]]] = {  # name -> (preset, overrides)
     "baseline": ("full", {"visibility": False}),  # K = 1: no visibility at all
     # object-space visibility (GR12/GR14 style): rays against the volume's mesh; the
     # auxiliary buffers serve only SSDO, so they are not rendered for it

@@ -13,6 +13,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,9 @@ from arlight.sources.synthetic_panorama import (
     sun_direction,
     synthetic_sky,
 )
+
+if TYPE_CHECKING:  # imported with the renderer, when --render asks for it (Open3D)
+    from arlight.pipeline.virtual_scene import VirtualScene
 
 SYNTHETIC = "synthetic"
 SYNTHETIC_FRAMES = 8
@@ -114,7 +118,7 @@ class RenderSetup:
     """What `--render` draws: the scene (panorama frame, camera at `world_from_cam`), the
     view size (per eye when stereo), the horizontal field of view."""
 
-    scene: object  # pipeline.virtual_scene.VirtualScene
+    scene: VirtualScene
     world_from_cam: np.ndarray
     size: tuple[int, int]
     hfov_deg: float

@@ -123,6 +123,9 @@ def open_recording(path: str, max_frames: int | None = None
             if not isinstance(message, Frame):
                 raise RecordingError(f"{path}: message {i} on the frame channel is a "
                                      f"{type(message).__name__}, not a Frame")
+            if message.color is None or message.depth is None:
+                raise RecordingError(f"{path}: frame {i} carries no colour and depth image "
+                                     "(a panorama-only frame)")
             pose = None if message.pose is None else np.asarray(message.pose, np.float64)
             yield FrameInput(color=message.color, depth=message.depth, depth_scale=depth_scale,
                              timestamp=float(message.timestamp), pose=pose,

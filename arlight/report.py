@@ -104,16 +104,16 @@ def group_by_map(errors_deg: dict[str, list[float]], env_maps: dict[str, list[st
     if not rows:
         return None
     whole = _map_figures([(m, e) for m, _, _, e in rows])
-    maps = {}
+    per_map = {}
     for env_map, median in whole.pop("maps").items():
         mine = [r for r in rows if r[0] == env_map]
-        maps[env_map] = {"median": median,
+        per_map[env_map] = {"median": median,
                          "p90": float(np.percentile([r[3] for r in mine], 90)),
                          "frames": len(mine), "sequences": _unique(r[1] for r in mine),
                          "layouts": _unique(r[2] for r in mine)}
     by_layout = {layout: _map_figures([(m, e) for m, _, lay, e in rows if lay == layout])
                  for layout in sorted({r[2] for r in rows})}
-    return {"metric": "angle_upper_deg", "maps": maps, **whole, "layouts": by_layout}
+    return {"metric": "angle_upper_deg", "maps": per_map, **whole, "layouts": by_layout}
 
 
 def _accuracy(per_sequence: dict[str, dict[str, list[float]]],

@@ -118,6 +118,7 @@ def encoded_frames(source: Source, options: StreamOptions, timestamps: str
             first_ts = frame.timestamp if first_ts is None else first_ts
             last_ts = frame.timestamp
             ts = frame.timestamp + offset_s
+            parts: list  # bytes, and memoryviews of the images (zero-copy)
             if frame.parts is not None:  # a recording: as recorded (bit-exact)
                 parts = frame.parts if seq == peek_header(frame.parts)["seq"] else \
                     restamp_seq(frame.parts, seq)
@@ -128,7 +129,7 @@ def encoded_frames(source: Source, options: StreamOptions, timestamps: str
                                      options.jpeg_quality))
             yield seq, ts, parts
             seq += 1
-        if not options.loop or first_ts is None:
+        if not options.loop or first_ts is None or last_ts is None:
             return
         period = 1.0 / 30.0 if source.num_frames < 2 else \
             (last_ts - first_ts) / (source.num_frames - 1)
@@ -145,20 +146,21 @@ def object_spec(obj: VirtualObject) -> SceneObjectSpec:
     anchor places it); the uniform scale its world_from_object carries, the one part of it
     an anchor keeps, is applied to its vertices instead."""
     vertices = obj.vertices
-    pose = np.asarray(obj.world_from_object, np.float64)
+    world_from_object = np.asarray(obj.world_from_object, np.float64)
+    pose: np.ndarray | None = world_from_object
     anchor = None
     if obj.anchor is not None:
-        anchor = SceneAnchorSpec(None if obj.anchor.pixel is None else
-                                 tuple(float(x) for x in obj.anchor.pixel),
+        pixel = obj.anchor.pixel
+        anchor = SceneAnchorSpec(None if pixel is None else (float(pixel[0]), float(pixel[1])),
                                  float(obj.anchor.yaw_deg))
-        scale = float(np.cbrt(np.linalg.det(pose[:3, :3])))
+        scale = float(np.cbrt(np.linalg.det(world_from_object[:3, :3])))
         if scale != 1.0:
             vertices = (np.asarray(vertices, np.float64) * scale).astype(np.float32)
         pose = None
     m = obj.material
+    albedo = (float(m.albedo[0]), float(m.albedo[1]), float(m.albedo[2]))
     return SceneObjectSpec(obj.name, vertices, obj.triangles, obj.normals, pose, anchor,
-                           tuple(float(a) for a in m.albedo), float(m.roughness),
-                           float(m.metalness), bool(m.mirror))
+                           albedo, float(m.roughness), float(m.metalness), bool(m.mirror))
 
 
 # --------------------------------------------------------------------------- client
@@ -332,16 +334,23 @@ class CaptureClient:
         self._socket = open_dealer(self._ctx, self.options.server, sndhwm=64, rcvhwm=1000,
                                    error=StreamError, keys=self.options.keys)
 
+    @property
+    def _dealer(self) -> zmq.Socket:
+        """The socket to the server (there is one once _open_socket ran)."""
+        if self._socket is None:
+            raise RuntimeError("not connected: _open_socket() first")
+        return self._socket
+
     def _send(self, parts: list, block: bool = False) -> bool:
         try:
-            self._socket.send_multipart(parts, 0 if block else zmq.NOBLOCK, copy=False)
+            self._dealer.send_multipart(parts, 0 if block else zmq.NOBLOCK, copy=False)
             return True
         except zmq.Again:
             return False
 
     def _receive(self, timeout_s: float) -> Received | None:
         """One message from the server within timeout_s, or None (see receive_message)."""
-        return receive_message(self._socket, timeout_s, log)
+        return receive_message(self._dealer, timeout_s, log)
 
     def _connect(self) -> None:
         """(Re)connect and say Hello until Welcome; StreamError after reconnect_timeout_s."""
@@ -363,7 +372,7 @@ class CaptureClient:
                 if got is None:
                     continue
                 if isinstance(got.message, Welcome):
-                    self._welcomed(got, hello_parts)
+                    self._welcomed(got.message, got.receive_time_mono)
                     return
                 if isinstance(got.message, Error) and got.message.seq is None and \
                         not got.message.retryable:
@@ -382,8 +391,7 @@ class CaptureClient:
             self._stop.wait(backoff)
             backoff = min(backoff * 2, opts.backoff_max_s)
 
-    def _welcomed(self, got: Received, hello_parts: list) -> None:
-        welcome = got.message
+    def _welcomed(self, welcome: Welcome, receive_time_mono: float) -> None:
         self.credits = max(1, welcome.credits)
         self.heartbeat_interval_s = welcome.heartbeat_interval_s
         if welcome.token is not None:  # the session's (differs from ours after an admin resume)
@@ -391,7 +399,7 @@ class CaptureClient:
         if self.recorder is not None and not self._hello_recorded:  # never the token
             self.recorder.write_hello(encode(self.hello), time.time_ns())
             self._hello_recorded = True
-        self._last_heard = got.receive_time_mono
+        self._last_heard = receive_time_mono
         self._last_sent = time.monotonic()
 
     def _refusal_text(self, error: Error) -> str:
@@ -450,9 +458,11 @@ class CaptureClient:
         if error.retryable:  # the frame was not processed: it stays unacknowledged
             if error.field == ErrorField.SESSION:
                 return "rehello"
-            if error.field == ErrorField.CREDITS and error.seq in self._unacked:
+            if error.field == ErrorField.CREDITS and error.seq is not None and \
+                    error.seq in self._unacked:
                 self._after_result.append(error.seq)  # the server's queue was full: retry
-            if error.field == ErrorField.PIPELINE_LOST and error.seq in self._unacked:
+            if error.field == ErrorField.PIPELINE_LOST and error.seq is not None and \
+                    error.seq in self._unacked:
                 # the session's pipeline was lost (`serve --ray`): send it again now, in order
                 self._resend = collections.deque(sorted({*self._resend, error.seq}))
             return None  # shutdown: the Bye follows, then a reconnect re-sends the frame

@@ -20,7 +20,7 @@ from typing import NamedTuple
 import zmq
 from zmq.utils.monitor import parse_monitor_message
 
-from arlight.protocols import ProtocolError, decode, peek_header
+from arlight.protocols import Message, ProtocolError, decode, peek_header
 from arlight.protocols.curve import ClientKeys
 
 _HANDSHAKE_EVENTS = (zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
@@ -96,7 +96,7 @@ class Received(NamedTuple):
     it came: wall clock (for records and latencies against the sender's timestamps) and
     monotonic (for liveness and durations)."""
 
-    message: object
+    message: Message | ProtocolError
     receive_time_wall: float  # time.time(), seconds
     receive_time_mono: float  # time.monotonic(), seconds
     parts: tuple = ()  # the message's parts as received (buffers), for recorders
@@ -134,9 +134,10 @@ def receive_message(sock: zmq.Socket, timeout_s: float, log: logging.Logger
     whether it counts as a sign of life). A Dealer whose handshake failed raises its
     error_type instead."""
     if not sock.poll(max(0, int(timeout_s * 1000)), zmq.POLLIN):
-        failure = sock.handshake_failure() if isinstance(sock, Dealer) else None
-        if failure is not None:
-            raise sock.error_type(f"cannot talk to the server: {failure}")
+        if isinstance(sock, Dealer):
+            failure = sock.handshake_failure()
+            if failure is not None:
+                raise sock.error_type(f"cannot talk to the server: {failure}")
         return None
     parts = sock.recv_multipart(copy=False)
     wall, mono = time.time(), time.monotonic()

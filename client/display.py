@@ -37,6 +37,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
 
 import cv2
 import numpy as np
@@ -59,6 +60,11 @@ from arlight.protocols import (
     received_record,
 )
 from arlight.protocols.curve import ClientKeys
+
+if TYPE_CHECKING:  # imported when their flags ask for them (foxglove, the web server)
+    from arlight.client.foxglove_sinks import LiveSink
+    from arlight.client.recording import Recorder
+    from arlight.client.web_display import WebDisplay
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +117,7 @@ class DisplaySummary:
 
     @property
     def fps(self) -> float:
-        if self.results < 2 or self.first_receive is None:
+        if self.results < 2 or self.first_receive is None or self.last_receive is None:
             return 0.0
         return (self.results - 1) / max(self.last_receive - self.first_receive, 1e-9)
 
@@ -153,13 +159,13 @@ class DisplayClient:
         self.summary = DisplaySummary(options.session)
         self._heartbeat_s = options.heartbeat_interval_s
         self._last_seq: int | None = None
-        self._jsonl = None
+        self._jsonl: TextIO | None = None
         self._frames_dir: Path | None = None
-        self._video = None
+        self._video: cv2.VideoWriter | None = None
         self._window: deque[tuple[float, float]] = deque()  # (monotonic receive, latency ms)
-        self.recorder = None  # client/recording.Recorder with --record
-        self.foxglove = None  # client/foxglove_sinks.LiveSink with --foxglove
-        self.web = None  # client/web_display.WebDisplay with --http
+        self.recorder: Recorder | None = None  # with --record
+        self.foxglove: LiveSink | None = None  # with --foxglove
+        self.web: WebDisplay | None = None  # with --http
         self.plot_path: Path | None = None  # latency.png, once written
 
     def stop(self) -> None:
@@ -173,14 +179,21 @@ class DisplayClient:
         hello = Hello(PROTOCOL_VERSION, SessionConfig(
             session=self.options.session, client_name=self.options.client_name,
             role="display", token=self.options.token))
-        self._socket.send_multipart(encode(hello), copy=False)
+        self._dealer.send_multipart(encode(hello), copy=False)
         self._hello_sent = time.monotonic()
         self._welcomed = False
+
+    @property
+    def _dealer(self) -> zmq.Socket:
+        """The socket to the server (there is one once _open ran)."""
+        if self._socket is None:
+            raise RuntimeError("not connected: _open() first")
+        return self._socket
 
     def _receive(self, timeout_s: float) -> Received | None:
         """The next message within timeout_s, or None; an undecodable message is logged and
         skipped (it does not count as a sign of life here)."""
-        got = receive_message(self._socket, timeout_s, log)
+        got = receive_message(self._dealer, timeout_s, log)
         if got is not None and isinstance(got.message, ProtocolError):
             return None
         return got
@@ -232,7 +245,7 @@ class DisplayClient:
             if self._video is None:
                 h, w = bgr.shape[:2]
                 Path(self.options.video).parent.mkdir(parents=True, exist_ok=True)
-                fourcc = cv2.VideoWriter_fourcc(*"mp4v")
+                fourcc = cv2.VideoWriter.fourcc(*"mp4v")
                 self._video = cv2.VideoWriter(self.options.video, fourcc,
                                               self.options.video_fps, (w, h))
                 self._video_size = (w, h)
@@ -381,7 +394,7 @@ class DisplayClient:
             self._last_heard_mono = time.monotonic()
         if now_m - self._last_sent_mono >= self._heartbeat_s:
             try:
-                self._socket.send_multipart(encode(Heartbeat(time.time())), zmq.NOBLOCK,
+                self._dealer.send_multipart(encode(Heartbeat(time.time())), zmq.NOBLOCK,
                                             copy=False)
             except zmq.Again:
                 pass  # queue full while the server is away: the next one will do

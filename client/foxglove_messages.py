@@ -32,6 +32,7 @@ from collections.abc import Mapping, Sequence
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 from foxglove import messages as fm
 
 COLOR_TOPIC = "/camera/color"
@@ -107,7 +108,7 @@ def quaternion(rotation: np.ndarray) -> fm.Quaternion:
     return fm.Quaternion(x=q[0] / n, y=q[1] / n, z=q[2] / n, w=q[3] / n)
 
 
-def x_axis_to(direction: Sequence[float]) -> fm.Quaternion:
+def x_axis_to(direction: npt.ArrayLike) -> fm.Quaternion:
     """The rotation taking +x onto `direction` (Foxglove arrows point along their +x)."""
     d = np.asarray(direction, dtype=np.float64)
     norm = float(np.linalg.norm(d))

@@ -14,13 +14,13 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping, Sequence
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from arlight.client import foxglove_messages as fx
 from arlight.client.connection import encoded_image
-from arlight.protocols import Hello, ProtocolError, decode, peek_header
+from arlight.protocols import CameraCalibration, Frame, Hello, ProtocolError, decode, peek_header
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ class LiveSink:
 
         self._foxglove = foxglove
         self._context = foxglove.Context()
-        self._channels: dict[str, object] = {}
+        self._channels: dict[str, Any] = {}  # the SDK's typed channels, and Channel for JSON
         self._metadata = {k: dict(v) for k, v in (channel_metadata or {}).items()}
         try:
             self._server = foxglove.start_server(name=name, host=host, port=int(port),
@@ -178,7 +178,7 @@ class FoxgloveStream:
 
     def __init__(self, sink: Sink):
         self.sink = sink
-        self.calibration = None
+        self.calibration: CameraCalibration | None = None
         self.frame_poses = False  # the frames carry poses: /tf comes from them
 
     def write_hello(self, parts, log_time_ns: int) -> None:
@@ -198,6 +198,8 @@ class FoxgloveStream:
         except ProtocolError as exc:  # sent as it is; the server will say so too
             log.warning("frame %s not on the Foxglove topics: %s", header.get("seq"), exc)
             return
+        if not isinstance(frame, Frame):
+            raise TypeError(f"write_frame takes a Frame's parts, got a {type(frame).__name__}")
         self.frame_poses = self.frame_poses or frame.pose is not None
         publish_frame(self.sink, parts, frame, self.calibration, log_ns)
 

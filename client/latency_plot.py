@@ -9,11 +9,12 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 FPS_WINDOW_S = 1.0
 
 
-def fps_over_time(receive_s: Sequence[float], window_s: float = FPS_WINDOW_S) -> np.ndarray:
+def fps_over_time(receive_s: npt.ArrayLike, window_s: float = FPS_WINDOW_S) -> np.ndarray:
     """Results per second at each receive time (receive_s: increasing, seconds on one
     clock): the intervals between the Results of the last `window_s` seconds (this one
     included) over the time they span; 0 where there is no interval yet."""

@@ -74,7 +74,10 @@ class Recorder:
             data=json.dumps(FRAME_INFO_SCHEMA).encode())
         meta = {"protocol_version": str(PROTOCOL_VERSION),
                 "data": "msgpack array of the ZeroMQ message parts as sent"}
-        self._hello = self._frame = self._info = None
+        # the channels of a stream recording (frames=True), else None
+        self._hello: int | None = None
+        self._frame: int | None = None
+        self._info: int | None = None
         if frames:
             self._hello = self._writer.register_channel(HELLO_TOPIC, MESSAGE_ENCODING, 0, meta)
             self._frame = self._writer.register_channel(FRAME_TOPIC, MESSAGE_ENCODING, 0, meta)
@@ -101,7 +104,7 @@ class Recorder:
 
     def write_frame(self, parts, log_time_ns: int | None = None) -> None:
         """One Frame as sent; log_time_ns None = the frame's own timestamp."""
-        if self._frame is None:
+        if self._frame is None or self._info is None:
             raise ValueError("this Recorder records Results only (frames=False)")
         header = peek_header(parts)
         stamp_ns = int(round(float(header["timestamp"]) * 1e9))

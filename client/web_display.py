@@ -87,7 +87,9 @@ class WebDisplay:
             raise OSError(f"cannot serve the browser display on {host}:{port} (--http): "
                           f"{exc.strerror or exc}") from None
         self._server.daemon_threads = True
-        self.host, self.port = self._server.server_address[:2]
+        bound_host, bound_port = self._server.server_address[:2]  # port 0: the one it chose
+        self.host, self.port = str(bound_host), int(bound_port)
+
         self._thread = threading.Thread(target=self._server.serve_forever,
                                         kwargs={"poll_interval": 0.2},
                                         name="arlight-web-display", daemon=True)

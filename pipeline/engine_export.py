@@ -35,6 +35,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from . import sh
 from .color import LUMA
@@ -242,7 +243,7 @@ EXPORTERS = {"arcore": to_arcore, "webxr": to_webxr, "gltf": to_gltf_ibl, "unity
              "filament": to_filament_text, "main_light": main_light}
 
 
-def camera_exports(sh_world: np.ndarray, world_from_cam: np.ndarray,
+def camera_exports(sh_world: npt.ArrayLike, world_from_cam: npt.ArrayLike,
                    names: list[str] | tuple[str, ...]) -> dict:
     """The light of one frame in each named layout (EXPORTERS), in the CAMERA frame with the
     engine's axes (OpenGL's x right, y up, z back: sh.GL_FROM_CV; Unity's left-handed

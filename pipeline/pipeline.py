@@ -244,10 +244,10 @@ class Pipeline:
                                                                      diagnostics)
         check("DynGeo")
         with _stage(timings, "DynGeo"):  # the test of a still camera costs ~1 ms
-            reuse = (self._last_transfer is not None and tracked
-                     and self._still.may_reuse(pose, valid.depth_m))
-        if reuse:
-            geometry, transfer = self._last_transfer
+            reused = (self._last_transfer if self._last_transfer is not None and tracked
+                      and self._still.may_reuse(pose, valid.depth_m) else None)
+        if reused is not None:
+            geometry, transfer = reused
             timings["RadTransfer"] = 0.0
             diagnostics["reused"].update({"DynGeo": True, "RadTransfer": True})
             labels = self._segments(color_linear, geometry)
@@ -366,6 +366,8 @@ class Pipeline:
     def _place_anchored(self, geometry: _Geometry, pose: np.ndarray) -> None:
         """Resolve anchored objects on this frame's support plane; build the renderer once
         every object is placed."""
+        if self.scene is None:  # (the caller renders only a scene)
+            return
         plane = geometry.plane
         if plane is None:
             plane = support_plane(geometry.normals, geometry.points)
@@ -454,8 +456,9 @@ class Pipeline:
         budget = int(CANDIDATES_PER_SAMPLE * self.config.estimation.light_max_samples)
         seed = self.config.seed
         has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
-        if p.rt_method is RtMethod.RAYCAST:
-            grid = self._raycaster.compute(geometry.points, geometry.normals, self.camera,
+        if self._raycaster is not None:  # rt_method raycast
+            grid = self._raycaster.compute(
+geometry.points, geometry.normals, self.camera,
                                            pose, self.pattern, p, lum, plane, self._volume)
         else:
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None

@@ -185,11 +185,11 @@ class VolumeReconstruction:
         elif self.frame_index > 0 and self.num_blocks > 0:
             depth_image = o3d.t.geometry.Image(o3c.Tensor(depth_clean, device=self.device))
             tracking = self._tracker.track(depth_image, n_valid, self._model_depth)
-            if tracking.ok:
+            if tracking.ok and tracking.prev_from_cur is not None:  # (ok: it is set)
                 self.pose = self.pose @ tracking.prev_from_cur
         # (pose None and V still empty: this frame starts the map at the current pose)
         if tracking.ok and self._last is not None and self._still.may_reuse(self.pose):
-            return self._reused(tracking, (time.perf_counter() - t0) * 1e3)
+            return self._reused(self._last, tracking, (time.perf_counter() - t0) * 1e3)
         if tracking.ok and n_valid > 0:
             self._volume.integrate(depth_clean, self.pose)
         self._volume.sync()
@@ -213,10 +213,10 @@ class VolumeReconstruction:
             self._still.did_work(self.pose)
         return out
 
-    def _reused(self, tracking: TrackingResult, elapsed_ms: float) -> SurfaceOutput:
-        """A still camera's frame: tracked, not fused; the last cast's D_v, N_v and aux."""
+    def _reused(self, last: SurfaceOutput, tracking: TrackingResult,
+                elapsed_ms: float) -> SurfaceOutput:
+        """A still camera's frame: tracked, not fused; `last` cast's D_v, N_v and aux."""
         self.frame_index += 1
-        last = self._last
         return SurfaceOutput(self.pose.copy(), last.depth_volume_m, last.normals_volume,
                              list(last.aux_buffers), True,
                              {"Reconstruct": elapsed_ms, "Surface": 0.0}, tracking, reused=True)

@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -50,6 +51,9 @@ from arlight.pipeline.radiance_transfer import (
 )
 from arlight.pipeline.virtual_gbuffer import VirtualGBuffer, VirtualRaycaster
 from arlight.pipeline.virtual_scene import VirtualScene
+
+if TYPE_CHECKING:  # ibl_render imports this module
+    from arlight.pipeline.ibl_render import Shading
 
 NEAR_BLOCK_PX = 4  # tile side of `within_reach` (grid pixels)
 MIN_SHADING = 1e-6  # R_d below this (linear image units): the ratio is left at 1
@@ -132,7 +136,8 @@ class DifferentialRenderer:
                                                    rt_subsample=1)
         self.pattern = make_sampling_pattern(self.transfer_params, config.seed + 1)
         self.raycaster = VirtualRaycaster(scene)
-        self._shadings = None  # per object, made when an environment map first lights them
+        # per object, made when an environment map first lights them
+        self._shadings: list[Shading] | None = None
 
     def render(self, frame: RenderInputs) -> RenderOutput:
         """The composite of one frame (see the module docstring)."""
@@ -238,14 +243,15 @@ class DifferentialRenderer:
         for a glossy object)."""
         from arlight.pipeline.ibl_render import shading_of  # it imports this module
 
-        if self._shadings is None:
-            self._shadings = [shading_of(o.material, f"virtual object {o.name!r}")
-                              for o in self.scene.objects]
+        shadings = self._shadings
+        if shadings is None:
+            shadings = self._shadings = [shading_of(o.material, f"virtual object {o.name!r}")
+                                         for o in self.scene.objects]
         index = g.object_index[vs, us]
-        diffuse = np.stack([s.diffuse_rgb for s in self._shadings])[index]
-        spec_rgb = np.stack([s.specular_rgb for s in self._shadings])[index]
-        modes = np.array([s.mode for s in self._shadings])[index]
-        exponents = np.array([s.exponent for s in self._shadings])[index]
+        diffuse = np.stack([s.diffuse_rgb for s in shadings])[index]
+        spec_rgb = np.stack([s.specular_rgb for s in shadings])[index]
+        modes = np.array([s.mode for s in shadings])[index]
+        exponents = np.array([s.exponent for s in shadings])[index]
         cam = self.camera
         rays = np.stack([(us - cam.cx) / cam.fx, (vs - cam.cy) / cam.fy, np.ones(len(us))],
                         axis=1) @ pose[:3, :3].T

@@ -63,8 +63,8 @@ class VirtualRaycaster:
             self._geometry_object[int(gid)] = index
             self._normals.append(obj.world_normals())
             self._triangles.append(obj.triangles)
-        self._albedo = np.array([o.material.albedo for o in scene.objects] or [[0, 0, 0]],
-                                np.float32)
+        self._albedo = np.array([o.material.albedo for o in scene.objects]
+                                or [(0.0, 0.0, 0.0)], np.float32)
         self._spheres = [o.bounding_sphere() for o in scene.objects]
 
     def _cast(self, origins: np.ndarray, directions: np.ndarray) -> dict:

@@ -16,6 +16,7 @@ primitives are made with Open3D.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -224,7 +225,9 @@ def _flat(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
     return out
 
 
-PRIMITIVES = {"sphere": sphere_mesh, "box": box_mesh, "torus": torus_mesh}
+# name -> the function making it (its keyword arguments: the primitive's sizes)
+PRIMITIVES: dict[str, Callable[..., o3d.geometry.TriangleMesh]] = {
+    "sphere": sphere_mesh, "box": box_mesh, "torus": torus_mesh}
 
 
 def pose_on_plane(point_world: np.ndarray, up_world: np.ndarray, yaw_deg: float = 0.0,

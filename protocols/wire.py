@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any, Union
 
-import msgpack  # type: ignore[import-untyped]  # no stubs, no py.typed
+import msgpack
 
 from .codecs import DEFAULT_MAX_PIXELS, as_bytes_view
 from .control import Bye, Credit, Error, Heartbeat, Welcome

@@ -43,3 +43,27 @@ if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; th
   .venv/bin/python -m arlight.warmup
   echo "$want" > "$stamp"
 fi
+
+# The type checker's view of the package (pyproject's [tool.mypy] mypy_path): pipeline/,
+# server/, client/, protocols/ and sources/ are arlight.* subpackages through setuptools'
+# package-dir, which the editable install maps with an import hook that mypy cannot follow.
+# build/typecheck/arlight/<sub> links to each such folder (not to its files: a module added
+# later is seen without linking again), read from pyproject so the two cannot disagree.
+.venv/bin/python - <<'EOF_PY'
+from pathlib import Path
+
+try:
+    import tomllib
+except ImportError:  # Python 3.10: pip's own copy of the same parser
+    from pip._vendor import tomli as tomllib
+
+package_dir = tomllib.loads(Path("pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+for name, folder in package_dir.items():
+    link = Path("build/typecheck", *name.split("."))
+    if Path(*name.split(".")) != Path(folder):
+        link.parent.mkdir(parents=True, exist_ok=True)
+        target = Path(*[".."] * (len(link.parts) - 1), folder)
+        if not link.is_symlink() or Path(link.readlink()) != target:
+            link.unlink(missing_ok=True)
+            link.symlink_to(target, target_is_directory=True)
+EOF_PY

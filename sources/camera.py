@@ -22,8 +22,12 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from types import ModuleType
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # arlight.sources.source opens cameras through this module
+    from arlight.sources.source import SourceFrame
 
 log = logging.getLogger(__name__)
 
@@ -214,9 +218,9 @@ class FrameCounter:
         self._last = sequence_number
 
 
-def camera_frames(spec: CameraSpec, read: Callable[[], object | None],
+def camera_frames(spec: CameraSpec, read: Callable[[], SourceFrame | None],
                   close: Callable[[], None], lost_errors: tuple[type[BaseException], ...],
-                  max_frames: int | None, counter: FrameCounter) -> Iterator[object]:
+                  max_frames: int | None, counter: FrameCounter) -> Iterator[SourceFrame]:
     """The frames `read()` returns until max_frames, the end of a file (read() -> None) or
     the device going away (one of lost_errors raised): then the stream ends cleanly, with a
     warning saying why, and `close()` releases the device. The frames already yielded are
@@ -246,15 +250,15 @@ def camera_frames(spec: CameraSpec, read: Callable[[], object | None],
             log.warning("SOURCE %s: closing the camera: %s", spec.text, exc)
 
 
-def camera_stream(spec: CameraSpec, read: Callable[[], object | None],
+def camera_stream(spec: CameraSpec, read: Callable[[], SourceFrame | None],
                   close: Callable[[], None], lost_errors: tuple[type[BaseException], ...],
                   max_frames: int | None, counter: FrameCounter
-                  ) -> Callable[[], Iterator[object]]:
+                  ) -> Callable[[], Iterator[SourceFrame]]:
     """A camera Source's `frames`: `camera_frames` the first time it is called; a second call
     (a device streams once) is a CameraError saying there is no --loop."""
     started = False
 
-    def frames() -> Iterator[object]:
+    def frames() -> Iterator[SourceFrame]:
         nonlocal started
         if started:
             raise CameraError(f"SOURCE {spec.text}: a camera streams once (no --loop)")

@@ -19,6 +19,7 @@ import math
 import os
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -171,7 +172,10 @@ class _OpenNI2Camera:
         self.notes: list[str] = []
         self.device = self._open_device()
         self.is_file = bool(self.device.is_file())
-        self.depth = self.color = None
+        # the depth and colour streams (openni2.VideoStream: the binding has no types) once
+        # set up, None after close
+        self.depth: Any = None
+        self.color: Any = None
         self.started = False  # the streams start with the first read, not at open
         self.fps = spec.fps
         self.frames_read = 0
@@ -341,7 +345,7 @@ def open_openni2(spec: CameraSpec, max_frames: int | None = None) -> Source:
     atexit.register(cam.close)  # a source never streamed: closed before the runtime unloads
     info = cam.device.get_device_info()
     label = [b.decode(errors="replace").strip() for b in (info.vendor, info.name)]
-    name = Path(spec.device).stem if cam.is_file else \
+    name = Path(spec.device).stem if cam.is_file and spec.device else \
         "-".join(["openni2", *[part for part in label if part]])
     n = cam.frames_in_file if cam.is_file and cam.frames_in_file and cam.frames_in_file > 0 \
         else None

@@ -123,6 +123,8 @@ class PanoramaSource:
 class _ImageSource(PanoramaSource):
     """A single image or a sorted folder of images, read lazily."""
 
+    fps: float  # given (or the default): an image has no rate of its own
+
     def __init__(self, path: Path, files: list[Path], kind: str, fps: float,
                  max_frames: int | None):
         first = read_panorama_image(files[0])
@@ -171,8 +173,8 @@ class _VideoSource(PanoramaSource):
             capture.release()
             raise
         container_fps = capture.get(cv2.CAP_PROP_FPS)
-        count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-        count = count if count > 0 else None
+        frames = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        count = frames if frames > 0 else None
         if max_frames is not None:
             count = min(count, max_frames) if count is not None else max_frames
         super().__init__(path, "video", False, (bgr.shape[1], bgr.shape[0]), count,
@@ -206,7 +208,8 @@ class _VideoSource(PanoramaSource):
 
     def _decode(self, first_bgr: np.ndarray) -> None:
         try:
-            index, bgr, pos_ms = 0, first_bgr, self._first_ms
+            index, pos_ms = 0, self._first_ms
+            bgr: np.ndarray | None = first_bgr
             while bgr is not None:
                 t0 = time.perf_counter()
                 if bgr.shape[:2] != (self.size[1], self.size[0]):

@@ -19,11 +19,14 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
+
 from arlight.sources.panorama import (
     HDR_EXTS,
     LDR_EXTS,
     VIDEO_EXTS,
     PanoramaError,
+    PanoramaSource,
     open_panorama,
 )
 from arlight.sources.source import Source, SourceFrame
@@ -43,7 +46,7 @@ def is_panorama_input(spec: str) -> bool:
     return False
 
 
-def _open_ldr(path: str, fps: float | None, max_frames: int | None):
+def _open_ldr(path: str, fps: float | None, max_frames: int | None) -> PanoramaSource:
     source = open_panorama(path, fps=fps, max_frames=max_frames)
     if source.hdr:
         source.close()
@@ -54,7 +57,7 @@ def _open_ldr(path: str, fps: float | None, max_frames: int | None):
 
 
 def _panorama_frames(path: str, fps: float | None, max_frames: int | None
-                     ) -> Iterator[tuple[float, object]]:
+                     ) -> Iterator[tuple[float, np.ndarray]]:
     source = _open_ldr(path, fps, max_frames)
     try:
         yield from source

@@ -39,7 +39,7 @@ def find_serial(rs, spec: CameraSpec) -> str:
     serials = [d.get_info(rs.camera_info.serial_number) for d in rs.context().query_devices()]
     if spec.device is None and serials:
         return serials[0]
-    if spec.device in serials:
+    if spec.device is not None and spec.device in serials:
         return spec.device
     raise CameraError(no_device_message(spec, "Intel RealSense devices on USB "
                                         "(rs.context().query_devices())", serials, PERMISSIONS))

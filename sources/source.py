@@ -138,6 +138,7 @@ def open_source(spec: str, *, use_poses: bool = False, max_frames: int | None = 
         return sequence_source("synthetic", seq.camera, frames, [])
     if spec.lower().endswith(".mcap"):
         return open_recording_source(spec, max_frames=max_frames)
-    seq = open_sequence(spec, depth_encoding=depth_encoding, use_poses=use_poses,
-                        max_frames=max_frames)
-    return sequence_source(seq.name, seq.camera, seq.frames, list(seq.notes))
+    sequence = open_sequence(spec, depth_encoding=depth_encoding, use_poses=use_poses,
+                             max_frames=max_frames)
+    return sequence_source(sequence.name, sequence.camera, sequence.frames,
+                           list(sequence.notes))

@@ -103,15 +103,15 @@ def _read_document(path: Path) -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise SceneError(f"scene file {path} cannot be read ({exc})") from None
     if suffix == ".toml":
-        if sys.version_info < (3, 11):
-            raise SceneError(f"scene file {path}: TOML needs Python >= 3.11 (tomllib); write "
-                             "the scene as JSON")
-        import tomllib
+        if sys.version_info >= (3, 11):
+            import tomllib
 
-        try:
-            return tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise SceneError(f"scene file {path} is not valid TOML: {exc}") from None
+            try:
+                return tomllib.loads(text)
+            except tomllib.TOMLDecodeError as exc:
+                raise SceneError(f"scene file {path} is not valid TOML: {exc}") from None
+        raise SceneError(f"scene file {path}: TOML needs Python >= 3.11 (tomllib); write "
+                         "the scene as JSON")
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:

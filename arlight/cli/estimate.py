@@ -188,9 +188,10 @@ def _open_source(args: argparse.Namespace):
         from arlight.evaluation import scene_truth
         from arlight.sources.synthetic import make_sequence
 
-        seq = make_sequence(num_frames=args.max_frames or 12)
-        frames = [f if use_poses else dataclasses.replace(f, pose=None) for f in seq.frames]
-        return seq.camera, frames, scene_truth(seq)
+        synthetic = make_sequence(num_frames=args.max_frames or 12)
+        frames = [f if use_poses else dataclasses.replace(f, pose=None)
+                  for f in synthetic.frames]
+        return synthetic.camera, frames, scene_truth(synthetic)
     if args.depth:
         seq = without_poses(open_pair(args.path, args.depth, args.depth_encoding), use_poses)
     else:

@@ -92,12 +92,18 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from arlight.ibl import SYNTHETIC, frame_record, synthetic_panorama, truth_error_deg
+    from arlight.ibl import (
+        SYNTHETIC,
+        SyntheticPanorama,
+        frame_record,
+        synthetic_panorama,
+        truth_error_deg,
+    )
     from arlight.ibl import run as run_ibl
     from arlight.pipeline.environment_map import cubemap_from_equirect
     from arlight.pipeline.ibl import IblParams
     from arlight.sources.exr import write_exr
-    from arlight.sources.panorama import open_panorama
+    from arlight.sources.panorama import PanoramaSource, open_panorama
 
     params = IblParams(operator=args.operator, diffuse_size=args.diffuse_size)
     renderer = _renderer(args)  # before any output: a bad --scene stops here
@@ -105,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
     if args.cubemap and exr_dir is None:
         raise BadInput("--cubemap writes faces beside the --exr maps: give --exr DIR")
     render_dir = output_folder(args.render, "--render")
+    source: SyntheticPanorama | PanoramaSource
     if args.panorama == SYNTHETIC:
         source = synthetic_panorama(args.max_frames or 8)
         truth = source.truth_directions

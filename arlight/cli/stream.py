@@ -98,10 +98,11 @@ def run(args: argparse.Namespace) -> int:
         from arlight.client.foxglove_sinks import FoxgloveStream, LiveSink
 
         try:
-            live = FoxgloveStream(LiveSink(*foxglove, name=f"arlight stream {args.source}"))
+            sink = LiveSink(*foxglove, name=f"arlight stream {args.source}")
         except OSError as exc:
             raise BadInput(f"--foxglove/--port: {exc}") from None
-        print(f"arlight stream: Foxglove WebSocket on ws://{foxglove[0]}:{live.sink.port}",
+        live = FoxgloveStream(sink)
+        print(f"arlight stream: Foxglove WebSocket on ws://{foxglove[0]}:{sink.port}",
               file=sys.stderr, flush=True)
     recorder = None
     if args.record:
