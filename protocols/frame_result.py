@@ -35,6 +35,11 @@ from .fields import (
 from .images import ImageParts, add_image
 from .layouts import read_exports
 
+# a light direction on the wire (SPEC.md section 4, "result: directions"): a unit vector, its
+# norm within this of 1 (the reference server rotates it by the frame's pose, rigid within
+# 1e-3), or exactly [0, 0, 0]: no direction
+DIRECTION_NORM_TOLERANCE = 0.01
+
 
 @dataclass
 class Frame:
@@ -253,12 +258,18 @@ class Result:
                       for i, c in enumerate(sh_rgb)]
         fields: dict[str, Any] = dict(
             seq=seq, timestamp=timestamp, sh=sh, sh_camera=sh_camera, sh_rgb=sh_rgb,
-            dominant_direction_camera=h.floats("dominant_direction_camera", 3),
-            dominant_direction_world=h.floats("dominant_direction_world", 3),
+            dominant_direction_camera=read_direction(h.raw("dominant_direction_camera"),
+                                                     h.f("dominant_direction_camera")),
+            dominant_direction_world=read_direction(h.raw("dominant_direction_world"),
+                                                    h.f("dominant_direction_world")),
             intensity=h.float("intensity"),
             confidence=read_plain_map(h.raw("confidence"), h.f("confidence"), 0, 64),
             pose=read_pose(h.raw("pose"), h.f("pose")).tolist(),
         )
+        if any(fields["dominant_direction_camera"]) != any(fields["dominant_direction_world"]):
+            raise ProtocolError("bad_field", "one dominant direction is [0, 0, 0] and the other "
+                                "is not: a light has a direction in both frames or in neither",
+                                h.f("dominant_direction_camera"))
         timings = read_plain_map(h.raw("timings_ms"), h.f("timings_ms"), 0, 64)
         fields["timings_ms"] = {
             k: read_float(x, f"{h.f('timings_ms')}.{k}", 0.0) for k, x in timings.items()
@@ -302,6 +313,21 @@ def _read_panorama_light(h: FieldReader) -> dict:
         raise ProtocolError("bad_field", "expected 3 arrays (R, G, B) of L^2 numbers",
                             h.f("panorama_sh_rgb"))
     rgb = [read_floats(c, f"{h.f('panorama_sh_rgb')}[{i}]", len(coeffs)) for i, c in enumerate(rgb)]
-    direction = h.floats("panorama_dominant_direction", 3)
+    direction = read_direction(h.raw("panorama_dominant_direction"),
+                               h.f("panorama_dominant_direction"))
     return {"panorama_sh": coeffs, "panorama_sh_rgb": rgb,
             "panorama_dominant_direction": direction}
+
+
+def read_direction(v: Any, name: str) -> list[float]:
+    """A direction towards the light: 3 numbers, a unit vector (norm within
+    DIRECTION_NORM_TOLERANCE of 1) or exactly [0, 0, 0], no direction (SPEC.md section 4,
+    "result: directions")."""
+    d = read_floats(v, name, 3)
+    if not any(d):
+        return d
+    norm = math.sqrt(sum(x * x for x in d))
+    if abs(norm - 1.0) > DIRECTION_NORM_TOLERANCE:
+        raise ProtocolError("bad_field", f"norm {norm:.6g}: expected a unit vector (within "
+                            f"{DIRECTION_NORM_TOLERANCE:g}) or [0, 0, 0] for no direction", name)
+    return d

@@ -15,9 +15,13 @@ MAX_FILAMENT_TEXT = 2**17  # characters: 1024 coefficients (Result.sh's limit) o
 
 
 def read_export_names(v: Any, name: str) -> tuple[str, ...]:
-    """Hello.config.exports: 1..6 distinct layout names, or nil (= none)."""
+    """Hello.config.exports: 1..6 distinct layout names, or nil (= none); an empty array is
+    refused (SPEC.md section 4: none is nil or the key absent)."""
     if v is None:
         return ()
+    if v == []:
+        raise ProtocolError("bad_field", "an empty array: for no layout send nil or omit the "
+                            "key", name)
     if type(v) is not list or not 1 <= len(v) <= len(EXPORT_LAYOUTS):
         raise ProtocolError("bad_field", f"expected an array of 1..{len(EXPORT_LAYOUTS)} "
                             f"layout names, got {type_name(v)}", name)

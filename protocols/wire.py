@@ -102,13 +102,40 @@ def _views(parts: Any) -> list[memoryview]:
     return [as_bytes_view(p) for p in parts]
 
 
+class _RepeatedKey(Exception):
+    """A msgpack map that names one key twice (raised inside msgpack's unpacker)."""
+
+    def __init__(self, key: Any):
+        super().__init__(key)
+        self.key = key
+
+
+def _unique_keys(pairs: list[tuple[Any, Any]]) -> dict:
+    """msgpack's object_pairs_hook: each map as a dict, refusing a key it names twice (SPEC.md
+    section 2: a reader keeping the first value and one keeping the last would see different
+    messages)."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        seen: set = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise _RepeatedKey(key)
+            seen.add(key)
+    return out
+
+
 def _header(view: memoryview) -> dict:
     if len(view) > MAX_HEADER_BYTES:
         raise ProtocolError(
             "too_large", f"header of {len(view)} bytes exceeds {MAX_HEADER_BYTES}", "header"
         )
     try:
-        header = msgpack.unpackb(view, raw=False, strict_map_key=True, use_list=True)
+        header = msgpack.unpackb(view, raw=False, strict_map_key=True, use_list=True,
+                                 object_pairs_hook=_unique_keys)
+    except _RepeatedKey as exc:
+        raise ProtocolError(
+            "malformed", f"the key {str(exc.key)[:64]!r} appears twice in one map (every key "
+            "of every map exactly once)", "header") from None
     except Exception as exc:  # msgpack raises many types for bad input
         raise ProtocolError(
             "malformed", f"header is not msgpack: {type(exc).__name__}: {str(exc)[:200]}", "header"

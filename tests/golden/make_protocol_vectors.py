@@ -6,6 +6,10 @@ that encode() still reproduces every file byte for byte (JPEG excepted: its byte
 the libjpeg build, so the JPEG vector is pinned by decoding the stored file) and that
 decode() of each stored file gives the message below.
 
+The refused vectors (refused() below, tests/golden/protocol_v2/refused/*.bin and
+expected.json) are messages a decoder must refuse, each with the code and field SPEC.md
+section 9 names: hand-edited headers of the vectors above.
+
 Run only after a deliberate format change (and bump PROTOCOL_VERSION if old peers can no
 longer read the new bytes):
 
@@ -14,11 +18,16 @@ longer read the new bytes):
 
 from __future__ import annotations
 
+import json
+import math
 import sys
 from pathlib import Path
 
+import msgpack
 import numpy as np
 
+from arlight.contracts import Confidence
+from arlight.pipeline.sh import intensity_along
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Bye,
@@ -106,10 +115,26 @@ def exports() -> dict:
             "main_light": {"direction": [0.0, 1.0, 0.0], "intensity": [1.5, 1.25, 1.0]}}
 
 
+def panorama_light() -> dict:
+    """The light of a panorama-only frame as SPEC.md section 4 defines its parts (made-up
+    coefficients, 4 bands; `panorama_from_world` the identity, so world = panorama frame):
+    panorama_sh the Rec. 709 luminance of panorama_sh_rgb, the direction normalize(c[3],
+    c[1], c[2]) of it, the intensity Sloan's extraction along it (rounded: the vector must not
+    depend on the last bits of the SH basis code)."""
+    base = [0.5 - 0.03125 * i for i in range(16)]
+    rgb = [[x * 2.0 for x in base], base, [x * 0.5 for x in base]]
+    lum = [0.2126 * r + 0.7152 * g + 0.0722 * b for r, g, b in zip(*rgb, strict=True)]
+    norm = math.sqrt(lum[3] ** 2 + lum[1] ** 2 + lum[2] ** 2)
+    direction = [lum[3] / norm, lum[1] / norm, lum[2] / norm]
+    intensity = round(intensity_along(np.array(lum), np.array(direction)), 9)
+    return {"sh": lum, "sh_rgb": rgb, "direction": direction, "intensity": intensity}
+
+
 def vectors() -> dict[str, object]:
     cal = CameraCalibration(8, 6, 5.25, 5.5, 3.5, 2.5, "plumb_bob", (0.1, -0.05, 0.0, 0.0, 0.01))
     rgb, depth = color_8x6(), depth_8x6()
     sh = [0.5 - 0.03125 * i for i in range(16)]
+    pano = panorama_light()
     return {
         "hello": Hello(
             PROTOCOL_VERSION,
@@ -169,17 +194,32 @@ def vectors() -> dict[str, object]:
             composite=rgb,
             composite_codec="png",
         ),
+        # the Result of frame_panorama_only in the session of hello_panorama_only (identity
+        # panorama_from_world, operator nil: boost), as SPEC.md "result: the panorama light"
+        # defines a panorama-only Result (made-up SH: panorama_light())
         "result_panorama": Result(
-            seq=12, timestamp=1236.0, sh=sh, sh_camera=None,
-            dominant_direction_camera=[0.0, 0.6, -0.8], dominant_direction_world=[0.0, 0.6, -0.8],
-            intensity=1.5, confidence={"samples": 128}, pose=np.eye(4).tolist(),
-            timings_ms={"PanoramaInverseTone": 0.5, "PanoramaSH": 0.25},
-            diagnostics={"light_source": "panorama"},
+            seq=12, timestamp=1236.0, sh=pano["sh"], sh_camera=pano["sh"], sh_rgb=pano["sh_rgb"],
+            dominant_direction_camera=pano["direction"],
+            dominant_direction_world=pano["direction"], intensity=pano["intensity"],
+            confidence=Confidence(samples=128, condition_number=1.0, bands_estimated=4,
+                                  value=1.0).to_dict(),
+            pose=np.eye(4).tolist(),
+            timings_ms={"PanoramaInverseTone": 0.5, "PanoramaDownsample": 0.25,
+                        "PanoramaSH": 0.25, "PanoramaDiffuse": 0.125},
+            diagnostics={"light_source": "panorama", "panorama_operator": "boost"},
             frames_received=1, frames_processed=1, frames_dropped=0, server_receive_time=6.0,
-            server_finish_time=6.25, panorama_sh=[x * 2.0 for x in sh],
-            panorama_sh_rgb=[[x * 2.0 for x in sh], sh, [x * 0.5 for x in sh]],
-            panorama_dominant_direction=[0.0, 0.6, -0.8],
+            server_finish_time=6.25, panorama_sh=pano["sh"], panorama_sh_rgb=pano["sh_rgb"],
+            panorama_dominant_direction=pano["direction"],
         ),
+        # no direction (SPEC.md "result: directions"): a first frame without usable depth
+        "result_no_direction": Result(
+            seq=20, timestamp=1240.0, sh=[0.0] * 16, sh_camera=[0.0] * 16,
+            dominant_direction_camera=[0.0, 0.0, 0.0], dominant_direction_world=[0.0, 0.0, 0.0],
+            intensity=0.0, confidence=Confidence(reason="no valid depth").to_dict(),
+            pose=np.eye(4).tolist(), timings_ms={"LightEst": 0.0},
+            diagnostics={"tracking": {"ok": False, "reason": "no valid depth"}},
+            frames_received=1, frames_processed=1, frames_dropped=0, server_receive_time=8.0,
+            server_finish_time=8.25),
         "result_exports": Result(
             seq=13, timestamp=1236.5, sh=sh, sh_camera=sh,
             dominant_direction_camera=[0.0, 1.0, 0.0],
@@ -221,12 +261,91 @@ def vectors() -> dict[str, object]:
     }
 
 
+# --------------------------------------------------------------------------- refused vectors
+
+
+class Pairs(list):
+    """A msgpack map written from its (key, value) pairs as given, so a key may repeat."""
+
+
+def pack(v: object) -> bytes:
+    """msgpack as encode() writes it (str as str, ints smallest, floats 64), Pairs as a map."""
+    packer = msgpack.Packer(use_bin_type=True)
+    if isinstance(v, dict):
+        v = Pairs(v.items())
+    if isinstance(v, Pairs):
+        return packer.pack_map_header(len(v)) + b"".join(pack(k) + pack(x) for k, x in v)
+    if isinstance(v, list):
+        return packer.pack_array_header(len(v)) + b"".join(pack(x) for x in v)
+    return packer.pack(v)
+
+
+def edited(message: object, edit) -> list[bytes]:
+    """The parts of `message` with its header replaced by edit(header) (a dict or Pairs)."""
+    parts = [bytes(p) for p in encode(message)]
+    header = msgpack.unpackb(parts[0], raw=False)
+    return [pack(edit(header)), *parts[1:]]
+
+
+def _set(path: tuple, value: object):
+    def edit(header: dict) -> dict:
+        d = header
+        for key in path[:-1]:
+            d = d[key]
+        d[path[-1]] = value
+        return header
+    return edit
+
+
+def _repeat_session(header: dict) -> dict:
+    """config.session twice: a reader keeping the first value sees golden-1, one keeping the
+    last golden-2."""
+    header["config"] = Pairs([*header["config"].items(), ("session", "golden-2")])
+    return header
+
+
+def refused() -> dict[str, tuple[list[bytes], str, str, str]]:
+    """name -> (parts, code, field, the rule): messages every decoder must refuse with that
+    code and field (SPEC.md section 9, "Refused vectors")."""
+    v = vectors()
+    return {
+        "hello_repeated_key": (edited(v["hello"], _repeat_session), "malformed", "header",
+                               "section 2: every key of every map exactly once"),
+        "hello_unknown_key": (edited(v["hello"], _set(("config", "capabilities"), ["x"])),
+                              "bad_field", "hello.config.capabilities",
+                              "section 2: a key the message does not define"),
+        "hello_exports_empty": (edited(v["hello_exports"], _set(("config", "exports"), [])),
+                                "bad_field", "hello.config.exports",
+                                "section 4: config.exports holds 1..6 names (none: nil or absent)"),
+        "heartbeat_v3": (edited(v["heartbeat"], _set(("v",), 3)), "bad_version", "v",
+                         "section 10: another version"),
+        "frame_seq_too_large": (edited(v["frame_raw_raw"], _set(("seq",), 2**63)), "bad_field",
+                                "frame.seq", "sections 3 and 4: seq is 0..2^63-1"),
+        "frame_truncated": ([bytes(p) for p in encode(v["frame_png_zstd"])][:-1], "malformed",
+                            "frame.buffers", "section 6: buffers disagreeing with the parts"),
+        "bye_unknown_kind": (edited(v["bye"], _set(("kind",), "goodbye")), "bad_field", "bye.kind",
+                             "section 4: kind is end_of_stream, shutdown or leaving"),
+        "result_direction_not_unit": (
+            edited(v["result"], _set(("dominant_direction_world",), [0.6, -0.8, 0.5])),
+            "bad_field", "result.dominant_direction_world",
+            "section 4: a direction is a unit vector or [0, 0, 0]"),
+    }
+
+
 def main() -> int:
     OUT.mkdir(parents=True, exist_ok=True)
     for name, msg in vectors().items():
         path = OUT / f"{name}.bin"
         path.write_bytes(write_container([encode(msg)]))
         print(f"{path.relative_to(OUT.parents[2])}: {path.stat().st_size} bytes")
+    (OUT / "refused").mkdir(exist_ok=True)
+    expected = {}
+    for name, (parts, code, field, rule) in refused().items():
+        path = OUT / "refused" / f"{name}.bin"
+        path.write_bytes(write_container([parts]))
+        expected[name] = {"code": code, "field": field, "rule": rule}
+        print(f"{path.relative_to(OUT.parents[2])}: {path.stat().st_size} bytes")
+    (OUT / "refused" / "expected.json").write_text(json.dumps(expected, indent=1) + "\n")
     return 0
 
 
