@@ -246,7 +246,8 @@ class TransferParams:
     # only blocked directions keep the sampling error; one direction set serves every
     # pixel, so that error is a bias that bends the shading a light is fitted to. No
     # parameter. On the 15 shared sequences (full, median of the per-sequence medians,
-    # upper field): 13.3 -> 12.2 degrees at regularization 1e-2 (README, "Accuracy")
+    # upper field): 13.3 -> 12.2 degrees at regularization 1e-2
+    # (docs/decisions/0001-exact-unoccluded-transfer.md)
     rt_exact_unoccluded: bool = True
 
     def __post_init__(self) -> None:
@@ -275,7 +276,7 @@ class EstimationParams:
     # 1e-2 12.2 / 13.5, 7e-3 11.1 / 10.9, 4e-3 10.1 / 10.3, 2e-3 11.4 / 9.4 degrees. Chosen
     # leaving one category out: the value picked on four categories (2e-3..4e-3 full,
     # 2e-3..7e-3 fast) beat 1e-2 without the control variate on the fifth in all 5 folds of
-    # both presets (README, "Accuracy")
+    # both presets (docs/decisions/0002-regularisation-4e-3.md)
     regularization: float = 4e-3
     min_samples: int = 200  # fewer valid pixels: no estimate (confidence 0)
     light_max_samples: int = 50000  # larger sets of usable pixels are randomly sub-sampled
