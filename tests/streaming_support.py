@@ -9,11 +9,11 @@ from __future__ import annotations
 import socket
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 import zmq
+from conftest import DATA, SMALL, need_data  # noqa: F401 - also the streaming tests' names
 
 from arlight.checks import depth_metres
 from arlight.pipeline.camera import PinholeCamera
@@ -22,17 +22,9 @@ from arlight.protocols import PROTOCOL_VERSION, Hello, SessionConfig, decode, en
 from arlight.server.server import Server, ServerOptions
 from arlight.sources.source import Source, SourceFrame, calibration_of
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 TUM_FOLDER = DATA / "real" / "corner_18frames"
-SMALL = dict(volume_resolution=64, aux_resolution=32)  # a fast pipeline for tests
 HEARTBEAT_S = 0.2
 STEP_TIMEOUT_S = 60.0
-
-
-def need_data(path: Path) -> Path:
-    if not path.exists():
-        pytest.skip(f"needs the shared test data at {path} (absent; see ../shared/data)")
-    return path
 
 
 def server_options(**overrides) -> ServerOptions:

@@ -9,30 +9,26 @@ issue's medians (10 / 12 degrees) are met on all frames (10.0 / 10.5), its 20 de
 not: the pins hold what is.
 """
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 
 from arlight.pipeline.config import Config
+from benchmarks.accuracy import evaluate_sequence
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from accuracy import DATA, evaluate_sequence  # noqa: E402
+SYNTHETIC = DATA / "synthetic"  # the shared ground-truth sequences
 
 FRAMES = 4
 MARGIN_DEG = 3.0
 # measured (degrees): median of the per-sequence medians, 90th percentile over all frames
 MEASURED_DEG = {"full": (8.3, 27.2), "fast": (8.4, 33.1)}
 
-pytestmark = [pytest.mark.slow, pytest.mark.data,
-              pytest.mark.skipif(not DATA.is_dir(),
-                                 reason=f"ground-truth data not found at {DATA}")]
+pytestmark = [pytest.mark.slow, pytest.mark.data, needs_data(SYNTHETIC)]
 
 
 @pytest.mark.parametrize("preset", sorted(MEASURED_DEG))
 def test_angular_error_does_not_regress(preset):
-    sequences = sorted(p for p in DATA.iterdir() if (p / "lighting_gt.json").is_file())
+    sequences = sorted(p for p in SYNTHETIC.iterdir() if (p / "lighting_gt.json").is_file())
     assert len(sequences) == 15
     errors = [evaluate_sequence(folder, Config.from_preset(preset), FRAMES)
               for folder in sequences]

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 
 from arlight import evaluation
 from arlight.bench import BenchError, parse_sweep, run_benchmark
@@ -17,8 +17,7 @@ from arlight.pipeline.pipeline import STAGES
 from arlight.report import markdown, write_report
 from arlight.sources.synthetic import make_sequence
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
-SEQUENCE = DATA / "dev_a_static_venice"
+SEQUENCE = DATA / "synthetic" / "dev_a_static_venice"
 
 
 class TestMetrics:
@@ -57,7 +56,7 @@ class TestMetrics:
             # world y of the upper light is positive (it comes from above)
             assert (np.asarray(frame.pose)[:3, :3] @ t.dominant_upper_camera)[1] > 0
 
-    @pytest.mark.skipif(not SEQUENCE.is_dir(), reason="needs ../shared/data/synthetic")
+    @needs_data(SEQUENCE)
     def test_shared_truth_converted_to_our_basis(self):
         data = json.loads((SEQUENCE / "lighting_gt.json").read_text())["frames"][0]
         t = evaluation.load_ground_truth(SEQUENCE)[0]
@@ -117,7 +116,7 @@ def test_a_held_camera_reports_its_reuse():
     assert "What the scenes required" in markdown(report)
 
 
-@pytest.mark.skipif(not SEQUENCE.is_dir(), reason="needs ../shared/data/synthetic")
+@needs_data(SEQUENCE)
 def test_report_of_a_ground_truth_sequence():
     report = run_benchmark([str(SEQUENCE)], ["fast"], [], frames=2, warmup=1, overrides={},
                            progress=False)

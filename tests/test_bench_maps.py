@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 
 from arlight import evaluation
 from arlight.bench import BenchError, ConfigResult, open_data, run_benchmark
@@ -26,9 +27,8 @@ from arlight.report import (
     write_report,
 )
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
-STATIC = DATA / "dev_a_static_venice"
-SWITCH = DATA / "dev_k_lightswitch_warehouse_venice"  # two maps, the switch at frame 7
+STATIC = DATA / "synthetic" / "dev_a_static_venice"
+SWITCH = DATA / "synthetic" / "dev_k_lightswitch_warehouse_venice"  # two maps, switch at 7
 
 
 # --------------------------------------------------------------------------- ground truth
@@ -227,8 +227,8 @@ class TestFolds:
 
 @pytest.mark.slow
 @pytest.mark.data
-@pytest.mark.skipif(not (STATIC.is_dir() and SWITCH.is_dir()),
-                    reason=f"needs the shared ground-truth sequences at {DATA}")
+@needs_data(STATIC)
+@needs_data(SWITCH)
 def test_report_of_two_shared_sequences_groups_by_map(tmp_path):
     # 2 frames each: dev_k's first two frames are lit by the warehouse only
     report = run_benchmark([str(STATIC), str(SWITCH)], ["fast"], [], frames=2, warmup=1,

@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 from scipy.spatial.transform import Rotation
 
 from arlight.checks import depth_metres
@@ -28,16 +29,10 @@ from arlight.sources.sequence import open_sequence
 from arlight.sources.seven_scenes import SEVEN_SCENES_COLOR_FROM_DEPTH, SEVEN_SCENES_DEPTH_SCALE
 from arlight.sources.tum import quaternion_to_matrix
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 REAL = DATA / "real"
 SYNTH = DATA / "synthetic"
 
-needs_data = [
-    pytest.mark.data,
-    pytest.mark.skipif(not DATA.is_dir(),
-                       reason=f"shared test data not found at {DATA} (a fresh clone has no "
-                              "../shared/data); data-driven dataset tests skipped"),
-]
+data_driven = [pytest.mark.data, needs_data(DATA)]
 
 
 def metres(frame) -> np.ndarray:
@@ -80,7 +75,7 @@ def first_data_line(path: Path) -> list[float]:
 
 
 class TestTumSynthetic:
-    pytestmark = needs_data
+    pytestmark = data_driven
     folder = SYNTH / "dev_a_static_venice"
 
     def test_frames_camera_and_depth(self):
@@ -93,7 +88,7 @@ class TestTumSynthetic:
         frames = list(seq)
         assert len(frames) == 16
         for f in frames[::5]:
-            check_frame(f, seq.camera, min_m=0.4 - 1e-3, max_m=4.0 + 1e-3)  # README's range
+            check_frame(f, seq.camera, min_m=0.4 - 1e-3, max_m=4.0 + 1e-3)  # its README's range
             assert f.pose is None
         assert frames[0].timestamp == pytest.approx(1000.0)
         assert frames[15].timestamp == pytest.approx(1000.5)
@@ -131,7 +126,7 @@ class TestTumSynthetic:
 
 
 class TestTumCorner:
-    pytestmark = needs_data
+    pytestmark = data_driven
     folder = REAL / "corner_18frames"
 
     def test_loads_with_kinect_defaults(self, caplog):
@@ -172,7 +167,7 @@ class TestTumCorner:
 
 
 class TestRedwood:
-    pytestmark = needs_data
+    pytestmark = data_driven
     folder = REAL / "icl_nuim_livingroom"
 
     def test_loads(self):
@@ -198,7 +193,7 @@ class TestRedwood:
 
 
 class TestSevenScenes:
-    pytestmark = needs_data
+    pytestmark = data_driven
     folder = REAL / "7scenes_redkitchen"
 
     def test_loads_registered_to_colour(self):
@@ -265,7 +260,7 @@ class TestSevenScenes:
 
 
 class TestSingleFrames:
-    pytestmark = needs_data
+    pytestmark = data_driven
     folder = REAL / "single_frames"
 
     @pytest.mark.parametrize("prefix,color_ext,depth_ext,encoding", [

@@ -10,22 +10,19 @@ maximum irradiance towards the light in the engine's frame and the value of
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import re
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DATA, need_data
 
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline import engine_export as ee
 from arlight.pipeline import sh
 
-ROOT = Path(__file__).resolve().parents[1]
-HDRI = ROOT.parents[0] / "shared" / "data" / "hdri"
-if not HDRI.is_dir():
-    HDRI = Path("/work/shared/data/hdri")
+HDRI = DATA / "hdri"
 
 LIGHT_CV = np.array([0.3, -0.8, 0.5]) / np.linalg.norm([0.3, -0.8, 0.5])  # up-ish in OpenCV
 NORMALS = sh.fibonacci_sphere(20000)  # about 1.6 degrees apart
@@ -74,7 +71,7 @@ def _check(engine_irradiance, sh_cam: np.ndarray, light_cam: np.ndarray,
     for ch in range(3):
         best = normals_engine[int(np.argmax(theirs[ch]))]
         towards = engine_from_cv @ light_cam
-        assert math.degrees(math.acos(min(1.0, best @ towards))) < 2.5
+        assert angular_error_deg(best, towards) < 2.5
     # and the value is ours within 1 % wherever the irradiance is not near zero
     lit = ours > 0.05 * ours.max()
     np.testing.assert_allclose(theirs[lit], ours[lit], rtol=1e-2)
@@ -257,13 +254,6 @@ class TestLayoutsAndRegressions:
             ee.to_unity(np.zeros(9), np.diag([1.0, 2.0, 1.0]))
 
 
-def _cmgen_module():
-    path = ROOT / "benchmarks" / "ibl_cmgen.py"
-    spec = importlib.util.spec_from_file_location("ibl_cmgen", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
 
 class TestFilamentAgainstCmgen:
     def test_cmgen_reads_like_our_text(self):
@@ -272,13 +262,13 @@ class TestFilamentAgainstCmgen:
         cmgen = shutil.which("cmgen")
         if cmgen is None:
             pytest.skip("cmgen not on PATH (Debian package libfilament-tools)")
-        maps = sorted(HDRI.glob("*.hdr")) if HDRI.is_dir() else []
+        maps = sorted(need_data(HDRI).glob("*.hdr"))
         if not maps:
             pytest.skip(f"no .hdr maps in {HDRI}")
-        bench = _cmgen_module()
         from arlight.pipeline.ibl import radiance_sh
+        from benchmarks import ibl_cmgen as bench
         path = maps[0]
         ours = parse_sh_text(ee.to_filament_text(radiance_sh(bench.read_hdr(path), 4))).T
         theirs, _ = bench.cmgen_sh(cmgen, path, 256)
-        assert bench.rel_l2(ours, theirs) < 0.03  # README: 1.0-1.8 % after the mapping
+        assert bench.rel_l2(ours, theirs) < 0.03  # docs/results/ibl.md: 1.0-1.8 % after the mapping
         assert bench.rel_l2(sh.toggle_condon_shortley(ours), theirs) > 0.3  # sign matters

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from arlight.cli import EXIT_BAD_INPUT, main
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline import equirect, sh
 from arlight.pipeline.environment_map import (
     CUBE_FACES,
@@ -35,7 +36,7 @@ def test_equirect_is_the_sh_at_each_pixel_direction_clamped():
     np.testing.assert_allclose(image.reshape(-1, 3), expected, rtol=1e-5, atol=1e-6)
     assert image.min() >= 0.0  # the band-limited light's negative lobes are cut
     brightest = dirs.reshape(-1, 3)[np.argmax(image[..., 0])]
-    assert math.degrees(math.acos(float(brightest @ LIGHT))) < 6.0  # within a pixel or so
+    assert angular_error_deg(brightest, LIGHT) < 6.0  # within a pixel or so
 
 
 def test_cube_faces_follow_the_opengl_table():

@@ -10,19 +10,15 @@ import json
 
 import numpy as np
 import pytest
+from conftest import SMALL
 
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.light_estimation import LOW_CONFIDENCE
 from arlight.pipeline.pipeline import FrameError, Pipeline
-from arlight.pipeline.runtime import configure_open3d_threads
 from arlight.sources.synthetic import make_sequence
 
-# one Open3D thread: tracking (its TBB reduction) is deterministic, as the entry points set
-configure_open3d_threads(1)
-
-SMALL = dict(volume_resolution=64, aux_resolution=32)
 W, H = 80, 60
 PRESETS = ("full", "fast")
 

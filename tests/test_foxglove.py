@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
+from streaming_support import flat_source, identity_step, run_with_timeout, server_factory
 
 from arlight.cli import EXIT_BAD_INPUT, main
 from arlight.client import foxglove_messages as fx
@@ -36,7 +37,6 @@ from arlight.sources.recording import (
     unpack_parts,
 )
 from arlight.sources.source import open_source
-from tests.streaming_support import flat_source, identity_step, run_with_timeout, server_factory
 
 CAMERA_TOPICS = [fx.COLOR_TOPIC, fx.DEPTH_TOPIC, fx.CALIBRATION_TOPIC, fx.TF_TOPIC]
 

@@ -7,17 +7,12 @@ pixel (a one-pixel shift of cx gives IoU 0.981, depth 0.6 mm, normals 1.1 degree
 flipped image. Skipped where moderngl or an EGL context is not available.
 """
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.virtual_gbuffer import VirtualRaycaster
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from gbuffer_renderers import (  # noqa: E402
+from benchmarks.gbuffer_renderers import (
     GLGBufferRenderer,
     agreement,
     bench_scene,

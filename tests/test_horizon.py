@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline import light_estimation as le
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
@@ -18,10 +19,6 @@ LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
 def _unit(v):
     v = np.asarray(v, dtype=np.float64)
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _angle_deg(a, b):
-    return math.degrees(math.acos(np.clip(float(_unit(a) @ _unit(b)), -1.0, 1.0)))
 
 
 class TestSupportPlaneUp:
@@ -39,7 +36,7 @@ class TestSupportPlaneUp:
     def test_floor_normal_found_among_walls(self):
         floor = _unit([0.1, -0.9, -0.4])  # facing up in the image (camera y points down)
         up = support_plane_up(self._image(floor), stride=1)
-        assert up is not None and _angle_deg(up, floor) < 2.0
+        assert up is not None and angular_error_deg(up, floor) < 2.0
 
     def test_no_upward_surface_no_answer(self):
         assert support_plane_up(self._image(_unit([0, 0, -1.0])), stride=1) is None
@@ -75,7 +72,7 @@ class TestSupportPlane:
     def test_floor_found_with_its_height_and_pixels(self):
         points, normals, up_cam, height = self._floor_and_table()
         plane = support_plane(normals, points, stride=1)
-        assert plane is not None and _angle_deg(plane.up, up_cam) < 1.0
+        assert plane is not None and angular_error_deg(plane.up, up_cam) < 1.0
         assert plane.offset == pytest.approx(1.2, abs=0.01)  # the camera's height above it
         np.testing.assert_allclose(plane.height(points[height == 0]), 0.0, atol=0.02)
         np.testing.assert_allclose(plane.height(points[height > 0]), 0.4, atol=0.02)

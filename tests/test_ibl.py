@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 
 from arlight.cli import EXIT_BAD_INPUT, main
 from arlight.pipeline import equirect, sh
@@ -33,10 +34,9 @@ from arlight.sources.exr import read_exr, write_exr
 from arlight.sources.panorama import PanoramaError, open_panorama
 from arlight.sources.synthetic_panorama import ldr_frame, synthetic_sky
 
-HDRI = Path(__file__).resolve().parents[2] / "shared" / "data" / "hdri"
+HDRI = DATA / "hdri"
 HDR_FILES = sorted(HDRI.glob("*.hdr")) if HDRI.is_dir() else []
-needs_hdri = pytest.mark.skipif(not HDR_FILES, reason=f"needs the shared HDR maps at {HDRI} "
-                                "(absent: a fresh clone has no ../shared/data); skipped")
+needs_hdri = needs_data(HDRI)
 
 
 def r_y(angle: float) -> np.ndarray:

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
 import open3d as o3d
 import pytest
+from conftest import DATA, needs_data
 
 from arlight.cli import EXIT_BAD_INPUT, main
 from arlight.pipeline import equirect, glossy, ibl_render
@@ -29,13 +29,12 @@ from arlight.pipeline.virtual_scene import (
 )
 from arlight.sources.synthetic_panorama import sun_direction, synthetic_sky
 
-HDRI = Path(__file__).resolve().parents[2] / "shared" / "data" / "hdri"
+HDRI = DATA / "hdri"
 HDR_FILES = sorted(HDRI.glob("*.hdr")) if HDRI.is_dir() else []
-needs_hdri = pytest.mark.skipif(not HDR_FILES, reason=f"needs the shared HDR maps at {HDRI} "
-                                "(absent: a fresh clone has no ../shared/data); skipped")
+needs_hdri = needs_data(HDRI)
 # the glossy luminance against the brute-force Phong lobe, |G / G_ref - 1|, median over
-# spread directions: benchmarks/ibl_render.py measures it per map and roughness (README);
-# the bounds leave room above the largest of the maps the tests use
+# spread directions: benchmarks/ibl_render.py measures it per map and roughness
+# (docs/results/ibl.md); the bounds leave room above the largest of the maps the tests use
 SPREAD_BOUND = {0.05: 0.03, 0.2: 0.04, 0.5: 0.06}
 
 

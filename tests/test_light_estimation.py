@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline import color, sh
 from arlight.pipeline import light_estimation as le
 from arlight.pipeline.config import EstimationParams, TemporalParams
@@ -20,7 +21,7 @@ from arlight.pipeline.frames import Confidence
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
 LIGHT_DIR = (0.3, -0.8, 0.5)
 # The default regularisation (4e-3) damps bands 2-3 hard: on real frames that is what holds
-# the direction (see README, accuracy), on the ideal point lights of these tests it costs a
+# the direction (docs/results/accuracy.md), on the ideal point lights of these tests it costs a
 # few per cent of band-1 magnitude. Tests of exact recovery use a weak one.
 WEAK = EstimationParams(regularization=1e-3)
 
@@ -50,8 +51,8 @@ def _grey(intensity):
 
 
 def _angle_deg(a, b):
-    da, db = sh.dominant_direction(a), sh.dominant_direction(b)
-    return math.degrees(math.acos(np.clip(float(da @ db), -1.0, 1.0)))
+    """Degrees between the dominant directions of two SH vectors."""
+    return angular_error_deg(sh.dominant_direction(a), sh.dominant_direction(b))
 
 
 class TestSrgb:
@@ -330,7 +331,7 @@ class TestBounceTerm:
 
 class TestConfidenceEvidence:
     """The confidence's factors: the spread of the normals, the horizon disagreement, and
-    the causes its reason names (README, "Confidence")."""
+    the causes its reason names (docs/results/confidence.md)."""
 
     def test_normal_spread_of_known_layouts(self):
         _, sphere = _synthetic(20000)

@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 
 from arlight.pipeline import sh
 from arlight.pipeline.light_prior import map_moments, pooled, prior_matrix
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 def _rotation_about(axis, angle) -> np.ndarray:
@@ -80,9 +78,7 @@ class TestLeaveMapsOut:
             pooled(frozenset(map_moments()))
 
     @pytest.mark.data
-    @pytest.mark.skipif(not (DATA / "hdri").is_dir(),
-                        reason=f"shared maps not found at {DATA / 'hdri'} (a fresh clone has "
-                               "no ../shared/data)")
+    @needs_data(DATA / "hdri")
     def test_shipped_numbers_regenerate_from_the_maps(self, tmp_path):
         import json
 

@@ -18,6 +18,7 @@ import open3d.core as o3c
 import pytest
 
 from arlight.cli import EXIT_BAD_INPUT, main
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline import object_space_transfer as ost
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
@@ -25,20 +26,11 @@ from arlight.pipeline.config import AuxBufferParams, Config, RtMethod, VolumePar
 from arlight.pipeline.pipeline import Pipeline
 from arlight.pipeline.radiance_transfer import make_sampling_pattern
 from arlight.pipeline.reconstruction import VolumeReconstruction
-from arlight.pipeline.runtime import configure_open3d_threads
 from arlight.sources.synthetic import make_sequence
-
-configure_open3d_threads(1)  # as the other pipeline tests: tracking stays deterministic
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
 UP = np.array([0.0, 0.0, 1.0])  # world: floor z = 0, box 0.4 x 0.4 x 0.4 m at the origin
 BOX_HALF_M = 0.2
-
-
-def _angle_deg(a, b) -> float:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    c = a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
-    return math.degrees(math.acos(float(np.clip(c, -1.0, 1.0))))
 
 
 def _box_on_floor_mesh() -> ost.SurfaceMesh:
@@ -132,7 +124,7 @@ class TestBoxOnFloor:
         assert kept_away > 0.9  # measured 1.16: 4 bands ring, the box side's lobe is gone
         # band 1 of the near transfer tilts away from the box (-y), the far one does not
         assert sh.dominant_direction(t_near)[1] < -0.15
-        assert _angle_deg(sh.dominant_direction(t_far), UP) < 3.0
+        assert angular_error_deg(sh.dominant_direction(t_far), UP) < 3.0
 
     def test_open_floor_is_the_clamped_cosine_projection(self, box_scene, scene):
         world = box_scene[4]
@@ -210,8 +202,8 @@ def test_volume_mesh_is_rebuilt_every_interval(box_scene):
 
 def test_agrees_with_ssdo_on_the_built_in_scene():
     """Both visibilities through the whole pipeline, 160x120 (coarse: at this size both are
-    35-45 degrees off the truth, see README; measured on the last frame: SSDO 35, raycast 42,
-    9 degrees apart)."""
+    35-45 degrees off the truth, docs/results/accuracy.md; measured on the last frame: SSDO
+    35, raycast 42, 9 degrees apart)."""
     seq = make_sequence(num_frames=4, width=160, height=120, sensor_noise=False)
     found = {}
     for method in RtMethod:
@@ -221,8 +213,8 @@ def test_agrees_with_ssdo_on_the_built_in_scene():
             result = pipe.process(frame)
         found[method] = result.dominant_direction_camera
         assert result.confidence.value > 0
-        assert _angle_deg(found[method], seq.dominant_direction_camera[-1]) < 50.0
-    assert _angle_deg(found[RtMethod.SSDO], found[RtMethod.RAYCAST]) < 20.0
+        assert angular_error_deg(found[method], seq.dominant_direction_camera[-1]) < 50.0
+    assert angular_error_deg(found[RtMethod.SSDO], found[RtMethod.RAYCAST]) < 20.0
 
 
 def test_an_unknown_method_names_the_set_key(capsys):

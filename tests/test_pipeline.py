@@ -2,32 +2,23 @@
 
 import dataclasses
 import json
-import math
 
 import numpy as np
 import pytest
+from conftest import SMALL
 
 from arlight.checks import CheckError
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.pipeline import STAGES, FrameError, Pipeline
-from arlight.pipeline.runtime import configure_open3d_threads
 from arlight.sources.synthetic import make_sequence
-
-# one Open3D thread: tracking (its TBB reduction) is deterministic, as the entry points set
-configure_open3d_threads(1)
-
-SMALL = dict(volume_resolution=64, aux_resolution=32)
 
 
 @pytest.fixture(scope="module")
 def clean_sequence():
     return make_sequence(num_frames=4, width=160, height=120, sensor_noise=False)
-
-
-def _angle(a, b):
-    return math.degrees(math.acos(float(np.clip(np.dot(a, b), -1, 1))))
 
 
 def _finite_result(result):
@@ -61,8 +52,8 @@ class TestProcess:
         for frame in clean_sequence.frames:
             result = pipe.process(frame)
         assert result.dominant_direction_world[1] > 0.2
-        assert _angle(result.dominant_direction_world,
-                      clean_sequence.dominant_direction_world[-1]) < 65
+        assert angular_error_deg(result.dominant_direction_world,
+                                 clean_sequence.dominant_direction_world[-1]) < 65
 
     def test_deterministic(self, clean_sequence):
         cfg = Config.from_preset("fast", **SMALL)

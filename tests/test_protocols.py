@@ -19,6 +19,7 @@ import msgpack
 import numpy as np
 import pytest
 import zstandard
+from conftest import DATA, needs_data
 
 from arlight.contracts import Confidence
 from arlight.protocols import (
@@ -76,7 +77,7 @@ from arlight.protocols.rvl import (
 )
 
 HERE = Path(__file__).resolve().parent
-REAL = HERE.parents[1] / "shared" / "data" / "real"
+REAL = DATA / "real"
 GOLDEN = HERE / "golden" / f"protocol_v{PROTOCOL_VERSION}"
 
 
@@ -449,8 +450,7 @@ class TestRVL:
 
 
 @pytest.mark.data
-@pytest.mark.skipif(not REAL.is_dir(), reason=f"real depth data not found at {REAL} (a fresh "
-                    "clone has no ../shared/data); RVL real-data test skipped")
+@needs_data(REAL)
 class TestRVLRealDepth:
     def paths(self):
         paths = sorted((REAL / "7scenes_redkitchen").glob("*.depth.png"))[:5]

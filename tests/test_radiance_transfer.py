@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline import radiance_transfer as rt
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
@@ -64,10 +65,6 @@ def _hand_made_aux(seed, resolution=16, pixel_size_m=0.1):
     depth = rng.uniform(1.0, 2.0, (2, resolution, resolution)).astype(np.float32)
     depth[rng.random(depth.shape) < 0.2] = 0
     return rt.AuxBufferArrays(depth, np.stack(buffer_from_cam), np.full(2, pixel_size_m))
-
-
-def _angle_deg(a, b):
-    return math.degrees(math.acos(np.clip(np.dot(a, b), -1.0, 1.0)))
 
 
 class TestVisibilityThreshold:
@@ -359,7 +356,7 @@ class TestOccluder:
         d_near, d_far = sh.dominant_direction(t_near), sh.dominant_direction(t_far)
         assert d_near[1] < -0.15
         assert abs(d_far[1]) < 0.05 and d_far[2] > 0.99
-        assert _angle_deg(d_far, [0.0, 0.0, 1.0]) < 5.0
+        assert angular_error_deg(d_far, [0.0, 0.0, 1.0]) < 5.0
 
 
 class TestSubsampling:

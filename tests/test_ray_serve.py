@@ -20,13 +20,14 @@ import threading
 import time
 
 import pytest
+from conftest import SMALL
+from streaming_support import CaptureClientThread, server_options, wait_for
 
 from arlight.cli import EXIT_BAD_INPUT, main
 from arlight.client.capture import CaptureClient, StreamOptions
 from arlight.protocols import ErrorField
 from arlight.server.server import Server
 from arlight.sources.source import open_source
-from tests.streaming_support import SMALL, CaptureClientThread, server_options, wait_for
 
 ray = pytest.importorskip("ray", reason="Ray is an optional extra: pip install 'arlight[ray]'")
 

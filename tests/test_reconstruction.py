@@ -15,10 +15,6 @@ from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.ray_refine import REFINE_MAX_STEP_VOXELS, refine_ray_cast
 from arlight.pipeline.reconstruction import SurfaceOutput, VolumeReconstruction
-from arlight.pipeline.runtime import configure_open3d_threads
-
-# one Open3D thread: tracking (its TBB reduction) is deterministic, as the entry points set
-configure_open3d_threads(1)
 
 # ------------------------------------------------------------------ analytic scene
 # World axes as the first camera's: x right, y down, z forward. Outward normals.

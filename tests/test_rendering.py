@@ -24,7 +24,9 @@ import warnings
 import cv2
 import numpy as np
 import pytest
+from conftest import SMALL
 
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline import rendering, sh
 from arlight.pipeline import virtual_scene as vs
 from arlight.pipeline.camera import PinholeCamera
@@ -37,7 +39,6 @@ from arlight.pipeline.rendering import (
     RenderOutput,
     linear_to_srgb_u8,
 )
-from arlight.pipeline.runtime import configure_open3d_threads
 from arlight.pipeline.virtual_gbuffer import VirtualRaycaster
 from arlight.pipeline.virtual_scene import (
     Anchor,
@@ -50,9 +51,6 @@ from arlight.pipeline.virtual_scene import (
 )
 from arlight.sources.synthetic import make_sequence
 
-# one Open3D thread: tracking in the Pipeline tests is deterministic (as in test_pipeline)
-configure_open3d_threads(1)
-
 WIDTH, HEIGHT = 160, 120
 SPHERE_RADIUS_M = 0.1
 SPHERE_ALBEDO = 0.6
@@ -61,7 +59,6 @@ LIGHT_ELEVATION_DEG = 35.0
 LIGHT_INTENSITY = 2.0  # integrated radiance of the delta (the irradiance it gives, facing it)
 AMBIENT_RADIANCE = 0.1  # constant over the sphere: band 0 only
 UP = np.array([0.0, 1.0, 0.0])
-SMALL = dict(volume_resolution=64, aux_resolution=32)  # Pipeline tests, as test_pipeline
 
 
 # ------------------------------------------------------------------ the analytic scene
@@ -527,7 +524,7 @@ class TestAnchoredInPipeline:
             np.testing.assert_array_equal(later, poses[0])
         base = poses[0][:3, 3]
         assert abs(base[1]) < 0.02  # on the ground y = 0
-        assert np.degrees(np.arccos(np.clip(poses[0][:3, 1] @ UP, -1, 1))) < 3.0
+        assert angular_error_deg(poses[0][:3, 1], UP) < 3.0
         # the true ground point under the anchor pixel in frame 0
         pose0 = seq.frames[0].pose
         u, v = self.ANCHOR_PIXEL

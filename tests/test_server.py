@@ -43,7 +43,6 @@ from arlight.client.display import DisplayClient, DisplayOptions
 from arlight.pipeline.config import Config
 from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.pipeline import FrameError, Pipeline
-from arlight.pipeline.runtime import configure_open3d_threads
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Bye,
@@ -62,9 +61,6 @@ from arlight.protocols import (
 from arlight.server.server import Server, ServerOptions
 from arlight.sources.source import open_source, sequence_source
 from arlight.sources.synthetic import make_sequence
-
-# one Open3D thread: tracking (its TBB reduction) is deterministic, as the entry points set
-configure_open3d_threads(1)
 
 
 @pytest.fixture

@@ -24,7 +24,6 @@ from streaming_support import RawPeer, identity_step, server_factory, wait_for
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.pipeline import Pipeline
-from arlight.pipeline.runtime import configure_open3d_threads
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Bye,
@@ -44,8 +43,6 @@ from arlight.server.session import Session
 from arlight.server.worker import Rejected, run_frame
 from arlight.sources.source import calibration_of
 from arlight.sources.synthetic import make_sequence
-
-configure_open3d_threads(1)
 
 FUZZ_MESSAGES = int(os.environ.get("ARLIGHT_FUZZ_MESSAGES", "10000"))
 FUZZ_CHECK_EVERY = 100  # hostile messages between two frames of the legitimate session

@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline import sh
 
 
@@ -74,7 +75,7 @@ class TestProjection:
         lobe = lambda w: np.maximum(0.0, w @ d) ** 200 + 0.05  # noqa: E731
         c = sh.project(lobe, 4, samples=80000)
         got, intensity = sh.dominant_light(c)
-        angle = math.degrees(math.acos(np.clip(got @ d, -1, 1)))
+        angle = angular_error_deg(got, d)
         assert angle < 1.0
         assert intensity > 0
 
@@ -179,7 +180,7 @@ class TestAboveHorizonDirection:
     def test_the_glow_below_does_not_move_it(self, elevation, glow):
         coeffs, truth, up = self._sky(elevation, glow)
         d = sh.above_horizon_direction(coeffs, up)
-        assert math.degrees(math.acos(np.clip(d @ truth, -1, 1))) < 6.0
+        assert angular_error_deg(d, truth) < 6.0
         # what it corrects: the whole-sphere moment sinks towards the horizon with the glow
         if glow >= 0.3:
             whole = sh.dominant_direction(coeffs)
@@ -189,7 +190,7 @@ class TestAboveHorizonDirection:
         up = np.array([0.3, 0.9, -0.2])
         coeffs, truth, up = self._sky(35.0, 0.5, up / np.linalg.norm(up))
         d = sh.above_horizon_direction(coeffs, up)
-        assert math.degrees(math.acos(np.clip(d @ truth, -1, 1))) < 6.0
+        assert angular_error_deg(d, truth) < 6.0
 
     def test_no_first_band_is_no_direction(self):
         assert not np.any(sh.above_horizon_direction(np.array([1.0]), np.array([0, 1.0, 0])))

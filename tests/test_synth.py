@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import DATA, needs_data
 
 from arlight.cli import EXIT_BAD_INPUT, main
 from arlight.pipeline import sh
@@ -23,10 +24,7 @@ from arlight.synth import meshes
 from arlight.synth.corpus import coverage, load_definition, make_definition
 from arlight.synth.layouts import LAYOUTS, build_layout
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-needs_data = pytest.mark.skipif(
-    not (DATA / "synthetic").is_dir(),
-    reason=f"shared test data not found at {DATA} (a fresh clone has no ../shared/data)")
+needs_shared_sequences = needs_data(DATA / "synthetic")
 mitsuba = pytest.importorskip("mitsuba", reason="the synth extra (Mitsuba 3) is not installed")
 
 PATCH_DIR_MAP = np.array([0.6, 0.55, -0.58])  # the bright patch, the map's own frame
@@ -96,7 +94,7 @@ class TestTruth:
             assert env.angle_deg(frame["probe"]["dominant_dir_upper_world"],
                                  frame["dominant_dir_upper_world"]) < 5.0
 
-    @needs_data
+    @needs_shared_sequences
     @pytest.mark.data
     def test_same_truth_as_the_shared_sequences(self):
         """Same map, rotation and pose as a shared frame -> the same truth within 1 degree."""
@@ -205,7 +203,7 @@ class TestCorpus:
         assert set(cover["maps_per_layout"]) == set(LAYOUTS)
         assert min(cover["maps_per_layout"].values()) >= 8
 
-    @needs_data
+    @needs_shared_sequences
     @pytest.mark.data
     def test_every_map_is_a_shared_map(self):
         for name in load_definition()["maps"]:

@@ -6,15 +6,10 @@ import numpy as np
 import pytest
 
 from arlight.checks import depth_metres
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline import sh
 from arlight.pipeline.camera import PinholeCamera
 from arlight.sources import synthetic
-
-
-def _angle_deg(a, b):
-    a = np.asarray(a, float) / np.linalg.norm(a)
-    b = np.asarray(b, float) / np.linalg.norm(b)
-    return math.degrees(math.acos(np.clip(a @ b, -1.0, 1.0)))
 
 
 def _world_points(seq, i):
@@ -86,9 +81,10 @@ class TestGroundTruth:
                                       sensor_noise=False)
         dom, sun = seq.dominant_direction_world[0], seq.sun_direction_world[0]
         up = np.array([0.0, 1.0, 0.0])
-        assert _angle_deg(dom, sun) < 15.0
-        assert _angle_deg(dom, up) < _angle_deg(sun, up)
-        assert abs(_angle_deg(dom, sun) + _angle_deg(dom, up) - _angle_deg(sun, up)) < 0.5
+        assert angular_error_deg(dom, sun) < 15.0
+        assert angular_error_deg(dom, up) < angular_error_deg(sun, up)
+        assert abs(angular_error_deg(dom, sun) + angular_error_deg(dom, up)
+                   - angular_error_deg(sun, up)) < 0.5
         elevation = math.degrees(math.asin(sun[1]))
         assert 25.0 <= elevation <= 60.0
 
@@ -154,7 +150,7 @@ class TestPoses:
     def test_orbit_sweeps_60_to_90_degrees(self):
         seq = synthetic.make_sequence(num_frames=5, width=16, height=12, sensor_noise=False)
         first, last = seq.frames[0].pose[:3, 3], seq.frames[-1].pose[:3, 3]
-        sweep = _angle_deg([first[0], first[2]], [last[0], last[2]])
+        sweep = angular_error_deg([first[0], first[2]], [last[0], last[2]])
         assert 60.0 <= sweep <= 90.0
 
     def test_timestamps_at_30_hz_from_1000_s(self, clean):
@@ -295,9 +291,9 @@ class TestSequence:
             np.testing.assert_array_equal(dom[i], dom[0])
         for i in (4, 5):
             np.testing.assert_array_equal(dom[i], dom[3])
-        assert _angle_deg(dom[2], dom[3]) > 20.0
+        assert angular_error_deg(dom[2], dom[3]) > 20.0
         s0, s1 = seq.sun_direction_world[0], seq.sun_direction_world[3]
-        azimuth = _angle_deg([s0[0], s0[2]], [s1[0], s1[2]])
+        azimuth = angular_error_deg([s0[0], s0[2]], [s1[0], s1[2]])
         assert azimuth >= 60.0
         assert s0[1] == pytest.approx(s1[1])
         steady = synthetic.make_sequence(num_frames=6, width=32, height=24, seed=4,

@@ -10,21 +10,16 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
+from conftest import DATA, needs_data
 
 from arlight.pipeline.virtual_scene import MAX_TRIANGLES, Anchor, SceneError
 from arlight.sources import virtual_scene_file
 from arlight.sources.virtual_scene_file import load_virtual_scene
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SHARED_SCENES = [DATA / "synthetic" / seq / "ar" / "virtual_scene.json"
                  for seq in ("dev_a_static_venice", "dev_d_indoor_warehouse")]
 
-needs_data = [
-    pytest.mark.data,
-    pytest.mark.skipif(not DATA.is_dir(),
-                       reason=f"shared test data not found at {DATA} (a fresh clone has no "
-                              "../shared/data); shared virtual-scene tests skipped"),
-]
+data_driven = [pytest.mark.data, needs_data(DATA)]
 
 EYE = np.eye(4).tolist()
 
@@ -43,7 +38,7 @@ def face_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("path", SHARED_SCENES, ids=lambda p: p.parts[-3])
 class TestSharedScenes:
-    pytestmark = needs_data
+    pytestmark = data_driven
 
     def test_objects_match_the_files_facts(self, path: Path):
         doc = json.loads(path.read_text())

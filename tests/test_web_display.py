@@ -12,13 +12,13 @@ import time
 import cv2
 import numpy as np
 import pytest
+from browser_support import Chromium, chromium_or_skip
+from streaming_support import flat_source, identity_step, run_with_timeout, server_factory
 
 from arlight.client.capture import CaptureClient, StreamOptions
 from arlight.client.display import DisplayClient, DisplayOptions
 from arlight.client.web_display import MJPEG_BOUNDARY, WebDisplay, parse_http_address
 from arlight.protocols import Result, received_record
-from tests.browser_support import Chromium, chromium_or_skip
-from tests.streaming_support import flat_source, identity_step, run_with_timeout, server_factory
 
 
 @pytest.fixture
