@@ -17,6 +17,15 @@ and its plots): that is imported inside the command's `run`, so that building th
 
 from __future__ import annotations
 
+import os
+
+# numpy's BLAS (OpenBLAS) starts a thread per core for LightEst's small (50000 x 16) products;
+# beside numba's and Open3D's pools those threads spin against each other: on 2 busy cores
+# LightEst took up to 16 s a frame, against about 0.11 s with one BLAS thread. OpenBLAS reads
+# this when numpy loads, so the command sets it here, before its modules import numpy (a
+# user's own OPENBLAS_NUM_THREADS wins). A library user chooses for their own process.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import logging
 import sys
