@@ -165,7 +165,7 @@ class FrameRenderer:
 
 
 def frame_record(frame: FrameOutput, operator: str) -> dict:
-    """The JSON line of one frame (README, "Image-based lighting from 360-degree video")."""
+    """The JSON line of one frame (docs/guides/ibl.md, "Inputs, options and the output line")."""
     r = frame.result
     return {
         "timestamp": frame.timestamp_s,

@@ -31,7 +31,7 @@ _NUMBER = re.compile(r"\d+(\.\d+)?(e[+-]?\d+)?")
 
 
 def frame_record(result: FrameResult, index: int, exports: Sequence[str] = ()) -> dict:
-    """The JSON record of frame `index` (0-based), in the README's key order.
+    """The JSON record of frame `index` (0-based), in docs/reference/output-record.md's key order.
 
     exports: engine layouts (engine_export.EXPORTERS names) of the frame's light (RGB when
     the pipeline has it, else luminance) in the camera frame with each engine's axes; the

@@ -5,7 +5,7 @@ full resolution (pipeline/ibl.py `radiance_sh`: every pixel, exact solid angles;
 and luminance, 4 bands) against `cmgen --sh=4 --sh-window=no --sh-output=FILE.txt MAP.hdr`
 (Filament's tool, Debian package libfilament-tools; the map resampled to a cubemap of
 --size pixels per face, 256 by default, then projected). The conventions and how they map
-(README, "Cross-check against Filament's cmgen"):
+(docs/results/ibl.md, "Agreement with Filament's cmgen"; docs/guides/ibl.md):
 
 - cmgen's coefficients are the radiance projection c_lm = integral L(w) Y_lm(w) dw on the
   real orthonormal basis (the same normalisation as ours: the L00 ratio is 1), ordered

@@ -230,7 +230,7 @@ class StreamOptions:
     # a full send queue; the server answers a duplicate once, when it has the outcome); the
     # wait doubles at each resend of the same frame
     resend_after_s: float = 20.0
-    # security (README "Security"): the session token this client gives a new session (and
+    # security (docs/guides/security.md): the session token this client gives a new session (and
     # presents when resuming one; None: a random one); CURVE keys for a keyed server
     token: str | None = None
     keys: ClientKeys | None = None

@@ -4,7 +4,7 @@ Both clients open it the same way (LINGER 0, so a reconnect or exit never waits 
 messages; queue limits counted in messages) and read the server's messages the same way
 (poll with a timeout in seconds, decode, stamp with the receive time on both clocks).
 
-With CURVE keys (protocols/curve.py, README "Security") the socket encrypts everything and
+With CURVE keys (protocols/curve.py, docs/guides/security.md) the socket encrypts everything and
 authenticates both ends. A failed handshake (the server wants keys, does not know this
 client's key, or is not the server the key names) never reaches the protocol: the socket
 monitor reports it, and `receive_message` raises the client's error with what to do.

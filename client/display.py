@@ -93,7 +93,7 @@ class DisplayOptions:
     heartbeat_interval_s: float = 1.0
     liveness: int = 3
     reconnect_timeout_s: float = 30.0
-    # security (README "Security"): the session's token (printed by `arlight stream`) or the
+    # security (docs/guides/security.md): the session's token (printed by `arlight stream`) or the
     # server's admin token; CURVE keys for a keyed server
     token: str | None = None
     keys: ClientKeys | None = None

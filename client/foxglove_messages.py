@@ -53,7 +53,7 @@ ARROW_LENGTH_M = 0.6
 _NUMBERS = {"type": "array", "items": {"type": "number"}}
 LIGHTING_SCHEMA = {
     "title": "arlight.Lighting",
-    "description": "the light arlight estimated for one frame (README, 'Each line of --out')",
+    "description": "the light arlight estimated for one frame (docs/reference/output-record.md)",
     "type": "object",
     "properties": {
         "timestamp": {"type": "object", "description": "the frame's capture time",

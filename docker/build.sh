@@ -2,7 +2,7 @@
 # Build arlight's images with podman, from nothing but Debian's packages and PyPI:
 #   localhost/arlight-base:bookworm   debootstrap root file system (docker/build-base.sh)
 #   localhost/arlight-server          arlight serve, CPU
-#   localhost/arlight-server-cuda     the server + numba.cuda's NVVM (run with a GPU: README)
+#   localhost/arlight-server-cuda     the server + numba.cuda's NVVM (run with a GPU: docs/guides/containers.md)
 #   localhost/arlight-client          arlight stream / display / record / keys
 # Idempotent: the base image is kept once made, and podman's layer cache makes a second run
 # quick (seconds) unless pyproject.toml or the sources changed.

@@ -185,8 +185,8 @@ def to_filament_text(sh_world: np.ndarray,
     ``IndirectLight.Builder().radiance(bands, sh)``.
 
     Sources: Filament ``tools/cmgen`` (output of ``cmgen --sh=N --sh-output``, measured
-    against ours in benchmarks/ibl_cmgen.py and the README, "Cross-check against Filament's
-    cmgen": cmgen = ours with odd m negated); ``IndirectLight::Builder::radiance()``
+    against ours in benchmarks/ibl_cmgen.py and docs/results/ibl.md, "Agreement with
+    Filament's cmgen": cmgen = ours with odd m negated); ``IndirectLight::Builder::radiance()``
     convolves to irradiance (A_l) and pre-scales as cmgen's ``CubemapSH::
     preprocessSHForShader`` does, by A[i] / pi with A = (1/(2 sqrt(pi)), -sqrt(3)/(2 sqrt(pi)),
     sqrt(3)/(2 sqrt(pi)), -sqrt(3)/(2 sqrt(pi)), sqrt(15)/(2 sqrt(pi)), -sqrt(15)/(2 sqrt(pi)),

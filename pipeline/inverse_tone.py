@@ -37,8 +37,8 @@ The operators (``OPERATORS``; ``arlight ibl --operator NAME``):
     middle exposure (1.3 to 35 times the clip, one studio light 1300) and is measured
     against the other factors in ``benchmarks/ibl_truth.py --boost-sweep``.
 
-``DEFAULT_OPERATOR`` is the one the measurement against HDR truth favours (README,
-"Image-based lighting from 360-degree video").
+``DEFAULT_OPERATOR`` is the one the measurement against HDR truth favours
+(docs/results/ibl.md, "Inverse tone mapping against HDR truth").
 """
 
 from __future__ import annotations

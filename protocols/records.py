@@ -1,7 +1,7 @@
 """The JSON record of one frame's lighting: one line of every `--out` file.
 
 `arlight estimate --out`, `arlight stream --out` and `arlight display --out` all write
-`result_record` (README, "Each line of `--out` is one frame"); the two streaming clients add
+`result_record` (docs/reference/output-record.md); the two streaming clients add
 the delivery fields of `received_record`. `estimate` has no Result: it converts its pipeline
 FrameResult with the server's own conversion (arlight.server.results.result_message) first.
 """
@@ -14,7 +14,8 @@ WALL_CLOCK_WINDOW_S = 3600.0  # timestamps within this of the receive time are c
 
 
 def result_record(result: Result) -> dict:
-    """The record of one Result: plain JSON values, in the README's key order."""
+    """The record of one Result: plain JSON values, in docs/reference/output-record.md's key
+    order."""
     return {
         "timestamp": result.timestamp,
         "frame": result.seq,

@@ -5,7 +5,7 @@
 #   chromium: the browser display's page test (tests/test_web_display.py) drives it headless
 #             (ARLIGHT_NO_CHROMIUM=1 leaves it out)
 #   libopenni2-0: the OpenNI2 runtime, whose own DummyDevice driver tests/test_cameras.py runs
-#             (users of OpenNI2 cameras install it themselves: README, "Live cameras")
+#             (users of OpenNI2 cameras install it themselves: docs/guides/cameras.md)
 set -uo pipefail
 
 need=()

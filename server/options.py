@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from arlight.protocols import DEFAULT_MAX_MESSAGE_BYTES, DEFAULT_MAX_PIXELS, TOKEN_RE
 
 DEFAULT_PORT = 5555
-DEFAULT_BIND = f"tcp://127.0.0.1:{DEFAULT_PORT}"  # this machine only (README "Security")
+DEFAULT_BIND = f"tcp://127.0.0.1:{DEFAULT_PORT}"  # this machine only (docs/guides/security.md)
 
 
 # the `arlight serve` flag of each ServerOptions field that has one (for error messages)

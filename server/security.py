@@ -1,4 +1,4 @@
-"""Who may talk to the server, and what they may see (README "Security").
+"""Who may talk to the server, and what they may see (docs/guides/security.md).
 
 Two independent guards:
 - CURVE (ZeroMQ's authenticated encryption, RFC 26/CurveZMQ) on the socket: with

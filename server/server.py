@@ -25,7 +25,7 @@ session survives for a reconnecting client). A session that receives no frames f
 `arlight serve`) finishes the lossless frames already received within `shutdown_grace_s`,
 reports the rest with an Error, says Bye to every peer and closes the socket.
 
-Security (server/security.py, README "Security"): a loopback bind by default, CURVE keys
+Security (server/security.py, docs/guides/security.md): a loopback bind by default, CURVE keys
 (`keys_dir`) for any other; session tokens keep sessions apart.
 
 Clocks: liveness, expiry, the heartbeat schedule and the shutdown deadline run on

@@ -39,7 +39,8 @@ EXTRAS = {"depthai": ("depthai", "depthai"), "openni2": ("openni2", "openni"),
 
 # what to do where a library is known not to work
 UNSUPPORTED = {"openni": "the openni binding builds its ctypes enums in a way Python 3.13 "
-                         "refuses; use Python 3.10-3.12 for OpenNI2 cameras (README, Cameras)"}
+                         "refuses; use Python 3.10-3.12 for OpenNI2 cameras "
+                         "(docs/guides/cameras.md)"}
 
 DEVICE_LOST = "camera lost"  # the SourceFrame-free end of a camera stream, as logged
 

@@ -1,6 +1,6 @@
 """OpenNI2 cameras (PrimeSense, Asus Xtion, Orbbec Astra, Kinect through a driver) and
 recorded `.oni` files, through the OpenNI2 runtime (Debian `libopenni2-0`) and the
-`openni` binding (pip extra `arlight[openni2]`; the README says why this binding).
+`openni` binding (pip extra `arlight[openni2]`; docs/guides/cameras.md says why this binding).
 
 `open_openni2(spec)` opens `openni2` (the first device), `openni2:URI` (a device URI as
 `Device.enumerate_uris()` lists them, or an .oni file) or `FILE.oni`, and returns a Source:

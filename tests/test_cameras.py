@@ -447,8 +447,9 @@ print(json.dumps([source.name, c.width, c.height, c.cx, source.depth_scale,
 
     @pytest.mark.parametrize("mode", ["lossless", "live"])
     def test_stream_the_dummy_device_json_on_stdout(self, mode):
-        """`arlight stream CAMERA --max-frames N --out -` (the README's camera check) over a
-        loopback server: the Results as JSON lines on stdout, the per-frame lines on stderr."""
+        """`arlight stream CAMERA --max-frames N --out -` (docs/guides/cameras.md's camera
+        check) over a loopback server: the Results as JSON lines on stdout, the per-frame
+        lines on stderr."""
         import json
 
         from streaming_support import identity_step, server_options

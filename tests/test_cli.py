@@ -132,7 +132,7 @@ def test_estimate_on_the_built_in_scene_compares_in_the_camera_frame(capsys):
     assert code == 0, text
     median = float(text.split("median angular error of the dominant light: ")[1].split()[0])
     # 80 when the frames differ; the estimator itself is 15-35 deg off on this scene's first
-    # frames (its sky below the horizon is not a ground's uniform glow: README)
+    # frames (its sky below the horizon is not a ground's uniform glow: docs/results/accuracy.md)
     assert median < 45.0, text
 
 

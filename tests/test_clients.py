@@ -382,7 +382,7 @@ class TestCommands:
 
     def test_estimate_stream_and_display_write_one_record_layout(self, make_server,
                                                                   tmp_path):
-        """README "Each line of --out is one frame": the same keys from every command (the
+        """docs/reference/output-record.md: the same keys from every command (the
         streaming ones add the delivery fields; estimate adds the error against truth)."""
         from arlight.protocols import result_record
 

@@ -1,4 +1,4 @@
-"""Security (README "Security", issue 14 items 1, 2): CURVE keys, exposure, session tokens.
+"""Security (docs/guides/security.md, issue 14 items 1, 2): CURVE keys, exposure, session tokens.
 
 Real sockets on loopback and real CURVE handshakes (pyzmq's ThreadAuthenticator on the
 server). Every blocking step has a timeout.

@@ -118,12 +118,12 @@ def foxglove_address(args: argparse.Namespace) -> tuple[str, int] | None:
 
 
 def warn_if_exposed(flag: str, host: str, port: int) -> None:
-    """A viewer served beyond loopback has neither keys nor token: say so (README,
-    "Security")."""
+    """A viewer served beyond loopback has neither keys nor token: say so
+    (docs/guides/security.md)."""
     if not is_loopback(f"tcp://{host}:{port}"):
         print(f"arlight: warning: {flag} {host}: what it shows (composite, light; a stream: "
               f"the camera) is served on port {port} to anyone who can reach this machine, "
-              f"without keys or token (README, \"Security\")", file=sys.stderr, flush=True)
+              f"without keys or token (docs/guides/security.md)", file=sys.stderr, flush=True)
 
 
 def client_keys(args: argparse.Namespace) -> ClientKeys | None:

@@ -119,5 +119,6 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
     if args.record:
         print(f"arlight display: recorded {count(info['results'], 'result')} to "
-              f"{args.record} (Foxglove opens it; topics in the README)", file=sys.stderr)
+              f"{args.record} (Foxglove opens it; topics in "
+              "docs/guides/foxglove-and-browser.md)", file=sys.stderr)
     return 0

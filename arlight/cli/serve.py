@@ -87,7 +87,7 @@ def add_parser(sub) -> None:
 
 
 def _add_budget_options(serve, defaults) -> None:
-    """`arlight serve`'s budgets (README, "Limits and budgets")."""
+    """`arlight serve`'s budgets (docs/guides/security.md#limits-and-budgets)."""
     serve.add_argument("--frame-deadline", type=positive_float,
                        default=defaults.frame_deadline_s, metavar="S",
                        help="a frame still in the pipeline after S seconds is abandoned at "
