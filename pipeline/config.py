@@ -89,6 +89,7 @@ def _check_int(obj: Any, key: str, low: int | None = None, high: int | None = No
     value = getattr(obj, key)
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         raise ValueError(f"{key} must be an integer {_hint(key, 'N')}, got {value!r}")
+    value = int(value)
     if low is not None and high is not None and not low <= value <= high:
         raise ValueError(f"{key} must be in {low}..{high} {_hint(key, 'N')}, got {value}")
     if low is not None and value < low:
@@ -521,11 +522,14 @@ class Config:
     def replace(self, **changes: Any) -> Config:
         """A copy with flat keys changed (e.g. `replace(rt_directions=128, seed=1)`)."""
         changes = _flat_overrides(changes)
-        per_stage: dict[str | None, dict[str, Any]] = {}
+        top: dict[str, Any] = {}
+        per_stage: dict[str, dict[str, Any]] = {}
         for key, value in changes.items():
             stage, name = FLAT_KEYS[key]
-            per_stage.setdefault(stage, {})[name] = value
-        top = per_stage.pop(None, {})
+            if stage is None:
+                top[name] = value
+            else:
+                per_stage.setdefault(stage, {})[name] = value
         stages = {stage: dataclasses.replace(getattr(self, stage), **values)
                   for stage, values in per_stage.items()}
         return dataclasses.replace(self, **top, **stages)

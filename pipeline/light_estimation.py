@@ -294,6 +294,7 @@ def _fit_light(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
         use_prior = use_prior and float(sh.dominant_direction(fit.coeffs) @ up) < 0.0
         if not use_prior:
             return fit, learned
+    assert up is not None  # use_prior implies it
     # built only when used: it costs a 2048-direction SH evaluation
     prior = params.horizon_prior * below_horizon_gram(up, bands, params.horizon_ground_albedo)
     if learned is not None:
@@ -393,11 +394,9 @@ MIN_FACTOR = 0.02  # a factor's floor: a weak estimate is still an estimate (val
 def _confidence_factors(e: _Evidence) -> dict[str, float]:
     """The factors of the confidence, each in [MIN_FACTOR, 1] (samples, bands: [0, 1]).
 
-    Chosen on the 15 ground-truth sequences, checked leaving one category out (README,
-    "Confidence"): the spread of the normals and the horizon disagreement rank the frames by
-    their error (Spearman -0.50 together over all frames; -0.31 pooled over the held-out
-    categories); the fit's relative residual does not (+0.16 as a factor: textured scenes
-    fit worse and are lit better), so it is reported, not multiplied in."""
+    Why these factors and not the fit's residual (which ranks textured scenes wrongly):
+    docs/results/confidence.md and docs/decisions/0003-confidence-spread-and-horizon.md.
+    """
     return {
         "samples": min(1.0, e.samples / 5000.0),
         "conditioning": 1.0 / (1.0 + math.log10(max(e.cond, 1.0)) / 5.0),
@@ -439,7 +438,7 @@ def _low_confidence_reason(e: _Evidence, max_bands: int, value: float) -> str:
                    f"sphere's): ground glow or light the normals leave unconstrained",
     }
     f = _confidence_factors(e)
-    weak = [name for name, v in f.items() if v < WEAK_FACTOR] or [min(f, key=f.get)]
+    weak = [name for name, v in f.items() if v < WEAK_FACTOR] or [min(f, key=lambda k: f[k])]
     causes = [text[name] for name in weak]
     if e.clipped_fraction > CLIPPED_NOTE:
         causes.append(f"{100 * e.clipped_fraction:.0f} % of the pixels clipped (emitters, "
@@ -451,10 +450,9 @@ def _low_confidence_reason(e: _Evidence, max_bands: int, value: float) -> str:
 CLIPPED_NOTE = 0.05  # a clipped fraction above this is named in a low confidence's reason
 
 # What one fit cannot know of itself, multiplied into the confidence the pipeline reports
-# (not into the temporal filter's weights: the estimate is unchanged). Chosen on the 15
-# ground-truth sequences leaving one category out (README, "Confidence"): side-facing
-# normals constrain where the light stands (a view of mostly ground gives little), and an
-# estimate far from the last frames' is either a light change or an unreliable frame.
+# (not into the temporal filter's weights: the estimate is unchanged): side-facing normals
+# constrain where the light stands, and a jump from the last frames' estimate is a light
+# change or an unreliable frame (docs/decisions/0004-confidence-view-and-steadiness.md).
 SIDE_COS = 0.7  # |n . up| below this: a side-facing normal (over ~45 degrees off vertical)
 SIDE_SHARE_FULL = 0.2  # share of side-facing normals at which the "view" factor reaches 1
 JUMP_SCALE_DEG = 20.0  # "steadiness" factor exp(-jump / this)
@@ -496,7 +494,7 @@ def with_view_and_steadiness(conf: Confidence, side: float | None,
         }
         weak = [name for name, v in factors.items() if v < WEAK_FACTOR]
         if not reason and not weak:
-            weak = [min(factors, key=factors.get)]
+            weak = [min(factors, key=lambda k: factors[k])]
         reason = "; ".join([reason] * bool(reason) + [text[name] for name in weak])
     return dataclasses.replace(conf, value=value, reason=reason, side_share=side,
                                jump_deg=jump_deg)

@@ -52,7 +52,7 @@ def make_definition(maps: tuple[str, ...] = INDOOR_MAPS + OUTDOOR_MAPS, seed: in
         chosen[layout] = order[:maps_per_layout]
         for m in chosen[layout]:
             uses[m] += 1
-    sequences = []
+    sequences: list[dict] = []
     for r in range(maps_per_layout):
         for k, layout in enumerate(LAYOUTS):
             index = len(sequences)

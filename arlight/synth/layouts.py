@@ -121,7 +121,7 @@ class Layout:
 def pose_matrix(yaw_deg: float, position) -> np.ndarray:
     c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
     m = np.eye(4)
-    m[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    m[:3, :3] = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
     m[:3, 3] = position
     return m
 
@@ -244,7 +244,7 @@ def _rolling_ball(rng, n: int, poses, anchor: np.ndarray, view: np.ndarray) -> t
     material = random_material(rng, ("colour", "checker"), seed=int(rng.integers(1 << 30)))
     centre = anchor - view * 0.35
     visible = max(1, n - max(1, n // 4))
-    out = []
+    out: list[Shape | None] = []
     for i in range(n):
         if i >= visible:
             out.append(None)

@@ -27,7 +27,7 @@ class Material:
 
     kind: str
     albedo_rgb: tuple[float, float, float]
-    colours: tuple[tuple[float, float, float], ...] = ()
+    colours: tuple[tuple[float, float, float], ...] = ()  # linear RGB
     repeats: float = 1.0
     seed: int = 0
     roughness: float | None = None  # virtual objects: GGX roughness (None: Lambertian)
@@ -87,6 +87,15 @@ def _value_noise(rng: np.random.Generator, size: int, cells: int) -> np.ndarray:
     return (out - out.min()) / max(float(np.ptp(out)), 1e-6)
 
 
+RGB = tuple[float, float, float]
+
+
+def _triple(values) -> RGB:
+    """Three floats (a linear RGB colour) from any sequence of three numbers."""
+    r, g, b = (float(x) for x in values)
+    return r, g, b
+
+
 def _rgb(rng: np.random.Generator, low: float, high: float, saturation: float
          ) -> tuple[float, float, float]:
     """A colour of mean albedo in [low, high] and the given saturation (0 = grey)."""
@@ -94,32 +103,32 @@ def _rgb(rng: np.random.Generator, low: float, high: float, saturation: float
     rgb = np.array([0.5 + 0.5 * math.cos(2 * math.pi * (hue + k / 3)) for k in range(3)])
     rgb = (1 - saturation) + saturation * rgb
     rgb *= rng.uniform(low, high) / rgb.mean()
-    return tuple(float(x) for x in np.clip(rgb, 0.02, 0.9))
+    return _triple(np.clip(rgb, 0.02, 0.9))
 
 
 def random_material(rng: np.random.Generator, kinds: tuple[str, ...], seed: int) -> Material:
     """One material of a kind drawn from `kinds`, at realistic albedo."""
     kind = str(rng.choice(kinds))
     if kind == "grey":
-        a = float(rng.uniform(0.2, 0.7))
-        return Material("grey", (a, a, a))
+        grey = float(rng.uniform(0.2, 0.7))
+        return Material("grey", (grey, grey, grey))
     if kind in ("colour", "paint"):
         low, high = (0.5, 0.8) if kind == "paint" else (0.15, 0.6)
         return Material(kind, _rgb(rng, low, high, float(rng.uniform(0.2, 0.8))))
     if kind == "wood":
         light = np.array([0.45, 0.30, 0.17]) * rng.uniform(0.7, 1.1)
         dark = light * rng.uniform(0.45, 0.65)
-        colours = (tuple(light), tuple(dark))
-        return Material("wood", tuple((light + dark) / 2), colours, float(rng.uniform(1, 3)),
-                        seed)
+        colours = (_triple(light), _triple(dark))
+        return Material("wood", _triple((light + dark) / 2), colours,
+                        float(rng.uniform(1, 3)), seed)
     if kind == "fabric":
         c = _rgb(rng, 0.1, 0.55, float(rng.uniform(0.3, 0.9)))
         return Material("fabric", c, (c,), float(rng.uniform(1, 2)), seed)
     a, b = _rgb(rng, 0.1, 0.7, 0.7), _rgb(rng, 0.4, 0.8, 0.0)
     if kind == "checker":
-        return Material("checker", tuple((np.add(a, b) / 2).tolist()), (a, b),
+        return Material("checker", _triple(np.add(a, b) / 2), (a, b),
                         float(rng.choice([2.0, 4.0])), seed)
-    return Material("noise", tuple((np.add(a, b) / 2).tolist()), (a, b), 1.0, seed)
+    return Material("noise", _triple(np.add(a, b) / 2), (a, b), 1.0, seed)
 
 
 def ground_material(rng: np.random.Generator, seed: int, kinds=("noise", "checker", "grey")
@@ -130,10 +139,10 @@ def ground_material(rng: np.random.Generator, seed: int, kinds=("noise", "checke
         return random_material(rng, ("wood",), seed)
     a = _rgb(rng, 0.25, 0.42, 0.15)
     if kind == "checker":
-        b = tuple(float(x) * 0.75 for x in a)
-        return Material("checker", tuple((np.add(a, b) / 2).tolist()), (a, b), 1.0, seed)
+        b = _triple(np.multiply(a, 0.75))
+        return Material("checker", _triple(np.add(a, b) / 2), (a, b), 1.0, seed)
     if kind == "grey":
         g = float(np.mean(a))
         return Material("grey", (g, g, g))
-    b = tuple(float(x) * 0.85 for x in a)
-    return Material("noise", tuple((np.add(a, b) / 2).tolist()), (a, b), 0.5, seed)
+    b = _triple(np.multiply(a, 0.85))
+    return Material("noise", _triple(np.add(a, b) / 2), (a, b), 0.5, seed)

@@ -64,7 +64,10 @@ def quad(width_m: float, depth_m: float) -> TriangleMesh:
 def box(half_extents: tuple[float, float, float]) -> TriangleMesh:
     """An axis-aligned box centred on the origin, flat faces, uvs [0, 1] per face."""
     h = np.asarray(half_extents, float)
-    verts, norms, uvs, faces = [], [], [], []
+    verts: list[np.ndarray] = []
+    norms: list[np.ndarray] = []
+    uvs: list[list[float]] = []
+    faces: list[list[int]] = []
     for axis in range(3):
         for sign in (-1.0, 1.0):
             n = np.zeros(3)

@@ -138,7 +138,7 @@ def generate(spec: SequenceSpec, out_root: Path, map_folder: Path,
         if not file.is_file():
             t0 = time.perf_counter()
             arrays = _render_frame(spec, layout, virtual, camera, i, map_folder, render)
-            np.savez(work / f"{i:06d}.tmp.npz", **arrays)
+            np.savez(str(work / f"{i:06d}.tmp.npz"), **arrays)  # type: ignore[arg-type]  # numpy's stub types **kwds as the allow_pickle flag
             (work / f"{i:06d}.tmp.npz").rename(file)
             stats.per_frame_s.append(time.perf_counter() - t0)
             stats.frames_rendered += 1
