@@ -51,7 +51,8 @@ GOLDEN = HERE / "golden" / f"protocol_v{PROTOCOL_VERSION}"
 
 def _load_vector_script():
     spec = importlib.util.spec_from_file_location(
-        "make_protocol_vectors_rules", HERE / "golden" / "make_protocol_vectors.py")
+        "make_protocol_vectors_rules", HERE / "golden" / "make_protocol_vectors.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -82,7 +83,7 @@ def spec_section(heading: str) -> str:
     for k, i in enumerate(starts):
         if lines[i].lstrip("#").strip().startswith(heading):
             end = starts[k + 1] if k + 1 < len(starts) else len(lines)
-            return "\n".join(lines[i + 1:end])
+            return "\n".join(lines[i + 1 : end])
     raise AssertionError(f"SPEC.md has no heading {heading!r}")
 
 
@@ -150,10 +151,16 @@ def expect(code: str, field: str | None, fn, *args):
 
 # --------------------------------------------------------------------------- 1. key order
 
-MESSAGE_HEADINGS = {"hello": "hello (client", "welcome": "welcome (server",
-                    "frame": "frame (capture", "result": "result (server",
-                    "credit": "credit (server", "error": "error (either",
-                    "heartbeat": "heartbeat (either", "bye": "bye (either"}
+MESSAGE_HEADINGS = {
+    "hello": "hello (client",
+    "welcome": "welcome (server",
+    "frame": "frame (capture",
+    "result": "result (server",
+    "credit": "credit (server",
+    "error": "error (either",
+    "heartbeat": "heartbeat (either",
+    "bye": "bye (either",
+}
 
 
 class TestKeyOrder:
@@ -196,13 +203,19 @@ class TestKeyOrder:
         assert "quality" in golden_header("frame_jpeg_zstd")["color"]
 
     def test_hello_maps_in_table_order(self):
-        row = next(c for c in spec_tables(spec_section("hello (client"))[0]
-                   if c[0] == "`config.calibration`")
-        calibration = [(k.strip(), False) for k in
-                       re.search(r"`\{([^}]*)\}`", row[2]).group(1).split(",")]
+        row = next(
+            c
+            for c in spec_tables(spec_section("hello (client"))[0]
+            if c[0] == "`config.calibration`"
+        )
+        calibration = [
+            (k.strip(), False) for k in re.search(r"`\{([^}]*)\}`", row[2]).group(1).split(",")
+        ]
         panorama = table_keys("hello: the panorama light")
-        scene, objects = table_keys("hello: the virtual scene", 0), \
-            table_keys("hello: the virtual scene", 1)
+        scene, objects = (
+            table_keys("hello: the virtual scene", 0),
+            table_keys("hello: the virtual scene", 1),
+        )
         for name in VEC.vectors():
             config = golden_header(name).get("config", {})
             if isinstance(config.get("calibration"), dict):
@@ -232,21 +245,34 @@ class TestKeyOrder:
 
 
 def _result(**changes) -> Result:
-    fields = dict(seq=1, timestamp=1.0, sh=[1.0, 0.0, 0.0, 0.0], sh_camera=None,
-                  dominant_direction_camera=[0.0, 0.0, 1.0],
-                  dominant_direction_world=[0.0, 0.0, 1.0], intensity=1.0, confidence={},
-                  pose=np.eye(4).tolist(), timings_ms={}, frames_received=1,
-                  frames_processed=1, frames_dropped=0, server_receive_time=1.0,
-                  server_finish_time=1.0)
+    fields = dict(
+        seq=1,
+        timestamp=1.0,
+        sh=[1.0, 0.0, 0.0, 0.0],
+        sh_camera=None,
+        dominant_direction_camera=[0.0, 0.0, 1.0],
+        dominant_direction_world=[0.0, 0.0, 1.0],
+        intensity=1.0,
+        confidence={},
+        pose=np.eye(4).tolist(),
+        timings_ms={},
+        frames_received=1,
+        frames_processed=1,
+        frames_dropped=0,
+        server_receive_time=1.0,
+        server_finish_time=1.0,
+    )
     fields.update(changes)
     return Result(**fields)
 
 
 def _with_header(message, **values) -> list[bytes]:
     """The parts of `message` with header keys replaced (bytes the encoder would refuse)."""
+
     def edit(header):
         header.update(values)
         return header
+
     return VEC.edited(message, edit)
 
 
@@ -260,20 +286,27 @@ class TestDirections:
         assert result.intensity == 0.0
         assert result.confidence.value == 0.0 and result.confidence.reason == "no valid depth"
 
-    @pytest.mark.parametrize("direction", [[0.0, 0.0, 1.0], [0.0, 0.0, 1.009], [0.0, 0.0, 0.0],
-                                           [0.6, 0.0, -0.8]])
+    @pytest.mark.parametrize(
+        "direction", [[0.0, 0.0, 1.0], [0.0, 0.0, 1.009], [0.0, 0.0, 0.0], [0.6, 0.0, -0.8]]
+    )
     def test_unit_or_zero_is_accepted(self, direction):
-        parts = _with_header(_result(), dominant_direction_camera=direction,
-                             dominant_direction_world=direction)
+        parts = _with_header(
+            _result(), dominant_direction_camera=direction, dominant_direction_world=direction
+        )
         assert decode(parts).dominant_direction_world == direction
 
-    @pytest.mark.parametrize("direction", [[0.0, 0.0, 1.02], [0.0, 0.0, 0.5], [1.0, 1.0, 0.0],
-                                           [0.0, 0.0, -0.98]])
+    @pytest.mark.parametrize(
+        "direction", [[0.0, 0.0, 1.02], [0.0, 0.0, 0.5], [1.0, 1.0, 0.0], [0.0, 0.0, -0.98]]
+    )
     def test_anything_else_is_refused(self, direction):
         parts = _with_header(_result(), dominant_direction_world=direction)
         expect("bad_field", "result.dominant_direction_world", decode, parts)
-        expect("bad_field", "result.dominant_direction_world", encode,
-               _result(dominant_direction_world=direction))
+        expect(
+            "bad_field",
+            "result.dominant_direction_world",
+            encode,
+            _result(dominant_direction_world=direction),
+        )
 
     def test_zero_in_one_frame_only_is_refused(self):
         parts = _with_header(_result(), dominant_direction_world=[0.0, 0.0, 0.0])
@@ -282,8 +315,12 @@ class TestDirections:
     def test_panorama_direction_follows_the_same_rule(self):
         pano = dict(panorama_sh=[1.0, 0, 0, 0], panorama_sh_rgb=[[1.0, 0, 0, 0]] * 3)
         assert decode(encode(_result(**pano, panorama_dominant_direction=[0.0, 0.0, 0.0])))
-        expect("bad_field", "result.panorama_dominant_direction", encode,
-               _result(**pano, panorama_dominant_direction=[0.0, 2.0, 0.0]))
+        expect(
+            "bad_field",
+            "result.panorama_dominant_direction",
+            encode,
+            _result(**pano, panorama_dominant_direction=[0.0, 2.0, 0.0]),
+        )
 
     def test_server_sends_zero_without_an_estimate(self, make_server):
         """A session's first frame without usable depth: the real pipeline has no estimate;
@@ -292,9 +329,12 @@ class TestDirections:
         peer = RawPeer(server.connect_address)
         assert isinstance(peer.hello("nodir", preset="fast", overrides=SMALL), Welcome)
         color = np.full((48, 64, 3), 128, np.uint8)
-        peer.send_message(Frame(0, 10.0, color, np.zeros((48, 64), np.uint16), None, None,
-                                "png", "zstd"))
+        peer.send_message(
+            Frame(0, 10.0, color, np.zeros((48, 64), np.uint16), None, None, "png", "zstd")
+        )
         result = peer.receive(timeout_s=60)
+        while result is not None and not isinstance(result, (Result, Error)):
+            result = peer.receive(timeout_s=60)  # a Credit may come first
         assert isinstance(result, Result), result
         assert result.dominant_direction_world == result.dominant_direction_camera == [0.0] * 3
         assert result.intensity == 0.0
@@ -307,6 +347,7 @@ class TestDirections:
 
 def _sloan_intensity(coeffs: list[float], direction: list[float]) -> float:
     from arlight.pipeline.sh import intensity_along
+
     return intensity_along(np.array(coeffs), np.array(direction))
 
 
@@ -327,25 +368,39 @@ class TestPanoramaVector:
         assert hello.config.panorama.panorama_from_world == identity
         assert (result.seq, result.timestamp) == (frame.seq, frame.timestamp)
         rgb = np.array(result.panorama_sh_rgb)
-        np.testing.assert_allclose(result.panorama_sh, [0.2126, 0.7152, 0.0722] @ rgb,
-                                   rtol=1e-12)
-        np.testing.assert_allclose(result.panorama_dominant_direction,
-                                   _normalized_band1(result.panorama_sh), rtol=1e-12)
-        np.testing.assert_allclose(result.panorama_dominant_direction, [0.535, 0.618, 0.576],
-                                   atol=1e-3)  # the figure SPEC.md section 9 quotes
+        np.testing.assert_allclose(result.panorama_sh, [0.2126, 0.7152, 0.0722] @ rgb, rtol=1e-12)
+        np.testing.assert_allclose(
+            result.panorama_dominant_direction, _normalized_band1(result.panorama_sh), rtol=1e-12
+        )
+        np.testing.assert_allclose(
+            result.panorama_dominant_direction, [0.535, 0.618, 0.576], atol=1e-3
+        )  # the figure SPEC.md section 9 quotes
         assert result.sh == result.sh_camera == result.panorama_sh
         assert result.sh_rgb == result.panorama_sh_rgb
-        assert result.dominant_direction_world == result.dominant_direction_camera == \
-            result.panorama_dominant_direction
+        assert (
+            result.dominant_direction_world
+            == result.dominant_direction_camera
+            == result.panorama_dominant_direction
+        )
         assert result.intensity == pytest.approx(
-            _sloan_intensity(result.sh, result.dominant_direction_world), abs=1e-9)
+            _sloan_intensity(result.sh, result.dominant_direction_world), abs=1e-9
+        )
         assert result.pose == np.eye(4).tolist() and result.composite is None
         conf = result.confidence
-        assert (conf.samples, conf.condition_number, conf.bands_estimated, conf.value,
-                conf.reason) == (128, 1.0, 4, 1.0, "")
+        assert (
+            conf.samples,
+            conf.condition_number,
+            conf.bands_estimated,
+            conf.value,
+            conf.reason,
+        ) == (128, 1.0, 4, 1.0, "")
         assert result.diagnostics == {"light_source": "panorama", "panorama_operator": "boost"}
-        assert set(result.timings_ms) == {"PanoramaInverseTone", "PanoramaDownsample",
-                                          "PanoramaSH", "PanoramaDiffuse"}
+        assert set(result.timings_ms) == {
+            "PanoramaInverseTone",
+            "PanoramaDownsample",
+            "PanoramaSH",
+            "PanoramaDiffuse",
+        }
 
     def test_the_server_sends_what_the_spec_defines(self, make_server):
         """A panorama-only session with the identity rotation: the same relations hold for
@@ -354,22 +409,34 @@ class TestPanoramaVector:
 
         server = make_server()
         peer = RawPeer(server.connect_address)
-        peer.send_message(Hello(PROTOCOL_VERSION, SessionConfig(
-            session="pano", role="capture", mode="lossless", panorama=PanoramaConfig())))
+        peer.send_message(
+            Hello(
+                PROTOCOL_VERSION,
+                SessionConfig(
+                    session="pano", role="capture", mode="lossless", panorama=PanoramaConfig()
+                ),
+            )
+        )
         assert isinstance(peer.receive(), Welcome)
         y, x = np.mgrid[0:32, 0:64]
         panorama = np.stack([255 - y * 8, 128 + 0 * x, x * 4], axis=-1).astype(np.uint8)
         peer.send_message(Frame(0, 1.0, None, None, None, panorama, "png"))
         result = peer.receive(timeout_s=60)
         assert isinstance(result, Result), result
-        np.testing.assert_allclose(result.panorama_dominant_direction,
-                                   _normalized_band1(result.panorama_sh), rtol=1e-9)
+        np.testing.assert_allclose(
+            result.panorama_dominant_direction, _normalized_band1(result.panorama_sh), rtol=1e-9
+        )
         np.testing.assert_allclose(result.sh, result.panorama_sh, rtol=1e-9, atol=1e-12)
-        np.testing.assert_allclose(result.dominant_direction_world,
-                                   result.panorama_dominant_direction, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(
+            result.dominant_direction_world,
+            result.panorama_dominant_direction,
+            rtol=1e-9,
+            atol=1e-12,
+        )
         rgb = np.array(result.panorama_sh_rgb)
-        np.testing.assert_allclose(result.panorama_sh, [0.2126, 0.7152, 0.0722] @ rgb,
-                                   rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(
+            result.panorama_sh, [0.2126, 0.7152, 0.0722] @ rgb, rtol=1e-6, atol=1e-9
+        )
         peer.close()
 
 
@@ -381,8 +448,10 @@ class TestSeqBound:
 
     def test_section_6_states_the_bound(self):
         errors = spec_section("Error fields")
-        assert "`frame.seq` (no `seq`: the Frame header's `seq` is not an integer in\n" \
-               "0..2^63-1" in errors
+        assert (
+            "`frame.seq` (no `seq`: the Frame header's `seq` is not an integer in\n"
+            "0..2^63-1" in errors
+        )
 
     def test_decoder_and_server(self, make_server):
         expect("bad_field", "frame.seq", decode, refused_parts("frame_seq_too_large"))
@@ -390,8 +459,12 @@ class TestSeqBound:
         stranger = RawPeer(server.connect_address)  # refused on arrival, whoever sends it
         stranger.send(refused_parts("frame_seq_too_large"))
         error = stranger.receive()
-        assert (error.code, error.field, error.seq, error.retryable) == \
-            ("bad_field", "frame.seq", None, False)
+        assert (error.code, error.field, error.seq, error.retryable) == (
+            "bad_field",
+            "frame.seq",
+            None,
+            False,
+        )
         peer = RawPeer(server.connect_address)
         assert isinstance(peer.hello("bound"), Welcome)
         peer.send(refused_parts("frame_seq_too_large"))
@@ -412,32 +485,48 @@ class TestVersionRule:
     ignores unknown keys of the open maps and unknown Error codes."""
 
     def test_refusals(self, make_server):
-        expect("bad_field", "hello.config.capabilities", decode,
-               refused_parts("hello_unknown_key"))
+        expect("bad_field", "hello.config.capabilities", decode, refused_parts("hello_unknown_key"))
         expect("bad_version", "v", decode, refused_parts("heartbeat_v3"))
         server = make_server(process=identity_step())
         peer = RawPeer(server.connect_address)
         peer.send(refused_parts("hello_unknown_key"))
         error = peer.receive()
-        assert (error.code, error.field, error.retryable) == \
-            ("bad_field", "hello.config.capabilities", False)
+        assert (error.code, error.field, error.retryable) == (
+            "bad_field",
+            "hello.config.capabilities",
+            False,
+        )
         peer.send(refused_parts("heartbeat_v3"))
         assert (peer.receive().code, server.snapshot()["sessions"]) == ("bad_version", {})
         peer.close()
 
     def test_what_a_peer_ignores(self):
-        result = decode(encode(_result(confidence={"value": 0.5, "added_later": [1, 2]},
-                                       timings_ms={"NewStage": 1.0},
-                                       diagnostics={"new_key": {"x": 1}})))
+        result = decode(
+            encode(
+                _result(
+                    confidence={"value": 0.5, "added_later": [1, 2]},
+                    timings_ms={"NewStage": 1.0},
+                    diagnostics={"new_key": {"x": 1}},
+                )
+            )
+        )
         assert result.diagnostics == {"new_key": {"x": 1}}
-        error = decode(encode(Error("added_later_code", "a code this client does not know",
-                                    "some.new.field", 3)))
+        error = decode(
+            encode(
+                Error("added_later_code", "a code this client does not know", "some.new.field", 3)
+            )
+        )
         assert error.retryable is False  # final: the client acts on retryable alone
 
     def test_the_rule_is_stated(self):
         rule = spec_section("The version rule")
-        for phrase in ("optional key", "What a peer **ignores**", "What a peer **refuses**",
-                       "`v` 3", "bad_version"):
+        for phrase in (
+            "optional key",
+            "What a peer **ignores**",
+            "What a peer **refuses**",
+            "`v` 3",
+            "bad_version",
+        ):
             assert phrase in rule, phrase
 
 
@@ -453,14 +542,22 @@ class TestAmbiguitiesSettled:
         stranger = RawPeer(server.connect_address)
         stranger.send(refused_parts("frame_truncated"))
         error = stranger.receive()
-        assert (error.code, error.field, error.seq, error.retryable) == \
-            ("bad_state", "session", 8, True)
+        assert (error.code, error.field, error.seq, error.retryable) == (
+            "bad_state",
+            "session",
+            8,
+            True,
+        )
         capture = RawPeer(server.connect_address)  # from its capture peer: the worker's
         assert isinstance(capture.hello("trunc", width=8, height=6), Welcome)  # decoder
         capture.send(refused_parts("frame_truncated"))
         error = capture.receive()
-        assert (error.code, error.field, error.seq, error.retryable) == \
-            ("malformed", "frame.buffers", 8, False)
+        assert (error.code, error.field, error.seq, error.retryable) == (
+            "malformed",
+            "frame.buffers",
+            8,
+            False,
+        )
         stranger.close()
         capture.close()
 
@@ -533,10 +630,12 @@ class TestRepeatedKeys:
         def twice(header):
             header["diagnostics"] = VEC.Pairs([("a", 1), ("a", 2)])
             return header
+
         expect("malformed", "header", decode, VEC.edited(_result(), twice))
 
         def twice_top(header):
             return VEC.Pairs([*header.items(), ("seq", 9)])
+
         expect("malformed", "header", decode, VEC.edited(_result(), twice_top))
 
     def test_server_refuses_without_making_a_session(self, make_server):
@@ -547,9 +646,12 @@ class TestRepeatedKeys:
         assert (error.code, error.field, error.seq) == ("malformed", "header", None)
         assert server.snapshot()["sessions"] == {}
         assert isinstance(peer.hello("twice"), Welcome)
-        peer.send(VEC.edited(Frame(3, 1.0, np.zeros((48, 64, 3), np.uint8),
-                                   np.zeros((48, 64), np.uint16)),
-                             lambda h: VEC.Pairs([*h.items(), ("seq", 4)])))
+        peer.send(
+            VEC.edited(
+                Frame(3, 1.0, np.zeros((48, 64, 3), np.uint8), np.zeros((48, 64), np.uint16)),
+                lambda h: VEC.Pairs([*h.items(), ("seq", 4)]),
+            )
+        )
         error = peer.receive()  # on arrival, before seq is read: no seq
         assert (error.code, error.field, error.seq) == ("malformed", "header", None)
         peer.close()
@@ -564,11 +666,20 @@ class TestWrittenOut:
 
     def test_session_config_defaults(self):
         text = spec_section("hello (client")
-        paragraph = text[text.index("Python's `SessionConfig` fills in"):]
+        paragraph = text[text.index("Python's `SessionConfig` fills in") :]
         paragraph = paragraph.partition("\n\n")[0]
         stated = dict(re.findall(r"`(\w+)`\s+(`[^`]*`|nil)", paragraph))
-        assert set(stated) == {"client_name", "role", "calibration", "depth_scale", "preset",
-                               "overrides", "virtual_scene", "mode", "want_composite"}
+        assert set(stated) == {
+            "client_name",
+            "role",
+            "calibration",
+            "depth_scale",
+            "preset",
+            "overrides",
+            "virtual_scene",
+            "mode",
+            "want_composite",
+        }
         defaults = SessionConfig(session="x")
         display = golden_header("hello_display")["config"]
         for key, value in stated.items():
@@ -578,8 +689,12 @@ class TestWrittenOut:
                 assert display[key] == want, key
         absent = re.search(r"`scene`,\s+`panorama`,\s+`exports` and `token` absent", paragraph)
         assert absent
-        assert (defaults.scene, defaults.panorama, defaults.exports, defaults.token) == \
-            (None, None, (), None)
+        assert (defaults.scene, defaults.panorama, defaults.exports, defaults.token) == (
+            None,
+            None,
+            (),
+            None,
+        )
         assert not {"scene", "panorama", "exports", "token"} & set(display)
 
     def test_jpeg_vector_bound(self):
@@ -599,9 +714,18 @@ class TestWrittenOut:
         generate_keys(str(tmp_path))
         add_client_key(str(tmp_path), "tablet")
         names = sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if p.is_file())
-        assert names == sorted(["server.key", "server.key_secret", "client.key",
-                                "client.key_secret", "authorized/client.key", "tablet.key",
-                                "tablet.key_secret", "authorized/tablet.key"])
+        assert names == sorted(
+            [
+                "server.key",
+                "server.key_secret",
+                "client.key",
+                "client.key_secret",
+                "authorized/client.key",
+                "tablet.key",
+                "tablet.key_secret",
+                "authorized/tablet.key",
+            ]
+        )
         for name in ("server", "client", "tablet"):
             public = _zpl_curve(tmp_path / f"{name}.key")
             pair = _zpl_curve(tmp_path / f"{name}.key_secret")
@@ -610,36 +734,38 @@ class TestWrittenOut:
             for key in pair.values():
                 assert len(key) == 40 and len(z85.decode(key)) == 32
             assert (tmp_path / f"{name}.key_secret").stat().st_mode & 0o077 == 0
-        assert _zpl_curve(tmp_path / "authorized" / "client.key") == \
-            _zpl_curve(tmp_path / "client.key")
+        assert _zpl_curve(tmp_path / "authorized" / "client.key") == _zpl_curve(
+            tmp_path / "client.key"
+        )
 
     def test_curve_socket_options_as_described(self, tmp_path, make_server):
         from arlight.server.security import generate_keys
 
         generate_keys(str(tmp_path))
-        row = next(c for c in spec_tables(spec_section("CURVE keys"))[0]
-                   if c[0] == "client DEALER")
+        row = next(c for c in spec_tables(spec_section("CURVE keys"))[0] if c[0] == "client DEALER")
         options = re.findall(r"`(ZMQ_CURVE_\w+)`", row[1])
         assert options == ["ZMQ_CURVE_SERVERKEY", "ZMQ_CURVE_PUBLICKEY", "ZMQ_CURVE_SECRETKEY"]
         server = make_server(process=identity_step(), keys_dir=str(tmp_path))
         client = _zpl_curve(tmp_path / "client.key_secret")
-        values = {"ZMQ_CURVE_SERVERKEY": _zpl_curve(tmp_path / "server.key")["public-key"],
-                  "ZMQ_CURVE_PUBLICKEY": client["public-key"],
-                  "ZMQ_CURVE_SECRETKEY": client["secret-key"]}
+        values = {
+            "ZMQ_CURVE_SERVERKEY": _zpl_curve(tmp_path / "server.key")["public-key"],
+            "ZMQ_CURVE_PUBLICKEY": client["public-key"],
+            "ZMQ_CURVE_SECRETKEY": client["secret-key"],
+        }
         peer = RawPeer.__new__(RawPeer)
         peer.ctx = zmq.Context.instance()
         peer.socket = peer.ctx.socket(zmq.DEALER)
         peer.socket.setsockopt(zmq.LINGER, 0)
         for name in options:
-            peer.socket.setsockopt(getattr(zmq, name.removeprefix("ZMQ_")),
-                                   values[name].encode())
+            peer.socket.setsockopt(getattr(zmq, name.removeprefix("ZMQ_")), values[name].encode())
         peer.socket.connect(server.connect_address)
         assert isinstance(peer.hello("curve"), Welcome)
         peer.close()
 
     def test_server_socket_options_as_described(self, make_server):
-        row = next(c for c in spec_tables(spec_section("1. Transport"))[0]
-                   if c[0] == "server ROUTER")
+        row = next(
+            c for c in spec_tables(spec_section("1. Transport"))[0] if c[0] == "server ROUTER"
+        )
         stated = dict(re.findall(r"`ZMQ_(\w+)` `?(\w+)`?", row[1]))
         server = make_server(process=identity_step())
         sock = server._router
@@ -653,8 +779,7 @@ class TestWrittenOut:
         from arlight.pipeline.engine_export import camera_exports
 
         text = spec_section("result: engine layouts")
-        k = np.array([float(v) for v in re.search(r"`K = \(([^)]*)\)`", text).group(1)
-                      .split(",")])
+        k = np.array([float(v) for v in re.search(r"`K = \(([^)]*)\)`", text).group(1).split(",")])
         a = [_pi_term(t) for t in re.search(r"`A = \(([^)]*)\)`", text).group(1).split(",")]
         assert a == [math.pi, 2 * math.pi / 3, math.pi / 4]
         per_band_a = np.array([a[0]] + [a[1]] * 3 + [a[2]] * 5)
@@ -665,45 +790,66 @@ class TestWrittenOut:
         if rotated:
             q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
             pose[:3, :3] = q * np.sign(np.linalg.det(q))
-        got = camera_exports(light, pose, ["arcore", "webxr", "gltf", "unity", "filament",
-                                           "main_light"])
+        got = camera_exports(
+            light, pose, ["arcore", "webxr", "gltf", "unity", "filament", "main_light"]
+        )
         cs = np.array([1, -1, 1, -1, 1, -1, 1, -1, 1.0])
         for name, axes in (("webxr", np.diag([1.0, -1, -1])), ("unity", np.diag([1.0, -1, 1]))):
             c = _rotate_bands_0_2(light, axes @ pose[:3, :3].T, k)
             e = c * per_band_a
             if name == "webxr":
                 np.testing.assert_allclose(got["webxr"], c.T.reshape(-1), rtol=1e-5, atol=1e-6)
-                np.testing.assert_allclose(got["arcore"], (c * cs).T.reshape(-1), rtol=1e-5,
-                                           atol=1e-6)
-                np.testing.assert_allclose(got["gltf"]["irradianceCoefficients"], (e * cs).T,
-                                           rtol=1e-5, atol=1e-6)
+                np.testing.assert_allclose(
+                    got["arcore"], (c * cs).T.reshape(-1), rtol=1e-5, atol=1e-6
+                )
+                np.testing.assert_allclose(
+                    got["gltf"]["irradianceCoefficients"], (e * cs).T, rtol=1e-5, atol=1e-6
+                )
                 assert got["gltf"]["intensity"] == 1.0
                 assert got["gltf"]["rotation"] == [0.0, 0.0, 0.0, 1.0]
                 lines = got["filament"].split("\n")
                 assert lines[-1] == "" and len(lines) == 10
                 for i, line in enumerate(lines[:-1]):
-                    m = re.fullmatch(r"\(([ -]\d\.\d{15}), ([ -]\d\.\d{15}), ([ -]\d\.\d{15})\);"
-                                     r" // L(\d)(-?\d)", line)
+                    m = re.fullmatch(
+                        r"\(([ -]\d\.\d{15}), ([ -]\d\.\d{15}), ([ -]\d\.\d{15})\);"
+                        r" // L(\d)(-?\d)",
+                        line,
+                    )
                     assert m, line
                     band, order = int(m.group(4)), int(m.group(5))
                     assert band * (band + 1) + order == i
-                    np.testing.assert_allclose([float(m.group(j)) for j in (1, 2, 3)],
-                                               (c * cs)[:, i], atol=2e-6)
+                    np.testing.assert_allclose(
+                        [float(m.group(j)) for j in (1, 2, 3)], (c * cs)[:, i], atol=2e-6
+                    )
                 y = np.array([0.2126, 0.7152, 0.0722]) @ c
                 d = np.array([y[3], y[1], y[2]]) / np.linalg.norm([y[3], y[1], y[2]])
-                basis = k * np.array([1, d[1], d[2], d[0], d[0] * d[1], d[1] * d[2],
-                                      3 * d[2] ** 2 - 1, d[0] * d[2], d[0] ** 2 - d[1] ** 2])
+                basis = k * np.array(
+                    [
+                        1,
+                        d[1],
+                        d[2],
+                        d[0],
+                        d[0] * d[1],
+                        d[1] * d[2],
+                        3 * d[2] ** 2 - 1,
+                        d[0] * d[2],
+                        d[0] ** 2 - d[1] ** 2,
+                    ]
+                )
                 np.testing.assert_allclose(got["main_light"]["direction"], d, rtol=1e-9)
-                np.testing.assert_allclose(got["main_light"]["intensity"],
-                                           np.maximum(0, c @ basis / (basis @ basis)),
-                                           rtol=1e-5)
+                np.testing.assert_allclose(
+                    got["main_light"]["intensity"],
+                    np.maximum(0, c @ basis / (basis @ basis)),
+                    rtol=1e-5,
+                )
             else:
                 np.testing.assert_allclose(got["unity"], e * k / math.pi, rtol=1e-5, atol=1e-6)
         if not rotated:  # the diagonal case: each coefficient times its polynomial's sign
             sx, sy, sz = 1.0, -1.0, -1.0
             signs = np.array([1, sy, sz, sx, sx * sy, sy * sz, 1, sx * sz, 1])
-            np.testing.assert_allclose(got["webxr"], (light * signs).T.reshape(-1), rtol=1e-9,
-                                       atol=1e-12)
+            np.testing.assert_allclose(
+                got["webxr"], (light * signs).T.reshape(-1), rtol=1e-9, atol=1e-12
+            )
         dark = camera_exports(np.tile([1.0] + [0.0] * 8, (3, 1)), pose, ["main_light"])
         assert dark["main_light"] == {"direction": [0.0, 1.0, 0.0], "intensity": [0.0] * 3}
 
@@ -741,9 +887,13 @@ def _rotate_bands_0_2(c: np.ndarray, m: np.ndarray, k: np.ndarray) -> np.ndarray
         x = c[ch]
         v = m @ np.array([x[3], x[1], x[2]])
         out[ch, 3], out[ch, 1], out[ch, 2] = v
-        q = np.array([[-x[6] * k[6] + x[8] * k[8], x[4] * k[4] / 2, x[7] * k[7] / 2],
-                      [x[4] * k[4] / 2, -x[6] * k[6] - x[8] * k[8], x[5] * k[5] / 2],
-                      [x[7] * k[7] / 2, x[5] * k[5] / 2, 2 * x[6] * k[6]]])
+        q = np.array(
+            [
+                [-x[6] * k[6] + x[8] * k[8], x[4] * k[4] / 2, x[7] * k[7] / 2],
+                [x[4] * k[4] / 2, -x[6] * k[6] - x[8] * k[8], x[5] * k[5] / 2],
+                [x[7] * k[7] / 2, x[5] * k[5] / 2, 2 * x[6] * k[6]],
+            ]
+        )
         r = m @ q @ m.T
         out[ch, 4] = 2 * r[0, 1] / k[4]
         out[ch, 5] = 2 * r[1, 2] / k[5]
@@ -760,17 +910,30 @@ class TestDeterminism:
     """Point 9: with Open3D on one thread, the same frames give bit-identical Results in two
     sessions (two clients), tracking included (no poses sent)."""
 
-    LIGHT_FIELDS = ("sh", "sh_camera", "sh_rgb", "dominant_direction_camera",
-                    "dominant_direction_world", "intensity", "confidence_map", "pose",
-                    "diagnostics", "exports", "frames_received", "frames_processed",
-                    "frames_dropped")
+    LIGHT_FIELDS = (
+        "sh",
+        "sh_camera",
+        "sh_rgb",
+        "dominant_direction_camera",
+        "dominant_direction_world",
+        "intensity",
+        "confidence_map",
+        "pose",
+        "diagnostics",
+        "exports",
+        "frames_received",
+        "frames_processed",
+        "frames_dropped",
+    )
 
     def test_the_determinism_section_names_the_switch(self):
         from arlight.cli import build_parser
 
         text = spec_section("11. Determinism")
-        assert "`arlight\n--open3d-threads 1 serve`" in text or \
-            "`arlight --open3d-threads 1 serve`" in " ".join(text.split())
+        assert (
+            "`arlight\n--open3d-threads 1 serve`" in text
+            or "`arlight --open3d-threads 1 serve`" in " ".join(text.split())
+        )
         args = build_parser().parse_args(["--open3d-threads", "1", "serve"])
         assert args.open3d_threads == 1 and args.command == "serve"
 
@@ -783,15 +946,35 @@ class TestDeterminism:
         results = {}
         for name in ("one", "two"):
             peer = RawPeer(server.connect_address)
-            peer.send_message(Hello(PROTOCOL_VERSION, SessionConfig(
-                session=name, calibration=calibration_of(sequence.camera),
-                depth_scale=float(sequence.frames[0].depth_scale), preset="fast",
-                overrides=SMALL, mode="lossless", exports=("webxr", "main_light"))))
+            peer.send_message(
+                Hello(
+                    PROTOCOL_VERSION,
+                    SessionConfig(
+                        session=name,
+                        calibration=calibration_of(sequence.camera),
+                        depth_scale=float(sequence.frames[0].depth_scale),
+                        preset="fast",
+                        overrides=SMALL,
+                        mode="lossless",
+                        exports=("webxr", "main_light"),
+                    ),
+                )
+            )
             assert isinstance(peer.receive(), Welcome)
             got = []
             for seq, frame in enumerate(sequence.frames):  # no pose: the server tracks
-                peer.send_message(Frame(seq, float(frame.timestamp), frame.color, frame.depth,
-                                        None, None, "png", "zstd"))
+                peer.send_message(
+                    Frame(
+                        seq,
+                        float(frame.timestamp),
+                        frame.color,
+                        frame.depth,
+                        None,
+                        None,
+                        "png",
+                        "zstd",
+                    )
+                )
                 got.append(peer.receive(timeout_s=60))
             peer.close()
             results[name] = got
@@ -806,8 +989,7 @@ def test_refused_vectors_are_the_spec_table_and_reproduce():
     """Every refused vector: SPEC.md section 9's table, expected.json and the script agree,
     the stored bytes are the script's, and decode() refuses each with its code and field."""
     rows = spec_tables(spec_section("Refused vectors"))[0]
-    table = {r[0].strip("`").removesuffix(".bin"): (r[1].strip("`"), r[2].strip("`"))
-             for r in rows}
+    table = {r[0].strip("`").removesuffix(".bin"): (r[1].strip("`"), r[2].strip("`")) for r in rows}
     expected = json.loads((GOLDEN / "refused" / "expected.json").read_text())
     made = VEC.refused()
     assert set(table) == set(expected) == set(made)
