@@ -68,9 +68,13 @@ class BatchOptions:
 
     def settings(self) -> dict:
         """What decides the records, as plain JSON (batch.json's "options")."""
-        return {"preset": self.preset, "device": self.device or "CPU:0",
-                "overrides": {k: repr(v) for k, v in self.overrides},
-                "max_frames": self.max_frames, "depth_encoding": self.depth_encoding}
+        return {
+            "preset": self.preset,
+            "device": self.device or "CPU:0",
+            "overrides": {k: repr(v) for k, v in self.overrides},
+            "max_frames": self.max_frames,
+            "depth_encoding": self.depth_encoding,
+        }
 
     def config(self):
         """The pipeline Config of every stream (ValueError for a bad preset or override)."""
@@ -174,14 +178,19 @@ def open_frames(path: str, options: BatchOptions):
         return open_recording(path, options.max_frames)
     from arlight.sources.sequence import open_sequence
 
-    seq = open_sequence(path, depth_encoding=options.depth_encoding, use_poses=False,
-                        max_frames=options.max_frames)
+    seq = open_sequence(
+        path, depth_encoding=options.depth_encoding, use_poses=False, max_frames=options.max_frames
+    )
     frames = seq.frames
     return seq.camera, len(frames), (frames[i] for i in range(len(frames)))
 
 
-def process_stream(path: str, out_path: str | Path, options: BatchOptions,
-                   on_frame: Callable[[int, int], None] | None = None) -> StreamSummary:
+def process_stream(
+    path: str,
+    out_path: str | Path,
+    options: BatchOptions,
+    on_frame: Callable[[int, int], None] | None = None,
+) -> StreamSummary:
     """Run a fresh Pipeline over one stream, writing its records to `out_path` atomically.
 
     The records are `arlight estimate --out`'s (`arlight.offline.frame_record`). They go to
@@ -216,9 +225,15 @@ def process_stream(path: str, out_path: str | Path, options: BatchOptions,
             tmp.unlink()
         raise
     median = float(np.median(confidences)) if confidences else None
-    return StreamSummary(out_path.stem, path, "ok", frames=len(confidences),
-                         seconds=time.perf_counter() - t0, median_confidence=median,
-                         output=str(out_path))
+    return StreamSummary(
+        out_path.stem,
+        path,
+        "ok",
+        frames=len(confidences),
+        seconds=time.perf_counter() - t0,
+        median_confidence=median,
+        output=str(out_path),
+    )
 
 
 class StreamWorker:
@@ -252,8 +267,14 @@ class StreamWorker:
         try:
             summary = process_stream(item.path, out_path, options, self._on_frame)
         except (DatasetError, FrameError, ValueError, OSError) as exc:
-            return StreamSummary(item.name, item.path, "failed", reason=str(exc),
-                                 frames=self._done, seconds=time.perf_counter() - t0)
+            return StreamSummary(
+                item.name,
+                item.path,
+                "failed",
+                reason=str(exc),
+                frames=self._done,
+                seconds=time.perf_counter() - t0,
+            )
         summary.name = item.name
         return summary
 
@@ -283,8 +304,10 @@ def actor_resources(preset: str, device: str | None, cluster: dict) -> dict:
     if device and device.upper().startswith("CUDA"):
         gpus = float(cluster.get("GPU", 0))
         if gpus < 1:
-            raise BatchUsageError(f"--device {device}: the Ray cluster offers no GPU "
-                                  f"({cpus:g} CPUs, 0 GPUs); use --device CPU:0")
+            raise BatchUsageError(
+                f"--device {device}: the Ray cluster offers no GPU "
+                f"({cpus:g} CPUs, 0 GPUs); use --device CPU:0"
+            )
         num_gpus = 1
         slots = min(slots, int(gpus))
     return {"num_cpus": num_cpus, "num_gpus": num_gpus, "slots": slots}
@@ -324,9 +347,11 @@ def _check_same_options(out_dir: Path, options: BatchOptions, force: bool) -> No
     except (OSError, ValueError, AttributeError):
         return  # not ours to judge: the rerun rewrites it
     if before is not None and before != options.settings():
-        raise BatchUsageError(f"{out_dir} holds results made with {before}, not "
-                              f"{options.settings()}: use another --out, or --force to "
-                              "redo every stream")
+        raise BatchUsageError(
+            f"{out_dir} holds results made with {before}, not "
+            f"{options.settings()}: use another --out, or --force to "
+            "redo every stream"
+        )
 
 
 def _count_lines(path: Path) -> int:
@@ -334,9 +359,16 @@ def _count_lines(path: Path) -> int:
         return sum(1 for _ in f)
 
 
-def run_batch(items: Sequence[BatchItem], out_dir: str | Path, options: BatchOptions, *,
-              address: str | None = None, force: bool = False, progress: bool = True,
-              on_done: Callable[[StreamSummary], None] | None = None) -> BatchReport:
+def run_batch(
+    items: Sequence[BatchItem],
+    out_dir: str | Path,
+    options: BatchOptions,
+    *,
+    address: str | None = None,
+    force: bool = False,
+    progress: bool = True,
+    on_done: Callable[[StreamSummary], None] | None = None,
+) -> BatchReport:
     """Process every stream on Ray; the report of all of them, also in OUT/batch.json.
 
     Uses the running Ray connection when there is one; otherwise `ray.init(address)` (None:
@@ -357,8 +389,13 @@ def run_batch(items: Sequence[BatchItem], out_dir: str | Path, options: BatchOpt
         path = records_path(out_dir, item)
         if path.is_file() and not force:
             report.streams[index] = StreamSummary(
-                item.name, item.path, "skipped", reason=f"{path.name} exists (--force redoes it)",
-                frames=_count_lines(path), output=str(path))
+                item.name,
+                item.path,
+                "skipped",
+                reason=f"{path.name} exists (--force redoes it)",
+                frames=_count_lines(path),
+                output=str(path),
+            )
         else:
             todo.append(index)
     started_ray = False
@@ -368,8 +405,9 @@ def run_batch(items: Sequence[BatchItem], out_dir: str | Path, options: BatchOpt
             ray.init(address=address, log_to_driver=False, **local)
         except Exception as exc:  # noqa: BLE001 - Ray raises many types for "cannot connect"
             where = f"--ray {address}" if address else "a local Ray"
-            raise BatchUsageError(f"{where}: cannot start or connect "
-                                  f"({type(exc).__name__}: {exc})") from None
+            raise BatchUsageError(
+                f"{where}: cannot start or connect ({type(exc).__name__}: {exc})"
+            ) from None
         started_ray = True
     try:
         if todo:
@@ -386,7 +424,8 @@ def _run_actors(ray, items, todo, out_dir, options, report, progress, on_done) -
 
     res = actor_resources(options.preset, options.device, ray.cluster_resources())
     worker_class = ray.remote(StreamWorker).options(
-        num_cpus=res["num_cpus"], num_gpus=res["num_gpus"], max_concurrency=2)
+        num_cpus=res["num_cpus"], num_gpus=res["num_gpus"], max_concurrency=2
+    )
     waiting = list(todo)
     running: dict = {}  # ObjectRef of run() -> (index, actor)
     done_frames: dict[int, tuple[int, int]] = {}
@@ -396,8 +435,10 @@ def _run_actors(ray, items, todo, out_dir, options, report, progress, on_done) -
         bar.total = sum(t for _, t in done_frames.values())
         bar.n = sum(d for d, _ in done_frames.values())
         finished = sum(s.status in ("ok", "failed") for s in report.streams)
-        bar.set_postfix_str(f"{finished}/{len(todo)} streams, "
-                            f"{sum(s.status == 'failed' for s in report.streams)} failed")
+        bar.set_postfix_str(
+            f"{finished}/{len(todo)} streams, "
+            f"{sum(s.status == 'failed' for s in report.streams)} failed"
+        )
         bar.refresh()
 
     try:
@@ -419,8 +460,9 @@ def _run_actors(ray, items, todo, out_dir, options, report, progress, on_done) -
                     summary.input = item.path  # as the user gave it
                     summary.output = summary.output and str(records_path(out_dir, item))
                 except Exception as exc:  # noqa: BLE001 - the actor raised or died
-                    summary = StreamSummary(item.name, item.path, "failed",
-                                            reason=_failure_reason(exc))
+                    summary = StreamSummary(
+                        item.name, item.path, "failed", reason=_failure_reason(exc)
+                    )
                 ray.kill(actor)
                 report.streams[index] = summary
                 done_frames[index] = (summary.frames, summary.frames)
@@ -441,7 +483,10 @@ def _run_actors(ray, items, todo, out_dir, options, report, progress, on_done) -
 
 def format_summary(s: StreamSummary) -> str:
     """One line per stream for the terminal."""
-    conf = "-" if s.median_confidence is None or math.isnan(s.median_confidence) else \
-        f"{s.median_confidence:.2f}"
+    conf = (
+        "-"
+        if s.median_confidence is None or math.isnan(s.median_confidence)
+        else f"{s.median_confidence:.2f}"
+    )
     line = f"{s.status:<7} {s.name}: {s.frames} frames, {s.seconds:.1f} s, confidence {conf}"
     return line + (f" ({s.reason})" if s.reason else "")

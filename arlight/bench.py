@@ -81,8 +81,9 @@ class ConfigResult:
     # what the scene required of the model: per frame the SH bands solved for and which
     # stage outputs a still camera reused; per sequence the volume's blocks at its end
     bands_estimated: list[int] = field(default_factory=list)
-    reused: dict[str, list[bool]] = field(default_factory=lambda: {
-        "Surface": [], "RadTransfer": []})
+    reused: dict[str, list[bool]] = field(
+        default_factory=lambda: {"Surface": [], "RadTransfer": []}
+    )
     volume_blocks: dict[str, int] = field(default_factory=dict)
     # per sequence: the environment map of each scored frame (aligned with per_sequence's
     # lists; None: unknown) and the sequence's layout (None: unknown)
@@ -92,8 +93,9 @@ class ConfigResult:
 
 # --------------------------------------------------------------------------- inputs
 
+
 def parse_sweep(text: str) -> tuple[str, list[Any]]:
-    """"KEY=V1,V2,..." -> (KEY, values), each value typed by the Config key ("size": WxH)."""
+    """ "KEY=V1,V2,..." -> (KEY, values), each value typed by the Config key ("size": WxH)."""
     if "=" not in text:
         raise BenchError(f"--sweep expects KEY=V1,V2,..., got {text!r}")
     key, values = text.split("=", 1)
@@ -108,8 +110,9 @@ def parse_sweep(text: str) -> tuple[str, list[Any]]:
         raise BenchError(f"--sweep {key}: {exc}") from None
 
 
-def make_configs(presets: list[str], sweeps: list[tuple[str, list[Any]]],
-                 overrides: dict[str, Any]) -> list[BenchConfig]:
+def make_configs(
+    presets: list[str], sweeps: list[tuple[str, list[Any]]], overrides: dict[str, Any]
+) -> list[BenchConfig]:
     """The presets (and comparators), then each sweep's points on the first preset."""
     configs = []
     for name in presets:
@@ -120,17 +123,26 @@ def make_configs(presets: list[str], sweeps: list[tuple[str, list[Any]]],
         for value in values:
             if key == "size":
                 name = f"{base_preset} size={value[0]}x{value[1]}"
-                configs.append(BenchConfig(name, Config.from_preset(base_preset, **overrides),
-                                           size=value, sweep=key, value=list(value)))
+                configs.append(
+                    BenchConfig(
+                        name,
+                        Config.from_preset(base_preset, **overrides),
+                        size=value,
+                        sweep=key,
+                        value=list(value),
+                    )
+                )
             else:
                 config = Config.from_preset(base_preset, **{**overrides, key: value})
-                configs.append(BenchConfig(f"{base_preset} {key}={value}", config, sweep=key,
-                                           value=value))
+                configs.append(
+                    BenchConfig(f"{base_preset} {key}={value}", config, sweep=key, value=value)
+                )
     return configs
 
 
-def open_data(paths: list[str], frames: int | None, warmup: int,
-              size: tuple[int, int] = (640, 480)) -> list[BenchSequence]:
+def open_data(
+    paths: list[str], frames: int | None, warmup: int, size: tuple[int, int] = (640, 480)
+) -> list[BenchSequence]:
     """BenchSequences of the DATA arguments: "synthetic", sequence folders, or folders of them."""
     from arlight.sources.sequence import open_sequence
     from arlight.sources.synthetic import make_sequence
@@ -140,22 +152,30 @@ def open_data(paths: list[str], frames: int | None, warmup: int,
         if p in (BUILT_IN, BUILT_IN_HELD):
             n = warmup + (frames or 8)
             held = p == BUILT_IN_HELD
-            scene = make_sequence(num_frames=n, width=size[0], height=size[1], held=held,
-                                  light_change_frame=warmup + (n - warmup) // 2 if held
-                                  else None)
-            out.append(BenchSequence(p, scene.camera, scene.frames,
-                                     evaluation.scene_truth(scene)))
+            scene = make_sequence(
+                num_frames=n,
+                width=size[0],
+                height=size[1],
+                held=held,
+                light_change_frame=warmup + (n - warmup) // 2 if held else None,
+            )
+            out.append(BenchSequence(p, scene.camera, scene.frames, evaluation.scene_truth(scene)))
             continue
         folder = Path(p)
         if not folder.is_dir():
-            raise BenchError(f"DATA {p!r}: no such folder (give 'synthetic', "
-                             f"'{BUILT_IN_HELD}', a sequence folder, or a folder of sequence "
-                             "folders)")
+            raise BenchError(
+                f"DATA {p!r}: no such folder (give 'synthetic', "
+                f"'{BUILT_IN_HELD}', a sequence folder, or a folder of sequence "
+                "folders)"
+            )
         children = sorted(c for c in folder.iterdir() if evaluation.has_ground_truth(c))
         for seq_folder in children if not evaluation.has_ground_truth(folder) else [folder]:
             try:  # the truth first: a file that cannot be scored fails before any work
-                truth = (evaluation.load_ground_truth(seq_folder)
-                         if evaluation.has_ground_truth(seq_folder) else None)
+                truth = (
+                    evaluation.load_ground_truth(seq_folder)
+                    if evaluation.has_ground_truth(seq_folder)
+                    else None
+                )
             except evaluation.GroundTruthError as exc:
                 raise BenchError(str(exc)) from None
             seq = open_sequence(seq_folder, use_poses=True, max_frames=frames)
@@ -167,6 +187,7 @@ def open_data(paths: list[str], frames: int | None, warmup: int,
 
 
 # --------------------------------------------------------------------------- running
+
 
 def observed_normals_world(frame, camera, rng: np.random.Generator) -> np.ndarray:
     """Up to NORMAL_SAMPLES unit normals (N, 3), world frame, of the frame's valid depth."""
@@ -180,19 +201,27 @@ def observed_normals_world(frame, camera, rng: np.random.Generator) -> np.ndarra
     return n @ rotation.T
 
 
-def run_config(bench: BenchConfig, sequences: list[BenchSequence], warmup: int,
-               on_frame=None, scene=None) -> ConfigResult:
+def run_config(
+    bench: BenchConfig, sequences: list[BenchSequence], warmup: int, on_frame=None, scene=None
+) -> ConfigResult:
     """Process every sequence's frames with one configuration; time and score each frame.
     scene: a VirtualScene rendered into every frame (the Rendering stage), or None."""
-    overrides = {k: v for k, v in bench.config.flat().items()
-                 if v != Config.from_preset(_preset_name(bench.config)).flat().get(k)}
+    overrides = {
+        k: v
+        for k, v in bench.config.flat().items()
+        if v != Config.from_preset(_preset_name(bench.config)).flat().get(k)
+    }
     result = ConfigResult(bench.name, overrides, bench.sweep, bench.value)
     rng = np.random.default_rng(0)
     for seq in sequences:
         pipeline = Pipeline(bench.config, seq.camera, scene)
-        scores: dict[str, list[float]] = {"angle_upper_deg": [], "angle_deg": [],
-                                          "sh_error": [], "shading_error": [],
-                                          "confidence": []}
+        scores: dict[str, list[float]] = {
+            "angle_upper_deg": [],
+            "angle_deg": [],
+            "sh_error": [],
+            "shading_error": [],
+            "confidence": [],
+        }
         maps: list[str | None] = []
         for i, frame in enumerate(seq.frames):
             out = pipeline.process(frame)
@@ -221,24 +250,41 @@ def _preset_name(config: Config) -> str:
     return preset if preset in ("full", "fast", "mobile") else "full"
 
 
-def _score(scores: dict[str, list[float]], out, truth: evaluation.FrameTruth, frame, camera,
-           rng: np.random.Generator) -> None:
-    scores["angle_deg"].append(evaluation.angular_error_deg(out.dominant_direction_camera,
-                                                            truth.dominant_camera))
-    scores["angle_upper_deg"].append(evaluation.angular_error_deg(
-        out.dominant_direction_camera, truth.dominant_upper_camera))
+def _score(
+    scores: dict[str, list[float]],
+    out,
+    truth: evaluation.FrameTruth,
+    frame,
+    camera,
+    rng: np.random.Generator,
+) -> None:
+    scores["angle_deg"].append(
+        evaluation.angular_error_deg(out.dominant_direction_camera, truth.dominant_camera)
+    )
+    scores["angle_upper_deg"].append(
+        evaluation.angular_error_deg(out.dominant_direction_camera, truth.dominant_upper_camera)
+    )
     scores["confidence"].append(float(out.confidence.value))
     if truth.sh_upper_world is not None:
         scores["sh_error"].append(evaluation.sh_error(out.sh, truth.sh_upper_world))
         normals = observed_normals_world(frame, camera, rng)
-        scores["shading_error"].append(evaluation.shading_error(out.sh, truth.sh_upper_world,
-                                                                normals))
+        scores["shading_error"].append(
+            evaluation.shading_error(out.sh, truth.sh_upper_world, normals)
+        )
 
 
-def run_benchmark(data: list[str], presets: list[str], sweeps: list[tuple[str, list[Any]]],
-                  frames: int | None, warmup: int, overrides: dict[str, Any],
-                  progress: bool = True, size: tuple[int, int] = (640, 480),
-                  scene=None, folds: bool = False) -> dict:
+def run_benchmark(
+    data: list[str],
+    presets: list[str],
+    sweeps: list[tuple[str, list[Any]]],
+    frames: int | None,
+    warmup: int,
+    overrides: dict[str, Any],
+    progress: bool = True,
+    size: tuple[int, int] = (640, 480),
+    scene=None,
+    folds: bool = False,
+) -> dict:
     """Every configuration over every DATA sequence; the report's figures (a plain dict).
 
     size: image size of the built-in scene (pixels) where no size sweep sets it;
@@ -249,15 +295,17 @@ def run_benchmark(data: list[str], presets: list[str], sweeps: list[tuple[str, l
 
     configs = make_configs(presets, sweeps, overrides)
     if any(b.size is not None for b in configs) and data != [BUILT_IN]:
-        raise BenchError("--sweep size renders the built-in scene: use it without DATA (or "
-                         "with DATA synthetic)")
+        raise BenchError(
+            "--sweep size renders the built-in scene: use it without DATA (or with DATA synthetic)"
+        )
     base_data = open_data(data, frames, warmup, size)
     sized: dict[tuple[int, int], list[BenchSequence]] = {}
     for bench in configs:
         if bench.size is not None and bench.size not in sized:
             sized[bench.size] = open_data([BUILT_IN], frames, warmup, bench.size)
-    total = sum(sum(len(s.frames) for s in (sized[b.size] if b.size else base_data))
-                for b in configs)
+    total = sum(
+        sum(len(s.frames) for s in (sized[b.size] if b.size else base_data)) for b in configs
+    )
     bar = _progress_bar(total, progress)
     results = []
     try:
@@ -265,20 +313,29 @@ def run_benchmark(data: list[str], presets: list[str], sweeps: list[tuple[str, l
             seqs = sized[bench.size] if bench.size else base_data
             bar.set_description(bench.name)
             if not progress:  # no terminal for a bar: a line per configuration
-                print(f"arlight bench: [{k}/{len(configs)}] {bench.name}: "
-                      f"{sum(len(s.frames) for s in seqs)} frames of {len(seqs)} sequence(s)",
-                      file=sys.stderr, flush=True)
-            results.append(run_config(bench, seqs, warmup, on_frame=lambda: bar.update(1),
-                                      scene=scene))
+                print(
+                    f"arlight bench: [{k}/{len(configs)}] {bench.name}: "
+                    f"{sum(len(s.frames) for s in seqs)} frames of {len(seqs)} sequence(s)",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            results.append(
+                run_config(bench, seqs, warmup, on_frame=lambda: bar.update(1), scene=scene)
+            )
     finally:
         bar.close()
-    return summarise(results, data=[s.name for s in base_data], frames=frames, warmup=warmup,
-                     sweeps=[k for k, _ in sweeps], configs_used=[b.config for b in configs],
-                     folds=folds)
+    return summarise(
+        results,
+        data=[s.name for s in base_data],
+        frames=frames,
+        warmup=warmup,
+        sweeps=[k for k, _ in sweeps],
+        configs_used=[b.config for b in configs],
+        folds=folds,
+    )
 
 
 def _progress_bar(total: int, enabled: bool):
     from tqdm import tqdm
 
-    return tqdm(total=total, unit="frame", disable=not enabled, dynamic_ncols=True,
-                leave=False)
+    return tqdm(total=total, unit="frame", disable=not enabled, dynamic_ncols=True, leave=False)

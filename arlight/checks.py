@@ -41,9 +41,15 @@ def _shape_text(shape: tuple) -> str:
     return "(" + ", ".join(str(s) for s in shape) + ")"
 
 
-def check_image(array: Any, field: str, *, channels: int | None = None,
-                dtype: Any = None, size: tuple[int, int] | None = None,
-                size_of: str = "the expected") -> np.ndarray:
+def check_image(
+    array: Any,
+    field: str,
+    *,
+    channels: int | None = None,
+    dtype: Any = None,
+    size: tuple[int, int] | None = None,
+    size_of: str = "the expected",
+) -> np.ndarray:
     """`array` as an (H, W) image (channels None) or (H, W, channels) image.
 
     dtype: required dtype (None: any); size: required (width, height) in pixels, named
@@ -58,8 +64,9 @@ def check_image(array: Any, field: str, *, channels: int | None = None,
     if dtype is not None and a.dtype != np.dtype(dtype):
         raise CheckError(field, f"expected dtype {np.dtype(dtype)}, got {a.dtype}")
     if size is not None and (a.shape[1], a.shape[0]) != tuple(size):
-        raise CheckError(field, f"size {a.shape[1]}x{a.shape[0]} does not match {size_of} "
-                                f"{size[0]}x{size[1]}")
+        raise CheckError(
+            field, f"size {a.shape[1]}x{a.shape[0]} does not match {size_of} {size[0]}x{size[1]}"
+        )
     return a
 
 
@@ -77,16 +84,27 @@ def check_rigid(matrix: Any, field: str, tolerance: float = RIGID_TOLERANCE) -> 
     if not np.all(np.isfinite(m)):
         raise CheckError(field, "must be finite (NaN or inf found)")
     r = m[:3, :3]
-    if (np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > tolerance
-            or np.abs(r.T @ r - np.eye(3)).max() > tolerance
-            or np.linalg.det(r) <= 0):
-        raise CheckError(field, "not a rigid transform (rotation orthonormal with det +1, "
-                                f"last row 0 0 0 1; tolerance {tolerance:g})")
+    if (
+        np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > tolerance
+        or np.abs(r.T @ r - np.eye(3)).max() > tolerance
+        or np.linalg.det(r) <= 0
+    ):
+        raise CheckError(
+            field,
+            "not a rigid transform (rotation orthonormal with det +1, "
+            f"last row 0 0 0 1; tolerance {tolerance:g})",
+        )
     return m
 
 
-def check_finite(value: Any, field: str, *, low: float = -math.inf, high: float = math.inf,
-                 low_open: bool = False) -> float:
+def check_finite(
+    value: Any,
+    field: str,
+    *,
+    low: float = -math.inf,
+    high: float = math.inf,
+    low_open: bool = False,
+) -> float:
     """A finite real number in [low, high] (low excluded when low_open)."""
     try:
         v = float(value)
@@ -112,13 +130,19 @@ def depth_metres(depth: Any, depth_scale: float | None, field: str = "depth") ->
     if depth_scale is not None:
         scale = check_finite(depth_scale, f"{field}_scale", low=0.0, low_open=True)
         if d.dtype != np.uint16:
-            raise CheckError(field, f"with a depth_scale, expected uint16 sensor units, got "
-                                    f"dtype {d.dtype} (float depth is metres: no depth_scale)")
+            raise CheckError(
+                field,
+                f"with a depth_scale, expected uint16 sensor units, got "
+                f"dtype {d.dtype} (float depth is metres: no depth_scale)",
+            )
         metres = d.astype(np.float32) / np.float32(scale)
     else:
         if not np.issubdtype(d.dtype, np.floating):
-            raise CheckError(field, f"expected float metres, or uint16 with a depth_scale "
-                                    f"(units per metre), got dtype {d.dtype}")
+            raise CheckError(
+                field,
+                f"expected float metres, or uint16 with a depth_scale "
+                f"(units per metre), got dtype {d.dtype}",
+            )
         metres = d.astype(np.float32, copy=True)
     metres[~np.isfinite(metres) | (metres < 0) | (metres > MAX_DEPTH_M)] = 0.0
     return metres

@@ -90,9 +90,15 @@ class Confidence:
 
 
 _FIELD_KINDS: dict[str, type] = {
-    "samples": int, "condition_number": float, "bands_estimated": int, "value": float,
-    "reason": str, "normal_spread": float, "horizon_disagreement_deg": float,
-    "side_share": float, "jump_deg": float,
+    "samples": int,
+    "condition_number": float,
+    "bands_estimated": int,
+    "value": float,
+    "reason": str,
+    "normal_spread": float,
+    "horizon_disagreement_deg": float,
+    "side_share": float,
+    "jump_deg": float,
 }
 
 

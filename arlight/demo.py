@@ -37,9 +37,14 @@ def _angle_deg(a, b) -> float:
     return math.degrees(math.acos(float(np.clip(a @ b / (na * nb), -1.0, 1.0))))
 
 
-def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int] = (320, 240),
-             preset: str = "fast", video: str | None = None,
-             printer: Callable[[str], None] = print) -> dict:
+def run_demo(
+    out_dir: str | Path = "out",
+    frames: int = 24,
+    size: tuple[int, int] = (320, 240),
+    preset: str = "fast",
+    video: str | None = None,
+    printer: Callable[[str], None] = print,
+) -> dict:
     """Run the demo; returns the summary (also written to out_dir/summary.json)."""
     from arlight.client.capture import CaptureClient, StreamOptions
     from arlight.client.display import DisplayClient, DisplayOptions
@@ -68,12 +73,14 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
         pipeline_ms.append(record["pipeline_ms"])
         d = result.dominant_direction_camera
         e2e = record["end_to_end_ms"]
-        printer(f"[{result.seq + 1:>3}/{frames}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
-                f"{d[2]:+.2f})  conf={result.confidence.value:.2f}  "
-                f"error={f'{err:5.1f}' if np.isfinite(err) else '  -  '} deg  "
-                f"pipeline {record['pipeline_ms']:6.0f} ms  "
-                f"in server {record['in_server_ms']:6.0f} ms (incl. queue)  end-to-end "
-                + ("-" if e2e is None else f"{e2e:6.0f} ms"))
+        printer(
+            f"[{result.seq + 1:>3}/{frames}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
+            f"{d[2]:+.2f})  conf={result.confidence.value:.2f}  "
+            f"error={f'{err:5.1f}' if np.isfinite(err) else '  -  '} deg  "
+            f"pipeline {record['pipeline_ms']:6.0f} ms  "
+            f"in server {record['in_server_ms']:6.0f} ms (incl. queue)  end-to-end "
+            + ("-" if e2e is None else f"{e2e:6.0f} ms")
+        )
         note = notes.note(result.confidence.value, result.confidence.reason)
         if note:
             printer(f"      {note}")
@@ -85,25 +92,54 @@ def run_demo(out_dir: str | Path = "out", frames: int = 24, size: tuple[int, int
     server = Server(ServerOptions(bind="tcp://127.0.0.1:*", workers=1)).start()
     try:
         address = server.connect_address
-        printer(f"arlight demo: server on {address}; streaming the synthetic scene "
-                f"({frames} frames, {size[0]}x{size[1]}, preset {preset}, lossless) to "
-                f"session {DEMO_SESSION!r}; display writes {out}/")
-        display = DisplayClient(DisplayOptions(server=address, session=DEMO_SESSION,
-                                               out_dir=str(out), video=video,
-                                               idle_exit_s=120.0, token=token),
-                                on_result=on_result)
+        printer(
+            f"arlight demo: server on {address}; streaming the synthetic scene "
+            f"({frames} frames, {size[0]}x{size[1]}, preset {preset}, lossless) to "
+            f"session {DEMO_SESSION!r}; display writes {out}/"
+        )
+        display = DisplayClient(
+            DisplayOptions(
+                server=address,
+                session=DEMO_SESSION,
+                out_dir=str(out),
+                video=video,
+                idle_exit_s=120.0,
+                token=token,
+            ),
+            on_result=on_result,
+        )
         with _display_in_background(display):
-            capture = CaptureClient(source, StreamOptions(
-                server=address, session=DEMO_SESSION, client_name="arlight-demo",
-                mode="lossless", rate="max", preset=preset, want_composite=True,
-                timestamps="capture", overrides={}, scene=demo_scene(size), token=token))
+            capture = CaptureClient(
+                source,
+                StreamOptions(
+                    server=address,
+                    session=DEMO_SESSION,
+                    client_name="arlight-demo",
+                    mode="lossless",
+                    rate="max",
+                    preset=preset,
+                    want_composite=True,
+                    timestamps="capture",
+                    overrides={},
+                    scene=demo_scene(size),
+                    token=token,
+                ),
+            )
             stream = capture.run()
     finally:
         server.stop()
     if notes.summary():
         printer(f"arlight demo: {notes.summary()}")
-    summary = _summary(display.summary.to_dict(), stream, errors, pipeline_ms, frames, size,
-                       preset, time.monotonic() - started)
+    summary = _summary(
+        display.summary.to_dict(),
+        stream,
+        errors,
+        pipeline_ms,
+        frames,
+        size,
+        preset,
+        time.monotonic() - started,
+    )
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 
@@ -132,8 +168,16 @@ def _display_in_background(display) -> Iterator[None]:
         raise errors[0]
 
 
-def _summary(shown: dict, stream, errors: dict[int, float], pipeline_ms: list[float],
-             frames: int, size: tuple[int, int], preset: str, wall_time_s: float) -> dict:
+def _summary(
+    shown: dict,
+    stream,
+    errors: dict[int, float],
+    pipeline_ms: list[float],
+    frames: int,
+    size: tuple[int, int],
+    preset: str,
+    wall_time_s: float,
+) -> dict:
     """summary.json: what the display received, the capture client's counts, the errors.
 
     fps is what the service delivered: results per second of streaming (first frame sent to
@@ -145,25 +189,32 @@ def _summary(shown: dict, stream, errors: dict[int, float], pipeline_ms: list[fl
     return {
         "arlight_version": __version__,
         "scene": {"source": "synthetic", "frames": frames, "width": size[0], "height": size[1]},
-        "preset": preset, "mode": "lossless", "session": DEMO_SESSION,
-        "frames_sent": stream.frames_sent, "results": shown["results"],
-        "composites": shown["composites"], "frame_errors": len(stream.errors),
+        "preset": preset,
+        "mode": "lossless",
+        "session": DEMO_SESSION,
+        "frames_sent": stream.frames_sent,
+        "results": shown["results"],
+        "composites": shown["composites"],
+        "frame_errors": len(stream.errors),
         "fps": round(shown["results"] / stream.elapsed_s, 3) if stream.elapsed_s > 0 else None,
         "pipeline_ms_median": None if median_pipeline_ms is None else round(median_pipeline_ms, 3),
         "pipeline_fps": (round(1000.0 / median_pipeline_ms, 3) if median_pipeline_ms else None),
         "display_fps": shown["fps"],
         "latency_ms": shown["latency_ms"],
-        "capture_round_trip_ms_median": (round(float(np.median(stream.latencies_s)) * 1e3, 3)
-                                         if stream.latencies_s else None),
+        "capture_round_trip_ms_median": (
+            round(float(np.median(stream.latencies_s)) * 1e3, 3) if stream.latencies_s else None
+        ),
         "timings_ms_median": shown["timings_ms_median"],
         "angular_error_deg": {
             "median": round(float(np.median(valid_errors)), 3) if valid_errors else None,
-            "p90": round(float(np.percentile(valid_errors, 90)), 3) if valid_errors else None},
-        "frames_dropped": shown["frames_dropped"], "reconnects": stream.reconnects,
+            "p90": round(float(np.percentile(valid_errors, 90)), 3) if valid_errors else None,
+        },
+        "frames_dropped": shown["frames_dropped"],
+        "reconnects": stream.reconnects,
         "wall_time_s": round(wall_time_s, 3),
         "composite": "the input frame with a virtual sphere and torus rendered in "
-                     "(differential rendering: their shadows, occlusion, one bounce)",
+        "(differential rendering: their shadows, occlusion, one bounce)",
         "latency_note": "end-to-end = display receive time - capture timestamp (one clock); "
-                        "lossless mode queues up to `credits` frames, so it includes waiting; "
-                        "pipeline_ms is the pipeline alone",
+        "lossless mode queues up to `credits` frames, so it includes waiting; "
+        "pipeline_ms is the pipeline alone",
     }

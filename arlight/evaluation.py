@@ -34,9 +34,13 @@ GT_FILE = "lighting_gt.json"
 
 
 # the shared set's categories (no "layout" key there) and the layout each stands for
-CATEGORY_LAYOUTS = {"a_static": "static", "b_dynamic_object": "dynamic",
-                    "c_light_change": "light_change", "d_indoor_env": "indoor",
-                    "e_few_normals": "few_normals"}
+CATEGORY_LAYOUTS = {
+    "a_static": "static",
+    "b_dynamic_object": "dynamic",
+    "c_light_change": "light_change",
+    "d_indoor_env": "indoor",
+    "e_few_normals": "few_normals",
+}
 PROBE_FIELDS = ("dominant_dir_upper_camera", "dominant_dir_camera", "sh_lum_upper_world")
 
 
@@ -96,31 +100,44 @@ def load_ground_truth(folder: str | Path) -> list[FrameTruth]:
     data = json.loads(path.read_text())
     reference = str(data.get("truth_reference", "distant"))
     if reference not in ("distant", "probe"):
-        raise GroundTruthError(f"{path}: truth_reference {reference!r} is neither 'distant' "
-                               "nor 'probe'")
+        raise GroundTruthError(
+            f"{path}: truth_reference {reference!r} is neither 'distant' nor 'probe'"
+        )
     layout = layout_of(data)
     truths = []
     for k, f in enumerate(data["frames"]):
         source = f
         if reference == "probe":
             source = f.get("probe")
-            missing = (list(PROBE_FIELDS) if not isinstance(source, dict)
-                       else [name for name in PROBE_FIELDS if name not in source])
+            missing = (
+                list(PROBE_FIELDS)
+                if not isinstance(source, dict)
+                else [name for name in PROBE_FIELDS if name not in source]
+            )
             if missing:
                 raise GroundTruthError(
                     f"{path}: truth_reference is 'probe' but frame {f.get('index', k)} has "
                     f"no probe {', '.join(missing)} (expected frames[i]['probe'] with "
-                    f"{', '.join(PROBE_FIELDS)})")
+                    f"{', '.join(PROBE_FIELDS)})"
+                )
         upper_sh = source.get("sh_lum_upper_world")
         env_map = f.get("env_map")
-        truths.append(FrameTruth(
-            dominant_camera=np.asarray(source["dominant_dir_camera"], float),
-            dominant_upper_camera=np.asarray(source.get("dominant_dir_upper_camera",
-                                                        source["dominant_dir_camera"]), float),
-            sh_upper_world=(None if upper_sh is None
-                            else sh.toggle_condon_shortley(np.asarray(upper_sh, float))),
-            env_map=None if env_map is None else str(env_map),
-            layout=layout, reference=reference))
+        truths.append(
+            FrameTruth(
+                dominant_camera=np.asarray(source["dominant_dir_camera"], float),
+                dominant_upper_camera=np.asarray(
+                    source.get("dominant_dir_upper_camera", source["dominant_dir_camera"]), float
+                ),
+                sh_upper_world=(
+                    None
+                    if upper_sh is None
+                    else sh.toggle_condon_shortley(np.asarray(upper_sh, float))
+                ),
+                env_map=None if env_map is None else str(env_map),
+                layout=layout,
+                reference=reference,
+            )
+        )
     return truths
 
 
@@ -136,18 +153,22 @@ def scene_truth(scene) -> list[FrameTruth]:
     up = dirs[dirs[:, 1] > 0]
     solid_angle = np.full(len(up), 4.0 * math.pi / len(dirs))
     truths = []
-    for frame, sun, whole in zip(scene.frames, scene.sun_direction_world, scene.sh_world,
-                                 strict=True):
+    for frame, sun, whole in zip(
+        scene.frames, scene.sun_direction_world, scene.sh_world, strict=True
+    ):
         lighting = Lighting(sun_direction=np.asarray(sun, float))
         sky = lighting.sky_radiance(up) @ LUMINANCE_RGB
-        upper = (sh.project_samples(up, sky, solid_angle, 4)
-                 + sh.directional_light(lighting.sun_direction,
-                                        float(LUMINANCE_RGB @ lighting.sun_rgb), 4))
+        upper = sh.project_samples(up, sky, solid_angle, 4) + sh.directional_light(
+            lighting.sun_direction, float(LUMINANCE_RGB @ lighting.sun_rgb), 4
+        )
         cam_from_world = np.asarray(frame.pose, float)[:3, :3].T
-        truths.append(FrameTruth(
-            dominant_camera=cam_from_world @ sh.dominant_direction(whole),
-            dominant_upper_camera=cam_from_world @ sh.dominant_direction(upper),
-            sh_upper_world=upper))
+        truths.append(
+            FrameTruth(
+                dominant_camera=cam_from_world @ sh.dominant_direction(whole),
+                dominant_upper_camera=cam_from_world @ sh.dominant_direction(upper),
+                sh_upper_world=upper,
+            )
+        )
     return truths
 
 
@@ -173,18 +194,19 @@ def _scaled_distance(estimate: np.ndarray, truth: np.ndarray) -> float:
 def sh_error(estimate_world: np.ndarray, truth_world: np.ndarray) -> float:
     """Scale-free relative L2 error of radiance SH over the bands both have (world frame)."""
     n = min(len(estimate_world), len(truth_world))
-    return _scaled_distance(np.asarray(estimate_world, float)[:n],
-                            np.asarray(truth_world, float)[:n])
+    return _scaled_distance(
+        np.asarray(estimate_world, float)[:n], np.asarray(truth_world, float)[:n]
+    )
 
 
-def shading_error(estimate_world: np.ndarray, truth_world: np.ndarray,
-                  normals_world: np.ndarray) -> float:
+def shading_error(
+    estimate_world: np.ndarray, truth_world: np.ndarray, normals_world: np.ndarray
+) -> float:
     """Scale-free relative RMS error of the irradiance on unit normals (N, 3), world frame."""
     normals = np.asarray(normals_world, float).reshape(-1, 3)
     if len(normals) == 0:
         return float("nan")
     n = min(len(estimate_world), len(truth_world))
-    est = sh.evaluate(sh.irradiance_from_radiance(np.asarray(estimate_world, float)[:n]),
-                      normals)
+    est = sh.evaluate(sh.irradiance_from_radiance(np.asarray(estimate_world, float)[:n]), normals)
     gt = sh.evaluate(sh.irradiance_from_radiance(np.asarray(truth_world, float)[:n]), normals)
     return _scaled_distance(est, gt)

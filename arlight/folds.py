@@ -85,20 +85,36 @@ def leave_one_map_out(per_map: dict[str, dict[str, float]]) -> Folds:
     maps = list(per_map[candidates[0]])
     for name in candidates[1:]:
         if set(per_map[name]) != set(maps):
-            raise FoldsError(f"candidates {candidates[0]!r} and {name!r} were scored on "
-                             f"different maps: {sorted(maps)} vs {sorted(per_map[name])}")
+            raise FoldsError(
+                f"candidates {candidates[0]!r} and {name!r} were scored on "
+                f"different maps: {sorted(maps)} vs {sorted(per_map[name])}"
+            )
     if len(maps) < 2:
-        raise FoldsError(f"leaving one map out needs at least two environment maps; the data "
-                         f"has {len(maps)} ({', '.join(maps) or 'none'})")
+        raise FoldsError(
+            f"leaving one map out needs at least two environment maps; the data "
+            f"has {len(maps)} ({', '.join(maps) or 'none'})"
+        )
     folds = []
     for held_out in maps:
-        in_sample = {c: float(np.median([per_map[c][m] for m in maps if m != held_out]))
-                     for c in candidates}
+        in_sample = {
+            c: float(np.median([per_map[c][m] for m in maps if m != held_out])) for c in candidates
+        }
         chosen = _argmin(in_sample)
-        folds.append(Fold(held_out=held_out, chosen=chosen, in_sample=in_sample[chosen],
-                          chosen_error=float(per_map[chosen][held_out]),
-                          errors={c: float(per_map[c][held_out]) for c in candidates}))
+        folds.append(
+            Fold(
+                held_out=held_out,
+                chosen=chosen,
+                in_sample=in_sample[chosen],
+                chosen_error=float(per_map[chosen][held_out]),
+                errors={c: float(per_map[c][held_out]) for c in candidates},
+            )
+        )
     fixed = {c: float(np.median([per_map[c][m] for m in maps])) for c in candidates}
-    return Folds(candidates=candidates, maps=maps, folds=folds,
-                 held_out_median=float(np.median([f.chosen_error for f in folds])),
-                 fixed_median=fixed, best_in_sample=_argmin(fixed))
+    return Folds(
+        candidates=candidates,
+        maps=maps,
+        folds=folds,
+        held_out_median=float(np.median([f.chosen_error for f in folds])),
+        fixed_median=fixed,
+        best_in_sample=_argmin(fixed),
+    )

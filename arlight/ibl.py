@@ -65,8 +65,9 @@ class SyntheticPanorama:
         pass
 
 
-def synthetic_panorama(num_frames: int = SYNTHETIC_FRAMES, width: int = SYNTHETIC_WIDTH,
-                       key: float = 0.18) -> SyntheticPanorama:
+def synthetic_panorama(
+    num_frames: int = SYNTHETIC_FRAMES, width: int = SYNTHETIC_WIDTH, key: float = 0.18
+) -> SyntheticPanorama:
     """The built-in sky (sun 35 degrees up) turning by 45 degrees per frame at 30 fps; one
     exposure for the whole clip (that of the first frame), as a camera with a locked
     exposure records it."""
@@ -101,8 +102,9 @@ class FrameOutput:
     image: np.ndarray | None = None  # the source's frame (LDR uint8 RGB, or the HDR map)
 
 
-def process_frames(frames: Iterable[tuple[float, np.ndarray]], params: IblParams,
-                   hdr_input: bool) -> Iterator[FrameOutput]:
+def process_frames(
+    frames: Iterable[tuple[float, np.ndarray]], params: IblParams, hdr_input: bool
+) -> Iterator[FrameOutput]:
     """Each (timestamp_s, image) -> FrameOutput; LDR images through `params.operator`."""
     for i, (t, image) in enumerate(frames):
         t0 = time.perf_counter()
@@ -136,8 +138,9 @@ class FrameRenderer:
         self.setup = setup
         self.renderer = ibl_render.IblRenderer(setup.scene)
         camera = ibl_render.view_camera(setup.size, setup.hfov_deg)
-        poses = (ibl_render.eye_poses(setup.world_from_cam) if setup.stereo
-                 else (setup.world_from_cam,))
+        poses = (
+            ibl_render.eye_poses(setup.world_from_cam) if setup.stereo else (setup.world_from_cam,)
+        )
         self.views = [self.renderer.prepare_view(camera, pose) for pose in poses]
         self.timings_ms: list[dict[str, float]] = []
         self._hdr_exposure: float | None = None
@@ -159,8 +162,9 @@ class FrameRenderer:
         light = r.frame_light(frame.hdr, frame.result.diffuse_map, ldr, exposure)
         images = [self.renderer.render(view, light).rgb for view in self.views]
         out = r.side_by_side(*images) if self.setup.stereo else images[0]
-        self.timings_ms.append({"Pyramid": light.pyramid_ms,
-                                "Render": (time.perf_counter() - t0) * 1e3})
+        self.timings_ms.append(
+            {"Pyramid": light.pyramid_ms, "Render": (time.perf_counter() - t0) * 1e3}
+        )
         return out
 
 

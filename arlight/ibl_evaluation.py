@@ -40,9 +40,9 @@ def irradiance_at(radiance: np.ndarray, normals: np.ndarray) -> np.ndarray:
     n = np.asarray(normals, dtype=np.float32)
     out = np.zeros(n.shape[0], dtype=np.float64)
     for start in range(0, dirs.shape[0], _CHUNK_PIXELS):
-        cos = n @ dirs[start:start + _CHUNK_PIXELS].T
+        cos = n @ dirs[start : start + _CHUNK_PIXELS].T
         np.maximum(cos, 0.0, out=cos)
-        out += cos @ weighted[start:start + _CHUNK_PIXELS]
+        out += cos @ weighted[start : start + _CHUNK_PIXELS]
     return out
 
 
@@ -62,8 +62,9 @@ class HdrTruth:
         angle = 2.0 * np.pi * shift_columns / width
         c, s = np.cos(angle), np.sin(angle)
         r = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # R_y(angle)
-        return HdrTruth(sh.rotate(self.sh, r), r @ self.dominant_direction,
-                        self.normals @ r.T, self.irradiance)
+        return HdrTruth(
+            sh.rotate(self.sh, r), r @ self.dominant_direction, self.normals @ r.T, self.irradiance
+        )
 
 
 def hdr_truth(hdr_rgb: np.ndarray, num_normals: int = REFERENCE_NORMALS) -> HdrTruth:
@@ -84,8 +85,9 @@ def best_scale(estimate: np.ndarray, truth: np.ndarray) -> float:
     return float(q.sum() / qq) if qq > 0.0 else 0.0
 
 
-def relative_irradiance_error(estimate: np.ndarray, truth: np.ndarray,
-                              scale: float | None = None) -> float:
+def relative_irradiance_error(
+    estimate: np.ndarray, truth: np.ndarray, scale: float | None = None
+) -> float:
     """mean |s e - E| / E after the best scale s (or the given one)."""
     e = np.asarray(estimate, dtype=np.float64)
     t = np.asarray(truth, dtype=np.float64)

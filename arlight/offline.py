@@ -71,8 +71,9 @@ class EstimatedFrame:
     process_ms: float
 
 
-def estimate_frames(pipeline, frames: Iterable[FrameInput],
-                    exports: Sequence[str] = ()) -> Iterator[EstimatedFrame]:
+def estimate_frames(
+    pipeline, frames: Iterable[FrameInput], exports: Sequence[str] = ()
+) -> Iterator[EstimatedFrame]:
     """Run `pipeline` (a Pipeline: one stream's state) over `frames` in order, lazily.
 
     FrameError for a frame the pipeline refuses; the frames before it have been yielded."""
@@ -80,12 +81,12 @@ def estimate_frames(pipeline, frames: Iterable[FrameInput],
         t0 = time.perf_counter()
         result = pipeline.process(frame)
         process_ms = (time.perf_counter() - t0) * 1e3
-        yield EstimatedFrame(index, frame, result, frame_record(result, index, exports),
-                             process_ms)
+        yield EstimatedFrame(index, frame, result, frame_record(result, index, exports), process_ms)
 
 
-def open_recording(path: str, max_frames: int | None = None
-                   ) -> tuple[PinholeCamera, int, Iterator[FrameInput]]:
+def open_recording(
+    path: str, max_frames: int | None = None
+) -> tuple[PinholeCamera, int, Iterator[FrameInput]]:
     """(camera, number of frames, lazy FrameInputs) of a recording (`arlight record`).
 
     Each frame as the server receives it: colour and depth as recorded (the pipeline
@@ -101,15 +102,25 @@ def open_recording(path: str, max_frames: int | None = None
     config = recording.hello.config
     cal = config.calibration
     if cal is None:
-        raise RecordingError(f"{path}: calibration: the recorded session has none (a "
-                             "panorama-only stream); there is no RGB-D to estimate from")
+        raise RecordingError(
+            f"{path}: calibration: the recorded session has none (a "
+            "panorama-only stream); there is no RGB-D to estimate from"
+        )
     if any(float(d) != 0.0 for d in (cal.D or ())):
-        raise RecordingError(f"{path}: calibration.D: distortion model "
-                             f"{cal.distortion_model!r} with non-zero coefficients is not "
-                             "supported; undistort the images before recording")
+        raise RecordingError(
+            f"{path}: calibration.D: distortion model "
+            f"{cal.distortion_model!r} with non-zero coefficients is not "
+            "supported; undistort the images before recording"
+        )
     try:
-        camera = PinholeCamera(int(cal.width), int(cal.height), float(cal.fx), float(cal.fy),
-                               float(cal.cx), float(cal.cy))
+        camera = PinholeCamera(
+            int(cal.width),
+            int(cal.height),
+            float(cal.fx),
+            float(cal.fy),
+            float(cal.cx),
+            float(cal.cy),
+        )
     except (TypeError, ValueError) as exc:
         raise RecordingError(f"{path}: calibration: {exc}") from None
     n = recording.num_frames if max_frames is None else min(max_frames, recording.num_frames)
@@ -121,15 +132,23 @@ def open_recording(path: str, max_frames: int | None = None
                 return
             message = decode(parts)
             if not isinstance(message, Frame):
-                raise RecordingError(f"{path}: message {i} on the frame channel is a "
-                                     f"{type(message).__name__}, not a Frame")
+                raise RecordingError(
+                    f"{path}: message {i} on the frame channel is a "
+                    f"{type(message).__name__}, not a Frame"
+                )
             if message.color is None or message.depth is None:
-                raise RecordingError(f"{path}: frame {i} carries no colour and depth image "
-                                     "(a panorama-only frame)")
+                raise RecordingError(
+                    f"{path}: frame {i} carries no colour and depth image (a panorama-only frame)"
+                )
             pose = None if message.pose is None else np.asarray(message.pose, np.float64)
-            yield FrameInput(color=message.color, depth=message.depth, depth_scale=depth_scale,
-                             timestamp=float(message.timestamp), pose=pose,
-                             panorama=message.panorama)
+            yield FrameInput(
+                color=message.color,
+                depth=message.depth,
+                depth_scale=depth_scale,
+                timestamp=float(message.timestamp),
+                pose=pose,
+                panorama=message.panorama,
+            )
 
     return camera, n, frames()
 
@@ -160,8 +179,10 @@ class FrameNotes:
         if not depth_usable:
             self.without_depth += 1
             self._last_reason = None
-            return ("no usable depth (every depth pixel is 0 or missing): no light estimated; "
-                    "the zero light printed is not a measurement")
+            return (
+                "no usable depth (every depth pixel is 0 or missing): no light estimated; "
+                "the zero light printed is not a measurement"
+            )
         if not confidence < LOW_CONFIDENCE:
             self._last_reason = None
             return None
@@ -178,6 +199,8 @@ class FrameNotes:
         if self.without_depth:
             parts.append(f"{self.without_depth} of {self.frames} frames without usable depth")
         if self.low_confidence:
-            parts.append(f"{self.low_confidence} of {self.frames} frames with a confidence "
-                         f"below {LOW_CONFIDENCE:g} (the reason printed where its causes change)")
+            parts.append(
+                f"{self.low_confidence} of {self.frames} frames with a confidence "
+                f"below {LOW_CONFIDENCE:g} (the reason printed where its causes change)"
+            )
         return "; ".join(parts) or None

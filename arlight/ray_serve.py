@@ -54,8 +54,9 @@ MAX_LOSSES_IN_A_ROW = 3
 class SessionActor:
     """The body of one session's Ray actor: its Pipeline, one frame at a time."""
 
-    def __init__(self, config: Config, camera: PinholeCamera, scene: VirtualScene | None,
-                 num_cpus: int):
+    def __init__(
+        self, config: Config, camera: PinholeCamera, scene: VirtualScene | None, num_cpus: int
+    ):
         from arlight.pipeline.pipeline import Pipeline
         from arlight.pipeline.runtime import configure_process, limit_numba_threads
 
@@ -65,8 +66,9 @@ class SessionActor:
         self._make = lambda: Pipeline(config, camera, scene=scene)
         self._pipeline = self._make()
 
-    def process(self, frame: FrameInput, render_light: RenderLight | None = None
-                ) -> tuple[FrameResult, int]:
+    def process(
+        self, frame: FrameInput, render_light: RenderLight | None = None
+    ) -> tuple[FrameResult, int]:
         """(FrameResult, the volume's block count after it) of one frame."""
         result = self._pipeline.process(frame, render_light=render_light)
         return result, self._pipeline.volume_blocks
@@ -98,8 +100,9 @@ def connect(address: str | None) -> tuple[Any, bool]:
     except Exception as exc:  # noqa: BLE001 - Ray raises many types for "cannot connect"
         where = "a local Ray" if local else f"--ray {address}"
         first = (str(exc).strip().splitlines() or [""])[0][:300]
-        raise BatchUsageError(f"{where}: cannot start or connect ({type(exc).__name__}: "
-                              f"{first})") from None
+        raise BatchUsageError(
+            f"{where}: cannot start or connect ({type(exc).__name__}: {first})"
+        ) from None
     return ray, True
 
 
@@ -115,9 +118,11 @@ def _check_reachable(address: str) -> None:
     try:
         socket.create_connection((host.strip("[]"), int(port)), CONNECT_CHECK_S).close()
     except (OSError, ValueError) as exc:
-        raise BatchUsageError(f"--ray {address}: no Ray cluster answers there ({exc}); start "
-                              "one (`ray start --head`) or give its address (HEAD:6379, "
-                              "ray://HEAD:10001 or auto)") from None
+        raise BatchUsageError(
+            f"--ray {address}: no Ray cluster answers there ({exc}); start "
+            "one (`ray start --head`) or give its address (HEAD:6379, "
+            "ray://HEAD:10001 or auto)"
+        ) from None
 
 
 class RayCompute:
@@ -141,8 +146,11 @@ class RayCompute:
         self._count = 0
         self.actors_lost = 0
         cluster = ray.cluster_resources()
-        log.info("Ray: %g CPUs, %g GPUs in the cluster; one actor per session",
-                 cluster.get("CPU", 0), cluster.get("GPU", 0))
+        log.info(
+            "Ray: %g CPUs, %g GPUs in the cluster; one actor per session",
+            cluster.get("CPU", 0),
+            cluster.get("GPU", 0),
+        )
 
     def actor(self, session: Session) -> Any:
         """The session's actor (None if it has none now): tests and diagnostics."""
@@ -159,27 +167,41 @@ class RayCompute:
             self._count += 1
             number = self._count
         config = session.pipeline_config
-        res = actor_resources(session.config.preset, config.device,
-                              self._ray.cluster_resources())
-        actor = self._cls.options(num_cpus=res["num_cpus"], num_gpus=res["num_gpus"],
-                                  max_restarts=0, name=f"arlight-{os.getpid()}-{number}",
-                                  ).remote(config, session.camera, session.scene,
-                                           res["num_cpus"])
+        res = actor_resources(session.config.preset, config.device, self._ray.cluster_resources())
+        actor = self._cls.options(
+            num_cpus=res["num_cpus"],
+            num_gpus=res["num_gpus"],
+            max_restarts=0,
+            name=f"arlight-{os.getpid()}-{number}",
+        ).remote(config, session.camera, session.scene, res["num_cpus"])
         with self._lock:
             self._actors[session] = actor
-        log.info("session %s: pipeline in Ray actor %d (%d CPU, %d GPU)", session.name, number,
-                 res["num_cpus"], res["num_gpus"])
+        log.info(
+            "session %s: pipeline in Ray actor %d (%d CPU, %d GPU)",
+            session.name,
+            number,
+            res["num_cpus"],
+            res["num_gpus"],
+        )
         return actor
 
-    def __call__(self, frame: FrameInput, session: Session, render_light: RenderLight | None,
-                 deadline: Deadline) -> FrameResult:
+    def __call__(
+        self,
+        frame: FrameInput,
+        session: Session,
+        render_light: RenderLight | None,
+        deadline: Deadline,
+    ) -> FrameResult:
         """The session's estimate of one frame (a ProcessStep, server/worker.py): its actor's
         Pipeline.process(frame, render_light), `deadline` called while it waits."""
         from arlight.pipeline.pipeline import FrameError
 
         if session.camera is None:
-            raise FrameError("color", "this session has no camera calibration (a panorama-"
-                             "only session): send frames without colour and depth")
+            raise FrameError(
+                "color",
+                "this session has no camera calibration (a panorama-"
+                "only session): send frames without colour and depth",
+            )
         ray = self._ray
         actor = self._actor_for(session)
         ref = actor.process.remote(frame, render_light)
@@ -217,18 +239,24 @@ class RayCompute:
             self._losses[session] = losses
             self.actors_lost += 1
         why = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
-        log.warning("session %s: its Ray actor was lost (%s: %s); %s", session.name,
-                    type(exc).__name__, why,
-                    "the frame is reported retryable and the next goes to a new actor (a "
-                    "fresh volume)" if losses < MAX_LOSSES_IN_A_ROW else
-                    f"{losses} actors lost in a row without a finished frame: the frame fails")
+        log.warning(
+            "session %s: its Ray actor was lost (%s: %s); %s",
+            session.name,
+            type(exc).__name__,
+            why,
+            "the frame is reported retryable and the next goes to a new actor (a fresh volume)"
+            if losses < MAX_LOSSES_IN_A_ROW
+            else f"{losses} actors lost in a row without a finished frame: the frame fails",
+        )
         with contextlib.suppress(Exception):
             self._ray.kill(actor, no_restart=True)
         if losses >= MAX_LOSSES_IN_A_ROW:
             with self._lock:
                 self._losses.pop(session, None)
-            raise RuntimeError(f"{losses} Ray actors of this session were lost in a row "
-                               f"without finishing a frame (last: {why})")
+            raise RuntimeError(
+                f"{losses} Ray actors of this session were lost in a row "
+                f"without finishing a frame (last: {why})"
+            )
         raise PipelineLost(f"the session's pipeline (a Ray actor) was lost: {why}")
 
     def release(self, session: Session) -> None:

@@ -33,9 +33,16 @@ LIBRARIES = ("numpy", "open3d", "numba", "scipy", "opencv-contrib-python-headles
 
 def _commit() -> str:
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, check=False, cwd=os.path.dirname(__file__)
-                              ).stdout.strip() or "unknown"
+        return (
+            subprocess.run(
+                ["git", "rev-parse", "--short", "HEAD"],
+                capture_output=True,
+                text=True,
+                check=False,
+                cwd=os.path.dirname(__file__),
+            ).stdout.strip()
+            or "unknown"
+        )
     except OSError:
         return "unknown"
 
@@ -54,8 +61,11 @@ def _spread(values: list[float]) -> dict[str, float | None]:
     if not values:
         return {"median": None, "p10": None, "p90": None}
     v = np.asarray(values, float)
-    return {"median": float(np.median(v)), "p10": float(np.percentile(v, 10)),
-            "p90": float(np.percentile(v, 90))}
+    return {
+        "median": float(np.median(v)),
+        "p10": float(np.percentile(v, 10)),
+        "p90": float(np.percentile(v, 90)),
+    }
 
 
 def _finite(values: list[float]) -> list[float]:
@@ -75,13 +85,21 @@ def _map_figures(frames: list[tuple[str, float]]) -> dict:
         errors.setdefault(env_map, []).append(error)
     medians = {m: float(np.median(e)) for m, e in errors.items()}
     worst = max(medians, key=lambda m: medians[m])
-    return {"maps": medians, "median_over_maps": float(np.median(list(medians.values()))),
-            "p90_all_frames": float(np.percentile([e for _, e in frames], 90)),
-            "worst_map": worst, "worst_map_median": medians[worst], "frames": len(frames)}
+    return {
+        "maps": medians,
+        "median_over_maps": float(np.median(list(medians.values()))),
+        "p90_all_frames": float(np.percentile([e for _, e in frames], 90)),
+        "worst_map": worst,
+        "worst_map_median": medians[worst],
+        "frames": len(frames),
+    }
 
 
-def group_by_map(errors_deg: dict[str, list[float]], env_maps: dict[str, list[str | None]],
-                 layouts: dict[str, str | None] | None = None) -> dict | None:
+def group_by_map(
+    errors_deg: dict[str, list[float]],
+    env_maps: dict[str, list[str | None]],
+    layouts: dict[str, str | None] | None = None,
+) -> dict | None:
     """Per-frame errors grouped by the environment map that lit each frame, and by layout.
 
     errors_deg: per sequence, per scored frame, the angular error (degrees) against the
@@ -99,26 +117,36 @@ def group_by_map(errors_deg: dict[str, list[float]], env_maps: dict[str, list[st
         if maps is None:
             continue
         layout = layouts.get(seq) or "unknown"
-        rows += [(m, seq, layout, float(e)) for m, e in zip(maps, errors, strict=True)
-                 if m is not None and math.isfinite(e)]
+        rows += [
+            (m, seq, layout, float(e))
+            for m, e in zip(maps, errors, strict=True)
+            if m is not None and math.isfinite(e)
+        ]
     if not rows:
         return None
     whole = _map_figures([(m, e) for m, _, _, e in rows])
     per_map = {}
     for env_map, median in whole.pop("maps").items():
         mine = [r for r in rows if r[0] == env_map]
-        per_map[env_map] = {"median": median,
-                         "p90": float(np.percentile([r[3] for r in mine], 90)),
-                         "frames": len(mine), "sequences": _unique(r[1] for r in mine),
-                         "layouts": _unique(r[2] for r in mine)}
-    by_layout = {layout: _map_figures([(m, e) for m, _, lay, e in rows if lay == layout])
-                 for layout in sorted({r[2] for r in rows})}
+        per_map[env_map] = {
+            "median": median,
+            "p90": float(np.percentile([r[3] for r in mine], 90)),
+            "frames": len(mine),
+            "sequences": _unique(r[1] for r in mine),
+            "layouts": _unique(r[2] for r in mine),
+        }
+    by_layout = {
+        layout: _map_figures([(m, e) for m, _, lay, e in rows if lay == layout])
+        for layout in sorted({r[2] for r in rows})
+    }
     return {"metric": "angle_upper_deg", "maps": per_map, **whole, "layouts": by_layout}
 
 
-def _accuracy(per_sequence: dict[str, dict[str, list[float]]],
-              env_maps: dict[str, list[str | None]] | None = None,
-              layouts: dict[str, str | None] | None = None) -> dict | None:
+def _accuracy(
+    per_sequence: dict[str, dict[str, list[float]]],
+    env_maps: dict[str, list[str | None]] | None = None,
+    layouts: dict[str, str | None] | None = None,
+) -> dict | None:
     """Aggregates over sequences (median of per-sequence medians, p90 over all frames) and
     over environment maps (`group_by_map`; "by_map" None without map names)."""
     scored = {name: s for name, s in per_sequence.items() if s["angle_upper_deg"]}
@@ -128,22 +156,28 @@ def _accuracy(per_sequence: dict[str, dict[str, list[float]]],
     out: dict = {"sequences": {}}
     for name, s in scored.items():
         out["sequences"][name] = {
-            key: (float(np.median(_finite(v))) if _finite(v) else None) for key, v in s.items()}
+            key: (float(np.median(_finite(v))) if _finite(v) else None) for key, v in s.items()
+        }
         out["sequences"][name]["p90_angle_upper_deg"] = float(
-            np.percentile(s["angle_upper_deg"], 90))
+            np.percentile(s["angle_upper_deg"], 90)
+        )
         out["sequences"][name]["frames"] = len(s["angle_upper_deg"])
         out["sequences"][name]["env_maps"] = _unique(
-            m for m in env_maps.get(name, []) if m is not None)
+            m for m in env_maps.get(name, []) if m is not None
+        )
         out["sequences"][name]["layout"] = layouts.get(name)
     for key in ("angle_upper_deg", "angle_deg", "sh_error", "shading_error"):
         medians = [m[key] for m in out["sequences"].values() if m[key] is not None]
         every = [x for s in scored.values() for x in _finite(s[key])]
-        out[key] = {"median_of_medians": float(np.median(medians)) if medians else None,
-                    "p90_all_frames": float(np.percentile(every, 90)) if every else None,
-                    "worst_sequence_median": float(max(medians)) if medians else None}
+        out[key] = {
+            "median_of_medians": float(np.median(medians)) if medians else None,
+            "p90_all_frames": float(np.percentile(every, 90)) if every else None,
+            "worst_sequence_median": float(max(medians)) if medians else None,
+        }
     out["confidence_spearman"] = confidence_spearman(scored)
-    out["by_map"] = group_by_map({n: s["angle_upper_deg"] for n, s in scored.items()},
-                                 env_maps, layouts)
+    out["by_map"] = group_by_map(
+        {n: s["angle_upper_deg"] for n, s in scored.items()}, env_maps, layouts
+    )
     return out
 
 
@@ -154,17 +188,23 @@ def fold_figures(configs: dict[str, dict]) -> dict:
     configuration, fewer than two maps, no map names), else it is None."""
     from arlight.folds import FoldsError, leave_one_map_out
 
-    per_map = {name: {m: v["median"] for m, v in c["accuracy"]["by_map"]["maps"].items()}
-               for name, c in configs.items()
-               if c.get("accuracy") and c["accuracy"].get("by_map")}
-    base = {"metric": "angle_upper_deg", "candidates": list(per_map),
-            "maps": sorted({m for maps in per_map.values() for m in maps})}
+    per_map = {
+        name: {m: v["median"] for m, v in c["accuracy"]["by_map"]["maps"].items()}
+        for name, c in configs.items()
+        if c.get("accuracy") and c["accuracy"].get("by_map")
+    }
+    base = {
+        "metric": "angle_upper_deg",
+        "candidates": list(per_map),
+        "maps": sorted({m for maps in per_map.values() for m in maps}),
+    }
     if not per_map:
-        return {**base, "note": "no scored frame names its environment map: nothing to hold "
-                                "out"}
+        return {**base, "note": "no scored frame names its environment map: nothing to hold out"}
     if len(per_map) == 1:
-        return {**base, "note": "one configuration: nothing to choose (run several presets "
-                                "or a --sweep)"}
+        return {
+            **base,
+            "note": "one configuration: nothing to choose (run several presets or a --sweep)",
+        }
     try:
         folds = leave_one_map_out(per_map)
     except FoldsError as exc:
@@ -178,9 +218,12 @@ def confidence_spearman(per_sequence: dict[str, dict[str, list[float]]]) -> floa
     None when fewer than 3 frames or either is constant."""
     from scipy.stats import spearmanr
 
-    pairs = [(c, e) for s in per_sequence.values()
-             for c, e in zip(s.get("confidence", []), s["angle_upper_deg"], strict=False)
-             if math.isfinite(c) and math.isfinite(e)]
+    pairs = [
+        (c, e)
+        for s in per_sequence.values()
+        for c, e in zip(s.get("confidence", []), s["angle_upper_deg"], strict=False)
+        if math.isfinite(c) and math.isfinite(e)
+    ]
     if len(pairs) < 3 or len({c for c, _ in pairs}) < 2 or len({e for _, e in pairs}) < 2:
         return None
     return float(spearmanr(*zip(*pairs, strict=True)).statistic)
@@ -192,16 +235,20 @@ def _model(result, config) -> dict:
     the volume's allocated blocks (median over sequences) against its initial hash-map
     capacity and against a dense grid of the same voxel size over volume_size_m."""
     v = config.volume
-    block_bytes = v.block_resolution ** 3 * 8  # tsdf + weight, float32
+    block_bytes = v.block_resolution**3 * 8  # tsdf + weight, float32
     dense_blocks = math.ceil(v.volume_resolution / v.block_resolution) ** 3
     blocks = [b for b in result.volume_blocks.values() if b > 0]
     frames = len(result.bands_estimated)
     return {
         "bands_requested": config.transfer.sh_bands,
-        "bands_estimated_frames": {str(b): result.bands_estimated.count(b)
-                                   for b in sorted(set(result.bands_estimated), reverse=True)},
-        "reused_share": {stage: (sum(flags) / frames if frames else 0.0)
-                         for stage, flags in result.reused.items()},
+        "bands_estimated_frames": {
+            str(b): result.bands_estimated.count(b)
+            for b in sorted(set(result.bands_estimated), reverse=True)
+        },
+        "reused_share": {
+            stage: (sum(flags) / frames if frames else 0.0)
+            for stage, flags in result.reused.items()
+        },
         "volume_blocks_median": float(np.median(blocks)) if blocks else 0.0,
         "volume_mb_median": float(np.median(blocks)) * block_bytes / 2**20 if blocks else 0.0,
         "volume_capacity_mb": v.block_count * block_bytes / 2**20 if v.use_volume else 0.0,
@@ -209,9 +256,15 @@ def _model(result, config) -> dict:
     }
 
 
-def summarise(results: list, data: list[str], frames: int | None, warmup: int,
-              sweeps: list[str], configs_used: list | None = None,
-              folds: bool = False) -> dict:
+def summarise(
+    results: list,
+    data: list[str],
+    frames: int | None,
+    warmup: int,
+    sweeps: list[str],
+    configs_used: list | None = None,
+    folds: bool = False,
+) -> dict:
     """The report as plain JSON values (what report.json holds). configs_used: the
     pipeline Config of each result, in order (for the "model" figures; None: left out);
     folds: add "folds" (`fold_figures`)."""
@@ -219,7 +272,9 @@ def summarise(results: list, data: list[str], frames: int | None, warmup: int,
     for k, r in enumerate(results):
         total = _spread(r.total_ms)
         configs[r.name] = {
-            "overrides": r.overrides, "sweep": r.sweep, "value": r.value,
+            "overrides": r.overrides,
+            "sweep": r.sweep,
+            "value": r.value,
             "stages_ms": {s: _spread(v) for s, v in r.stage_ms.items()},
             "total_ms": total,
             "fps": 1000.0 / total["median"] if total["median"] else None,
@@ -227,12 +282,26 @@ def summarise(results: list, data: list[str], frames: int | None, warmup: int,
         }
         if configs_used is not None:
             configs[r.name]["model"] = _model(r, configs_used[k])
-    maps = sorted({m for c in configs.values() if c["accuracy"] and c["accuracy"]["by_map"]
-                   for m in c["accuracy"]["by_map"]["maps"]})
+    maps = sorted(
+        {
+            m
+            for c in configs.values()
+            if c["accuracy"] and c["accuracy"]["by_map"]
+            for m in c["accuracy"]["by_map"]["maps"]
+        }
+    )
     report = {
-        "arlight": __version__, "commit": _commit(), "machine": platform.machine(),
-        "cpus": os.cpu_count(), "python": sys.version.split()[0], "libraries": _versions(),
-        "data": data, "env_maps": maps, "frames": frames, "warmup": warmup, "sweeps": sweeps,
+        "arlight": __version__,
+        "commit": _commit(),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "python": sys.version.split()[0],
+        "libraries": _versions(),
+        "data": data,
+        "env_maps": maps,
+        "frames": frames,
+        "warmup": warmup,
+        "sweeps": sweeps,
         "configs": configs,
     }
     if folds:
@@ -241,6 +310,7 @@ def summarise(results: list, data: list[str], frames: int | None, warmup: int,
 
 
 # --------------------------------------------------------------------------- tables
+
 
 def _ms(spread: dict) -> str:
     if spread["median"] is None:
@@ -255,38 +325,43 @@ def _num(x: float | None, spec: str = ".1f") -> str:
 def speed_table(report: dict) -> str:
     """The paper's table 1: median [p10-p90] milliseconds per stage, one column per config."""
     names = list(report["configs"])
-    rows = ["| stage (ms) | " + " | ".join(names) + " |",
-            "|---|" + "---|" * len(names)]
+    rows = ["| stage (ms) | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     for stage in STAGES:
-        rows.append(f"| {stage} | " + " | ".join(
-            _ms(report["configs"][n]["stages_ms"][stage]) for n in names) + " |")
-    rows.append("| total | " + " | ".join(_ms(report["configs"][n]["total_ms"])
-                                         for n in names) + " |")
-    rows.append("| FPS | " + " | ".join(_num(report["configs"][n]["fps"], ".2f")
-                                       for n in names) + " |")
+        rows.append(
+            f"| {stage} | "
+            + " | ".join(_ms(report["configs"][n]["stages_ms"][stage]) for n in names)
+            + " |"
+        )
+    rows.append(
+        "| total | " + " | ".join(_ms(report["configs"][n]["total_ms"]) for n in names) + " |"
+    )
+    rows.append(
+        "| FPS | " + " | ".join(_num(report["configs"][n]["fps"], ".2f") for n in names) + " |"
+    )
     return "\n".join(rows)
 
 
 def _worst(figures: dict) -> str:
-    """"12.3 (map_name)": the worst map's median (degrees) and its name."""
+    """ "12.3 (map_name)": the worst map's median (degrees) and its name."""
     return f"{figures['worst_map_median']:.1f} ({figures['worst_map']})"
 
 
 def _by_map_cell(by_map: dict | None) -> str:
     if not by_map:
         return "-"
-    return (f"{by_map['median_over_maps']:.1f} / {by_map['p90_all_frames']:.1f} / "
-            f"{_worst(by_map)}")
+    return f"{by_map['median_over_maps']:.1f} / {by_map['p90_all_frames']:.1f} / {_worst(by_map)}"
 
 
 def accuracy_table(report: dict) -> str:
     """The paper's table 2, per config: angular errors (degrees) against both truths, by
     sequence and by environment map, SH and shading errors (scale-free, 0 = exact), and the
     cost."""
-    rows = ["| config | upper: median of medians / p90 / worst seq. | upper by map: median "
-            "over maps / p90 over frames / worst map | whole sphere: median / p90 | SH error | "
-            "shading error | confidence vs error (Spearman) | ms/frame |",
-            "|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| config | upper: median of medians / p90 / worst seq. | upper by map: median "
+        "over maps / p90 over frames / worst map | whole sphere: median / p90 | SH error | "
+        "shading error | confidence vs error (Spearman) | ms/frame |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for name, c in report["configs"].items():
         a = c["accuracy"]
         if a is None:
@@ -299,7 +374,8 @@ def accuracy_table(report: dict) -> str:
             f"{_num(whole['p90_all_frames'])} | {_num(a['sh_error']['median_of_medians'], '.2f')}"
             f" | {_num(a['shading_error']['median_of_medians'], '.3f')} | "
             f"{_num(a.get('confidence_spearman'), '+.2f')} | "
-            f"{_num(c['total_ms']['median'], '.0f')} |")
+            f"{_num(c['total_ms']['median'], '.0f')} |"
+        )
     return "\n".join(rows) if len(rows) > 2 else ""
 
 
@@ -311,16 +387,24 @@ def sequence_table(report: dict) -> str:
     seqs = list(next(iter(named.values()))["accuracy"]["sequences"])
     rows = ["| sequence | " + " | ".join(named) + " |", "|---|" + "---|" * len(named)]
     for s in seqs:
-        rows.append(f"| {s} | " + " | ".join(
-            _num(c["accuracy"]["sequences"].get(s, {}).get("angle_upper_deg"))
-            for c in named.values()) + " |")
+        rows.append(
+            f"| {s} | "
+            + " | ".join(
+                _num(c["accuracy"]["sequences"].get(s, {}).get("angle_upper_deg"))
+                for c in named.values()
+            )
+            + " |"
+        )
     return "\n".join(rows)
 
 
 def _mapped(report: dict) -> dict[str, dict]:
     """Config name -> its "by_map" figures, for the configs that have them."""
-    return {n: c["accuracy"]["by_map"] for n, c in report["configs"].items()
-            if c["accuracy"] and c["accuracy"].get("by_map")}
+    return {
+        n: c["accuracy"]["by_map"]
+        for n, c in report["configs"].items()
+        if c["accuracy"] and c["accuracy"].get("by_map")
+    }
 
 
 def map_table(report: dict) -> str:
@@ -330,16 +414,27 @@ def map_table(report: dict) -> str:
     if not mapped:
         return ""
     first = next(iter(mapped.values()))
-    rows = ["| environment map | layouts | frames | " + " | ".join(mapped) + " |",
-            "|---|---|---|" + "---|" * len(mapped)]
+    rows = [
+        "| environment map | layouts | frames | " + " | ".join(mapped) + " |",
+        "|---|---|---|" + "---|" * len(mapped),
+    ]
     for m in sorted({m for b in mapped.values() for m in b["maps"]}):
         info = first["maps"].get(m, {"layouts": [], "frames": 0})
-        rows.append(f"| {m} | {', '.join(info['layouts'])} | {info['frames']} | " + " | ".join(
-            _num(b["maps"].get(m, {}).get("median")) for b in mapped.values()) + " |")
-    rows.append("| median over maps | | | " + " | ".join(
-        _num(b["median_over_maps"]) for b in mapped.values()) + " |")
-    rows.append("| p90 over frames | | | " + " | ".join(
-        _num(b["p90_all_frames"]) for b in mapped.values()) + " |")
+        rows.append(
+            f"| {m} | {', '.join(info['layouts'])} | {info['frames']} | "
+            + " | ".join(_num(b["maps"].get(m, {}).get("median")) for b in mapped.values())
+            + " |"
+        )
+    rows.append(
+        "| median over maps | | | "
+        + " | ".join(_num(b["median_over_maps"]) for b in mapped.values())
+        + " |"
+    )
+    rows.append(
+        "| p90 over frames | | | "
+        + " | ".join(_num(b["p90_all_frames"]) for b in mapped.values())
+        + " |"
+    )
     rows.append("| worst map | | | " + " | ".join(_worst(b) for b in mapped.values()) + " |")
     return "\n".join(rows)
 
@@ -350,13 +445,15 @@ def layout_table(report: dict) -> str:
     mapped = _mapped(report)
     if not mapped:
         return ""
-    rows = ["| layout | maps | " + " | ".join(mapped) + " |",
-            "|---|---|" + "---|" * len(mapped)]
+    rows = ["| layout | maps | " + " | ".join(mapped) + " |", "|---|---|" + "---|" * len(mapped)]
     first = next(iter(mapped.values()))
     for layout in sorted({lay for b in mapped.values() for lay in b["layouts"]}):
         maps = first["layouts"].get(layout, {}).get("maps", {})
-        rows.append(f"| {layout} | {len(maps)} | " + " | ".join(
-            _by_map_cell(b["layouts"].get(layout)) for b in mapped.values()) + " |")
+        rows.append(
+            f"| {layout} | {len(maps)} | "
+            + " | ".join(_by_map_cell(b["layouts"].get(layout)) for b in mapped.values())
+            + " |"
+        )
     return "\n".join(rows)
 
 
@@ -371,21 +468,34 @@ def folds_table(report: dict) -> str:
     if folds.get("note"):
         return f"Leave one map out: {folds['note']}."
     names = folds["candidates"]
-    rows = ["| held-out map | chosen on the other maps (their median) | its error on the map | "
-            + " | ".join(names) + " |", "|---|---|---|" + "---|" * len(names)]
+    rows = [
+        "| held-out map | chosen on the other maps (their median) | its error on the map | "
+        + " | ".join(names)
+        + " |",
+        "|---|---|---|" + "---|" * len(names),
+    ]
     for f in folds["folds"]:
-        rows.append(f"| {f['held_out']} | {f['chosen']} ({f['in_sample']:.1f}) | "
-                    f"{f['chosen_error']:.1f} | "
-                    + " | ".join(f"{f['errors'][n]:.1f}" for n in names) + " |")
-    rows.append(f"| median over held-out maps | chosen per fold | "
-                f"{folds['held_out_median']:.1f} | "
-                + " | ".join(f"{folds['fixed_median'][n]:.1f}" for n in names) + " |")
+        rows.append(
+            f"| {f['held_out']} | {f['chosen']} ({f['in_sample']:.1f}) | "
+            f"{f['chosen_error']:.1f} | "
+            + " | ".join(f"{f['errors'][n]:.1f}" for n in names)
+            + " |"
+        )
+    rows.append(
+        f"| median over held-out maps | chosen per fold | "
+        f"{folds['held_out_median']:.1f} | "
+        + " | ".join(f"{folds['fixed_median'][n]:.1f}" for n in names)
+        + " |"
+    )
     best = folds["best_in_sample"]
     differ = sum(f["chosen"] != best for f in folds["folds"])
-    rows += ["", f"Chosen on all maps: {best} ({folds['fixed_median'][best]:.1f} median over "
-             f"maps, in sample). Chosen without the map it is scored on: "
-             f"{folds['held_out_median']:.1f} median over {len(folds['folds'])} held-out maps; "
-             f"the choice differs from {best} in {differ} of them."]
+    rows += [
+        "",
+        f"Chosen on all maps: {best} ({folds['fixed_median'][best]:.1f} median over "
+        f"maps, in sample). Chosen without the map it is scored on: "
+        f"{folds['held_out_median']:.1f} median over {len(folds['folds'])} held-out maps; "
+        f"the choice differs from {best} in {differ} of them.",
+    ]
     return "\n".join(rows)
 
 
@@ -394,16 +504,21 @@ def model_table(report: dict) -> str:
     named = {n: c["model"] for n, c in report["configs"].items() if "model" in c}
     if not named:
         return ""
-    rows = ["| config | SH bands solved (of requested): frames | frames reusing a still "
-            "camera's Surface / RadTransfer | volume: allocated (median) / initial capacity / "
-            "dense grid, MB |", "|---|---|---|---|"]
+    rows = [
+        "| config | SH bands solved (of requested): frames | frames reusing a still "
+        "camera's Surface / RadTransfer | volume: allocated (median) / initial capacity / "
+        "dense grid, MB |",
+        "|---|---|---|---|",
+    ]
     for name, m in named.items():
         bands = ", ".join(f"{b}: {n}" for b, n in m["bands_estimated_frames"].items())
         reused = m["reused_share"]
-        rows.append(f"| {name} | ({m['bands_requested']}) {bands} | "
-                    f"{100 * reused['Surface']:.0f} % / {100 * reused['RadTransfer']:.0f} % | "
-                    f"{m['volume_mb_median']:.0f} / {m['volume_capacity_mb']:.0f} / "
-                    f"{m['volume_dense_mb']:.0f} |")
+        rows.append(
+            f"| {name} | ({m['bands_requested']}) {bands} | "
+            f"{100 * reused['Surface']:.0f} % / {100 * reused['RadTransfer']:.0f} % | "
+            f"{m['volume_mb_median']:.0f} / {m['volume_capacity_mb']:.0f} / "
+            f"{m['volume_dense_mb']:.0f} |"
+        )
     return "\n".join(rows)
 
 
@@ -423,41 +538,68 @@ def markdown(report: dict) -> str:
     ]
     acc = accuracy_table(report)
     if acc:
-        parts += ["", "## Accuracy", "",
-                  "Angular error of the dominant light direction in degrees: against the light "
-                  "that can reach the scene (upper hemisphere) and the whole sphere. SH and "
-                  "shading errors are relative L2 after the best common scale (0 = exact, 1 = "
-                  "no better than nothing), against the upper-hemisphere SH.", "", acc]
+        parts += [
+            "",
+            "## Accuracy",
+            "",
+            "Angular error of the dominant light direction in degrees: against the light "
+            "that can reach the scene (upper hemisphere) and the whole sphere. SH and "
+            "shading errors are relative L2 after the best common scale (0 = exact, 1 = "
+            "no better than nothing), against the upper-hemisphere SH.",
+            "",
+            acc,
+        ]
         seq = sequence_table(report)
         if seq:
             parts += ["", "## Per sequence (median degrees, upper hemisphere)", "", seq]
         maps = map_table(report)
         if maps:
-            parts += ["", "## Per environment map (median degrees, upper hemisphere)", "",
-                      f"Maps: {', '.join(report.get('env_maps', []))}. Each map's figure is "
-                      "the median over the frames it lit (any sequence); the rows below "
-                      "aggregate over maps, so a map seen in many sequences counts once.", "",
-                      maps, "", "### Per layout (median over maps / p90 over frames / worst "
-                      "map, degrees)", "", layout_table(report)]
+            parts += [
+                "",
+                "## Per environment map (median degrees, upper hemisphere)",
+                "",
+                f"Maps: {', '.join(report.get('env_maps', []))}. Each map's figure is "
+                "the median over the frames it lit (any sequence); the rows below "
+                "aggregate over maps, so a map seen in many sequences counts once.",
+                "",
+                maps,
+                "",
+                "### Per layout (median over maps / p90 over frames / worst map, degrees)",
+                "",
+                layout_table(report),
+            ]
     folds = folds_table(report)
     if folds:
-        parts += ["", "## Leave one map out (degrees, upper hemisphere)", "",
-                  "Each map in turn is held out: the configuration with the lowest median over "
-                  "the other maps is chosen and scored on the held-out map. Compare the "
-                  "median over held-out maps with each configuration kept fixed.", "", folds]
+        parts += [
+            "",
+            "## Leave one map out (degrees, upper hemisphere)",
+            "",
+            "Each map in turn is held out: the configuration with the lowest median over "
+            "the other maps is chosen and scored on the held-out map. Compare the "
+            "median over held-out maps with each configuration kept fixed.",
+            "",
+            folds,
+        ]
     model = model_table(report)
     if model:
-        parts += ["", "## What the scenes required", "",
-                  "SH bands: the light estimate solves only for the bands the observed normals "
-                  "constrain (condition of the normal matrix). Reuse: frames of a camera held "
-                  "still whose volume cast (Surface) and geometry and transfer (DynGeo, "
-                  "RadTransfer) were those of an earlier frame (ReuseParams). Volume: "
-                  "sparse blocks allocated only where depth was seen.", "", model]
+        parts += [
+            "",
+            "## What the scenes required",
+            "",
+            "SH bands: the light estimate solves only for the bands the observed normals "
+            "constrain (condition of the normal matrix). Reuse: frames of a camera held "
+            "still whose volume cast (Surface) and geometry and transfer (DynGeo, "
+            "RadTransfer) were those of an earlier frame (ReuseParams). Volume: "
+            "sparse blocks allocated only where depth was seen.",
+            "",
+            model,
+        ]
     parts += ["", "![trade](trade.png)", ""]
     return "\n".join(parts)
 
 
 # --------------------------------------------------------------------------- plot
+
 
 def trade_plot(report: dict, path: Path) -> bool:
     """ms/frame against median angular error (upper truth); False when nothing to plot."""
@@ -466,20 +608,31 @@ def trade_plot(report: dict, path: Path) -> bool:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    points = {n: c for n, c in report["configs"].items()
-              if c["accuracy"] and c["total_ms"]["median"] is not None}
+    points = {
+        n: c
+        for n, c in report["configs"].items()
+        if c["accuracy"] and c["total_ms"]["median"] is not None
+    }
     if not points:
         return False
     fig, ax = plt.subplots(figsize=(7, 5), dpi=120)
     for sweep in report["sweeps"]:
-        line = [(c["total_ms"]["median"], c["accuracy"]["angle_upper_deg"]["median_of_medians"],
-                 c["value"]) for c in points.values() if c["sweep"] == sweep]
+        line = [
+            (
+                c["total_ms"]["median"],
+                c["accuracy"]["angle_upper_deg"]["median_of_medians"],
+                c["value"],
+            )
+            for c in points.values()
+            if c["sweep"] == sweep
+        ]
         if line:
             xs, ys, labels = zip(*line, strict=True)
             ax.plot(xs, ys, "o-", label=f"sweep {sweep}")
             for x, y, label in zip(xs, ys, labels, strict=True):
-                ax.annotate(str(label), (x, y), textcoords="offset points", xytext=(4, 4),
-                            fontsize=7)
+                ax.annotate(
+                    str(label), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7
+                )
     for name, c in points.items():
         if c["sweep"] is None:
             x, y = c["total_ms"]["median"], c["accuracy"]["angle_upper_deg"]["median_of_medians"]

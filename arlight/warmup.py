@@ -56,8 +56,11 @@ def _warm_up_glossy() -> None:
 
 
 def main() -> int:
-    print("arlight: compiling the kernels once (cached for every later run)...",
-          file=sys.stderr, flush=True)
+    print(
+        "arlight: compiling the kernels once (cached for every later run)...",
+        file=sys.stderr,
+        flush=True,
+    )
     seconds = warm_up()
     print(f"arlight: kernels ready ({seconds:.0f} s)", file=sys.stderr)
     return 0

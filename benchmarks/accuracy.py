@@ -42,8 +42,9 @@ CONFIGS = {
 TRUTH_FIELD = "dominant_dir_upper_camera"
 
 
-def evaluate_sequence(folder: Path, config: Config, max_frames: int | None = None,
-                      truth_field: str = TRUTH_FIELD) -> np.ndarray:
+def evaluate_sequence(
+    folder: Path, config: Config, max_frames: int | None = None, truth_field: str = TRUTH_FIELD
+) -> np.ndarray:
     """Per-frame angular errors (degrees) of dominant_direction_camera against `truth_field`."""
     seq = open_sequence(folder, use_poses=True, max_frames=max_frames)
     truth = json.loads((folder / "lighting_gt.json").read_text())["frames"]
@@ -51,19 +52,24 @@ def evaluate_sequence(folder: Path, config: Config, max_frames: int | None = Non
     errors = []
     for i, frame in enumerate(seq.frames):
         result = pipeline.process(frame)
-        errors.append(angular_error_deg(result.dominant_direction_camera,
-                                         truth[i][truth_field]))
+        errors.append(angular_error_deg(result.dominant_direction_camera, truth[i][truth_field]))
     return np.array(errors)
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--configs", nargs="+", default=["full", "fast", "baseline"],
-                        choices=list(CONFIGS))
+    parser.add_argument(
+        "--configs", nargs="+", default=["full", "fast", "baseline"], choices=list(CONFIGS)
+    )
     parser.add_argument("--sequences", nargs="*", help="names (default: all)")
     parser.add_argument("--max-frames", type=int)
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a Config field for every configuration")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a Config field for every configuration",
+    )
     parser.add_argument("--json", help="write the table as JSON")
     args = parser.parse_args(argv)
     configure_process()
@@ -87,18 +93,27 @@ def main(argv=None) -> int:
         for name in args.configs:
             t0 = time.perf_counter()
             e = evaluate_sequence(folder, CONFIGS[name](**overrides), args.max_frames)
-            row[name] = {"median_deg": float(np.median(e)), "p90_deg": float(np.percentile(e, 90)),
-                         "per_frame_deg": [round(float(x), 2) for x in e],
-                         "seconds": time.perf_counter() - t0}
+            row[name] = {
+                "median_deg": float(np.median(e)),
+                "p90_deg": float(np.percentile(e, 90)),
+                "per_frame_deg": [round(float(x), 2) for x in e],
+                "seconds": time.perf_counter() - t0,
+            }
         table[folder.name] = row
-        print(f"{folder.name:34s}" + "".join(
-            f"{row[c]['median_deg']:>12.1f} /{row[c]['p90_deg']:>6.1f}" for c in args.configs),
-            flush=True)
+        print(
+            f"{folder.name:34s}"
+            + "".join(
+                f"{row[c]['median_deg']:>12.1f} /{row[c]['p90_deg']:>6.1f}" for c in args.configs
+            ),
+            flush=True,
+        )
     for name in args.configs:
         medians = [row[name]["median_deg"] for row in table.values()]
         every = [e for row in table.values() for e in row[name]["per_frame_deg"]]
-        print(f"{name}: median of the per-sequence medians {np.median(medians):.1f}, "
-              f"90th percentile over all frames {np.percentile(every, 90):.1f}")
+        print(
+            f"{name}: median of the per-sequence medians {np.median(medians):.1f}, "
+            f"90th percentile over all frames {np.percentile(every, 90):.1f}"
+        )
     if args.json:
         Path(args.json).write_text(json.dumps(table, indent=1))
     return 0

@@ -48,7 +48,7 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     if not np.any(mask):
         return float("nan")
     d = a.astype(np.float64)[mask] - b.astype(np.float64)[mask]
-    return 10.0 * math.log10(255.0 ** 2 / max(float(np.mean(d * d)), 1e-12))
+    return 10.0 * math.log10(255.0**2 / max(float(np.mean(d * d)), 1e-12))
 
 
 def ssim_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -79,8 +79,9 @@ def side_by_side(images: list[np.ndarray], names: list[str]) -> np.ndarray:
     tiles = []
     for image, name in zip(images, names, strict=True):
         tile = np.ascontiguousarray(image[..., ::-1])
-        cv2.putText(tile, name, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2,
-                    cv2.LINE_AA)
+        cv2.putText(
+            tile, name, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2, cv2.LINE_AA
+        )
         tiles.append(tile)
     return np.concatenate(tiles, axis=1)
 
@@ -94,8 +95,9 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
     seq = open_sequence(folder, use_poses=True, max_frames=max(pairs) + 1)
     config = Config.from_preset(preset, **overrides)
     pipeline = Pipeline(config, seq.camera, load_virtual_scene(ar / "virtual_scene.json"))
-    paste = DifferentialRenderer(pipeline.scene, seq.camera,
-                                 config.replace(render_mode=DiffMode.PASTE))
+    paste = DifferentialRenderer(
+        pipeline.scene, seq.camera, config.replace(render_mode=DiffMode.PASTE)
+    )
     rows = []
     for index, frame in enumerate(seq.frames):
         result = pipeline.process(frame)
@@ -104,21 +106,33 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
         inputs, output = pipeline.last_render
         l_gt, rgb_gt = truth_light(truth["frames"][index], truth["exposure_scale"])
         t0 = time.perf_counter()
-        with_gt = pipeline._renderer.render(dataclasses.replace(inputs, light_sh=l_gt,
-                                                                light_rgb=rgb_gt)).composite
+        with_gt = pipeline._renderer.render(
+            dataclasses.replace(inputs, light_sh=l_gt, light_rgb=rgb_gt)
+        ).composite
         gt_ms = 1e3 * (time.perf_counter() - t0)
-        images = {"input": inputs.color, "estimated": output.composite, "gt_light": with_gt,
-                  "paste": paste.render(inputs).composite}
+        images = {
+            "input": inputs.color,
+            "estimated": output.composite,
+            "gt_light": with_gt,
+            "paste": paste.render(inputs).composite,
+        }
         name = f"{index:06d}.png"
         real_virtual = cv2.imread(str(ar / "real_virtual" / name), cv2.IMREAD_COLOR)[..., ::-1]
         affected = cv2.imread(str(ar / "mask_affected" / name), cv2.IMREAD_GRAYSCALE) > 127
         virtual = cv2.imread(str(ar / "mask_virtual" / name), cv2.IMREAD_GRAYSCALE) > 127
         shadow = affected & ~virtual
         regions = {"affected": affected, "shadow": shadow, "virtual": virtual}
-        row = {"sequence": folder.name, "preset": preset, "frame": index,
-               "rendering_ms": result.timings_ms["Rendering"], "rendering_gt_ms": gt_ms,
-               "virtual_iou": float((output.virtual_mask & virtual).sum()
-                                    / max(1, (output.virtual_mask | virtual).sum()))}
+        row = {
+            "sequence": folder.name,
+            "preset": preset,
+            "frame": index,
+            "rendering_ms": result.timings_ms["Rendering"],
+            "rendering_gt_ms": gt_ms,
+            "virtual_iou": float(
+                (output.virtual_mask & virtual).sum()
+                / max(1, (output.virtual_mask | virtual).sum())
+            ),
+        }
         for variant, image in images.items():
             s = ssim_map(image, real_virtual)
             for region, mask in regions.items():
@@ -126,23 +140,37 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
                 row[f"{variant}_ssim_{region}"] = float(s[mask].mean()) if mask.any() else None
         rows.append(row)
         if out is not None and index == min(pairs):
-            diff = np.clip(4 * np.abs(output.composite.astype(int) - real_virtual), 0,
-                           255).astype(np.uint8)
-            cv2.imwrite(str(out / f"{folder.name}_{preset}_{name}"),
-                        side_by_side([inputs.color, output.composite, with_gt, real_virtual,
-                                      diff], ["input", "ours (estimated light)",
-                                              "ours (true light)", "path-traced truth",
-                                              "4x |ours - truth|"]))
-        print(f"  {folder.name} {preset} frame {index}: affected PSNR "
-              + "  ".join(f"{v} {row[f'{v}_psnr_affected']:.1f}" for v in VARIANTS)
-              + f"  rendering {row['rendering_ms']:.0f} ms", flush=True)
+            diff = np.clip(4 * np.abs(output.composite.astype(int) - real_virtual), 0, 255).astype(
+                np.uint8
+            )
+            cv2.imwrite(
+                str(out / f"{folder.name}_{preset}_{name}"),
+                side_by_side(
+                    [inputs.color, output.composite, with_gt, real_virtual, diff],
+                    [
+                        "input",
+                        "ours (estimated light)",
+                        "ours (true light)",
+                        "path-traced truth",
+                        "4x |ours - truth|",
+                    ],
+                ),
+            )
+        print(
+            f"  {folder.name} {preset} frame {index}: affected PSNR "
+            + "  ".join(f"{v} {row[f'{v}_psnr_affected']:.1f}" for v in VARIANTS)
+            + f"  rendering {row['rendering_ms']:.0f} ms",
+            flush=True,
+        )
     return rows
 
 
 def summary_table(rows: list[dict]) -> str:
     """Markdown: per sequence and preset, the median over frames of each figure."""
-    lines = ["| sequence | preset | region | " + " | ".join(VARIANTS) + " |",
-             "|---|---|---|" + "---|" * len(VARIANTS)]
+    lines = [
+        "| sequence | preset | region | " + " | ".join(VARIANTS) + " |",
+        "|---|---|---|" + "---|" * len(VARIANTS),
+    ]
     keys = sorted({(r["sequence"], r["preset"]) for r in rows})
     for seq, preset in keys:
         sel = [r for r in rows if r["sequence"] == seq and r["preset"] == preset]
@@ -150,8 +178,12 @@ def summary_table(rows: list[dict]) -> str:
             cells = []
             for v in VARIANTS:
                 p = np.nanmedian([r[f"{v}_psnr_{region}"] for r in sel])
-                s = np.nanmedian([np.nan if r[f"{v}_ssim_{region}"] is None
-                                  else r[f"{v}_ssim_{region}"] for r in sel])
+                s = np.nanmedian(
+                    [
+                        np.nan if r[f"{v}_ssim_{region}"] is None else r[f"{v}_ssim_{region}"]
+                        for r in sel
+                    ]
+                )
                 cells.append(f"{p:.1f} dB / {s:.3f}")
             lines.append(f"| {seq} | {preset} | {region} | " + " | ".join(cells) + " |")
         ms = np.median([r["rendering_ms"] for r in sel])
@@ -161,16 +193,29 @@ def summary_table(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("sequences", nargs="*", metavar="SEQ",
-                        help="sequence folders with an ar/ folder (default: all of "
-                             f"{DATA} that have one)")
-    parser.add_argument("--presets", nargs="+", default=["full", "fast"],
-                        choices=("full", "fast", "mobile"))
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a Config field for every preset")
-    parser.add_argument("--out", type=Path, default=Path("ar_truth_report"),
-                        help="folder for report.json, report.md and the side-by-side images "
-                             "(default ar_truth_report/)")
+    parser.add_argument(
+        "sequences",
+        nargs="*",
+        metavar="SEQ",
+        help=f"sequence folders with an ar/ folder (default: all of {DATA} that have one)",
+    )
+    parser.add_argument(
+        "--presets", nargs="+", default=["full", "fast"], choices=("full", "fast", "mobile")
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a Config field for every preset",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("ar_truth_report"),
+        help="folder for report.json, report.md and the side-by-side images "
+        "(default ar_truth_report/)",
+    )
     args = parser.parse_args(argv)
     configure_process()
     overrides = {}
@@ -181,10 +226,13 @@ def main(argv=None) -> int:
         except ValueError as exc:
             parser.error(f"--set {kv}: {exc}")
     folders = [Path(s) for s in args.sequences] or sorted(
-        p for p in DATA.glob("*") if (p / "ar" / "virtual_scene.json").is_file())
+        p for p in DATA.glob("*") if (p / "ar" / "virtual_scene.json").is_file()
+    )
     if not folders:
-        print(f"no sequences with an ar/ folder at {DATA} (see ../shared/data/README.md)",
-              file=sys.stderr)
+        print(
+            f"no sequences with an ar/ folder at {DATA} (see ../shared/data/README.md)",
+            file=sys.stderr,
+        )
         return 2
     for f in folders:
         if not (f / "ar" / "virtual_scene.json").is_file():
@@ -195,10 +243,13 @@ def main(argv=None) -> int:
         for preset in args.presets:
             rows.extend(evaluate(folder, preset, overrides, args.out))
     table = summary_table(rows)
-    (args.out / "report.json").write_text(json.dumps({"rows": rows, "overrides": {
-        k: str(v) for k, v in overrides.items()}}, indent=1))
-    (args.out / "report.md").write_text("PSNR / SSIM against ar/real_virtual (median over "
-                                        "the frames with a pair)\n\n" + table + "\n")
+    (args.out / "report.json").write_text(
+        json.dumps({"rows": rows, "overrides": {k: str(v) for k, v in overrides.items()}}, indent=1)
+    )
+    (args.out / "report.md").write_text(
+        "PSNR / SSIM against ar/real_virtual (median over "
+        "the frames with a pair)\n\n" + table + "\n"
+    )
     print(table)
     print(f"wrote {args.out}/report.json, report.md and side-by-side images")
     return 0

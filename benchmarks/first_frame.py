@@ -43,23 +43,37 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     env = dict(os.environ, NUMBA_DEBUG_CACHE="1")
     env.setdefault("OPENBLAS_NUM_THREADS", "1")
-    proc = subprocess.run([sys.executable, "-c", CHILD.replace("PRESET", repr(args.preset))],
-                          env=env, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD.replace("PRESET", repr(args.preset))],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     if proc.returncode != 0:
         print(proc.stderr[-3000:], file=sys.stderr)
         return 1
     lines = proc.stdout.splitlines()
     rows = json.loads(next(x for x in lines if x.startswith("ROWS "))[5:])
-    loaded = sorted({x.split("'")[1].rsplit("/", 1)[-1].split("-")[0] for x in lines
-                     if x.startswith("[cache] data loaded")})
-    saved = sorted({x.split("'")[1].rsplit("/", 1)[-1].split("-")[0] for x in lines
-                    if x.startswith("[cache] data saved")})
+    loaded = sorted(
+        {
+            x.split("'")[1].rsplit("/", 1)[-1].split("-")[0]
+            for x in lines
+            if x.startswith("[cache] data loaded")
+        }
+    )
+    saved = sorted(
+        {
+            x.split("'")[1].rsplit("/", 1)[-1].split("-")[0]
+            for x in lines
+            if x.startswith("[cache] data saved")
+        }
+    )
     stages = [k for k in rows[0] if k != "total"]
     print("| frame | total ms | " + " | ".join(stages) + " |")
     print("|---|---|" + "---|" * len(stages))
     for i, r in enumerate(rows):
-        print(f"| {i + 1} | {r['total']:.0f} | " + " | ".join(f"{r[s]:.0f}" for s in stages)
-              + " |")
+        print(f"| {i + 1} | {r['total']:.0f} | " + " | ".join(f"{r[s]:.0f}" for s in stages) + " |")
     ratio = rows[0]["total"] / rows[9]["total"]
     print(f"\nfirst / tenth frame: {ratio:.2f}x (bound 2x: {'met' if ratio <= 2 else 'MISSED'})")
     print(f"kernels loaded from the cache: {', '.join(loaded) or 'none'}")

@@ -59,9 +59,11 @@ from arlight.pipeline.virtual_scene import (
 
 FAR_M = 100.0  # the GL far plane; the depth test needs one, the scene is well inside it
 TORUS_RESOLUTION = 40  # 1600 triangles
-INSTALL_HINT = ("moderngl over EGL is not available ({error}); install it with "
-                "`.venv/bin/python -m pip install moderngl` (and, on Debian, "
-                "`apt-get install libegl1 libgl1-mesa-dri`); measuring Open3D alone")
+INSTALL_HINT = (
+    "moderngl over EGL is not available ({error}); install it with "
+    "`.venv/bin/python -m pip install moderngl` (and, on Debian, "
+    "`apt-get install libegl1 libgl1-mesa-dri`); measuring Open3D alone"
+)
 
 _VERTEX = """
 #version 330
@@ -115,8 +117,12 @@ class GLGBufferRenderer:
             data = np.hstack([obj.world_vertices(), obj.world_normals()]).astype(np.float32)
             vbo = ctx.buffer(data.tobytes())
             ibo = ctx.buffer(obj.triangles.astype(np.uint32).tobytes())
-            vao = ctx.vertex_array(self.program, [(vbo, "3f 3f", "in_position", "in_normal")],
-                                   index_buffer=ibo, index_element_size=4)
+            vao = ctx.vertex_array(
+                self.program,
+                [(vbo, "3f 3f", "in_position", "in_normal")],
+                index_buffer=ibo,
+                index_element_size=4,
+            )
             self._objects.append((vao, vbo, ibo, (index + 1) / 255.0))
         # index 0: no object
         self._albedo = np.zeros((256, 3), np.float32)
@@ -164,10 +170,16 @@ class GLGBufferRenderer:
         cam_from_world = np.linalg.inv(world_from_cam)
         # GLSL matrices are column-major: the transpose's bytes in C order
         self.program["cam_from_world"].write(cam_from_world.T.astype(np.float32).tobytes())
-        self.program["clip_xy"].value = (2.0 * camera.fx / w, 2.0 * (camera.cx + 0.5) / w - 1.0,
-                                         2.0 * camera.fy / h, 2.0 * (camera.cy + 0.5) / h - 1.0)
-        self.program["clip_z"].value = ((FAR_M + NEAR_M) / (FAR_M - NEAR_M),
-                                        -2.0 * FAR_M * NEAR_M / (FAR_M - NEAR_M))
+        self.program["clip_xy"].value = (
+            2.0 * camera.fx / w,
+            2.0 * (camera.cx + 0.5) / w - 1.0,
+            2.0 * camera.fy / h,
+            2.0 * (camera.cy + 0.5) / h - 1.0,
+        )
+        self.program["clip_z"].value = (
+            (FAR_M + NEAR_M) / (FAR_M - NEAR_M),
+            -2.0 * FAR_M * NEAR_M / (FAR_M - NEAR_M),
+        )
         for vao, _, _, code in self._objects:
             self.program["object_code"].value = code
             vao.render()
@@ -179,9 +191,12 @@ class GLGBufferRenderer:
         codes = np.empty((h, w), np.uint8)
         self._fbo.color_attachments[0].read_into(normal_depth)
         self._fbo.color_attachments[1].read_into(codes)
-        return VirtualGBuffer(depth_m=normal_depth[..., 3], normals_cam=normal_depth[..., :3],
-                              albedo=self._albedo[codes],
-                              object_index=codes.astype(np.int32) - 1)
+        return VirtualGBuffer(
+            depth_m=normal_depth[..., 3],
+            normals_cam=normal_depth[..., :3],
+            albedo=self._albedo[codes],
+            object_index=codes.astype(np.int32) - 1,
+        )
 
     def camera_gbuffer(self, camera: PinholeCamera, world_from_cam: np.ndarray) -> VirtualGBuffer:
         self.draw(camera, world_from_cam)
@@ -218,16 +233,25 @@ def bench_scene(triangles: int, with_torus: bool = True) -> VirtualScene:
     upright = np.diag([1.0, -1.0, -1.0, 1.0])
     pose = upright.copy()
     pose[:3, 3] = (-0.12, 0.12, 0.7)
-    objects = [object_from_open3d("sphere", sphere_mesh(0.12, sphere_resolution(triangles)),
-                                  pose, Material((0.6, 0.6, 0.6)))]
+    objects = [
+        object_from_open3d(
+            "sphere",
+            sphere_mesh(0.12, sphere_resolution(triangles)),
+            pose,
+            Material((0.6, 0.6, 0.6)),
+        )
+    ]
     if with_torus:
         turn = np.radians(30.0)
         yaw = np.eye(4)
         yaw[[0, 0, 2, 2], [0, 2, 0, 2]] = np.cos(turn), np.sin(turn), -np.sin(turn), np.cos(turn)
         pose = upright @ yaw
         pose[:3, 3] = (0.14, 0.12, 0.6)
-        objects.append(object_from_open3d("torus", torus_mesh(0.1, 0.035, TORUS_RESOLUTION),
-                                          pose, Material((0.8, 0.3, 0.08))))
+        objects.append(
+            object_from_open3d(
+                "torus", torus_mesh(0.1, 0.035, TORUS_RESOLUTION), pose, Material((0.8, 0.3, 0.08))
+            )
+        )
     return VirtualScene(tuple(objects))
 
 
@@ -251,18 +275,31 @@ def agreement(a: VirtualGBuffer, b: VirtualGBuffer) -> dict:
     ha, hb = a.hit, b.hit
     union = int(np.count_nonzero(ha | hb))
     both = ha & hb
-    out = {"iou": float(np.count_nonzero(both) / union) if union else 1.0,
-           "pixels_hit": [int(np.count_nonzero(ha)), int(np.count_nonzero(hb))]}
+    out = {
+        "iou": float(np.count_nonzero(both) / union) if union else 1.0,
+        "pixels_hit": [int(np.count_nonzero(ha)), int(np.count_nonzero(hb))],
+    }
     if not both.any():
-        return {**out, "depth_mm_median": None, "depth_mm_p99": None,
-                "normal_deg_median": None, "same_object": None}
+        return {
+            **out,
+            "depth_mm_median": None,
+            "depth_mm_p99": None,
+            "normal_deg_median": None,
+            "same_object": None,
+        }
     dd = np.abs(a.depth_m[both].astype(np.float64) - b.depth_m[both]) * 1000.0
-    cos = np.clip(np.einsum("ij,ij->i", a.normals_cam[both].astype(np.float64),
-                            b.normals_cam[both]), -1.0, 1.0)
-    return {**out, "depth_mm_median": float(np.median(dd)),
-            "depth_mm_p99": float(np.percentile(dd, 99)),
-            "normal_deg_median": float(np.degrees(np.median(np.arccos(cos)))),
-            "same_object": float(np.mean(a.object_index[both] == b.object_index[both]))}
+    cos = np.clip(
+        np.einsum("ij,ij->i", a.normals_cam[both].astype(np.float64), b.normals_cam[both]),
+        -1.0,
+        1.0,
+    )
+    return {
+        **out,
+        "depth_mm_median": float(np.median(dd)),
+        "depth_mm_p99": float(np.percentile(dd, 99)),
+        "normal_deg_median": float(np.degrees(np.median(np.arccos(cos)))),
+        "same_object": float(np.mean(a.object_index[both] == b.object_index[both])),
+    }
 
 
 def _ms(seconds: float) -> float:
@@ -291,10 +328,19 @@ def time_frames(render, camera: PinholeCamera, frames: int, warmup: int, start: 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", nargs="+", default=["320x240", "640x480", "1280x720"],
-                        help="camera image sizes WIDTHxHEIGHT")
-    parser.add_argument("--triangles", nargs="+", type=int, default=[5000, 100000, 1000000],
-                        help="about this many triangles in the scene (sphere + torus)")
+    parser.add_argument(
+        "--sizes",
+        nargs="+",
+        default=["320x240", "640x480", "1280x720"],
+        help="camera image sizes WIDTHxHEIGHT",
+    )
+    parser.add_argument(
+        "--triangles",
+        nargs="+",
+        type=int,
+        default=[5000, 100000, 1000000],
+        help="about this many triangles in the scene (sphere + torus)",
+    )
     parser.add_argument("--frames", type=int, default=20, help="timed frames per config")
     parser.add_argument("--warmup", type=int, default=3, help="untimed frames first (>= 1)")
     parser.add_argument("--out", type=Path, help="also write the figures here (JSON)")
@@ -317,9 +363,11 @@ def main(argv: list[str] | None = None) -> int:
         print(INSTALL_HINT.format(error=why))
     else:
         gl_info = {k: ctx.info[k] for k in ("GL_VENDOR", "GL_RENDERER", "GL_VERSION")}
-        print(f"moderngl {sys.modules['moderngl'].__version__} over EGL: "
-              f"{gl_info['GL_RENDERER']} ({gl_info['GL_VERSION']}); "
-              f"context created in {_ms(context_s)} ms")
+        print(
+            f"moderngl {sys.modules['moderngl'].__version__} over EGL: "
+            f"{gl_info['GL_RENDERER']} ({gl_info['GL_VERSION']}); "
+            f"context created in {_ms(context_s)} ms"
+        )
 
     setups, rows = [], []
     for target in args.triangles:
@@ -330,8 +378,12 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         raycaster = VirtualRaycaster(scene)
         o3d_s = time.perf_counter() - t0
-        setup = {"triangles_target": target, "triangles": n_tri, "scene_build_ms": _ms(build_s),
-                 "open3d_setup_ms": _ms(o3d_s)}
+        setup = {
+            "triangles_target": target,
+            "triangles": n_tri,
+            "scene_build_ms": _ms(build_s),
+            "open3d_setup_ms": _ms(o3d_s),
+        }
         gl = None
         if ctx is not None:
             t0 = time.perf_counter()
@@ -362,26 +414,32 @@ def main(argv: list[str] | None = None) -> int:
                     r.read()
                     return {"draw": t1 - t0, "read": time.perf_counter() - t1}
 
-                row["moderngl"] = time_frames(gl_render, camera, args.frames, args.warmup,
-                                              100 * k)
+                row["moderngl"] = time_frames(gl_render, camera, args.frames, args.warmup, 100 * k)
                 row["moderngl"]["framebuffer_ms"] = _ms(fbo_s)
                 pose = camera_pose(7)
-                row["agreement"] = agreement(raycaster.camera_gbuffer(camera, pose),
-                                             gl.camera_gbuffer(camera, pose))
+                row["agreement"] = agreement(
+                    raycaster.camera_gbuffer(camera, pose), gl.camera_gbuffer(camera, pose)
+                )
             rows.append(row)
-            print(f"  {n_tri} triangles {w}x{h}: open3d {row['open3d']['ms']} ms"
-                  + (f", moderngl {row['moderngl']['ms']} ms" if gl is not None else ""),
-                  flush=True)
+            print(
+                f"  {n_tri} triangles {w}x{h}: open3d {row['open3d']['ms']} ms"
+                + (f", moderngl {row['moderngl']['ms']} ms" if gl is not None else ""),
+                flush=True,
+            )
         if gl is not None:
             gl.release()
 
     print()
-    print(f"Per frame, median of {args.frames} (after {args.warmup} warm-up), milliseconds; "
-          f"{os.cpu_count()} CPU cores" + (f"; GL: {gl_info['GL_RENDERER']}" if gl_info else ""))
+    print(
+        f"Per frame, median of {args.frames} (after {args.warmup} warm-up), milliseconds; "
+        f"{os.cpu_count()} CPU cores" + (f"; GL: {gl_info['GL_RENDERER']}" if gl_info else "")
+    )
     print()
-    print("| size | triangles | Open3D ms | moderngl ms (draw + read) | Open3D / moderngl "
-          "| first frame ms O3D / GL | mask IoU | depth mm median (p99) | normal deg median "
-          "| same object |")
+    print(
+        "| size | triangles | Open3D ms | moderngl ms (draw + read) | Open3D / moderngl "
+        "| first frame ms O3D / GL | mask IoU | depth mm median (p99) | normal deg median "
+        "| same object |"
+    )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         o = r["open3d"]
@@ -391,38 +449,59 @@ def main(argv: list[str] | None = None) -> int:
             def f(x, digits=3):
                 return "-" if x is None else f"{x:.{digits}f}"
 
-            gl_cols = (f"{g['ms']:.2f} ({g['draw_ms']:.2f} + {g['read_ms']:.2f}) | "
-                       f"{o['ms'] / g['ms']:.2f} | {o['first_frame_ms']:.0f} / "
-                       f"{g['first_frame_ms']:.0f} | {a['iou']:.4f} | {f(a['depth_mm_median'])} "
-                       f"({f(a['depth_mm_p99'])}) | {f(a['normal_deg_median'])} | "
-                       f"{f(a['same_object'], 4)}")
+            gl_cols = (
+                f"{g['ms']:.2f} ({g['draw_ms']:.2f} + {g['read_ms']:.2f}) | "
+                f"{o['ms'] / g['ms']:.2f} | {o['first_frame_ms']:.0f} / "
+                f"{g['first_frame_ms']:.0f} | {a['iou']:.4f} | {f(a['depth_mm_median'])} "
+                f"({f(a['depth_mm_p99'])}) | {f(a['normal_deg_median'])} | "
+                f"{f(a['same_object'], 4)}"
+            )
         else:
             gl_cols = f"- | - | {o['first_frame_ms']:.0f} / - | - | - | - | -"
         print(f"| {r['size']} | {r['triangles']} | {o['ms']:.2f} | {gl_cols} |")
     print()
-    print("One-time costs, milliseconds" + (f" (EGL context creation: {_ms(context_s)})"
-                                            if ctx is not None else ""))
+    print(
+        "One-time costs, milliseconds"
+        + (f" (EGL context creation: {_ms(context_s)})" if ctx is not None else "")
+    )
     print()
-    print("| triangles | scene build | Open3D RaycastingScene | moderngl program + upload |"
-          + " moderngl framebuffer per size |")
+    print(
+        "| triangles | scene build | Open3D RaycastingScene | moderngl program + upload |"
+        + " moderngl framebuffer per size |"
+    )
     print("|---:|---:|---:|---:|---|")
     for s in setups:
-        fbos = ", ".join(f"{r['size']}: {r['moderngl']['framebuffer_ms']:.1f}" for r in rows
-                         if r["triangles"] == s["triangles"] and "moderngl" in r) or "-"
+        fbos = (
+            ", ".join(
+                f"{r['size']}: {r['moderngl']['framebuffer_ms']:.1f}"
+                for r in rows
+                if r["triangles"] == s["triangles"] and "moderngl" in r
+            )
+            or "-"
+        )
         gl_setup = f"{s['moderngl_setup_ms']:.1f}" if "moderngl_setup_ms" in s else "-"
-        print(f"| {s['triangles']} | {s['scene_build_ms']:.1f} | {s['open3d_setup_ms']:.1f} | "
-              f"{gl_setup} | {fbos} |")
-    print("(Open3D builds its BVH on the first cast and Mesa compiles shaders on the first "
-          "draw: both are in the first-frame column.)")
+        print(
+            f"| {s['triangles']} | {s['scene_build_ms']:.1f} | {s['open3d_setup_ms']:.1f} | "
+            f"{gl_setup} | {fbos} |"
+        )
+    print(
+        "(Open3D builds its BVH on the first cast and Mesa compiles shaders on the first "
+        "draw: both are in the first-frame column.)"
+    )
 
     if args.out:
-        report = {"frames": args.frames, "warmup": args.warmup, "cpu_count": os.cpu_count(),
-                  "platform": platform.platform(), "python": platform.python_version(),
-                  "env": {k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS",
-                                                         "LP_NUM_THREADS")},
-                  "moderngl": gl_info or {"unavailable": why},
-                  "egl_context_ms": _ms(context_s) if ctx is not None else None,
-                  "setup": setups, "results": rows}
+        report = {
+            "frames": args.frames,
+            "warmup": args.warmup,
+            "cpu_count": os.cpu_count(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "env": {k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", "LP_NUM_THREADS")},
+            "moderngl": gl_info or {"unavailable": why},
+            "egl_context_ms": _ms(context_s) if ctx is not None else None,
+            "setup": setups,
+            "results": rows,
+        }
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(report, indent=2))
         print(f"wrote {args.out}")

@@ -67,27 +67,41 @@ def read_hdr(path: Path) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32)
 
 
-def cmgen_sh(cmgen: str, path: Path, size: int, irradiance: bool = False,
-             extra: tuple[str, ...] = ()) -> tuple[np.ndarray, float]:
+def cmgen_sh(
+    cmgen: str, path: Path, size: int, irradiance: bool = False, extra: tuple[str, ...] = ()
+) -> tuple[np.ndarray, float]:
     """(3, 16) coefficients cmgen prints for `path` (rows R, G, B), and its wall time, ms."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "sh.txt"
-        cmd = [cmgen, "--quiet", f"--sh={BANDS}", "--sh-window=no", f"--size={size}",
-               f"--sh-output={out}", *extra]
+        cmd = [
+            cmgen,
+            "--quiet",
+            f"--sh={BANDS}",
+            "--sh-window=no",
+            f"--size={size}",
+            f"--sh-output={out}",
+            *extra,
+        ]
         if irradiance:
             cmd.append("--sh-irradiance")
         t0 = time.perf_counter()
         done = subprocess.run([*cmd, str(path)], capture_output=True, text=True, cwd=tmp)
         ms = (time.perf_counter() - t0) * 1e3
         if done.returncode != 0 or not out.exists():
-            raise SystemExit(f"cmgen failed on {path} (exit {done.returncode}): "
-                             f"{(done.stderr or done.stdout).strip()[:500]}")
-        rows = [[float(x) for x in _NUMBER.findall(line.split("//")[0])]
-                for line in out.read_text().splitlines() if "//" in line]
-    coeffs = np.array(rows[:BANDS * BANDS], dtype=np.float64)
+            raise SystemExit(
+                f"cmgen failed on {path} (exit {done.returncode}): "
+                f"{(done.stderr or done.stdout).strip()[:500]}"
+            )
+        rows = [
+            [float(x) for x in _NUMBER.findall(line.split("//")[0])]
+            for line in out.read_text().splitlines()
+            if "//" in line
+        ]
+    coeffs = np.array(rows[: BANDS * BANDS], dtype=np.float64)
     if coeffs.shape != (BANDS * BANDS, 3):
-        raise SystemExit(f"cmgen's SH output for {path} has shape {coeffs.shape}, expected "
-                         f"({BANDS * BANDS}, 3)")
+        raise SystemExit(
+            f"cmgen's SH output for {path} has shape {coeffs.shape}, expected ({BANDS * BANDS}, 3)"
+        )
     return coeffs.T, ms
 
 
@@ -112,17 +126,21 @@ def compare_map(cmgen: str, path: Path, size: int) -> dict:
     irr_raw, _ = cmgen_sh(cmgen, path, size, irradiance=True)
     ours_irr = sh.irradiance_from_radiance(ours)[:9]
     theirs_irr = (LUMA @ to_ours(irr_raw))[:9]
-    per_band = [rel_l2(theirs[l * l:(l + 1) ** 2], ours[l * l:(l + 1) ** 2])
-                for l in range(BANDS)]
+    per_band = [
+        rel_l2(theirs[l * l : (l + 1) ** 2], ours[l * l : (l + 1) ** 2]) for l in range(BANDS)
+    ]
     return {
-        "map": path.name, "size": [hdr.shape[1], hdr.shape[0]],
-        "sh_rel_l2": rel_l2(theirs, ours), "sh_rgb_rel_l2": rel_l2(theirs_rgb, ours_rgb),
+        "map": path.name,
+        "size": [hdr.shape[1], hdr.shape[0]],
+        "sh_rel_l2": rel_l2(theirs, ours),
+        "sh_rgb_rel_l2": rel_l2(theirs_rgb, ours_rgb),
         "sh_rel_l2_unmapped": rel_l2(LUMA @ raw, ours),
         "per_band_rel_l2": per_band,
         "l00_ratio": float(theirs[0] / ours[0]),
         "direction_deg": angle_deg(sh.dominant_direction(theirs), sh.dominant_direction(ours)),
         "irradiance_rel_l2": rel_l2(theirs_irr, ours_irr),
-        "ours_ms": ours_ms, "cmgen_ms": cmgen_ms,
+        "ours_ms": ours_ms,
+        "cmgen_ms": cmgen_ms,
     }
 
 
@@ -133,8 +151,12 @@ def probes(cmgen: str, size: int) -> list[dict]:
     dirs = equirect.pixel_directions(256, 512)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "probe.hdr"
-        for name, d in (("+x", (1, 0, 0)), ("+y", (0, 1, 0)), ("+z", (0, 0, 1)),
-                        ("-z", (0, 0, -1))):
+        for name, d in (
+            ("+x", (1, 0, 0)),
+            ("+y", (0, 1, 0)),
+            ("+z", (0, 0, 1)),
+            ("-z", (0, 0, -1)),
+        ):
             lobe = np.exp(30.0 * (dirs @ np.asarray(d, float) - 1.0)).astype(np.float32)
             image = np.repeat(lobe[..., None], 3, axis=2) + np.float32(0.01)
             cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
@@ -142,20 +164,28 @@ def probes(cmgen: str, size: int) -> list[dict]:
             raw, _ = cmgen_sh(cmgen, path, size)
             mapped = LUMA @ to_ours(raw)
             unmirrored = LUMA @ to_ours(cmgen_sh(cmgen, path, size, extra=("--no-mirror",))[0])
-            out.append({"lobe": name,
-                        "mapped_deg": angle_deg(sh.dominant_direction(mapped),
-                                                sh.dominant_direction(ours)),
-                        "unmapped_deg": angle_deg(sh.dominant_direction(LUMA @ raw),
-                                                  sh.dominant_direction(ours)),
-                        "no_mirror_mapped_deg": angle_deg(sh.dominant_direction(unmirrored),
-                                                          sh.dominant_direction(ours))})
+            out.append(
+                {
+                    "lobe": name,
+                    "mapped_deg": angle_deg(
+                        sh.dominant_direction(mapped), sh.dominant_direction(ours)
+                    ),
+                    "unmapped_deg": angle_deg(
+                        sh.dominant_direction(LUMA @ raw), sh.dominant_direction(ours)
+                    ),
+                    "no_mirror_mapped_deg": angle_deg(
+                        sh.dominant_direction(unmirrored), sh.dominant_direction(ours)
+                    ),
+                }
+            )
     return out
 
 
 def _commit() -> str:
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, cwd=HERE).stdout.strip()
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE
+        ).stdout.strip()
     except OSError:
         return ""
 
@@ -164,46 +194,75 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--hdri", type=Path, default=DEFAULT_HDRI)
     ap.add_argument("--cmgen", default=None, help="the cmgen binary (default: on PATH)")
-    ap.add_argument("--size", type=int, default=256,
-                    help="cmgen's cubemap face size (a power of two; default 256)")
+    ap.add_argument(
+        "--size",
+        type=int,
+        default=256,
+        help="cmgen's cubemap face size (a power of two; default 256)",
+    )
     ap.add_argument("--out", type=Path, help="write every number as JSON")
     args = ap.parse_args(argv)
     cmgen = args.cmgen or shutil.which("cmgen")
     if not cmgen or not Path(cmgen).exists():
-        print("ibl_cmgen: skipped: Filament's cmgen is not installed (Debian/Ubuntu: "
-              "apt-get install libfilament-tools; or pass --cmgen PATH)")
+        print(
+            "ibl_cmgen: skipped: Filament's cmgen is not installed (Debian/Ubuntu: "
+            "apt-get install libfilament-tools; or pass --cmgen PATH)"
+        )
         return 0
     maps = sorted(args.hdri.glob("*.hdr"))
     if not maps:
         print(f"ibl_cmgen: skipped: no .hdr maps in {args.hdri}")
         return 0
     rows = [compare_map(cmgen, p, args.size) for p in maps]
-    print(f"cmgen ({cmgen}) --sh=4 --sh-window=no --size={args.size} against radiance_sh "
-          "(full resolution), cmgen mapped by toggle_condon_shortley\n")
-    print("| map | SH rel. L2 (lum.) | SH rel. L2 (RGB) | unmapped | band 0 / 1 / 2 / 3 "
-          "| L00 ratio | direction (deg) | irradiance SH rel. L2 | cmgen ms | ours ms |")
+    print(
+        f"cmgen ({cmgen}) --sh=4 --sh-window=no --size={args.size} against radiance_sh "
+        "(full resolution), cmgen mapped by toggle_condon_shortley\n"
+    )
+    print(
+        "| map | SH rel. L2 (lum.) | SH rel. L2 (RGB) | unmapped | band 0 / 1 / 2 / 3 "
+        "| L00 ratio | direction (deg) | irradiance SH rel. L2 | cmgen ms | ours ms |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         bands = " / ".join(f"{x:.3f}" for x in r["per_band_rel_l2"])
-        print(f"| {r['map']} | {r['sh_rel_l2']:.4f} | {r['sh_rgb_rel_l2']:.4f} | "
-              f"{r['sh_rel_l2_unmapped']:.3f} | {bands} | {r['l00_ratio']:.4f} | "
-              f"{r['direction_deg']:.2f} | {r['irradiance_rel_l2']:.4f} | "
-              f"{r['cmgen_ms']:.0f} | {r['ours_ms']:.0f} |")
-    med = {k: float(np.median([r[k] for r in rows]))
-           for k in ("sh_rel_l2", "sh_rgb_rel_l2", "direction_deg", "irradiance_rel_l2")}
-    print(f"\nmedian over {len(rows)} maps: SH rel. L2 {med['sh_rel_l2']:.4f} (luminance), "
-          f"{med['sh_rgb_rel_l2']:.4f} (RGB); direction {med['direction_deg']:.2f} deg; "
-          f"irradiance SH {med['irradiance_rel_l2']:.4f}")
+        print(
+            f"| {r['map']} | {r['sh_rel_l2']:.4f} | {r['sh_rgb_rel_l2']:.4f} | "
+            f"{r['sh_rel_l2_unmapped']:.3f} | {bands} | {r['l00_ratio']:.4f} | "
+            f"{r['direction_deg']:.2f} | {r['irradiance_rel_l2']:.4f} | "
+            f"{r['cmgen_ms']:.0f} | {r['ours_ms']:.0f} |"
+        )
+    med = {
+        k: float(np.median([r[k] for r in rows]))
+        for k in ("sh_rel_l2", "sh_rgb_rel_l2", "direction_deg", "irradiance_rel_l2")
+    }
+    print(
+        f"\nmedian over {len(rows)} maps: SH rel. L2 {med['sh_rel_l2']:.4f} (luminance), "
+        f"{med['sh_rgb_rel_l2']:.4f} (RGB); direction {med['direction_deg']:.2f} deg; "
+        f"irradiance SH {med['irradiance_rel_l2']:.4f}"
+    )
     probe_rows = probes(cmgen, args.size)
     print("\nprobes (a bright lobe towards each axis; band-1 direction, degrees from ours):")
     for p in probe_rows:
-        print(f"  {p['lobe']}: mapped {p['mapped_deg']:.2f}, unmapped {p['unmapped_deg']:.1f}, "
-              f"--no-mirror mapped {p['no_mirror_mapped_deg']:.1f}")
+        print(
+            f"  {p['lobe']}: mapped {p['mapped_deg']:.2f}, unmapped {p['unmapped_deg']:.1f}, "
+            f"--no-mirror mapped {p['no_mirror_mapped_deg']:.1f}"
+        )
     if args.out:
-        args.out.write_text(json.dumps({
-            "commit": _commit(), "machine": platform.platform(), "python": sys.version.split()[0],
-            "cmgen": cmgen, "size": args.size, "maps": rows, "median": med,
-            "probes": probe_rows}, indent=1))
+        args.out.write_text(
+            json.dumps(
+                {
+                    "commit": _commit(),
+                    "machine": platform.platform(),
+                    "python": sys.version.split()[0],
+                    "cmgen": cmgen,
+                    "size": args.size,
+                    "maps": rows,
+                    "median": med,
+                    "probes": probe_rows,
+                },
+                indent=1,
+            )
+        )
     return 0
 
 

@@ -55,8 +55,9 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def make_video(hdr: np.ndarray, size: tuple[int, int], frames: int, fps: float,
-               path: Path) -> float:
+def make_video(
+    hdr: np.ndarray, size: tuple[int, int], frames: int, fps: float, path: Path
+) -> float:
     """Write the turning map as an mp4v video at `size`; returns the seconds it took."""
     w, h = size
     big = cv2.resize(hdr, (w, h), interpolation=cv2.INTER_LINEAR)
@@ -89,8 +90,12 @@ def threaded_pass(path: Path, mode: str) -> dict:
         process_ms.append((t1 - t0) * 1e3)
         loop_ms.append((t1 - t_prev) * 1e3)
         t_prev = t1
-    return {"decode_ms": source.decode_ms[1:], "wait_ms": source.wait_ms[1:len(loop_ms)],
-            "process_ms": process_ms[1:], "loop_ms": loop_ms[1:]}
+    return {
+        "decode_ms": source.decode_ms[1:],
+        "wait_ms": source.wait_ms[1 : len(loop_ms)],
+        "process_ms": process_ms[1:],
+        "loop_ms": loop_ms[1:],
+    }
 
 
 def inline_pass(path: Path, mode: str) -> dict:
@@ -123,8 +128,9 @@ def stats(values: list[float]) -> dict:
 
 def _commit() -> str:
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, cwd=HERE).stdout.strip()
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=HERE
+        ).stdout.strip()
     except OSError:
         return ""
 
@@ -150,16 +156,24 @@ def main(argv: list[str] | None = None) -> int:
             write_s = make_video(hdr, (w, h), frames, args.fps, path)
             threaded = threaded_pass(path, args.process)
             inline = inline_pass(path, args.process)
-            row = {"size": [w, h], "frames": frames, "write_s": write_s,
-                   "bytes": path.stat().st_size,
-                   "threaded": {k: stats(v) for k, v in threaded.items()},
-                   "inline": {k: stats(v) for k, v in inline.items()},
-                   "frames_waited_over_1ms": int(np.sum(np.asarray(threaded["wait_ms"]) > 1.0))}
+            row = {
+                "size": [w, h],
+                "frames": frames,
+                "write_s": write_s,
+                "bytes": path.stat().st_size,
+                "threaded": {k: stats(v) for k, v in threaded.items()},
+                "inline": {k: stats(v) for k, v in inline.items()},
+                "frames_waited_over_1ms": int(np.sum(np.asarray(threaded["wait_ms"]) > 1.0)),
+            }
             rows.append(row)
-    print(f"{args.hdri.name}: {frames} frames ({args.seconds:g} s at {args.fps:g} fps) per size, "
-          f"mp4v; processing: {args.process}; median (p90) ms per frame, first frame left out\n")
-    print("| size | decode (thread) | wait in the loop | frames waited > 1 ms | process "
-          "| loop, threaded | decode (inline) | loop, inline | saved |")
+    print(
+        f"{args.hdri.name}: {frames} frames ({args.seconds:g} s at {args.fps:g} fps) per size, "
+        f"mp4v; processing: {args.process}; median (p90) ms per frame, first frame left out\n"
+    )
+    print(
+        "| size | decode (thread) | wait in the loop | frames waited > 1 ms | process "
+        "| loop, threaded | decode (inline) | loop, inline | saved |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         t, i = r["threaded"], r["inline"]
@@ -168,15 +182,27 @@ def main(argv: list[str] | None = None) -> int:
             return f"{s['median']:.1f} ({s['p90']:.1f})"
 
         saved = 1.0 - t["loop_ms"]["median"] / i["loop_ms"]["median"]
-        print(f"| {r['size'][0]}x{r['size'][1]} | {f(t['decode_ms'])} | {f(t['wait_ms'])} | "
-              f"{r['frames_waited_over_1ms']}/{t['wait_ms']['n']} | {f(t['process_ms'])} | "
-              f"{f(t['loop_ms'])} | {f(i['decode_ms'])} | {f(i['loop_ms'])} | "
-              f"{saved * 100:.0f} % |")
+        print(
+            f"| {r['size'][0]}x{r['size'][1]} | {f(t['decode_ms'])} | {f(t['wait_ms'])} | "
+            f"{r['frames_waited_over_1ms']}/{t['wait_ms']['n']} | {f(t['process_ms'])} | "
+            f"{f(t['loop_ms'])} | {f(i['decode_ms'])} | {f(i['loop_ms'])} | "
+            f"{saved * 100:.0f} % |"
+        )
     if args.out:
-        args.out.write_text(json.dumps({
-            "commit": _commit(), "machine": platform.platform(), "python": sys.version.split()[0],
-            "opencv": cv2.__version__, "hdri": str(args.hdri), "process": args.process,
-            "rows": rows}, indent=1))
+        args.out.write_text(
+            json.dumps(
+                {
+                    "commit": _commit(),
+                    "machine": platform.platform(),
+                    "python": sys.version.split()[0],
+                    "opencv": cv2.__version__,
+                    "hdri": str(args.hdri),
+                    "process": args.process,
+                    "rows": rows,
+                },
+                indent=1,
+            )
+        )
     return 0
 
 

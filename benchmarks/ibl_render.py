@@ -97,8 +97,10 @@ def accuracy(maps: dict[str, np.ndarray], n_dirs: int) -> dict:
 
 
 def print_accuracy(acc: dict) -> None:
-    print("\n| roughness | lobe radius (deg) | spread: median / max over maps | near peak: "
-          "median / max | mirror lookup instead: median |")
+    print(
+        "\n| roughness | lobe radius (deg) | spread: median / max over maps | near peak: "
+        "median / max | mirror lookup instead: median |"
+    )
     print("|---|---|---|---|---|")
     for rho in ROUGHNESS:
         rows = [acc[m][str(rho)] for m in acc]
@@ -106,13 +108,18 @@ def print_accuracy(acc: dict) -> None:
         p = [r["near_peak"] for r in rows]
         mirror = [r["mirror_lookup"] for r in rows]
         radius = math.degrees(glossy.lobe_radius_rad(glossy.phong_exponent(rho)))
-        print(f"| {rho} | {radius:.2f} | {100 * np.median(s):.1f} % / {100 * max(s):.1f} % | "
-              f"{100 * np.median(p):.1f} % / {100 * max(p):.1f} % | "
-              f"{100 * np.median(mirror):.1f} % |")
+        print(
+            f"| {rho} | {radius:.2f} | {100 * np.median(s):.1f} % / {100 * max(s):.1f} % | "
+            f"{100 * np.median(p):.1f} % / {100 * max(p):.1f} % | "
+            f"{100 * np.median(mirror):.1f} % |"
+        )
     print("\nper map, spread / near peak (%):")
     for m in acc:
-        cells = " ".join(f"{rho}: {100 * acc[m][str(rho)]['spread']:.1f}/"
-                         f"{100 * acc[m][str(rho)]['near_peak']:.0f}" for rho in ROUGHNESS)
+        cells = " ".join(
+            f"{rho}: {100 * acc[m][str(rho)]['spread']:.1f}/"
+            f"{100 * acc[m][str(rho)]['near_peak']:.0f}"
+            for rho in ROUGHNESS
+        )
         print(f"  {m}: {cells}")
 
 
@@ -142,10 +149,12 @@ def speed(hdr_map: np.ndarray, pano_width: int, repeats: int, backend: str) -> l
     ldr = cv2.resize(ldr, (pano_width, pano_width // 2), interpolation=cv2.INTER_LINEAR)
     hdr = expand(ldr, "boost")
     diffuse = lighting_from_hdr(hdr).diffuse_map
-    materials = {"diffuse": Material((0.8, 0.8, 0.8)),
-                 "glossy 0.2": Material((0.9, 0.9, 0.9), 0.2, 1.0),
-                 "mirror": Material((0.95, 0.95, 0.95), mirror=True),
-                 "mixed (demo)": None}
+    materials = {
+        "diffuse": Material((0.8, 0.8, 0.8)),
+        "glossy 0.2": Material((0.9, 0.9, 0.9), 0.2, 1.0),
+        "mirror": Material((0.95, 0.95, 0.95), mirror=True),
+        "mixed (demo)": None,
+    }
     rows = []
     for mode in ("mono", "stereo"):
         size = ibl_render.MONO_SIZE if mode == "mono" else ibl_render.EYE_SIZE
@@ -155,37 +164,54 @@ def speed(hdr_map: np.ndarray, pano_width: int, repeats: int, backend: str) -> l
         for label, material in materials.items():
             renderer = ibl_render.IblRenderer(scene_of(material), backend)
             views = [renderer.prepare_view(camera, p) for p in poses]
-            gbuffer_ms, _ = timed(lambda r=renderer, p=poses, c=camera: [r.prepare_view(c, q)
-                                                                         for q in p], repeats)
+            gbuffer_ms, _ = timed(
+                lambda r=renderer, p=poses, c=camera: [r.prepare_view(c, q) for q in p], repeats
+            )
             light = ibl_render.frame_light(hdr, diffuse, ldr)
             pyramid_ms, _ = timed(lambda: glossy.mip_pyramid(hdr), repeats)
-            render_ms, iqr = timed(lambda r=renderer, v=views, li=light: [r.render(x, li)
-                                                                        for x in v], repeats)
+            render_ms, iqr = timed(
+                lambda r=renderer, v=views, li=light: [r.render(x, li) for x in v], repeats
+            )
             frame_ms = pyramid_ms + render_ms
             paper = PAPER_MONO_MS if mode == "mono" else PAPER_STEREO_MS
-            rows.append({"mode": mode, "material": label,
-                         "size": f"{size[0]}x{size[1]}" + (" x 2" if mode == "stereo" else ""),
-                         "object_pixels": int(sum(len(v.pixels) for v in views)),
-                         "gbuffer_ms": gbuffer_ms, "pyramid_ms": pyramid_ms,
-                         "render_ms": render_ms, "render_iqr_ms": iqr, "frame_ms": frame_ms,
-                         "hz": 1000.0 / frame_ms, "paper_ms": paper,
-                         "ratio_to_paper": frame_ms / paper})
+            rows.append(
+                {
+                    "mode": mode,
+                    "material": label,
+                    "size": f"{size[0]}x{size[1]}" + (" x 2" if mode == "stereo" else ""),
+                    "object_pixels": int(sum(len(v.pixels) for v in views)),
+                    "gbuffer_ms": gbuffer_ms,
+                    "pyramid_ms": pyramid_ms,
+                    "render_ms": render_ms,
+                    "render_iqr_ms": iqr,
+                    "frame_ms": frame_ms,
+                    "hz": 1000.0 / frame_ms,
+                    "paper_ms": paper,
+                    "ratio_to_paper": frame_ms / paper,
+                }
+            )
             print(f"  {mode} {label}: {frame_ms:.0f} ms", flush=True)
     return rows
 
 
 def print_speed(rows: list[dict], threads: int, pano_width: int) -> None:
-    print(f"\nrender ms per frame ({threads} numba CPU thread(s), panorama {pano_width}x"
-          f"{pano_width // 2}; median of repeats, IQR in brackets):\n")
-    print("| view | material | object px | G-buffer once | pyramid | render | per frame | "
-          "Hz | paper | x paper |")
+    print(
+        f"\nrender ms per frame ({threads} numba CPU thread(s), panorama {pano_width}x"
+        f"{pano_width // 2}; median of repeats, IQR in brackets):\n"
+    )
+    print(
+        "| view | material | object px | G-buffer once | pyramid | render | per frame | "
+        "Hz | paper | x paper |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['mode']} {r['size']} | {r['material']} | {r['object_pixels']} | "
-              f"{r['gbuffer_ms']:.0f} | {r['pyramid_ms']:.0f} | {r['render_ms']:.0f} "
-              f"({r['render_iqr_ms']:.0f}) | {r['frame_ms']:.0f} | {r['hz']:.1f} | "
-              f"{r['paper_ms']:.1f} ms ({1000 / r['paper_ms']:.0f} Hz) | "
-              f"{r['ratio_to_paper']:.0f} |")
+        print(
+            f"| {r['mode']} {r['size']} | {r['material']} | {r['object_pixels']} | "
+            f"{r['gbuffer_ms']:.0f} | {r['pyramid_ms']:.0f} | {r['render_ms']:.0f} "
+            f"({r['render_iqr_ms']:.0f}) | {r['frame_ms']:.0f} | {r['hz']:.1f} | "
+            f"{r['paper_ms']:.1f} ms ({1000 / r['paper_ms']:.0f} Hz) | "
+            f"{r['ratio_to_paper']:.0f} |"
+        )
 
 
 def main() -> int:
@@ -195,10 +221,14 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--pano-width", type=int, default=2048)
     ap.add_argument("--skip-accuracy", action="store_true")
-    ap.add_argument("--backend", choices=glossy.BACKENDS, default="cpu",
-                    help="the mirror / glossy lookups on the CPU or, where numba.cuda sees a "
-                         "GPU, in CUDA (each call copies the pyramid and the pixels to the "
-                         "device and back: timed as such)")
+    ap.add_argument(
+        "--backend",
+        choices=glossy.BACKENDS,
+        default="cpu",
+        help="the mirror / glossy lookups on the CPU or, where numba.cuda sees a "
+        "GPU, in CUDA (each call copies the pyramid and the pixels to the "
+        "device and back: timed as such)",
+    )
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     files = sorted(args.hdri.glob("*.hdr")) if args.hdri.is_dir() else []
@@ -213,18 +243,26 @@ def main() -> int:
         print_accuracy(report["accuracy"])
     threads = numba.get_num_threads()
     print(f"\nspeed (lit by {next(iter(maps))}):")
-    report["speed"] = speed(next(iter(maps.values())), args.pano_width, args.repeats,
-                            args.backend)
+    report["speed"] = speed(next(iter(maps.values())), args.pano_width, args.repeats, args.backend)
     print_speed(report["speed"], threads, args.pano_width)
     try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                                cwd=ROOT, check=True).stdout.strip()
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, cwd=ROOT, check=True
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown"
-    report.update({"benchmark": "ibl_render", "commit": commit, "machine": platform.platform(),
-                   "cpu_count": os.cpu_count(), "numba_threads": threads,
-                   "python": platform.python_version(), "repeats": args.repeats,
-                   "backend": args.backend})
+    report.update(
+        {
+            "benchmark": "ibl_render",
+            "commit": commit,
+            "machine": platform.platform(),
+            "cpu_count": os.cpu_count(),
+            "numba_threads": threads,
+            "python": platform.python_version(),
+            "repeats": args.repeats,
+            "backend": args.backend,
+        }
+    )
     if args.out:
         args.out.write_text(json.dumps(report, indent=1) + "\n")
         print(f"\nwrote {args.out}")

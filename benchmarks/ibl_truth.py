@@ -99,8 +99,10 @@ def run_operators(name: str, hdr: np.ndarray, truth: HdrTruth, keys: list[float]
     out = {}
     for key in keys:
         ldr = ldr_frame(hdr, key)
-        clipped = float((equirect.pixel_solid_angles(*ldr.shape[:2])
-                         * (ldr.max(axis=-1) >= 255)).sum() / (4 * math.pi))
+        clipped = float(
+            (equirect.pixel_solid_angles(*ldr.shape[:2]) * (ldr.max(axis=-1) >= 255)).sum()
+            / (4 * math.pi)
+        )
         row = {"clipped_fraction": clipped}
         for op in OPERATORS:
             t0 = time.perf_counter()
@@ -112,14 +114,17 @@ def run_operators(name: str, hdr: np.ndarray, truth: HdrTruth, keys: list[float]
     return out
 
 
-def run_video(name: str, hdr: np.ndarray, truth: HdrTruth, frames: int, key: float,
-              folder: Path) -> dict:
+def run_video(
+    name: str, hdr: np.ndarray, truth: HdrTruth, frames: int, key: float, folder: Path
+) -> dict:
     """The map turning about +y, through mp4v and the decode thread, vs the same LDR frames."""
     h, w = hdr.shape[:2]
     exposure = keyed_exposure(hdr, key)
     shifts = [round(i * w / frames) for i in range(frames)]
-    ldrs = [ldr_frame(equirect.rotate_about_y(hdr, 2 * math.pi * s / w), exposure=exposure)
-            for s in shifts]
+    ldrs = [
+        ldr_frame(equirect.rotate_about_y(hdr, 2 * math.pi * s / w), exposure=exposure)
+        for s in shifts
+    ]
     path = folder / f"{name}.mp4"
     fps = 24.0
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
@@ -141,12 +146,15 @@ def run_video(name: str, hdr: np.ndarray, truth: HdrTruth, frames: int, key: flo
         wait_ms = float(np.median(source.wait_ms))
     summary = {}
     for kind, r in rows.items():
-        summary[kind] = {k: float(np.median([x[k] for x in r]))
-                         for k in ("angle_deg", "irradiance_error", "sh_error")}
+        summary[kind] = {
+            k: float(np.median([x[k] for x in r]))
+            for k in ("angle_deg", "irradiance_error", "sh_error")
+        }
     summary["frames_read"] = len(rows["video"])
     summary["timestamps_s"] = timestamps
-    summary["timestamps_ok"] = bool(np.allclose(timestamps, np.arange(len(timestamps)) / fps,
-                                                atol=1e-3))
+    summary["timestamps_ok"] = bool(
+        np.allclose(timestamps, np.arange(len(timestamps)) / fps, atol=1e-3)
+    )
     summary["decode_ms"] = decode_ms
     summary["wait_ms"] = wait_ms
     summary["bytes"] = path.stat().st_size
@@ -173,10 +181,12 @@ def run_sizes(hdr: np.ndarray, truth: HdrTruth, repeats: int) -> dict:
         est = diffuse_map_at(dmap, truth.normals)
         err = np.abs(est - truth.irradiance) / truth.irradiance
         out[f"{size[0]}x{size[1]}"] = {
-            "error_mean": float(err.mean()), "error_max": float(err.max()),
+            "error_mean": float(err.mean()),
+            "error_max": float(err.max()),
             "downsample_ms": _median_ms(lambda s=size: equirect.downsample(hdr, *s), repeats),
             "brute_force_ms": _median_ms(
-                lambda s=size, m=small: diffuse_map_brute_force(m, s, s), repeats),
+                lambda s=size, m=small: diffuse_map_brute_force(m, s, s), repeats
+            ),
         }
 
     def sh_path():
@@ -189,8 +199,9 @@ def run_sizes(hdr: np.ndarray, truth: HdrTruth, repeats: int) -> dict:
     out["sh"] = {
         "error_mean": float(np.mean(np.abs(est - truth.irradiance) / truth.irradiance)),
         "error_max": float(np.max(np.abs(est - truth.irradiance) / truth.irradiance)),
-        "error_mean_exact_eval": float(np.mean(np.abs(exact - truth.irradiance)
-                                               / truth.irradiance)),
+        "error_mean_exact_eval": float(
+            np.mean(np.abs(exact - truth.irradiance) / truth.irradiance)
+        ),
         "ms": _median_ms(sh_path, repeats),
     }
     small = equirect.downsample(hdr, 128, 64)
@@ -212,21 +223,32 @@ def run_boost_sweep(maps: dict, truths: dict, keys: list[float]) -> dict:
             for name, hdr in maps.items():
                 ldr = ldr_frame(hdr, key)
                 per[(b, key)][name] = score(boost_saturated(ldr, b), truths[name], IblParams())
-    table = {str(b): {str(k): {m: float(np.median([v[m] for v in per[(b, k)].values()]))
-                               for m in ("angle_deg", "irradiance_error")} for k in keys}
-             for b in BOOSTS}
+    table = {
+        str(b): {
+            str(k): {
+                m: float(np.median([v[m] for v in per[(b, k)].values()]))
+                for m in ("angle_deg", "irradiance_error")
+            }
+            for k in keys
+        }
+        for b in BOOSTS
+    }
     loo = {}
     key = 0.18 if 0.18 in keys else keys[len(keys) // 2]
     for held in maps:
         others = [n for n in maps if n != held]
-        chosen = min(BOOSTS, key=lambda b: np.median(
-            [per[(b, key)][n]["irradiance_error"] for n in others]))
-        loo[held] = {"boost": chosen, **{m: per[(chosen, key)][held][m]
-                                         for m in ("angle_deg", "irradiance_error")}}
+        chosen = min(
+            BOOSTS, key=lambda b: np.median([per[(b, key)][n]["irradiance_error"] for n in others])
+        )
+        loo[held] = {
+            "boost": chosen,
+            **{m: per[(chosen, key)][held][m] for m in ("angle_deg", "irradiance_error")},
+        }
     return {"medians": table, "leave_one_out": loo, "key": key}
 
 
 # --------------------------------------------------------------------------- tables
+
 
 def _f(v: float, spec: str = ".1f") -> str:
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
@@ -241,98 +263,150 @@ def print_tables(report: dict, keys: list[float]) -> None:
     for name, m in maps.items():
         for key in keys:
             row = m["operators"][str(key)]
-            cells = [f"{_f(row[o]['angle_deg'])} / {_f(100 * row[o]['irradiance_error'], '.0f')}"
-                     f" / {_f(row[o]['sh_error'], '.2f')}" for o in ops]
-            print(f"| {name} | {key} | {100 * row['clipped_fraction']:.0f} % | "
-                  + " | ".join(cells) + " |")
+            cells = [
+                f"{_f(row[o]['angle_deg'])} / {_f(100 * row[o]['irradiance_error'], '.0f')}"
+                f" / {_f(row[o]['sh_error'], '.2f')}"
+                for o in ops
+            ]
+            print(
+                f"| {name} | {key} | {100 * row['clipped_fraction']:.0f} % | "
+                + " | ".join(cells)
+                + " |"
+            )
     print("\n### Median over the maps: angle (deg) / irradiance error (%) / SH error\n")
-    print("| key | " + " | ".join(ops) + " | default, brightest-region direction (deg) | "
-          "default, SH-irradiance error (%) |")
+    print(
+        "| key | " + " | ".join(ops) + " | default, brightest-region direction (deg) | "
+        "default, SH-irradiance error (%) |"
+    )
     print("| --- | " + " | ".join("---" for _ in ops) + " | --- | --- |")
     for key in keys:
         cells = []
         for o in ops:
             vals = [m["operators"][str(key)][o] for m in maps.values()]
-            cells.append(f"{np.median([v['angle_deg'] for v in vals]):.1f} / "
-                         f"{100 * np.median([v['irradiance_error'] for v in vals]):.0f} / "
-                         f"{np.median([v['sh_error'] for v in vals]):.2f}")
+            cells.append(
+                f"{np.median([v['angle_deg'] for v in vals]):.1f} / "
+                f"{100 * np.median([v['irradiance_error'] for v in vals]):.0f} / "
+                f"{np.median([v['sh_error'] for v in vals]):.2f}"
+            )
         d = [m["operators"][str(key)][DEFAULT_OPERATOR] for m in maps.values()]
-        print(f"| {key} | " + " | ".join(cells)
-              + f" | {np.median([v['angle_brightest_deg'] for v in d]):.1f}"
-              + f" | {100 * np.median([v['irradiance_error_sh'] for v in d]):.0f} |")
+        print(
+            f"| {key} | "
+            + " | ".join(cells)
+            + f" | {np.median([v['angle_brightest_deg'] for v in d]):.1f}"
+            + f" | {100 * np.median([v['irradiance_error_sh'] for v in d]):.0f} |"
+        )
     if any("video" in m for m in maps.values()):
-        print(f"\n### Video (map turning about +y, key 0.18, {DEFAULT_OPERATOR}): median over "
-              "its frames, angle (deg) / irradiance error (%) / SH error\n")
-        print("| map | frames read | timestamps | mp4v + decode thread | same frames, no codec "
-              "| decode ms/frame (own thread) | processing waited ms/frame | video KiB |")
+        print(
+            f"\n### Video (map turning about +y, key 0.18, {DEFAULT_OPERATOR}): median over "
+            "its frames, angle (deg) / irradiance error (%) / SH error\n"
+        )
+        print(
+            "| map | frames read | timestamps | mp4v + decode thread | same frames, no codec "
+            "| decode ms/frame (own thread) | processing waited ms/frame | video KiB |"
+        )
         print("| --- | --- | --- | --- | --- | --- | --- | --- |")
         for name, m in maps.items():
             v = m["video"]
-            cells = [f"{v[k]['angle_deg']:.1f} / {100 * v[k]['irradiance_error']:.0f} / "
-                     f"{v[k]['sh_error']:.2f}" for k in ("video", "direct")]
-            print(f"| {name} | {v['frames_read']} | {'ok' if v['timestamps_ok'] else 'WRONG'} | "
-                  + " | ".join(cells) + f" | {v['decode_ms']:.1f} | {v['wait_ms']:.1f} | "
-                  f"{v['bytes'] / 1024:.0f} |")
+            cells = [
+                f"{v[k]['angle_deg']:.1f} / {100 * v[k]['irradiance_error']:.0f} / "
+                f"{v[k]['sh_error']:.2f}"
+                for k in ("video", "direct")
+            ]
+            print(
+                f"| {name} | {v['frames_read']} | {'ok' if v['timestamps_ok'] else 'WRONG'} | "
+                + " | ".join(cells)
+                + f" | {v['decode_ms']:.1f} | {v['wait_ms']:.1f} | "
+                f"{v['bytes'] / 1024:.0f} |"
+            )
         videos = [m["video"] for m in maps.values()]
-        cells = [f"{np.median([v[k]['angle_deg'] for v in videos]):.1f} / "
-                 f"{100 * np.median([v[k]['irradiance_error'] for v in videos]):.0f} / "
-                 f"{np.median([v[k]['sh_error'] for v in videos]):.2f}"
-                 for k in ("video", "direct")]
+        cells = [
+            f"{np.median([v[k]['angle_deg'] for v in videos]):.1f} / "
+            f"{100 * np.median([v[k]['irradiance_error'] for v in videos]):.0f} / "
+            f"{np.median([v[k]['sh_error'] for v in videos]):.2f}"
+            for k in ("video", "direct")
+        ]
         print("| median over the maps | | | " + " | ".join(cells) + " | | | |")
-    print("\n### Diffuse map resolution against the full-resolution brute-force reference "
-          "(HDR maps, no tone mapping)\n")
-    print("| method | mean relative error (median over maps) | worst map's max error | "
-          "ms: downsample + integrate (median over maps) |")
+    print(
+        "\n### Diffuse map resolution against the full-resolution brute-force reference "
+        "(HDR maps, no tone mapping)\n"
+    )
+    print(
+        "| method | mean relative error (median over maps) | worst map's max error | "
+        "ms: downsample + integrate (median over maps) |"
+    )
     print("| --- | --- | --- | --- |")
     sizes = [m["sizes"] for m in maps.values()]
     for w, h in SIZES:
         k = f"{w}x{h}"
-        print(f"| brute force {k} (source {k}) | "
-              f"{100 * np.median([s[k]['error_mean'] for s in sizes]):.2f} % | "
-              f"{100 * np.max([s[k]['error_max'] for s in sizes]):.1f} % | "
-              f"{np.median([s[k]['downsample_ms'] for s in sizes]):.2f} + "
-              f"{np.median([s[k]['brute_force_ms'] for s in sizes]):.2f} |")
-    exact = np.median([s['sh']['error_mean_exact_eval'] for s in sizes])
-    print(f"| SH (bands 0-3 from 128x64) -> 32x16 map | "
-          f"{100 * np.median([s['sh']['error_mean'] for s in sizes]):.2f} % (evaluated exactly "
-          f"at the normals: {100 * exact:.2f} %) | "
-          f"{100 * np.max([s['sh']['error_max'] for s in sizes]):.1f} % | "
-          f"{np.median([s['sh']['ms'] for s in sizes]):.2f} in all (projection "
-          f"{np.median([s['sh']['project_ms'] for s in sizes]):.2f}) |")
-    print(f"| reference: every pixel of the 1024x512 map -> 32x16 | 0 | 0 | "
-          f"{np.median([s['reference_32x16_ms'] for s in sizes]):.0f} |")
+        print(
+            f"| brute force {k} (source {k}) | "
+            f"{100 * np.median([s[k]['error_mean'] for s in sizes]):.2f} % | "
+            f"{100 * np.max([s[k]['error_max'] for s in sizes]):.1f} % | "
+            f"{np.median([s[k]['downsample_ms'] for s in sizes]):.2f} + "
+            f"{np.median([s[k]['brute_force_ms'] for s in sizes]):.2f} |"
+        )
+    exact = np.median([s["sh"]["error_mean_exact_eval"] for s in sizes])
+    print(
+        f"| SH (bands 0-3 from 128x64) -> 32x16 map | "
+        f"{100 * np.median([s['sh']['error_mean'] for s in sizes]):.2f} % (evaluated exactly "
+        f"at the normals: {100 * exact:.2f} %) | "
+        f"{100 * np.max([s['sh']['error_max'] for s in sizes]):.1f} % | "
+        f"{np.median([s['sh']['ms'] for s in sizes]):.2f} in all (projection "
+        f"{np.median([s['sh']['project_ms'] for s in sizes]):.2f}) |"
+    )
+    print(
+        f"| reference: every pixel of the 1024x512 map -> 32x16 | 0 | 0 | "
+        f"{np.median([s['reference_32x16_ms'] for s in sizes]):.0f} |"
+    )
     sweep = report.get("boost_sweep")
     if sweep:
         print("\n### `boost` factor: median over the maps, angle (deg) / irradiance error (%)\n")
         print("| boost | " + " | ".join(f"key {k}" for k in keys) + " |")
         print("| --- | " + " | ".join("---" for _ in keys) + " |")
         for b, row in sweep["medians"].items():
-            print(f"| {b} | " + " | ".join(f"{row[str(k)]['angle_deg']:.1f} / "
-                                          f"{100 * row[str(k)]['irradiance_error']:.0f}"
-                                          for k in keys) + " |")
+            print(
+                f"| {b} | "
+                + " | ".join(
+                    f"{row[str(k)]['angle_deg']:.1f} / {100 * row[str(k)]['irradiance_error']:.0f}"
+                    for k in keys
+                )
+                + " |"
+            )
         loo = sweep["leave_one_out"]
-        print(f"\nLeave one map out (factor chosen on the other maps' median irradiance error at "
-              f"key {sweep['key']}): " + ", ".join(f"{n} {v['boost']:g}" for n, v in loo.items())
-              + f"; held-out median {np.median([v['angle_deg'] for v in loo.values()]):.1f} deg / "
-              f"{100 * np.median([v['irradiance_error'] for v in loo.values()]):.0f} %")
+        print(
+            f"\nLeave one map out (factor chosen on the other maps' median irradiance error at "
+            f"key {sweep['key']}): "
+            + ", ".join(f"{n} {v['boost']:g}" for n, v in loo.items())
+            + f"; held-out median {np.median([v['angle_deg'] for v in loo.values()]):.1f} deg / "
+            f"{100 * np.median([v['irradiance_error'] for v in loo.values()]):.0f} %"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--hdri", type=Path, default=DEFAULT_HDRI,
-                        help=f"folder of .hdr maps (default {DEFAULT_HDRI})")
+    parser.add_argument(
+        "--hdri",
+        type=Path,
+        default=DEFAULT_HDRI,
+        help=f"folder of .hdr maps (default {DEFAULT_HDRI})",
+    )
     parser.add_argument("--keys", type=float, nargs="+", default=[0.09, 0.18, 0.36])
-    parser.add_argument("--video-frames", type=int, default=8,
-                        help="frames of each rotating video (0: no video)")
+    parser.add_argument(
+        "--video-frames", type=int, default=8, help="frames of each rotating video (0: no video)"
+    )
     parser.add_argument("--repeats", type=int, default=20, help="timed repeats per size")
-    parser.add_argument("--boost-sweep", action="store_true",
-                        help="also sweep the boost factor, with a leave-one-map-out choice")
+    parser.add_argument(
+        "--boost-sweep",
+        action="store_true",
+        help="also sweep the boost factor, with a leave-one-map-out choice",
+    )
     parser.add_argument("--out", type=Path, help="write all numbers as JSON")
     args = parser.parse_args(argv)
     files = sorted(args.hdri.glob("*.hdr"))
     if not files:
-        print(f"ibl_truth: no .hdr maps in {args.hdri} (the shared data is absent?)",
-              file=sys.stderr)
+        print(
+            f"ibl_truth: no .hdr maps in {args.hdri} (the shared data is absent?)", file=sys.stderr
+        )
         return 2
     t_start = time.perf_counter()
     maps, truths, report = {}, {}, {"maps": {}}
@@ -343,28 +417,44 @@ def main(argv: list[str] | None = None) -> int:
             hdr = read_panorama_image(f)
             truth = hdr_truth(hdr)
             maps[name], truths[name] = hdr, truth
-            entry = {"file": f.name, "size": [hdr.shape[1], hdr.shape[0]],
-                     "dominant_direction": truth.dominant_direction.tolist(),
-                     "operators": run_operators(name, hdr, truth, args.keys)}
+            entry = {
+                "file": f.name,
+                "size": [hdr.shape[1], hdr.shape[0]],
+                "dominant_direction": truth.dominant_direction.tolist(),
+                "operators": run_operators(name, hdr, truth, args.keys),
+            }
             if args.video_frames > 0:
                 entry["video"] = run_video(name, hdr, truth, args.video_frames, 0.18, Path(tmp))
             entry["sizes"] = run_sizes(hdr, truth, args.repeats)
             report["maps"][name] = entry
-            print(f"ibl_truth: {name} done in {time.perf_counter() - t0:.0f} s",
-                  file=sys.stderr, flush=True)
+            print(
+                f"ibl_truth: {name} done in {time.perf_counter() - t0:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
     if args.boost_sweep:
         report["boost_sweep"] = run_boost_sweep(maps, truths, args.keys)
     print_tables(report, args.keys)
     try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                                check=False, cwd=ROOT).stdout.strip()
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False, cwd=ROOT
+        ).stdout.strip()
     except OSError:
         commit = "unknown"
-    report.update({"benchmark": "ibl_truth", "commit": commit, "machine": platform.platform(),
-                   "cpu_count": os.cpu_count(), "python": platform.python_version(),
-                   "opencv": cv2.__version__, "numpy": np.__version__, "keys": args.keys,
-                   "default_operator": DEFAULT_OPERATOR,
-                   "seconds": time.perf_counter() - t_start})
+    report.update(
+        {
+            "benchmark": "ibl_truth",
+            "commit": commit,
+            "machine": platform.platform(),
+            "cpu_count": os.cpu_count(),
+            "python": platform.python_version(),
+            "opencv": cv2.__version__,
+            "numpy": np.__version__,
+            "keys": args.keys,
+            "default_operator": DEFAULT_OPERATOR,
+            "seconds": time.perf_counter() - t_start,
+        }
+    )
     if args.out:
         args.out.write_text(json.dumps(report, indent=1) + "\n")
         print(f"ibl_truth: wrote {args.out}", file=sys.stderr)

@@ -30,8 +30,7 @@ from arlight.pipeline.config import Config
 from arlight.pipeline.light_estimation import TemporalFilter
 
 
-def record(data: list[str], preset: str, out: Path, frames: int | None,
-           overrides: dict) -> None:
+def record(data: list[str], preset: str, out: Path, frames: int | None, overrides: dict) -> None:
     import arlight.pipeline.pipeline as pipeline_module
     from arlight.bench import open_data
 
@@ -40,18 +39,42 @@ def record(data: list[str], preset: str, out: Path, frames: int | None,
     captured: list[dict] = []
     real = pipeline_module.estimate_light
 
-    def spy(transfer, color_linear, params, segments=None, bounce=None, up=None,
-            below_horizon_unseen=False, *, seed=0, checkpoint=None):
+    def spy(
+        transfer,
+        color_linear,
+        params,
+        segments=None,
+        bounce=None,
+        up=None,
+        below_horizon_unseen=False,
+        *,
+        seed=0,
+        checkpoint=None,
+    ):
         t = np.asarray(transfer).reshape(-1, np.asarray(transfer).shape[-1])
         keep = _kept_rows(t, color_linear, bounce, segments, params, seed)
-        captured.append({
-            "transfer": t[keep], "color": np.asarray(color_linear).reshape(-1, 3)[keep],
-            "segments": None if segments is None else np.asarray(segments).reshape(-1)[keep],
-            "bounce": None if bounce is None else np.asarray(bounce).reshape(-1)[keep],
-            "up": None if up is None else np.asarray(up, float),
-            "below_horizon_unseen": bool(below_horizon_unseen), "seed": int(seed)})
-        return real(transfer, color_linear, params, segments, bounce, up,
-                    below_horizon_unseen, seed=seed, checkpoint=checkpoint)
+        captured.append(
+            {
+                "transfer": t[keep],
+                "color": np.asarray(color_linear).reshape(-1, 3)[keep],
+                "segments": None if segments is None else np.asarray(segments).reshape(-1)[keep],
+                "bounce": None if bounce is None else np.asarray(bounce).reshape(-1)[keep],
+                "up": None if up is None else np.asarray(up, float),
+                "below_horizon_unseen": bool(below_horizon_unseen),
+                "seed": int(seed),
+            }
+        )
+        return real(
+            transfer,
+            color_linear,
+            params,
+            segments,
+            bounce,
+            up,
+            below_horizon_unseen,
+            seed=seed,
+            checkpoint=checkpoint,
+        )
 
     pipeline_module.estimate_light = spy
     try:
@@ -71,18 +94,22 @@ def record(data: list[str], preset: str, out: Path, frames: int | None,
 def _kept_rows(t, color_linear, bounce, segments, params, seed) -> np.ndarray:
     """The rows estimate_light's own _usable_samples keeps (same rules, same seed)."""
     rgb = np.asarray(color_linear).reshape(-1, 3)
-    s = light_estimation._usable_samples(t, rgb, bounce, segments, params.light_max_samples,
-                                         seed)
+    s = light_estimation._usable_samples(t, rgb, bounce, segments, params.light_max_samples, seed)
     # recover the row indices: _usable_samples returns the rows, not their indices
     lum_all = rgb @ light_estimation.LUMA.astype(rgb.dtype, copy=False)
     with np.errstate(invalid="ignore"):
-        usable = (np.isfinite(lum_all) & np.isfinite(t).all(axis=1)
-                  & ~(rgb.max(axis=1) >= light_estimation.CLIP_LEVEL)
-                  & (lum_all > light_estimation.DARK_LEVEL) & (t[:, 0] > 1e-6))
+        usable = (
+            np.isfinite(lum_all)
+            & np.isfinite(t).all(axis=1)
+            & ~(rgb.max(axis=1) >= light_estimation.CLIP_LEVEL)
+            & (lum_all > light_estimation.DARK_LEVEL)
+            & (t[:, 0] > 1e-6)
+        )
     keep = np.flatnonzero(usable)
     if len(keep) > params.light_max_samples:
-        keep = np.sort(np.random.default_rng(seed).choice(keep, params.light_max_samples,
-                                                          replace=False))
+        keep = np.sort(
+            np.random.default_rng(seed).choice(keep, params.light_max_samples, replace=False)
+        )
     assert len(keep) == len(s.lum)
     return keep
 
@@ -95,11 +122,17 @@ def _save(path: Path, seq, captured: list[dict], poses: list) -> None:
             if c[key] is not None:
                 arrays[f"{i}_{key}"] = c[key]
         truth = seq.truth[i]
-        meta.append({"up": None if c["up"] is None else c["up"].tolist(),
-                     "below_horizon_unseen": c["below_horizon_unseen"], "seed": c["seed"],
-                     "pose": np.asarray(poses[i]).tolist(),
-                     "truth_upper_camera": truth.dominant_upper_camera.tolist(),
-                     "env_map": truth.env_map, "layout": truth.layout})
+        meta.append(
+            {
+                "up": None if c["up"] is None else c["up"].tolist(),
+                "below_horizon_unseen": c["below_horizon_unseen"],
+                "seed": c["seed"],
+                "pose": np.asarray(poses[i]).tolist(),
+                "truth_upper_camera": truth.dominant_upper_camera.tolist(),
+                "env_map": truth.env_map,
+                "layout": truth.layout,
+            }
+        )
     arrays["meta"] = np.array(json.dumps(meta))
     np.savez(path, **arrays)
 
@@ -120,25 +153,40 @@ def replay(cache: Path, overrides: dict, hold_out_maps: bool) -> dict:
                 params = dataclasses.replace(params, light_prior_exclude=m["env_map"])
             up = None if m["up"] is None else np.asarray(m["up"])
             est = light_estimation.estimate_light(
-                data[f"{i}_transfer"], data[f"{i}_color"], params,
+                data[f"{i}_transfer"],
+                data[f"{i}_color"],
+                params,
                 data[f"{i}_segments"] if f"{i}_segments" in data else None,
-                data[f"{i}_bounce"] if f"{i}_bounce" in data else None, up,
-                m["below_horizon_unseen"], seed=m["seed"])
+                data[f"{i}_bounce"] if f"{i}_bounce" in data else None,
+                up,
+                m["below_horizon_unseen"],
+                seed=m["seed"],
+            )
             if up is not None:
                 up_seen = up
             filtered = filt.update(est.sh, est.confidence.value)
             r = np.asarray(m["pose"])[:3, :3]
             truth = np.asarray(m["truth_upper_camera"])
 
-            rows.append({"sequence": file.stem, "map": m["env_map"], "layout": m["layout"],
-                         "raw": _error(est.sh, up_seen, r, truth),
-                         "filtered": _error(filtered, up_seen, r, truth),
-                         "confidence": est.confidence.value})
+            rows.append(
+                {
+                    "sequence": file.stem,
+                    "map": m["env_map"],
+                    "layout": m["layout"],
+                    "raw": _error(est.sh, up_seen, r, truth),
+                    "filtered": _error(filtered, up_seen, r, truth),
+                    "confidence": est.confidence.value,
+                }
+            )
     return summarise(rows)
 
 
-def _error(coeffs: np.ndarray, up: np.ndarray | None, world_from_cam_rot: np.ndarray,
-           truth_camera: np.ndarray) -> float:
+def _error(
+    coeffs: np.ndarray,
+    up: np.ndarray | None,
+    world_from_cam_rot: np.ndarray,
+    truth_camera: np.ndarray,
+) -> float:
     """Degrees between the reported direction (above the horizon of `up`) and the truth."""
     d = sh.dominant_direction(coeffs) if up is None else sh.above_horizon_direction(coeffs, up)
     return evaluation.angular_error_deg(world_from_cam_rot.T @ d, truth_camera)
@@ -155,12 +203,14 @@ def summarise(rows: list[dict]) -> dict:
         by_seq: dict[str, list[float]] = {}
         for r in rows:
             by_seq.setdefault(r["sequence"], []).append(r[kind])
-        out[kind] = {"median_over_maps": float(np.median(list(medians.values()))),
-                     "p90_frames": float(np.percentile([r[kind] for r in rows], 90)),
-                     "worst_map": worst, "worst_map_deg": medians[worst],
-                     "median_of_sequence_medians": float(np.median(
-                         [np.median(v) for v in by_seq.values()])),
-                     "per_map": medians}
+        out[kind] = {
+            "median_over_maps": float(np.median(list(medians.values()))),
+            "p90_frames": float(np.percentile([r[kind] for r in rows], 90)),
+            "worst_map": worst,
+            "worst_map_deg": medians[worst],
+            "median_of_sequence_medians": float(np.median([np.median(v) for v in by_seq.values()])),
+            "per_map": medians,
+        }
     out["frames"] = len(rows)
     return out
 
@@ -191,10 +241,12 @@ def main(argv: list[str] | None = None) -> int:
     report = replay(Path(args.cache), dict(args.set), args.hold_out_maps)
     for kind in ("raw", "filtered"):
         r = report[kind]
-        print(f"{kind:9s} median over maps {r['median_over_maps']:5.1f}  p90 frames "
-              f"{r['p90_frames']:5.1f}  worst map {r['worst_map']} {r['worst_map_deg']:.1f}  "
-              f"(median of sequence medians {r['median_of_sequence_medians']:.1f}; "
-              f"{report['frames']} frames)")
+        print(
+            f"{kind:9s} median over maps {r['median_over_maps']:5.1f}  p90 frames "
+            f"{r['p90_frames']:5.1f}  worst map {r['worst_map']} {r['worst_map_deg']:.1f}  "
+            f"(median of sequence medians {r['median_of_sequence_medians']:.1f}; "
+            f"{report['frames']} frames)"
+        )
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1))
     return 0

@@ -46,8 +46,12 @@ from arlight.sources.sequence import open_sequence
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
 
 
-def implied_albedo(estimate_sh: np.ndarray, truth_sh: np.ndarray,
-                   camera_forward_world: np.ndarray, samples: int = 2000) -> float:
+def implied_albedo(
+    estimate_sh: np.ndarray,
+    truth_sh: np.ndarray,
+    camera_forward_world: np.ndarray,
+    samples: int = 2000,
+) -> float:
     """rho for one frame: estimated over true irradiance, averaged over the world-frame unit
     normals that face the camera (n . forward < 0)."""
     dirs = sh.fibonacci_sphere(samples)
@@ -63,8 +67,9 @@ COLOUR_CHOICES = ("white", "estimate_rgb", "grey_world")
 def colour_error_deg(estimate: np.ndarray, truth: np.ndarray) -> float:
     """Angle (degrees) between two RGB triples: the error of a light's colour, whatever
     its intensity."""
-    c = float(estimate @ truth) / max(float(np.linalg.norm(estimate) * np.linalg.norm(truth)),
-                                      1e-12)
+    c = float(estimate @ truth) / max(
+        float(np.linalg.norm(estimate) * np.linalg.norm(truth)), 1e-12
+    )
     return math.degrees(math.acos(min(1.0, max(-1.0, c))))
 
 
@@ -90,20 +95,29 @@ def sequence_figures(folder: Path, frames: int, preset: str) -> tuple[float, dic
         forward = result.pose[:3, :3] @ np.array([0.0, 0.0, 1.0])
         values.append(implied_albedo(np.asarray(result.sh) * math.pi, l_gt, forward))
         rgb = f["sh_rgb_world"]
-        true_rgb = np.maximum(np.asarray(json.loads(rgb) if isinstance(rgb, str) else rgb,
-                                         np.float64)[:, 0], 0.0)
-        grey_world = fitted_rgb[-1] / max(float(LUMA @ fitted_rgb[-1]), 1e-12) \
-            if fitted_rgb else np.ones(3)
-        for name, est in zip(COLOUR_CHOICES, (np.ones(3), luminance_light_rgb(result.sh_rgb),
-                                              grey_world), strict=True):
+        true_rgb = np.maximum(
+            np.asarray(json.loads(rgb) if isinstance(rgb, str) else rgb, np.float64)[:, 0], 0.0
+        )
+        grey_world = (
+            fitted_rgb[-1] / max(float(LUMA @ fitted_rgb[-1]), 1e-12) if fitted_rgb else np.ones(3)
+        )
+        for name, est in zip(
+            COLOUR_CHOICES,
+            (np.ones(3), luminance_light_rgb(result.sh_rgb), grey_world),
+            strict=True,
+        ):
             colour[name].append(colour_error_deg(est, true_rgb))
     return float(np.median(values)), {k: float(np.median(v)) for k, v in colour.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("sequences", nargs="*", type=Path,
-                        help="sequence folders with lighting_gt.json (default: all shared)")
+    parser.add_argument(
+        "sequences",
+        nargs="*",
+        type=Path,
+        help="sequence folders with lighting_gt.json (default: all shared)",
+    )
     parser.add_argument("--frames", type=int, default=8, help="frames per sequence")
     parser.add_argument("--preset", default="full", help="pipeline preset")
     args = parser.parse_args(argv)
@@ -114,17 +128,23 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rho, colour = {}, {}
     for folder in folders:
-        rho[folder.name], colour[folder.name] = sequence_figures(folder, args.frames,
-                                                                 args.preset)
-        print(f"{folder.name:40s} implied albedo {rho[folder.name]:.3f}   colour error "
-              + "  ".join(f"{k} {v:.1f}" for k, v in colour[folder.name].items()), flush=True)
+        rho[folder.name], colour[folder.name] = sequence_figures(folder, args.frames, args.preset)
+        print(
+            f"{folder.name:40s} implied albedo {rho[folder.name]:.3f}   colour error "
+            + "  ".join(f"{k} {v:.1f}" for k, v in colour[folder.name].items()),
+            flush=True,
+        )
     values = np.array(list(rho.values()))
     loo = [float(np.median(np.delete(values, i))) for i in range(len(values))]
-    print(f"median over {len(values)} sequences: {np.median(values):.3f} "
-          f"(leave one sequence out: {min(loo):.3f} .. {max(loo):.3f}; "
-          f"spread over sequences {values.min():.3f} .. {values.max():.3f})")
-    print("light colour error, degrees, median over sequences: " + "  ".join(
-        f"{k} {np.median([c[k] for c in colour.values()]):.1f}" for k in COLOUR_CHOICES))
+    print(
+        f"median over {len(values)} sequences: {np.median(values):.3f} "
+        f"(leave one sequence out: {min(loo):.3f} .. {max(loo):.3f}; "
+        f"spread over sequences {values.min():.3f} .. {values.max():.3f})"
+    )
+    print(
+        "light colour error, degrees, median over sequences: "
+        + "  ".join(f"{k} {np.median([c[k] for c in colour.values()]):.1f}" for k in COLOUR_CHOICES)
+    )
     return 0
 
 

@@ -42,10 +42,16 @@ def stream_all(server: Server, sources: list, preset: str) -> dict:
     summaries: list = [None] * len(sources)
 
     def run(i: int) -> None:
-        options = StreamOptions(server=server.connect_address, session=f"s{i}",
-                                mode="lossless", rate="max", preset=preset)
-        client = CaptureClient(sources[i], options,
-                               on_result=lambda r, _w, i=i: results[i].append(r.seq))
+        options = StreamOptions(
+            server=server.connect_address,
+            session=f"s{i}",
+            mode="lossless",
+            rate="max",
+            preset=preset,
+        )
+        client = CaptureClient(
+            sources[i], options, on_result=lambda r, _w, i=i: results[i].append(r.seq)
+        )
         summaries[i] = client.run()
 
     threads = [threading.Thread(target=run, args=(i,)) for i in range(len(sources))]
@@ -61,10 +67,14 @@ def stream_all(server: Server, sources: list, preset: str) -> dict:
     lat = np.concatenate([np.asarray(s.latencies_s) for s in summaries]) * 1e3
     first = [s.latencies_s[0] * 1e3 for s in summaries]
     total = sum(len(r) for r in results)
-    return {"results": total, "wall_s": wall, "results_per_s": total / wall,
-            "latency_ms_median": float(np.median(lat)),
-            "latency_ms_p95": float(np.percentile(lat, 95)),
-            "first_result_ms_median": float(np.median(first))}
+    return {
+        "results": total,
+        "wall_s": wall,
+        "results_per_s": total / wall,
+        "latency_ms_median": float(np.median(lat)),
+        "latency_ms_p95": float(np.percentile(lat, 95)),
+        "first_result_ms_median": float(np.median(first)),
+    }
 
 
 def io_path(size: tuple[int, int], frames: int) -> dict:
@@ -93,8 +103,13 @@ def ray_round_trip(ray, size: tuple[int, int], calls: int = 200) -> dict:
     from arlight.pipeline.frames import FrameInput
 
     f = next(iter(source.frames()))
-    frame = FrameInput(color=f.color, depth=f.depth, depth_scale=source.depth_scale,
-                       timestamp=f.timestamp, pose=f.pose)
+    frame = FrameInput(
+        color=f.color,
+        depth=f.depth,
+        depth_scale=source.depth_scale,
+        timestamp=f.timestamp,
+        pose=f.pose,
+    )
     actor = ray.remote(Echo).options(num_cpus=0).remote()
     ray.get(actor.process.remote(frame))
     t0 = time.perf_counter()
@@ -119,12 +134,19 @@ def main() -> int:
 
     from arlight.ray_serve import RayCompute
 
-    report = {"machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
-              "size": args.size, "preset": args.preset, "frames": args.frames, "runs": []}
+    report = {
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
+        "size": args.size,
+        "preset": args.preset,
+        "frames": args.frames,
+        "runs": [],
+    }
     report["io_path"] = io_path(size, max(args.frames, 60))
-    print(f"I/O path, identity step, 1 session: {report['io_path']['results_per_s']:.0f} "
-          f"Results/s, latency median {report['io_path']['latency_ms_median']:.1f} ms",
-          flush=True)
+    print(
+        f"I/O path, identity step, 1 session: {report['io_path']['results_per_s']:.0f} "
+        f"Results/s, latency median {report['io_path']['latency_ms_median']:.1f} ms",
+        flush=True,
+    )
     for cpus in args.cpus:
         ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False)
         try:
@@ -132,30 +154,41 @@ def main() -> int:
                 report["ray_round_trip"] = ray_round_trip(ray, size)
                 print(f"Ray round trip of one frame: {report['ray_round_trip']}", flush=True)
             for n in args.sessions:
-                sources = [open_source("synthetic", use_poses=True, max_frames=args.frames,
-                                       synthetic_size=size) for _ in range(n)]
+                sources = [
+                    open_source(
+                        "synthetic", use_poses=True, max_frames=args.frames, synthetic_size=size
+                    )
+                    for _ in range(n)
+                ]
                 compute = RayCompute(ray)
                 # a session waiting for a free actor must not hit the frame deadline
-                options = ServerOptions(bind="tcp://127.0.0.1:*", log_interval_s=600,
-                                        frame_deadline_s=600)
+                options = ServerOptions(
+                    bind="tcp://127.0.0.1:*", log_interval_s=600, frame_deadline_s=600
+                )
                 with Server(options, process=compute) as server:
                     run = stream_all(server, sources, args.preset)
                 compute.close()
                 run.update(cpus=cpus, sessions=n)
                 report["runs"].append(run)
-                print(f"Ray {cpus} CPU(s), {n} session(s): {run['results_per_s']:.1f} "
-                      f"Results/s, latency median {run['latency_ms_median']:.0f} ms, p95 "
-                      f"{run['latency_ms_p95']:.0f} ms, first Result "
-                      f"{run['first_result_ms_median']:.0f} ms ({run['wall_s']:.1f} s)",
-                      flush=True)
+                print(
+                    f"Ray {cpus} CPU(s), {n} session(s): {run['results_per_s']:.1f} "
+                    f"Results/s, latency median {run['latency_ms_median']:.0f} ms, p95 "
+                    f"{run['latency_ms_p95']:.0f} ms, first Result "
+                    f"{run['first_result_ms_median']:.0f} ms ({run['wall_s']:.1f} s)",
+                    flush=True,
+                )
         finally:
             ray.shutdown()
-    print("\n| Ray CPUs (actors at once) | sessions | Results/s | latency median / p95 ms "
-          "| first Result ms |\n|---|---|---|---|---|")
+    print(
+        "\n| Ray CPUs (actors at once) | sessions | Results/s | latency median / p95 ms "
+        "| first Result ms |\n|---|---|---|---|---|"
+    )
     for r in report["runs"]:
-        print(f"| {r['cpus']} | {r['sessions']} | {r['results_per_s']:.1f} | "
-              f"{r['latency_ms_median']:.0f} / {r['latency_ms_p95']:.0f} | "
-              f"{r['first_result_ms_median']:.0f} |")
+        print(
+            f"| {r['cpus']} | {r['sessions']} | {r['results_per_s']:.1f} | "
+            f"{r['latency_ms_median']:.0f} / {r['latency_ms_p95']:.0f} | "
+            f"{r['first_result_ms_median']:.0f} |"
+        )
     if args.json:
         with open(args.json, "w") as f:
             json.dump(report, f, indent=2)

@@ -104,10 +104,25 @@ class ServerProcess:
 
     def start(self) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "arlight.cli", "serve", "--bind",
-             f"tcp://127.0.0.1:{self.port}", "--workers", str(self.workers), "--heartbeat",
-             "1", "--log-interval", "30", "--shutdown-grace", "10"],
-            stdout=self.log, stderr=subprocess.STDOUT)
+            [
+                sys.executable,
+                "-m",
+                "arlight.cli",
+                "serve",
+                "--bind",
+                f"tcp://127.0.0.1:{self.port}",
+                "--workers",
+                str(self.workers),
+                "--heartbeat",
+                "1",
+                "--log-interval",
+                "30",
+                "--shutdown-grace",
+                "10",
+            ],
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+        )
         self.lives.append([])
 
     def kill(self) -> None:
@@ -166,8 +181,7 @@ class SessionTally:
         self.final_errors.append(f"{error.seq}: {error.code} {error.field} {error.message}")
 
 
-def looping_source(index: int, sequence, end_mono: float,
-                   tally: SessionTally) -> Source:
+def looping_source(index: int, sequence, end_mono: float, tally: SessionTally) -> Source:
     """The synthetic frames (with their poses) over and over until `end_mono`."""
     cam = sequence.camera
 
@@ -176,12 +190,17 @@ def looping_source(index: int, sequence, end_mono: float,
         while time.monotonic() < end_mono:
             f = sequence.frames[i % len(sequence.frames)]
             tally.generated += 1
-            yield SourceFrame(timestamp=index * SESSION_TIMESTAMP_STRIDE + i * FRAME_PERIOD_S,
-                              color=f.color, depth=f.depth, pose=f.pose)
+            yield SourceFrame(
+                timestamp=index * SESSION_TIMESTAMP_STRIDE + i * FRAME_PERIOD_S,
+                color=f.color,
+                depth=f.depth,
+                pose=f.pose,
+            )
             i += 1
 
-    return Source(f"soak{index}", calibration_of(cam), float(sequence.frames[0].depth_scale),
-                  10**9, frames)
+    return Source(
+        f"soak{index}", calibration_of(cam), float(sequence.frames[0].depth_scale), 10**9, frames
+    )
 
 
 class Flood(threading.Thread):
@@ -200,11 +219,29 @@ class Flood(threading.Thread):
         self.frame = [bytes(memoryview(p)) for p in encode(frame)]
         cal = calibration_of(sequence.camera)
         big = calibration_of(type(sequence.camera).kinect_v1(2048, 2048))
-        self.hellos = [encode(Hello(PROTOCOL_VERSION, SessionConfig(
-            session=f"hostile{i}", role="capture", calibration=c, depth_scale=5000.0,
-            mode="lossless", overrides=o))) for i, (c, o) in enumerate([
-                (cal, {"robust_iterations": 1_000_000}), (big, {}),
-                (cal, {"rt_directions": 10**7}), (cal, {"block_count": "many"})])]
+        self.hellos = [
+            encode(
+                Hello(
+                    PROTOCOL_VERSION,
+                    SessionConfig(
+                        session=f"hostile{i}",
+                        role="capture",
+                        calibration=c,
+                        depth_scale=5000.0,
+                        mode="lossless",
+                        overrides=o,
+                    ),
+                )
+            )
+            for i, (c, o) in enumerate(
+                [
+                    (cal, {"robust_iterations": 1_000_000}),
+                    (big, {}),
+                    (cal, {"rt_directions": 10**7}),
+                    (cal, {"block_count": "many"}),
+                ]
+            )
+        ]
 
     def junk(self, rng: random.Random) -> list[bytes]:
         kind = rng.randrange(6)
@@ -212,7 +249,7 @@ class Flood(threading.Thread):
         if kind == 0:
             return [rng.randbytes(rng.randrange(1, 200))]
         if kind == 1:
-            return [bytes(head[:rng.randrange(len(head))]), *self.frame[1:]]
+            return [bytes(head[: rng.randrange(len(head))]), *self.frame[1:]]
         if kind == 2:
             head[rng.randrange(len(head))] ^= 1 + rng.randrange(255)
             return [bytes(head), *self.frame[1:]]
@@ -222,8 +259,15 @@ class Flood(threading.Thread):
             return [msgpack.packb(header, use_bin_type=True), *self.frame[1:]]
         if kind == 4:
             return self.frame[:-1]
-        return [msgpack.packb({"v": PROTOCOL_VERSION, "type": rng.choice(
-            ["hello", "frame", "result", "bye", "teleport"]), "x": rng.random()})]
+        return [
+            msgpack.packb(
+                {
+                    "v": PROTOCOL_VERSION,
+                    "type": rng.choice(["hello", "frame", "result", "bye", "teleport"]),
+                    "x": rng.random(),
+                }
+            )
+        ]
 
     def run(self) -> None:
         ctx = zmq.Context.instance()
@@ -280,8 +324,12 @@ class StuckDisplay(threading.Thread):
         s.setsockopt(zmq.RCVHWM, 2)
         s.setsockopt(zmq.RCVBUF, 4096)
         s.connect(self.address)
-        hello = encode(Hello(PROTOCOL_VERSION, SessionConfig(session=self.session,
-                                                             role="display", token=self.token)))
+        hello = encode(
+            Hello(
+                PROTOCOL_VERSION,
+                SessionConfig(session=self.session, role="display", token=self.token),
+            )
+        )
         last_hello = 0.0
         while time.monotonic() < self.end_mono:
             now = time.monotonic()
@@ -296,8 +344,7 @@ class StuckDisplay(threading.Thread):
         s.close()
 
 
-def summarise_rss(lives: list[list[tuple[float, float]]], warmup: float,
-                  stream_end: float) -> dict:
+def summarise_rss(lives: list[list[tuple[float, float]]], warmup: float, stream_end: float) -> dict:
     """Per server life, while the clients streamed (up to `stream_end`, monotonic s): RSS at
     start, after warm-up, its peak after warm-up, at the end, and the slope after warm-up;
     `after_close_mb`: the last sample (the sessions closed)."""
@@ -309,15 +356,20 @@ def summarise_rss(lives: list[list[tuple[float, float]]], warmup: float,
         t = np.array([s[0] for s in samples])
         r = np.array([s[1] for s in samples])
         after = t >= t[0] + warmup * (t[-1] - t[0])
-        slope = (float(np.polyfit(t[after] - t[0], r[after], 1)[0] * 60)
-                 if after.sum() >= 3 else None)
-        out.append({"start_mb": round(float(r[0]), 1),
-                    "after_warmup_mb": round(float(r[after][0]), 1),
-                    "peak_after_warmup_mb": round(float(r[after].max()), 1),
-                    "end_mb": round(float(r[-1]), 1),
-                    "slope_after_warmup_mb_per_min": None if slope is None else round(slope, 2),
-                    "after_close_mb": round(float(all_samples[-1][1]), 1),
-                    "samples": int(len(r))})
+        slope = (
+            float(np.polyfit(t[after] - t[0], r[after], 1)[0] * 60) if after.sum() >= 3 else None
+        )
+        out.append(
+            {
+                "start_mb": round(float(r[0]), 1),
+                "after_warmup_mb": round(float(r[after][0]), 1),
+                "peak_after_warmup_mb": round(float(r[after].max()), 1),
+                "end_mb": round(float(r[-1]), 1),
+                "slope_after_warmup_mb_per_min": None if slope is None else round(slope, 2),
+                "after_close_mb": round(float(all_samples[-1][1]), 1),
+                "samples": int(len(r)),
+            }
+        )
     return {"lives": out}
 
 
@@ -328,13 +380,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", default="80x60", help="WxH of the frames")
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--kill-at", type=float, default=0.5,
-                        help="fraction of the duration at which the server is SIGKILLed and "
-                             "restarted (0: never)")
+    parser.add_argument(
+        "--kill-at",
+        type=float,
+        default=0.5,
+        help="fraction of the duration at which the server is SIGKILLed and restarted (0: never)",
+    )
     parser.add_argument("--flood-rate", type=float, default=200.0)
     parser.add_argument("--stuck-displays", type=int, default=2)
-    parser.add_argument("--warmup", type=float, default=0.2,
-                        help="fraction of each server life counted as warm-up for RSS")
+    parser.add_argument(
+        "--warmup",
+        type=float,
+        default=0.2,
+        help="fraction of each server life counted as warm-up for RSS",
+    )
     parser.add_argument("--json", help="write the figures to this file")
     parser.add_argument("--log", default="soak-server.log", help="the server's log")
     args = parser.parse_args(argv)
@@ -351,13 +410,25 @@ def main(argv: list[str] | None = None) -> int:
     tallies = [SessionTally(f"soak{i}", i) for i in range(args.sessions)]
     clients = []
     for i, tally in enumerate(tallies):
-        options = StreamOptions(server=address, session=tally.name, mode="lossless",
-                                rate="max", preset=args.preset,
-                                overrides=dict(SMALL_OVERRIDES), timestamps="source",
-                                reconnect_timeout_s=120.0, color_codec="png",
-                                depth_codec="zstd", client_name="soak")
-        client = CaptureClient(looping_source(i, sequence, end, tally), options,
-                               on_result=tally.on_result, on_error=tally.on_error)
+        options = StreamOptions(
+            server=address,
+            session=tally.name,
+            mode="lossless",
+            rate="max",
+            preset=args.preset,
+            overrides=dict(SMALL_OVERRIDES),
+            timestamps="source",
+            reconnect_timeout_s=120.0,
+            color_codec="png",
+            depth_codec="zstd",
+            client_name="soak",
+        )
+        client = CaptureClient(
+            looping_source(i, sequence, end, tally),
+            options,
+            on_result=tally.on_result,
+            on_error=tally.on_error,
+        )
         box: dict = {}
 
         def run(client=client, box=box):
@@ -373,17 +444,27 @@ def main(argv: list[str] | None = None) -> int:
     if flood:
         flood.start()
     for i in range(args.stuck_displays):
-        StuckDisplay(address, tallies[i % len(tallies)].name,
-                     clients[i % len(tallies)][0].token, end).start()
+        StuckDisplay(
+            address, tallies[i % len(tallies)].name, clients[i % len(tallies)][0].token, end
+        ).start()
     watchers = []
     for tally, (client, _, _) in zip(tallies, clients, strict=True):
         seen: dict[int, int] = {}
         display = DisplayClient(
-            DisplayOptions(server=address, session=tally.name, follow=True, token=client.token,
-                           reconnect_timeout_s=120.0, print_interval_s=3600.0,
-                           client_name="soak-display"),
+            DisplayOptions(
+                server=address,
+                session=tally.name,
+                follow=True,
+                token=client.token,
+                reconnect_timeout_s=120.0,
+                print_interval_s=3600.0,
+                client_name="soak-display",
+            ),
             on_result=lambda result, _record, seen=seen: seen.__setitem__(
-                result.seq, seen.get(result.seq, 0) + 1), printer=lambda _line: None)
+                result.seq, seen.get(result.seq, 0) + 1
+            ),
+            printer=lambda _line: None,
+        )
         threading.Thread(target=display.run, daemon=True).start()
         watchers.append((display, seen))
 
@@ -416,53 +497,88 @@ def main(argv: list[str] | None = None) -> int:
         summary = box.get("summary")
         sent = tally.generated
         lost = sent - len(tally.received) - len(tally.final_errors)
-        per_session.append({
-            "session": tally.name, "sent": sent, "received": len(tally.received),
-            "lost": lost, "final_errors": len(tally.final_errors),
-            "duplicated": tally.duplicates, "out_of_order": tally.out_of_order,
-            "mixed": tally.mixed,
-            "reconnects": summary.reconnects if summary else None,
-            "display_results": sum(seen.values()),
-            "display_processed_twice": sum(n > 1 for n in seen.values()),
-            "client_error": box.get("error"), "errors": tally.final_errors[:5]})
-    totals = {k: sum(s[k] for s in per_session) for k in
-              ("sent", "received", "lost", "final_errors", "duplicated", "out_of_order",
-               "mixed")}
+        per_session.append(
+            {
+                "session": tally.name,
+                "sent": sent,
+                "received": len(tally.received),
+                "lost": lost,
+                "final_errors": len(tally.final_errors),
+                "duplicated": tally.duplicates,
+                "out_of_order": tally.out_of_order,
+                "mixed": tally.mixed,
+                "reconnects": summary.reconnects if summary else None,
+                "display_results": sum(seen.values()),
+                "display_processed_twice": sum(n > 1 for n in seen.values()),
+                "client_error": box.get("error"),
+                "errors": tally.final_errors[:5],
+            }
+        )
+    totals = {
+        k: sum(s[k] for s in per_session)
+        for k in ("sent", "received", "lost", "final_errors", "duplicated", "out_of_order", "mixed")
+    }
     report = {
-        "machine": {"host": platform.node(), "cpus": os.cpu_count(),
-                    "python": platform.python_version()},
-        "settings": vars(args), "elapsed_s": round(time.monotonic() - t_start, 1),
-        "killed_at_s": killed_at, "sigterm_exit_s": round(term_s, 2),
-        "clients_still_running": stuck_clients, "totals": totals,
+        "machine": {
+            "host": platform.node(),
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+        },
+        "settings": vars(args),
+        "elapsed_s": round(time.monotonic() - t_start, 1),
+        "killed_at_s": killed_at,
+        "sigterm_exit_s": round(term_s, 2),
+        "clients_still_running": stuck_clients,
+        "totals": totals,
         "frames_per_s": round(totals["received"] / args.duration, 2),
-        "sessions": per_session, "rss": summarise_rss(server.lives, args.warmup, end),
-        "flood": None if flood is None else {
-            "sent": flood.sent, "replies": flood.replies,
-            "budget_hellos": flood.budget_hellos, "budget_refused": flood.budget_refused,
-            "budget_welcomed": flood.budget_welcomed},
+        "sessions": per_session,
+        "rss": summarise_rss(server.lives, args.warmup, end),
+        "flood": None
+        if flood is None
+        else {
+            "sent": flood.sent,
+            "replies": flood.replies,
+            "budget_hellos": flood.budget_hellos,
+            "budget_refused": flood.budget_refused,
+            "budget_welcomed": flood.budget_welcomed,
+        },
     }
     print(json.dumps(report, indent=1, default=str))
-    print(f"soak: {args.sessions} sessions x {args.duration:.0f} s at {width}x{height} "
-          f"({args.preset}): sent {totals['sent']}, received {totals['received']}, lost "
-          f"{totals['lost']}, failed {totals['final_errors']}, duplicated "
-          f"{totals['duplicated']}, out of order {totals['out_of_order']}, mixed "
-          f"{totals['mixed']}; {report['frames_per_s']} Results/s; SIGTERM exit in "
-          f"{term_s:.1f} s", flush=True)
-    print(f"soak: displays received {sum(s['display_results'] for s in per_session)} "
-          f"Results; {sum(s['display_processed_twice'] for s in per_session)} frame(s) "
-          "processed twice (in flight at the kill)", flush=True)
+    print(
+        f"soak: {args.sessions} sessions x {args.duration:.0f} s at {width}x{height} "
+        f"({args.preset}): sent {totals['sent']}, received {totals['received']}, lost "
+        f"{totals['lost']}, failed {totals['final_errors']}, duplicated "
+        f"{totals['duplicated']}, out of order {totals['out_of_order']}, mixed "
+        f"{totals['mixed']}; {report['frames_per_s']} Results/s; SIGTERM exit in "
+        f"{term_s:.1f} s",
+        flush=True,
+    )
+    print(
+        f"soak: displays received {sum(s['display_results'] for s in per_session)} "
+        f"Results; {sum(s['display_processed_twice'] for s in per_session)} frame(s) "
+        "processed twice (in flight at the kill)",
+        flush=True,
+    )
     for i, life in enumerate(report["rss"]["lives"]):
-        print(f"soak: server life {i + 1}: RSS start {life['start_mb']} MB, after warm-up "
-              f"{life['after_warmup_mb']} MB, peak {life['peak_after_warmup_mb']} MB, end "
-              f"{life['end_mb']} MB, slope {life['slope_after_warmup_mb_per_min']} MB/min; "
-              f"{life['after_close_mb']} MB once the sessions closed")
+        print(
+            f"soak: server life {i + 1}: RSS start {life['start_mb']} MB, after warm-up "
+            f"{life['after_warmup_mb']} MB, peak {life['peak_after_warmup_mb']} MB, end "
+            f"{life['end_mb']} MB, slope {life['slope_after_warmup_mb_per_min']} MB/min; "
+            f"{life['after_close_mb']} MB once the sessions closed"
+        )
     if args.json:
         with open(args.json, "w") as f:
             json.dump(report, f, indent=1, default=str)
-    bad = (totals["lost"] or totals["final_errors"] or totals["duplicated"]
-           or totals["out_of_order"] or totals["mixed"] or stuck_clients
-           or (flood is not None and flood.budget_welcomed)
-           or any(s["display_results"] == 0 for s in per_session))  # the displays watched
+    bad = (
+        totals["lost"]
+        or totals["final_errors"]
+        or totals["duplicated"]
+        or totals["out_of_order"]
+        or totals["mixed"]
+        or stuck_clients
+        or (flood is not None and flood.budget_welcomed)
+        or any(s["display_results"] == 0 for s in per_session)
+    )  # the displays watched
     return 1 if bad else 0
 
 

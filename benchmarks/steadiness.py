@@ -37,24 +37,31 @@ def steadiness(directions: np.ndarray) -> dict[str, float]:
     mean = directions.mean(axis=0)
     mean /= max(float(np.linalg.norm(mean)), 1e-12)
     spread = angles_deg(directions, mean[None, :])
-    return {"frames": int(len(directions)),
-            "median_frame_to_frame_deg": float(np.median(step)),
-            "p90_frame_to_frame_deg": float(np.percentile(step, 90)),
-            "median_to_mean_deg": float(np.median(spread)),
-            "p90_to_mean_deg": float(np.percentile(spread, 90)),
-            "mean_direction_world": [round(float(x), 4) for x in mean]}
+    return {
+        "frames": int(len(directions)),
+        "median_frame_to_frame_deg": float(np.median(step)),
+        "p90_frame_to_frame_deg": float(np.percentile(step, 90)),
+        "median_to_mean_deg": float(np.median(spread)),
+        "p90_to_mean_deg": float(np.percentile(spread, 90)),
+        "mean_direction_world": [round(float(x), 4) for x in mean],
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("results", type=Path, help="results.jsonl from arlight estimate --out")
-    parser.add_argument("--skip", type=int, default=0,
-                        help="leave out the first N frames (the temporal filter's warm-up)")
-    parser.add_argument("--gravity", type=Path,
-                        help="file with the world-frame gravity vector (3 numbers)")
+    parser.add_argument(
+        "--skip",
+        type=int,
+        default=0,
+        help="leave out the first N frames (the temporal filter's warm-up)",
+    )
+    parser.add_argument(
+        "--gravity", type=Path, help="file with the world-frame gravity vector (3 numbers)"
+    )
     args = parser.parse_args(argv)
     dirs, missing = [], 0
-    for line in args.results.read_text().splitlines()[args.skip:]:
+    for line in args.results.read_text().splitlines()[args.skip :]:
         record = json.loads(line)
         d = np.asarray(record["dominant_direction_world"], dtype=float)
         if record["confidence"]["value"] <= 0 or not np.all(np.isfinite(d)) or not np.any(d):

@@ -52,18 +52,27 @@ def identity_step(frame, session, render_light, deadline):
     from arlight.pipeline.frames import Confidence, FrameResult
 
     sh = np.zeros(16)
-    return FrameResult(timestamp=frame.timestamp, sh=sh, sh_camera=sh,
-                       dominant_direction_world=np.zeros(3),
-                       dominant_direction_camera=np.zeros(3), intensity=0.0,
-                       confidence=Confidence(), pose=np.eye(4), timings_ms={})
+    return FrameResult(
+        timestamp=frame.timestamp,
+        sh=sh,
+        sh_camera=sh,
+        dominant_direction_world=np.zeros(3),
+        dominant_direction_camera=np.zeros(3),
+        intensity=0.0,
+        confidence=Confidence(),
+        pose=np.eye(4),
+        timings_ms={},
+    )
 
 
 def serve(port: int) -> None:
     """The server process: runs until stdin closes."""
     from arlight.server.server import Server, ServerOptions
 
-    server = Server(ServerOptions(bind=f"tcp://127.0.0.1:{port}", workers=1,
-                                  log_interval_s=3600.0), process=identity_step).start()
+    server = Server(
+        ServerOptions(bind=f"tcp://127.0.0.1:{port}", workers=1, log_interval_s=3600.0),
+        process=identity_step,
+    ).start()
     print("ready", flush=True)
     sys.stdin.read()
     server.stop()
@@ -84,8 +93,12 @@ class Client:
         self.socket.setsockopt(zmq.LINGER, 0)
         self.socket.connect(address)
         self.color, self.depth = color, depth
-        config = SessionConfig(session=session, calibration=source.calibration,
-                               depth_scale=source.depth_scale, mode="lossless")
+        config = SessionConfig(
+            session=session,
+            calibration=source.calibration,
+            depth_scale=source.depth_scale,
+            mode="lossless",
+        )
         self.socket.send_multipart(encode(Hello(PROTOCOL_VERSION, config)), copy=False)
         welcome = self.receive(30.0)
         if not isinstance(welcome, Welcome):
@@ -102,8 +115,9 @@ class Client:
                 return message
 
     def frame(self, f) -> list:
-        parts = encode(Frame(self.seq, time.time(), f.color, f.depth, None, None, self.color,
-                             self.depth))
+        parts = encode(
+            Frame(self.seq, time.time(), f.color, f.depth, None, None, self.color, self.depth)
+        )
         self.seq += 1
         return parts
 
@@ -117,8 +131,7 @@ class Client:
         self.socket.close(linger=0)
 
 
-def bench_combo(address: str, source, frames, color: str, depth: str, n: int, warmup: int
-                ) -> dict:
+def bench_combo(address: str, source, frames, color: str, depth: str, n: int, warmup: int) -> dict:
     # codec cost alone, in this process
     encode_ms, decode_ms, sizes = [], [], []
     for i in range(max(n // 2, 10)):
@@ -162,11 +175,16 @@ def bench_combo(address: str, source, frames, color: str, depth: str, n: int, wa
     fps = n / (time.perf_counter() - t0)
     client.close()
     lat = np.asarray(latency_ms)
-    return {"color": color, "depth": depth, "fps": fps,
-            "latency_median_ms": float(np.median(lat)),
-            "latency_p99_ms": float(np.percentile(lat, 99)),
-            "kib_per_frame": float(np.mean(sizes)) / 1024,
-            "encode_ms": float(np.median(encode_ms)), "decode_ms": float(np.median(decode_ms))}
+    return {
+        "color": color,
+        "depth": depth,
+        "fps": fps,
+        "latency_median_ms": float(np.median(lat)),
+        "latency_p99_ms": float(np.percentile(lat, 99)),
+        "kib_per_frame": float(np.mean(sizes)) / 1024,
+        "encode_ms": float(np.median(encode_ms)),
+        "decode_ms": float(np.median(decode_ms)),
+    }
 
 
 def main() -> int:
@@ -185,39 +203,62 @@ def main() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    server = subprocess.Popen([sys.executable, __file__, "--serve", str(port)],
-                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    server = subprocess.Popen(
+        [sys.executable, __file__, "--serve", str(port)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         if server.stdout.readline().strip() != "ready":
             raise RuntimeError("the server process did not start")
         address = f"tcp://127.0.0.1:{port}"
         source, frames = make_frames()
-        print(f"transport benchmark: {WIDTH}x{HEIGHT} RGB-D (synthetic scene), identity step "
-              f"in a server process on {address}; {args.frames} frames per row "
-              f"(+{args.warmup} warm-up); {os.cpu_count()} CPU cores", file=sys.stderr)
-        header = (f"{'colour':<7}{'depth':<7}{'fps':>8}{'lat med ms':>12}{'lat p99 ms':>12}"
-                  f"{'KiB/frame':>11}{'enc ms':>9}{'dec ms':>9}")
+        print(
+            f"transport benchmark: {WIDTH}x{HEIGHT} RGB-D (synthetic scene), identity step "
+            f"in a server process on {address}; {args.frames} frames per row "
+            f"(+{args.warmup} warm-up); {os.cpu_count()} CPU cores",
+            file=sys.stderr,
+        )
+        header = (
+            f"{'colour':<7}{'depth':<7}{'fps':>8}{'lat med ms':>12}{'lat p99 ms':>12}"
+            f"{'KiB/frame':>11}{'enc ms':>9}{'dec ms':>9}"
+        )
         print(header)
         print("-" * len(header))
         rows = []
         for color in args.color:
             for depth in args.depth:
-                row = bench_combo(address, source, frames, color, depth, args.frames,
-                                  args.warmup)
+                row = bench_combo(address, source, frames, color, depth, args.frames, args.warmup)
                 rows.append(row)
-                print(f"{color:<7}{depth:<7}{row['fps']:>8.1f}{row['latency_median_ms']:>12.2f}"
-                      f"{row['latency_p99_ms']:>12.2f}{row['kib_per_frame']:>11.1f}"
-                      f"{row['encode_ms']:>9.2f}{row['decode_ms']:>9.2f}", flush=True)
+                print(
+                    f"{color:<7}{depth:<7}{row['fps']:>8.1f}{row['latency_median_ms']:>12.2f}"
+                    f"{row['latency_p99_ms']:>12.2f}{row['kib_per_frame']:>11.1f}"
+                    f"{row['encode_ms']:>9.2f}{row['decode_ms']:>9.2f}",
+                    flush=True,
+                )
     finally:
         server.stdin.close()
         server.wait(30)
     if args.json:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                                cwd=os.path.dirname(os.path.abspath(__file__))).stdout.strip()
-        record = {"benchmark": "transport", "commit": commit, "machine": platform.platform(),
-                  "cpu_count": os.cpu_count(), "python": platform.python_version(),
-                  "zmq": zmq.zmq_version(), "width": WIDTH, "height": HEIGHT,
-                  "frames": args.frames, "rows": rows}
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            cwd=os.path.dirname(os.path.abspath(__file__)),
+        ).stdout.strip()
+        record = {
+            "benchmark": "transport",
+            "commit": commit,
+            "machine": platform.platform(),
+            "cpu_count": os.cpu_count(),
+            "python": platform.python_version(),
+            "zmq": zmq.zmq_version(),
+            "width": WIDTH,
+            "height": HEIGHT,
+            "frames": args.frames,
+            "rows": rows,
+        }
         with open(args.json, "w") as f:
             json.dump(record, f, indent=2)
     return 0

@@ -100,8 +100,9 @@ def restamp_seq(parts: list[bytes], seq: int) -> list[bytes]:
     return [msgpack.packb(header, use_bin_type=True), *parts[1:]]
 
 
-def encoded_frames(source: Source, options: StreamOptions, timestamps: str
-                   ) -> Iterator[tuple[int, float, list]]:
+def encoded_frames(
+    source: Source, options: StreamOptions, timestamps: str
+) -> Iterator[tuple[int, float, list]]:
     """(seq, source timestamp, encoded Frame parts) for every frame to send, looping if asked.
 
     timestamps: "capture" stamps each frame with time.time() as it is encoded, "source" keeps
@@ -120,19 +121,33 @@ def encoded_frames(source: Source, options: StreamOptions, timestamps: str
             ts = frame.timestamp + offset_s
             parts: list  # bytes, and memoryviews of the images (zero-copy)
             if frame.parts is not None:  # a recording: as recorded (bit-exact)
-                parts = frame.parts if seq == peek_header(frame.parts)["seq"] else \
-                    restamp_seq(frame.parts, seq)
+                parts = (
+                    frame.parts
+                    if seq == peek_header(frame.parts)["seq"]
+                    else restamp_seq(frame.parts, seq)
+                )
             else:
                 stamp_s = time.time() if timestamps == "capture" else ts  # goes on the wire
-                parts = encode(Frame(seq, stamp_s, frame.color, frame.depth, frame.pose,
-                                     frame.panorama, options.color_codec, options.depth_codec,
-                                     options.jpeg_quality))
+                parts = encode(
+                    Frame(
+                        seq,
+                        stamp_s,
+                        frame.color,
+                        frame.depth,
+                        frame.pose,
+                        frame.panorama,
+                        options.color_codec,
+                        options.depth_codec,
+                        options.jpeg_quality,
+                    )
+                )
             yield seq, ts, parts
             seq += 1
         if not options.loop or first_ts is None or last_ts is None:
             return
-        period = 1.0 / 30.0 if source.num_frames < 2 else \
-            (last_ts - first_ts) / (source.num_frames - 1)
+        period = (
+            1.0 / 30.0 if source.num_frames < 2 else (last_ts - first_ts) / (source.num_frames - 1)
+        )
         offset_s += last_ts - first_ts + period
 
 
@@ -151,16 +166,27 @@ def object_spec(obj: VirtualObject) -> SceneObjectSpec:
     anchor = None
     if obj.anchor is not None:
         pixel = obj.anchor.pixel
-        anchor = SceneAnchorSpec(None if pixel is None else (float(pixel[0]), float(pixel[1])),
-                                 float(obj.anchor.yaw_deg))
+        anchor = SceneAnchorSpec(
+            None if pixel is None else (float(pixel[0]), float(pixel[1])), float(obj.anchor.yaw_deg)
+        )
         scale = float(np.cbrt(np.linalg.det(world_from_object[:3, :3])))
         if scale != 1.0:
             vertices = (np.asarray(vertices, np.float64) * scale).astype(np.float32)
         pose = None
     m = obj.material
     albedo = (float(m.albedo[0]), float(m.albedo[1]), float(m.albedo[2]))
-    return SceneObjectSpec(obj.name, vertices, obj.triangles, obj.normals, pose, anchor,
-                           albedo, float(m.roughness), float(m.metalness), bool(m.mirror))
+    return SceneObjectSpec(
+        obj.name,
+        vertices,
+        obj.triangles,
+        obj.normals,
+        pose,
+        anchor,
+        albedo,
+        float(m.roughness),
+        float(m.metalness),
+        bool(m.mirror),
+    )
 
 
 # --------------------------------------------------------------------------- client
@@ -241,8 +267,7 @@ class StreamOptions:
         if self.rate not in ("native", "max"):
             raise ValueError(f"--rate must be 'native' or 'max', got {self.rate!r}")
         if self.timestamps not in (None, "capture", "source"):
-            raise ValueError(f"--timestamps must be 'capture' or 'source', got "
-                             f"{self.timestamps!r}")
+            raise ValueError(f"--timestamps must be 'capture' or 'source', got {self.timestamps!r}")
 
 
 @dataclass
@@ -266,10 +291,15 @@ class CaptureClient:
     recorder: optional client/recording.Recorder receiving the Hello and every frame sent.
     """
 
-    def __init__(self, source: Source, options: StreamOptions,
-                 on_result: Callable[[Result, float], None] | None = None,
-                 on_error: Callable[[Error], None] | None = None, recorder=None,
-                 context: zmq.Context | None = None):
+    def __init__(
+        self,
+        source: Source,
+        options: StreamOptions,
+        on_result: Callable[[Result, float], None] | None = None,
+        on_error: Callable[[Error], None] | None = None,
+        recorder=None,
+        context: zmq.Context | None = None,
+    ):
         self.source = source
         self.options = options
         self.on_result = on_result
@@ -279,8 +309,7 @@ class CaptureClient:
         self._ctx = context or zmq.Context.instance()
         self._socket: zmq.Socket | None = None
         self._stop = threading.Event()
-        self._timestamps = options.timestamps or ("capture" if options.mode == "live"
-                                                  else "source")
+        self._timestamps = options.timestamps or ("capture" if options.mode == "live" else "source")
         self.hello = self._make_hello()  # as recorded: without the token
         # the session's token: displays present it (`arlight display --token`); the Hello
         # carries it (a new session takes it, resuming one needs it); a secret
@@ -310,17 +339,26 @@ class CaptureClient:
         opts = self.options
         base = self.source.recorded_config
         config = SessionConfig(
-            session=self.session, client_name=opts.client_name, role="capture",
-            calibration=self.source.calibration, depth_scale=self.source.depth_scale,
-            preset=opts.preset, overrides=dict(opts.overrides), virtual_scene=opts.virtual_scene,
-            mode=opts.mode, want_composite=opts.want_composite,
+            session=self.session,
+            client_name=opts.client_name,
+            role="capture",
+            calibration=self.source.calibration,
+            depth_scale=self.source.depth_scale,
+            preset=opts.preset,
+            overrides=dict(opts.overrides),
+            virtual_scene=opts.virtual_scene,
+            mode=opts.mode,
+            want_composite=opts.want_composite,
             scene=None if opts.scene is None else scene_spec(opts.scene),
-            panorama=opts.panorama if opts.panorama is not None or
-            self.source.calibration is not None else PanoramaConfig(),
-            exports=tuple(opts.exports))
+            panorama=opts.panorama
+            if opts.panorama is not None or self.source.calibration is not None
+            else PanoramaConfig(),
+            exports=tuple(opts.exports),
+        )
         if base is not None:  # a recording: its calibration and depth scale always hold
-            config = dataclasses.replace(config, calibration=base.calibration,
-                                         depth_scale=base.depth_scale)
+            config = dataclasses.replace(
+                config, calibration=base.calibration, depth_scale=base.depth_scale
+            )
         return Hello(PROTOCOL_VERSION, config)
 
     def stop(self) -> None:
@@ -331,8 +369,14 @@ class CaptureClient:
     def _open_socket(self) -> None:
         if self._socket is not None:
             self._socket.close(linger=0)
-        self._socket = open_dealer(self._ctx, self.options.server, sndhwm=64, rcvhwm=1000,
-                                   error=StreamError, keys=self.options.keys)
+        self._socket = open_dealer(
+            self._ctx,
+            self.options.server,
+            sndhwm=64,
+            rcvhwm=1000,
+            error=StreamError,
+            keys=self.options.keys,
+        )
 
     @property
     def _dealer(self) -> zmq.Socket:
@@ -358,11 +402,16 @@ class CaptureClient:
         deadline = time.monotonic() + opts.reconnect_timeout_s
         backoff = opts.backoff_initial_s
         try:  # once: a scene may be tens of MB
-            hello_parts = encode(dataclasses.replace(self.hello, config=dataclasses.replace(
-                self.hello.config, token=self.token)))
+            hello_parts = encode(
+                dataclasses.replace(
+                    self.hello, config=dataclasses.replace(self.hello.config, token=self.token)
+                )
+            )
         except ProtocolError as exc:
-            raise StreamError(f"the Hello of session {self.session!r} cannot be sent: "
-                              f"{exc.code} ({exc.field}): {exc.message}") from None
+            raise StreamError(
+                f"the Hello of session {self.session!r} cannot be sent: "
+                f"{exc.code} ({exc.field}): {exc.message}"
+            ) from None
         while not self._stop.is_set():
             self._open_socket()
             self._send(hello_parts, block=False)
@@ -374,18 +423,25 @@ class CaptureClient:
                 if isinstance(got.message, Welcome):
                     self._welcomed(got.message, got.receive_time_mono)
                     return
-                if isinstance(got.message, Error) and got.message.seq is None and \
-                        not got.message.retryable:
+                if (
+                    isinstance(got.message, Error)
+                    and got.message.seq is None
+                    and not got.message.retryable
+                ):
                     raise StreamError(self._refusal_text(got.message))
                 self._handle(got)  # late Results of the previous connection
             if time.monotonic() + backoff > deadline:
-                raise StreamError(f"no arlight server answered at {opts.server} within "
-                                  f"{opts.reconnect_timeout_s:.0f} s (--reconnect-timeout); "
-                                  "start one with `arlight serve` or check --server")
+                raise StreamError(
+                    f"no arlight server answered at {opts.server} within "
+                    f"{opts.reconnect_timeout_s:.0f} s (--reconnect-timeout); "
+                    "start one with `arlight serve` or check --server"
+                )
             if backoff == opts.backoff_initial_s:  # the first miss: say what is going on
-                log.warning("no answer from %s yet; trying again for up to %.0f s "
-                            "(--reconnect-timeout)", opts.server,
-                            max(deadline - time.monotonic(), 0.0))
+                log.warning(
+                    "no answer from %s yet; trying again for up to %.0f s (--reconnect-timeout)",
+                    opts.server,
+                    max(deadline - time.monotonic(), 0.0),
+                )
             else:
                 log.info("no Welcome from %s; retrying in %.1f s", opts.server, backoff)
             self._stop.wait(backoff)
@@ -406,8 +462,7 @@ class CaptureClient:
         """The StreamError text of a refused Hello, naming the command-line flag if any."""
         flag = hello_field_flag(error.field)
         where = f" ({error.field}{', see ' + flag if flag else ''})" if error.field else ""
-        return (f"the server refused session {self.session!r}: {error.code}{where}: "
-                f"{error.message}")
+        return f"the server refused session {self.session!r}: {error.code}{where}: {error.message}"
 
     def _reconnect(self, why: str) -> None:
         log.warning("session %s: %s; reconnecting to %s", self.session, why, self.options.server)
@@ -427,8 +482,12 @@ class CaptureClient:
         elif isinstance(message, Error):
             return self._on_error(message)
         elif isinstance(message, Bye):  # shutdown (or any other kind): find the next server
-            log.info("session %s: the server said Bye (%s: %s)", self.session,
-                     message.kind.value, message.reason)
+            log.info(
+                "session %s: the server said Bye (%s: %s)",
+                self.session,
+                message.kind.value,
+                message.reason,
+            )
             return "reconnect"
         elif isinstance(message, Credit):
             self.credits += message.credits  # the server widened the window
@@ -458,18 +517,23 @@ class CaptureClient:
         if error.retryable:  # the frame was not processed: it stays unacknowledged
             if error.field == ErrorField.SESSION:
                 return "rehello"
-            if error.field == ErrorField.CREDITS and error.seq is not None and \
-                    error.seq in self._unacked:
+            if (
+                error.field == ErrorField.CREDITS
+                and error.seq is not None
+                and error.seq in self._unacked
+            ):
                 self._after_result.append(error.seq)  # the server's queue was full: retry
-            if error.field == ErrorField.PIPELINE_LOST and error.seq is not None and \
-                    error.seq in self._unacked:
+            if (
+                error.field == ErrorField.PIPELINE_LOST
+                and error.seq is not None
+                and error.seq in self._unacked
+            ):
                 # the session's pipeline was lost (`serve --ray`): send it again now, in order
                 self._resend = collections.deque(sorted({*self._resend, error.seq}))
             return None  # shutdown: the Bye follows, then a reconnect re-sends the frame
         if error.seq is not None:
             if self.options.mode == "lossless" and error.seq not in self._unacked:
-                log.debug("session %s: second answer to frame %d ignored", self.session,
-                          error.seq)
+                log.debug("session %s: second answer to frame %d ignored", self.session, error.seq)
                 return None  # already answered (a frame sent again): no second credit
             self._unacked.pop(error.seq, None)
             self._resend_due.pop(error.seq, None)
@@ -477,13 +541,22 @@ class CaptureClient:
             self._last_result_seq = max(self._last_result_seq, error.seq)
         self.summary.errors.append(error)
         if error.field == ErrorField.DUPLICATE:
-            log.warning("session %s: frame %s was sent again but the server no longer keeps "
-                        "its Result or Error (it may have been processed; it is not processed "
-                        "again): counted as failed", self.session, error.seq)
+            log.warning(
+                "session %s: frame %s was sent again but the server no longer keeps "
+                "its Result or Error (it may have been processed; it is not processed "
+                "again): counted as failed",
+                self.session,
+                error.seq,
+            )
         else:
-            log.warning("session %s: server error for frame %s: %s%s: %s", self.session,
-                        error.seq, error.code, f" ({error.field})" if error.field else "",
-                        error.message)
+            log.warning(
+                "session %s: server error for frame %s: %s%s: %s",
+                self.session,
+                error.seq,
+                error.code,
+                f" ({error.field})" if error.field else "",
+                error.message,
+            )
         if self.on_error is not None:
             self.on_error(error)
         return None
@@ -547,8 +620,11 @@ class CaptureClient:
         if self._finish_deadline_mono is None:
             self._finish_deadline_mono = now_m + self.options.final_result_timeout_s
         elif now_m > self._finish_deadline_mono:
-            log.warning("session %s: no Result for the last frame within %.0f s",
-                        self.session, self.options.final_result_timeout_s)
+            log.warning(
+                "session %s: no Result for the last frame within %.0f s",
+                self.session,
+                self.options.final_result_timeout_s,
+            )
             return True
         return False
 
@@ -593,8 +669,12 @@ class CaptureClient:
         for seq in self._unacked:
             sent, wait = self._resend_due.get(seq, (now_m, self.options.resend_after_s))
             if now_m - sent > wait and seq not in self._resend:
-                log.warning("session %s: no answer to frame %d for %.0f s; sending it again",
-                            self.session, seq, now_m - sent)
+                log.warning(
+                    "session %s: no answer to frame %d for %.0f s; sending it again",
+                    self.session,
+                    seq,
+                    now_m - sent,
+                )
                 self._resend.append(seq)
                 self._resend_due[seq] = (now_m, 2.0 * wait)
 

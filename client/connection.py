@@ -23,8 +23,12 @@ from zmq.utils.monitor import parse_monitor_message
 from arlight.protocols import Message, ProtocolError, decode, peek_header
 from arlight.protocols.curve import ClientKeys
 
-_HANDSHAKE_EVENTS = (zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
-                     | zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_SUCCEEDED)
+_HANDSHAKE_EVENTS = (
+    zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+    | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+    | zmq.EVENT_HANDSHAKE_FAILED_AUTH
+    | zmq.EVENT_HANDSHAKE_SUCCEEDED
+)
 # failures without detail in a row before a client gives up: a connection that drops during
 # the handshake (a restarting server, a network cut) reports the same event, once; a server
 # that refuses the mechanism may hang up before the client reads why, again and again
@@ -59,28 +63,37 @@ class Dealer(zmq.Socket):
             if event == zmq.EVENT_HANDSHAKE_SUCCEEDED:
                 self.no_detail_failures = 0
             elif event == zmq.EVENT_HANDSHAKE_FAILED_AUTH:
-                return ("the server refused this client's key: its public key (--client-key "
-                        "NAME.key_secret) is not in the server's authorized/ folder; add it "
-                        "with `arlight keys add DIR NAME` on the server and restart it")
+                return (
+                    "the server refused this client's key: its public key (--client-key "
+                    "NAME.key_secret) is not in the server's authorized/ folder; add it "
+                    "with `arlight keys add DIR NAME` on the server and restart it"
+                )
             elif event == zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL:
                 if value == zmq.PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH:
-                    return ("the handshake failed: the server wants CURVE keys (give "
-                            "--server-key DIR/server.key --client-key DIR/client.key_secret)"
-                            if not self.curve else "the handshake failed: the server runs "
-                            "without keys (drop --server-key/--client-key, or run `arlight "
-                            "serve --keys DIR`)")
-                return ("the handshake failed: the peer at this address does not speak the "
-                        "arlight protocol as this client does (check --server, and "
-                        "--server-key/--client-key against `arlight serve --keys`)")
+                    return (
+                        "the handshake failed: the server wants CURVE keys (give "
+                        "--server-key DIR/server.key --client-key DIR/client.key_secret)"
+                        if not self.curve
+                        else "the handshake failed: the server runs "
+                        "without keys (drop --server-key/--client-key, or run `arlight "
+                        "serve --keys DIR`)"
+                    )
+                return (
+                    "the handshake failed: the peer at this address does not speak the "
+                    "arlight protocol as this client does (check --server, and "
+                    "--server-key/--client-key against `arlight serve --keys`)"
+                )
             else:  # no detail (the peer hung up): count, a single one may be a dropped link
                 self.no_detail_failures += 1
                 if self.no_detail_failures >= NO_DETAIL_FAILURES:
-                    return (f"the handshake failed {self.no_detail_failures} times in a row: "
-                            + ("--server-key is not the key of the server at this address, "
-                               "or that server runs without keys (then drop "
-                               "--server-key/--client-key)" if self.curve else
-                               "the server probably wants CURVE keys (give --server-key "
-                               "DIR/server.key --client-key DIR/client.key_secret)"))
+                    return f"the handshake failed {self.no_detail_failures} times in a row: " + (
+                        "--server-key is not the key of the server at this address, "
+                        "or that server runs without keys (then drop "
+                        "--server-key/--client-key)"
+                        if self.curve
+                        else "the server probably wants CURVE keys (give --server-key "
+                        "DIR/server.key --client-key DIR/client.key_secret)"
+                    )
         return None
 
     def close(self, linger: int | None = None) -> None:
@@ -102,9 +115,15 @@ class Received(NamedTuple):
     parts: tuple = ()  # the message's parts as received (buffers), for recorders
 
 
-def open_dealer(context: zmq.Context, server: str, *, rcvhwm: int, sndhwm: int | None = None,
-                error: type[Exception] = RuntimeError, keys: ClientKeys | None = None
-                ) -> Dealer:
+def open_dealer(
+    context: zmq.Context,
+    server: str,
+    *,
+    rcvhwm: int,
+    sndhwm: int | None = None,
+    error: type[Exception] = RuntimeError,
+    keys: ClientKeys | None = None,
+) -> Dealer:
     """A DEALER connected to `server`, LINGER 0; rcvhwm/sndhwm: queue limits in messages
     (sndhwm None: ZeroMQ's default); keys: CURVE keys (None: plain TCP). Raises `error` when
     the address is not usable (and, from receive_message, when a handshake fails)."""
@@ -122,13 +141,13 @@ def open_dealer(context: zmq.Context, server: str, *, rcvhwm: int, sndhwm: int |
         sock.connect(server)
     except zmq.ZMQError as exc:
         sock.close(linger=0)
-        raise error(f"cannot connect to {server!r}: {exc}; --server expects "
-                    "tcp://HOST:PORT") from None
+        raise error(
+            f"cannot connect to {server!r}: {exc}; --server expects tcp://HOST:PORT"
+        ) from None
     return sock
 
 
-def receive_message(sock: zmq.Socket, timeout_s: float, log: logging.Logger
-                    ) -> Received | None:
+def receive_message(sock: zmq.Socket, timeout_s: float, log: logging.Logger) -> Received | None:
     """The next message within timeout_s seconds, or None. An undecodable message is logged
     to `log` and returned as its ProtocolError, with its receive times (the caller decides
     whether it counts as a sign of life). A Dealer whose handshake failed raises its
@@ -157,7 +176,6 @@ def encoded_image(parts, key: str) -> tuple[str, bytes] | None:
     descriptor = peek_header(parts).get(key) or {}
     index = descriptor.get("buffer")
     fmt = descriptor.get("format")
-    if fmt not in ("jpeg", "png") or not isinstance(index, int) \
-            or not 0 <= index < len(parts) - 1:
+    if fmt not in ("jpeg", "png") or not isinstance(index, int) or not 0 <= index < len(parts) - 1:
         return None
     return fmt, bytes(parts[1 + index])

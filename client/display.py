@@ -124,16 +124,21 @@ class DisplaySummary:
     def to_dict(self) -> dict:
         lat = np.asarray(self.latencies_ms, dtype=float)
         return {
-            "session": self.session, "results": self.results, "composites": self.composites,
+            "session": self.session,
+            "results": self.results,
+            "composites": self.composites,
             "fps": round(self.fps, 3),
-            "latency_ms": {"kind": "end_to_end" if self.end_to_end
-                           else "server_receive_to_display",
-                           "median": _round(np.median(lat)) if lat.size else None,
-                           "p95": _round(np.percentile(lat, 95)) if lat.size else None,
-                           "max": _round(lat.max()) if lat.size else None},
+            "latency_ms": {
+                "kind": "end_to_end" if self.end_to_end else "server_receive_to_display",
+                "median": _round(np.median(lat)) if lat.size else None,
+                "p95": _round(np.percentile(lat, 95)) if lat.size else None,
+                "max": _round(lat.max()) if lat.size else None,
+            },
             "timings_ms_median": {k: _round(np.median(v)) for k, v in self.timings_ms.items()},
-            "frames_dropped": self.frames_dropped, "results_missed": self.seq_gaps,
-            "reconnects": self.reconnects, "stream_ended": self.ended,
+            "frames_dropped": self.frames_dropped,
+            "results_missed": self.seq_gaps,
+            "reconnects": self.reconnects,
+            "stream_ended": self.ended,
         }
 
 
@@ -144,10 +149,14 @@ def _round(x) -> float:
 class DisplayClient:
     """Receives one session's Results until the stream ends (or a limit). `run()` blocks."""
 
-    def __init__(self, options: DisplayOptions,
-                 on_result: Callable[[Result, dict], None] | None = None,
-                 printer: Callable[[str], None] | None = None,
-                 context: zmq.Context | None = None, read_delay_s: float = 0.0):
+    def __init__(
+        self,
+        options: DisplayOptions,
+        on_result: Callable[[Result, dict], None] | None = None,
+        printer: Callable[[str], None] | None = None,
+        context: zmq.Context | None = None,
+        read_delay_s: float = 0.0,
+    ):
         self.options = options
         self.on_result = on_result
         self.printer = printer
@@ -174,11 +183,18 @@ class DisplayClient:
     def _open(self) -> None:
         if self._socket is not None:
             self._socket.close(linger=0)
-        self._socket = open_dealer(self._ctx, self.options.server, rcvhwm=100,
-                                   error=DisplayError, keys=self.options.keys)
-        hello = Hello(PROTOCOL_VERSION, SessionConfig(
-            session=self.options.session, client_name=self.options.client_name,
-            role="display", token=self.options.token))
+        self._socket = open_dealer(
+            self._ctx, self.options.server, rcvhwm=100, error=DisplayError, keys=self.options.keys
+        )
+        hello = Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(
+                session=self.options.session,
+                client_name=self.options.client_name,
+                role="display",
+                token=self.options.token,
+            ),
+        )
         self._dealer.send_multipart(encode(hello), copy=False)
         self._hello_sent = time.monotonic()
         self._welcomed = False
@@ -210,8 +226,9 @@ class DisplayClient:
                 from arlight.client.recording import Recorder
 
                 Path(opts.record).parent.mkdir(parents=True, exist_ok=True)
-                self.recorder = Recorder(opts.record, source=f"display {opts.session}",
-                                         frames=False)
+                self.recorder = Recorder(
+                    opts.record, source=f"display {opts.session}", frames=False
+                )
             if opts.foxglove is not None:
                 from arlight.client.foxglove_sinks import LiveSink
 
@@ -221,15 +238,22 @@ class DisplayClient:
 
                 self.web = WebDisplay(*opts.http, session=opts.session)
         except OSError as exc:
-            flag = ("--record" if self.recorder is None and opts.record else
-                    "--foxglove/--port" if self.foxglove is None and opts.foxglove else "--http")
+            flag = (
+                "--record"
+                if self.recorder is None and opts.record
+                else "--foxglove/--port"
+                if self.foxglove is None and opts.foxglove
+                else "--http"
+            )
             self._close()
             raise DisplayError(f"{flag}: {exc}") from None
         if self.printer is not None:
             if self.foxglove is not None:
-                self.printer(f"display {opts.session}: Foxglove WebSocket on "
-                             f"ws://{self.foxglove.host}:{self.foxglove.port} (Foxglove app: "
-                             "Open connection -> Foxglove WebSocket)")
+                self.printer(
+                    f"display {opts.session}: Foxglove WebSocket on "
+                    f"ws://{self.foxglove.host}:{self.foxglove.port} (Foxglove app: "
+                    "Open connection -> Foxglove WebSocket)"
+                )
             if self.web is not None:
                 self.printer(f"display {opts.session}: browser display on {self.web.url}")
 
@@ -246,12 +270,15 @@ class DisplayClient:
                 h, w = bgr.shape[:2]
                 Path(self.options.video).parent.mkdir(parents=True, exist_ok=True)
                 fourcc = cv2.VideoWriter.fourcc(*"mp4v")
-                self._video = cv2.VideoWriter(self.options.video, fourcc,
-                                              self.options.video_fps, (w, h))
+                self._video = cv2.VideoWriter(
+                    self.options.video, fourcc, self.options.video_fps, (w, h)
+                )
                 self._video_size = (w, h)
                 if not self._video.isOpened():
-                    raise DisplayError(f"cannot write the video --video {self.options.video!r} "
-                                       "(OpenCV has no mp4v encoder here?)")
+                    raise DisplayError(
+                        f"cannot write the video --video {self.options.video!r} "
+                        "(OpenCV has no mp4v encoder here?)"
+                    )
             if (bgr.shape[1], bgr.shape[0]) != self._video_size:
                 bgr = cv2.resize(bgr, self._video_size, interpolation=cv2.INTER_AREA)
             self._video.write(bgr)
@@ -266,8 +293,10 @@ class DisplayClient:
             from arlight.pipeline.engine_export import camera_exports
 
             light = result.sh_rgb if result.sh_rgb is not None else result.sh
-            record["exports"] = {**(result.exports or {}),
-                                 **camera_exports(light, result.pose, self.options.exports)}
+            record["exports"] = {
+                **(result.exports or {}),
+                **camera_exports(light, result.pose, self.options.exports),
+            }
         now_m = got.receive_time_mono
         s.results += 1
         s.first_receive = now_m if s.first_receive is None else s.first_receive
@@ -292,16 +321,14 @@ class DisplayClient:
         if self.foxglove is not None:
             from arlight.client.foxglove_sinks import publish_result
 
-            publish_result(self.foxglove, result, record, time.time_ns(),
-                           parts=got.parts or None)
+            publish_result(self.foxglove, result, record, time.time_ns(), parts=got.parts or None)
         if self.web is not None:
             self.web.update(result, record, parts=got.parts or None)
         if self.on_result is not None:
             self.on_result(result, record)
 
     def _print_rate(self, now_m: float) -> None:
-        while self._window and self._window[0][0] < now_m - max(self.options.print_interval_s,
-                                                              1.0):
+        while self._window and self._window[0][0] < now_m - max(self.options.print_interval_s, 1.0):
             self._window.popleft()
         if self.printer is None:
             return
@@ -309,9 +336,11 @@ class DisplayClient:
         span = max(self.options.print_interval_s, 1.0)
         kind = "end-to-end" if self.summary.end_to_end else "server-receive-to-display"
         latency = f"{np.median([x for _, x in self._window]):6.0f} ms" if n else "     - ms"
-        self.printer(f"display {self.options.session}: {n / span:5.1f} fps, {kind} latency "
-                     f"{latency}, {self.summary.results} results, session dropped "
-                     f"{self.summary.frames_dropped}")
+        self.printer(
+            f"display {self.options.session}: {n / span:5.1f} fps, {kind} latency "
+            f"{latency}, {self.summary.results} results, session dropped "
+            f"{self.summary.frames_dropped}"
+        )
 
     def run(self) -> DisplaySummary:
         """Receive Results until the stream ends, a limit is reached or stop() is called."""
@@ -359,11 +388,13 @@ class DisplayClient:
                 self._resubscribe("the server does not know this display")
             elif message.code == "unauthorized":  # refused, or unsubscribed: a new session
                 # of this name has another token
-                raise DisplayError(f"the server refused the subscription: {message.message} "
-                                   "(--token)")
+                raise DisplayError(
+                    f"the server refused the subscription: {message.message} (--token)"
+                )
             elif not self._welcomed:
-                raise DisplayError(f"the server refused the subscription: {message.code}: "
-                                   f"{message.message}")
+                raise DisplayError(
+                    f"the server refused the subscription: {message.code}: {message.message}"
+                )
         elif isinstance(message, Bye):
             if message.kind != ByeKind.END_OF_STREAM:  # shutdown: wait for the next server
                 self._resubscribe(f"the server said Bye ({message.kind}: {message.reason})")
@@ -387,15 +418,16 @@ class DisplayClient:
             if self._lost_since_mono is None:
                 self._lost_since_mono = self._last_heard_mono  # lost since last heard from
             if now_m - self._lost_since_mono > opts.reconnect_timeout_s:
-                raise DisplayError(f"no arlight server answered at {opts.server} within "
-                                   f"{opts.reconnect_timeout_s:.0f} s (--reconnect-timeout); "
-                                   "check --server and that `arlight serve` runs")
+                raise DisplayError(
+                    f"no arlight server answered at {opts.server} within "
+                    f"{opts.reconnect_timeout_s:.0f} s (--reconnect-timeout); "
+                    "check --server and that `arlight serve` runs"
+                )
             self._resubscribe(f"no message from the server for {silent_s:.1f} s")
             self._last_heard_mono = time.monotonic()
         if now_m - self._last_sent_mono >= self._heartbeat_s:
             try:
-                self._dealer.send_multipart(encode(Heartbeat(time.time())), zmq.NOBLOCK,
-                                            copy=False)
+                self._dealer.send_multipart(encode(Heartbeat(time.time())), zmq.NOBLOCK, copy=False)
             except zmq.Again:
                 pass  # queue full while the server is away: the next one will do
             self._last_sent_mono = now_m
@@ -404,8 +436,9 @@ class DisplayClient:
         if self._socket is None:
             return
         try:
-            self._socket.send_multipart(encode(Bye("display closed", ByeKind.LEAVING)),
-                                        zmq.NOBLOCK, copy=False)
+            self._socket.send_multipart(
+                encode(Bye("display closed", ByeKind.LEAVING)), zmq.NOBLOCK, copy=False
+            )
             time.sleep(0.02)
         except zmq.Again:
             pass
@@ -430,8 +463,12 @@ class DisplayClient:
 
             kind = "end-to-end" if self.summary.end_to_end else "server-receive-to-display"
             self.plot_path = write_latency_plot(
-                Path(self.options.out_dir) / "latency.png", self.summary.receive_times_s,
-                self.summary.latencies_ms, kind, title=f"arlight display {self.options.session}")
+                Path(self.options.out_dir) / "latency.png",
+                self.summary.receive_times_s,
+                self.summary.latencies_ms,
+                kind,
+                title=f"arlight display {self.options.session}",
+            )
 
     def _resubscribe(self, why: str) -> None:
         log.warning("display %s: %s; subscribing again", self.options.session, why)

@@ -56,23 +56,36 @@ LIGHTING_SCHEMA = {
     "description": "the light arlight estimated for one frame (docs/reference/output-record.md)",
     "type": "object",
     "properties": {
-        "timestamp": {"type": "object", "description": "the frame's capture time",
-                      "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
+        "timestamp": {
+            "type": "object",
+            "description": "the frame's capture time",
+            "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}},
+        },
         "frame": {"type": "integer", "description": "the frame's seq"},
-        "sh": {**_NUMBERS, "description": "radiance SH, luminance, world frame, index "
-                                          "l(l+1)+m, no Condon-Shortley phase"},
+        "sh": {
+            **_NUMBERS,
+            "description": "radiance SH, luminance, world frame, index "
+            "l(l+1)+m, no Condon-Shortley phase",
+        },
         "sh_camera": {**_NUMBERS, "description": "the same light in the camera frame"},
         "dominant_direction_world": {**_NUMBERS, "description": "unit vector towards the light"},
         "dominant_direction_camera": {**_NUMBERS, "description": "unit, OpenCV camera axes"},
         "intensity": {"type": "number"},
-        "confidence": {"type": "object", "description": "samples, condition_number, "
-                                                        "bands_estimated, value (0..1), reason"},
-        "timings_ms": {"type": "object", "description": "per pipeline stage, milliseconds",
-                       "additionalProperties": {"type": "number"}},
+        "confidence": {
+            "type": "object",
+            "description": "samples, condition_number, bands_estimated, value (0..1), reason",
+        },
+        "timings_ms": {
+            "type": "object",
+            "description": "per pipeline stage, milliseconds",
+            "additionalProperties": {"type": "number"},
+        },
         "pipeline_ms": {"type": "number", "description": "sum of timings_ms"},
         "in_server_ms": {"type": "number", "description": "server receive -> finish"},
-        "end_to_end_ms": {"type": ["number", "null"],
-                          "description": "capture timestamp -> display receive"},
+        "end_to_end_ms": {
+            "type": ["number", "null"],
+            "description": "capture timestamp -> display receive",
+        },
         "frames_dropped": {"type": "integer"},
     },
 }
@@ -126,14 +139,16 @@ def x_axis_to(direction: npt.ArrayLike) -> fm.Quaternion:
     return fm.Quaternion(x=axis[0] * s, y=axis[1] * s, z=axis[2] * s, w=math.cos(half))
 
 
-def color_image(encoded: tuple[str, bytes] | None, color: np.ndarray,
-                stamp_s: float) -> fm.CompressedImage | fm.RawImage:
+def color_image(
+    encoded: tuple[str, bytes] | None, color: np.ndarray, stamp_s: float
+) -> fm.CompressedImage | fm.RawImage:
     """The colour of a Frame: its JPEG/PNG bytes as sent (`encoded` = (format, bytes), from
     client.connection.encoded_image) as a CompressedImage, or (raw colour: encoded None) the
     decoded (H, W, 3) uint8 RGB array as RawImage rgb8."""
     if encoded is not None:
-        return fm.CompressedImage(timestamp=timestamp(stamp_s), frame_id=CAMERA_FRAME,
-                                  data=encoded[1], format=encoded[0])
+        return fm.CompressedImage(
+            timestamp=timestamp(stamp_s), frame_id=CAMERA_FRAME, data=encoded[1], format=encoded[0]
+        )
     return raw_rgb(color, stamp_s)
 
 
@@ -141,8 +156,15 @@ def raw_rgb(color: np.ndarray, stamp_s: float) -> fm.RawImage:
     """(H, W, 3) uint8 RGB as a RawImage rgb8 in the camera frame."""
     rgb = np.ascontiguousarray(color, dtype=np.uint8)
     h, w = rgb.shape[:2]
-    return fm.RawImage(timestamp=timestamp(stamp_s), frame_id=CAMERA_FRAME, width=w, height=h,
-                       encoding="rgb8", step=3 * w, data=rgb.tobytes())
+    return fm.RawImage(
+        timestamp=timestamp(stamp_s),
+        frame_id=CAMERA_FRAME,
+        width=w,
+        height=h,
+        encoding="rgb8",
+        step=3 * w,
+        data=rgb.tobytes(),
+    )
 
 
 def depth_image(depth: np.ndarray, stamp_s: float) -> fm.RawImage:
@@ -150,8 +172,15 @@ def depth_image(depth: np.ndarray, stamp_s: float) -> fm.RawImage:
     0 = missing) as a RawImage 16UC1, little-endian, in the camera frame."""
     d = np.ascontiguousarray(depth, dtype="<u2")
     h, w = d.shape
-    return fm.RawImage(timestamp=timestamp(stamp_s), frame_id=CAMERA_FRAME, width=w, height=h,
-                       encoding="16UC1", step=2 * w, data=d.tobytes())
+    return fm.RawImage(
+        timestamp=timestamp(stamp_s),
+        frame_id=CAMERA_FRAME,
+        width=w,
+        height=h,
+        encoding="16UC1",
+        step=2 * w,
+        data=d.tobytes(),
+    )
 
 
 def camera_calibration(calibration, stamp_s: float) -> fm.CameraCalibration:
@@ -160,10 +189,16 @@ def camera_calibration(calibration, stamp_s: float) -> fm.CameraCalibration:
     k = [c.fx, 0.0, c.cx, 0.0, c.fy, c.cy, 0.0, 0.0, 1.0]
     p = [c.fx, 0.0, c.cx, 0.0, 0.0, c.fy, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
     return fm.CameraCalibration(
-        timestamp=timestamp(stamp_s), frame_id=CAMERA_FRAME, width=int(c.width),
-        height=int(c.height), distortion_model=c.distortion_model or "plumb_bob",
-        D=[float(x) for x in c.D] or [0.0] * 5, K=k,
-        R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], P=p)
+        timestamp=timestamp(stamp_s),
+        frame_id=CAMERA_FRAME,
+        width=int(c.width),
+        height=int(c.height),
+        distortion_model=c.distortion_model or "plumb_bob",
+        D=[float(x) for x in c.D] or [0.0] * 5,
+        K=k,
+        R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        P=p,
+    )
 
 
 def camera_transform(world_from_cam: np.ndarray, stamp_s: float) -> fm.FrameTransform:
@@ -171,29 +206,39 @@ def camera_transform(world_from_cam: np.ndarray, stamp_s: float) -> fm.FrameTran
     pose = np.asarray(world_from_cam, dtype=np.float64)
     t = pose[:3, 3]
     return fm.FrameTransform(
-        timestamp=timestamp(stamp_s), parent_frame_id=WORLD_FRAME, child_frame_id=CAMERA_FRAME,
+        timestamp=timestamp(stamp_s),
+        parent_frame_id=WORLD_FRAME,
+        child_frame_id=CAMERA_FRAME,
         translation=fm.Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
-        rotation=quaternion(pose[:3, :3]))
+        rotation=quaternion(pose[:3, :3]),
+    )
 
 
-def composite_image(composite: np.ndarray, stamp_s: float, quality: int = 90,
-                    encoded: tuple[str, bytes] | None = None) -> fm.CompressedImage:
+def composite_image(
+    composite: np.ndarray,
+    stamp_s: float,
+    quality: int = 90,
+    encoded: tuple[str, bytes] | None = None,
+) -> fm.CompressedImage:
     """A Result's composite as a CompressedImage: its JPEG/PNG bytes as received
     (`encoded`, from client.connection.encoded_image), else the (H, W, 3) uint8 RGB array
     encoded as JPEG."""
     if encoded is not None:
-        return fm.CompressedImage(timestamp=timestamp(stamp_s), frame_id=CAMERA_FRAME,
-                                  data=encoded[1], format=encoded[0])
+        return fm.CompressedImage(
+            timestamp=timestamp(stamp_s), frame_id=CAMERA_FRAME, data=encoded[1], format=encoded[0]
+        )
     bgr = cv2.cvtColor(np.ascontiguousarray(composite, dtype=np.uint8), cv2.COLOR_RGB2BGR)
     ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise ValueError("OpenCV could not encode the composite as JPEG")
-    return fm.CompressedImage(timestamp=timestamp(stamp_s), frame_id=CAMERA_FRAME,
-                              data=jpeg.tobytes(), format="jpeg")
+    return fm.CompressedImage(
+        timestamp=timestamp(stamp_s), frame_id=CAMERA_FRAME, data=jpeg.tobytes(), format="jpeg"
+    )
 
 
-def light_scene(direction_world: Sequence[float], confidence: float,
-                stamp_s: float) -> fm.SceneUpdate:
+def light_scene(
+    direction_world: Sequence[float], confidence: float, stamp_s: float
+) -> fm.SceneUpdate:
     """The estimated light in 3D (world frame): a grey sphere in front of the first camera, an
     arrow from it towards the light (brighter the more confident) and a small yellow sphere
     where the arrow ends, standing for the light."""
@@ -210,19 +255,33 @@ def light_scene(direction_world: Sequence[float], confidence: float,
 
     identity = fm.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
     entity = fm.SceneEntity(
-        timestamp=stamp, frame_id=WORLD_FRAME, id="light", frame_locked=True,
-        arrows=[fm.ArrowPrimitive(
-            pose=fm.Pose(position=point(c + d * MARKER_RADIUS_M), orientation=x_axis_to(d)),
-            shaft_length=ARROW_LENGTH_M * 0.75, shaft_diameter=0.03,
-            head_length=ARROW_LENGTH_M * 0.25, head_diameter=0.08,
-            color=fm.Color(r=1.0, g=0.6 + 0.4 * level, b=0.1, a=0.4 + 0.6 * level))],
+        timestamp=stamp,
+        frame_id=WORLD_FRAME,
+        id="light",
+        frame_locked=True,
+        arrows=[
+            fm.ArrowPrimitive(
+                pose=fm.Pose(position=point(c + d * MARKER_RADIUS_M), orientation=x_axis_to(d)),
+                shaft_length=ARROW_LENGTH_M * 0.75,
+                shaft_diameter=0.03,
+                head_length=ARROW_LENGTH_M * 0.25,
+                head_diameter=0.08,
+                color=fm.Color(r=1.0, g=0.6 + 0.4 * level, b=0.1, a=0.4 + 0.6 * level),
+            )
+        ],
         spheres=[
-            fm.SpherePrimitive(pose=fm.Pose(position=point(c), orientation=identity),
-                               size=point([2 * MARKER_RADIUS_M] * 3),
-                               color=fm.Color(r=0.8, g=0.8, b=0.8, a=1.0)),
-            fm.SpherePrimitive(pose=fm.Pose(position=point(tip), orientation=identity),
-                               size=point([0.08] * 3),
-                               color=fm.Color(r=1.0, g=0.9, b=0.2, a=1.0))])
+            fm.SpherePrimitive(
+                pose=fm.Pose(position=point(c), orientation=identity),
+                size=point([2 * MARKER_RADIUS_M] * 3),
+                color=fm.Color(r=0.8, g=0.8, b=0.8, a=1.0),
+            ),
+            fm.SpherePrimitive(
+                pose=fm.Pose(position=point(tip), orientation=identity),
+                size=point([0.08] * 3),
+                color=fm.Color(r=1.0, g=0.9, b=0.2, a=1.0),
+            ),
+        ],
+    )
     return fm.SceneUpdate(entities=[entity])
 
 
@@ -232,11 +291,26 @@ def lighting_message(record: Mapping) -> dict:
     stamp_s = float(record["timestamp"])
     sec = math.floor(stamp_s)
     nsec = min(int(round((stamp_s - sec) * 1e9)), 999_999_999)
-    keys = ("sh", "sh_camera", "dominant_direction_world", "dominant_direction_camera",
-            "intensity", "confidence", "timings_ms", "pipeline_ms", "in_server_ms",
-            "end_to_end_ms", "frames_dropped")
-    return _finite({"timestamp": {"sec": int(sec), "nsec": nsec}, "frame": record["frame"],
-                    **{k: record.get(k) for k in keys}})
+    keys = (
+        "sh",
+        "sh_camera",
+        "dominant_direction_world",
+        "dominant_direction_camera",
+        "intensity",
+        "confidence",
+        "timings_ms",
+        "pipeline_ms",
+        "in_server_ms",
+        "end_to_end_ms",
+        "frames_dropped",
+    )
+    return _finite(
+        {
+            "timestamp": {"sec": int(sec), "nsec": nsec},
+            "frame": record["frame"],
+            **{k: record.get(k) for k in keys},
+        }
+    )
 
 
 def _finite(value):

@@ -27,9 +27,13 @@ def fps_over_time(receive_s: npt.ArrayLike, window_s: float = FPS_WINDOW_S) -> n
     return np.where(span > 0, intervals / np.maximum(span, 1e-12), 0.0)
 
 
-def write_latency_plot(path: str | Path, receive_s: Sequence[float],
-                       latencies_ms: Sequence[float], latency_kind: str,
-                       title: str = "") -> Path:
+def write_latency_plot(
+    path: str | Path,
+    receive_s: Sequence[float],
+    latencies_ms: Sequence[float],
+    latency_kind: str,
+    title: str = "",
+) -> Path:
     """Two panels over time since the first Result (s): latency (ms; `latency_kind` names
     it, e.g. "end-to-end") and frames per second (over the last FPS_WINDOW_S). Returns the
     path."""
@@ -45,13 +49,11 @@ def write_latency_plot(path: str | Path, receive_s: Sequence[float],
     ax_lat.plot(t, lat, ".-", lw=1, ms=3, color="tab:blue")
     if lat.size:
         median = float(np.median(lat))
-        ax_lat.axhline(median, color="tab:blue", lw=0.8, ls="--",
-                       label=f"median {median:.0f} ms")
+        ax_lat.axhline(median, color="tab:blue", lw=0.8, ls="--", label=f"median {median:.0f} ms")
         ax_lat.legend(loc="upper right", fontsize=8)
     ax_lat.set_ylabel(f"{latency_kind} latency, ms")
     ax_lat.grid(alpha=0.3)
-    ax_fps.plot(t, fps_over_time(np.asarray(receive_s, dtype=np.float64)), "-",
-                color="tab:green")
+    ax_fps.plot(t, fps_over_time(np.asarray(receive_s, dtype=np.float64)), "-", color="tab:green")
     ax_fps.set_ylabel(f"fps ({FPS_WINDOW_S:g} s window)")
     ax_fps.set_xlabel("time since the first result, s")
     ax_fps.grid(alpha=0.3)

@@ -61,8 +61,14 @@ class Recorder:
     Results only; write_hello / write_frame then refuse).
     """
 
-    def __init__(self, path: str | Path, source: str = "", depth_scale: float | None = None,
-                 foxglove: bool = True, frames: bool = True):
+    def __init__(
+        self,
+        path: str | Path,
+        source: str = "",
+        depth_scale: float | None = None,
+        foxglove: bool = True,
+        frames: bool = True,
+    ):
         from mcap.writer import CompressionType, Writer
 
         self.path = Path(path)
@@ -70,10 +76,14 @@ class Recorder:
         self._writer = Writer(self._file, compression=CompressionType.ZSTD)
         self._writer.start(profile=PROFILE, library=f"arlight {__version__}")
         info_schema = self._writer.register_schema(
-            name="arlight.FrameInfo", encoding="jsonschema",
-            data=json.dumps(FRAME_INFO_SCHEMA).encode())
-        meta = {"protocol_version": str(PROTOCOL_VERSION),
-                "data": "msgpack array of the ZeroMQ message parts as sent"}
+            name="arlight.FrameInfo",
+            encoding="jsonschema",
+            data=json.dumps(FRAME_INFO_SCHEMA).encode(),
+        )
+        meta = {
+            "protocol_version": str(PROTOCOL_VERSION),
+            "data": "msgpack array of the ZeroMQ message parts as sent",
+        }
         # the channels of a stream recording (frames=True), else None
         self._hello: int | None = None
         self._frame: int | None = None
@@ -85,11 +95,17 @@ class Recorder:
         self._result: int | None = None
         self._meta = meta
         self._foxglove = FoxgloveStream(McapSink(self._writer)) if foxglove else None
-        self._writer.add_metadata("arlight", {
-            "arlight_version": __version__, "protocol_version": str(PROTOCOL_VERSION),
-            "source": source, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "content": "stream" if frames else "results",
-            "depth_scale": "" if depth_scale is None else repr(float(depth_scale))})
+        self._writer.add_metadata(
+            "arlight",
+            {
+                "arlight_version": __version__,
+                "protocol_version": str(PROTOCOL_VERSION),
+                "source": source,
+                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "content": "stream" if frames else "results",
+                "depth_scale": "" if depth_scale is None else repr(float(depth_scale)),
+            },
+        )
         self.frames = 0
         self.results = 0
         self._closed = False
@@ -97,8 +113,13 @@ class Recorder:
     def write_hello(self, parts, log_time_ns: int) -> None:
         if self._hello is None:
             raise ValueError("this Recorder records Results only (frames=False)")
-        self._writer.add_message(self._hello, log_time=log_time_ns, data=_pack_parts(parts),
-                                 publish_time=log_time_ns, sequence=0)
+        self._writer.add_message(
+            self._hello,
+            log_time=log_time_ns,
+            data=_pack_parts(parts),
+            publish_time=log_time_ns,
+            sequence=0,
+        )
         if self._foxglove is not None:
             self._foxglove.write_hello(parts, log_time_ns)
 
@@ -109,34 +130,56 @@ class Recorder:
         header = peek_header(parts)
         stamp_ns = int(round(float(header["timestamp"]) * 1e9))
         log_ns = stamp_ns if log_time_ns is None else int(log_time_ns)
-        self._writer.add_message(self._frame, log_time=log_ns, data=_pack_parts(parts),
-                                 publish_time=stamp_ns, sequence=self.frames)
+        self._writer.add_message(
+            self._frame,
+            log_time=log_ns,
+            data=_pack_parts(parts),
+            publish_time=stamp_ns,
+            sequence=self.frames,
+        )
         color, depth = header.get("color") or {}, header.get("depth") or {}
-        info = {"seq": header["seq"], "timestamp": header["timestamp"],
-                "color_codec": color.get("format", ""), "depth_codec": depth.get("format", ""),
-                "width": color.get("width", 0), "height": color.get("height", 0),
-                "bytes": sum(len(memoryview(p)) for p in parts),
-                "has_pose": header.get("pose") is not None}
-        self._writer.add_message(self._info, log_time=log_ns, data=json.dumps(info).encode(),
-                                 publish_time=stamp_ns, sequence=self.frames)
+        info = {
+            "seq": header["seq"],
+            "timestamp": header["timestamp"],
+            "color_codec": color.get("format", ""),
+            "depth_codec": depth.get("format", ""),
+            "width": color.get("width", 0),
+            "height": color.get("height", 0),
+            "bytes": sum(len(memoryview(p)) for p in parts),
+            "has_pose": header.get("pose") is not None,
+        }
+        self._writer.add_message(
+            self._info,
+            log_time=log_ns,
+            data=json.dumps(info).encode(),
+            publish_time=stamp_ns,
+            sequence=self.frames,
+        )
         self.frames += 1
         if self._foxglove is not None:
             self._foxglove.write_frame(parts, log_ns)
 
-    def write_result(self, result, record: dict, parts=None,
-                     log_time_ns: int | None = None) -> None:
+    def write_result(
+        self, result, record: dict, parts=None, log_time_ns: int | None = None
+    ) -> None:
         """One Result as received: its message parts (when given) on /arlight/result, and
         the Foxglove channels of it. record: protocols.received_record of it; log_time_ns
         None = the receive time."""
-        log_ns = (int(round(record["receive_time"] * 1e9)) if log_time_ns is None
-                  else int(log_time_ns))
+        log_ns = (
+            int(round(record["receive_time"] * 1e9)) if log_time_ns is None else int(log_time_ns)
+        )
         if parts is not None:
             if self._result is None:
-                self._result = self._writer.register_channel(RESULT_TOPIC, MESSAGE_ENCODING, 0,
-                                                             self._meta)
-            self._writer.add_message(self._result, log_time=log_ns, data=_pack_parts(parts),
-                                     publish_time=int(round(result.timestamp * 1e9)),
-                                     sequence=self.results)
+                self._result = self._writer.register_channel(
+                    RESULT_TOPIC, MESSAGE_ENCODING, 0, self._meta
+                )
+            self._writer.add_message(
+                self._result,
+                log_time=log_ns,
+                data=_pack_parts(parts),
+                publish_time=int(round(result.timestamp * 1e9)),
+                sequence=self.results,
+            )
         self.results += 1
         if self._foxglove is not None:
             self._foxglove.write_result(result, record, log_ns, parts=parts)

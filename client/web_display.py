@@ -45,9 +45,11 @@ FPS_WINDOW_S = 2.0
 MAX_STREAMS = 16
 JPEG_QUALITY = 85
 MJPEG_BOUNDARY = "arlightframe"
-_STATIC = {"/": ("index.html", "text/html; charset=utf-8"),
-           "/index.html": ("index.html", "text/html; charset=utf-8"),
-           "/display.js": ("display.js", "text/javascript; charset=utf-8")}
+_STATIC = {
+    "/": ("index.html", "text/html; charset=utf-8"),
+    "/index.html": ("index.html", "text/html; charset=utf-8"),
+    "/display.js": ("display.js", "text/javascript; charset=utf-8"),
+}
 
 
 def parse_http_address(text: str) -> tuple[str, int]:
@@ -84,15 +86,19 @@ class WebDisplay:
         try:
             self._server = ThreadingHTTPServer((host, int(port)), handler)
         except OSError as exc:
-            raise OSError(f"cannot serve the browser display on {host}:{port} (--http): "
-                          f"{exc.strerror or exc}") from None
+            raise OSError(
+                f"cannot serve the browser display on {host}:{port} (--http): {exc.strerror or exc}"
+            ) from None
         self._server.daemon_threads = True
         bound_host, bound_port = self._server.server_address[:2]  # port 0: the one it chose
         self.host, self.port = str(bound_host), int(bound_port)
 
-        self._thread = threading.Thread(target=self._server.serve_forever,
-                                        kwargs={"poll_interval": 0.2},
-                                        name="arlight-web-display", daemon=True)
+        self._thread = threading.Thread(
+            target=self._server.serve_forever,
+            kwargs={"poll_interval": 0.2},
+            name="arlight-web-display",
+            daemon=True,
+        )
         self._thread.start()
 
     @property
@@ -119,21 +125,24 @@ class WebDisplay:
             ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
             jpeg = buf.tobytes() if ok else None
         e2e = record.get("end_to_end_ms")
-        latency = e2e if e2e is not None else (record["in_server_ms"]
-                                               + record["server_to_client_ms"])
+        latency = (
+            e2e if e2e is not None else (record["in_server_ms"] + record["server_to_client_ms"])
+        )
         with self._cond:
             results = self._state.get("results", 0) + 1
             self._state = {
-                "session": self.session, "results": results, "frame": result.seq,
-                "timestamp": result.timestamp, "fps": round(fps, 2),
+                "session": self.session,
+                "results": results,
+                "frame": result.seq,
+                "timestamp": result.timestamp,
+                "fps": round(fps, 2),
                 "latency_ms": round(float(latency), 1),
                 "latency_kind": "end_to_end" if e2e is not None else "server_receive_to_display",
                 "pipeline_ms": record.get("pipeline_ms"),
                 "timings_ms": {k: round(float(v), 2) for k, v in result.timings_ms.items()},
                 "confidence": float(result.confidence.value),
                 "confidence_detail": result.confidence.to_dict(),
-                "dominant_direction_camera": [float(x) for x in
-                                              result.dominant_direction_camera],
+                "dominant_direction_camera": [float(x) for x in result.dominant_direction_camera],
                 "sh_camera": [float(x) for x in (result.sh_camera or result.sh)],
                 "frames_dropped": result.frames_dropped,
                 "has_composite": jpeg is not None or self._jpeg is not None,
@@ -200,8 +209,7 @@ class _Handler(BaseHTTPRequestHandler):
             name, content_type = _STATIC[path]
             self._send(HTTPStatus.OK, (WEB_DIR / name).read_bytes(), content_type)
         elif path == "/state.json":
-            self._send(HTTPStatus.OK, json.dumps(self.display.state()).encode(),
-                       "application/json")
+            self._send(HTTPStatus.OK, json.dumps(self.display.state()).encode(), "application/json")
         elif path == "/frame.jpg":
             _, _, jpeg = self.display.wait_update(-1, 0.0)
             if jpeg is None:
@@ -233,8 +241,12 @@ class _Handler(BaseHTTPRequestHandler):
             version, _, jpeg = self.display.wait_update(version, 1.0)
             if jpeg is None or jpeg is sent:
                 continue
-            self.wfile.write(f"--{MJPEG_BOUNDARY}\r\nContent-Type: image/jpeg\r\n"
-                             f"Content-Length: {len(jpeg)}\r\n\r\n".encode() + jpeg + b"\r\n")
+            self.wfile.write(
+                f"--{MJPEG_BOUNDARY}\r\nContent-Type: image/jpeg\r\n"
+                f"Content-Length: {len(jpeg)}\r\n\r\n".encode()
+                + jpeg
+                + b"\r\n"
+            )
             self.wfile.flush()
             sent = jpeg
             self.display.jpegs_streamed += 1

@@ -32,9 +32,14 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 # source folders -> the package they are installed as (pyproject's package-dir)
-PACKAGES = {"arlight": "arlight", "pipeline": "arlight.pipeline", "server": "arlight.server",
-            "client": "arlight.client", "protocols": "arlight.protocols",
-            "sources": "arlight.sources"}
+PACKAGES = {
+    "arlight": "arlight",
+    "pipeline": "arlight.pipeline",
+    "server": "arlight.server",
+    "client": "arlight.client",
+    "protocols": "arlight.protocols",
+    "sources": "arlight.sources",
+}
 
 
 def _cell(text: object) -> str:
@@ -55,8 +60,10 @@ def _option_row(action: argparse.Action) -> str:
         names = ", ".join(f"`{o}`" for o in action.option_strings)
         if action.nargs != 0:
             metavar = action.metavar or (
-                "{" + ",".join(map(str, action.choices)) + "}" if action.choices
-                else action.dest.upper())
+                "{" + ",".join(map(str, action.choices)) + "}"
+                if action.choices
+                else action.dest.upper()
+            )
             names += f" `{metavar}`"
     else:
         names = f"`{action.metavar or action.dest}`"
@@ -68,17 +75,21 @@ def _option_row(action: argparse.Action) -> str:
     return f"| {_cell(names)} | {_cell(shown)} | {_cell(action.help or '')} |"
 
 
-def _command_page(parser: argparse.ArgumentParser, name: str, summary: str,
-                  level: int) -> list[str]:
+def _command_page(
+    parser: argparse.ArgumentParser, name: str, summary: str, level: int
+) -> list[str]:
     lines = [f"{'#' * level} `{name}`", ""]
     if summary:
         lines += [f"*{summary}*", ""]
     if parser.description:
         lines += [parser.description.strip(), ""]
     lines += ["```text", parser.format_usage().strip(), "```", ""]
-    rows = [_option_row(a) for a in parser._actions
-            if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction))
-            and a.help != argparse.SUPPRESS]
+    rows = [
+        _option_row(a)
+        for a in parser._actions
+        if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction))
+        and a.help != argparse.SUPPRESS
+    ]
     if rows:
         lines += ["| argument | default | what it does |", "|---|---|---|", *rows, ""]
     if parser.epilog:
@@ -87,8 +98,9 @@ def _command_page(parser: argparse.ArgumentParser, name: str, summary: str,
     if sub is not None:
         helps = {a.dest: a.help or "" for a in sub._choices_actions}
         for child_name, child in sub.choices.items():
-            lines += _command_page(child, f"{name} {child_name}", helps.get(child_name, ""),
-                                   min(level + 1, 4))
+            lines += _command_page(
+                child, f"{name} {child_name}", helps.get(child_name, ""), min(level + 1, 4)
+            )
     return lines
 
 
@@ -101,10 +113,12 @@ def cli_page() -> str:
     sub = _subparsers(parser)
     names = list(sub.choices) if sub is not None else []
     lines = [
-        "# Command line: `arlight`", "",
+        "# Command line: `arlight`",
+        "",
         "Generated at build time from `arlight.cli.build_parser()`, so it lists exactly the "
         "arguments the installed command accepts (`arlight COMMAND --help` prints the same). "
-        "How `arlight` gets on your PATH: [Getting started](../getting-started.md).", "",
+        "How `arlight` gets on your PATH: [Getting started](../getting-started.md).",
+        "",
         "Commands: " + ", ".join(f"[`{n}`](#arlight-{n.replace(' ', '-')})" for n in names),
         "",
     ]
@@ -132,8 +146,12 @@ def _field_comments(cls: type) -> dict[str, str]:
             block += said
         else:
             # a field: `name: type [= default]` at the class body's indentation
-            if (len(code) > 1 and code[0].type == tokenize.NAME and code[1].string == ":"
-                    and code[0].start[1] == 4):
+            if (
+                len(code) > 1
+                and code[0].type == tokenize.NAME
+                and code[1].string == ":"
+                and code[0].start[1] == 4
+            ):
                 comments[code[0].string] = " ".join(block + said)
             block = []
         line = []
@@ -157,24 +175,28 @@ def config_page() -> str:
     flat = {name: cfg.Config.from_preset(name).flat() for name in presets}
     types = cfg.Config.flat_key_types()
     lines = [
-        "# Pipeline parameters: `--set KEY=VALUE`", "",
+        "# Pipeline parameters: `--set KEY=VALUE`",
+        "",
         "Generated at build time from `arlight.pipeline.config` (`FLAT_KEYS`, the stage "
         "dataclasses and the presets), so every key the code accepts is here with its "
         "default. The same keys work everywhere: `arlight estimate|stream|batch|bench --set "
-        "KEY=VALUE`, `Config.from_preset(\"fast\", KEY=VALUE)`, `config.replace(KEY=VALUE)` "
+        'KEY=VALUE`, `Config.from_preset("fast", KEY=VALUE)`, `config.replace(KEY=VALUE)` '
         "and a streamed session's overrides. An unknown key is refused with the list of "
-        "valid ones; a value out of range is refused naming the key.", "",
+        "valid ones; a value out of range is refused naming the key.",
+        "",
         "Presets: `full` is the paper's *Ours* (every pixel), `fast` its *OursFast* "
         "(radiance transfer and differential buffers on a 4x4 sub-sampled grid, interpolated "
         "back), `mobile` a 64^3 volume without D''' and fewer samples. What each costs and "
         "how accurate it is: [Results: accuracy](../results/accuracy.md) and "
         "[speed](../results/speed.md). Columns `fast` and `mobile` show a value only where "
         "the preset changes it. Comments are the code's own; the evidence behind a choice "
-        "is in the [decision records](../decisions/index.md).", "",
+        "is in the [decision records](../decisions/index.md).",
+        "",
     ]
     top = [(k, s, n) for k, (s, n) in cfg.FLAT_KEYS.items() if s is None]
     groups: list[tuple[str, str, list[str]]] = [
-        ("Config", (cfg.Config.__doc__ or "").strip().splitlines()[0], [k for k, _, _ in top])]
+        ("Config", (cfg.Config.__doc__ or "").strip().splitlines()[0], [k for k, _, _ in top])
+    ]
     comments: dict[str, str] = {}
     for stage, cls in cfg.STAGE_TYPES.items():
         keys = [k for k, (s, _) in cfg.FLAT_KEYS.items() if s == stage]
@@ -185,23 +207,39 @@ def config_page() -> str:
     for name, text in _field_comments(cfg.Config).items():
         comments.setdefault(name, text)
     for title, doc, keys in groups:
-        lines += [f"## {title}", "", doc, "",
-                  "| key | type | full | fast | mobile | notes (from the code) |",
-                  "|---|---|---|---|---|---|"]
+        lines += [
+            f"## {title}",
+            "",
+            doc,
+            "",
+            "| key | type | full | fast | mobile | notes (from the code) |",
+            "|---|---|---|---|---|---|",
+        ]
         for key in keys:
             base = _value(flat["full"][key])
-            cols = [_value(flat[p][key]) if flat[p][key] != flat["full"][key] else ""
-                    for p in ("fast", "mobile") if p in flat]
+            cols = [
+                _value(flat[p][key]) if flat[p][key] != flat["full"][key] else ""
+                for p in ("fast", "mobile")
+                if p in flat
+            ]
             kind = types.get(key, type(flat["full"][key])).__name__
             field_name = cfg.FLAT_KEYS[key][1]
-            lines.append(f"| `{key}` | {kind} | `{base}` | "
-                         + " | ".join(f"`{c}`" if c else "" for c in cols)
-                         + f" | {_cell(comments.get(field_name, ''))} |")
+            lines.append(
+                f"| `{key}` | {kind} | `{base}` | "
+                + " | ".join(f"`{c}`" if c else "" for c in cols)
+                + f" | {_cell(comments.get(field_name, ''))} |"
+            )
         lines.append("")
     if cfg.FLAT_ALIASES:
-        lines += ["## Aliases", "", "Keys in another unit, converted to the canonical key "
-                  "(give one or the other, not both):", "",
-                  "| alias | sets | accepted range |", "|---|---|---|"]
+        lines += [
+            "## Aliases",
+            "",
+            "Keys in another unit, converted to the canonical key "
+            "(give one or the other, not both):",
+            "",
+            "| alias | sets | accepted range |",
+            "|---|---|---|",
+        ]
         for alias, (canonical, _convert, (low, high)) in cfg.FLAT_ALIASES.items():
             lines.append(f"| `{alias}` | `{canonical}` | ({low:g}, {high:g}] |")
         lines.append("")
@@ -211,8 +249,10 @@ def config_page() -> str:
 # ------------------------------------------------------------------ the protocol spec
 def protocol_page() -> str:
     spec = (ROOT / "protocols" / "SPEC.md").read_text(encoding="utf-8")
-    note = ("!!! note \"Source\"\n    This page is `protocols/SPEC.md`, included as it is at "
-            "build time.\n\n")
+    note = (
+        '!!! note "Source"\n    This page is `protocols/SPEC.md`, included as it is at '
+        "build time.\n\n"
+    )
     head, _, rest = spec.partition("\n")
     return head + "\n\n" + note + rest
 
@@ -230,10 +270,12 @@ def _first_doc_line(path: Path) -> str:
 
 def modules_page() -> str:
     lines = [
-        "# Module map", "",
+        "# Module map",
+        "",
         "Generated at build time: every module of the source tree with the first paragraph "
         "of its docstring, so a module added, moved or split shows here on the next build. "
-        "Who may import whom: [Architecture](../architecture.md).", "",
+        "Who may import whom: [Architecture](../architecture.md).",
+        "",
     ]
     for folder, package in PACKAGES.items():
         base = ROOT / folder
@@ -261,16 +303,18 @@ def _decision_records() -> list[tuple[str, str, str, str]]:
             if line.startswith("- **") and "**:" in line:
                 key, _, value = line[4:].partition("**:")
                 fields[key.strip().lower()] = value.strip()
-        records.append((f"decisions/{path.name}", title, fields.get("decision", ""),
-                        fields.get("date", "")))
+        records.append(
+            (f"decisions/{path.name}", title, fields.get("decision", ""), fields.get("date", ""))
+        )
     return records
 
 
 def decisions_table() -> str:
     rows = ["| record | decision | date |", "|---|---|---|"]
     for uri, title, decision, date in _decision_records():
-        rows.append(f"| [{_cell(title)}]({uri.split('/', 1)[1]}) | {_cell(decision)} | "
-                    f"{_cell(date)} |")
+        rows.append(
+            f"| [{_cell(title)}]({uri.split('/', 1)[1]}) | {_cell(decision)} | {_cell(date)} |"
+        )
     return "\n".join(rows) + "\n"
 
 

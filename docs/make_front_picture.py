@@ -22,8 +22,10 @@ GAP_PX = 12
 
 def main(composite: str, plot: str, out: str = "docs/images/front.png") -> None:
     left, right = (Image.open(p).convert("RGB") for p in (composite, plot))
-    left, right = (im.resize((round(im.width * HEIGHT_PX / im.height), HEIGHT_PX),
-                             Image.Resampling.LANCZOS) for im in (left, right))
+    left, right = (
+        im.resize((round(im.width * HEIGHT_PX / im.height), HEIGHT_PX), Image.Resampling.LANCZOS)
+        for im in (left, right)
+    )
     canvas = Image.new("RGB", (left.width + GAP_PX + right.width, HEIGHT_PX), "white")
     canvas.paste(left, (0, 0))
     canvas.paste(right, (left.width + GAP_PX, 0))

@@ -62,10 +62,13 @@ class OrthoBuffer:
         return uv, q[..., 2]
 
 
-
-def render_orthographic(points_world: np.ndarray, world_from_buffer: np.ndarray,
-                        resolution: int, pixel_size_m: float,
-                        max_depth_m: float = np.inf) -> np.ndarray:
+def render_orthographic(
+    points_world: np.ndarray,
+    world_from_buffer: np.ndarray,
+    resolution: int,
+    pixel_size_m: float,
+    max_depth_m: float = np.inf,
+) -> np.ndarray:
     """Z-buffer splatting of a point set into an orthographic depth image (NumPy).
 
     points_world: (N, 3) metres. world_from_buffer: (4, 4), buffer frame as in OrthoBuffer.
@@ -76,12 +79,22 @@ def render_orthographic(points_world: np.ndarray, world_from_buffer: np.ndarray,
     buffer_from_world = np.linalg.inv(np.asarray(world_from_buffer, dtype=np.float64))
     q = p @ buffer_from_world[:3, :3].T + buffer_from_world[:3, 3]
     half = (resolution - 1) / 2.0
-    return splat_nearest(q[:, 0] / pixel_size_m + half, q[:, 1] / pixel_size_m + half, q[:, 2],
-                         resolution, resolution, max_depth_m)
+    return splat_nearest(
+        q[:, 0] / pixel_size_m + half,
+        q[:, 1] / pixel_size_m + half,
+        q[:, 2],
+        resolution,
+        resolution,
+        max_depth_m,
+    )
 
 
-def aux_buffer_poses(world_from_cam: np.ndarray, centre_depth_m: float, extent_m: float,
-                     light_direction_world: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def aux_buffer_poses(
+    world_from_cam: np.ndarray,
+    centre_depth_m: float,
+    extent_m: float,
+    light_direction_world: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
     """world_from_buffer of each auxiliary buffer, centred on a point in front of the camera.
 
     The covered region is a cube of side extent_m centred at the camera position plus
@@ -144,16 +157,24 @@ class AuxBufferRenderer:
         self._cache: list[OrthoBuffer] = []
         self._age = 0  # frames since the buffers were rendered
 
-    def update(self, volume: TsdfVolume, world_from_cam: np.ndarray, depth_v: np.ndarray,
-               light: np.ndarray | None) -> list[OrthoBuffer]:
+    def update(
+        self,
+        volume: TsdfVolume,
+        world_from_cam: np.ndarray,
+        depth_v: np.ndarray,
+        light: np.ndarray | None,
+    ) -> list[OrthoBuffer]:
         """The buffers for this frame: centred on the median of D_v (depth_v, (H, W) metres,
         0 = none) in front of the camera; light: unit vector towards the light or None."""
         c = self.params
         if not c.aux_buffers:
             return []
         names = [b.name for b in self._cache]
-        stale = (not self._cache or self._age + 1 >= max(1, c.aux_update_interval)
-                 or ("light" in names) != (light is not None))
+        stale = (
+            not self._cache
+            or self._age + 1 >= max(1, c.aux_update_interval)
+            or ("light" in names) != (light is not None)
+        )
         if not stale:
             self._age += 1
             return list(self._cache)
@@ -169,8 +190,13 @@ class AuxBufferRenderer:
             world_from_buffer = poses[name]
             # only surfaces seen from their front: the TSDF decreases along the view direction
             front = gradients @ world_from_buffer[:3, 2] < 0
-            depth = render_orthographic(points[front], world_from_buffer, c.aux_resolution,
-                                        pixel, max_depth_m=c.aux_extent_m)
+            depth = render_orthographic(
+                points[front],
+                world_from_buffer,
+                c.aux_resolution,
+                pixel,
+                max_depth_m=c.aux_extent_m,
+            )
             buffers.append(OrthoBuffer(world_from_buffer, depth, pixel, name))
         self._cache = buffers
         self._age = 0

@@ -41,8 +41,9 @@ class PinholeCamera:
     @classmethod
     def from_matrix(cls, matrix: np.ndarray, width: int, height: int) -> PinholeCamera:
         k = np.asarray(matrix, dtype=np.float64).reshape(3, 3)
-        return cls(int(width), int(height), float(k[0, 0]), float(k[1, 1]), float(k[0, 2]),
-                   float(k[1, 2]))
+        return cls(
+            int(width), int(height), float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])
+        )
 
     @property
     def matrix(self) -> np.ndarray:
@@ -53,8 +54,14 @@ class PinholeCamera:
         """The same camera for an image resized by `factor` (pixel centres kept consistent)."""
         w = max(1, int(round(self.width * factor)))
         h = max(1, int(round(self.height * factor)))
-        return PinholeCamera(w, h, self.fx * factor, self.fy * factor,
-                             (self.cx + 0.5) * factor - 0.5, (self.cy + 0.5) * factor - 0.5)
+        return PinholeCamera(
+            w,
+            h,
+            self.fx * factor,
+            self.fy * factor,
+            (self.cx + 0.5) * factor - 0.5,
+            (self.cy + 0.5) * factor - 0.5,
+        )
 
     def unproject(self, depth_m: np.ndarray) -> np.ndarray:
         """Camera-frame points (H, W, 3) float32, metres, from depth (H, W) metres (z along axis).

@@ -81,8 +81,7 @@ def _hint(key: str, kind: str) -> str:
 def _check_bool(obj: Any, key: str) -> None:
     value = getattr(obj, key)
     if not isinstance(value, bool):
-        raise ValueError(f"{key} must be true or false {_hint(key, 'true|false')}, "
-                         f"got {value!r}")
+        raise ValueError(f"{key} must be true or false {_hint(key, 'true|false')}, got {value!r}")
 
 
 def _check_int(obj: Any, key: str, low: int | None = None, high: int | None = None) -> None:
@@ -99,8 +98,14 @@ def _check_int(obj: Any, key: str, low: int | None = None, high: int | None = No
     object.__setattr__(obj, key, int(value))
 
 
-def _check_float(obj: Any, key: str, low: float | None = None, high: float | None = None,
-                 *, low_open: bool = False) -> None:
+def _check_float(
+    obj: Any,
+    key: str,
+    low: float | None = None,
+    high: float | None = None,
+    *,
+    low_open: bool = False,
+) -> None:
     value = getattr(obj, key)
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ValueError(f"{key} must be a number {_hint(key, 'X')}, got {value!r}")
@@ -121,8 +126,9 @@ def _check_enum(obj: Any, key: str, kind: type[Enum]) -> None:
         object.__setattr__(obj, key, kind(value))
     except ValueError:
         choices = "|".join(m.value for m in kind)
-        raise ValueError(f"{key} must be one of {choices} {_hint(key, choices)}, "
-                         f"got {value!r}") from None
+        raise ValueError(
+            f"{key} must be one of {choices} {_hint(key, choices)}, got {value!r}"
+        ) from None
 
 
 # ------------------------------------------------------------------ stage parameters
@@ -204,8 +210,11 @@ class FilterParams:
     def __post_init__(self) -> None:
         for key in ("merge_window", "smooth_window", "smooth_subsample", "denoise_window"):
             _check_int(self, key, 1, MAX_WINDOW)
-        for key in ("merge_intensity_threshold", "merge_depth_threshold_m",
-                    "smooth_intensity_threshold"):
+        for key in (
+            "merge_intensity_threshold",
+            "merge_depth_threshold_m",
+            "smooth_intensity_threshold",
+        ):
             _check_float(self, key, 0.0)
         for key in ("merge", "smooth", "denoise"):
             _check_bool(self, key)
@@ -261,8 +270,7 @@ class TransferParams:
         _check_enum(self, "rt_visibility_ramp", VisibilityRamp)
         _check_int(self, "rt_subsample", 1)
         _check_float(self, "rt_refine_spread", 0.0)
-        for key in ("rt_upsample", "visibility", "rt_bounce", "rt_horizon",
-                    "rt_exact_unoccluded"):
+        for key in ("rt_upsample", "visibility", "rt_bounce", "rt_horizon", "rt_exact_unoccluded"):
             _check_bool(self, key)
 
 
@@ -302,18 +310,24 @@ class EstimationParams:
     def __post_init__(self) -> None:
         _check_float(self, "regularization", 0.0)
         _check_int(self, "min_samples", 1)
-        if (isinstance(self.light_max_samples, numbers.Integral)
-                and not isinstance(self.light_max_samples, bool)
-                and self.light_max_samples < self.min_samples):
-            raise ValueError(f"light_max_samples must be >= min_samples ({self.min_samples}) "
-                             f"{_hint('light_max_samples', 'N')}, got {self.light_max_samples}")
+        if (
+            isinstance(self.light_max_samples, numbers.Integral)
+            and not isinstance(self.light_max_samples, bool)
+            and self.light_max_samples < self.min_samples
+        ):
+            raise ValueError(
+                f"light_max_samples must be >= min_samples ({self.min_samples}) "
+                f"{_hint('light_max_samples', 'N')}, got {self.light_max_samples}"
+            )
         _check_int(self, "light_max_samples", 1)
         _check_float(self, "horizon_prior", 0.0)
         _check_float(self, "horizon_ground_albedo", 0.0, 1.0)
         _check_float(self, "light_prior", 0.0)
         if not isinstance(self.light_prior_exclude, str):
-            raise ValueError("light_prior_exclude must be map names separated by commas "
-                             f"{_hint('light_prior_exclude', 'NAME,NAME')}")
+            raise ValueError(
+                "light_prior_exclude must be map names separated by commas "
+                f"{_hint('light_prior_exclude', 'NAME,NAME')}"
+            )
         _check_int(self, "robust_iterations", 0)
         _check_bool(self, "albedo_segments")
         _check_enum(self, "segment_features", SegmentFeatures)
@@ -407,8 +421,7 @@ STAGE_TYPES: dict[str, type] = {
 
 # ------------------------------------------------------------------ flat keys
 def _flat_table() -> dict[str, tuple[str | None, str]]:
-    table: dict[str, tuple[str | None, str]] = {"device": (None, "device"),
-                                                "seed": (None, "seed")}
+    table: dict[str, tuple[str | None, str]] = {"device": (None, "device"), "seed": (None, "seed")}
     for stage, cls in STAGE_TYPES.items():
         for f in dataclasses.fields(cls):
             table[f.name] = (stage, f.name)
@@ -433,8 +446,9 @@ def _flat_overrides(changes: dict[str, Any]) -> dict[str, Any]:
     """Aliases converted to their canonical keys; unknown keys refused (listing the valid)."""
     unknown = sorted(set(changes) - set(FLAT_KEYS) - set(FLAT_ALIASES))
     if unknown:
-        raise ValueError(f"unknown config key(s): {', '.join(unknown)}; valid keys: "
-                         f"{_valid_keys_text()}")
+        raise ValueError(
+            f"unknown config key(s): {', '.join(unknown)}; valid keys: {_valid_keys_text()}"
+        )
     out = {}
     for key, value in changes.items():
         if key in FLAT_ALIASES:
@@ -444,8 +458,9 @@ def _flat_overrides(changes: dict[str, Any]) -> dict[str, Any]:
             if isinstance(value, bool) or not isinstance(value, numbers.Real):
                 raise ValueError(f"{key} must be a number {_hint(key, 'X')}, got {value!r}")
             if not low < float(value) <= high:
-                raise ValueError(f"{key} must be in ({low:g}, {high:g}] {_hint(key, 'X')}, "
-                                 f"got {value!r}")
+                raise ValueError(
+                    f"{key} must be in ({low:g}, {high:g}] {_hint(key, 'X')}, got {value!r}"
+                )
             value = convert(float(value))
             key = canonical
         out[key] = value
@@ -469,9 +484,16 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
         # and its 25 cm blocks need a smaller hash map to start with (it grows when full):
         # 16 MB held from the start, every error as with 40000 blocks (156 MB)
         # (`arlight bench ... --presets mobile --sweep block_count=40000,4000`)
-        return {"volume_resolution": 64, "denoise": False, "rt_subsample": 4,
-                "render_subsample": 4, **_SPEED_FIRST, "segment_scale": 4,
-                "light_max_samples": 10000, "block_count": 4000}
+        return {
+            "volume_resolution": 64,
+            "denoise": False,
+            "rt_subsample": 4,
+            "render_subsample": 4,
+            **_SPEED_FIRST,
+            "segment_scale": 4,
+            "light_max_samples": 10000,
+            "block_count": 4000,
+        }
     return {}
 
 
@@ -499,16 +521,21 @@ class Config:
         try:
             object.__setattr__(self, "preset", Preset(self.preset))
         except ValueError:
-            raise ValueError(f"preset must be one of {', '.join(p.value for p in Preset)}, "
-                             f"got {self.preset!r}") from None
+            raise ValueError(
+                f"preset must be one of {', '.join(p.value for p in Preset)}, got {self.preset!r}"
+            ) from None
         if not isinstance(self.device, str) or not self.device.startswith(("CPU:", "CUDA:")):
-            raise ValueError(f"device must be 'CPU:0' or 'CUDA:0' (--device CPU:0, or "
-                             f"--set device=CPU:0), got {self.device!r}")
+            raise ValueError(
+                f"device must be 'CPU:0' or 'CUDA:0' (--device CPU:0, or "
+                f"--set device=CPU:0), got {self.device!r}"
+            )
         _check_int(self, "seed", 0)
         for stage, cls in STAGE_TYPES.items():
             if not isinstance(getattr(self, stage), cls):
-                raise TypeError(f"Config.{stage} must be a {cls.__name__}, got "
-                                f"{type(getattr(self, stage)).__name__}")
+                raise TypeError(
+                    f"Config.{stage} must be a {cls.__name__}, got "
+                    f"{type(getattr(self, stage)).__name__}"
+                )
 
     @classmethod
     def from_preset(cls, name: str = "full", **overrides: Any) -> Config:
@@ -530,8 +557,10 @@ class Config:
                 top[name] = value
             else:
                 per_stage.setdefault(stage, {})[name] = value
-        stages = {stage: dataclasses.replace(getattr(self, stage), **values)
-                  for stage, values in per_stage.items()}
+        stages = {
+            stage: dataclasses.replace(getattr(self, stage), **values)
+            for stage, values in per_stage.items()
+        }
         return dataclasses.replace(self, **top, **stages)
 
     def flat(self) -> dict[str, Any]:
@@ -558,7 +587,8 @@ class Config:
             return kind(text)
         except ValueError:
             what = {bool: "true or false", int: "an integer", float: "a number"}.get(
-                kind, kind.__name__)
+                kind, kind.__name__
+            )
             raise ValueError(f"{key} expects {what}, got {text!r}") from None
 
     @staticmethod
@@ -566,7 +596,8 @@ class Config:
         """Flat key -> bool, int, float or str (Enum options are given as their strings);
         what a command line needs to parse `--set KEY=VALUE`."""
         defaults = Config().flat()
-        types: dict[str, type] = {key: type(value) for key, value in defaults.items()
-                                  if key != "preset"}
+        types: dict[str, type] = {
+            key: type(value) for key, value in defaults.items() if key != "preset"
+        }
         types.update({alias: float for alias in FLAT_ALIASES})
         return types

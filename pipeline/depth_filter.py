@@ -269,8 +269,9 @@ def _merge_cpu(depth_c, depth_v, intensity, valid_sum, k, lam_i, lam_d, out):
         y = np.int64(row)  # prange may type its index unsigned; int64 keeps the index maths
         scratch = np.empty(k * k, np.float32)
         for x in range(w):
-            out[y, x] = _merge_pixel(depth_c, depth_v, intensity, valid_sum, y, x, k, lam_i,
-                                     lam_d, scratch)
+            out[y, x] = _merge_pixel(
+                depth_c, depth_v, intensity, valid_sum, y, x, k, lam_i, lam_d, scratch
+            )
 
 
 @numba.njit(parallel=True, cache=True)
@@ -281,8 +282,7 @@ def _support_median_cpu(depth, intensity, offsets, lam_i, gate, out):
         y = np.int64(row)
         scratch = np.empty(n * n, np.float32)
         for x in range(w):
-            out[y, x] = _support_median_pixel(depth, intensity, y, x, offsets, lam_i, gate,
-                                              scratch)
+            out[y, x] = _support_median_pixel(depth, intensity, y, x, offsets, lam_i, gate, scratch)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -329,16 +329,16 @@ def _cuda_kernels(scratch_size: int):
         x, y = cuda.grid(2)
         if y < out.shape[0] and x < out.shape[1]:
             scratch = cuda.local.array(scratch_size, np.float32)
-            out[y, x] = _merge_pixel(depth_c, depth_v, intensity, valid_sum, y, x, k, lam_i,
-                                     lam_d, scratch)
+            out[y, x] = _merge_pixel(
+                depth_c, depth_v, intensity, valid_sum, y, x, k, lam_i, lam_d, scratch
+            )
 
     @cuda.jit
     def support_median(depth, intensity, offsets, lam_i, gate, out):
         x, y = cuda.grid(2)
         if y < out.shape[0] and x < out.shape[1]:
             scratch = cuda.local.array(scratch_size, np.float32)
-            out[y, x] = _support_median_pixel(depth, intensity, y, x, offsets, lam_i, gate,
-                                              scratch)
+            out[y, x] = _support_median_pixel(depth, intensity, y, x, offsets, lam_i, gate, scratch)
 
     @cuda.jit
     def normals(depth, fx, fy, cx, cy, max_jump, out):
@@ -379,13 +379,15 @@ def _check_backend(backend: str) -> str:
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "cuda" and not cuda_available():
-        raise RuntimeError("backend='cuda' requested but numba.cuda sees no GPU; "
-                           "use backend='cpu'")
+        raise RuntimeError("backend='cuda' requested but numba.cuda sees no GPU; use backend='cpu'")
     return backend
 
 
-def _check_depth(name: str, depth: np.ndarray, shape: tuple[int, int] | None = None,
-                 ) -> np.ndarray:
+def _check_depth(
+    name: str,
+    depth: np.ndarray,
+    shape: tuple[int, int] | None = None,
+) -> np.ndarray:
     """(H, W) float32 copy-free where possible, NaN -> 0; rejects other shapes, inf, < 0."""
     arr = check_image(depth, name)  # (H, W)
     if shape is not None and arr.shape != shape:
@@ -398,16 +400,20 @@ def _check_depth(name: str, depth: np.ndarray, shape: tuple[int, int] | None = N
         arr = np.where(nan, np.float32(0.0), arr)
     bad = np.isinf(arr) | (arr < 0)
     if bad.any():
-        raise CheckError(name, f"depth must be finite and >= 0 metres (0 or NaN = missing); "
-                         f"{int(bad.sum())} pixel(s) are inf or negative")
+        raise CheckError(
+            name,
+            f"depth must be finite and >= 0 metres (0 or NaN = missing); "
+            f"{int(bad.sum())} pixel(s) are inf or negative",
+        )
     return arr
 
 
 def _check_intensity(intensity: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     arr = np.asarray(intensity)
     if arr.shape != shape:
-        raise CheckError("intensity", f"expected shape {shape} (same as the depth), "
-                         f"got {arr.shape}")
+        raise CheckError(
+            "intensity", f"expected shape {shape} (same as the depth), got {arr.shape}"
+        )
     if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
         raise CheckError("intensity", f"expected grey levels as float32, got {arr.dtype}")
     arr = np.ascontiguousarray(arr, dtype=np.float32)
@@ -417,8 +423,11 @@ def _check_intensity(intensity: np.ndarray, shape: tuple[int, int]) -> np.ndarra
 
 
 def _check_window(name: str, value: int) -> int:
-    if (isinstance(value, bool) or not isinstance(value, (int, np.integer))
-            or not 1 <= value <= MAX_WINDOW):
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, np.integer))
+        or not 1 <= value <= MAX_WINDOW
+    ):
         raise CheckError(name, f"expected an integer in 1..{MAX_WINDOW}, got {value!r}")
     return int(value)
 
@@ -448,8 +457,7 @@ def _run_merge(dc, dv, inten, k, lam_i, lam_d, backend):
     out = np.empty_like(dc)
     valid_sum = cv2.integral((dc > 0).astype(np.uint8))  # (H+1, W+1) int32
     if backend == "cuda":
-        return _cuda_launch(0, k * k, dc.shape, dc, dv, inten, valid_sum, k, lam_i, lam_d,
-                            out)
+        return _cuda_launch(0, k * k, dc.shape, dc, dv, inten, valid_sum, k, lam_i, lam_d, out)
     _merge_cpu(dc, dv, inten, valid_sum, k, lam_i, lam_d, out)
     return out
 
@@ -457,8 +465,9 @@ def _run_merge(dc, dv, inten, k, lam_i, lam_d, backend):
 def _run_support_median(depth, inten, offsets, lam_i, gate, backend):
     out = np.empty_like(depth)
     if backend == "cuda":
-        return _cuda_launch(1, offsets.size ** 2, depth.shape, depth, inten, offsets, lam_i,
-                            gate, out)
+        return _cuda_launch(
+            1, offsets.size**2, depth.shape, depth, inten, offsets, lam_i, gate, out
+        )
     _support_median_cpu(depth, inten, offsets, lam_i, gate, out)
     return out
 
@@ -468,9 +477,16 @@ def _run_support_median(depth, inten, offsets, lam_i, gate, backend):
 # --------------------------------------------------------------------------------------
 
 
-def merge_depth(depth_raw_m: np.ndarray, depth_volume_m: np.ndarray | None,
-                intensity: np.ndarray, window: int = 20, intensity_threshold: float = 7.0,
-                depth_threshold_m: float = 0.05, *, backend: str = "cpu") -> np.ndarray:
+def merge_depth(
+    depth_raw_m: np.ndarray,
+    depth_volume_m: np.ndarray | None,
+    intensity: np.ndarray,
+    window: int = 20,
+    intensity_threshold: float = 7.0,
+    depth_threshold_m: float = 0.05,
+    *,
+    backend: str = "cpu",
+) -> np.ndarray:
     """D' (eq. 1-3): fuse the sensor depth D_c with the volume depth D_v.
 
     depth_raw_m, depth_volume_m: (H, W) float metres, 0 or NaN = missing; depth_volume_m
@@ -491,9 +507,15 @@ def merge_depth(depth_raw_m: np.ndarray, depth_volume_m: np.ndarray | None,
     return _run_merge(dc, dv, inten, k, lam_i, lam_d, _check_backend(backend))
 
 
-def joint_bilateral_median(depth_m: np.ndarray, intensity: np.ndarray, window: int = 8,
-                           intensity_threshold: float = 7.0, subsample: int = 5, *,
-                           backend: str = "cpu") -> np.ndarray:
+def joint_bilateral_median(
+    depth_m: np.ndarray,
+    intensity: np.ndarray,
+    window: int = 8,
+    intensity_threshold: float = 7.0,
+    subsample: int = 5,
+    *,
+    backend: str = "cpu",
+) -> np.ndarray:
     """D'' (eq. 4): lower median of depth over Omega_I(p) on a sub-sampled k x k window.
 
     The k offsets per axis are reduced to `subsample` evenly spaced ones (k=8, s=5:
@@ -517,8 +539,9 @@ def median_depth(depth_m: np.ndarray, window: int = 2, *, backend: str = "cpu") 
     depth = _check_depth("depth_m", depth_m)
     k = _check_window("window", window)
     offsets = _window_offsets(k)
-    return _run_support_median(depth, depth, offsets, np.float32(0.0), False,
-                               _check_backend(backend))
+    return _run_support_median(
+        depth, depth, offsets, np.float32(0.0), False, _check_backend(backend)
+    )
 
 
 def backend_for_device(device: str) -> str:
@@ -526,9 +549,14 @@ def backend_for_device(device: str) -> str:
     return "cuda" if device.startswith("CUDA") else "cpu"
 
 
-def filter_depth(depth_raw_m: np.ndarray, depth_volume_m: np.ndarray | None,
-                 intensity: np.ndarray, params: FilterParams, *, backend: str = "cpu",
-                 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def filter_depth(
+    depth_raw_m: np.ndarray,
+    depth_volume_m: np.ndarray | None,
+    intensity: np.ndarray,
+    params: FilterParams,
+    *,
+    backend: str = "cpu",
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The filter chain D' -> D'' -> D''' with the stage's parameters; a pass that is
     off (params.merge, params.smooth, params.denoise) passes its input on unchanged.
 
@@ -539,14 +567,25 @@ def filter_depth(depth_raw_m: np.ndarray, depth_volume_m: np.ndarray | None,
     """
     merged = _check_depth("depth_raw_m", depth_raw_m)
     if params.merge:
-        merged = merge_depth(depth_raw_m, depth_volume_m, intensity, params.merge_window,
-                             params.merge_intensity_threshold,
-                             params.merge_depth_threshold_m, backend=backend)
+        merged = merge_depth(
+            depth_raw_m,
+            depth_volume_m,
+            intensity,
+            params.merge_window,
+            params.merge_intensity_threshold,
+            params.merge_depth_threshold_m,
+            backend=backend,
+        )
     smoothed = merged
     if params.smooth:
-        smoothed = joint_bilateral_median(merged, intensity, params.smooth_window,
-                                          params.smooth_intensity_threshold,
-                                          params.smooth_subsample, backend=backend)
+        smoothed = joint_bilateral_median(
+            merged,
+            intensity,
+            params.smooth_window,
+            params.smooth_intensity_threshold,
+            params.smooth_subsample,
+            backend=backend,
+        )
     passes = {"merged": merged, "smoothed": smoothed}
     if not params.denoise:
         return smoothed, passes
@@ -555,9 +594,13 @@ def filter_depth(depth_raw_m: np.ndarray, depth_volume_m: np.ndarray | None,
     return denoised, passes
 
 
-def normals_from_depth(depth_m: np.ndarray, camera: PinholeCamera, *,
-                       max_relative_jump: float = NORMAL_MAX_RELATIVE_JUMP,
-                       backend: str = "cpu") -> np.ndarray:
+def normals_from_depth(
+    depth_m: np.ndarray,
+    camera: PinholeCamera,
+    *,
+    max_relative_jump: float = NORMAL_MAX_RELATIVE_JUMP,
+    backend: str = "cpu",
+) -> np.ndarray:
     """Unit normals (H, W, 3) float32 in the camera frame (OpenCV axes), facing the camera.
 
     Tangents are differences of unprojected neighbours: central where both neighbours along
@@ -570,8 +613,10 @@ def normals_from_depth(depth_m: np.ndarray, camera: PinholeCamera, *,
     if not isinstance(camera, PinholeCamera):
         raise ValueError(f"camera: expected a PinholeCamera, got {type(camera).__name__}")
     if depth.shape != (camera.height, camera.width):
-        raise ValueError(f"depth_m: expected shape {(camera.height, camera.width)} "
-                         f"(camera height, width), got {depth.shape}")
+        raise ValueError(
+            f"depth_m: expected shape {(camera.height, camera.width)} "
+            f"(camera height, width), got {depth.shape}"
+        )
     jump = float(max_relative_jump)
     if not 0 < jump < float("inf"):
         raise ValueError(f"max_relative_jump: expected a finite value > 0, got {jump!r}")
@@ -594,12 +639,15 @@ def _lower_median_reference(values: np.ndarray) -> np.float32:
 
 def _window_slices(y: int, x: int, k: int, shape: tuple[int, int]) -> tuple[slice, slice]:
     h, w = shape
-    return (slice(max(y - k // 2, 0), min(y - k // 2 + k, h)),
-            slice(max(x - k // 2, 0), min(x - k // 2 + k, w)))
+    return (
+        slice(max(y - k // 2, 0), min(y - k // 2 + k, h)),
+        slice(max(x - k // 2, 0), min(x - k // 2 + k, w)),
+    )
 
 
-def _merge_depth_reference(dc, dv, inten, window=20, intensity_threshold=7.0,
-                           depth_threshold_m=0.05):
+def _merge_depth_reference(
+    dc, dv, inten, window=20, intensity_threshold=7.0, depth_threshold_m=0.05
+):
     """D' pixel by pixel, written as eq. 1-3 (float32 comparisons as the kernels)."""
     dc = np.nan_to_num(np.asarray(dc, np.float32), nan=0.0)
     dv = np.nan_to_num(np.asarray(dv, np.float32), nan=0.0)
@@ -643,12 +691,15 @@ def _support_median_reference(depth, inten, offsets, lam_i, gate):
     return out
 
 
-def _joint_bilateral_median_reference(depth, inten, window=8, intensity_threshold=7.0,
-                                      subsample=5):
+def _joint_bilateral_median_reference(depth, inten, window=8, intensity_threshold=7.0, subsample=5):
     """D'' (eq. 4) pixel by pixel."""
-    return _support_median_reference(depth, np.asarray(inten, np.float32),
-                                     _window_offsets(window, subsample), intensity_threshold,
-                                     True)
+    return _support_median_reference(
+        depth,
+        np.asarray(inten, np.float32),
+        _window_offsets(window, subsample),
+        intensity_threshold,
+        True,
+    )
 
 
 def _median_depth_reference(depth, window=2):
@@ -666,8 +717,12 @@ def _normals_from_depth_reference(depth, camera, max_relative_jump=NORMAL_MAX_RE
     out = np.zeros((h, w, 3), np.float32)
 
     def usable(y, x, qy, qx):
-        return (0 <= qy < h and 0 <= qx < w and depth[qy, qx] > 0
-                and abs(depth[qy, qx] - depth[y, x]) <= max_relative_jump * depth[y, x])
+        return (
+            0 <= qy < h
+            and 0 <= qx < w
+            and depth[qy, qx] > 0
+            and abs(depth[qy, qx] - depth[y, x]) <= max_relative_jump * depth[y, x]
+        )
 
     for y in range(h):
         for x in range(w):

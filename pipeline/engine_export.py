@@ -44,19 +44,26 @@ from .color import LUMA
 UNITY_FROM_CV = np.diag([1.0, -1.0, 1.0])
 
 # Polynomial constants of the real SH basis, bands 0..2, index sh_index(l, m), no CS phase.
-BASIS_CONSTANTS = np.array([0.5 / math.sqrt(math.pi),
-                            *(3 * [math.sqrt(3.0 / (4.0 * math.pi))]),
-                            0.5 * math.sqrt(15.0 / math.pi), 0.5 * math.sqrt(15.0 / math.pi),
-                            0.25 * math.sqrt(5.0 / math.pi), 0.5 * math.sqrt(15.0 / math.pi),
-                            0.25 * math.sqrt(15.0 / math.pi)])
+BASIS_CONSTANTS = np.array(
+    [
+        0.5 / math.sqrt(math.pi),
+        *(3 * [math.sqrt(3.0 / (4.0 * math.pi))]),
+        0.5 * math.sqrt(15.0 / math.pi),
+        0.5 * math.sqrt(15.0 / math.pi),
+        0.25 * math.sqrt(5.0 / math.pi),
+        0.5 * math.sqrt(15.0 / math.pi),
+        0.25 * math.sqrt(15.0 / math.pi),
+    ]
+)
 
 
 class ExportError(ValueError):
     """Light or frame that an exporter refuses: what was expected and what came."""
 
 
-def _engine_sh(sh_world: np.ndarray, engine_from_world: np.ndarray | None,
-               keep_bands: bool = False) -> np.ndarray:
+def _engine_sh(
+    sh_world: np.ndarray, engine_from_world: np.ndarray | None, keep_bands: bool = False
+) -> np.ndarray:
     """(3, n) radiance SH in the engine's axes, our basis; bands 0..2 unless `keep_bands`.
 
     The one check of the exporters' inputs (shape, finite, orthogonal frame change).
@@ -80,8 +87,10 @@ def _engine_sh(sh_world: np.ndarray, engine_from_world: np.ndarray | None,
         return c
     r = np.asarray(engine_from_world, dtype=np.float64)
     if r.shape != (3, 3) or not np.allclose(r @ r.T, np.eye(3), atol=1e-6):
-        raise ExportError(f"engine_from_world must be an orthogonal 3x3 matrix, got shape "
-                          f"{r.shape}{'' if r.shape != (3, 3) else ' (not orthogonal)'}")
+        raise ExportError(
+            f"engine_from_world must be an orthogonal 3x3 matrix, got shape "
+            f"{r.shape}{'' if r.shape != (3, 3) else ' (not orthogonal)'}"
+        )
     return sh.rotate(c, r)
 
 
@@ -146,14 +155,19 @@ def to_gltf_ibl(sh_world: np.ndarray, engine_from_world: np.ndarray | None = Non
     - frame: glTF's (right-handed, +y up, +z the asset's front); the frame change is
       applied to the coefficients, so ``rotation`` is the identity [0, 0, 0, 1] (x, y, z, w).
     """
-    e = sh.toggle_condon_shortley(sh.irradiance_from_radiance(
-        _engine_sh(sh_world, engine_from_world)))
-    return {"intensity": 1.0, "rotation": [0.0, 0.0, 0.0, 1.0],
-            "irradianceCoefficients": [_floats(e[:, i]) for i in range(9)]}
+    e = sh.toggle_condon_shortley(
+        sh.irradiance_from_radiance(_engine_sh(sh_world, engine_from_world))
+    )
+    return {
+        "intensity": 1.0,
+        "rotation": [0.0, 0.0, 0.0, 1.0],
+        "irradianceCoefficients": [_floats(e[:, i]) for i in range(9)],
+    }
 
 
-def to_unity(sh_world: np.ndarray, engine_from_world: np.ndarray | None = None
-             ) -> list[list[float]]:
+def to_unity(
+    sh_world: np.ndarray, engine_from_world: np.ndarray | None = None
+) -> list[list[float]]:
     """Unity ``UnityEngine.Rendering.SphericalHarmonicsL2``: ``sh[channel][coefficient]``.
 
     Sources: Unity's built-in packing of SphericalHarmonicsL2 into ``unity_SHAr/Ag/Ab``
@@ -179,8 +193,7 @@ def to_unity(sh_world: np.ndarray, engine_from_world: np.ndarray | None = None
     return [_floats(u[ch]) for ch in range(3)]
 
 
-def to_filament_text(sh_world: np.ndarray,
-                     engine_from_world: np.ndarray | None = None) -> str:
+def to_filament_text(sh_world: np.ndarray, engine_from_world: np.ndarray | None = None) -> str:
     """Filament's SH text as ``cmgen --sh-output=FILE`` writes it, for
     ``IndirectLight.Builder().radiance(bands, sh)``.
 
@@ -210,8 +223,9 @@ def to_filament_text(sh_world: np.ndarray,
     return "\n".join(lines) + "\n"
 
 
-def main_light(sh_world: np.ndarray, engine_from_world: np.ndarray | None = None
-               ) -> dict[str, list[float]]:
+def main_light(
+    sh_world: np.ndarray, engine_from_world: np.ndarray | None = None
+) -> dict[str, list[float]]:
     """The main directional light for ARCore ``getEnvironmentalHdrMainLightDirection`` /
     ``...MainLightIntensity`` and WebXR ``XRLightEstimate.primaryLightDirection`` /
     ``primaryLightIntensity``.
@@ -233,18 +247,27 @@ def main_light(sh_world: np.ndarray, engine_from_world: np.ndarray | None = None
     direction = sh.dominant_direction(LUMA @ c)
     if not np.any(direction):
         return {"direction": [0.0, 1.0, 0.0], "intensity": [0.0, 0.0, 0.0]}
-    return {"direction": _floats(direction),
-            "intensity": [sh.intensity_along(c[ch], direction) for ch in range(3)]}
+    return {
+        "direction": _floats(direction),
+        "intensity": [sh.intensity_along(c[ch], direction) for ch in range(3)],
+    }
 
 
 # the layouts by name (`--export`, the protocol's EXPORT_LAYOUTS); main_light: ARCore's main
 # light / WebXR's primary light, beside the SH of "arcore" or "webxr"
-EXPORTERS = {"arcore": to_arcore, "webxr": to_webxr, "gltf": to_gltf_ibl, "unity": to_unity,
-             "filament": to_filament_text, "main_light": main_light}
+EXPORTERS = {
+    "arcore": to_arcore,
+    "webxr": to_webxr,
+    "gltf": to_gltf_ibl,
+    "unity": to_unity,
+    "filament": to_filament_text,
+    "main_light": main_light,
+}
 
 
-def camera_exports(sh_world: npt.ArrayLike, world_from_cam: npt.ArrayLike,
-                   names: list[str] | tuple[str, ...]) -> dict:
+def camera_exports(
+    sh_world: npt.ArrayLike, world_from_cam: npt.ArrayLike, names: list[str] | tuple[str, ...]
+) -> dict:
     """The light of one frame in each named layout (EXPORTERS), in the CAMERA frame with the
     engine's axes (OpenGL's x right, y up, z back: sh.GL_FROM_CV; Unity's left-handed
     UNITY_FROM_CV): an app turns it into its own world with its camera pose.

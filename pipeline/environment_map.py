@@ -49,8 +49,14 @@ def cube_face_directions(face: str, size: int) -> np.ndarray:
     c = (np.arange(size) + 0.5) / size * 2.0 - 1.0
     sc, tc = np.meshgrid(c, c)  # sc along a row, tc down the rows
     one = np.ones_like(sc)
-    d = {"px": (one, -tc, -sc), "nx": (-one, -tc, sc), "py": (sc, one, tc),
-         "ny": (sc, -one, -tc), "pz": (sc, -tc, one), "nz": (-sc, -tc, -one)}[face]
+    d = {
+        "px": (one, -tc, -sc),
+        "nx": (-one, -tc, sc),
+        "py": (sc, one, tc),
+        "ny": (sc, -one, -tc),
+        "pz": (sc, -tc, one),
+        "nz": (-sc, -tc, -one),
+    }[face]
     v = np.stack(d, axis=-1)
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
@@ -68,5 +74,7 @@ def cubemap_from_equirect(hdr: np.ndarray, size: int = 128) -> dict[str, np.ndar
     if size < 1:
         raise ValueError(f"size must be >= 1 pixel, got {size}")
     image = equirect.check_equirect(np.asarray(hdr, np.float32), "hdr")
-    return {f: equirect.sample_bilinear(image, cube_face_directions(f, size)).astype(np.float32)
-            for f in CUBE_FACES}
+    return {
+        f: equirect.sample_bilinear(image, cube_face_directions(f, size)).astype(np.float32)
+        for f in CUBE_FACES
+    }

@@ -37,8 +37,9 @@ def check_equirect(image: np.ndarray, field: str) -> np.ndarray:
         raise CheckError(field, f"expected an (H, W) or (H, W, C) image, got shape {a.shape}")
     h, w = a.shape[:2]
     if w != 2 * h:
-        raise CheckError(field, f"an equirectangular panorama is twice as wide as high "
-                                f"(2:1), got {w}x{h}")
+        raise CheckError(
+            field, f"an equirectangular panorama is twice as wide as high (2:1), got {w}x{h}"
+        )
     return a
 
 
@@ -135,8 +136,7 @@ def sample_bilinear(image: np.ndarray, directions: np.ndarray) -> np.ndarray:
     padded = cv2.copyMakeBorder(padded, 1, 1, 0, 0, cv2.BORDER_REPLICATE)
     x = (u * w - 0.5 + 1.0).astype(np.float32).reshape(-1, 1)  # +1: the padding
     y = (v * h - 0.5 + 1.0).astype(np.float32).reshape(-1, 1)
-    out = cv2.remap(padded, x, y, interpolation=cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE)
+    out = cv2.remap(padded, x, y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     channels = () if a.ndim == 2 else (a.shape[2],)
     return out.reshape(shape + channels)
 

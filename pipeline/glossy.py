@@ -66,8 +66,10 @@ def check_roughness(roughness: float, field: str = "roughness") -> float:
     """`roughness` as a float in [ROUGHNESS_MIN, ROUGHNESS_MAX]; ValueError naming `field`."""
     r = float(roughness)
     if not (ROUGHNESS_MIN <= r <= ROUGHNESS_MAX):  # also refuses NaN
-        raise ValueError(f"{field} must be in [{ROUGHNESS_MIN}, {ROUGHNESS_MAX}] for a glossy "
-                         f"lobe (the paper's fig. 6 range), got {roughness!r}")
+        raise ValueError(
+            f"{field} must be in [{ROUGHNESS_MIN}, {ROUGHNESS_MAX}] for a glossy "
+            f"lobe (the paper's fig. 6 range), got {roughness!r}"
+        )
     return r
 
 
@@ -83,6 +85,7 @@ def lobe_radius_rad(exponent: float) -> float:
 
 
 # --------------------------------------------------------------------------- the pyramid
+
 
 class MipPyramid:
     """The levels of an HDR map, packed for the kernels.
@@ -111,8 +114,10 @@ def downsample_2x2(level: np.ndarray) -> np.ndarray:
     pair = omega.reshape(h // 2, 2)
     weights = (pair / pair.sum(axis=1, keepdims=True)).astype(np.float32)  # (h/2, 2)
     blocks = level.reshape(h // 2, 2, w // 2, 2, -1).astype(np.float32)
-    rows = blocks[:, 0] * weights[:, 0, None, None, None] + blocks[:, 1] * weights[:, 1, None,
-                                                                                   None, None]
+    rows = (
+        blocks[:, 0] * weights[:, 0, None, None, None]
+        + blocks[:, 1] * weights[:, 1, None, None, None]
+    )
     return 0.5 * (rows[:, :, 0] + rows[:, :, 1])
 
 
@@ -138,6 +143,7 @@ def mip_pyramid(hdr: np.ndarray) -> MipPyramid:
 _RING_PHI = (np.arange(RING_SAMPLES)[None, :] + 0.5 * np.arange(2)[:, None]) * (math.pi / 3.0)
 _RING_COS = np.cos(_RING_PHI)
 _RING_SIN = np.sin(_RING_PHI)
+
 
 @register_jitable
 def _bilinear(data, offset, height, u, v):
@@ -263,8 +269,17 @@ def _glossy_pixel(rx, ry, rz, exponent, theta_r, data, offsets, heights, num_lev
 def _glossy_cpu(directions, exponents, radii, data, offsets, heights, out):
     num_levels = len(heights)
     for i in numba.prange(directions.shape[0]):
-        r, g, b = _glossy_pixel(directions[i, 0], directions[i, 1], directions[i, 2],
-                                exponents[i], radii[i], data, offsets, heights, num_levels)
+        r, g, b = _glossy_pixel(
+            directions[i, 0],
+            directions[i, 1],
+            directions[i, 2],
+            exponents[i],
+            radii[i],
+            data,
+            offsets,
+            heights,
+            num_levels,
+        )
         out[i, 0] = r
         out[i, 1] = g
         out[i, 2] = b
@@ -280,8 +295,17 @@ def _specular_cpu(directions, modes, exponents, radii, data, offsets, heights, o
             u, v = _uv(directions[i, 0], directions[i, 1], directions[i, 2])
             r, g, b = _bilinear(data, offsets[0], heights[0], u, v)
         elif modes[i] == 2:
-            r, g, b = _glossy_pixel(directions[i, 0], directions[i, 1], directions[i, 2],
-                                    exponents[i], radii[i], data, offsets, heights, num_levels)
+            r, g, b = _glossy_pixel(
+                directions[i, 0],
+                directions[i, 1],
+                directions[i, 2],
+                exponents[i],
+                radii[i],
+                data,
+                offsets,
+                heights,
+                num_levels,
+            )
         out[i, 0] = r
         out[i, 1] = g
         out[i, 2] = b
@@ -324,13 +348,25 @@ def glossy(pyramid: MipPyramid, directions: np.ndarray, roughness: float) -> np.
     d = _unit_rows(directions)
     n = phong_exponent(roughness)
     out = np.zeros((len(d), 3), np.float32)
-    _glossy_cpu(d, np.full(len(d), n), np.full(len(d), lobe_radius_rad(n)), pyramid.data,
-                pyramid.offsets, pyramid.heights, out)
+    _glossy_cpu(
+        d,
+        np.full(len(d), n),
+        np.full(len(d), lobe_radius_rad(n)),
+        pyramid.data,
+        pyramid.offsets,
+        pyramid.heights,
+        out,
+    )
     return out.reshape(*shape, 3)
 
 
-def specular(pyramid: MipPyramid, directions: np.ndarray, modes: np.ndarray,
-             exponents: np.ndarray, backend: str = "cpu") -> np.ndarray:
+def specular(
+    pyramid: MipPyramid,
+    directions: np.ndarray,
+    modes: np.ndarray,
+    exponents: np.ndarray,
+    backend: str = "cpu",
+) -> np.ndarray:
     """Per row: mirror (mode 1), glossy with its Phong exponent (mode 2) or 0 (mode 0).
 
     directions (K, 3) unit mirror directions; modes (K,) int; exponents (K,) float64 (used
@@ -340,8 +376,7 @@ def specular(pyramid: MipPyramid, directions: np.ndarray, modes: np.ndarray,
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "cuda" and not cuda_available():
-        raise RuntimeError("backend='cuda' requested but numba.cuda sees no GPU; "
-                           "use backend='cpu'")
+        raise RuntimeError("backend='cuda' requested but numba.cuda sees no GPU; use backend='cpu'")
     d = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 3)
     exps = np.ascontiguousarray(exponents, dtype=np.float64).reshape(-1)
     safe = np.where(exps > 0, exps, 1.0)
@@ -376,9 +411,17 @@ def _cuda_kernel():
                 u, v = _uv(directions[i, 0], directions[i, 1], directions[i, 2])
                 r, g, b = _bilinear(data, offsets[0], heights[0], u, v)
             elif modes[i] == 2:
-                r, g, b = _glossy_pixel(directions[i, 0], directions[i, 1], directions[i, 2],
-                                        exponents[i], radii[i], data, offsets, heights,
-                                        heights.shape[0])
+                r, g, b = _glossy_pixel(
+                    directions[i, 0],
+                    directions[i, 1],
+                    directions[i, 2],
+                    exponents[i],
+                    radii[i],
+                    data,
+                    offsets,
+                    heights,
+                    heights.shape[0],
+                )
             out[i, 0] = r
             out[i, 1] = g
             out[i, 2] = b
@@ -388,8 +431,10 @@ def _cuda_kernel():
 
 def _specular_cuda(d, modes, exponents, radii, pyramid: MipPyramid, out):
     kernel = _cuda_kernel()
-    args = [cuda.to_device(a) for a in (d, modes, exponents, radii, pyramid.data,
-                                        pyramid.offsets, pyramid.heights, out)]
+    args = [
+        cuda.to_device(a)
+        for a in (d, modes, exponents, radii, pyramid.data, pyramid.offsets, pyramid.heights, out)
+    ]
     grid = max(1, (len(d) + _CUDA_BLOCK - 1) // _CUDA_BLOCK)
     kernel[grid, _CUDA_BLOCK](*args)
     cuda.synchronize()
@@ -403,8 +448,8 @@ def mirror(pyramid: MipPyramid, directions: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- oracles
 
-def _pattern(directions: np.ndarray, exponent: float) -> tuple[np.ndarray, np.ndarray,
-                                                               np.ndarray]:
+
+def _pattern(directions: np.ndarray, exponent: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ring pattern: sample directions (K, 36, 3), weights (36,) summing to 1, levels
     (36,) (fractional, not yet clamped), as the kernel makes them."""
     d = _unit_rows(directions)
@@ -417,16 +462,19 @@ def _pattern(directions: np.ndarray, exponent: float) -> tuple[np.ndarray, np.nd
     j = np.tile(np.arange(RING_SAMPLES), RINGS)
     alpha = (k + 0.5) / 3.0 * theta_r
     phi = (j + 0.5 * (k % 2)) * (math.pi / 3.0)
-    dirs = (np.cos(alpha)[None, :, None] * d[:, None, :]
-            + (np.sin(alpha) * np.cos(phi))[None, :, None] * t[:, None, :]
-            + (np.sin(alpha) * np.sin(phi))[None, :, None] * b[:, None, :])
+    dirs = (
+        np.cos(alpha)[None, :, None] * d[:, None, :]
+        + (np.sin(alpha) * np.cos(phi))[None, :, None] * t[:, None, :]
+        + (np.sin(alpha) * np.sin(phi))[None, :, None] * b[:, None, :]
+    )
     w = np.power(np.cos(alpha), exponent) * np.sin(alpha)
     spacing = np.sqrt(alpha * theta_r / 3.0)
     return dirs, w / w.sum(), spacing
 
 
-def glossy_pattern_numpy(pyramid: MipPyramid, directions: np.ndarray,
-                         roughness: float) -> np.ndarray:
+def glossy_pattern_numpy(
+    pyramid: MipPyramid, directions: np.ndarray, roughness: float
+) -> np.ndarray:
     """The kernel's pattern in plain NumPy with ``equirect.sample_bilinear`` per level (the
     oracle of :func:`glossy`; slow)."""
     n = phong_exponent(roughness)
@@ -445,8 +493,9 @@ def glossy_pattern_numpy(pyramid: MipPyramid, directions: np.ndarray,
     return out.astype(np.float32).reshape(*np.shape(directions)[:-1], 3)
 
 
-def glossy_brute_force(hdr: np.ndarray, directions: np.ndarray, roughness: float,
-                       batch: int = 8) -> np.ndarray:
+def glossy_brute_force(
+    hdr: np.ndarray, directions: np.ndarray, roughness: float, batch: int = 8
+) -> np.ndarray:
     """The reference: G(r) = sum_p L_p max(0, r . w_p)^n d_omega_p / sum_p max(0, r . w_p)^n
     d_omega_p over every pixel p of the full-resolution map (pixel centres, exact solid
     angles). (K, 3) float64. Below rho ~ 0.02 the lobe is only a few pixels of a 1k map wide
@@ -460,7 +509,7 @@ def glossy_brute_force(hdr: np.ndarray, directions: np.ndarray, roughness: float
     d = _unit_rows(directions)
     out = np.zeros((len(d), 3))
     for start in range(0, len(d), batch):
-        cos = np.maximum(d[start:start + batch] @ pix.T, 0.0)
+        cos = np.maximum(d[start : start + batch] @ pix.T, 0.0)
         weight = np.power(cos, n) * omega
-        out[start:start + batch] = (weight @ values) / weight.sum(axis=1, keepdims=True)
+        out[start : start + batch] = (weight @ values) / weight.sum(axis=1, keepdims=True)
     return out

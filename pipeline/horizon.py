@@ -33,9 +33,8 @@ def support_plane_up(normals_cam: np.ndarray, stride: int = 4) -> np.ndarray | N
     if len(candidates) < MIN_FRACTION * len(n):
         return None
     # the most populated cell of a grid over (x, z): the candidates all lie on the cap y < 0
-    cells = np.clip(((candidates[:, [0, 2]] + 1.0) * (_GRID / 2)).astype(np.int64), 0,
-                    _GRID - 1)
-    peak = np.argmax(np.bincount(cells[:, 0] * _GRID + cells[:, 1], minlength=_GRID ** 2))
+    cells = np.clip(((candidates[:, [0, 2]] + 1.0) * (_GRID / 2)).astype(np.int64), 0, _GRID - 1)
+    peak = np.argmax(np.bincount(cells[:, 0] * _GRID + cells[:, 1], minlength=_GRID**2))
     x, z = (np.array(divmod(peak, _GRID)) + 0.5) * (2.0 / _GRID) - 1.0
     centre = np.array([x, -np.sqrt(max(1.0 - x * x - z * z, 0.0)), z])
     centre /= np.linalg.norm(centre)
@@ -67,8 +66,9 @@ class SupportPlane:
         return np.asarray(points_cam, dtype=np.float64) @ self.up + self.offset
 
 
-def support_plane(normals_cam: np.ndarray, points_cam: np.ndarray,
-                  stride: int = 4) -> SupportPlane | None:
+def support_plane(
+    normals_cam: np.ndarray, points_cam: np.ndarray, stride: int = 4
+) -> SupportPlane | None:
     """The dominant upward-facing plane (normal from `support_plane_up`, offset from the
     most common height of the pixels that face that way), or None.
 
@@ -94,6 +94,9 @@ def support_plane(normals_cam: np.ndarray, points_cam: np.ndarray,
     height = p @ up.astype(p.dtype) + np.asarray(offset, p.dtype)
     # the normal test matters: ground pixels whose (smoothed) normals tilt next to objects
     # are better off in segments of their own (a height-only mask: GT medians a 4 -> 22)
-    on_plane = ((p[..., 2] > 0) & (np.abs(height) < PLANE_TOLERANCE_M + 0.01 * p[..., 2])
-                & (n @ up_n > CLUSTER_COS))
+    on_plane = (
+        (p[..., 2] > 0)
+        & (np.abs(height) < PLANE_TOLERANCE_M + 0.01 * p[..., 2])
+        & (n @ up_n > CLUSTER_COS)
+    )
     return SupportPlane(up, offset, on_plane)

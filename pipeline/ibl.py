@@ -52,11 +52,14 @@ class IblParams:
 
     def __post_init__(self) -> None:
         if self.operator not in OPERATORS:
-            raise ValueError(f"operator must be one of {', '.join(OPERATORS)}, got "
-                             f"{self.operator!r}")
+            raise ValueError(
+                f"operator must be one of {', '.join(OPERATORS)}, got {self.operator!r}"
+            )
         if self.diffuse_method not in DIFFUSE_METHODS:
-            raise ValueError(f"diffuse_method must be one of {', '.join(DIFFUSE_METHODS)}, "
-                             f"got {self.diffuse_method!r}")
+            raise ValueError(
+                f"diffuse_method must be one of {', '.join(DIFFUSE_METHODS)}, "
+                f"got {self.diffuse_method!r}"
+            )
         for name in ("diffuse_size", "diffuse_source_size", "sh_source_size"):
             size = getattr(self, name)
             if size is None:
@@ -65,12 +68,13 @@ class IblParams:
             if w != 2 * h or h < 1:
                 raise ValueError(f"{name} must be 2:1 (W = 2 H), got {w}x{h}")
             if name != "sh_source_size" and h > MAX_DIFFUSE_HEIGHT:
-                raise ValueError(f"{name} must be at most {2 * MAX_DIFFUSE_HEIGHT}x"
-                                 f"{MAX_DIFFUSE_HEIGHT} (a brute-force kernel grows as the "
-                                 f"4th power of the height), got {w}x{h}")
+                raise ValueError(
+                    f"{name} must be at most {2 * MAX_DIFFUSE_HEIGHT}x"
+                    f"{MAX_DIFFUSE_HEIGHT} (a brute-force kernel grows as the "
+                    f"4th power of the height), got {w}x{h}"
+                )
         if self.bands < 2:
-            raise ValueError(f"bands must be >= 2 (band 1 carries the direction), got "
-                             f"{self.bands}")
+            raise ValueError(f"bands must be >= 2 (band 1 carries the direction), got {self.bands}")
 
     @property
     def brute_force_source(self) -> tuple[int, int]:
@@ -129,8 +133,9 @@ def _cosine_kernel(out_size: tuple[int, int], source_size: tuple[int, int]) -> n
     return kernel
 
 
-def diffuse_map_brute_force(hdr: np.ndarray, size: tuple[int, int] = (32, 16),
-                            source_size: tuple[int, int] | None = None) -> np.ndarray:
+def diffuse_map_brute_force(
+    hdr: np.ndarray, size: tuple[int, int] = (32, 16), source_size: tuple[int, int] | None = None
+) -> np.ndarray:
     """Irradiance map (h, w, C) float32 at `size` by brute force over the map at `source_size`.
 
     hdr: (H, W, C) linear radiance, equirectangular; area-averaged to `source_size` (default
@@ -143,8 +148,9 @@ def diffuse_map_brute_force(hdr: np.ndarray, size: tuple[int, int] = (32, 16),
     channels = 1 if src.ndim == 2 else src.shape[2]
     kernel = _cosine_kernel((int(size[0]), int(size[1])), (sw, sh_))
     out = kernel @ src.reshape(sh_ * sw, channels)
-    return out.reshape(size[1], size[0], channels) if src.ndim == 3 else out.reshape(size[1],
-                                                                                    size[0])
+    return (
+        out.reshape(size[1], size[0], channels) if src.ndim == 3 else out.reshape(size[1], size[0])
+    )
 
 
 @lru_cache(maxsize=8)
@@ -202,8 +208,13 @@ def lighting_from_hdr(hdr: np.ndarray, params: IblParams | None = None) -> IblRe
     timings["Downsample"] = (t1 - t0) * 1e3
     timings["SH"] = (t2 - t1) * 1e3
     timings["Diffuse"] = (t3 - t2) * 1e3
-    return IblResult(sh=sh_lum, sh_rgb=sh_rgb, dominant_direction=sh.dominant_direction(sh_lum),
-                     diffuse_map=diffuse, timings_ms=timings)
+    return IblResult(
+        sh=sh_lum,
+        sh_rgb=sh_rgb,
+        dominant_direction=sh.dominant_direction(sh_lum),
+        diffuse_map=diffuse,
+        timings_ms=timings,
+    )
 
 
 def lighting_from_ldr(ldr_rgb: np.ndarray, params: IblParams | None = None) -> IblResult:

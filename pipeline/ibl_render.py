@@ -87,7 +87,8 @@ def shading_of(material: Material, where: str = "material") -> Shading:
             raise SceneError(
                 f"{where}: roughness must be in [{glossy.ROUGHNESS_MIN}, "
                 f"{glossy.ROUGHNESS_MAX}] for a glossy object (metalness {s:g} > 0, not a "
-                f"mirror), got {material.roughness:g}") from None
+                f"mirror), got {material.roughness:g}"
+            ) from None
         mode = MODE_GLOSSY
     else:
         mode, exponent = MODE_NONE, 0.0
@@ -135,8 +136,9 @@ def eye_poses(world_from_cam: np.ndarray, ipd_m: float = IPD_M) -> tuple[np.ndar
     return left, right
 
 
-def demo_scene(forward: np.ndarray | None = None,
-               roughness: tuple[float, float] = DEMO_ROUGHNESS) -> VirtualScene:
+def demo_scene(
+    forward: np.ndarray | None = None, roughness: tuple[float, float] = DEMO_ROUGHNESS
+) -> VirtualScene:
     """The built-in 5 objects (as the paper shows five at once), 1.6 m in front of a camera
     at the origin looking along `forward` (default +z, the panorama's centre column), left to
     right: diffuse sphere, glossy sphere (roughness[0], default 0.1), mirror sphere, glossy
@@ -208,13 +210,19 @@ class RenderOutput:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
-def frame_light(hdr: np.ndarray, diffuse_map: np.ndarray, ldr: np.ndarray | None = None,
-                exposure: float = 1.0) -> FrameLight:
+def frame_light(
+    hdr: np.ndarray, diffuse_map: np.ndarray, ldr: np.ndarray | None = None, exposure: float = 1.0
+) -> FrameLight:
     """The per-frame part: the mip pyramid of the HDR map (H, W, 3) linear."""
     t0 = time.perf_counter()
     pyramid = glossy.mip_pyramid(hdr)
-    return FrameLight(ldr, pyramid, np.asarray(diffuse_map, np.float32), exposure,
-                      (time.perf_counter() - t0) * 1e3)
+    return FrameLight(
+        ldr,
+        pyramid,
+        np.asarray(diffuse_map, np.float32),
+        exposure,
+        (time.perf_counter() - t0) * 1e3,
+    )
 
 
 class IblRenderer:
@@ -226,15 +234,18 @@ class IblRenderer:
         if backend not in glossy.BACKENDS:
             raise ValueError(f"backend must be one of {glossy.BACKENDS}, got {backend!r}")
         if backend == "cuda" and not glossy.cuda_available():
-            raise RuntimeError("backend='cuda' requested but numba.cuda sees no GPU; "
-                               "use backend='cpu'")
+            raise RuntimeError(
+                "backend='cuda' requested but numba.cuda sees no GPU; use backend='cpu'"
+            )
         self.backend = backend
         for o in scene.objects:
             if o.anchor is not None:
-                raise SceneError(f"virtual object {o.name!r}: an anchor needs a support plane, "
-                                 "which a panorama does not give; pose it with "
-                                 "world_from_object (the panorama's frame, +y up, metres, the "
-                                 "camera at the origin)")
+                raise SceneError(
+                    f"virtual object {o.name!r}: an anchor needs a support plane, "
+                    "which a panorama does not give; pose it with "
+                    "world_from_object (the panorama's frame, +y up, metres, the "
+                    "camera at the origin)"
+                )
         shadings = [shading_of(o.material, f"virtual object {o.name!r}") for o in scene.objects]
         self.scene = scene
         self._raycaster = VirtualRaycaster(scene)
@@ -262,9 +273,18 @@ class IblRenderer:
         normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
         views = rays_world.reshape(-1, 3)[pixels]
         mirror_dirs = views - 2.0 * np.einsum("ij,ij->i", normals, views)[:, None] * normals
-        return ViewBuffers(camera, pixels, normals, np.ascontiguousarray(mirror_dirs),
-                           self._diffuse[obj], self._specular[obj], self._modes[obj],
-                           self._exponents[obj], uv, gbuffer_ms)
+        return ViewBuffers(
+            camera,
+            pixels,
+            normals,
+            np.ascontiguousarray(mirror_dirs),
+            self._diffuse[obj],
+            self._specular[obj],
+            self._modes[obj],
+            self._exponents[obj],
+            uv,
+            gbuffer_ms,
+        )
 
     def render(self, view: ViewBuffers, light: FrameLight) -> RenderOutput:
         """One view of one frame: background, then the objects' shading."""
@@ -275,10 +295,12 @@ class IblRenderer:
         radiance = np.zeros((cam.height * cam.width, 3), np.float32)
         if len(view.pixels):
             irradiance = glossy.lookup(light.diffuse_map, view.normals)
-            spec = glossy.specular(light.pyramid, view.mirror_dirs, view.modes, view.exponents,
-                                   self.backend)
-            radiance[view.pixels] = (view.diffuse_rgb * irradiance * (1.0 / math.pi)
-                                     + view.specular_rgb * spec)
+            spec = glossy.specular(
+                light.pyramid, view.mirror_dirs, view.modes, view.exponents, self.backend
+            )
+            radiance[view.pixels] = (
+                view.diffuse_rgb * irradiance * (1.0 / math.pi) + view.specular_rgb * spec
+            )
         t2 = time.perf_counter()
         rgb = background.reshape(-1, 3)
         if len(view.pixels):
@@ -286,11 +308,16 @@ class IblRenderer:
         mask = np.zeros(cam.height * cam.width, bool)
         mask[view.pixels] = True
         t3 = time.perf_counter()
-        return RenderOutput(rgb.reshape(cam.height, cam.width, 3),
-                            radiance.reshape(cam.height, cam.width, 3),
-                            mask.reshape(cam.height, cam.width),
-                            {"Background": (t1 - t0) * 1e3, "Shading": (t2 - t1) * 1e3,
-                             "Composite": (t3 - t2) * 1e3})
+        return RenderOutput(
+            rgb.reshape(cam.height, cam.width, 3),
+            radiance.reshape(cam.height, cam.width, 3),
+            mask.reshape(cam.height, cam.width),
+            {
+                "Background": (t1 - t0) * 1e3,
+                "Shading": (t2 - t1) * 1e3,
+                "Composite": (t3 - t2) * 1e3,
+            },
+        )
 
 
 def _background(uv: np.ndarray, light: FrameLight) -> np.ndarray:
@@ -305,8 +332,7 @@ def _background(uv: np.ndarray, light: FrameLight) -> np.ndarray:
     padded = cv2.copyMakeBorder(padded, 1, 1, 0, 0, cv2.BORDER_REPLICATE)
     x = uv[..., 0] * w + 0.5  # - 0.5 to the pixel centre, + 1 for the padding
     y = uv[..., 1] * h + 0.5
-    return cv2.remap(padded, x, y, interpolation=cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE)
+    return cv2.remap(padded, x, y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def side_by_side(left: np.ndarray, right: np.ndarray) -> np.ndarray:

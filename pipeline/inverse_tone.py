@@ -65,7 +65,7 @@ def paper_expand(values: np.ndarray) -> np.ndarray:
     """
     c = np.asarray(values, dtype=np.float32)
     lum = c @ PAPER_LUMA
-    scale = 10.0 * lum ** 10 + 1.8
+    scale = 10.0 * lum**10 + 1.8
     return c * scale[..., None]
 
 
@@ -81,8 +81,9 @@ def _linear(ldr: np.ndarray) -> np.ndarray:
     return srgb_to_linear(ldr)
 
 
-def saturation_weight(ldr: np.ndarray, start: int = SATURATION_START_U8,
-                      full: int = SATURATION_FULL_U8) -> np.ndarray:
+def saturation_weight(
+    ldr: np.ndarray, start: int = SATURATION_START_U8, full: int = SATURATION_FULL_U8
+) -> np.ndarray:
     """(H, W) float32 in [0, 1]: how fully clipped each pixel is, from its smallest channel
     (smoothstep from `start`, 0, to `full`, 1; a step at `full` when start >= full)."""
     levels = np.arange(256, dtype=np.float32)  # one weight per 8-bit level: a lookup table
@@ -95,9 +96,12 @@ def saturation_weight(ldr: np.ndarray, start: int = SATURATION_START_U8,
     return table[smallest]
 
 
-def boost_saturated(ldr: np.ndarray, boost: float = SATURATION_BOOST,
-                    start: int = SATURATION_START_U8,
-                    full: int = SATURATION_FULL_U8) -> np.ndarray:
+def boost_saturated(
+    ldr: np.ndarray,
+    boost: float = SATURATION_BOOST,
+    start: int = SATURATION_START_U8,
+    full: int = SATURATION_FULL_U8,
+) -> np.ndarray:
     """The `boost` operator with its parameters open (for sweeps and tests): linear RGB
     times 1 + (boost - 1) w, w = `saturation_weight`."""
     out = srgb_to_linear(ldr)
@@ -118,12 +122,15 @@ class Operator:
     apply: Callable[[np.ndarray], np.ndarray]
 
 
-OPERATORS: dict[str, Operator] = {op.name: op for op in (
-    Operator("boost", "sRGB decoded, fully clipped pixels x5 (ours)", _boost),
-    Operator("paper", "eq. 1-3 on the sRGB-encoded values (the paper)", _paper),
-    Operator("paper-linear", "eq. 1-3 on sRGB-decoded values", _paper_linear),
-    Operator("linear", "sRGB decoded, no expansion (LDR baseline)", _linear),
-)}
+OPERATORS: dict[str, Operator] = {
+    op.name: op
+    for op in (
+        Operator("boost", "sRGB decoded, fully clipped pixels x5 (ours)", _boost),
+        Operator("paper", "eq. 1-3 on the sRGB-encoded values (the paper)", _paper),
+        Operator("paper-linear", "eq. 1-3 on sRGB-decoded values", _paper_linear),
+        Operator("linear", "sRGB decoded, no expansion (LDR baseline)", _linear),
+    )
+}
 DEFAULT_OPERATOR = "boost"
 
 
@@ -133,7 +140,8 @@ def expand(ldr_rgb: np.ndarray, operator: str = DEFAULT_OPERATOR) -> np.ndarray:
     ldr_rgb: (H, W, 3) uint8 RGB, sRGB-encoded. operator: a key of ``OPERATORS``.
     """
     if operator not in OPERATORS:
-        raise ValueError(f"unknown inverse tone-mapping operator {operator!r}; one of "
-                         f"{', '.join(OPERATORS)}")
+        raise ValueError(
+            f"unknown inverse tone-mapping operator {operator!r}; one of {', '.join(OPERATORS)}"
+        )
     image = check_image(ldr_rgb, "panorama", channels=3, dtype=np.uint8)
     return OPERATORS[operator].apply(image)

@@ -73,8 +73,9 @@ def choose_bands(transfer: np.ndarray, weights: np.ndarray, max_bands: int) -> t
     return 1, cond
 
 
-def below_horizon_gram(up: np.ndarray, bands: int, ground_albedo: float = 0.3,
-                       samples: int = 2048) -> np.ndarray:
+def below_horizon_gram(
+    up: np.ndarray, bands: int, ground_albedo: float = 0.3, samples: int = 2048
+) -> np.ndarray:
     """Q such that l^T Q l = integral over w . up < 0 of (L(w) - L_ground)^2 dw, where
     L_ground = ground_albedo / pi * E_up is the radiance of a Lambertian ground lit by the
     upper hemisphere of the same light (E_up = its irradiance on a surface facing `up`).
@@ -90,10 +91,15 @@ def below_horizon_gram(up: np.ndarray, bands: int, ground_albedo: float = 0.3,
     return d.T @ d * weight
 
 
-def solve_regularised(transfer: np.ndarray, target: np.ndarray, weights: np.ndarray,
-                      bands: int, regularization: float,
-                      bounce: np.ndarray | None = None,
-                      prior: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+def solve_regularised(
+    transfer: np.ndarray,
+    target: np.ndarray,
+    weights: np.ndarray,
+    bands: int,
+    regularization: float,
+    bounce: np.ndarray | None = None,
+    prior: np.ndarray | None = None,
+) -> tuple[np.ndarray, float]:
     """argmin_{l, beta} sum w (T l + beta B - I)^2 + lambda mean(diag) sum_z (l(l+1) l_z)^2
     + mean(diag) l^T P l.
 
@@ -102,8 +108,9 @@ def solve_regularised(transfer: np.ndarray, target: np.ndarray, weights: np.ndar
     an extra quadratic prior on l, relative to the mean diagonal of the normal matrix.
     """
     design = _design(transfer, bands, bounce)
-    return _solve_weighted(design, weights, weights * target, bands, regularization,
-                           bounce is not None, prior)
+    return _solve_weighted(
+        design, weights, weights * target, bands, regularization, bounce is not None, prior
+    )
 
 
 def _design(transfer: np.ndarray, bands: int, bounce: np.ndarray | None) -> np.ndarray:
@@ -112,9 +119,15 @@ def _design(transfer: np.ndarray, bands: int, bounce: np.ndarray | None) -> np.n
     return t if bounce is None else np.column_stack([t, bounce])
 
 
-def _solve_weighted(design: np.ndarray, gram_weights: np.ndarray, rhs_weights: np.ndarray,
-                    bands: int, regularization: float, with_bounce: bool,
-                    prior: np.ndarray | None) -> tuple[np.ndarray, float]:
+def _solve_weighted(
+    design: np.ndarray,
+    gram_weights: np.ndarray,
+    rhs_weights: np.ndarray,
+    bands: int,
+    regularization: float,
+    with_bounce: bool,
+    prior: np.ndarray | None,
+) -> tuple[np.ndarray, float]:
     """The normal equations of `solve_regularised` from A = `design`: (A^T diag(g) A) x =
     A^T r with g = gram_weights, r = rhs_weights (a model I = a (T l + beta B) with robust
     weights w has g = w a^2, r = w a I: no scaled copy of A is made). beta < 0 (more bounce
@@ -136,12 +149,18 @@ def _solve_weighted(design: np.ndarray, gram_weights: np.ndarray, rhs_weights: n
     return np.linalg.solve(gram[:n, :n] + scale * penalty, rhs[:n]), 0.0
 
 
-def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: EstimationParams,
-                   segments: np.ndarray | None = None,
-                   bounce: np.ndarray | None = None,
-                   up: np.ndarray | None = None,
-                   below_horizon_unseen: bool = False, *, seed: int = 0,
-                   checkpoint: Callable[[], None] | None = None) -> LightEstimate:
+def estimate_light(
+    transfer: np.ndarray,
+    color_linear: np.ndarray,
+    params: EstimationParams,
+    segments: np.ndarray | None = None,
+    bounce: np.ndarray | None = None,
+    up: np.ndarray | None = None,
+    below_horizon_unseen: bool = False,
+    *,
+    seed: int = 0,
+    checkpoint: Callable[[], None] | None = None,
+) -> LightEstimate:
     """Solve T l = I_c for the distant light (section 5.2, made robust: module docstring).
 
     transfer: (M, C) SH transfer per pixel, C = L*L for L bands (as many are solved for, or
@@ -166,23 +185,34 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: Estim
     if not np.issubdtype(t.dtype, np.floating):
         t = t.astype(np.float64)
     n_coeffs = t.shape[-1]
-    samples = _usable_samples(t.reshape(-1, n_coeffs), color_linear, bounce, segments,
-                              params.light_max_samples, seed)
-    t, lum, rgb, b, labels = samples.transfer, samples.lum, samples.rgb, samples.bounce, \
-        samples.labels
+    samples = _usable_samples(
+        t.reshape(-1, n_coeffs), color_linear, bounce, segments, params.light_max_samples, seed
+    )
+    t, lum, rgb, b, labels = (
+        samples.transfer,
+        samples.lum,
+        samples.rgb,
+        samples.bounce,
+        samples.labels,
+    )
     if len(lum) < params.min_samples:
-        return LightEstimate(np.zeros(n_coeffs), Confidence(
-            samples=len(lum), reason=f"{len(lum)} usable pixels < min_samples "
-                                     f"{params.min_samples} ({samples.left_out})"),
-            np.zeros((3, n_coeffs)) if params.estimate_rgb else None)
+        return LightEstimate(
+            np.zeros(n_coeffs),
+            Confidence(
+                samples=len(lum),
+                reason=f"{len(lum)} usable pixels < min_samples "
+                f"{params.min_samples} ({samples.left_out})",
+            ),
+            np.zeros((3, n_coeffs)) if params.estimate_rgb else None,
+        )
 
     max_bands = math.isqrt(n_coeffs)
     bands, cond = choose_bands(t, np.ones(len(lum)), max_bands)
-    fit, prior = _fit_light(t, lum, b, labels, bands, params, up, below_horizon_unseen,
-                            checkpoint)
+    fit, prior = _fit_light(t, lum, b, labels, bands, params, up, below_horizon_unseen, checkpoint)
     pred = fit.albedo * fit.shading
-    residual = float(np.sqrt(np.average(((pred - lum) / np.maximum(lum, DARK_LEVEL)) ** 2,
-                                        weights=fit.weights)))
+    residual = float(
+        np.sqrt(np.average(((pred - lum) / np.maximum(lum, DARK_LEVEL)) ** 2, weights=fit.weights))
+    )
     full = np.zeros(n_coeffs)
     full[: bands * bands] = fit.coeffs
     sh_rgb = None
@@ -190,16 +220,35 @@ def estimate_light(transfer: np.ndarray, color_linear: np.ndarray, params: Estim
         sh_rgb = np.zeros((3, n_coeffs))
         for ch in range(3):
             sh_rgb[ch, : bands * bands] = solve_regularised(
-                t * fit.albedo[:, None], rgb[:, ch], fit.weights, bands, params.regularization,
-                None if b is None else b * fit.albedo, prior)[0]
-    evidence = _Evidence(len(lum), cond, bands, normal_spread(t),
-                         horizon_disagreement_deg(full, up), residual,
-                         samples.clipped_fraction)
+                t * fit.albedo[:, None],
+                rgb[:, ch],
+                fit.weights,
+                bands,
+                params.regularization,
+                None if b is None else b * fit.albedo,
+                prior,
+            )[0]
+    evidence = _Evidence(
+        len(lum),
+        cond,
+        bands,
+        normal_spread(t),
+        horizon_disagreement_deg(full, up),
+        residual,
+        samples.clipped_fraction,
+    )
     value = _confidence_value(evidence)
     reason = _low_confidence_reason(evidence, max_bands, value)
-    return LightEstimate(full, Confidence(len(lum), cond, bands, value, reason,
-                                          evidence.normal_spread, evidence.horizon_deg),
-                         sh_rgb, residual, fit.beta, prior is not None)
+    return LightEstimate(
+        full,
+        Confidence(
+            len(lum), cond, bands, value, reason, evidence.normal_spread, evidence.horizon_deg
+        ),
+        sh_rgb,
+        residual,
+        fit.beta,
+        prior is not None,
+    )
 
 
 def normal_spread(transfer: np.ndarray) -> float:
@@ -244,8 +293,14 @@ class _Samples:
     clipped_fraction: float = 0.0  # of the pixels with transfer: bright emitters, highlights
 
 
-def _usable_samples(t: np.ndarray, color_linear: np.ndarray, bounce: np.ndarray | None,
-                    segments: np.ndarray | None, max_samples: int, seed: int) -> _Samples:
+def _usable_samples(
+    t: np.ndarray,
+    color_linear: np.ndarray,
+    bounce: np.ndarray | None,
+    segments: np.ndarray | None,
+    max_samples: int,
+    seed: int,
+) -> _Samples:
     """Clipped, near-black, non-finite and transfer-less pixels left out; above
     max_samples a seeded random subset (neighbouring pixels repeat each other).
 
@@ -267,21 +322,30 @@ def _usable_samples(t: np.ndarray, color_linear: np.ndarray, bounce: np.ndarray 
     labels = None
     if segments is not None:
         _, labels = np.unique(np.asarray(segments).reshape(-1)[keep], return_inverse=True)
-    left_out = (f"of {len(lum_all)}: {int(clipped.sum())} clipped, {int(dark.sum())} too "
-                f"dark, {int(no_transfer.sum())} without transfer, "
-                f"{int((~finite).sum())} not finite")
+    left_out = (
+        f"of {len(lum_all)}: {int(clipped.sum())} clipped, {int(dark.sum())} too "
+        f"dark, {int(no_transfer.sum())} without transfer, "
+        f"{int((~finite).sum())} not finite"
+    )
     rgb = rgb_all[keep].astype(np.float64)
     with_transfer = int((~no_transfer).sum())
     clipped_fraction = float((clipped & ~no_transfer).sum()) / max(with_transfer, 1)
-    return _Samples(t[keep].astype(np.float64), rgb @ LUMA, rgb, b, labels, left_out,
-                    clipped_fraction)
+    return _Samples(
+        t[keep].astype(np.float64), rgb @ LUMA, rgb, b, labels, left_out, clipped_fraction
+    )
 
 
-def _fit_light(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
-               labels: np.ndarray | None, bands: int, params: EstimationParams,
-               up: np.ndarray | None, below_horizon_unseen: bool,
-               checkpoint: Callable[[], None] | None = None,
-               ) -> tuple[_Fit, np.ndarray | None]:
+def _fit_light(
+    t: np.ndarray,
+    lum: np.ndarray,
+    b: np.ndarray | None,
+    labels: np.ndarray | None,
+    bands: int,
+    params: EstimationParams,
+    up: np.ndarray | None,
+    below_horizon_unseen: bool,
+    checkpoint: Callable[[], None] | None = None,
+) -> tuple[_Fit, np.ndarray | None]:
     """The robust fit, with the below-horizon prior where it applies; (fit, prior or None)."""
     learned = _learned_prior(params, up, bands)
     use_prior = up is not None and params.horizon_prior > 0
@@ -302,8 +366,9 @@ def _fit_light(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
     return _alternate(t, lum, b, labels, bands, params, prior, checkpoint), prior
 
 
-def _learned_prior(params: EstimationParams, up: np.ndarray | None, bands: int
-                   ) -> np.ndarray | None:
+def _learned_prior(
+    params: EstimationParams, up: np.ndarray | None, bands: int
+) -> np.ndarray | None:
     """params.light_prior times the prior learned from HDR maps, in the frame where `up` is
     up (pipeline.light_prior); None when off or without a support plane."""
     if params.light_prior <= 0 or up is None:
@@ -323,10 +388,16 @@ class _Fit:
     shading: np.ndarray  # T l + beta B per sample
 
 
-def _alternate(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
-               labels: np.ndarray | None, bands: int, params: EstimationParams,
-               prior: np.ndarray | None,
-               checkpoint: Callable[[], None] | None = None) -> _Fit:
+def _alternate(
+    t: np.ndarray,
+    lum: np.ndarray,
+    b: np.ndarray | None,
+    labels: np.ndarray | None,
+    bands: int,
+    params: EstimationParams,
+    prior: np.ndarray | None,
+    checkpoint: Callable[[], None] | None = None,
+) -> _Fit:
     """Regularised solve, then `robust_iterations` rounds of per-segment albedo and Huber
     re-weighting (relative residuals), each followed by a new solve."""
     n = bands * bands
@@ -335,8 +406,15 @@ def _alternate(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
     albedo = np.ones(len(lum))
 
     def solve() -> tuple[np.ndarray, float]:
-        return _solve_weighted(design, weights * albedo * albedo, weights * albedo * lum,
-                               bands, params.regularization, b is not None, prior)
+        return _solve_weighted(
+            design,
+            weights * albedo * albedo,
+            weights * albedo * lum,
+            bands,
+            params.regularization,
+            b is not None,
+            prior,
+        )
 
     def shading() -> np.ndarray:
         s = design[:, :n] @ coeffs
@@ -360,8 +438,9 @@ def _alternate(t: np.ndarray, lum: np.ndarray, b: np.ndarray | None,
     return _Fit(coeffs, beta, albedo, weights, shading())
 
 
-def _segment_albedo(shading: np.ndarray, lum: np.ndarray, labels: np.ndarray,
-                    weights: np.ndarray) -> np.ndarray:
+def _segment_albedo(
+    shading: np.ndarray, lum: np.ndarray, labels: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
     """Per-pixel albedo of its segment, a_g = argmin sum_g w (a_g s - I)^2, normalised so the
     sample-weighted mean is 1 (the light keeps the overall scale)."""
     n = labels.max() + 1
@@ -429,21 +508,23 @@ def _low_confidence_reason(e: _Evidence, max_bands: int, value: float) -> str:
     text = {
         "samples": f"few usable pixels ({e.samples})",
         "conditioning": f"ill-conditioned normals (condition number {e.cond:.3g}, "
-                        f"{e.bands} of {max_bands} bands estimated)",
+        f"{e.bands} of {max_bands} bands estimated)",
         "bands": f"only band 0 estimated ({max_bands} asked): no direction",
         "normals": f"few normal directions (spread {e.normal_spread:.2f}: a wall or floor "
-                   f"alone shows the light's strength, not where it comes from)",
+        f"alone shows the light's strength, not where it comes from)",
         "horizon": f"much of the light fitted lies below the support plane's horizon "
-                   f"(the direction above it is {e.horizon_deg:.0f} deg from the whole "
-                   f"sphere's): ground glow or light the normals leave unconstrained",
+        f"(the direction above it is {e.horizon_deg:.0f} deg from the whole "
+        f"sphere's): ground glow or light the normals leave unconstrained",
     }
     f = _confidence_factors(e)
     weak = [name for name, v in f.items() if v < WEAK_FACTOR] or [min(f, key=lambda k: f[k])]
     causes = [text[name] for name in weak]
     if e.clipped_fraction > CLIPPED_NOTE:
-        causes.append(f"{100 * e.clipped_fraction:.0f} % of the pixels clipped (emitters, "
-                      "windows or highlights in view: left out, and the light they cast may "
-                      "be missing from the fit)")
+        causes.append(
+            f"{100 * e.clipped_fraction:.0f} % of the pixels clipped (emitters, "
+            "windows or highlights in view: left out, and the light they cast may "
+            "be missing from the fit)"
+        )
     return "; ".join(causes)
 
 
@@ -470,8 +551,7 @@ def side_share(normals_world: np.ndarray, up_world: np.ndarray | None) -> float 
     return float(np.mean(np.abs(n @ up) / np.linalg.norm(n, axis=1) < SIDE_COS))
 
 
-def with_view_and_steadiness(conf: Confidence, side: float | None,
-                             jump_deg: float) -> Confidence:
+def with_view_and_steadiness(conf: Confidence, side: float | None, jump_deg: float) -> Confidence:
     """`conf` times the "view" factor (min(1, side / SIDE_SHARE_FULL); 1 when side is
     None) and the "steadiness" factor (exp(-jump_deg / JUMP_SCALE_DEG); jump_deg: degrees
     between this frame's direction and the filtered one before it, 0 on a first frame), each
@@ -487,17 +567,16 @@ def with_view_and_steadiness(conf: Confidence, side: float | None,
     if value < LOW_CONFIDENCE:
         text = {
             "view": f"few side-facing surfaces ({100 * (side or 0.0):.0f} % of the normals: "
-                    "a view of mostly ground or table shows little of where the light "
-                    "stands)",
+            "a view of mostly ground or table shows little of where the light "
+            "stands)",
             "steadiness": f"the estimate jumped {jump_deg:.0f} deg from the last frames' "
-                          "(the light changed, or this frame is unreliable)",
+            "(the light changed, or this frame is unreliable)",
         }
         weak = [name for name, v in factors.items() if v < WEAK_FACTOR]
         if not reason and not weak:
             weak = [min(factors, key=lambda k: factors[k])]
         reason = "; ".join([reason] * bool(reason) + [text[name] for name in weak])
-    return dataclasses.replace(conf, value=value, reason=reason, side_share=side,
-                               jump_deg=jump_deg)
+    return dataclasses.replace(conf, value=value, reason=reason, side_share=side, jump_deg=jump_deg)
 
 
 class TemporalFilter:

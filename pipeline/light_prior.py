@@ -33,8 +33,10 @@ Y_UP = np.array([0.0, 1.0, 0.0])
 def map_moments() -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """map name -> (mean (16,), second moment (16, 16)) of c / c_0, canonical frame (+y up)."""
     doc = json.loads(resources.files("arlight.pipeline").joinpath(PRIOR_FILE).read_text())
-    return {name: (np.asarray(m["mean"], float), np.asarray(m["second_moment"], float))
-            for name, m in doc["maps"].items()}
+    return {
+        name: (np.asarray(m["mean"], float), np.asarray(m["second_moment"], float))
+        for name, m in doc["maps"].items()
+    }
 
 
 def _key(name: str) -> str:
@@ -66,8 +68,7 @@ def _rotation_taking_y_to(up: np.ndarray) -> np.ndarray:
     return np.eye(3) + s * kx + (1 - c) * kx @ kx
 
 
-def prior_matrix(up: np.ndarray, bands: int, exclude: frozenset[str] = frozenset()
-                 ) -> np.ndarray:
+def prior_matrix(up: np.ndarray, bands: int, exclude: frozenset[str] = frozenset()) -> np.ndarray:
     """P (n, n), n = bands^2, with l^T P l = (A l)^T Q (A l) in the frame where `up` is up:
     A l = l_{1..n-1} - l_0 mu_{1..n-1}, Q the inverse covariance of those coefficients."""
     n = bands * bands

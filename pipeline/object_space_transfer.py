@@ -102,7 +102,8 @@ class OcclusionScene:
             self._scene = o3d.t.geometry.RaycastingScene()
             self._scene.add_triangles(
                 o3c.Tensor(np.ascontiguousarray(mesh.vertices, np.float32)),
-                o3c.Tensor(np.ascontiguousarray(mesh.triangles).astype(np.uint32)))
+                o3c.Tensor(np.ascontiguousarray(mesh.triangles).astype(np.uint32)),
+            )
             # Embree builds the BVH on the first query: make that part of the build's cost
             self._scene.test_occlusions(o3c.Tensor(np.zeros((1, 6), np.float32)))
 
@@ -129,8 +130,12 @@ def depth_mesh(points_cam: np.ndarray) -> SurfaceMesh:
     h, w = points_cam.shape[:2]
     z = points_cam[..., 2]
     index = np.arange(h * w, dtype=np.int32).reshape(h, w)
-    corners = [(slice(0, -1), slice(0, -1)), (slice(1, None), slice(0, -1)),
-               (slice(0, -1), slice(1, None)), (slice(1, None), slice(1, None))]
+    corners = [
+        (slice(0, -1), slice(0, -1)),
+        (slice(1, None), slice(0, -1)),
+        (slice(0, -1), slice(1, None)),
+        (slice(1, None), slice(1, None)),
+    ]
     ids = [index[c].ravel() for c in corners]  # a = (r, c), b = (r+1, c), c' = (r, c+1), d
     zs = [z[c].ravel() for c in corners]
     triangles = []
@@ -139,15 +144,24 @@ def depth_mesh(points_cam: np.ndarray) -> SurfaceMesh:
         hi = np.maximum(np.maximum(zs[i], zs[j]), zs[k])
         keep = (lo > 0) & (hi - lo <= DEPTH_EDGE_REL * lo)
         triangles.append(np.stack([ids[i][keep], ids[j][keep], ids[k][keep]], axis=1))
-    return SurfaceMesh(np.ascontiguousarray(points_cam.reshape(-1, 3), np.float32),
-                       np.concatenate(triangles), in_world=False)
+    return SurfaceMesh(
+        np.ascontiguousarray(points_cam.reshape(-1, 3), np.float32),
+        np.concatenate(triangles),
+        in_world=False,
+    )
 
 
-def object_space_transfer(points_cam: np.ndarray, normals_cam: np.ndarray,
-                          camera: PinholeCamera, world_from_cam: np.ndarray,
-                          pattern: SamplingPattern, scene: OcclusionScene | None,
-                          params: TransferParams, luminance: np.ndarray | None = None,
-                          plane: SupportPlane | None = None) -> TransferResult:
+def object_space_transfer(
+    points_cam: np.ndarray,
+    normals_cam: np.ndarray,
+    camera: PinholeCamera,
+    world_from_cam: np.ndarray,
+    pattern: SamplingPattern,
+    scene: OcclusionScene | None,
+    params: TransferParams,
+    luminance: np.ndarray | None = None,
+    plane: SupportPlane | None = None,
+) -> TransferResult:
     """SH transfer with ray-cast visibility for every `params.rt_subsample`-th pixel.
 
     points_cam: (H, W, 3) float32 camera-frame points (z = 0 missing); normals_cam: (H, W, 3)
@@ -180,7 +194,7 @@ def object_space_transfer(points_cam: np.ndarray, normals_cam: np.ndarray,
     rows = np.flatnonzero(valid)
     per_batch = max(1, RAY_BATCH // len(dirs))
     for start in range(0, len(rows), per_batch):
-        batch = rows[start:start + per_batch]
+        batch = rows[start : start + per_batch]
         x, n = pts[batch], np.ascontiguousarray(nrm[batch])
         counts = np.zeros(len(batch), np.int64)
         _count_lit(n, dirs, counts)  # directions with n . w > 0, per pixel
@@ -189,29 +203,69 @@ def object_space_transfer(points_cam: np.ndarray, normals_cam: np.ndarray,
         ray_lum = np.zeros(len(blocked))
         if cast is not None:
             origins = x + (BIAS_ABS_M + BIAS_REL * x[:, 2:3]) * n  # off the surface, along n
-            blocked, ray_lum = _cast(cast, origins, n, dirs, offsets, len(blocked),
-                                     mesh_from_cam, camera, params.rt_radius_m, luminance)
+            blocked, ray_lum = _cast(
+                cast,
+                origins,
+                n,
+                dirs,
+                offsets,
+                len(blocked),
+                mesh_from_cam,
+                camera,
+                params.rt_radius_m,
+                luminance,
+            )
         sub_t, sub_b = transfer[batch], bounce[batch]
-        _accumulate(n, above[batch], dirs, up, ysh, 4.0 * math.pi / len(dirs), offsets,
-                    blocked, ray_lum, ground_lum, sub_t, sub_b)
+        _accumulate(
+            n,
+            above[batch],
+            dirs,
+            up,
+            ysh,
+            4.0 * math.pi / len(dirs),
+            offsets,
+            blocked,
+            ray_lum,
+            ground_lum,
+            sub_t,
+            sub_b,
+        )
         transfer[batch], bounce[batch] = sub_t, sub_b
-    return TransferResult(transfer.reshape(hs, ws, -1).astype(np.float32), valid.reshape(hs, ws),
-                          u, v,
-                          None if luminance is None else bounce.reshape(hs, ws).astype(np.float32))
+    return TransferResult(
+        transfer.reshape(hs, ws, -1).astype(np.float32),
+        valid.reshape(hs, ws),
+        u,
+        v,
+        None if luminance is None else bounce.reshape(hs, ws).astype(np.float32),
+    )
 
 
-def _cast(scene: OcclusionScene, origins_cam: np.ndarray, normals_cam: np.ndarray,
-          dirs_cam: np.ndarray, offsets: np.ndarray, count: int, mesh_from_cam: np.ndarray,
-          camera: PinholeCamera, radius_m: float, luminance: np.ndarray | None,
-          ) -> tuple[np.ndarray, np.ndarray]:
+def _cast(
+    scene: OcclusionScene,
+    origins_cam: np.ndarray,
+    normals_cam: np.ndarray,
+    dirs_cam: np.ndarray,
+    offsets: np.ndarray,
+    count: int,
+    mesh_from_cam: np.ndarray,
+    camera: PinholeCamera,
+    radius_m: float,
+    luminance: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
     """The `count` rays from origins_cam[p] (B, 3) towards each dirs_cam[j] (N, 3) with
     normals_cam[p] . w > 0, in that order from offsets[p] on: blocked (R,) bool, and the
     image luminance at the projection of each blocked ray's first hit (R,) (0 elsewhere,
     and everywhere without an image)."""
     rot, trans = mesh_from_cam[:3, :3], mesh_from_cam[:3, 3]
     rays = np.empty((count, 6), np.float32)
-    _fill_rays((origins_cam @ rot.T + trans).astype(np.float32), normals_cam, dirs_cam,
-               (dirs_cam @ rot.T).astype(np.float32), offsets, rays)
+    _fill_rays(
+        (origins_cam @ rot.T + trans).astype(np.float32),
+        normals_cam,
+        dirs_cam,
+        (dirs_cam @ rot.T).astype(np.float32),
+        offsets,
+        rays,
+    )
     blocked = scene.blocked(rays, BIAS_ABS_M, radius_m)
     lum = np.zeros(count)
     if luminance is None:
@@ -243,8 +297,9 @@ def _count_lit(normals, dirs, counts):
     for p in numba.prange(normals.shape[0]):
         c = 0
         for j in range(dirs.shape[0]):
-            if (normals[p, 0] * dirs[j, 0] + normals[p, 1] * dirs[j, 1]
-                    + normals[p, 2] * dirs[j, 2]) > 0.0:
+            if (
+                normals[p, 0] * dirs[j, 0] + normals[p, 1] * dirs[j, 1] + normals[p, 2] * dirs[j, 2]
+            ) > 0.0:
                 c += 1
         counts[p] = c
 
@@ -254,8 +309,9 @@ def _fill_rays(origins_m, normals, dirs, dirs_m, offsets, rays):
     for p in numba.prange(normals.shape[0]):
         k = offsets[p]
         for j in range(dirs.shape[0]):
-            if (normals[p, 0] * dirs[j, 0] + normals[p, 1] * dirs[j, 1]
-                    + normals[p, 2] * dirs[j, 2]) > 0.0:
+            if (
+                normals[p, 0] * dirs[j, 0] + normals[p, 1] * dirs[j, 1] + normals[p, 2] * dirs[j, 2]
+            ) > 0.0:
                 for c in range(3):
                     rays[k, c] = origins_m[p, c]
                     rays[k, 3 + c] = dirs_m[j, c]
@@ -263,16 +319,18 @@ def _fill_rays(origins_m, normals, dirs, dirs_m, offsets, rays):
 
 
 @numba.njit(parallel=True, cache=True)
-def _accumulate(normals, above, dirs, up, ysh, weight, offsets, blocked, ray_lum, ground_lum,
-                transfer, bounce):
+def _accumulate(
+    normals, above, dirs, up, ysh, weight, offsets, blocked, ray_lum, ground_lum, transfer, bounce
+):
     """transfer[p] += V max(0, n . w) Y(w) weight over the directions (V = not blocked,
     and nothing below the plane's horizon for a point `above` it); bounce[p] += the same
     factor times the hit's luminance (blocked) or ground_lum (below the horizon)."""
     for p in numba.prange(normals.shape[0]):
         k = offsets[p]
         for j in range(dirs.shape[0]):
-            cos_n = (normals[p, 0] * dirs[j, 0] + normals[p, 1] * dirs[j, 1]
-                     + normals[p, 2] * dirs[j, 2])
+            cos_n = (
+                normals[p, 0] * dirs[j, 0] + normals[p, 1] * dirs[j, 1] + normals[p, 2] * dirs[j, 2]
+            )
             if cos_n <= 0.0:
                 continue
             f = cos_n * weight
@@ -302,12 +360,15 @@ class ObjectSpaceTransfer:
         self.builds = 0
         self.last_build_ms = 0.0
 
-    def scene(self, points_cam: np.ndarray,
-              volume: VolumeReconstruction | None) -> OcclusionScene:
+    def scene(self, points_cam: np.ndarray, volume: VolumeReconstruction | None) -> OcclusionScene:
         """The surface for this frame (module docstring: when it is rebuilt)."""
         fused = -1 if volume is None else volume.frames_integrated
-        if (volume is not None and self._scene is not None and 0 <= self._built_at <= fused
-                and fused - self._built_at < self.update_interval):
+        if (
+            volume is not None
+            and self._scene is not None
+            and 0 <= self._built_at <= fused
+            and fused - self._built_at < self.update_interval
+        ):
             return self._scene
         t0 = time.perf_counter()
         mesh = None
@@ -319,15 +380,36 @@ class ObjectSpaceTransfer:
         self._scene, self._built_at = (scene, fused) if cached else (None, -1)
         self.builds += 1
         self.last_build_ms = (time.perf_counter() - t0) * 1e3
-        log.debug("raycast scene: %d triangles (%s) in %.0f ms", len(scene.mesh.triangles),
-                  "volume" if cached else "depth", self.last_build_ms)
+        log.debug(
+            "raycast scene: %d triangles (%s) in %.0f ms",
+            len(scene.mesh.triangles),
+            "volume" if cached else "depth",
+            self.last_build_ms,
+        )
         return scene
 
-    def compute(self, points_cam: np.ndarray, normals_cam: np.ndarray, camera: PinholeCamera,
-                world_from_cam: np.ndarray, pattern: SamplingPattern, params: TransferParams,
-                luminance: np.ndarray | None = None, plane: SupportPlane | None = None,
-                volume: VolumeReconstruction | None = None) -> TransferResult:
+    def compute(
+        self,
+        points_cam: np.ndarray,
+        normals_cam: np.ndarray,
+        camera: PinholeCamera,
+        world_from_cam: np.ndarray,
+        pattern: SamplingPattern,
+        params: TransferParams,
+        luminance: np.ndarray | None = None,
+        plane: SupportPlane | None = None,
+        volume: VolumeReconstruction | None = None,
+    ) -> TransferResult:
         """`object_space_transfer` against this frame's scene (see `scene`)."""
         scene = self.scene(points_cam, volume) if params.visibility else None
-        return object_space_transfer(points_cam, normals_cam, camera, world_from_cam, pattern,
-                                     scene, params, luminance, plane)
+        return object_space_transfer(
+            points_cam,
+            normals_cam,
+            camera,
+            world_from_cam,
+            pattern,
+            scene,
+            params,
+            luminance,
+            plane,
+        )

@@ -98,8 +98,14 @@ def validate_frame(frame: FrameInput, camera: PinholeCamera) -> ValidFrame:
     """
     size = (camera.width, camera.height)
     try:
-        color = check_image(frame.color, "color", channels=3, dtype=np.uint8, size=size,
-                            size_of="the camera calibration's")
+        color = check_image(
+            frame.color,
+            "color",
+            channels=3,
+            dtype=np.uint8,
+            size=size,
+            size_of="the camera calibration's",
+        )
         check_image(frame.depth, "depth", size=size, size_of="the camera calibration's")
         depth = depth_metres(frame.depth, frame.depth_scale, "depth")
         pose = None if frame.pose is None else check_rigid(frame.pose, "pose")
@@ -142,10 +148,12 @@ def smooth_depth_for_normals(depth_m: np.ndarray, window: int) -> np.ndarray:
     if window <= 1:
         return depth_m
     valid = (depth_m > 0).astype(np.float32)
-    num = cv2.boxFilter(depth_m, -1, (window, window), normalize=False,
-                        borderType=cv2.BORDER_CONSTANT)
-    den = cv2.boxFilter(valid, -1, (window, window), normalize=False,
-                        borderType=cv2.BORDER_CONSTANT)
+    num = cv2.boxFilter(
+        depth_m, -1, (window, window), normalize=False, borderType=cv2.BORDER_CONSTANT
+    )
+    den = cv2.boxFilter(
+        valid, -1, (window, window), normalize=False, borderType=cv2.BORDER_CONSTANT
+    )
     mean = np.where(den > 0, num / np.maximum(den, 1e-6), 0.0)
     keep = (depth_m > 0) & (np.abs(mean - depth_m) < 0.03 * depth_m)
     return np.where(keep, mean, 0.0).astype(np.float32)
@@ -155,8 +163,9 @@ def smooth_depth_for_normals(depth_m: np.ndarray, window: int) -> np.ndarray:
 def _side_work() -> concurrent.futures.ThreadPoolExecutor:
     """The process's worker threads for work a frame can do beside its main thread (one
     per core: several sessions' pipelines may ask at once)."""
-    return concurrent.futures.ThreadPoolExecutor(max_workers=os.cpu_count() or 2,
-                                                 thread_name_prefix="arlight-side")
+    return concurrent.futures.ThreadPoolExecutor(
+        max_workers=os.cpu_count() or 2, thread_name_prefix="arlight-side"
+    )
 
 
 class Pipeline:
@@ -168,8 +177,7 @@ class Pipeline:
     None, meaning the input frame). Not thread-safe (pipeline.runtime).
     """
 
-    def __init__(self, config: Config, camera: PinholeCamera,
-                 scene: VirtualScene | None = None):
+    def __init__(self, config: Config, camera: PinholeCamera, scene: VirtualScene | None = None):
         require_device(config.device)  # a clear error, not Open3D's, when there is no GPU
         self.config = config
         self.camera = camera
@@ -189,16 +197,21 @@ class Pipeline:
 
             # the auxiliary buffers serve SSDO's visibility and the virtual objects' shadows
             # only: without either nothing reads them, and they are not rendered
-            aux_read = (config.transfer.visibility and config.transfer.rt_method is RtMethod.SSDO
-                        ) or self.scene is not None
+            aux_read = (
+                config.transfer.visibility and config.transfer.rt_method is RtMethod.SSDO
+            ) or self.scene is not None
             self._volume = VolumeReconstruction.from_config(
-                config if aux_read else config.replace(aux_buffers=False), camera)
+                config if aux_read else config.replace(aux_buffers=False), camera
+            )
         self._pose = np.eye(4)
         self._light_world: np.ndarray | None = None
         self._up_world: np.ndarray | None = None  # of the support plane, last seen
         # rt_method raycast: the session's ray-casting scene, rebuilt as the volume grows
-        self._raycaster = (ObjectSpaceTransfer(config.aux.aux_update_interval)
-                           if config.transfer.rt_method is RtMethod.RAYCAST else None)
+        self._raycaster = (
+            ObjectSpaceTransfer(config.aux.aux_update_interval)
+            if config.transfer.rt_method is RtMethod.RAYCAST
+            else None
+        )
         # a camera held still over an unchanged depth image: DynGeo and RadTransfer of the
         # last frame that made them serve again (pipeline.still)
         self._still = StillCamera(config.reuse, with_depth=True)
@@ -215,8 +228,12 @@ class Pipeline:
         """Voxel blocks allocated in the session's volume so far (0 without a volume)."""
         return 0 if self._volume is None else int(self._volume.num_blocks)
 
-    def process(self, frame: FrameInput, render_light: RenderLight | None = None,
-                checkpoint: Callable[[str], None] | None = None) -> FrameResult:
+    def process(
+        self,
+        frame: FrameInput,
+        render_light: RenderLight | None = None,
+        checkpoint: Callable[[str], None] | None = None,
+    ) -> FrameResult:
         """Estimate the lighting of one frame. Raises FrameError on malformed input.
 
         render_light: an optional `RenderLight` (radiance SH in the WORLD frame, and the
@@ -240,12 +257,16 @@ class Pipeline:
             intensity = intensity_from_rgb(valid.color)
             color_linear = srgb_to_linear(valid.color)
         check("Reconstruct")
-        pose, depth_volume, aux_buffers, tracked = self._reconstruct(valid, timings,
-                                                                     diagnostics)
+        pose, depth_volume, aux_buffers, tracked = self._reconstruct(valid, timings, diagnostics)
         check("DynGeo")
         with _stage(timings, "DynGeo"):  # the test of a still camera costs ~1 ms
-            reused = (self._last_transfer if self._last_transfer is not None and tracked
-                      and self._still.may_reuse(pose, valid.depth_m) else None)
+            reused = (
+                self._last_transfer
+                if self._last_transfer is not None
+                and tracked
+                and self._still.may_reuse(pose, valid.depth_m)
+                else None
+            )
         if reused is not None:
             geometry, transfer = reused
             timings["RadTransfer"] = 0.0
@@ -253,24 +274,29 @@ class Pipeline:
             labels = self._segments(color_linear, geometry)
         else:
             geometry, transfer, labels = self._geometry_and_transfer(
-                valid, depth_volume, intensity, color_linear, pose, aux_buffers, timings,
-                check)
+                valid, depth_volume, intensity, color_linear, pose, aux_buffers, timings, check
+            )
             self._last_transfer = (geometry, transfer)
             self._still.did_work(pose, valid.depth_m)
         check("LightEst")
         with _stage(timings, "LightEst"):
             plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
-            estimate = self._estimate(transfer, color_linear, labels,
-                                      up_world,
-                                      below_horizon_unseen=self.config.transfer.rt_horizon,
-                                      checkpoint=lambda: check("LightEst"))
+            estimate = self._estimate(
+                transfer,
+                color_linear,
+                labels,
+                up_world,
+                below_horizon_unseen=self.config.transfer.rt_horizon,
+                checkpoint=lambda: check("LightEst"),
+            )
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:
                 self._up_world = up_world
             raw_direction = self._light_direction(estimate.sh)  # before the filter
-            confidence = self._reported_confidence(estimate, raw_direction, transfer,
-                                                   geometry, pose)
+            confidence = self._reported_confidence(
+                estimate, raw_direction, transfer, geometry, pose
+            )
             direction_world = self._light_direction(coeffs)
             intensity_value = sh.intensity_along(coeffs, direction_world)
             if np.any(direction_world):
@@ -281,23 +307,37 @@ class Pipeline:
         else:
             check("Rendering")
             with _stage(timings, "Rendering"):
-                composite = self._render(valid, color_linear, geometry, pose, aux_buffers,
-                                         coeffs, estimate, render_light)
+                composite = self._render(
+                    valid, color_linear, geometry, pose, aux_buffers, coeffs, estimate, render_light
+                )
         self.frames_processed += 1
-        diagnostics.update(self._estimate_diagnostics(estimate, up_world, confidence,
-                                                      raw_direction))
+        diagnostics.update(
+            self._estimate_diagnostics(estimate, up_world, confidence, raw_direction)
+        )
         rotation = pose[:3, :3]
         return FrameResult(
-            timestamp=float(frame.timestamp), sh=coeffs, sh_camera=sh.rotate(coeffs, rotation.T),
+            timestamp=float(frame.timestamp),
+            sh=coeffs,
+            sh_camera=sh.rotate(coeffs, rotation.T),
             dominant_direction_world=direction_world,
             dominant_direction_camera=rotation.T @ direction_world,
-            intensity=intensity_value, confidence=confidence, pose=pose.copy(),
-            sh_rgb=estimate.sh_rgb, composite=composite, timings_ms=timings,
-            diagnostics=diagnostics)
+            intensity=intensity_value,
+            confidence=confidence,
+            pose=pose.copy(),
+            sh_rgb=estimate.sh_rgb,
+            composite=composite,
+            timings_ms=timings,
+            diagnostics=diagnostics,
+        )
 
-    def _reported_confidence(self, estimate: LightEstimate, raw: np.ndarray,
-                             transfer: TransferSamples, geometry: _Geometry,
-                             pose: np.ndarray) -> Confidence:
+    def _reported_confidence(
+        self,
+        estimate: LightEstimate,
+        raw: np.ndarray,
+        transfer: TransferSamples,
+        geometry: _Geometry,
+        pose: np.ndarray,
+    ) -> Confidence:
         """The estimate's confidence times what one fit cannot know of itself
         (`light_estimation.with_view_and_steadiness`): the share of side-facing normals
         among the fitted pixels (against this frame's support plane, or the last one seen)
@@ -312,11 +352,17 @@ class Pipeline:
             jump = math.degrees(math.acos(float(np.clip(raw @ self._light_world, -1.0, 1.0))))
         return with_view_and_steadiness(estimate.confidence, side, jump)
 
-    def _geometry_and_transfer(self, valid: ValidFrame, depth_volume: np.ndarray | None,
-                               intensity: np.ndarray, color_linear: np.ndarray,
-                               pose: np.ndarray, aux_buffers: list,
-                               timings: dict[str, float], check: Callable[[str], None],
-                               ) -> tuple[_Geometry, TransferSamples, np.ndarray | None]:
+    def _geometry_and_transfer(
+        self,
+        valid: ValidFrame,
+        depth_volume: np.ndarray | None,
+        intensity: np.ndarray,
+        color_linear: np.ndarray,
+        pose: np.ndarray,
+        aux_buffers: list,
+        timings: dict[str, float],
+        check: Callable[[str], None],
+    ) -> tuple[_Geometry, TransferSamples, np.ndarray | None]:
         """DynGeo and RadTransfer, and LightEst's material segments beside RadTransfer."""
         with _stage(timings, "DynGeo"):
             geometry = self._dynamic_geometry(valid.depth_m, depth_volume, intensity)
@@ -333,11 +379,17 @@ class Pipeline:
             raise
         return geometry, transfer, segments.result()
 
-    def _render(self, valid: ValidFrame, color_linear: np.ndarray, geometry: _Geometry,
-                pose: np.ndarray, aux_buffers: list, coeffs: np.ndarray,
-                estimate: LightEstimate,
-                render_light: RenderLight | None = None,
-                ) -> np.ndarray | None:
+    def _render(
+        self,
+        valid: ValidFrame,
+        color_linear: np.ndarray,
+        geometry: _Geometry,
+        pose: np.ndarray,
+        aux_buffers: list,
+        coeffs: np.ndarray,
+        estimate: LightEstimate,
+        render_light: RenderLight | None = None,
+    ) -> np.ndarray | None:
         """Rendering: the composite (H, W, 3) uint8 of the placed virtual objects, or None
         (the input) while none is placed. The estimate knows albedo x light only (its mean
         albedo is 1): the light is scaled by pi / render_real_albedo into image units."""
@@ -346,19 +398,29 @@ class Pipeline:
             if self._renderer is None:
                 return None
         if render_light is None:
-            light = np.asarray(coeffs, np.float64) * (math.pi
-                                                      / self.config.render.render_real_albedo)
+            light = np.asarray(coeffs, np.float64) * (
+                math.pi / self.config.render.render_real_albedo
+            )
             light_rgb = luminance_light_rgb(estimate.sh_rgb)
         else:  # an outside light (the panorama's), as many coefficients as the estimate
             n = len(coeffs)
             light = np.zeros(n)
             given = np.asarray(render_light.sh, np.float64)[:n]
-            light[:len(given)] = given
+            light[: len(given)] = given
             light_rgb = luminance_light_rgb(render_light.sh_rgb)
         environment = None if render_light is None else render_light.environment
-        inputs = RenderInputs(valid.color, color_linear, geometry.depth_m, geometry.normals,
-                              pose, list(aux_buffers), geometry.plane, light, light_rgb,
-                              environment)
+        inputs = RenderInputs(
+            valid.color,
+            color_linear,
+            geometry.depth_m,
+            geometry.normals,
+            pose,
+            list(aux_buffers),
+            geometry.plane,
+            light,
+            light_rgb,
+            environment,
+        )
         output = self._renderer.render(inputs)
         self.last_render = (inputs, output)
         return output.composite
@@ -385,9 +447,12 @@ class Pipeline:
             return sh.dominant_direction(coeffs)
         return sh.above_horizon_direction(coeffs, self._up_world)
 
-    def _reconstruct(self, valid: ValidFrame, timings: dict[str, float],
-                     diagnostics: Diagnostics,
-                     ) -> tuple[np.ndarray, np.ndarray | None, list, bool]:
+    def _reconstruct(
+        self,
+        valid: ValidFrame,
+        timings: dict[str, float],
+        diagnostics: Diagnostics,
+    ) -> tuple[np.ndarray, np.ndarray | None, list, bool]:
         """Reconstruct + Surface: (pose, D_v or None, aux buffers, tracked: the frame was
         tracked or its pose given, else the last pose is kept); tracking diagnostics and
         `reused` ({stage: bool}: a still camera's stage outputs taken from an earlier frame)."""
@@ -398,15 +463,20 @@ class Pipeline:
             tracked = valid.pose is not None or self.frames_processed == 0
             pose = valid.pose if valid.pose is not None else self._pose
             tracking: TrackingDiagnostics = {
-                "ok": tracked, "reason": "" if tracked else "no volume (use_volume false) and "
-                                                            "no pose: the last pose is kept"}
+                "ok": tracked,
+                "reason": ""
+                if tracked
+                else "no volume (use_volume false) and no pose: the last pose is kept",
+            }
         else:
-            surface = self._volume.process_validated(valid.depth_m, valid.pose,
-                                                     self._light_world)
+            surface = self._volume.process_validated(valid.depth_m, valid.pose, self._light_world)
             timings["Reconstruct"] = surface.timings_ms.get("Reconstruct", 0.0)
             timings["Surface"] = surface.timings_ms.get("Surface", 0.0)
-            pose, depth_volume, aux_buffers = (surface.pose, surface.depth_volume_m,
-                                               surface.aux_buffers)
+            pose, depth_volume, aux_buffers = (
+                surface.pose,
+                surface.depth_volume_m,
+                surface.aux_buffers,
+            )
             tracked = bool(surface.tracking.ok)
             tracking = cast(TrackingDiagnostics, surface.tracking.to_dict())
             # a still camera: fusion skipped, the last frame's cast and aux buffers reused
@@ -416,23 +486,30 @@ class Pipeline:
         diagnostics["tracking"] = tracking
         return pose, depth_volume, aux_buffers, tracked
 
-    def _dynamic_geometry(self, depth_m: np.ndarray, depth_volume: np.ndarray | None,
-                          intensity: np.ndarray) -> _Geometry:
+    def _dynamic_geometry(
+        self, depth_m: np.ndarray, depth_volume: np.ndarray | None, intensity: np.ndarray
+    ) -> _Geometry:
         """DynGeo: the filter chain (eq. 1-5), normals, points and the support plane."""
         c = self.config
-        depth_filtered, _ = filter_depth(depth_m, depth_volume, intensity, c.filter,
-                                         backend=backend_for_device(c.device))
+        depth_filtered, _ = filter_depth(
+            depth_m, depth_volume, intensity, c.filter, backend=backend_for_device(c.device)
+        )
         normals = normals_from_depth(
-            smooth_depth_for_normals(depth_filtered, c.filter.normal_window), self.camera)
+            smooth_depth_for_normals(depth_filtered, c.filter.normal_window), self.camera
+        )
         points = self.camera.unproject(depth_filtered)
         plane = None
-        if (c.transfer.rt_horizon or c.estimation.horizon_prior > 0
-                or c.estimation.segment_split_ground):
+        if (
+            c.transfer.rt_horizon
+            or c.estimation.horizon_prior > 0
+            or c.estimation.segment_split_ground
+        ):
             plane = support_plane(normals, points)
         return _Geometry(depth_filtered, normals, points, plane)
 
-    def _transfer(self, geometry: _Geometry, color_linear: np.ndarray, pose: np.ndarray,
-                  aux_buffers: list) -> TransferSamples:
+    def _transfer(
+        self, geometry: _Geometry, color_linear: np.ndarray, pose: np.ndarray, aux_buffers: list
+    ) -> TransferSamples:
         """RadTransfer: `_sampled_transfer`, its unoccluded part made exact
         (rt_exact_unoccluded; not with rt_horizon, where below the horizon is the ground's,
         the bounce term's, not the light's)."""
@@ -442,8 +519,9 @@ class Pipeline:
             return samples
         return with_exact_unoccluded(samples, geometry.normals, pose, self._quadrature_table)
 
-    def _sampled_transfer(self, geometry: _Geometry, color_linear: np.ndarray,
-                          pose: np.ndarray, aux_buffers: list) -> TransferSamples:
+    def _sampled_transfer(
+        self, geometry: _Geometry, color_linear: np.ndarray, pose: np.ndarray, aux_buffers: list
+    ) -> TransferSamples:
         """The transfer (eq. 6-9, or rays against the surface with rt_method "raycast") where
         the light estimate needs it: at most CANDIDATES_PER_SAMPLE x light_max_samples pixels
         with geometry, chosen at random (seeded), the rest of the image being work nothing
@@ -458,31 +536,75 @@ class Pipeline:
         has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
         if self._raycaster is not None:  # rt_method raycast
             grid = self._raycaster.compute(
-geometry.points, geometry.normals, self.camera,
-                                           pose, self.pattern, p, lum, plane, self._volume)
+                geometry.points,
+                geometry.normals,
+                self.camera,
+                pose,
+                self.pattern,
+                p,
+                lum,
+                plane,
+                self._volume,
+            )
         else:
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
             if p.rt_subsample == 1:
                 vs, us = random_pixels(has_geometry, budget, seed)
                 t, b, ok = transfer_at_pixels(
-                    geometry.points, geometry.normals, self.camera, pose, self.pattern, aux, p,
-                    us, vs, None if lum is None else lum[..., None], plane)
-                return TransferSamples(vs[ok], us[ok], t[ok].astype(np.float32),
-                                       None if lum is None else b[ok, 0].astype(np.float32))
-            grid = compute_transfer(geometry.points, geometry.normals, self.camera, pose,
-                                    self.pattern, aux, p, lum, plane)
+                    geometry.points,
+                    geometry.normals,
+                    self.camera,
+                    pose,
+                    self.pattern,
+                    aux,
+                    p,
+                    us,
+                    vs,
+                    None if lum is None else lum[..., None],
+                    plane,
+                )
+                return TransferSamples(
+                    vs[ok],
+                    us[ok],
+                    t[ok].astype(np.float32),
+                    None if lum is None else b[ok, 0].astype(np.float32),
+                )
+            grid = compute_transfer(
+                geometry.points,
+                geometry.normals,
+                self.camera,
+                pose,
+                self.pattern,
+                aux,
+                p,
+                lum,
+                plane,
+            )
         interpolate_to = has_geometry if p.rt_upsample and p.rt_subsample > 1 else None
-        samples, (vs, us) = interpolated_samples(grid, interpolate_to, budget, seed,
-                                                 p.rt_refine_spread)
+        samples, (vs, us) = interpolated_samples(
+            grid, interpolate_to, budget, seed, p.rt_refine_spread
+        )
         if not len(vs) or p.rt_method is RtMethod.RAYCAST:
             return samples
         t, b, ok = transfer_at_pixels(  # edges: their own transfer, not the grid's
-            geometry.points, geometry.normals, self.camera, pose, self.pattern, aux, p, us, vs,
-            None if lum is None else lum[..., None], plane)
+            geometry.points,
+            geometry.normals,
+            self.camera,
+            pose,
+            self.pattern,
+            aux,
+            p,
+            us,
+            vs,
+            None if lum is None else lum[..., None],
+            plane,
+        )
         return TransferSamples(
-            np.concatenate([samples.pixel_v, vs[ok]]), np.concatenate([samples.pixel_u, us[ok]]),
+            np.concatenate([samples.pixel_v, vs[ok]]),
+            np.concatenate([samples.pixel_u, us[ok]]),
             np.concatenate([samples.transfer, t[ok].astype(np.float32)]),
-            None if lum is None else np.concatenate([samples.bounce, b[ok, 0].astype(np.float32)]))
+            None if lum is None else np.concatenate([samples.bounce, b[ok, 0].astype(np.float32)]),
+        )
 
     def _segments(self, color_linear: np.ndarray, geometry: _Geometry) -> np.ndarray | None:
         """(H, W) material labels for the light estimate (albedo_segments), or None."""
@@ -490,40 +612,62 @@ geometry.points, geometry.normals, self.camera,
         if not p.albedo_segments:
             return None
         segments = material_segments(
-            color_linear, geometry.depth_m, scale=p.segment_scale,
-            features=p.segment_features.value, illuminant_weight=p.segment_illuminant_weight)
+            color_linear,
+            geometry.depth_m,
+            scale=p.segment_scale,
+            features=p.segment_features.value,
+            illuminant_weight=p.segment_illuminant_weight,
+        )
         if geometry.plane is not None and p.segment_split_ground:
             # what stands on the ground is rarely made of the ground's material
             segments = segments * 2 + geometry.plane.on_plane
         return segments
 
-    def _estimate(self, samples: TransferSamples, color_linear: np.ndarray,
-                  segments: np.ndarray | None, up_world: np.ndarray | None = None,
-                  below_horizon_unseen: bool = False,
-                  checkpoint: Callable[[], None] | None = None) -> LightEstimate:
+    def _estimate(
+        self,
+        samples: TransferSamples,
+        color_linear: np.ndarray,
+        segments: np.ndarray | None,
+        up_world: np.ndarray | None = None,
+        below_horizon_unseen: bool = False,
+        checkpoint: Callable[[], None] | None = None,
+    ) -> LightEstimate:
         """LightEst (T l = I_c, section 5.2) on the sampled pixels; albedo per segment
         (segments: (H, W) labels or None)."""
         p = self.config.estimation
         n = samples.transfer.shape[-1]
         if not len(samples.pixel_v):
-            return LightEstimate(np.zeros(n), Confidence(reason="no valid depth"),
-                                 np.zeros((3, n)) if p.estimate_rgb else None)
+            return LightEstimate(
+                np.zeros(n),
+                Confidence(reason="no valid depth"),
+                np.zeros((3, n)) if p.estimate_rgb else None,
+            )
         pixels = (samples.pixel_v, samples.pixel_u)
-        return estimate_light(samples.transfer, color_linear[pixels], p,
-                              None if segments is None else segments[pixels], samples.bounce,
-                              up_world, below_horizon_unseen, seed=self.config.seed,
-                              checkpoint=checkpoint)
+        return estimate_light(
+            samples.transfer,
+            color_linear[pixels],
+            p,
+            None if segments is None else segments[pixels],
+            samples.bounce,
+            up_world,
+            below_horizon_unseen,
+            seed=self.config.seed,
+            checkpoint=checkpoint,
+        )
 
-    def _estimate_diagnostics(self, estimate: LightEstimate, up_world: np.ndarray | None,
-                              confidence: Confidence, raw_direction: np.ndarray
-                              ) -> Diagnostics:
+    def _estimate_diagnostics(
+        self,
+        estimate: LightEstimate,
+        up_world: np.ndarray | None,
+        confidence: Confidence,
+        raw_direction: np.ndarray,
+    ) -> Diagnostics:
         """Plain JSON types (the wire carries them): what the light estimate did and why."""
         return {
             "residual_rel": _json_float(estimate.residual_rel),
             "bounce_scale": float(estimate.bounce_scale),
             "horizon_prior_used": bool(estimate.horizon_prior_used),
-            "support_plane_up_world": (None if up_world is None
-                                       else [float(x) for x in up_world]),
+            "support_plane_up_world": (None if up_world is None else [float(x) for x in up_world]),
             "raw_dominant_direction_world": [float(x) for x in raw_direction],
             "bands_requested": int(self.config.transfer.sh_bands),
             "bands_estimated": int(estimate.confidence.bands_estimated),

@@ -57,8 +57,9 @@ def jittered_directions(n: int, rng: np.random.Generator) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def unoccluded_quadrature_error(normals_world: np.ndarray, directions_world: np.ndarray,
-                                bands: int) -> np.ndarray:
+def unoccluded_quadrature_error(
+    normals_world: np.ndarray, directions_world: np.ndarray, bands: int
+) -> np.ndarray:
     """(K, C): the exact clamped-cosine transfer of unit normals (K, 3), A_l Y_lm(n)
     (Ramamoorthi and Hanrahan 2001), minus the sampling pattern's estimate of it,
     sum_j max(0, n . w_j) Y(w_j) 4 pi / N, both world frame.
@@ -130,8 +131,9 @@ class AuxBufferArrays:
         if not buffers:
             return cls.empty()
         depth = np.stack([b.depth_m for b in buffers]).astype(np.float32)
-        b_from_c = np.stack([(np.linalg.inv(b.world_from_buffer) @ world_from_cam)[:3]
-                             for b in buffers])
+        b_from_c = np.stack(
+            [(np.linalg.inv(b.world_from_buffer) @ world_from_cam)[:3] for b in buffers]
+        )
         pix = np.array([b.pixel_size_m for b in buffers], dtype=np.float64)
         return cls(depth, b_from_c, pix)
 
@@ -148,8 +150,27 @@ def _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi):
 
 
 @register_jitable
-def _visibility(px, py, pz, wx, wy, wz, radius, depth, fx, fy, cx, cy,
-                aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness):
+def _visibility(
+    px,
+    py,
+    pz,
+    wx,
+    wy,
+    wz,
+    radius,
+    depth,
+    fx,
+    fy,
+    cx,
+    cy,
+    aux_depth,
+    aux_from_cam,
+    aux_pix,
+    chi,
+    bias_abs,
+    bias_rel,
+    thickness,
+):
     """Continuous visibility K in [0, 1] of one sample y = x + radius * w."""
     yx, yy, yz = px + radius * wx, py + radius * wy, pz + radius * wz
     k = 1.0
@@ -202,9 +223,33 @@ def _ground_pixel(px, py, pz, wx, wy, wz, t, depth, fx, fy, cx, cy):
 
 
 @register_jitable
-def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii,
-                    aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness,
-                    use_visibility, radiance, plane, ground, out, bounce):
+def _transfer_pixel(
+    ui,
+    vi,
+    points,
+    normals,
+    depth,
+    fx,
+    fy,
+    cx,
+    cy,
+    dirs,
+    ysh,
+    radii,
+    aux_depth,
+    aux_from_cam,
+    aux_pix,
+    chi,
+    bias_abs,
+    bias_rel,
+    thickness,
+    use_visibility,
+    radiance,
+    plane,
+    ground,
+    out,
+    bounce,
+):
     """Fill out (C,) with the SH transfer vector of pixel (ui, vi) and bounce (B,) with
     sum_j (1 - K_j) max(0, w_j . n) I(s_j) 4 pi / N, the one-bounce light from the occluders,
     I(s_j) the radiance image (H, W, B) where the blocking sample projects (no bounce when
@@ -245,9 +290,27 @@ def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, r
         if use_visibility:
             for s in range(steps):
                 radius = radii[vi % 2, ui % 2, j, s]
-                ks = _visibility(px, py, pz, wx, wy, wz, radius, depth, fx, fy, cx, cy,
-                                 aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel,
-                                 thickness)
+                ks = _visibility(
+                    px,
+                    py,
+                    pz,
+                    wx,
+                    wy,
+                    wz,
+                    radius,
+                    depth,
+                    fx,
+                    fy,
+                    cx,
+                    cy,
+                    aux_depth,
+                    aux_from_cam,
+                    aux_pix,
+                    chi,
+                    bias_abs,
+                    bias_rel,
+                    thickness,
+                )
                 if ks < k:
                     k = ks
                     blocker = radius
@@ -255,8 +318,9 @@ def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, r
         cos_up = wx * ux + wy * uy + wz * uz
         if use_plane and cos_up < 0.0:
             if with_bounce and f > 0.0:
-                gu, gv = _ground_pixel(px, py, pz, wx, wy, wz, max(height, 0.0) / -cos_up,
-                                       depth, fx, fy, cx, cy)
+                gu, gv = _ground_pixel(
+                    px, py, pz, wx, wy, wz, max(height, 0.0) / -cos_up, depth, fx, fy, cx, cy
+                )
                 for c in range(nb):
                     bounce[c] += f * (radiance[gv, gu, c] if gu >= 0 else ground[c])
         elif f > 0.0:
@@ -274,9 +338,33 @@ def _transfer_pixel(ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, r
 
 
 @numba.njit(parallel=True, cache=True)
-def _transfer_cpu(points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
-                  aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness, use_visibility,
-                  radiance, plane, ground, step, transfer, bounce, valid):
+def _transfer_cpu(
+    points,
+    normals,
+    depth,
+    fx,
+    fy,
+    cx,
+    cy,
+    dirs,
+    ysh,
+    radii,
+    aux_depth,
+    aux_from_cam,
+    aux_pix,
+    chi,
+    bias_abs,
+    bias_rel,
+    thickness,
+    use_visibility,
+    radiance,
+    plane,
+    ground,
+    step,
+    transfer,
+    bounce,
+    valid,
+):
     hs, ws = valid.shape
     h, w = depth.shape
     for i in numba.prange(hs):
@@ -284,21 +372,91 @@ def _transfer_cpu(points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_
         for jj in range(ws):
             ui = min(jj * step + step // 2, w - 1)
             valid[i, jj] = _transfer_pixel(
-                ui, vi, points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
-                aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness, use_visibility,
-                radiance, plane, ground, transfer[i, jj], bounce[i, jj])
+                ui,
+                vi,
+                points,
+                normals,
+                depth,
+                fx,
+                fy,
+                cx,
+                cy,
+                dirs,
+                ysh,
+                radii,
+                aux_depth,
+                aux_from_cam,
+                aux_pix,
+                chi,
+                bias_abs,
+                bias_rel,
+                thickness,
+                use_visibility,
+                radiance,
+                plane,
+                ground,
+                transfer[i, jj],
+                bounce[i, jj],
+            )
 
 
 @numba.njit(parallel=True, cache=True)
-def _transfer_list_cpu(points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii, aux_depth,
-                       aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness,
-                       use_visibility, radiance, plane, ground, us, vs, transfer, bounce,
-                       valid):
+def _transfer_list_cpu(
+    points,
+    normals,
+    depth,
+    fx,
+    fy,
+    cx,
+    cy,
+    dirs,
+    ysh,
+    radii,
+    aux_depth,
+    aux_from_cam,
+    aux_pix,
+    chi,
+    bias_abs,
+    bias_rel,
+    thickness,
+    use_visibility,
+    radiance,
+    plane,
+    ground,
+    us,
+    vs,
+    transfer,
+    bounce,
+    valid,
+):
     for p in numba.prange(us.shape[0]):
         valid[p] = _transfer_pixel(
-            us[p], vs[p], points, normals, depth, fx, fy, cx, cy, dirs, ysh, radii,
-            aux_depth, aux_from_cam, aux_pix, chi, bias_abs, bias_rel, thickness,
-            use_visibility, radiance, plane, ground, transfer[p], bounce[p])
+            us[p],
+            vs[p],
+            points,
+            normals,
+            depth,
+            fx,
+            fy,
+            cx,
+            cy,
+            dirs,
+            ysh,
+            radii,
+            aux_depth,
+            aux_from_cam,
+            aux_pix,
+            chi,
+            bias_abs,
+            bias_rel,
+            thickness,
+            use_visibility,
+            radiance,
+            plane,
+            ground,
+            transfer[p],
+            bounce[p],
+        )
 
 
 @dataclass
@@ -326,11 +484,17 @@ BIAS_REL = 0.01
 HORIZON_BELOW_M = 0.05
 
 
-def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: PinholeCamera,
-                     world_from_cam: np.ndarray, pattern: SamplingPattern,
-                     aux: AuxBufferArrays | None, params: TransferParams,
-                     luminance: np.ndarray | None = None,
-                     plane: SupportPlane | None = None) -> TransferResult:
+def compute_transfer(
+    points_cam: np.ndarray,
+    normals_cam: np.ndarray,
+    camera: PinholeCamera,
+    world_from_cam: np.ndarray,
+    pattern: SamplingPattern,
+    aux: AuxBufferArrays | None,
+    params: TransferParams,
+    luminance: np.ndarray | None = None,
+    plane: SupportPlane | None = None,
+) -> TransferResult:
     """SH radiance transfer for every `params.rt_subsample`-th pixel (section 5.1, eq. 6-9).
 
     points_cam: (H, W, 3) float32 camera-frame points of the filtered depth (z = 0 missing);
@@ -346,33 +510,46 @@ def compute_transfer(points_cam: np.ndarray, normals_cam: np.ndarray, camera: Pi
     if luminance is not None:  # a public entry: the one image not made from points_cam
         check_image(luminance, "luminance", size=(w, h))
         luminance = np.asarray(luminance)[..., None]
-    k = _KernelInputs.make(points_cam, normals_cam, world_from_cam, pattern, aux, params,
-                           luminance, plane)
+    k = _KernelInputs.make(
+        points_cam, normals_cam, world_from_cam, pattern, aux, params, luminance, plane
+    )
     transfer = np.zeros((hs, ws, k.ysh.shape[1]), np.float64)
     valid = np.zeros((hs, ws), np.bool_)
     bounce = np.zeros((hs, ws, 1), np.float64)
     _transfer_cpu(*k.args(camera, params, pattern), step, transfer, bounce, valid)
     u = np.minimum(np.arange(ws) * step + step // 2, w - 1)
     v = np.minimum(np.arange(hs) * step + step // 2, h - 1)
-    return TransferResult(transfer.astype(np.float32), valid, u, v,
-                          bounce[..., 0].astype(np.float32) if luminance is not None else None)
+    return TransferResult(
+        transfer.astype(np.float32),
+        valid,
+        u,
+        v,
+        bounce[..., 0].astype(np.float32) if luminance is not None else None,
+    )
 
 
-def transfer_at_pixels(points_cam: np.ndarray, normals_cam: np.ndarray, camera: PinholeCamera,
-                       world_from_cam: np.ndarray, pattern: SamplingPattern,
-                       aux: AuxBufferArrays | None, params: TransferParams,
-                       pixels_u: np.ndarray, pixels_v: np.ndarray,
-                       radiance: np.ndarray | None = None,
-                       plane: SupportPlane | None = None,
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def transfer_at_pixels(
+    points_cam: np.ndarray,
+    normals_cam: np.ndarray,
+    camera: PinholeCamera,
+    world_from_cam: np.ndarray,
+    pattern: SamplingPattern,
+    aux: AuxBufferArrays | None,
+    params: TransferParams,
+    pixels_u: np.ndarray,
+    pixels_v: np.ndarray,
+    radiance: np.ndarray | None = None,
+    plane: SupportPlane | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The transfer of :func:`compute_transfer` at the listed pixels only (the renderer's
     region around the virtual objects): (transfer (K, C) float64, bounce (K, B) float64,
     valid (K,) bool). radiance: optional (H, W, B) linear image whose light the occluders
     bounce (B channels, e.g. RGB); without it bounce is (K, 0)."""
     us = np.ascontiguousarray(pixels_u, dtype=np.int64)
     vs = np.ascontiguousarray(pixels_v, dtype=np.int64)
-    k = _KernelInputs.make(points_cam, normals_cam, world_from_cam, pattern, aux, params,
-                           radiance, plane)
+    k = _KernelInputs.make(
+        points_cam, normals_cam, world_from_cam, pattern, aux, params, radiance, plane
+    )
     channels = 0 if radiance is None else radiance.shape[2]
     transfer = np.zeros((len(us), k.ysh.shape[1]), np.float64)
     bounce = np.zeros((len(us), max(channels, 1)), np.float64)
@@ -396,29 +573,59 @@ class _KernelInputs:
     ground: np.ndarray
 
     @classmethod
-    def make(cls, points_cam, normals_cam, world_from_cam, pattern, aux, params, radiance,
-             plane) -> _KernelInputs:
+    def make(
+        cls, points_cam, normals_cam, world_from_cam, pattern, aux, params, radiance, plane
+    ) -> _KernelInputs:
         dirs_world = pattern.directions @ np.asarray(world_from_cam, np.float64)[:3, :3].T
         points = np.ascontiguousarray(points_cam, dtype=np.float32)
-        rad = (np.zeros((1, 1, 1), np.float32) if radiance is None
-               else np.ascontiguousarray(radiance, dtype=np.float32))
+        rad = (
+            np.zeros((1, 1, 1), np.float32)
+            if radiance is None
+            else np.ascontiguousarray(radiance, dtype=np.float32)
+        )
         plane_arr, ground = plane_arrays(plane, rad if radiance is not None else None)
-        return cls(points, np.ascontiguousarray(normals_cam, dtype=np.float32),
-                   np.ascontiguousarray(points[..., 2]), sh.sh_basis(dirs_world, params.sh_bands),
-                   aux if aux is not None else AuxBufferArrays.empty(), rad, plane_arr,
-                   np.broadcast_to(np.asarray(ground, np.float64), (rad.shape[2],)).copy())
+        return cls(
+            points,
+            np.ascontiguousarray(normals_cam, dtype=np.float32),
+            np.ascontiguousarray(points[..., 2]),
+            sh.sh_basis(dirs_world, params.sh_bands),
+            aux if aux is not None else AuxBufferArrays.empty(),
+            rad,
+            plane_arr,
+            np.broadcast_to(np.asarray(ground, np.float64), (rad.shape[2],)).copy(),
+        )
 
-    def args(self, camera: PinholeCamera, params: TransferParams,
-             pattern: SamplingPattern) -> tuple:
-        return (self.points, self.normals, self.depth, camera.fx, camera.fy, camera.cx,
-                camera.cy, pattern.directions, self.ysh, pattern.radii, self.aux.depth,
-                self.aux.buffer_from_cam, self.aux.pixel_size, visibility_ramp(pattern, params),
-                BIAS_ABS_M, BIAS_REL, params.rt_thickness_m, params.visibility, self.radiance,
-                self.plane, self.ground)
+    def args(
+        self, camera: PinholeCamera, params: TransferParams, pattern: SamplingPattern
+    ) -> tuple:
+        return (
+            self.points,
+            self.normals,
+            self.depth,
+            camera.fx,
+            camera.fy,
+            camera.cx,
+            camera.cy,
+            pattern.directions,
+            self.ysh,
+            pattern.radii,
+            self.aux.depth,
+            self.aux.buffer_from_cam,
+            self.aux.pixel_size,
+            visibility_ramp(pattern, params),
+            BIAS_ABS_M,
+            BIAS_REL,
+            params.rt_thickness_m,
+            params.visibility,
+            self.radiance,
+            self.plane,
+            self.ground,
+        )
 
 
-def plane_arrays(plane: SupportPlane | None,
-                 luminance: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | float]:
+def plane_arrays(
+    plane: SupportPlane | None, luminance: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | float]:
     """(up, offset) as a (4,) array (zeros: no plane) and the ground's median luminance:
     a float for an (H, W) image, per channel (B,) for an (H, W, B) one; 0 without either."""
     if plane is None:
@@ -440,7 +647,7 @@ def _remap_channels(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> 
     c = image.shape[2]
     chunks = []
     for start in range(0, c, REMAP_MAX_CHANNELS):
-        part = np.ascontiguousarray(image[..., start:start + REMAP_MAX_CHANNELS])
+        part = np.ascontiguousarray(image[..., start : start + REMAP_MAX_CHANNELS])
         out = cv2.remap(part, map_x, map_y, cv2.INTER_LINEAR)
         chunks.append(out.reshape(*map_x.shape, part.shape[2]))
     return chunks[0] if len(chunks) == 1 else np.concatenate(chunks, axis=2)
@@ -464,8 +671,9 @@ def upsample_transfer(result: TransferResult, valid_full: np.ndarray) -> Transfe
     map_x = np.ascontiguousarray(np.broadcast_to(map_u[None, :], (h, w)))
     map_y = np.ascontiguousarray(np.broadcast_to(map_v[:, None], (h, w)))
     weight = result.valid.astype(np.float32)
-    transfer = _remap_channels(np.asarray(result.transfer * weight[..., None], np.float32),
-                               map_x, map_y)
+    transfer = _remap_channels(
+        np.asarray(result.transfer * weight[..., None], np.float32), map_x, map_y
+    )
     den = cv2.remap(weight, map_x, map_y, cv2.INTER_LINEAR)
     keep = valid_full & (den > 0.999)
     # normalised, and zero where not kept, in place (float32 throughout)
@@ -473,8 +681,9 @@ def upsample_transfer(result: TransferResult, valid_full: np.ndarray) -> Transfe
     transfer *= inv[..., None]
     bounce = None
     if result.bounce is not None:
-        bounce = cv2.remap(np.asarray(result.bounce * weight, np.float32), map_x, map_y,
-                           cv2.INTER_LINEAR)
+        bounce = cv2.remap(
+            np.asarray(result.bounce * weight, np.float32), map_x, map_y, cv2.INTER_LINEAR
+        )
         bounce *= inv
     return TransferResult(transfer, keep, np.arange(w), np.arange(h), bounce)
 
@@ -502,8 +711,10 @@ def _octahedral_uv(n: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     lower = m[:, 2] < 0.0
     fx = np.where(lower, (1.0 - np.abs(y)) * np.where(x >= 0, 1.0, -1.0), x)
     fy = np.where(lower, (1.0 - np.abs(x)) * np.where(y >= 0, 1.0, -1.0), y)
-    return (((fx + 1.0) * 0.5 * size - 0.5).astype(np.float32),
-            ((fy + 1.0) * 0.5 * size - 0.5).astype(np.float32))
+    return (
+        ((fx + 1.0) * 0.5 * size - 0.5).astype(np.float32),
+        ((fy + 1.0) * 0.5 * size - 0.5).astype(np.float32),
+    )
 
 
 def _octahedral_directions(size: int) -> np.ndarray:
@@ -518,8 +729,9 @@ def _octahedral_directions(size: int) -> np.ndarray:
     return -m / np.linalg.norm(m, axis=-1, keepdims=True)
 
 
-def quadrature_error_table(pattern: SamplingPattern, bands: int,
-                           size: int = QUADRATURE_TABLE_SIZE) -> np.ndarray:
+def quadrature_error_table(
+    pattern: SamplingPattern, bands: int, size: int = QUADRATURE_TABLE_SIZE
+) -> np.ndarray:
     """(size, size, C) float32: `unoccluded_quadrature_error` of the pattern's directions
     (camera frame) at the texel centres of an octahedral map of normals (camera frame).
     Made once per session: the pattern is fixed in the camera frame."""
@@ -528,9 +740,12 @@ def quadrature_error_table(pattern: SamplingPattern, bands: int,
     return table.reshape(size, size, -1).astype(np.float32)
 
 
-def with_exact_unoccluded(samples: TransferSamples, normals_cam: np.ndarray,
-                          world_from_cam: np.ndarray, table: np.ndarray,
-                          ) -> TransferSamples:
+def with_exact_unoccluded(
+    samples: TransferSamples,
+    normals_cam: np.ndarray,
+    world_from_cam: np.ndarray,
+    table: np.ndarray,
+) -> TransferSamples:
     """The samples' transfer plus `unoccluded_quadrature_error` of their own normals (the
     control variate, TransferParams.rt_exact_unoccluded): the unoccluded part of each
     vector becomes the exact clamped-cosine transfer; blocked directions keep their SSDO
@@ -547,11 +762,14 @@ def with_exact_unoccluded(samples: TransferSamples, normals_cam: np.ndarray,
     # (cv2.remap takes maps shorter than 32767 on each side)
     k = len(map_x)
     rows = -(-k // 256)
-    maps = [np.pad(np.clip(m, 0.0, size - 1.0), (0, rows * 256 - k)).reshape(rows, 256)
-            for m in (map_x, map_y)]
+    maps = [
+        np.pad(np.clip(m, 0.0, size - 1.0), (0, rows * 256 - k)).reshape(rows, 256)
+        for m in (map_x, map_y)
+    ]
     correction_cam = _remap_channels(table, *maps).reshape(rows * 256, -1)[:k]
-    rotation = sh.rotation_matrix(np.asarray(world_from_cam, np.float64)[:3, :3],
-                                  sh.bands_of(table.shape[2])).astype(np.float32)
+    rotation = sh.rotation_matrix(
+        np.asarray(world_from_cam, np.float64)[:3, :3], sh.bands_of(table.shape[2])
+    ).astype(np.float32)
     transfer = np.array(samples.transfer, copy=True)
     transfer[ok] += correction_cam @ rotation.T
     return dataclasses.replace(samples, transfer=transfer)
@@ -567,15 +785,20 @@ def random_pixels(mask: np.ndarray, max_pixels: int, seed: int) -> tuple[np.ndar
     return rows.astype(np.int64), cols.astype(np.int64)
 
 
-def transfer_samples(result: TransferResult, valid_full: np.ndarray | None,
-                     max_pixels: int, seed: int) -> TransferSamples:
+def transfer_samples(
+    result: TransferResult, valid_full: np.ndarray | None, max_pixels: int, seed: int
+) -> TransferSamples:
     """`interpolated_samples` without edge refinement: the samples only."""
     return interpolated_samples(result, valid_full, max_pixels, seed)[0]
 
 
-def interpolated_samples(result: TransferResult, valid_full: np.ndarray | None,
-                         max_pixels: int, seed: int, edge_spread: float = 0.0,
-                         ) -> tuple[TransferSamples, tuple[np.ndarray, np.ndarray]]:
+def interpolated_samples(
+    result: TransferResult,
+    valid_full: np.ndarray | None,
+    max_pixels: int,
+    seed: int,
+    edge_spread: float = 0.0,
+) -> tuple[TransferSamples, tuple[np.ndarray, np.ndarray]]:
     """The pixels the light estimate may use, at most `max_pixels` of them (a seeded random
     subset above that; neighbouring pixels repeat each other), with their transfer.
 
@@ -599,17 +822,24 @@ def interpolated_samples(result: TransferResult, valid_full: np.ndarray | None,
     if not interpolate:
         pv = np.asarray(result.pixel_v)[rows]
         pu = np.asarray(result.pixel_u)[cols]
-        return TransferSamples(pv.astype(np.int64), pu.astype(np.int64),
-                               result.transfer[rows, cols],
-                               None if bounce is None else bounce[rows, cols]), none
+        return TransferSamples(
+            pv.astype(np.int64),
+            pu.astype(np.int64),
+            result.transfer[rows, cols],
+            None if bounce is None else bounce[rows, cols],
+        ), none
     gu = np.interp(cols, result.pixel_u, np.arange(ws))  # fractional grid coordinates
     gv = np.interp(rows, result.pixel_v, np.arange(hs))
     u0 = np.minimum(np.floor(gu).astype(np.int64), ws - 1)
     v0 = np.minimum(np.floor(gv).astype(np.int64), hs - 1)
     u1, v1 = np.minimum(u0 + 1, ws - 1), np.minimum(v0 + 1, hs - 1)
     fu, fv = (gu - u0).astype(np.float32), (gv - v0).astype(np.float32)
-    corners = [(v0, u0, (1 - fv) * (1 - fu)), (v0, u1, (1 - fv) * fu),
-               (v1, u0, fv * (1 - fu)), (v1, u1, fv * fu)]
+    corners = [
+        (v0, u0, (1 - fv) * (1 - fu)),
+        (v0, u1, (1 - fv) * fu),
+        (v1, u0, fv * (1 - fu)),
+        (v1, u1, fv * fu),
+    ]
     den = np.zeros(len(rows), np.float32)
     num = np.zeros((len(rows), result.transfer.shape[-1]), np.float32)
     num_b = None if bounce is None else np.zeros(len(rows), np.float32)
@@ -631,15 +861,17 @@ def interpolated_samples(result: TransferResult, valid_full: np.ndarray | None,
         for v, u, wgt in corners:  # the corners the pixel's interpolation reads
             at = v * ws + u
             gap = np.linalg.norm(np.take(flat_t, at, axis=0) - mean, axis=1)
-            spread = np.maximum(spread, np.where(np.take(flat_valid, at) & (wgt > 0), gap,
-                                                 0.0))
+            spread = np.maximum(spread, np.where(np.take(flat_valid, at) & (wgt > 0), gap, 0.0))
         sharp = keep & (spread > edge_spread * np.linalg.norm(mean, axis=1))
         edges = (rows[sharp].astype(np.int64), cols[sharp].astype(np.int64))
         keep &= ~sharp
     inv = 1.0 / den[keep]
-    return TransferSamples(rows[keep].astype(np.int64), cols[keep].astype(np.int64),
-                           num[keep] * inv[:, None],
-                           None if num_b is None else num_b[keep] * inv), edges
+    return TransferSamples(
+        rows[keep].astype(np.int64),
+        cols[keep].astype(np.int64),
+        num[keep] * inv[:, None],
+        None if num_b is None else num_b[keep] * inv,
+    ), edges
 
 
 def _occlusion_reference(x: np.ndarray, s: np.ndarray, w: np.ndarray, chi: float) -> float:
@@ -651,9 +883,16 @@ def _occlusion_reference(x: np.ndarray, s: np.ndarray, w: np.ndarray, chi: float
     return min(chi, 1.0 - float(t @ w) / norm) / chi
 
 
-def _visibility_reference(x: np.ndarray, w: np.ndarray, radius: float, depth: np.ndarray,
-                          camera: PinholeCamera, aux: AuxBufferArrays, chi: float,
-                          thickness: float) -> float:
+def _visibility_reference(
+    x: np.ndarray,
+    w: np.ndarray,
+    radius: float,
+    depth: np.ndarray,
+    camera: PinholeCamera,
+    aux: AuxBufferArrays,
+    chi: float,
+    thickness: float,
+) -> float:
     """K in [0, 1] of one sample y = x + radius * w against the main and auxiliary buffers."""
     y = x + radius * w
     k = 1.0
@@ -664,8 +903,9 @@ def _visibility_reference(x: np.ndarray, w: np.ndarray, radius: float, depth: np
         if 0 <= u < width and 0 <= v < h:
             sz = float(depth[v, u])
             if 0.0 < sz < y[2] - (BIAS_ABS_M + BIAS_REL * y[2]) and sz > y[2] - thickness:
-                s = np.array([(u - camera.cx) / camera.fx * sz, (v - camera.cy) / camera.fy * sz,
-                              sz])
+                s = np.array(
+                    [(u - camera.cx) / camera.fx * sz, (v - camera.cy) / camera.fy * sz, sz]
+                )
                 k = min(k, _occlusion_reference(x, s, w, chi))
     for b in range(aux.depth.shape[0]):
         rot, trans = aux.buffer_from_cam[b, :, :3], aux.buffer_from_cam[b, :, 3]
@@ -683,10 +923,16 @@ def _visibility_reference(x: np.ndarray, w: np.ndarray, radius: float, depth: np
     return k
 
 
-def transfer_reference(points_cam: np.ndarray, normals_cam: np.ndarray, camera: PinholeCamera,
-                       world_from_cam: np.ndarray, pattern: SamplingPattern,
-                       aux: AuxBufferArrays | None, params: TransferParams,
-                       plane: SupportPlane | None = None) -> TransferResult:
+def transfer_reference(
+    points_cam: np.ndarray,
+    normals_cam: np.ndarray,
+    camera: PinholeCamera,
+    world_from_cam: np.ndarray,
+    pattern: SamplingPattern,
+    aux: AuxBufferArrays | None,
+    params: TransferParams,
+    plane: SupportPlane | None = None,
+) -> TransferResult:
     """Plain NumPy/Python oracle of :func:`compute_transfer`: same inputs, same definition
     (the transfer only, not the bounce).
 
@@ -723,8 +969,18 @@ def transfer_reference(points_cam: np.ndarray, normals_cam: np.ndarray, camera: 
                 if params.visibility:
                     for s in range(pattern.radii.shape[3]):
                         radius = float(pattern.radii[vi % 2, ui % 2, j, s])
-                        k = min(k, _visibility_reference(x, wdir, radius, depth, camera, aux,
-                                                         visibility_ramp(pattern, params),
-                                                         params.rt_thickness_m))
+                        k = min(
+                            k,
+                            _visibility_reference(
+                                x,
+                                wdir,
+                                radius,
+                                depth,
+                                camera,
+                                aux,
+                                visibility_ramp(pattern, params),
+                                params.rt_thickness_m,
+                            ),
+                        )
                 transfer[i, jj] += k * cos_n * weight * ysh[j]
     return TransferResult(transfer.astype(np.float32), valid, u_grid, v_grid)

@@ -69,8 +69,9 @@ def _refine_pixel(t, source, index, mask, ratio, y, x, d0, d1, d2, voxel, max_st
 
 
 @numba.njit(parallel=True, cache=True)
-def _refine_cpu(raw, source, index, mask, ratio, rot, fx, fy, cx, cy, voxel, max_step,
-                depth, normals):
+def _refine_cpu(
+    raw, source, index, mask, ratio, rot, fx, fy, cx, cy, voxel, max_step, depth, normals
+):
     h, w = raw.shape
     for row in prange(h):
         y = np.int64(row)
@@ -83,8 +84,9 @@ def _refine_cpu(raw, source, index, mask, ratio, rot, fx, fy, cx, cy, voxel, max
             d0 = rot[0, 0] * rx + rot[0, 1] * ry + rot[0, 2]
             d1 = rot[1, 0] * rx + rot[1, 1] * ry + rot[1, 2]
             d2 = rot[2, 0] * rx + rot[2, 1] * ry + rot[2, 2]
-            t, gx, gy, gz = _refine_pixel(t, source, index, mask, ratio, y, x, d0, d1, d2,
-                                          voxel, max_step)
+            t, gx, gy, gz = _refine_pixel(
+                t, source, index, mask, ratio, y, x, d0, d1, d2, voxel, max_step
+            )
             depth[y, x] = t
             norm = math.sqrt(gx * gx + gy * gy + gz * gz)
             if norm > 0.0:
@@ -92,9 +94,16 @@ def _refine_cpu(raw, source, index, mask, ratio, rot, fx, fy, cx, cy, voxel, max
                     normals[y, x, i] = (rot[0, i] * gx + rot[1, i] * gy + rot[2, i] * gz) / norm
 
 
-def refine_ray_cast(raw_depth_m: np.ndarray, source: np.ndarray, index: np.ndarray,
-                    mask: np.ndarray, ratio: np.ndarray, world_from_cam: np.ndarray,
-                    camera: PinholeCamera, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
+def refine_ray_cast(
+    raw_depth_m: np.ndarray,
+    source: np.ndarray,
+    index: np.ndarray,
+    mask: np.ndarray,
+    ratio: np.ndarray,
+    world_from_cam: np.ndarray,
+    camera: PinholeCamera,
+    voxel_size_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """D_v and N_v from Open3D's ray cast ("depth", "index", "mask", "interp_ratio").
 
     raw_depth_m: (H, W) depth of the ray caster, 0 = no hit. source: the TSDF values indexed
@@ -106,10 +115,20 @@ def refine_ray_cast(raw_depth_m: np.ndarray, source: np.ndarray, index: np.ndarr
     h, w = raw_depth_m.shape
     depth = np.zeros((h, w), np.float32)
     normals = np.zeros((h, w, 3), np.float32)
-    _refine_cpu(np.ascontiguousarray(raw_depth_m, np.float32),
-                np.ascontiguousarray(source, np.float32), np.ascontiguousarray(index, np.int64),
-                np.ascontiguousarray(mask, np.bool_), np.ascontiguousarray(ratio, np.float32),
-                np.ascontiguousarray(world_from_cam[:3, :3], np.float64), float(camera.fx),
-                float(camera.fy), float(camera.cx), float(camera.cy), float(voxel_size_m),
-                REFINE_MAX_STEP_VOXELS * voxel_size_m, depth, normals)
+    _refine_cpu(
+        np.ascontiguousarray(raw_depth_m, np.float32),
+        np.ascontiguousarray(source, np.float32),
+        np.ascontiguousarray(index, np.int64),
+        np.ascontiguousarray(mask, np.bool_),
+        np.ascontiguousarray(ratio, np.float32),
+        np.ascontiguousarray(world_from_cam[:3, :3], np.float64),
+        float(camera.fx),
+        float(camera.fy),
+        float(camera.cx),
+        float(camera.cy),
+        float(voxel_size_m),
+        REFINE_MAX_STEP_VOXELS * voxel_size_m,
+        depth,
+        normals,
+    )
     return depth, normals

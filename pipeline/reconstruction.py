@@ -80,8 +80,14 @@ class VolumeReconstruction:
     One instance per session; not safe to call from several threads at once.
     """
 
-    def __init__(self, volume: VolumeParams, aux: AuxBufferParams, camera: PinholeCamera,
-                 device: str = "CPU:0", reuse: ReuseParams | None = None):
+    def __init__(
+        self,
+        volume: VolumeParams,
+        aux: AuxBufferParams,
+        camera: PinholeCamera,
+        device: str = "CPU:0",
+        reuse: ReuseParams | None = None,
+    ):
         self.params = volume
         self.aux_params = aux
         self.camera = camera
@@ -89,9 +95,11 @@ class VolumeReconstruction:
         if self.device.get_type() == o3c.Device.DeviceType.CUDA and not o3c.cuda.is_available():
             raise RuntimeError(
                 f"device is {device!r} but this Open3D build has no CUDA device; "
-                "use device='CPU:0' (--set device=CPU:0)")
-        self._tracker = FrameToModelTracker(camera, self.device, volume.depth_max_m,
-                                            volume.tracking_depth_diff_m)
+                "use device='CPU:0' (--set device=CPU:0)"
+            )
+        self._tracker = FrameToModelTracker(
+            camera, self.device, volume.depth_max_m, volume.tracking_depth_diff_m
+        )
         self._volume = TsdfVolume(volume, camera, self.device)
         self._aux = AuxBufferRenderer(aux)
         self._still = StillCamera(reuse or ReuseParams(still_reuse_frames=0))
@@ -134,8 +142,13 @@ class VolumeReconstruction:
         return self._volume.triangle_mesh()
 
     # ---------------------------------------------------------------- per frame
-    def process(self, color_rgb_u8: np.ndarray, depth_m: np.ndarray, pose: np.ndarray | None,
-                light_direction_world: np.ndarray | None = None) -> SurfaceOutput:
+    def process(
+        self,
+        color_rgb_u8: np.ndarray,
+        depth_m: np.ndarray,
+        pose: np.ndarray | None,
+        light_direction_world: np.ndarray | None = None,
+    ) -> SurfaceOutput:
         """Track (unless pose is given), fuse the frame into V, ray-cast G_v and aux buffers.
 
         The checked entry for library use (the Pipeline validates its frames once and calls
@@ -156,13 +169,20 @@ class VolumeReconstruction:
         if light_direction_world is not None:
             light = np.asarray(light_direction_world, dtype=np.float64).reshape(-1)
             if light.shape != (3,) or not np.all(np.isfinite(light)) or not np.any(light):
-                raise CheckError("light_direction_world", "expected a finite non-zero "
-                                 f"3-vector, got {light_direction_world!r}")
+                raise CheckError(
+                    "light_direction_world",
+                    f"expected a finite non-zero 3-vector, got {light_direction_world!r}",
+                )
         return self.process_validated(
-            depth, None if pose is None else check_rigid(pose, "pose"), light)
+            depth, None if pose is None else check_rigid(pose, "pose"), light
+        )
 
-    def process_validated(self, depth_m: np.ndarray, pose: np.ndarray | None,
-                          light_direction_world: np.ndarray | None = None) -> SurfaceOutput:
+    def process_validated(
+        self,
+        depth_m: np.ndarray,
+        pose: np.ndarray | None,
+        light_direction_world: np.ndarray | None = None,
+    ) -> SurfaceOutput:
         """`process` for input that passed the pipeline's edge (Pipeline.process): depth
         (H, W) float metres of the camera's size, pose rigid or None, light unit or None.
 
@@ -196,40 +216,60 @@ class VolumeReconstruction:
         t1 = time.perf_counter()
 
         depth_v, normals_v = self._volume.ray_cast(self.pose, surface_subsample(c, self.camera))
-        self._model_depth = (None if self.num_blocks == 0
-                             else o3c.Tensor(depth_v, device=self.device))
+        self._model_depth = (
+            None if self.num_blocks == 0 else o3c.Tensor(depth_v, device=self.device)
+        )
         aux = self._aux.update(self._volume, self.pose, depth_v, light_direction_world)
         self._volume.sync()
         t2 = time.perf_counter()
 
         self.frame_index += 1
         out = SurfaceOutput(
-            pose=self.pose.copy(), depth_volume_m=depth_v, normals_volume=normals_v,
-            aux_buffers=aux, tracking_ok=tracking.ok,
+            pose=self.pose.copy(),
+            depth_volume_m=depth_v,
+            normals_volume=normals_v,
+            aux_buffers=aux,
+            tracking_ok=tracking.ok,
             timings_ms={"Reconstruct": (t1 - t0) * 1e3, "Surface": (t2 - t1) * 1e3},
-            tracking=tracking)
+            tracking=tracking,
+        )
         if tracking.ok and self.num_blocks > 0:
             self._last = out
             self._still.did_work(self.pose)
         return out
 
-    def _reused(self, last: SurfaceOutput, tracking: TrackingResult,
-                elapsed_ms: float) -> SurfaceOutput:
+    def _reused(
+        self, last: SurfaceOutput, tracking: TrackingResult, elapsed_ms: float
+    ) -> SurfaceOutput:
         """A still camera's frame: tracked, not fused; `last` cast's D_v, N_v and aux."""
         self.frame_index += 1
-        return SurfaceOutput(self.pose.copy(), last.depth_volume_m, last.normals_volume,
-                             list(last.aux_buffers), True,
-                             {"Reconstruct": elapsed_ms, "Surface": 0.0}, tracking, reused=True)
+        return SurfaceOutput(
+            self.pose.copy(),
+            last.depth_volume_m,
+            last.normals_volume,
+            list(last.aux_buffers),
+            True,
+            {"Reconstruct": elapsed_ms, "Surface": 0.0},
+            tracking,
+            reused=True,
+        )
 
     def _without_volume(self, pose: np.ndarray | None) -> SurfaceOutput:
         """use_volume False: no V, no tracking; the given pose (or the last one) is kept."""
         if pose is not None:
             self.pose = pose
         ok = pose is not None or self.frame_index == 0
-        tracking = TrackingResult(ok, reason="" if ok else "no volume to track against "
-                                                           "(use_volume false) and no pose")
+        tracking = TrackingResult(
+            ok, reason="" if ok else "no volume to track against (use_volume false) and no pose"
+        )
         self.frame_index += 1
         h, w = self.camera.height, self.camera.width
-        return SurfaceOutput(self.pose.copy(), np.zeros((h, w), np.float32),
-                             np.zeros((h, w, 3), np.float32), [], ok,
-                             {"Reconstruct": 0.0, "Surface": 0.0}, tracking)
+        return SurfaceOutput(
+            self.pose.copy(),
+            np.zeros((h, w), np.float32),
+            np.zeros((h, w, 3), np.float32),
+            [],
+            ok,
+            {"Reconstruct": 0.0, "Surface": 0.0},
+            tracking,
+        )

@@ -132,8 +132,9 @@ class DifferentialRenderer:
         self.config = config
         r = config.render
         # the renderer's own sampling: as RadTransfer's, with more samples per direction
-        self.transfer_params = dataclasses.replace(config.transfer, rt_steps=r.render_steps,
-                                                   rt_subsample=1)
+        self.transfer_params = dataclasses.replace(
+            config.transfer, rt_steps=r.render_steps, rt_subsample=1
+        )
         self.pattern = make_sampling_pattern(self.transfer_params, config.seed + 1)
         self.raycaster = VirtualRaycaster(scene)
         # per object, made when an environment map first lights them
@@ -155,8 +156,7 @@ class DifferentialRenderer:
         normals_c = np.where(virtual[..., None], g.normals_cam, frame.normals_cam)
         points_r = cam.unproject(real_depth)
         points_c = cam.unproject(depth_c)
-        aux_r = AuxBufferArrays.from_buffers(frame.aux_buffers, pose) if frame.aux_buffers \
-            else None
+        aux_r = AuxBufferArrays.from_buffers(frame.aux_buffers, pose) if frame.aux_buffers else None
         aux_c = self._aux_with_virtual(frame.aux_buffers, pose)
         light_rgb = np.asarray(frame.light_rgb, np.float64)
         # radiance of the blocking surfaces: observed for real ones, the virtual albedo
@@ -165,9 +165,8 @@ class DifferentialRenderer:
         radiance_c = radiance_r.copy()
         if np.any(virtual):
             n_world = g.normals_cam[virtual].astype(np.float64) @ pose[:3, :3].T
-            e = np.maximum(sh.evaluate(sh.irradiance_from_radiance(frame.light_sh), n_world),
-                           0.0)
-            radiance_c[virtual] = (g.albedo[virtual] / math.pi * e[:, None] * light_rgb)
+            e = np.maximum(sh.evaluate(sh.irradiance_from_radiance(frame.light_sh), n_world), 0.0)
+            radiance_c[virtual] = g.albedo[virtual] / math.pi * e[:, None] * light_rgb
         if r.render_mode is DiffMode.PASTE:
             composite[virtual] = linear_to_srgb_u8(radiance_c[virtual])
             return RenderOutput(composite, virtual, virtual.copy(), g)
@@ -182,24 +181,51 @@ class DifferentialRenderer:
         vv_all, uu_all = np.nonzero(virtual)
         p = self.transfer_params
         plane = frame.plane if p.rt_horizon else None
-        t_r, b_r, ok_r = transfer_at_pixels(points_r, frame.normals_cam, cam, pose,
-                                            self.pattern, aux_r, p, ru, rv, radiance_r, plane)
-        t_c, b_c, ok_c = transfer_at_pixels(points_c, normals_c, cam, pose, self.pattern,
-                                            aux_c, p, np.concatenate([ru, uu_all]),
-                                            np.concatenate([rv, vv_all]), radiance_c, plane)
+        t_r, b_r, ok_r = transfer_at_pixels(
+            points_r,
+            frame.normals_cam,
+            cam,
+            pose,
+            self.pattern,
+            aux_r,
+            p,
+            ru,
+            rv,
+            radiance_r,
+            plane,
+        )
+        t_c, b_c, ok_c = transfer_at_pixels(
+            points_c,
+            normals_c,
+            cam,
+            pose,
+            self.pattern,
+            aux_c,
+            p,
+            np.concatenate([ru, uu_all]),
+            np.concatenate([rv, vv_all]),
+            radiance_c,
+            plane,
+        )
         if not r.render_indirect:
             b_r, b_c = np.zeros_like(b_r), np.zeros_like(b_c)
         k = len(ru)
         # virtual pixels are shaded absolutely: their unoccluded transfer made exact (real
         # pixels take a ratio of two transfers of the same directions, whose errors cancel)
-        t_c[k:] += unoccluded_quadrature_error(g.normals_cam[vv_all, uu_all] @ pose[:3, :3].T,
-                                               self.pattern.directions @ pose[:3, :3].T,
-                                               p.sh_bands) * ok_c[k:, None]
+        t_c[k:] += (
+            unoccluded_quadrature_error(
+                g.normals_cam[vv_all, uu_all] @ pose[:3, :3].T,
+                self.pattern.directions @ pose[:3, :3].T,
+                p.sh_bands,
+            )
+            * ok_c[k:, None]
+        )
         e_r = t_r @ frame.light_sh
         e_c = t_c @ frame.light_sh
         # real pixels: the direct change (ratio or eq. 13) and the indirect change (eq. 14)
-        ratio, delta = self._real_change(frame, e_r, e_c[:k], b_r, b_c[:k], ok_r & ok_c[:k],
-                                         ru, rv, light_rgb)
+        ratio, delta = self._real_change(
+            frame, e_r, e_c[:k], b_r, b_c[:k], ok_r & ok_c[:k], ru, rv, light_rgb
+        )
         ratio_grid = np.ones(guu.shape)
         delta_grid = np.zeros((*guu.shape, 3))
         weight = np.ones(guu.shape)
@@ -211,8 +237,13 @@ class DifferentialRenderer:
             touched = (ratio_grid != 1.0) | np.any(delta_grid != 0.0, axis=2)
             weight = weight * touched
         ratio_full, delta_full = self._upsample(
-            ratio_grid, delta_grid, weight, rect, step,
-            r.render_blur_radius_px if step > 1 else r.render_denoise_px)
+            ratio_grid,
+            delta_grid,
+            weight,
+            rect,
+            step,
+            r.render_blur_radius_px if step > 1 else r.render_denoise_px,
+        )
         if step == 1:
             ratio_full = np.where(touched, ratio_full, 1.0)
             delta_full = np.where(touched[..., None], delta_full, 0.0)
@@ -234,8 +265,15 @@ class DifferentialRenderer:
         region |= virtual
         return RenderOutput(composite, virtual, region, g)
 
-    def _reflecting(self, env: EnvironmentMap, g: VirtualGBuffer, vs: np.ndarray,
-                    us: np.ndarray, irradiance_rgb: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    def _reflecting(
+        self,
+        env: EnvironmentMap,
+        g: VirtualGBuffer,
+        vs: np.ndarray,
+        us: np.ndarray,
+        irradiance_rgb: np.ndarray,
+        pose: np.ndarray,
+    ) -> np.ndarray:
         """(K, 3) linear radiance of virtual pixels that may reflect `env`: per object
         (`ibl_render.shading_of`: specular weight s = 1 for a mirror, else metalness)
         (1 - s) albedo / pi * irradiance + s albedo * the map seen along the view direction
@@ -245,22 +283,24 @@ class DifferentialRenderer:
 
         shadings = self._shadings
         if shadings is None:
-            shadings = self._shadings = [shading_of(o.material, f"virtual object {o.name!r}")
-                                         for o in self.scene.objects]
+            shadings = self._shadings = [
+                shading_of(o.material, f"virtual object {o.name!r}") for o in self.scene.objects
+            ]
         index = g.object_index[vs, us]
         diffuse = np.stack([s.diffuse_rgb for s in shadings])[index]
         spec_rgb = np.stack([s.specular_rgb for s in shadings])[index]
         modes = np.array([s.mode for s in shadings])[index]
         exponents = np.array([s.exponent for s in shadings])[index]
         cam = self.camera
-        rays = np.stack([(us - cam.cx) / cam.fx, (vs - cam.cy) / cam.fy, np.ones(len(us))],
-                        axis=1) @ pose[:3, :3].T
+        rays = (
+            np.stack([(us - cam.cx) / cam.fx, (vs - cam.cy) / cam.fy, np.ones(len(us))], axis=1)
+            @ pose[:3, :3].T
+        )
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)
         normals = g.normals_cam[vs, us].astype(np.float64) @ pose[:3, :3].T
         normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
         mirrored = rays - 2.0 * np.sum(rays * normals, axis=1, keepdims=True) * normals
-        seen = specular(env.pyramid, mirrored @ np.asarray(env.map_from_world).T, modes,
-                        exponents)
+        seen = specular(env.pyramid, mirrored @ np.asarray(env.map_from_world).T, modes, exponents)
         return diffuse / math.pi * irradiance_rgb + spec_rgb * seen
 
     def _near_objects(self, points_cam: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -273,27 +313,40 @@ class DifferentialRenderer:
         near = (pts[:, 2] > 0) & (self.raycaster.distance_to_spheres(world) <= reach)
         # the exact distance to the meshes only for what the bounding spheres let through,
         # and of those only where the distance at the block's first pixel leaves it open
-        near[near] = within_reach(world.reshape(*shape, 3), near.reshape(shape),
-                                  self.raycaster.distance_to_objects, reach)
+        near[near] = within_reach(
+            world.reshape(*shape, 3), near.reshape(shape), self.raycaster.distance_to_objects, reach
+        )
         return near.reshape(shape)
 
-    def _aux_with_virtual(self, buffers: list[OrthoBuffer],
-                          pose: np.ndarray) -> AuxBufferArrays | None:
+    def _aux_with_virtual(
+        self, buffers: list[OrthoBuffer], pose: np.ndarray
+    ) -> AuxBufferArrays | None:
         """The auxiliary buffers with the virtual objects depth-tested in."""
         if not buffers:
             return None
         merged = []
         for b in buffers:
-            virt = self.raycaster.orthographic_depth(b.world_from_buffer, b.resolution,
-                                                     b.pixel_size_m)
-            depth = np.where((virt > 0) & ((b.depth_m <= 0) | (virt < b.depth_m)), virt,
-                             b.depth_m).astype(np.float32)
+            virt = self.raycaster.orthographic_depth(
+                b.world_from_buffer, b.resolution, b.pixel_size_m
+            )
+            depth = np.where(
+                (virt > 0) & ((b.depth_m <= 0) | (virt < b.depth_m)), virt, b.depth_m
+            ).astype(np.float32)
             merged.append(OrthoBuffer(b.world_from_buffer, depth, b.pixel_size_m, b.name))
         return AuxBufferArrays.from_buffers(merged, pose)
 
-    def _real_change(self, frame: RenderInputs, e_r: np.ndarray, e_c: np.ndarray,
-                     b_r: np.ndarray, b_c: np.ndarray, ok: np.ndarray, us: np.ndarray,
-                     vs: np.ndarray, light_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _real_change(
+        self,
+        frame: RenderInputs,
+        e_r: np.ndarray,
+        e_c: np.ndarray,
+        b_r: np.ndarray,
+        b_c: np.ndarray,
+        ok: np.ndarray,
+        us: np.ndarray,
+        vs: np.ndarray,
+        light_rgb: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Per real pixel: (factor on I_c (K,), added linear RGB (K, 3))."""
         r = self.config.render
         lit = ok & (e_r > MIN_SHADING)
@@ -306,8 +359,11 @@ class DifferentialRenderer:
             # eq. 13 keyed on each buffer's mean over the region
             mean_r = float(np.mean(np.maximum(e_r[lit], 0.0))) if np.any(lit) else 1.0
             mean_c = float(np.mean(np.maximum(e_c[lit], 0.0))) if np.any(lit) else 1.0
-            ratio = 1.0 + np.minimum(reinhard(np.maximum(e_c, 0.0), mean_c, r.tone_key)
-                                     - reinhard(np.maximum(e_r, 0.0), mean_r, r.tone_key), 0.0)
+            ratio = 1.0 + np.minimum(
+                reinhard(np.maximum(e_c, 0.0), mean_c, r.tone_key)
+                - reinhard(np.maximum(e_r, 0.0), mean_r, r.tone_key),
+                0.0,
+            )
             ratio[~ok] = 1.0
         # indirect: the change of the one-bounce irradiance, times albedo / pi; the albedo
         # of a real pixel from the observation, I_c / (R_d / pi), at most 1
@@ -315,16 +371,25 @@ class DifferentialRenderer:
         rho_over_pi = np.full((len(e_r), 3), r.render_real_albedo / math.pi)
         direct = e_r[:, None] * light_rgb
         good = lit[:, None] & (direct > MIN_SHADING)
-        rho_over_pi = np.where(good, np.minimum(observed / np.maximum(direct, MIN_SHADING),
-                                                1.0 / math.pi), rho_over_pi)
-        delta = np.where(ok[:, None], rho_over_pi * (b_c - b_r), 0.0) if b_r.shape[1] \
+        rho_over_pi = np.where(
+            good, np.minimum(observed / np.maximum(direct, MIN_SHADING), 1.0 / math.pi), rho_over_pi
+        )
+        delta = (
+            np.where(ok[:, None], rho_over_pi * (b_c - b_r), 0.0)
+            if b_r.shape[1]
             else np.zeros((len(e_r), 3))
+        )
         return ratio, delta
 
     @staticmethod
-    def _upsample(ratio: np.ndarray, delta: np.ndarray, weight: np.ndarray,
-                  rect: tuple[int, int, int, int], step: int,
-                  blur_radius: int) -> tuple[np.ndarray, np.ndarray]:
+    def _upsample(
+        ratio: np.ndarray,
+        delta: np.ndarray,
+        weight: np.ndarray,
+        rect: tuple[int, int, int, int],
+        step: int,
+        blur_radius: int,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Grid buffers -> every pixel of the rect: bicubic, then a Gaussian of the given
         radius, normalised by the up-sampled weights (virtual pixels carry none); at step 1
         only the Gaussian (identity with radius 0)."""
@@ -332,8 +397,9 @@ class DifferentialRenderer:
         if step == 1 and blur_radius == 0:
             return ratio, delta
         size = (ratio.shape[1] * step, ratio.shape[0] * step)
-        stack = np.concatenate([(ratio * weight)[..., None], delta * weight[..., None],
-                                weight[..., None]], axis=2).astype(np.float32)
+        stack = np.concatenate(
+            [(ratio * weight)[..., None], delta * weight[..., None], weight[..., None]], axis=2
+        ).astype(np.float32)
         up = stack if step == 1 else cv2.resize(stack, size, interpolation=cv2.INTER_CUBIC)
         if blur_radius > 0:
             up = cv2.GaussianBlur(up, (2 * blur_radius + 1, 2 * blur_radius + 1), 0)
@@ -341,16 +407,18 @@ class DifferentialRenderer:
         w = up[..., 4]
         keep = w > 1e-3
         ratio_full = np.where(keep, up[..., 0] / np.where(keep, w, 1.0), 1.0)
-        delta_full = np.where(keep[..., None], up[..., 1:4] / np.where(keep, w, 1.0)[..., None],
-                              0.0)
+        delta_full = np.where(
+            keep[..., None], up[..., 1:4] / np.where(keep, w, 1.0)[..., None], 0.0
+        )
         # far from every object the grid was exactly 1 / 0: keep it exact there
         ratio_full[np.abs(ratio_full - 1.0) < 1e-6] = 1.0
         delta_full[np.abs(delta_full) < 1e-9] = 0.0
         return ratio_full, delta_full
 
 
-def within_reach(points: np.ndarray, candidates: np.ndarray, distance, reach: float,
-                 block: int = NEAR_BLOCK_PX) -> np.ndarray:
+def within_reach(
+    points: np.ndarray, candidates: np.ndarray, distance, reach: float, block: int = NEAR_BLOCK_PX
+) -> np.ndarray:
     """For the candidate grid points, whether distance(point) <= reach, the same answer as
     evaluating `distance` at every one of them, with fewer evaluations.
 
@@ -368,8 +436,9 @@ def within_reach(points: np.ndarray, candidates: np.ndarray, distance, reach: fl
     d_tile = np.full(anchored.shape, np.nan)
     d_tile[anchored] = distance(points[::block, ::block][anchored])
     d_q = d_tile[rows // block, cols // block]
-    moved = np.linalg.norm(points[rows, cols] - points[rows // block * block,
-                                                     cols // block * block], axis=1)
+    moved = np.linalg.norm(
+        points[rows, cols] - points[rows // block * block, cols // block * block], axis=1
+    )
     result = d_q + moved <= reach
     open_ = ~(result | (d_q - moved > reach))  # includes NaN: no anchor
     result[open_] = distance(points[rows[open_], cols[open_]]) <= reach
@@ -386,5 +455,12 @@ def luminance_light_rgb(sh_rgb: np.ndarray | None) -> np.ndarray:
     return dc / lum if lum > 0 else np.ones(3)
 
 
-__all__ = ["DifferentialRenderer", "EnvironmentMap", "RenderInputs", "RenderOutput",
-           "linear_to_srgb_u8", "luminance_light_rgb", "reinhard"]
+__all__ = [
+    "DifferentialRenderer",
+    "EnvironmentMap",
+    "RenderInputs",
+    "RenderOutput",
+    "linear_to_srgb_u8",
+    "luminance_light_rgb",
+    "reinhard",
+]

@@ -31,8 +31,7 @@ def configure_open3d_threads(n: int | None = None) -> None:
     if n is None:
         return
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"Open3D threads must be an integer >= 1 (--open3d-threads N), "
-                         f"got {n!r}")
+        raise ValueError(f"Open3D threads must be an integer >= 1 (--open3d-threads N), got {n!r}")
     import open3d as o3d
 
     o3d.utility.set_max_threads(n)
@@ -82,13 +81,16 @@ def require_device(device: str) -> None:
     except ValueError:
         raise ValueError(f"device {device!r}: expected CPU:0 or CUDA:0 {hint}") from None
     if index != 0:
-        raise ValueError(f"device {device}: the kernels run on the first GPU only; use CUDA:0 "
-                         f"or the CPU {hint}")
+        raise ValueError(
+            f"device {device}: the kernels run on the first GPU only; use CUDA:0 or the CPU {hint}"
+        )
     count = o3d.core.cuda.device_count() if o3d.core.cuda.is_available() else 0
     if index >= count:
         seen = "no CUDA device" if count == 0 else f"only {count} CUDA device(s)"
-        raise ValueError(f"device {device}: Open3D sees {seen} on this machine (a CPU-only "
-                         f"build or no GPU driver); run on the CPU {hint}")
+        raise ValueError(
+            f"device {device}: Open3D sees {seen} on this machine (a CPU-only "
+            f"build or no GPU driver); run on the CPU {hint}"
+        )
     try:
         from numba import cuda
 
@@ -96,8 +98,10 @@ def require_device(device: str) -> None:
     except Exception:  # noqa: BLE001 - any failure to load the CUDA driver means "no"
         numba_ok = False
     if not numba_ok:
-        raise ValueError(f"device {device}: numba sees no CUDA GPU (driver or CUDA toolkit "
-                         f"missing), so the kernels cannot run there; use the CPU {hint}")
+        raise ValueError(
+            f"device {device}: numba sees no CUDA GPU (driver or CUDA toolkit "
+            f"missing), so the kernels cannot run there; use the CPU {hint}"
+        )
 
 
 def concurrent_pipelines_safe() -> bool:

@@ -27,10 +27,16 @@ _INVARIANT_SCALE = 80.0
 ILLUMINANT_WEIGHT = 4.0  # feature levels per unit of log chromaticity along it
 
 
-def material_segments(color_linear: np.ndarray, depth_m: np.ndarray, *, scale: int = 2,
-                      k: float = 300.0, min_size_px: int = 200,
-                      features: str = "invariant",
-                      illuminant_weight: float = ILLUMINANT_WEIGHT) -> np.ndarray:
+def material_segments(
+    color_linear: np.ndarray,
+    depth_m: np.ndarray,
+    *,
+    scale: int = 2,
+    k: float = 300.0,
+    min_size_px: int = 200,
+    features: str = "invariant",
+    illuminant_weight: float = ILLUMINANT_WEIGHT,
+) -> np.ndarray:
     """(H, W) int32 labels >= 0 of likely-uniform-albedo regions.
 
     color_linear: (H, W, 3) linear RGB; depth_m: (H, W) metres (0 = missing);
@@ -48,23 +54,27 @@ def material_segments(color_linear: np.ndarray, depth_m: np.ndarray, *, scale: i
     depth_feat = np.clip((log_d + 3.0) * _LOG_DEPTH_SCALE / 10.0, 0, 255)
     if features == "chroma":
         chroma = small_c / (small_c.sum(axis=-1, keepdims=True) + 1e-3)
-        feat = np.stack([chroma[..., 0] * _CHROMA_SCALE, chroma[..., 1] * _CHROMA_SCALE,
-                         depth_feat], axis=-1)
+        feat = np.stack(
+            [chroma[..., 0] * _CHROMA_SCALE, chroma[..., 1] * _CHROMA_SCALE, depth_feat], axis=-1
+        )
     elif features == "invariant":
         c = small_c + 1e-3
         log_rg, log_bg = np.log(c[..., 0] / c[..., 1]), np.log(c[..., 2] / c[..., 1])
         across = _PLANCKIAN[1] * log_rg - _PLANCKIAN[0] * log_bg  # barely moved by daylight
         along = _PLANCKIAN[0] * log_rg + _PLANCKIAN[1] * log_bg
-        feat = np.stack([128.0 + _INVARIANT_SCALE * across,
-                         128.0 + illuminant_weight * along, depth_feat], axis=-1)
+        feat = np.stack(
+            [128.0 + _INVARIANT_SCALE * across, 128.0 + illuminant_weight * along, depth_feat],
+            axis=-1,
+        )
     else:
         raise ValueError(f"features must be 'chroma' or 'invariant', got {features!r}")
     feat = np.ascontiguousarray(np.clip(feat, 0, 255).astype(np.uint8))
     # the smallest segment in full-resolution pixels, whatever the scale
     min_size = max(1, round(min_size_px / (scale * scale)))
     k_scaled = k * 4.0 / (scale * scale)
-    seg = cv2.ximgproc.segmentation.createGraphSegmentation(sigma=0.8, k=k_scaled,
-                                                            min_size=min_size)
+    seg = cv2.ximgproc.segmentation.createGraphSegmentation(
+        sigma=0.8, k=k_scaled, min_size=min_size
+    )
     labels = seg.processImage(feat).astype(np.int32)
     full = np.repeat(np.repeat(labels, scale, axis=0), scale, axis=1)
     return np.ascontiguousarray(full[:h, :w])

@@ -55,8 +55,9 @@ def sh_index(l: int, m: int) -> int:
 
 
 def _normalisation(l: int, m: int) -> float:
-    return math.sqrt((2 * l + 1) / (4.0 * math.pi)
-                     * math.exp(math.lgamma(l - m + 1) - math.lgamma(l + m + 1)))
+    return math.sqrt(
+        (2 * l + 1) / (4.0 * math.pi) * math.exp(math.lgamma(l - m + 1) - math.lgamma(l + m + 1))
+    )
 
 
 def sh_basis(directions: np.ndarray, bands: int) -> np.ndarray:
@@ -126,8 +127,9 @@ def project(function, bands: int, samples: int = 20000) -> np.ndarray:
     return (values.T @ basis) if values.ndim > 1 else values @ basis
 
 
-def project_samples(directions: np.ndarray, values: np.ndarray, solid_angles: np.ndarray,
-                    bands: int) -> np.ndarray:
+def project_samples(
+    directions: np.ndarray, values: np.ndarray, solid_angles: np.ndarray, bands: int
+) -> np.ndarray:
     """Coefficients from samples of a function: sum_k values_k Y(d_k) solid_angle_k."""
     basis = sh_basis(directions, bands).reshape(-1, bands * bands)
     w = np.asarray(solid_angles, dtype=np.float64).reshape(-1)
@@ -259,8 +261,14 @@ def lambert_band_factors(bands: int) -> np.ndarray:
         elif l == 1:
             a[l] = 2.0 * math.pi / 3.0
         elif l % 2 == 0:
-            a[l] = (2.0 * math.pi * (-1) ** (l // 2 - 1) / ((l + 2) * (l - 1))
-                    * math.factorial(l) / (2 ** l * math.factorial(l // 2) ** 2))
+            a[l] = (
+                2.0
+                * math.pi
+                * (-1) ** (l // 2 - 1)
+                / ((l + 2) * (l - 1))
+                * math.factorial(l)
+                / (2**l * math.factorial(l // 2) ** 2)
+            )
     return a
 
 

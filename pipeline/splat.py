@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 
-def splat_nearest(u: np.ndarray, v: np.ndarray, z: np.ndarray, width: int, height: int,
-                  max_depth_m: float = np.inf) -> np.ndarray:
+def splat_nearest(
+    u: np.ndarray,
+    v: np.ndarray,
+    z: np.ndarray,
+    width: int,
+    height: int,
+    max_depth_m: float = np.inf,
+) -> np.ndarray:
     """(height, width) float32 depth image, metres, 0 = nothing landed.
 
     u, v: (N,) pixel coordinates (rounded to the nearest pixel centre here); z: (N,) depth in

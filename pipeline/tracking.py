@@ -56,7 +56,7 @@ def _open3d_message(exc: Exception) -> str:
     """Open3D's error text without its terminal colours and C++ source location, bounded."""
     text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).strip()
     text = re.sub(r"^\[Open3D Error\] \(.*?\) \S+:\d+: ", "", text, flags=re.S)
-    return text if len(text) <= MAX_REASON_CHARS else text[:MAX_REASON_CHARS - 3] + "..."
+    return text if len(text) <= MAX_REASON_CHARS else text[: MAX_REASON_CHARS - 3] + "..."
 
 
 def _rotation_angle(rot: np.ndarray) -> float:
@@ -70,20 +70,25 @@ class FrameToModelTracker:
     depth_outlier_trunc; its Huber delta is 5/7 of it, Open3D's 7 cm : 5 cm).
     """
 
-    def __init__(self, camera: PinholeCamera, device: o3c.Device, depth_max_m: float,
-                 depth_diff_m: float):
+    def __init__(
+        self, camera: PinholeCamera, device: o3c.Device, depth_max_m: float, depth_diff_m: float
+    ):
         self.camera = camera
         self.depth_max_m = depth_max_m
         self._intrinsic = o3c.Tensor(camera.matrix, o3c.float64)
         self._no_color = o3d.t.geometry.Image(
-            o3c.Tensor.zeros((camera.height, camera.width, 1), o3c.uint8, device))
-        self._criteria = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n)
-                          for n in TRACKING_ITERATIONS]
+            o3c.Tensor.zeros((camera.height, camera.width, 1), o3c.uint8, device)
+        )
+        self._criteria = [
+            o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n) for n in TRACKING_ITERATIONS
+        ]
         self._loss = o3d.t.pipelines.odometry.OdometryLossParams(
-            depth_outlier_trunc=depth_diff_m, depth_huber_delta=depth_diff_m * 5.0 / 7.0)
+            depth_outlier_trunc=depth_diff_m, depth_huber_delta=depth_diff_m * 5.0 / 7.0
+        )
 
-    def track(self, depth_image: o3d.t.geometry.Image, n_valid: int,
-              model_depth: o3c.Tensor | None) -> TrackingResult:
+    def track(
+        self, depth_image: o3d.t.geometry.Image, n_valid: int, model_depth: o3c.Tensor | None
+    ) -> TrackingResult:
         """Motion from the model's frame to the current one, or why there is none.
 
         depth_image: current depth (metres, 0 = missing) with n_valid valid pixels;
@@ -92,20 +97,31 @@ class FrameToModelTracker:
         if model_depth is None:
             return TrackingResult(False, reason="no model to track against (V not cast yet)")
         if n_valid < TRACKING_MIN_VALID_PIXELS:
-            return TrackingResult(False, reason=f"too little depth: {n_valid} valid pixels < "
-                                                f"{TRACKING_MIN_VALID_PIXELS}")
+            return TrackingResult(
+                False,
+                reason=f"too little depth: {n_valid} valid pixels < {TRACKING_MIN_VALID_PIXELS}",
+            )
         n_model = int((model_depth > 0).to(o3c.int64).sum().item())
         if n_model < TRACKING_MIN_VALID_PIXELS:
-            return TrackingResult(False, reason=f"too little model depth (D_v): {n_model} "
-                                                f"pixels < {TRACKING_MIN_VALID_PIXELS}")
+            return TrackingResult(
+                False,
+                reason=f"too little model depth (D_v): {n_model} "
+                f"pixels < {TRACKING_MIN_VALID_PIXELS}",
+            )
         odometry = o3d.t.pipelines.odometry
         try:
             # point-to-plane odometry reads depth only; the colour slot holds a placeholder
             result = odometry.rgbd_odometry_multi_scale(
                 o3d.t.geometry.RGBDImage(self._no_color, depth_image),
                 o3d.t.geometry.RGBDImage(self._no_color, o3d.t.geometry.Image(model_depth)),
-                self._intrinsic, o3c.Tensor(np.eye(4)), 1.0, self.depth_max_m,
-                self._criteria, odometry.Method.PointToPlane, self._loss)
+                self._intrinsic,
+                o3c.Tensor(np.eye(4)),
+                1.0,
+                self.depth_max_m,
+                self._criteria,
+                odometry.Method.PointToPlane,
+                self._loss,
+            )
         except RuntimeError as exc:  # Open3D raises when ICP finds no correspondences
             return TrackingResult(False, reason=f"ICP failed: {_open3d_message(exc)}")
         prev_from_cur = result.transformation.numpy()
@@ -122,13 +138,17 @@ class FrameToModelTracker:
         if not np.all(np.isfinite(prev_from_cur)):
             return "ICP gave a non-finite pose"
         if inlier_fraction < TRACKING_MIN_INLIER_FRACTION:
-            return (f"too few ICP inliers: {inlier_fraction:.2f} of the valid depth < "
-                    f"{TRACKING_MIN_INLIER_FRACTION}")
+            return (
+                f"too few ICP inliers: {inlier_fraction:.2f} of the valid depth < "
+                f"{TRACKING_MIN_INLIER_FRACTION}"
+            )
         step_m = float(np.linalg.norm(prev_from_cur[:3, 3]))
         if step_m > TRACKING_MAX_STEP_M:
             return f"implausible jump: {step_m:.2f} m > {TRACKING_MAX_STEP_M} m"
         angle = _rotation_angle(prev_from_cur[:3, :3])
         if angle > TRACKING_MAX_STEP_RAD:
-            return (f"implausible jump: {math.degrees(angle):.1f} deg > "
-                    f"{math.degrees(TRACKING_MAX_STEP_RAD):.0f} deg")
+            return (
+                f"implausible jump: {math.degrees(angle):.1f} deg > "
+                f"{math.degrees(TRACKING_MAX_STEP_RAD):.0f} deg"
+            )
         return ""

@@ -63,8 +63,9 @@ class VirtualRaycaster:
             self._geometry_object[int(gid)] = index
             self._normals.append(obj.world_normals())
             self._triangles.append(obj.triangles)
-        self._albedo = np.array([o.material.albedo for o in scene.objects]
-                                or [(0.0, 0.0, 0.0)], np.float32)
+        self._albedo = np.array(
+            [o.material.albedo for o in scene.objects] or [(0.0, 0.0, 0.0)], np.float32
+        )
         self._spheres = [o.bounding_sphere() for o in scene.objects]
 
     def _cast(self, origins: np.ndarray, directions: np.ndarray) -> dict:
@@ -91,8 +92,9 @@ class VirtualRaycaster:
             normals[sel] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         return index, normals
 
-    def screen_rect(self, camera: PinholeCamera, world_from_cam: np.ndarray,
-                    margin_m: float = 0.0) -> tuple[int, int, int, int] | None:
+    def screen_rect(
+        self, camera: PinholeCamera, world_from_cam: np.ndarray, margin_m: float = 0.0
+    ) -> tuple[int, int, int, int] | None:
         """(u0, v0, u1, v1), end exclusive, covering every object's bounding sphere grown by
         margin_m, clipped to the image; None when no object can be in view."""
         cam_from_world = np.linalg.inv(world_from_cam)
@@ -123,15 +125,25 @@ class VirtualRaycaster:
     def camera_gbuffer(self, camera: PinholeCamera, world_from_cam: np.ndarray) -> VirtualGBuffer:
         """The virtual surfaces seen by the camera (rays only inside `screen_rect`)."""
         h, w = camera.height, camera.width
-        out = VirtualGBuffer(np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32),
-                             np.zeros((h, w, 3), np.float32), np.full((h, w), -1, np.int32))
+        out = VirtualGBuffer(
+            np.zeros((h, w), np.float32),
+            np.zeros((h, w, 3), np.float32),
+            np.zeros((h, w, 3), np.float32),
+            np.full((h, w), -1, np.int32),
+        )
         rect = self.screen_rect(camera, world_from_cam)
         if rect is None:
             return out
         u0, v0, u1, v1 = rect
         uu, vv = np.meshgrid(np.arange(u0, u1), np.arange(v0, v1))
-        rays_cam = np.stack([(uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy,
-                             np.ones_like(uu, dtype=np.float64)], axis=-1).reshape(-1, 3)
+        rays_cam = np.stack(
+            [
+                (uu - camera.cx) / camera.fx,
+                (vv - camera.cy) / camera.fy,
+                np.ones_like(uu, dtype=np.float64),
+            ],
+            axis=-1,
+        ).reshape(-1, 3)
         rot, origin = world_from_cam[:3, :3], world_from_cam[:3, 3]
         # rays of unit z in the camera frame: t_hit is then the depth along the optical axis;
         # starting at NEAR_M clips what is closer
@@ -147,12 +159,14 @@ class VirtualRaycaster:
         out.depth_m[v0:v1, u0:u1] = np.where(ok, t, 0.0).reshape(shape)
         out.normals_cam[v0:v1, u0:u1] = np.where(ok[:, None], normals_cam, 0.0).reshape(*shape, 3)
         out.object_index[v0:v1, u0:u1] = np.where(ok, index, -1).reshape(shape)
-        out.albedo[v0:v1, u0:u1] = np.where(ok[:, None], self._albedo[np.maximum(index, 0)],
-                                            0.0).reshape(*shape, 3)
+        out.albedo[v0:v1, u0:u1] = np.where(
+            ok[:, None], self._albedo[np.maximum(index, 0)], 0.0
+        ).reshape(*shape, 3)
         return out
 
-    def orthographic_depth(self, world_from_buffer: np.ndarray, resolution: int,
-                           pixel_size_m: float) -> np.ndarray:
+    def orthographic_depth(
+        self, world_from_buffer: np.ndarray, resolution: int, pixel_size_m: float
+    ) -> np.ndarray:
         """(R, R) float32 depth along the buffer's +z from its image plane to the first
         virtual surface (0 = none), in the layout of `aux_buffers.OrthoBuffer`."""
         half = (resolution - 1) / 2.0
@@ -163,8 +177,7 @@ class VirtualRaycaster:
         origins = local @ rot.T + trans
         directions = np.broadcast_to(rot[:, 2], origins.shape)
         t = self._cast(origins, directions)["t_hit"].numpy()
-        return np.where(np.isfinite(t), t, 0.0).astype(np.float32).reshape(resolution,
-                                                                           resolution)
+        return np.where(np.isfinite(t), t, 0.0).astype(np.float32).reshape(resolution, resolution)
 
     def distance_to_spheres(self, points_world: np.ndarray) -> np.ndarray:
         """(K,) distance (metres) from each world point to the nearest object's bounding

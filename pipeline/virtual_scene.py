@@ -81,9 +81,9 @@ class VirtualObject:
 
     def placed(self, world_from_object: np.ndarray) -> VirtualObject:
         """The same object at a resolved pose (anchor cleared)."""
-        return dataclasses.replace(self, world_from_object=np.asarray(world_from_object,
-                                                                      np.float64),
-                                   anchor=None)
+        return dataclasses.replace(
+            self, world_from_object=np.asarray(world_from_object, np.float64), anchor=None
+        )
 
     def world_vertices(self) -> np.ndarray:
         """(N, 3) float64 vertices in the world frame."""
@@ -108,17 +108,22 @@ def check_object(obj: VirtualObject) -> None:
     where = f"virtual object {obj.name!r}"
     v, t, n = obj.vertices, obj.triangles, obj.normals
     if not (isinstance(v, np.ndarray) and v.ndim == 2 and v.shape[1] == 3 and len(v) >= 3):
-        raise SceneError(f"{where}: vertices must be (N >= 3, 3), got "
-                         f"{getattr(v, 'shape', type(v).__name__)}")
+        raise SceneError(
+            f"{where}: vertices must be (N >= 3, 3), got {getattr(v, 'shape', type(v).__name__)}"
+        )
     if not (isinstance(t, np.ndarray) and t.ndim == 2 and t.shape[1] == 3 and len(t) >= 1):
-        raise SceneError(f"{where}: triangles must be (M >= 1, 3), got "
-                         f"{getattr(t, 'shape', type(t).__name__)}")
+        raise SceneError(
+            f"{where}: triangles must be (M >= 1, 3), got {getattr(t, 'shape', type(t).__name__)}"
+        )
     if not (isinstance(n, np.ndarray) and n.shape == v.shape):
-        raise SceneError(f"{where}: normals must match the vertices {v.shape}, got "
-                         f"{getattr(n, 'shape', type(n).__name__)}")
+        raise SceneError(
+            f"{where}: normals must match the vertices {v.shape}, got "
+            f"{getattr(n, 'shape', type(n).__name__)}"
+        )
     if len(t) > MAX_TRIANGLES:
-        raise SceneError(f"{where}: {len(t)} triangles, at most {MAX_TRIANGLES} per scene; "
-                         "simplify the mesh")
+        raise SceneError(
+            f"{where}: {len(t)} triangles, at most {MAX_TRIANGLES} per scene; simplify the mesh"
+        )
     if not np.all(np.isfinite(v)) or not np.all(np.isfinite(n)):
         raise SceneError(f"{where}: vertices or normals are not all finite")
     if t.min() < 0 or t.max() >= len(v):
@@ -134,12 +139,15 @@ def check_object(obj: VirtualObject) -> None:
         rigid[:3, :3], rigid[:3, 3], rigid[3] = m[:3, :3] / scale, m[:3, 3], m[3]
         check_rigid(rigid, f"{where} world_from_object / scale")
     except CheckError as exc:
-        raise SceneError(f"{where}: world_from_object must be a rotation times one uniform "
-                         f"scale plus a translation ({exc})") from None
+        raise SceneError(
+            f"{where}: world_from_object must be a rotation times one uniform "
+            f"scale plus a translation ({exc})"
+        ) from None
     albedo = np.asarray(obj.material.albedo, dtype=np.float64)
     if albedo.shape != (3,) or not np.all((albedo >= 0.0) & (albedo <= 1.0)):
-        raise SceneError(f"{where}: albedo must be 3 linear RGB values in [0, 1], got "
-                         f"{obj.material.albedo}")
+        raise SceneError(
+            f"{where}: albedo must be 3 linear RGB values in [0, 1], got {obj.material.albedo}"
+        )
 
 
 @dataclass(frozen=True)
@@ -154,8 +162,10 @@ class VirtualScene:
             raise SceneError(f"{len(self.objects)} virtual objects, at most {MAX_OBJECTS}")
         total = sum(len(o.triangles) for o in self.objects)
         if total > MAX_TRIANGLES:
-            raise SceneError(f"the virtual scene has {total} triangles, at most "
-                             f"{MAX_TRIANGLES}; simplify its meshes")
+            raise SceneError(
+                f"the virtual scene has {total} triangles, at most "
+                f"{MAX_TRIANGLES}; simplify its meshes"
+            )
         names = [o.name for o in self.objects]
         if len(set(names)) != len(names):
             raise SceneError(f"virtual object names must be unique, got {names}")
@@ -169,16 +179,25 @@ class VirtualScene:
         return bool(self.objects)
 
 
-def object_from_open3d(name: str, mesh: o3d.geometry.TriangleMesh,
-                       world_from_object: np.ndarray, material: Material = Material(),
-                       anchor: Anchor | None = None) -> VirtualObject:
+def object_from_open3d(
+    name: str,
+    mesh: o3d.geometry.TriangleMesh,
+    world_from_object: np.ndarray,
+    material: Material = Material(),
+    anchor: Anchor | None = None,
+) -> VirtualObject:
     """A VirtualObject from an Open3D legacy mesh (vertex normals computed when missing)."""
     if not mesh.has_vertex_normals():
         mesh.compute_vertex_normals()
-    return VirtualObject(name, np.asarray(mesh.vertices, np.float32),
-                         np.asarray(mesh.triangles, np.int32),
-                         np.asarray(mesh.vertex_normals, np.float32),
-                         np.asarray(world_from_object, np.float64), material, anchor)
+    return VirtualObject(
+        name,
+        np.asarray(mesh.vertices, np.float32),
+        np.asarray(mesh.triangles, np.int32),
+        np.asarray(mesh.vertex_normals, np.float32),
+        np.asarray(world_from_object, np.float64),
+        material,
+        anchor,
+    )
 
 
 def _standing(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
@@ -202,12 +221,14 @@ def box_mesh(size_m: tuple[float, float, float] = (0.2, 0.2, 0.2)) -> o3d.geomet
     return _standing(mesh)
 
 
-def torus_mesh(ring_radius_m: float = 0.1, tube_radius_m: float = 0.035,
-               resolution: int = 40) -> o3d.geometry.TriangleMesh:
+def torus_mesh(
+    ring_radius_m: float = 0.1, tube_radius_m: float = 0.035, resolution: int = 40
+) -> o3d.geometry.TriangleMesh:
     """A torus standing upright on the origin (ring in the x-y plane), smooth normals: a
     non-convex object that shadows itself and shows the ground through its hole."""
-    mesh = o3d.geometry.TriangleMesh.create_torus(ring_radius_m, tube_radius_m, resolution,
-                                                  max(12, resolution // 2))
+    mesh = o3d.geometry.TriangleMesh.create_torus(
+        ring_radius_m, tube_radius_m, resolution, max(12, resolution // 2)
+    )
     # Open3D makes the ring in the x-y plane already; stand it up on its rim
     mesh.compute_vertex_normals()
     return _standing(mesh)
@@ -216,9 +237,9 @@ def torus_mesh(ring_radius_m: float = 0.1, tube_radius_m: float = 0.035,
 def _flat(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
     """Every triangle with its own vertices and its face normal (flat shading)."""
     v = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)].reshape(-1, 3)
-    out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v),
-                                    o3d.utility.Vector3iVector(
-                                        np.arange(len(v)).reshape(-1, 3)))
+    out = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(np.arange(len(v)).reshape(-1, 3))
+    )
     out.compute_triangle_normals()
     face = np.asarray(out.triangle_normals)
     out.vertex_normals = o3d.utility.Vector3dVector(np.repeat(face, 3, axis=0))
@@ -227,11 +248,18 @@ def _flat(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
 
 # name -> the function making it (its keyword arguments: the primitive's sizes)
 PRIMITIVES: dict[str, Callable[..., o3d.geometry.TriangleMesh]] = {
-    "sphere": sphere_mesh, "box": box_mesh, "torus": torus_mesh}
+    "sphere": sphere_mesh,
+    "box": box_mesh,
+    "torus": torus_mesh,
+}
 
 
-def pose_on_plane(point_world: np.ndarray, up_world: np.ndarray, yaw_deg: float = 0.0,
-                  forward_world: np.ndarray | None = None) -> np.ndarray:
+def pose_on_plane(
+    point_world: np.ndarray,
+    up_world: np.ndarray,
+    yaw_deg: float = 0.0,
+    forward_world: np.ndarray | None = None,
+) -> np.ndarray:
     """world_from_object standing at `point_world` with object +y along `up_world`, object
     +z along the horizontal part of `forward_world` (default: any), turned by yaw_deg."""
     up = np.asarray(up_world, np.float64)
@@ -249,8 +277,9 @@ def pose_on_plane(point_world: np.ndarray, up_world: np.ndarray, yaw_deg: float 
     return m
 
 
-def resolve_anchors(scene: VirtualScene, up_cam: np.ndarray, offset_m: float,
-                    world_from_cam: np.ndarray, camera) -> VirtualScene:
+def resolve_anchors(
+    scene: VirtualScene, up_cam: np.ndarray, offset_m: float, world_from_cam: np.ndarray, camera
+) -> VirtualScene:
     """Anchored objects placed on the plane up . p + offset = 0 (camera frame) under their
     pixel; objects whose ray misses the plane (it points above the horizon) stay anchored."""
     out = []
@@ -270,9 +299,12 @@ def resolve_anchors(scene: VirtualScene, up_cam: np.ndarray, offset_m: float,
         point = rot @ (t * ray) + trans
         # the object faces the camera: its +z towards the camera, horizontally
         toward_camera = trans - point
-        out.append(obj.placed(pose_on_plane(point, rot @ up_cam, obj.anchor.yaw_deg,
-                                            toward_camera)
-                              @ np.diag([*[_scale(obj)] * 3, 1.0])))
+        out.append(
+            obj.placed(
+                pose_on_plane(point, rot @ up_cam, obj.anchor.yaw_deg, toward_camera)
+                @ np.diag([*[_scale(obj)] * 3, 1.0])
+            )
+        )
     return VirtualScene(tuple(out))
 
 
@@ -286,9 +318,18 @@ def demo_scene(image_size: tuple[int, int] = (640, 480)) -> VirtualScene:
     on the support plane left and right of the view's centre, a little below it, for an
     image of image_size (width, height) pixels."""
     w, h = image_size
-    sphere = object_from_open3d("sphere", sphere_mesh(0.12), np.eye(4),
-                                Material((0.6, 0.6, 0.6)), Anchor((0.39 * w, 0.69 * h)))
-    torus = object_from_open3d("torus", torus_mesh(0.1, 0.035), np.eye(4),
-                               Material((0.8, 0.3, 0.08)),
-                               Anchor((0.625 * w, 0.69 * h), yaw_deg=30.0))
+    sphere = object_from_open3d(
+        "sphere",
+        sphere_mesh(0.12),
+        np.eye(4),
+        Material((0.6, 0.6, 0.6)),
+        Anchor((0.39 * w, 0.69 * h)),
+    )
+    torus = object_from_open3d(
+        "torus",
+        torus_mesh(0.1, 0.035),
+        np.eye(4),
+        Material((0.8, 0.3, 0.08)),
+        Anchor((0.625 * w, 0.69 * h), yaw_deg=30.0),
+    )
     return VirtualScene((sphere, torus))

@@ -50,7 +50,8 @@ def _check_open3d_version(version: str = o3d.__version__) -> None:
             f"arlight.pipeline.volume supports open3d >={low[0]}.{low[1]},"
             f"<{high[0]}.{high[1]} (it corrects that release's ray casting and integration), "
             f"found {version}; install it with: pip install 'open3d>={low[0]}.{low[1]},"
-            f"<{high[0]}.{high[1]}'")
+            f"<{high[0]}.{high[1]}'"
+        )
 
 
 _check_open3d_version()
@@ -103,7 +104,7 @@ def upsample_depth(coarse: np.ndarray, factor: int, shape: tuple[int, int]) -> n
     lo = np.minimum(np.minimum(d00, d01), np.minimum(d10, d11))
     hi = np.maximum(np.maximum(d00, d01), np.maximum(d10, d11))
     smooth = (lo > 0) & (hi - lo < UPSAMPLE_SMOOTH_REL * lo)
-    bilinear = ((1 - fy) * ((1 - fx) * d00 + fx * d01) + fy * ((1 - fx) * d10 + fx * d11))
+    bilinear = (1 - fy) * ((1 - fx) * d00 + fx * d01) + fy * ((1 - fx) * d10 + fx * d11)
     return np.where(smooth, bilinear, own).astype(np.float32)
 
 
@@ -118,7 +119,6 @@ def _padded(size: int) -> int:
     """
     f = RANGE_MAP_DOWN_FACTOR
     return -(-size // f) * f
-
 
 
 # the ray cast's fragment buffer is reserved for this many blocks in view whatever the hash
@@ -153,8 +153,9 @@ class TsdfVolume:
     camera: intrinsics of the depth images; device: an Open3D device ("CPU:0", "CUDA:0").
     """
 
-    def __init__(self, params: VolumeParams, camera: PinholeCamera, device: o3c.Device,
-                 warm: bool = True):
+    def __init__(
+        self, params: VolumeParams, camera: PinholeCamera, device: o3c.Device, warm: bool = True
+    ):
         if warm:
             warm_open3d(str(device))
         self.params = params
@@ -174,10 +175,14 @@ class TsdfVolume:
         """An empty volume."""
         c = self.params
         self._grid = o3d.t.geometry.VoxelBlockGrid(
-            attr_names=["tsdf", "weight"], attr_dtypes=[o3c.float32, o3c.float32],
-            attr_channels=[[1], [1]], voxel_size=c.voxel_size_m,
-            block_resolution=c.block_resolution, block_count=c.block_count,
-            device=self.device)
+            attr_names=["tsdf", "weight"],
+            attr_dtypes=[o3c.float32, o3c.float32],
+            attr_channels=[[1], [1]],
+            voxel_size=c.voxel_size_m,
+            block_resolution=c.block_resolution,
+            block_count=c.block_count,
+            device=self.device,
+        )
         self._reserve_range_map()
         self.frames_integrated = 0
 
@@ -199,18 +204,35 @@ class TsdfVolume:
         view = (cam.width / cam.fx) * (cam.height / cam.fy)
         z = int(np.ceil(np.sqrt(max(c.block_count, RANGE_MAP_BLOCKS) / view))) + 2
         zc = (z + 0.5) * block_m
-        xs = np.arange(np.floor(-cam.cx / cam.fx * zc / block_m),
-                       np.ceil((cam.width - 1 - cam.cx) / cam.fx * zc / block_m))
-        ys = np.arange(np.floor(-cam.cy / cam.fy * zc / block_m),
-                       np.ceil((cam.height - 1 - cam.cy) / cam.fy * zc / block_m))
+        xs = np.arange(
+            np.floor(-cam.cx / cam.fx * zc / block_m),
+            np.ceil((cam.width - 1 - cam.cx) / cam.fx * zc / block_m),
+        )
+        ys = np.arange(
+            np.floor(-cam.cy / cam.fy * zc / block_m),
+            np.ceil((cam.height - 1 - cam.cy) / cam.fy * zc / block_m),
+        )
         gx, gy = np.meshgrid(xs, ys)
-        keys = o3c.Tensor(np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], axis=1)
-                          .astype(np.int32), o3c.int32, self.device)
+        keys = o3c.Tensor(
+            np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], axis=1).astype(np.int32),
+            o3c.int32,
+            self.device,
+        )
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            self._grid.ray_cast(keys, self.intrinsic, o3c.Tensor(np.eye(4)),
-                                _padded(cam.width), _padded(cam.height), ["depth"], 1.0,
-                                c.depth_min_m, 2.0 * zc + 1.0, 1.0, c.sdf_trunc_voxels,
-                                RANGE_MAP_DOWN_FACTOR)
+            self._grid.ray_cast(
+                keys,
+                self.intrinsic,
+                o3c.Tensor(np.eye(4)),
+                _padded(cam.width),
+                _padded(cam.height),
+                ["depth"],
+                1.0,
+                c.depth_min_m,
+                2.0 * zc + 1.0,
+                1.0,
+                c.sdf_trunc_voxels,
+                RANGE_MAP_DOWN_FACTOR,
+            )
 
     @property
     def voxel_grid(self) -> o3d.t.geometry.VoxelBlockGrid:
@@ -244,14 +266,18 @@ class TsdfVolume:
         k_shifted[0, 2] -= sx
         k_shifted[1, 2] -= sy
         shifted = np.pad(depth_m[sy:, sx:], ((0, s), (0, s)))
-        passes = [(depth_image, self.intrinsic),
-                  (o3d.t.geometry.Image(o3c.Tensor(shifted, device=self.device)),
-                   o3c.Tensor(k_shifted))]
+        passes = [
+            (depth_image, self.intrinsic),
+            (o3d.t.geometry.Image(o3c.Tensor(shifted, device=self.device)), o3c.Tensor(k_shifted)),
+        ]
         found = []
         for image, intrinsic in passes:
             try:
-                found.append(self._grid.compute_unique_block_coordinates(
-                    image, intrinsic, extrinsic, 1.0, c.depth_max_m, c.sdf_trunc_voxels))
+                found.append(
+                    self._grid.compute_unique_block_coordinates(
+                        image, intrinsic, extrinsic, 1.0, c.depth_max_m, c.sdf_trunc_voxels
+                    )
+                )
             except RuntimeError:  # Open3D aborts when no block is touched (nothing in range)
                 pass
         if not found:
@@ -260,8 +286,15 @@ class TsdfVolume:
         if len(found) > 1:
             keys = unique_block_keys(np.concatenate([b.cpu().numpy() for b in found]))
             blocks = o3c.Tensor(keys, o3c.int32, self.device)
-        self._grid.integrate(blocks, depth_image, self._intrinsic_integrate, extrinsic, 1.0,
-                             c.depth_max_m, c.sdf_trunc_voxels)
+        self._grid.integrate(
+            blocks,
+            depth_image,
+            self._intrinsic_integrate,
+            extrinsic,
+            1.0,
+            c.depth_max_m,
+            c.sdf_trunc_voxels,
+        )
         self.frames_integrated += 1
         return True
 
@@ -273,8 +306,9 @@ class TsdfVolume:
         hashmap = self._grid.hashmap()
         return hashmap.key_tensor()[hashmap.active_buf_indices().to(o3c.int64)]
 
-    def ray_cast(self, world_from_cam: np.ndarray,
-                 subsample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def ray_cast(
+        self, world_from_cam: np.ndarray, subsample: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
         """D_v (H, W) float32 metres (0 = none) and N_v (H, W, 3) float32 (camera frame,
         unit, towards the free side) of V seen from world_from_cam; zeros while V is empty.
 
@@ -287,30 +321,46 @@ class TsdfVolume:
         if self.num_blocks == 0:
             return np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32)
         if subsample > 1:
-            cam = PinholeCamera(-(-w // subsample), -(-h // subsample), cam.fx / subsample,
-                                cam.fy / subsample, (cam.cx + 0.5) / subsample - 0.5,
-                                (cam.cy + 0.5) / subsample - 0.5)
+            cam = PinholeCamera(
+                -(-w // subsample),
+                -(-h // subsample),
+                cam.fx / subsample,
+                cam.fy / subsample,
+                (cam.cx + 0.5) / subsample - 0.5,
+                (cam.cy + 0.5) / subsample - 0.5,
+            )
         depth, normals = self._cast(cam, world_from_cam)
         if subsample > 1:
             depth = upsample_depth(depth, subsample, (h, w))
             normals = np.repeat(np.repeat(normals, subsample, 0), subsample, 1)[:h, :w]
         return np.ascontiguousarray(depth), np.ascontiguousarray(normals)
 
-    def _cast(self, cam: PinholeCamera, world_from_cam: np.ndarray,
-              ) -> tuple[np.ndarray, np.ndarray]:
+    def _cast(
+        self,
+        cam: PinholeCamera,
+        world_from_cam: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Open3D's ray cast of V through `cam`'s pixels, refined (`refine_ray_cast`)."""
         c = self.params
         h, w = cam.height, cam.width
-        intrinsic = (self.intrinsic if cam is self.camera
-                     else o3c.Tensor(cam.matrix, o3c.float64))
+        intrinsic = self.intrinsic if cam is self.camera else o3c.Tensor(cam.matrix, o3c.float64)
         hp, wp = _padded(h), _padded(w)
         # Open3D warns while it grows its range-map buffer; that is expected, not a problem
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             result = self._grid.ray_cast(
-                self._active_blocks(), intrinsic, o3c.Tensor(np.linalg.inv(world_from_cam)),
-                wp, hp, ["depth", "index", "mask", "interp_ratio"], 1.0, c.depth_min_m,
-                c.depth_max_m, self.weight_threshold(), c.sdf_trunc_voxels,
-                RANGE_MAP_DOWN_FACTOR)
+                self._active_blocks(),
+                intrinsic,
+                o3c.Tensor(np.linalg.inv(world_from_cam)),
+                wp,
+                hp,
+                ["depth", "index", "mask", "interp_ratio"],
+                1.0,
+                c.depth_min_m,
+                c.depth_max_m,
+                self.weight_threshold(),
+                c.sdf_trunc_voxels,
+                RANGE_MAP_DOWN_FACTOR,
+            )
         tsdf = self._grid.attribute("tsdf")
         if self.device.get_type() == o3c.Device.DeviceType.CPU:
             source, index = tsdf.numpy().reshape(-1), result["index"].numpy()[:h, :w]
@@ -318,9 +368,15 @@ class TsdfVolume:
             source = tsdf.reshape((-1,))[result["index"].reshape((-1,))].cpu().numpy()
             index = np.arange(hp * wp * 8, dtype=np.int64).reshape(hp, wp, 8)[:h, :w]
         return refine_ray_cast(
-            result["depth"].cpu().numpy()[:h, :w, 0], source, index,
-            result["mask"].cpu().numpy()[:h, :w], result["interp_ratio"].cpu().numpy()[:h, :w],
-            world_from_cam, cam, c.voxel_size_m)
+            result["depth"].cpu().numpy()[:h, :w, 0],
+            source,
+            index,
+            result["mask"].cpu().numpy()[:h, :w],
+            result["interp_ratio"].cpu().numpy()[:h, :w],
+            world_from_cam,
+            cam,
+            c.voxel_size_m,
+        )
 
     def triangle_mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """V's zero level set as a triangle mesh (Open3D's marching cubes over the voxels
@@ -340,8 +396,10 @@ class TsdfVolume:
             mesh = self._grid.extract_triangle_mesh(self.weight_threshold() - 0.5)
         except RuntimeError:
             return empty
-        return (mesh.vertex.positions.cpu().numpy().astype(np.float32, copy=False),
-                mesh.triangle.indices.cpu().numpy().astype(np.int32, copy=False))
+        return (
+            mesh.vertex.positions.cpu().numpy().astype(np.float32, copy=False),
+            mesh.triangle.indices.cpu().numpy().astype(np.int32, copy=False),
+        )
 
     def surface_points(self, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Zero crossings of the TSDF of V, on the voxel grid sub-sampled every `stride` voxels.
@@ -371,15 +429,17 @@ class TsdfVolume:
             t, v = _next_samples(hashmap, keys, tsdf, valid, read, k, self.device)
             nxt.append(t)
             nxt_valid.append(v)
-        return _zero_crossings(keys, tsdf, valid, nxt, nxt_valid, stride, r,
-                               self.params.voxel_size_m)
+        return _zero_crossings(
+            keys, tsdf, valid, nxt, nxt_valid, stride, r, self.params.voxel_size_m
+        )
 
 
 class _BlockReader:
     """Sub-sampled tsdf and validity (weight >= threshold) of blocks of a VoxelBlockGrid."""
 
-    def __init__(self, grid: o3d.t.geometry.VoxelBlockGrid, device: o3c.Device,
-                 threshold: float, stride: int):
+    def __init__(
+        self, grid: o3d.t.geometry.VoxelBlockGrid, device: o3c.Device, threshold: float, stride: int
+    ):
         self.tsdf = grid.attribute("tsdf")  # (capacity, r, r, r, 1): block, z, y, x
         self.weight = grid.attribute("weight")
         self.on_cpu = device.get_type() == o3c.Device.DeviceType.CPU
@@ -388,8 +448,11 @@ class _BlockReader:
         self.threshold = threshold
         self.sub = slice(None, None, stride)
 
-    def __call__(self, index: o3c.Tensor, axis: int | None = None,
-                 ) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(
+        self,
+        index: o3c.Tensor,
+        axis: int | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Blocks at buffer `index`; only their first layer along array `axis` if given."""
         key: list = [slice(None), self.sub, self.sub, self.sub, 0]
         if axis is not None:
@@ -403,9 +466,15 @@ class _BlockReader:
         return t, w >= self.threshold
 
 
-def _next_samples(hashmap, keys: np.ndarray, tsdf: np.ndarray, valid: np.ndarray,
-                  read: _BlockReader, k: int, device: o3c.Device,
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def _next_samples(
+    hashmap,
+    keys: np.ndarray,
+    tsdf: np.ndarray,
+    valid: np.ndarray,
+    read: _BlockReader,
+    k: int,
+    device: o3c.Device,
+) -> tuple[np.ndarray, np.ndarray]:
     """tsdf and validity of the next sample along x, y or z (k = 0, 1, 2) of every sample,
     the last layer of a block taken from its neighbour block (missing: invalid)."""
     axis = 3 - k
@@ -421,13 +490,22 @@ def _next_samples(hashmap, keys: np.ndarray, tsdf: np.ndarray, valid: np.ndarray
         layer[found_np], layer_valid[found_np] = t, v
     rest = [slice(None)] * 4
     rest[axis] = slice(1, None)
-    return (np.concatenate([tsdf[tuple(rest)], np.expand_dims(layer, axis)], axis),
-            np.concatenate([valid[tuple(rest)], np.expand_dims(layer_valid, axis)], axis))
+    return (
+        np.concatenate([tsdf[tuple(rest)], np.expand_dims(layer, axis)], axis),
+        np.concatenate([valid[tuple(rest)], np.expand_dims(layer_valid, axis)], axis),
+    )
 
 
-def _zero_crossings(keys: np.ndarray, tsdf: np.ndarray, valid: np.ndarray, nxt: list,
-                    nxt_valid: list, stride: int, r: int, voxel_size_m: float,
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def _zero_crossings(
+    keys: np.ndarray,
+    tsdf: np.ndarray,
+    valid: np.ndarray,
+    nxt: list,
+    nxt_valid: list,
+    stride: int,
+    r: int,
+    voxel_size_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """World points and forward-difference gradients of the sign changes between samples."""
     m = tsdf.shape[1]
     # sample index (z, y, x) in a block -> voxel offset (x, y, z) of the sample
@@ -437,13 +515,16 @@ def _zero_crossings(keys: np.ndarray, tsdf: np.ndarray, valid: np.ndarray, nxt: 
         b, z, y, x = np.nonzero(valid & nxt_valid[k] & (tsdf * nxt[k] < 0))
         a = tsdf[b, z, y, x]
         ratio = a / (a - nxt[k][b, z, y, x])
-        voxel = (keys[b] * r + np.stack([ix[z, y, x], iy[z, y, x], iz[z, y, x]], -1)
-                 ).astype(np.float64)
+        voxel = (keys[b] * r + np.stack([ix[z, y, x], iy[z, y, x], iz[z, y, x]], -1)).astype(
+            np.float64
+        )
         voxel[:, k] += stride * ratio
         points.append(voxel * voxel_size_m)
         # forward differences at the lower sample (0 where a neighbour is unobserved)
-        gradients.append(np.stack(
-            [np.where(nxt_valid[j][b, z, y, x], nxt[j][b, z, y, x] - a, 0.0)
-             for j in range(3)], -1))
-    return (np.concatenate(points).astype(np.float32),
-            np.concatenate(gradients).astype(np.float32))
+        gradients.append(
+            np.stack(
+                [np.where(nxt_valid[j][b, z, y, x], nxt[j][b, z, y, x] - a, 0.0) for j in range(3)],
+                -1,
+            )
+        )
+    return (np.concatenate(points).astype(np.float32), np.concatenate(gradients).astype(np.float32))

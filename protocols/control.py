@@ -115,8 +115,13 @@ class Error:
             self.field = str(self.field.value)
 
     def _pack(self, parts: list) -> dict:
-        return {"code": self.code, "message": self.message, "field": self.field,
-                "seq": to_plain(self.seq), "retryable": to_plain(self.retryable)}
+        return {
+            "code": self.code,
+            "message": self.message,
+            "field": self.field,
+            "seq": to_plain(self.seq),
+            "retryable": to_plain(self.retryable),
+        }
 
     @classmethod
     def _unpack(cls, h: FieldReader, v: int, images: ImageParts) -> Error:
@@ -156,8 +161,8 @@ class Bye:
             kind = ByeKind(self.kind).value
         except ValueError:
             raise ProtocolError(
-                "bad_field", f"{self.kind!r} is not one of {[k.value for k in ByeKind]}",
-                "bye.kind") from None
+                "bad_field", f"{self.kind!r} is not one of {[k.value for k in ByeKind]}", "bye.kind"
+            ) from None
         return {"kind": kind, "reason": self.reason}
 
     @classmethod

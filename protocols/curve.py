@@ -34,8 +34,10 @@ def load_secret_key(path: str, flag: str) -> tuple[bytes, bytes]:
     except (OSError, ValueError) as exc:
         raise KeyFileError(f"{flag}: cannot read the key file {path!r}: {exc}") from None
     if not secret:
-        raise KeyFileError(f"{flag}: {path!r} holds no secret key: give the NAME.key_secret "
-                           "file (NAME.key is the public half)")
+        raise KeyFileError(
+            f"{flag}: {path!r} holds no secret key: give the NAME.key_secret "
+            "file (NAME.key is the public half)"
+        )
     return public, secret
 
 

@@ -37,9 +37,7 @@ def _diagnostics_map(v: Any, name: str, level: int, budget: list[int]) -> dict:
     if type(v) is not dict:
         raise ProtocolError("bad_field", f"expected a map, got {type_name(v)}", name)
     if len(v) > DIAGNOSTICS_MAX_KEYS:
-        raise ProtocolError(
-            "bad_field", f"{len(v)} entries, at most {DIAGNOSTICS_MAX_KEYS}", name
-        )
+        raise ProtocolError("bad_field", f"{len(v)} entries, at most {DIAGNOSTICS_MAX_KEYS}", name)
     out = {}
     for k, x in v.items():
         key = read_str(k, f"{name} key", 64, KEY_RE)
@@ -63,9 +61,7 @@ def _diagnostics_value(x: Any, name: str, level: int, budget: list[int]) -> Any:
         )
     if t is list:
         if n > DIAGNOSTICS_MAX_ARRAY:
-            raise ProtocolError(
-                "bad_field", f"{n} numbers, at most {DIAGNOSTICS_MAX_ARRAY}", name
-            )
+            raise ProtocolError("bad_field", f"{n} numbers, at most {DIAGNOSTICS_MAX_ARRAY}", name)
         out = []
         for i, e in enumerate(x):
             if type(e) not in (int, float):
@@ -83,6 +79,7 @@ def _diagnostics_value(x: Any, name: str, level: int, budget: list[int]) -> Any:
     if x is None or t in (bool, int, float, str):
         return x
     raise ProtocolError(
-        "bad_field", f"unsupported value type {t.__name__}; diagnostics hold {_DIAGNOSTIC_TYPES}",
+        "bad_field",
+        f"unsupported value type {t.__name__}; diagnostics hold {_DIAGNOSTIC_TYPES}",
         name,
     )

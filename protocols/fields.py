@@ -73,27 +73,45 @@ class FieldReader:
     # the getters are named after the types they read: inside the class, the annotations
     # name the types as builtins.int, builtins.str, ...
     @overload
-    def int(self, key: builtins.str, lo: builtins.int = 0, hi: builtins.int = MAX_INT,
-            nullable: Literal[False] = False) -> builtins.int: ...
+    def int(
+        self,
+        key: builtins.str,
+        lo: builtins.int = 0,
+        hi: builtins.int = MAX_INT,
+        nullable: Literal[False] = False,
+    ) -> builtins.int: ...
 
     @overload
-    def int(self, key: builtins.str, lo: builtins.int = 0, hi: builtins.int = MAX_INT, *,
-            nullable: builtins.bool) -> builtins.int | None: ...
+    def int(
+        self,
+        key: builtins.str,
+        lo: builtins.int = 0,
+        hi: builtins.int = MAX_INT,
+        *,
+        nullable: builtins.bool,
+    ) -> builtins.int | None: ...
 
-    def int(self, key: builtins.str, lo: builtins.int = 0, hi: builtins.int = MAX_INT,
-            nullable: builtins.bool = False) -> builtins.int | None:
+    def int(
+        self,
+        key: builtins.str,
+        lo: builtins.int = 0,
+        hi: builtins.int = MAX_INT,
+        nullable: builtins.bool = False,
+    ) -> builtins.int | None:
         v = self.raw(key, nullable)
         if v is None:
             return None
         if type(v) is not int:
-            raise ProtocolError("bad_field", f"expected an integer, got {type_name(v)}",
-                                self.f(key))
+            raise ProtocolError(
+                "bad_field", f"expected an integer, got {type_name(v)}", self.f(key)
+            )
         if not lo <= v <= hi:
             raise ProtocolError("bad_field", f"{v} is outside {lo}..{hi}", self.f(key))
         return v
 
-    def float(self, key: builtins.str, lo: builtins.float = -math.inf,
-              hi: builtins.float = math.inf) -> builtins.float:
+    def float(
+        self, key: builtins.str, lo: builtins.float = -math.inf, hi: builtins.float = math.inf
+    ) -> builtins.float:
         return read_float(self.raw(key), self.f(key), lo, hi)
 
     def bool(self, key: builtins.str) -> builtins.bool:
@@ -103,25 +121,42 @@ class FieldReader:
         return v
 
     @overload
-    def str(self, key: builtins.str, max_len: builtins.int = 1024,
-            pattern: re.Pattern | None = None, choices: tuple | None = None,
-            nullable: Literal[False] = False) -> builtins.str: ...
+    def str(
+        self,
+        key: builtins.str,
+        max_len: builtins.int = 1024,
+        pattern: re.Pattern | None = None,
+        choices: tuple | None = None,
+        nullable: Literal[False] = False,
+    ) -> builtins.str: ...
 
     @overload
-    def str(self, key: builtins.str, max_len: builtins.int = 1024,
-            pattern: re.Pattern | None = None, choices: tuple | None = None, *,
-            nullable: builtins.bool) -> builtins.str | None: ...
+    def str(
+        self,
+        key: builtins.str,
+        max_len: builtins.int = 1024,
+        pattern: re.Pattern | None = None,
+        choices: tuple | None = None,
+        *,
+        nullable: builtins.bool,
+    ) -> builtins.str | None: ...
 
-    def str(self, key: builtins.str, max_len: builtins.int = 1024,
-            pattern: re.Pattern | None = None, choices: tuple | None = None,
-            nullable: builtins.bool = False) -> builtins.str | None:
+    def str(
+        self,
+        key: builtins.str,
+        max_len: builtins.int = 1024,
+        pattern: re.Pattern | None = None,
+        choices: tuple | None = None,
+        nullable: builtins.bool = False,
+    ) -> builtins.str | None:
         v = self.raw(key, nullable)
         if v is None:
             return None
         return read_str(v, self.f(key), max_len, pattern, choices)
 
-    def floats(self, key: builtins.str, n: builtins.int | None = None,
-               max_len: builtins.int = 1024) -> list[builtins.float]:
+    def floats(
+        self, key: builtins.str, n: builtins.int | None = None, max_len: builtins.int = 1024
+    ) -> list[builtins.float]:
         return read_floats(self.raw(key), self.f(key), n, max_len)
 
     @overload
@@ -159,8 +194,13 @@ def read_float(v: Any, name: str, lo: float = -math.inf, hi: float = math.inf) -
     return v
 
 
-def read_str(v: Any, name: str, max_len: int = 1024, pattern: re.Pattern | None = None,
-             choices: tuple | None = None) -> str:
+def read_str(
+    v: Any,
+    name: str,
+    max_len: int = 1024,
+    pattern: re.Pattern | None = None,
+    choices: tuple | None = None,
+) -> str:
     if type(v) is not str:
         raise ProtocolError("bad_field", f"expected a string, got {type_name(v)}", name)
     if len(v) > max_len:
@@ -176,8 +216,12 @@ def read_token(v: Any, name: str) -> str:
     """A token (TOKEN_RE); the message never repeats the value (it may be a near-secret)."""
     if type(v) is not str or not TOKEN_RE.fullmatch(v):
         size = f" of {len(v)} characters" if type(v) is str else ""
-        raise ProtocolError("bad_field", f"not a token: expected 16..128 characters from "
-                            f"A-Z a-z 0-9 _ -, got a {type_name(v)}{size}", name)
+        raise ProtocolError(
+            "bad_field",
+            f"not a token: expected 16..128 characters from "
+            f"A-Z a-z 0-9 _ -, got a {type_name(v)}{size}",
+            name,
+        )
     return v
 
 
@@ -263,8 +307,9 @@ def float_list(v: Any, name: str) -> list:
 
 def read_float_rows(v: Any, name: str, rows: int, cols: int) -> list[list[float]]:
     if type(v) is not list or len(v) != rows:
-        raise ProtocolError("bad_field", f"expected {rows} arrays of {cols} numbers, "
-                            f"got {type_name(v)}", name)
+        raise ProtocolError(
+            "bad_field", f"expected {rows} arrays of {cols} numbers, got {type_name(v)}", name
+        )
     return [read_floats(r, f"{name}[{i}]", cols) for i, r in enumerate(v)]
 
 

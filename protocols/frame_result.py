@@ -73,21 +73,39 @@ class Frame:
         }
         if (color is None) != (depth is None):
             missing = "color" if color is None else "depth"
-            raise ProtocolError("bad_field", "give both colour and depth, or neither (a "
-                                "panorama-only frame)", f"{nm}.{missing}")
+            raise ProtocolError(
+                "bad_field",
+                "give both colour and depth, or neither (a panorama-only frame)",
+                f"{nm}.{missing}",
+            )
         if color is None and self.panorama is None:
-            raise ProtocolError("bad_field", "a frame without colour and depth must carry a "
-                                "panorama", f"{nm}.panorama")
-        out["color"] = None if color is None else add_image(
-            parts, *encode_color(color, self.color_codec, self.jpeg_quality, field=f"{nm}.color")
+            raise ProtocolError(
+                "bad_field",
+                "a frame without colour and depth must carry a panorama",
+                f"{nm}.panorama",
+            )
+        out["color"] = (
+            None
+            if color is None
+            else add_image(
+                parts,
+                *encode_color(color, self.color_codec, self.jpeg_quality, field=f"{nm}.color"),
+            )
         )
-        out["depth"] = None if depth is None else add_image(
-            parts, *encode_depth(depth, self.depth_codec, field=f"{nm}.depth")
+        out["depth"] = (
+            None
+            if depth is None
+            else add_image(parts, *encode_depth(depth, self.depth_codec, field=f"{nm}.depth"))
         )
-        out["panorama"] = None if self.panorama is None else add_image(
-            parts,
-            *encode_color(self.panorama, self.color_codec, self.jpeg_quality,
-                          field=f"{nm}.panorama"),
+        out["panorama"] = (
+            None
+            if self.panorama is None
+            else add_image(
+                parts,
+                *encode_color(
+                    self.panorama, self.color_codec, self.jpeg_quality, field=f"{nm}.panorama"
+                ),
+            )
         )
         return out
 
@@ -101,11 +119,17 @@ class Frame:
         dd = images.descriptor(h, "depth", depth=True, nullable=True)
         dp = images.descriptor(h, "panorama", depth=False, nullable=True)
         if (dc is None) != (dd is None):
-            raise ProtocolError("bad_field", "give both colour and depth, or neither (a "
-                                "panorama-only frame)", h.f("color" if dc is None else "depth"))
+            raise ProtocolError(
+                "bad_field",
+                "give both colour and depth, or neither (a panorama-only frame)",
+                h.f("color" if dc is None else "depth"),
+            )
         if dc is None and dp is None:
-            raise ProtocolError("bad_field", "a frame without colour and depth must carry a "
-                                "panorama", h.f("panorama"))
+            raise ProtocolError(
+                "bad_field",
+                "a frame without colour and depth must carry a panorama",
+                h.f("panorama"),
+            )
         if dc is not None and (dc[2], dc[3]) != (dd[2], dd[3]):
             raise ProtocolError(
                 "bad_field",
@@ -192,8 +216,9 @@ class Result:
             "seq": to_plain(self.seq),
             "timestamp": to_plain(self.timestamp),
             "sh": float_list(self.sh, "result.sh"),
-            "sh_camera": None if self.sh_camera is None else float_list(
-                self.sh_camera, "result.sh_camera"),
+            "sh_camera": None
+            if self.sh_camera is None
+            else float_list(self.sh_camera, "result.sh_camera"),
             "sh_rgb": None if self.sh_rgb is None else float_list(self.sh_rgb, "result.sh_rgb"),
             "dominant_direction_camera": float_list(
                 self.dominant_direction_camera, "result.dominant_direction_camera"
@@ -212,26 +237,37 @@ class Result:
             "server_receive_time": to_plain(self.server_receive_time),
             "server_finish_time": to_plain(self.server_finish_time),
         }
-        given = [self.panorama_sh is not None, self.panorama_sh_rgb is not None,
-                 self.panorama_dominant_direction is not None]
+        given = [
+            self.panorama_sh is not None,
+            self.panorama_sh_rgb is not None,
+            self.panorama_dominant_direction is not None,
+        ]
         if any(given) and not all(given):
             missing = [k for k, g in zip(_PANORAMA_RESULT_KEYS, given, strict=True) if not g]
-            raise ProtocolError("bad_field", "give panorama_sh, panorama_sh_rgb and "
-                                "panorama_dominant_direction together, or none",
-                                f"result.{missing[0]}")
+            raise ProtocolError(
+                "bad_field",
+                "give panorama_sh, panorama_sh_rgb and "
+                "panorama_dominant_direction together, or none",
+                f"result.{missing[0]}",
+            )
         if all(given):  # optional keys: absent when the frame had no panorama
             out["panorama_sh"] = float_list(self.panorama_sh, "result.panorama_sh")
             out["panorama_sh_rgb"] = float_list(self.panorama_sh_rgb, "result.panorama_sh_rgb")
             out["panorama_dominant_direction"] = float_list(
-                self.panorama_dominant_direction, "result.panorama_dominant_direction")
+                self.panorama_dominant_direction, "result.panorama_dominant_direction"
+            )
         if self.exports is not None:  # optional key: absent when the session asked for none
             out["exports"] = read_exports(to_plain(self.exports), "result.exports")
         out["composite"] = None
         if self.composite is not None:
             out["composite"] = add_image(
                 parts,
-                *encode_color(self.composite, self.composite_codec, self.jpeg_quality,
-                              field="result.composite"),
+                *encode_color(
+                    self.composite,
+                    self.composite_codec,
+                    self.jpeg_quality,
+                    field="result.composite",
+                ),
             )
         return out
 
@@ -254,22 +290,32 @@ class Result:
                 raise ProtocolError(
                     "bad_field", "expected 3 arrays (R, G, B) of L^2 numbers", h.f("sh_rgb")
                 )
-            sh_rgb = [read_floats(c, f"{h.f('sh_rgb')}[{i}]", len(sh))
-                      for i, c in enumerate(sh_rgb)]
+            sh_rgb = [
+                read_floats(c, f"{h.f('sh_rgb')}[{i}]", len(sh)) for i, c in enumerate(sh_rgb)
+            ]
         fields: dict[str, Any] = dict(
-            seq=seq, timestamp=timestamp, sh=sh, sh_camera=sh_camera, sh_rgb=sh_rgb,
-            dominant_direction_camera=read_direction(h.raw("dominant_direction_camera"),
-                                                     h.f("dominant_direction_camera")),
-            dominant_direction_world=read_direction(h.raw("dominant_direction_world"),
-                                                    h.f("dominant_direction_world")),
+            seq=seq,
+            timestamp=timestamp,
+            sh=sh,
+            sh_camera=sh_camera,
+            sh_rgb=sh_rgb,
+            dominant_direction_camera=read_direction(
+                h.raw("dominant_direction_camera"), h.f("dominant_direction_camera")
+            ),
+            dominant_direction_world=read_direction(
+                h.raw("dominant_direction_world"), h.f("dominant_direction_world")
+            ),
             intensity=h.float("intensity"),
             confidence=read_plain_map(h.raw("confidence"), h.f("confidence"), 0, 64),
             pose=read_pose(h.raw("pose"), h.f("pose")).tolist(),
         )
         if any(fields["dominant_direction_camera"]) != any(fields["dominant_direction_world"]):
-            raise ProtocolError("bad_field", "one dominant direction is [0, 0, 0] and the other "
-                                "is not: a light has a direction in both frames or in neither",
-                                h.f("dominant_direction_camera"))
+            raise ProtocolError(
+                "bad_field",
+                "one dominant direction is [0, 0, 0] and the other "
+                "is not: a light has a direction in both frames or in neither",
+                h.f("dominant_direction_camera"),
+            )
         timings = read_plain_map(h.raw("timings_ms"), h.f("timings_ms"), 0, 64)
         fields["timings_ms"] = {
             k: read_float(x, f"{h.f('timings_ms')}.{k}", 0.0) for k, x in timings.items()
@@ -286,8 +332,11 @@ class Result:
         h.done()
         images.done(h.name)
         if dc is not None:
-            fields.update(composite=images.decode(dc), composite_codec=dc[1],
-                          jpeg_quality=dc[0].get("quality", DEFAULT_JPEG_QUALITY))
+            fields.update(
+                composite=images.decode(dc),
+                composite_codec=dc[1],
+                jpeg_quality=dc[0].get("quality", DEFAULT_JPEG_QUALITY),
+            )
         return cls(**fields)
 
 
@@ -301,22 +350,25 @@ def _read_panorama_light(h: FieldReader) -> dict:
         return {}
     if not all(present):
         missing = _PANORAMA_RESULT_KEYS[present.index(False)]
-        raise ProtocolError("bad_field", "missing (the panorama keys come all three or none)",
-                            h.f(missing))
+        raise ProtocolError(
+            "bad_field", "missing (the panorama keys come all three or none)", h.f(missing)
+        )
     coeffs = h.floats("panorama_sh", max_len=1024)
     bands = math.isqrt(len(coeffs))
     if not coeffs or bands * bands != len(coeffs):
         raise ProtocolError(
-            "bad_field", f"{len(coeffs)} coefficients is not L^2 for L >= 1", h.f("panorama_sh"))
+            "bad_field", f"{len(coeffs)} coefficients is not L^2 for L >= 1", h.f("panorama_sh")
+        )
     rgb = h.raw("panorama_sh_rgb")
     if type(rgb) is not list or len(rgb) != 3:
-        raise ProtocolError("bad_field", "expected 3 arrays (R, G, B) of L^2 numbers",
-                            h.f("panorama_sh_rgb"))
+        raise ProtocolError(
+            "bad_field", "expected 3 arrays (R, G, B) of L^2 numbers", h.f("panorama_sh_rgb")
+        )
     rgb = [read_floats(c, f"{h.f('panorama_sh_rgb')}[{i}]", len(coeffs)) for i, c in enumerate(rgb)]
-    direction = read_direction(h.raw("panorama_dominant_direction"),
-                               h.f("panorama_dominant_direction"))
-    return {"panorama_sh": coeffs, "panorama_sh_rgb": rgb,
-            "panorama_dominant_direction": direction}
+    direction = read_direction(
+        h.raw("panorama_dominant_direction"), h.f("panorama_dominant_direction")
+    )
+    return {"panorama_sh": coeffs, "panorama_sh_rgb": rgb, "panorama_dominant_direction": direction}
 
 
 def read_direction(v: Any, name: str) -> list[float]:
@@ -328,6 +380,10 @@ def read_direction(v: Any, name: str) -> list[float]:
         return d
     norm = math.sqrt(sum(x * x for x in d))
     if abs(norm - 1.0) > DIRECTION_NORM_TOLERANCE:
-        raise ProtocolError("bad_field", f"norm {norm:.6g}: expected a unit vector (within "
-                            f"{DIRECTION_NORM_TOLERANCE:g}) or [0, 0, 0] for no direction", name)
+        raise ProtocolError(
+            "bad_field",
+            f"norm {norm:.6g}: expected a unit vector (within "
+            f"{DIRECTION_NORM_TOLERANCE:g}) or [0, 0, 0] for no direction",
+            name,
+        )
     return d

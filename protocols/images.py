@@ -51,7 +51,8 @@ class ImageParts:
         name = m.f(key)
         if not isinstance(desc, dict):
             raise ProtocolError(
-                "bad_field", f"expected an image descriptor, got {type_name(desc)}", name)
+                "bad_field", f"expected an image descriptor, got {type_name(desc)}", name
+            )
         allowed = _DEPTH_KEYS if depth else _COLOR_KEYS
         for k in desc:
             if k not in allowed:

@@ -20,11 +20,15 @@ def read_export_names(v: Any, name: str) -> tuple[str, ...]:
     if v is None:
         return ()
     if v == []:
-        raise ProtocolError("bad_field", "an empty array: for no layout send nil or omit the "
-                            "key", name)
+        raise ProtocolError(
+            "bad_field", "an empty array: for no layout send nil or omit the key", name
+        )
     if type(v) is not list or not 1 <= len(v) <= len(EXPORT_LAYOUTS):
-        raise ProtocolError("bad_field", f"expected an array of 1..{len(EXPORT_LAYOUTS)} "
-                            f"layout names, got {type_name(v)}", name)
+        raise ProtocolError(
+            "bad_field",
+            f"expected an array of 1..{len(EXPORT_LAYOUTS)} layout names, got {type_name(v)}",
+            name,
+        )
     names = tuple(read_str(x, f"{name}[{i}]", 64, choices=EXPORT_LAYOUTS) for i, x in enumerate(v))
     if len(set(names)) != len(names):
         raise ProtocolError("bad_field", f"a layout named twice: {list(names)}", name)
@@ -39,24 +43,36 @@ def _read_layout(layout: str, v: Any, name: str) -> Any:
         return read_float_rows(v, name, 3, 9)
     if layout == "filament":
         return read_str(v, name, MAX_FILAMENT_TEXT)
-    keys = {"gltf": ("intensity", "rotation", "irradianceCoefficients"),
-            "main_light": ("direction", "intensity")}[layout]
+    keys = {
+        "gltf": ("intensity", "rotation", "irradianceCoefficients"),
+        "main_light": ("direction", "intensity"),
+    }[layout]
     if type(v) is not dict or set(v) != set(keys):
-        raise ProtocolError("bad_field", f"expected a map with keys {', '.join(keys)}, got "
-                            f"{sorted(map(str, v)) if type(v) is dict else type_name(v)}", name)
+        raise ProtocolError(
+            "bad_field",
+            f"expected a map with keys {', '.join(keys)}, got "
+            f"{sorted(map(str, v)) if type(v) is dict else type_name(v)}",
+            name,
+        )
     if layout == "main_light":
         return {k: read_floats(v[k], f"{name}.{k}", 3) for k in keys}
-    return {"intensity": read_float(v["intensity"], f"{name}.intensity"),
-            "rotation": read_floats(v["rotation"], f"{name}.rotation", 4),
-            "irradianceCoefficients": read_float_rows(v["irradianceCoefficients"],
-                                                  f"{name}.irradianceCoefficients", 9, 3)}
+    return {
+        "intensity": read_float(v["intensity"], f"{name}.intensity"),
+        "rotation": read_floats(v["rotation"], f"{name}.rotation", 4),
+        "irradianceCoefficients": read_float_rows(
+            v["irradianceCoefficients"], f"{name}.irradianceCoefficients", 9, 3
+        ),
+    }
 
 
 def read_exports(v: Any, name: str) -> dict:
     """Result.exports: layout name -> that layout's numbers (each layout at most once)."""
     if type(v) is not dict or not 1 <= len(v) <= len(EXPORT_LAYOUTS):
-        raise ProtocolError("bad_field", f"expected a map of 1..{len(EXPORT_LAYOUTS)} "
-                            f"layouts, got {type_name(v)}", name)
+        raise ProtocolError(
+            "bad_field",
+            f"expected a map of 1..{len(EXPORT_LAYOUTS)} layouts, got {type_name(v)}",
+            name,
+        )
     out = {}
     for k, x in v.items():
         layout = read_str(k, f"{name} key", 64, choices=EXPORT_LAYOUTS)

@@ -29,9 +29,15 @@ def result_record(result: Result) -> dict:
         "pose": result.pose,
         "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},
         "diagnostics": result.diagnostics,
-        **({} if result.panorama_sh is None else {  # a frame with a panorama
-            "panorama_sh": result.panorama_sh, "panorama_sh_rgb": result.panorama_sh_rgb,
-            "panorama_dominant_direction": result.panorama_dominant_direction}),
+        **(
+            {}
+            if result.panorama_sh is None
+            else {  # a frame with a panorama
+                "panorama_sh": result.panorama_sh,
+                "panorama_sh_rgb": result.panorama_sh_rgb,
+                "panorama_dominant_direction": result.panorama_dominant_direction,
+            }
+        ),
         **({} if result.exports is None else {"exports": result.exports}),  # Hello asked
     }
 

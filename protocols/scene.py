@@ -75,7 +75,8 @@ class SceneObjectSpec:
         if (self.world_from_object is None) != (other.world_from_object is None):
             return False
         arrays = ("vertices", "triangles", "normals") + (
-            () if self.world_from_object is None else ("world_from_object",))
+            () if self.world_from_object is None else ("world_from_object",)
+        )
         return all(np.array_equal(getattr(self, k), getattr(other, k)) for k in arrays)
 
     def _pack(self, name: str) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
@@ -89,9 +90,12 @@ class SceneObjectSpec:
             pose = [x for row in pose for x in row]
         anchor = None
         if self.anchor is not None:
-            anchor = {"pixel": None if self.anchor.pixel is None else
-                      float_list(self.anchor.pixel, f"{name}.anchor.pixel"),
-                      "yaw_deg": to_plain(self.anchor.yaw_deg)}
+            anchor = {
+                "pixel": None
+                if self.anchor.pixel is None
+                else float_list(self.anchor.pixel, f"{name}.anchor.pixel"),
+                "yaw_deg": to_plain(self.anchor.yaw_deg),
+            }
         out = {
             "name": self.name,
             "vertex_count": len(vertices),
@@ -134,12 +138,20 @@ class SceneSpec:
     def _pack(self, parts: list, name: str) -> dict:
         packed = [obj._pack(f"{name}.objects[{i}]") for i, obj in enumerate(self.objects)]
         out: dict[str, Any] = {}
-        columns = {"vertices": [p[1] for p in packed], "triangles": [p[2] for p in packed],
-                   "normals": [p[3] for p in packed]}
+        columns = {
+            "vertices": [p[1] for p in packed],
+            "triangles": [p[2] for p in packed],
+            "normals": [p[3] for p in packed],
+        }
         for key in _SCENE_BUFFERS:
             arrays = columns[key]
-            joined = arrays[0] if len(arrays) == 1 else np.concatenate(
-                arrays or [np.empty((0, 3), _U32 if key == "triangles" else _F32)])
+            joined = (
+                arrays[0]
+                if len(arrays) == 1
+                else np.concatenate(
+                    arrays or [np.empty((0, 3), _U32 if key == "triangles" else _F32)]
+                )
+            )
             out[key] = len(parts)
             parts.append(joined.reshape(-1).view(np.uint8).data)  # a memoryview, zero-copy
         out["objects"] = [p[0] for p in packed]
@@ -151,11 +163,13 @@ class SceneSpec:
         raw = m.raw("objects")
         where = m.f("objects")
         if type(raw) is not list:
-            raise ProtocolError("bad_field", f"expected an array of objects, got {type_name(raw)}",
-                                where)
+            raise ProtocolError(
+                "bad_field", f"expected an array of objects, got {type_name(raw)}", where
+            )
         if len(raw) > SCENE_MAX_OBJECTS:
             raise ProtocolError(
-                "bad_field", f"{len(raw)} objects, at most {SCENE_MAX_OBJECTS}", where)
+                "bad_field", f"{len(raw)} objects, at most {SCENE_MAX_OBJECTS}", where
+            )
         fields, names = [], set()
         vertices_total = triangles_total = 0
         for i, o in enumerate(raw):
@@ -163,14 +177,17 @@ class SceneSpec:
             f = _scene_object_fields(om)
             if f["name"] in names:
                 raise ProtocolError(
-                    "bad_field", f"object name {f['name']!r} is used twice", om.f("name"))
+                    "bad_field", f"object name {f['name']!r} is used twice", om.f("name")
+                )
             names.add(f["name"])
             triangles_total += f["triangle_count"]
             if triangles_total > SCENE_MAX_TRIANGLES:
                 raise ProtocolError(
-                    "bad_field", f"objects 0..{i} have {triangles_total} triangles together, "
+                    "bad_field",
+                    f"objects 0..{i} have {triangles_total} triangles together, "
                     f"at most {SCENE_MAX_TRIANGLES} in a scene; simplify the meshes",
-                    om.f("triangle_count"))
+                    om.f("triangle_count"),
+                )
             f["offsets"] = (vertices_total, triangles_total - f["triangle_count"])
             vertices_total += f["vertex_count"]
             fields.append(f)
@@ -178,15 +195,21 @@ class SceneSpec:
         if images.parts is None:  # descriptors only: no arrays to check
             return cls()
         given = {key: buf for key, buf in buffers.items() if buf is not None}  # all, with parts
-        counts = {"vertices": vertices_total, "triangles": triangles_total,
-                  "normals": vertices_total}
+        counts = {
+            "vertices": vertices_total,
+            "triangles": triangles_total,
+            "normals": vertices_total,
+        }
         for key, buf in given.items():
             if len(buf) != counts[key] * _XYZ_BYTES:
                 what = "triangle_count" if key == "triangles" else "vertex_count"
                 raise ProtocolError(
-                    "bad_field", f"the part holds {len(buf)} bytes; the objects' {what}s "
+                    "bad_field",
+                    f"the part holds {len(buf)} bytes; the objects' {what}s "
                     f"({counts[key]} in all, {_XYZ_BYTES} bytes each) need "
-                    f"{counts[key] * _XYZ_BYTES}", m.f(key))
+                    f"{counts[key] * _XYZ_BYTES}",
+                    m.f(key),
+                )
         vertices = np.frombuffer(given["vertices"], _F32).reshape(-1, 3)
         triangles = np.frombuffer(given["triangles"], _U32).reshape(-1, 3)
         normals = np.frombuffer(given["normals"], _F32).reshape(-1, 3)
@@ -195,15 +218,17 @@ class SceneSpec:
             name = f"{where}[{i}]"
             v0, t0 = f.pop("offsets")
             nv, nt = f.pop("vertex_count"), f.pop("triangle_count")
-            v, n = vertices[v0:v0 + nv], normals[v0:v0 + nv]
-            t = triangles[t0:t0 + nt]
+            v, n = vertices[v0 : v0 + nv], normals[v0 : v0 + nv]
+            t = triangles[t0 : t0 + nt]
             for key, arr in (("vertices", v), ("normals", n)):
                 if not np.isfinite(arr).all():
                     raise ProtocolError("bad_field", "not all finite", f"{name}.{key}")
             if t.max() >= nv:
                 raise ProtocolError(
-                    "bad_field", f"triangle index {int(t.max())} is outside 0..{nv - 1} "
-                    f"(vertex_count {nv})", f"{name}.triangles")
+                    "bad_field",
+                    f"triangle index {int(t.max())} is outside 0..{nv - 1} (vertex_count {nv})",
+                    f"{name}.triangles",
+                )
             if images.decoding:  # own, aligned, native-order copies: the parts are freed
                 v, t, n = v.astype(np.float32), t.astype(np.uint32), n.astype(np.float32)
             objects.append(SceneObjectSpec(vertices=v, triangles=t, normals=n, **f))
@@ -222,8 +247,10 @@ def _scene_object_fields(om: FieldReader) -> dict:
         values = read_floats(pose, om.f("world_from_object"), 16)
         if values[12:] != [0.0, 0.0, 0.0, 1.0]:
             raise ProtocolError(
-                "bad_field", f"the last row must be 0, 0, 0, 1, got {values[12:]}",
-                om.f("world_from_object"))
+                "bad_field",
+                f"the last row must be 0, 0, 0, 1, got {values[12:]}",
+                om.f("world_from_object"),
+            )
         pose = np.array(values, dtype=np.float64).reshape(4, 4)
     am = om.map("anchor", nullable=True)
     anchor = None
@@ -234,18 +261,28 @@ def _scene_object_fields(om: FieldReader) -> dict:
         am.done()
     if (pose is None) == (anchor is None):
         raise ProtocolError(
-            "bad_field", "give exactly one of world_from_object and anchor, got "
+            "bad_field",
+            "give exactly one of world_from_object and anchor, got "
             + ("both" if anchor is not None else "neither"),
-            om.f("anchor" if anchor is not None else "world_from_object"))
+            om.f("anchor" if anchor is not None else "world_from_object"),
+        )
     albedo = om.floats("albedo", 3)
     for k, a in enumerate(albedo):
         if not 0.0 <= a <= 1.0:
-            raise ProtocolError("bad_field", f"{a} is outside 0..1 (linear RGB)",
-                                f"{om.f('albedo')}[{k}]")
-    out = dict(name=name, vertex_count=vertex_count, triangle_count=triangle_count,
-               world_from_object=pose, anchor=anchor, albedo=tuple(albedo),
-               roughness=om.float("roughness", 0.0, 1.0),
-               metalness=om.float("metalness", 0.0, 1.0), mirror=om.bool("mirror"))
+            raise ProtocolError(
+                "bad_field", f"{a} is outside 0..1 (linear RGB)", f"{om.f('albedo')}[{k}]"
+            )
+    out = dict(
+        name=name,
+        vertex_count=vertex_count,
+        triangle_count=triangle_count,
+        world_from_object=pose,
+        anchor=anchor,
+        albedo=tuple(albedo),
+        roughness=om.float("roughness", 0.0, 1.0),
+        metalness=om.float("metalness", 0.0, 1.0),
+        mirror=om.bool("mirror"),
+    )
     om.done()
     return out
 

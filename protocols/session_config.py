@@ -96,22 +96,27 @@ class PanoramaConfig:
     def _pack(self, name: str) -> dict:
         rotation = float_list(self.panorama_from_world, f"{name}.panorama_from_world")
         rotation = np.asarray(rotation, dtype=np.float64).reshape(-1).tolist()
-        return {"operator": self.operator, "light_source": self.light_source,
-                "panorama_from_world": rotation}
+        return {
+            "operator": self.operator,
+            "light_source": self.light_source,
+            "panorama_from_world": rotation,
+        }
 
     @classmethod
     def _unpack(cls, m: FieldReader) -> PanoramaConfig:
         operator = m.str("operator", 64, NAME_RE, nullable=True)
         light_source = m.str("light_source", 32, choices=LIGHT_SOURCES)
         values = m.floats("panorama_from_world", 9)
-        rows = [values[0:3] + [0.0], values[3:6] + [0.0], values[6:9] + [0.0],
-                [0.0, 0.0, 0.0, 1.0]]
+        rows = [values[0:3] + [0.0], values[3:6] + [0.0], values[6:9] + [0.0], [0.0, 0.0, 0.0, 1.0]]
         try:
             check_rigid(rows, m.f("panorama_from_world"), RIGID_TOLERANCE)
         except CheckError:
             raise ProtocolError(
-                "bad_field", f"not a rotation (orthonormal rows, determinant +1, each within "
-                f"{RIGID_TOLERANCE:g}): {values}", m.f("panorama_from_world")) from None
+                "bad_field",
+                f"not a rotation (orthonormal rows, determinant +1, each within "
+                f"{RIGID_TOLERANCE:g}): {values}",
+                m.f("panorama_from_world"),
+            ) from None
         m.done()
         return cls(operator, light_source, tuple(values))
 
@@ -156,8 +161,7 @@ class SessionConfig:
         if self.panorama is not None:  # optional key: absent when the session has none
             out["panorama"] = self.panorama._pack("hello.config.panorama")
         if self.exports:  # optional key: absent when the session asks for no layout
-            out["exports"] = list(read_export_names(list(self.exports),
-                                                     "hello.config.exports"))
+            out["exports"] = list(read_export_names(list(self.exports), "hello.config.exports"))
             _exports_role(self.role, "hello.config.exports")
         if self.token is not None:  # optional key: absent when the client has no token
             out["token"] = read_token(self.token, "hello.config.token")
@@ -175,9 +179,12 @@ class SessionConfig:
             pm = c.map("panorama", nullable=True)
             panorama = None if pm is None else PanoramaConfig._unpack(pm)
         if role == "capture" and calibration is None and panorama is None:
-            raise ProtocolError("bad_field", "required for role capture (nil only for a "
-                                "panorama-only session: give config.panorama)",
-                                c.f("calibration"))
+            raise ProtocolError(
+                "bad_field",
+                "required for role capture (nil only for a "
+                "panorama-only session: give config.panorama)",
+                c.f("calibration"),
+            )
         depth_scale = c.float("depth_scale", 1e-6, 1e9)
         preset = c.str("preset", 64, NAME_RE)
         overrides = _read_overrides(c.raw("overrides"), c.f("overrides"))
@@ -190,8 +197,11 @@ class SessionConfig:
             scene = None if sm is None else SceneSpec._unpack(sm, images)
         if scene is not None and virtual_scene is not None:
             raise ProtocolError(
-                "bad_field", f"give virtual_scene (a built-in scene name, here "
-                f"{virtual_scene[:64]!r}) or scene (the scene itself), not both", c.f("scene"))
+                "bad_field",
+                f"give virtual_scene (a built-in scene name, here "
+                f"{virtual_scene[:64]!r}) or scene (the scene itself), not both",
+                c.f("scene"),
+            )
         exports: tuple[str, ...] = ()
         if "exports" in c.d:  # optional key: absent = nil = none
             exports = read_export_names(c.raw("exports", nullable=True), c.f("exports"))
@@ -202,16 +212,34 @@ class SessionConfig:
             raw = c.raw("token", nullable=True)
             token = None if raw is None else read_token(raw, c.f("token"))
         c.done()
-        return cls(session, client_name, role, calibration, depth_scale, preset, overrides,
-                   virtual_scene, mode, want_composite, scene, panorama, exports, token)
+        return cls(
+            session,
+            client_name,
+            role,
+            calibration,
+            depth_scale,
+            preset,
+            overrides,
+            virtual_scene,
+            mode,
+            want_composite,
+            scene,
+            panorama,
+            exports,
+            token,
+        )
 
 
 def _exports_role(role: str, name: str) -> None:
     """The layouts are the session's: the capture client's Hello chooses them."""
     if role != "capture":
-        raise ProtocolError("bad_field", "only a capture Hello chooses the session's engine "
-                            "layouts (a display receives them in every Result, or computes "
-                            "its own: arlight display --export)", name)
+        raise ProtocolError(
+            "bad_field",
+            "only a capture Hello chooses the session's engine "
+            "layouts (a display receives them in every Result, or computes "
+            "its own: arlight display --export)",
+            name,
+        )
 
 
 def _read_overrides(v: Any, name: str) -> dict[str, bool | int | float | str]:
@@ -225,8 +253,9 @@ def _read_overrides(v: Any, name: str) -> dict[str, bool | int | float | str]:
         key = read_str(k, f"{name} key", 64, KEY_RE)
         if type(x) not in (bool, int, float, str):
             raise ProtocolError(
-                "bad_field", f"expected bool, int, float or string, got {type_name(x)}",
-                f"{name}.{key}"
+                "bad_field",
+                f"expected bool, int, float or string, got {type_name(x)}",
+                f"{name}.{key}",
             )
         if type(x) is float and not math.isfinite(x):
             raise ProtocolError("bad_field", f"{x} is not finite", f"{name}.{key}")

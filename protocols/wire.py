@@ -37,8 +37,15 @@ from .session_config import Hello
 
 Message = Union[Hello, Welcome, Frame, Result, Credit, Error, Heartbeat, Bye]  # noqa: UP007
 MessageClass = Union[  # noqa: UP007
-    type[Hello], type[Welcome], type[Frame], type[Result], type[Credit], type[Error],
-    type[Heartbeat], type[Bye]]
+    type[Hello],
+    type[Welcome],
+    type[Frame],
+    type[Result],
+    type[Credit],
+    type[Error],
+    type[Heartbeat],
+    type[Bye],
+]
 
 MESSAGE_TYPES: dict[str, MessageClass] = {
     cls.TYPE: cls for cls in (Hello, Welcome, Frame, Result, Credit, Error, Heartbeat, Bye)
@@ -130,12 +137,16 @@ def _header(view: memoryview) -> dict:
             "too_large", f"header of {len(view)} bytes exceeds {MAX_HEADER_BYTES}", "header"
         )
     try:
-        header = msgpack.unpackb(view, raw=False, strict_map_key=True, use_list=True,
-                                 object_pairs_hook=_unique_keys)
+        header = msgpack.unpackb(
+            view, raw=False, strict_map_key=True, use_list=True, object_pairs_hook=_unique_keys
+        )
     except _RepeatedKey as exc:
         raise ProtocolError(
-            "malformed", f"the key {str(exc.key)[:64]!r} appears twice in one map (every key "
-            "of every map exactly once)", "header") from None
+            "malformed",
+            f"the key {str(exc.key)[:64]!r} appears twice in one map (every key "
+            "of every map exactly once)",
+            "header",
+        ) from None
     except Exception as exc:  # msgpack raises many types for bad input
         raise ProtocolError(
             "malformed", f"header is not msgpack: {type(exc).__name__}: {str(exc)[:200]}", "header"
@@ -148,7 +159,8 @@ def _header(view: memoryview) -> dict:
     if type(v) is not int:
         raise ProtocolError(
             "malformed",
-            f"header field v (protocol version) is {type_name(v)}, expected an integer", "v"
+            f"header field v (protocol version) is {type_name(v)}, expected an integer",
+            "v",
         )
     if v != PROTOCOL_VERSION:
         raise ProtocolError(

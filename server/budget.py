@@ -29,8 +29,15 @@ from arlight.protocols import SessionConfig
 REFERENCE_PIXELS = 640 * 480
 # ms per stage, `full` preset, 640 x 480 synthetic frames, warm, 1 Open3D thread, on the
 # 2-core development machine (benchmarks: `arlight bench`); Rendering: the demo scene
-REFERENCE_STAGE_MS = {"Input": 6.0, "Reconstruct": 95.0, "Surface": 175.0, "DynGeo": 200.0,
-                      "RadTransfer": 330.0, "LightEst": 135.0, "Rendering": 400.0}
+REFERENCE_STAGE_MS = {
+    "Input": 6.0,
+    "Reconstruct": 95.0,
+    "Surface": 175.0,
+    "DynGeo": 200.0,
+    "RadTransfer": 330.0,
+    "LightEst": 135.0,
+    "Rendering": 400.0,
+}
 BYTES_PER_PIXEL = 450  # a frame's buffers while it is processed (a 2048^2 frame: 1.9 GB)
 BYTES_PER_VOXEL = 8  # tsdf + weight, float32 (pipeline/volume.py)
 AUX_BYTES_PER_PIXEL = 6 * 32  # six orthographic buffers: depth, normals, colour
@@ -74,8 +81,13 @@ class SessionBudget:
     frame_deadline_s: float = 60.0
     session_memory_bytes: int = 1024 * 2**20
 
-    def check(self, config: SessionConfig, pipeline: Config, camera: PinholeCamera | None,
-              objects: int = 0) -> SessionCost:
+    def check(
+        self,
+        config: SessionConfig,
+        pipeline: Config,
+        camera: PinholeCamera | None,
+        objects: int = 0,
+    ) -> SessionCost:
         """The session's cost; SessionSetupError (code over_budget) naming the setting that
         costs most when it is over either budget."""
         from arlight.server.session import SessionSetupError
@@ -84,8 +96,13 @@ class SessionBudget:
             return check_cost(pipeline, camera, objects, self)
         except BudgetError as exc:
             keys = set(config.overrides or {})
-            field = ("calibration" if exc.setting == "calibration" or camera is None
-                     else f"overrides.{exc.setting}" if exc.setting in keys else "preset")
+            field = (
+                "calibration"
+                if exc.setting == "calibration" or camera is None
+                else f"overrides.{exc.setting}"
+                if exc.setting in keys
+                else "preset"
+            )
             raise SessionSetupError(field, str(exc), code="over_budget") from None
 
 
@@ -99,21 +116,30 @@ def _factors(c: Config, pixels: float, objects: int) -> dict[str, dict[str, floa
     def window(k: int) -> float:
         return (2 * k + 1) ** 2
 
-    ref_filter = (window(ref.filter.merge_window) + ref.filter.smooth_subsample ** 2
-                  + window(ref.filter.denoise_window))
-    filt = (window(f.merge_window) + f.smooth_subsample ** 2
-            + (window(f.denoise_window) if f.denoise else 0.0))
+    ref_filter = (
+        window(ref.filter.merge_window)
+        + ref.filter.smooth_subsample**2
+        + window(ref.filter.denoise_window)
+    )
+    filt = (
+        window(f.merge_window)
+        + f.smooth_subsample**2
+        + (window(f.denoise_window) if f.denoise else 0.0)
+    )
     # ray-cast steps through the volume: depth range over the voxel size
     steps = v.depth_max_m / v.voxel_size_m
     ref_steps = ref.volume.depth_max_m / ref.volume.voxel_size_m
-    aux = (a.aux_resolution ** 2 / a.aux_update_interval if a.aux_buffers else 0.0)
-    ref_aux = ref.aux.aux_resolution ** 2 / ref.aux.aux_update_interval
+    aux = a.aux_resolution**2 / a.aux_update_interval if a.aux_buffers else 0.0
+    ref_aux = ref.aux.aux_resolution**2 / ref.aux.aux_update_interval
     # RadTransfer: at the sampled pixels (rt_subsample 1) or on the sub-sampled grid
     ref_samples = min(REFERENCE_PIXELS, CANDIDATES_PER_SAMPLE * ref.estimation.light_max_samples)
-    samples = (min(pixels, CANDIDATES_PER_SAMPLE * e.light_max_samples)
-               if t.rt_subsample == 1 else pixels / t.rt_subsample ** 2)
-    coefficients = t.sh_bands ** 2 * (4 if e.estimate_rgb else 1)
-    ref_coefficients = ref.transfer.sh_bands ** 2
+    samples = (
+        min(pixels, CANDIDATES_PER_SAMPLE * e.light_max_samples)
+        if t.rt_subsample == 1
+        else pixels / t.rt_subsample**2
+    )
+    coefficients = t.sh_bands**2 * (4 if e.estimate_rgb else 1)
+    ref_coefficients = ref.transfer.sh_bands**2
     fit_samples = min(pixels, e.light_max_samples)
     ref_fit = min(REFERENCE_PIXELS, ref.estimation.light_max_samples)
     render = 0.0 if objects == 0 else 1.0
@@ -123,39 +149,65 @@ def _factors(c: Config, pixels: float, objects: int) -> dict[str, dict[str, floa
     return {
         "Input": {"calibration": px},
         "Reconstruct": {"calibration": px, "use_volume": use_volume},
-        "Surface": {"calibration": px / (v.surface_subsample / ref.volume.surface_subsample)
-                    ** 2 * use_volume,
-                    "depth_max_m": 0.5 * steps / ref_steps + 0.5 * aux / ref_aux},
+        "Surface": {
+            "calibration": px
+            / (v.surface_subsample / ref.volume.surface_subsample) ** 2
+            * use_volume,
+            "depth_max_m": 0.5 * steps / ref_steps + 0.5 * aux / ref_aux,
+        },
         "DynGeo": {"calibration": px, "merge_window": filt / ref_filter},
-        "RadTransfer": {"calibration": samples / ref_samples,
-                        "rt_directions": t.rt_directions / ref.transfer.rt_directions,
-                        "rt_steps": t.rt_steps / ref.transfer.rt_steps
-                        * (4.0 if t.rt_method is RtMethod.RAYCAST else 1.0)},
+        "RadTransfer": {
+            "calibration": samples / ref_samples,
+            "rt_directions": t.rt_directions / ref.transfer.rt_directions,
+            "rt_steps": t.rt_steps
+            / ref.transfer.rt_steps
+            * (4.0 if t.rt_method is RtMethod.RAYCAST else 1.0),
+        },
         # half the stage is the fit (iterations x samples x coefficients^2), half the
         # per-pixel material segmentation
-        "LightEst": {"robust_iterations": 0.5 * (e.robust_iterations + 1)
-                     / (ref.estimation.robust_iterations + 1) * fit_samples / ref_fit
-                     * (coefficients / ref_coefficients) ** 2
-                     + 0.5 * px / (e.segment_scale / ref.estimation.segment_scale) ** 2},
-        "Rendering": {"calibration": render * px / r.render_subsample ** 2
-                      * max(1.0, objects / 2),
-                      "rt_directions": t.rt_directions / ref.transfer.rt_directions,
-                      "render_steps": 0.5 * r.render_steps / ref.render.render_steps
-                      + 0.5 * blur / ref_blur},
+        "LightEst": {
+            "robust_iterations": 0.5
+            * (e.robust_iterations + 1)
+            / (ref.estimation.robust_iterations + 1)
+            * fit_samples
+            / ref_fit
+            * (coefficients / ref_coefficients) ** 2
+            + 0.5 * px / (e.segment_scale / ref.estimation.segment_scale) ** 2
+        },
+        "Rendering": {
+            "calibration": render * px / r.render_subsample**2 * max(1.0, objects / 2),
+            "rt_directions": t.rt_directions / ref.transfer.rt_directions,
+            "render_steps": 0.5 * r.render_steps / ref.render.render_steps + 0.5 * blur / ref_blur,
+        },
     }
 
 
 # the override keys behind each factor (named in a refusal: the one the session changed)
 _FACTOR_KEYS = {
-    "depth_max_m": ("depth_max_m", "volume_resolution", "volume_size_m", "aux_resolution",
-                    "aux_update_interval"),
+    "depth_max_m": (
+        "depth_max_m",
+        "volume_resolution",
+        "volume_size_m",
+        "aux_resolution",
+        "aux_update_interval",
+    ),
     "merge_window": ("merge_window", "denoise_window", "smooth_subsample"),
-    "robust_iterations": ("robust_iterations", "light_max_samples", "sh_bands",
-                          "estimate_rgb", "segment_scale"),
+    "robust_iterations": (
+        "robust_iterations",
+        "light_max_samples",
+        "sh_bands",
+        "estimate_rgb",
+        "segment_scale",
+    ),
     "rt_steps": ("rt_steps", "rt_method"),
     "render_steps": ("render_steps", "render_blur_radius_px", "render_denoise_px"),
-    "calibration": ("calibration", "light_max_samples", "rt_subsample", "surface_subsample",
-                    "render_subsample"),
+    "calibration": (
+        "calibration",
+        "light_max_samples",
+        "rt_subsample",
+        "surface_subsample",
+        "render_subsample",
+    ),
 }
 
 
@@ -170,8 +222,9 @@ def _setting(factor: str, c: Config) -> str:
     return factor
 
 
-def check_cost(c: Config, camera: PinholeCamera | None, objects: int,
-               budget: SessionBudget) -> SessionCost:
+def check_cost(
+    c: Config, camera: PinholeCamera | None, objects: int, budget: SessionBudget
+) -> SessionCost:
     """The modelled cost of a session; BudgetError naming the costliest setting when a
     frame would take longer than the deadline or the session need more than its memory."""
     pixels = 0.0 if camera is None else float(camera.width * camera.height)
@@ -186,22 +239,30 @@ def check_cost(c: Config, camera: PinholeCamera | None, objects: int,
     if total > budget.frame_deadline_s:
         stage = max(stage_s, key=lambda k: stage_s[k])
         setting = _setting(blame[stage], c)
-        value = ("" if setting == "calibration" else f"={c.flat().get(setting)!r}")
+        value = "" if setting == "calibration" else f"={c.flat().get(setting)!r}"
         size = "" if camera is None else f" at {camera.width} x {camera.height}"
-        raise BudgetError(setting, (
-            f"{setting}{value}: a frame{size} would take about {total:.0f} s "
-            f"({stage} {stage_s[stage]:.0f} s, by the server's cost model), over the "
-            f"per-frame deadline of {budget.frame_deadline_s:g} s (`arlight serve "
-            f"--frame-deadline`); lower {setting} or choose a cheaper preset"))
+        raise BudgetError(
+            setting,
+            (
+                f"{setting}{value}: a frame{size} would take about {total:.0f} s "
+                f"({stage} {stage_s[stage]:.0f} s, by the server's cost model), over the "
+                f"per-frame deadline of {budget.frame_deadline_s:g} s (`arlight serve "
+                f"--frame-deadline`); lower {setting} or choose a cheaper preset"
+            ),
+        )
     v = c.volume
-    block = v.block_resolution ** 3 * BYTES_PER_VOXEL
+    block = v.block_resolution**3 * BYTES_PER_VOXEL
     memory = {
         "calibration": pixels * BYTES_PER_PIXEL,
         "block_count": float(v.block_count * block) if v.use_volume and camera else 0.0,
-        "aux_resolution": (c.aux.aux_resolution ** 2 * AUX_BYTES_PER_PIXEL
-                           if c.aux.aux_buffers and camera else 0.0),
-        "light_max_samples": (min(pixels, CANDIDATES_PER_SAMPLE * c.estimation.light_max_samples)
-                              * c.transfer.sh_bands ** 2 * SAMPLE_BYTES_PER_COEFFICIENT),
+        "aux_resolution": (
+            c.aux.aux_resolution**2 * AUX_BYTES_PER_PIXEL if c.aux.aux_buffers and camera else 0.0
+        ),
+        "light_max_samples": (
+            min(pixels, CANDIDATES_PER_SAMPLE * c.estimation.light_max_samples)
+            * c.transfer.sh_bands**2
+            * SAMPLE_BYTES_PER_COEFFICIENT
+        ),
     }
     need = sum(memory.values())
     if need > budget.session_memory_bytes:
@@ -209,11 +270,15 @@ def check_cost(c: Config, camera: PinholeCamera | None, objects: int,
         setting = item if item != "block_count" else _setting_of_volume(c)
         value = "" if setting == "calibration" else f"={c.flat().get(setting)!r}"
         size = "" if camera is None else f" ({camera.width} x {camera.height})"
-        raise BudgetError(setting, (
-            f"{setting}{value}: the session would need about {need / 2**20:.0f} MiB{size} "
-            f"({item} {memory[item] / 2**20:.0f} MiB, by the server's cost model), over the "
-            f"per-session memory budget of {budget.session_memory_bytes / 2**20:.0f} MiB "
-            f"(`arlight serve --session-memory-mb`); lower {setting}"))
+        raise BudgetError(
+            setting,
+            (
+                f"{setting}{value}: the session would need about {need / 2**20:.0f} MiB{size} "
+                f"({item} {memory[item] / 2**20:.0f} MiB, by the server's cost model), over the "
+                f"per-session memory budget of {budget.session_memory_bytes / 2**20:.0f} MiB "
+                f"(`arlight serve --session-memory-mb`); lower {setting}"
+            ),
+        )
     volume_limit = budget.session_memory_bytes - need + memory["block_count"]
     return SessionCost(stage_s, memory, block, volume_limit)
 

@@ -90,7 +90,8 @@ class FrameQueue:
         self.outcomes: collections.OrderedDict[int, list] = collections.OrderedDict()
         # (monotonic finish time, receive-to-finish latency), seconds, of processed frames
         self.recent: collections.deque[tuple[float, float]] = collections.deque(
-            maxlen=RECENT_LATENCIES)
+            maxlen=RECENT_LATENCIES
+        )
         self._lock = threading.Lock()
         self._received = self._processed = self._dropped = self._failed = 0
 
@@ -110,12 +111,14 @@ class FrameQueue:
                 if seq in self.outcomes:
                     return Offer.RESEND
                 waiting = (self.in_flight is not None and self.in_flight.seq == seq) or any(
-                    j.seq == seq for j in self.pending)
+                    j.seq == seq for j in self.pending
+                )
                 return Offer.DUPLICATE if waiting else Offer.EXPIRED
             # once a frame is refused, later ones are refused too until it comes again: a
             # client that retries in order then keeps its frames in order
             if len(self.pending) >= self.credits + LOSSLESS_QUEUE_SLACK or (
-                    self.refused_from is not None and seq > self.refused_from):
+                self.refused_from is not None and seq > self.refused_from
+            ):
                 self.refused_from = seq if self.refused_from is None else self.refused_from
                 return Offer.OVERFLOW
             self.refused_from = None
@@ -146,8 +149,16 @@ class FrameQueue:
         self.in_flight = self.pending.popleft()
         return self.in_flight
 
-    def finish(self, job: Job, reply: list, *, final: bool, processed: bool,
-               finish_time_mono: float, start_next: bool = True) -> Job | None:
+    def finish(
+        self,
+        job: Job,
+        reply: list,
+        *,
+        final: bool,
+        processed: bool,
+        finish_time_mono: float,
+        start_next: bool = True,
+    ) -> Job | None:
         """The reply of `job` (the frame in the worker) was made: the worker's slot is free.
         final: it is the frame's last word (a Result or a final Error; not a retryable
         Error), kept in lossless mode for a resent duplicate; processed: a Result (its

@@ -12,13 +12,21 @@ DEFAULT_BIND = f"tcp://127.0.0.1:{DEFAULT_PORT}"  # this machine only (docs/guid
 
 
 # the `arlight serve` flag of each ServerOptions field that has one (for error messages)
-SERVE_FLAGS = {"bind": "--bind", "workers": "--workers", "credits": "--credits",
-               "heartbeat_interval_s": "--heartbeat", "session_timeout_s": "--session-timeout",
-               "log_interval_s": "--log-interval", "max_sessions": "--max-sessions",
-               "max_message_bytes": "--max-message-mb", "shutdown_grace_s": "--shutdown-grace",
-               "keys_dir": "--keys", "admin_token": "--admin-token-file",
-               "frame_deadline_s": "--frame-deadline",
-               "session_memory_bytes": "--session-memory-mb"}
+SERVE_FLAGS = {
+    "bind": "--bind",
+    "workers": "--workers",
+    "credits": "--credits",
+    "heartbeat_interval_s": "--heartbeat",
+    "session_timeout_s": "--session-timeout",
+    "log_interval_s": "--log-interval",
+    "max_sessions": "--max-sessions",
+    "max_message_bytes": "--max-message-mb",
+    "shutdown_grace_s": "--shutdown-grace",
+    "keys_dir": "--keys",
+    "admin_token": "--admin-token-file",
+    "frame_deadline_s": "--frame-deadline",
+    "session_memory_bytes": "--session-memory-mb",
+}
 
 
 @dataclass(frozen=True)
@@ -53,22 +61,31 @@ class ServerOptions:
     session_memory_bytes: int = 1024 * 2**20  # per session; the server's: max_sessions x this
 
     def __post_init__(self) -> None:
-        checks = {"workers": self.workers >= 1, "credits": self.credits >= 1,
-                  "heartbeat_interval_s": self.heartbeat_interval_s > 0,
-                  "liveness": self.liveness >= 1, "session_timeout_s": self.session_timeout_s > 0,
-                  "log_interval_s": self.log_interval_s > 0,
-                  "max_sessions": self.max_sessions >= 1, "send_hwm": self.send_hwm >= 1,
-                  "receive_hwm": self.receive_hwm >= 1,
-                  "max_message_bytes": self.max_message_bytes >= 1024,
-                  "max_pixels": self.max_pixels >= 1,
-                  "shutdown_grace_s": self.shutdown_grace_s >= 0,
-                  "frame_deadline_s": self.frame_deadline_s > 0,
-                  "session_memory_bytes": self.session_memory_bytes >= 2**20}
+        checks = {
+            "workers": self.workers >= 1,
+            "credits": self.credits >= 1,
+            "heartbeat_interval_s": self.heartbeat_interval_s > 0,
+            "liveness": self.liveness >= 1,
+            "session_timeout_s": self.session_timeout_s > 0,
+            "log_interval_s": self.log_interval_s > 0,
+            "max_sessions": self.max_sessions >= 1,
+            "send_hwm": self.send_hwm >= 1,
+            "receive_hwm": self.receive_hwm >= 1,
+            "max_message_bytes": self.max_message_bytes >= 1024,
+            "max_pixels": self.max_pixels >= 1,
+            "shutdown_grace_s": self.shutdown_grace_s >= 0,
+            "frame_deadline_s": self.frame_deadline_s > 0,
+            "session_memory_bytes": self.session_memory_bytes >= 2**20,
+        }
         for name, ok in checks.items():
             if not ok:
                 flag = SERVE_FLAGS.get(name)
-                raise ValueError(f"server option {name}{f' ({flag})' if flag else ''} is out of "
-                                 f"range: {getattr(self, name)!r}")
+                raise ValueError(
+                    f"server option {name}{f' ({flag})' if flag else ''} is out of "
+                    f"range: {getattr(self, name)!r}"
+                )
         if self.admin_token is not None and not TOKEN_RE.fullmatch(self.admin_token):
-            raise ValueError("server option admin_token (--admin-token-file) must be 16..128 "
-                             "characters from A-Z a-z 0-9 _ -")  # the value is a secret: unsaid
+            raise ValueError(
+                "server option admin_token (--admin-token-file) must be 16..128 "
+                "characters from A-Z a-z 0-9 _ -"
+            )  # the value is a secret: unsaid

@@ -34,14 +34,21 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, int],
-                   receive_time_wall: float, finish_time_wall: float,
-                   composite: np.ndarray | None = None, composite_codec: str = "jpeg",
-                   jpeg_quality: int = DEFAULT_JPEG_QUALITY,
-                   panorama: IblResult | None = None,
-                   exports: tuple[str, ...] = (),
-                   extra_timings_ms: Mapping[str, float] | None = None,
-                   extra_diagnostics: Diagnostics | None = None) -> Result:
+def result_message(
+    result: FrameResult,
+    *,
+    seq: int,
+    counters: tuple[int, int, int],
+    receive_time_wall: float,
+    finish_time_wall: float,
+    composite: np.ndarray | None = None,
+    composite_codec: str = "jpeg",
+    jpeg_quality: int = DEFAULT_JPEG_QUALITY,
+    panorama: IblResult | None = None,
+    exports: tuple[str, ...] = (),
+    extra_timings_ms: Mapping[str, float] | None = None,
+    extra_diagnostics: Diagnostics | None = None,
+) -> Result:
     """The Result of frame `seq`. counters: the session's (frames_received,
     frames_processed, frames_dropped); receive/finish times: wall clock, seconds;
     composite_codec, jpeg_quality: how the composite is encoded (the server: as the frame's
@@ -64,36 +71,53 @@ def result_message(result: FrameResult, *, seq: int, counters: tuple[int, int, i
     light = result.sh if result.sh_rgb is None else result.sh_rgb
     layouts = camera_exports(light, result.pose, exports) if exports else None
     return Result(
-        seq=seq, timestamp=float(result.timestamp),
+        seq=seq,
+        timestamp=float(result.timestamp),
         sh=[float(x) for x in result.sh],
         sh_camera=[float(x) for x in result.sh_camera],
         sh_rgb=None if result.sh_rgb is None else np.asarray(result.sh_rgb, float).tolist(),
         dominant_direction_camera=[float(x) for x in result.dominant_direction_camera],
         dominant_direction_world=[float(x) for x in result.dominant_direction_world],
-        intensity=float(result.intensity), confidence=result.confidence,
+        intensity=float(result.intensity),
+        confidence=result.confidence,
         pose=np.asarray(result.pose, dtype=float).tolist(),
-        timings_ms={k: float(v) for k, v in {**result.timings_ms,
-                                             **(extra_timings_ms or {})}.items()},
+        timings_ms={
+            k: float(v) for k, v in {**result.timings_ms, **(extra_timings_ms or {})}.items()
+        },
         diagnostics=plain_diagnostics({**result.diagnostics, **(extra_diagnostics or {})}),
-        frames_received=received, frames_processed=processed, frames_dropped=dropped,
-        server_receive_time=receive_time_wall, server_finish_time=finish_time_wall,
-        composite=composite, composite_codec=composite_codec, jpeg_quality=jpeg_quality,
+        frames_received=received,
+        frames_processed=processed,
+        frames_dropped=dropped,
+        server_receive_time=receive_time_wall,
+        server_finish_time=finish_time_wall,
+        composite=composite,
+        composite_codec=composite_codec,
+        jpeg_quality=jpeg_quality,
         panorama_sh=None if panorama is None else [float(x) for x in panorama.sh],
-        panorama_sh_rgb=None if panorama is None else np.asarray(panorama.sh_rgb,
-                                                                 float).tolist(),
-        panorama_dominant_direction=None if panorama is None else [
-            float(x) for x in panorama.dominant_direction],
-        exports=layouts)
+        panorama_sh_rgb=None if panorama is None else np.asarray(panorama.sh_rgb, float).tolist(),
+        panorama_dominant_direction=None
+        if panorama is None
+        else [float(x) for x in panorama.dominant_direction],
+        exports=layouts,
+    )
 
 
-def offline_record(result: FrameResult, index: int, start_wall: float,
-                   exports: tuple[str, ...] = ()) -> dict:
+def offline_record(
+    result: FrameResult, index: int, start_wall: float, exports: tuple[str, ...] = ()
+) -> dict:
     """The JSON record of frame `index` processed without a server (`arlight estimate`,
     `arlight batch`): what `arlight stream --out` writes of the server's Result for it.
     start_wall: time.time() when the frame's processing began, seconds."""
-    return result_record(result_message(
-        result, seq=index, counters=(index + 1, index + 1, 0), receive_time_wall=start_wall,
-        finish_time_wall=time.time(), exports=exports))
+    return result_record(
+        result_message(
+            result,
+            seq=index,
+            counters=(index + 1, index + 1, 0),
+            receive_time_wall=start_wall,
+            finish_time_wall=time.time(),
+            exports=exports,
+        )
+    )
 
 
 def encode_error(error: Error) -> list:
@@ -104,9 +128,13 @@ def encode_error(error: Error) -> list:
     except Exception as exc:  # noqa: BLE001 - the fallback below always encodes
         seq = error.seq if isinstance(error.seq, int) and 0 <= error.seq <= MAX_SEQ else None
         log.error("an Error could not be encoded (%s); sent as internal", exc)
-        return encode(Error(code="internal", seq=seq,
-                            message=f"the server failed to report an error "
-                                    f"({type(exc).__name__})"))
+        return encode(
+            Error(
+                code="internal",
+                seq=seq,
+                message=f"the server failed to report an error ({type(exc).__name__})",
+            )
+        )
 
 
 @dataclass
@@ -131,19 +159,30 @@ def reply_to(session: Session, job: Job, outcome: FrameOutcome) -> Reply:
     used = outcome.panorama
     try:
         message = result_message(
-            outcome.result, seq=job.seq,
+            outcome.result,
+            seq=job.seq,
             counters=(counters.received, counters.processed, counters.dropped),
-            receive_time_wall=job.receive_time_wall, finish_time_wall=finish_wall,
-            composite=outcome.composite, composite_codec=outcome.composite_codec,
-            jpeg_quality=outcome.jpeg_quality, panorama=None if used is None else used.light,
+            receive_time_wall=job.receive_time_wall,
+            finish_time_wall=finish_wall,
+            composite=outcome.composite,
+            composite_codec=outcome.composite_codec,
+            jpeg_quality=outcome.jpeg_quality,
+            panorama=None if used is None else used.light,
             exports=session.config.exports,
             extra_timings_ms=None if used is None else used.timings_ms,
-            extra_diagnostics=None if used is None else used.diagnostics)
+            extra_diagnostics=None if used is None else used.diagnostics,
+        )
         return Reply(session, job, encode(message), time.monotonic())
     except Exception as exc:  # noqa: BLE001 - e.g. a non-finite estimate
-        return error_reply(session, job, Error(
-            code="internal", seq=job.seq,
-            message=f"the server could not send the Result of this frame ({exc})"))
+        return error_reply(
+            session,
+            job,
+            Error(
+                code="internal",
+                seq=job.seq,
+                message=f"the server could not send the Result of this frame ({exc})",
+            ),
+        )
 
 
 def error_reply(session: Session, job: Job, error: Error) -> Reply:
@@ -177,8 +216,13 @@ class ErrorLog:
         if self._count > self.lines_per_s:
             self._suppressed += 1
             return
-        log.info("error to %s: %s%s: %s", identity.hex(), error.code,
-                 f" ({error.field})" if error.field else "", error.message[:512])
+        log.info(
+            "error to %s: %s%s: %s",
+            identity.hex(),
+            error.code,
+            f" ({error.field})" if error.field else "",
+            error.message[:512],
+        )
 
     def flush(self, now: float) -> None:
         """A new second: log how many lines the last one left out, count afresh."""

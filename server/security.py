@@ -58,12 +58,16 @@ def unauthorized_error(session: str, role: str) -> Error:
     """The Error refusing a Hello whose token does not admit it to `session` (a "display"
     watching it, or a "capture" client resuming or replacing it)."""
     if role == "display":
-        what = (f"watching session {session!r} needs its token: give the one its capture "
-                "client printed (`arlight display --token T`) or the server's admin token")
+        what = (
+            f"watching session {session!r} needs its token: give the one its capture "
+            "client printed (`arlight display --token T`) or the server's admin token"
+        )
     else:
-        what = (f"session {session!r} exists and belongs to another capture client: resuming "
-                "or replacing it needs its token (`arlight stream --token T`) or the "
-                "admin token; or choose another --session")
+        what = (
+            f"session {session!r} exists and belongs to another capture client: resuming "
+            "or replacing it needs its token (`arlight stream --token T`) or the "
+            "admin token; or choose another --session"
+        )
     return Error(code="unauthorized", field="hello.config.token", message=what)
 
 
@@ -74,9 +78,11 @@ def read_token_file(path: str, flag: str) -> str:
     except (OSError, UnicodeDecodeError) as exc:
         raise SecurityError(f"{flag}: cannot read {path!r}: {exc}") from None
     if not TOKEN_RE.fullmatch(text):
-        raise SecurityError(f"{flag}: {path!r} must hold one token of 16..128 characters "
-                            "from A-Z a-z 0-9 _ - (make one with: python -c \"import secrets; "
-                            "print(secrets.token_urlsafe(24))\")")
+        raise SecurityError(
+            f"{flag}: {path!r} must hold one token of 16..128 characters "
+            'from A-Z a-z 0-9 _ - (make one with: python -c "import secrets; '
+            'print(secrets.token_urlsafe(24))")'
+        )
     return text
 
 
@@ -88,7 +94,7 @@ def is_loopback(address: str) -> bool:
         return True
     if not address.startswith("tcp://"):
         return False
-    host = address[len("tcp://"):].rsplit(":", 1)[0]
+    host = address[len("tcp://") :].rsplit(":", 1)[0]
     if ";" in host:  # tcp://SOURCE;HOST:PORT (connect syntax): judge the host
         host = host.rsplit(";", 1)[1]
     host = host.strip("[]")
@@ -112,10 +118,14 @@ def check_exposure(bind: str, keys_dir: str | None, insecure: bool) -> None:
             "clear. Make keys with `arlight keys generate DIR` and run `arlight serve --bind "
             f"{bind} --keys DIR` (clients: --server-key DIR/server.key --client-key "
             "DIR/client.key_secret), bind tcp://127.0.0.1:PORT, or accept the risk with "
-            "--insecure")
-    log.warning("--insecure: %s is reachable from other machines without encryption or "
-                "client authentication (camera frames and Results travel in the clear); use "
-                "`arlight keys generate DIR` and --keys DIR instead", bind)
+            "--insecure"
+        )
+    log.warning(
+        "--insecure: %s is reachable from other machines without encryption or "
+        "client authentication (camera frames and Results travel in the clear); use "
+        "`arlight keys generate DIR` and --keys DIR instead",
+        bind,
+    )
 
 
 class _ZapLog(logging.LoggerAdapter):
@@ -140,19 +150,23 @@ class CurveServer:
     def __init__(self, keys_dir: str):
         folder = Path(keys_dir)
         try:
-            self.public, self.secret = load_secret_key(str(folder / f"{SERVER_KEY}.key_secret"),
-                                                       "--keys")
+            self.public, self.secret = load_secret_key(
+                str(folder / f"{SERVER_KEY}.key_secret"), "--keys"
+            )
         except KeyFileError as exc:
             raise SecurityError(f"{exc}; make keys with `arlight keys generate DIR`") from None
         self.authorized = folder / AUTHORIZED
         if not self.authorized.is_dir() or not any(self.authorized.glob("*.key")):
-            raise SecurityError(f"--keys: {str(self.authorized)!r} holds no client key "
-                                f"(*.key): add one with `arlight keys add {keys_dir} NAME`")
+            raise SecurityError(
+                f"--keys: {str(self.authorized)!r} holds no client key "
+                f"(*.key): add one with `arlight keys add {keys_dir} NAME`"
+            )
         self._auth: ThreadAuthenticator | None = None
 
     def start(self, context: zmq.Context) -> None:
-        self._auth = ThreadAuthenticator(context, log=_ZapLog(logging.getLogger(__name__ + ".zap"),
-                                                               {}))
+        self._auth = ThreadAuthenticator(
+            context, log=_ZapLog(logging.getLogger(__name__ + ".zap"), {})
+        )
         self._auth.start()
         self._auth.configure_curve(domain="*", location=str(self.authorized))
 
@@ -179,12 +193,18 @@ def generate_keys(folder: str) -> list[Path]:
     """`arlight keys generate DIR`: server and client certificates (zmq.auth format) and
     DIR/authorized/client.key. Refuses (SecurityError) to overwrite existing keys."""
     out = Path(folder)
-    existing = [out / f"{n}.key{s}" for n in (SERVER_KEY, CLIENT_KEY) for s in ("", "_secret")
-                if (out / f"{n}.key{s}").exists()]
+    existing = [
+        out / f"{n}.key{s}"
+        for n in (SERVER_KEY, CLIENT_KEY)
+        for s in ("", "_secret")
+        if (out / f"{n}.key{s}").exists()
+    ]
     if existing:
-        raise SecurityError(f"{str(existing[0])!r} exists: `arlight keys generate` never "
-                            "overwrites keys; choose another DIR, or add clients with "
-                            f"`arlight keys add {folder} NAME`")
+        raise SecurityError(
+            f"{str(existing[0])!r} exists: `arlight keys generate` never "
+            "overwrites keys; choose another DIR, or add clients with "
+            f"`arlight keys add {folder} NAME`"
+        )
     out.mkdir(parents=True, exist_ok=True)
     (out / AUTHORIZED).mkdir(exist_ok=True)
     written = []
@@ -201,11 +221,14 @@ def add_client_key(folder: str, name: str) -> list[Path]:
     DIR/authorized/NAME.key (a running server reads authorized/ at start)."""
     out = Path(folder)
     if not (out / f"{SERVER_KEY}.key").exists():
-        raise SecurityError(f"{folder!r} has no server.key: make the keys first with "
-                            f"`arlight keys generate {folder}`")
+        raise SecurityError(
+            f"{folder!r} has no server.key: make the keys first with "
+            f"`arlight keys generate {folder}`"
+        )
     if not name or name == SERVER_KEY or not all(c.isalnum() or c in "_.-" for c in name):
-        raise SecurityError(f"NAME must be letters, digits, _ . - and not {SERVER_KEY!r}, "
-                            f"got {name!r}")
+        raise SecurityError(
+            f"NAME must be letters, digits, _ . - and not {SERVER_KEY!r}, got {name!r}"
+        )
     if (out / f"{name}.key").exists() or (out / AUTHORIZED / f"{name}.key").exists():
         raise SecurityError(f"a key named {name!r} exists in {folder!r}; choose another NAME")
     (out / AUTHORIZED).mkdir(exist_ok=True)

@@ -150,8 +150,9 @@ class Server:
         self._busy = 0  # jobs in worker threads (under _busy_lock)
         self._busy_lock = threading.Condition()
         self._error_log = ErrorLog()  # Errors sent to peers: a flood is summarised
-        self.budget = SessionBudget(self.options.frame_deadline_s,
-                                    self.options.session_memory_bytes)
+        self.budget = SessionBudget(
+            self.options.frame_deadline_s, self.options.session_memory_bytes
+        )
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -180,8 +181,10 @@ class Server:
             router.close()
             self._stop_curve()
             self._ctx.term()
-            raise OSError(f"cannot bind {opts.bind!r}: {exc}; give --bind tcp://127.0.0.1:PORT "
-                          "(or another address, with --keys) with a free port") from None
+            raise OSError(
+                f"cannot bind {opts.bind!r}: {exc}; give --bind tcp://127.0.0.1:PORT "
+                "(or another address, with --keys) with a free port"
+            ) from None
         self._router = router
         self.endpoint = router.getsockopt_string(zmq.LAST_ENDPOINT)
         self.port = int(self.endpoint.rsplit(":", 1)[1])
@@ -191,15 +194,26 @@ class Server:
         self._executor = ThreadPoolExecutor(threads, thread_name_prefix="arlight-worker")
         self._thread = threading.Thread(target=self._run, name="arlight-server-io", daemon=True)
         self._thread.start()
-        log.info("arlight server listening on %s (%d workers, credits %d, heartbeat %.1f s, "
-                 "session timeout %.0f s; %s)", self.endpoint, opts.workers, opts.credits,
-                 opts.heartbeat_interval_s, opts.session_timeout_s,
-                 "CURVE: authorised client keys only" if curve else "no encryption")
-        log.info("budgets: %.0f s per frame (--frame-deadline), %.0f MiB per session "
-                 "(--session-memory-mb); sessions' memory at most %d x %.0f MiB = %.1f GiB "
-                 "(--max-sessions)", opts.frame_deadline_s, opts.session_memory_bytes / 2**20,
-                 opts.max_sessions, opts.session_memory_bytes / 2**20,
-                 opts.max_sessions * opts.session_memory_bytes / 2**30)
+        log.info(
+            "arlight server listening on %s (%d workers, credits %d, heartbeat %.1f s, "
+            "session timeout %.0f s; %s)",
+            self.endpoint,
+            opts.workers,
+            opts.credits,
+            opts.heartbeat_interval_s,
+            opts.session_timeout_s,
+            "CURVE: authorised client keys only" if curve else "no encryption",
+        )
+        log.info(
+            "budgets: %.0f s per frame (--frame-deadline), %.0f MiB per session "
+            "(--session-memory-mb); sessions' memory at most %d x %.0f MiB = %.1f GiB "
+            "(--max-sessions)",
+            opts.frame_deadline_s,
+            opts.session_memory_bytes / 2**20,
+            opts.max_sessions,
+            opts.session_memory_bytes / 2**20,
+            opts.max_sessions * opts.session_memory_bytes / 2**30,
+        )
         return self
 
     def _stop_curve(self) -> None:
@@ -244,12 +258,15 @@ class Server:
     def snapshot(self) -> dict:
         """Counters per session and the peers (for tests and logs; read from any thread)."""
         sessions = {name: s.snapshot() for name, s in list(self.sessions.items())}
-        return {"sessions": sessions, "peers": len(self.peers),
-                "displays": {k: len(v) for k, v in list(self.displays.items())},
-                "errors_sent": self.stats.errors_sent,
-                "display_results_dropped": self.stats.display_results_dropped,
-                "sessions_expired": self.stats.sessions_expired,
-                "peers_expired": self.stats.peers_expired}
+        return {
+            "sessions": sessions,
+            "peers": len(self.peers),
+            "displays": {k: len(v) for k, v in list(self.displays.items())},
+            "errors_sent": self.stats.errors_sent,
+            "display_results_dropped": self.stats.display_results_dropped,
+            "sessions_expired": self.stats.sessions_expired,
+            "peers_expired": self.stats.peers_expired,
+        }
 
     # ------------------------------------------------------------------ I/O thread
 
@@ -329,11 +346,14 @@ class Server:
                 self._handle(identity, parts, now, receive_time_wall)
             except Exception as exc:  # noqa: BLE001 - bad input never crashes the server
                 log.exception("unexpected failure handling a message from %s", identity.hex())
-                self._send_error(identity, Error(code="internal", message=f"the server failed "
-                                                 f"to handle this message ({exc})"))
+                self._send_error(
+                    identity,
+                    Error(
+                        code="internal", message=f"the server failed to handle this message ({exc})"
+                    ),
+                )
 
-    def _handle(self, identity: bytes, parts: list, now: float,
-                receive_time_wall: float) -> None:
+    def _handle(self, identity: bytes, parts: list, now: float, receive_time_wall: float) -> None:
         """One message from a peer; now: time.monotonic(), receive_time_wall: time.time()."""
         peer = self.peers.get(identity)
         if peer is not None:
@@ -351,8 +371,11 @@ class Server:
             self._on_frame(identity, peer, header, parts, now, receive_time_wall)
             return
         try:
-            message = decode(parts, max_message_bytes=self.options.max_message_bytes,
-                             max_pixels=self.options.max_pixels)
+            message = decode(
+                parts,
+                max_message_bytes=self.options.max_message_bytes,
+                max_pixels=self.options.max_pixels,
+            )
         except ProtocolError as exc:
             self._send_error(identity, error_from_exception(exc))
             return
@@ -360,20 +383,35 @@ class Server:
             self._on_hello(identity, message, now)
         elif isinstance(message, Heartbeat):
             if peer is None:  # e.g. after a server restart: tell the client to say Hello again
-                self._send_error(identity, Error(
-                    code="bad_state", field=ErrorField.SESSION, retryable=True,
-                    message="unknown peer: send Hello first (the server may have restarted)"))
+                self._send_error(
+                    identity,
+                    Error(
+                        code="bad_state",
+                        field=ErrorField.SESSION,
+                        retryable=True,
+                        message="unknown peer: send Hello first (the server may have restarted)",
+                    ),
+                )
         elif isinstance(message, Bye):
             self._on_bye(identity, peer, message)
         elif isinstance(message, (Credit, Error)):
             if isinstance(message, Error):
-                log.info("client %s reported an error: %s %s", identity.hex(), message.code,
-                         message.message)
+                log.info(
+                    "client %s reported an error: %s %s",
+                    identity.hex(),
+                    message.code,
+                    message.message,
+                )
         else:
-            self._send_error(identity, Error(
-                code="bad_state", field=ErrorField.TYPE,
-                message=f"a client may send Hello, Frame, Heartbeat, Credit or Bye, "
-                        f"not {type(message).__name__}"))
+            self._send_error(
+                identity,
+                Error(
+                    code="bad_state",
+                    field=ErrorField.TYPE,
+                    message=f"a client may send Hello, Frame, Heartbeat, Credit or Bye, "
+                    f"not {type(message).__name__}",
+                ),
+            )
 
     def _on_hello(self, identity: bytes, hello: Hello, now: float) -> None:
         cfg = hello.config
@@ -384,16 +422,23 @@ class Server:
         if cfg.role == "display":
             if not self._display_admitted(identity, cfg):
                 return  # refused: the Error is sent
-            self.peers[identity] = Peer(identity, "display", name, cfg.client_name, now,
-                                        token=cfg.token)
+            self.peers[identity] = Peer(
+                identity, "display", name, cfg.client_name, now, token=cfg.token
+            )
             self.displays[name].add(identity)
             log.info("session %s: display peer %s subscribed", name, identity.hex())
             self._send_welcome(identity, name, credits=0)
             return
         if self._draining:
-            self._send_error(identity, Error(code="bad_state", field=ErrorField.SHUTDOWN,
-                                             retryable=True,
-                                             message="the server is shutting down"))
+            self._send_error(
+                identity,
+                Error(
+                    code="bad_state",
+                    field=ErrorField.SHUTDOWN,
+                    retryable=True,
+                    message="the server is shutting down",
+                ),
+            )
             return
         session = self._capture_session(identity, cfg)
         if session is None:
@@ -403,14 +448,29 @@ class Server:
         session.last_activity = now
         self.peers[identity] = Peer(identity, "capture", name, cfg.client_name, now)
         # the token goes only to a client that sent one (older clients refuse the key)
-        self._send_welcome(identity, name, credits=self.options.credits,
-                           token=session.token if cfg.token is not None else None)
+        self._send_welcome(
+            identity,
+            name,
+            credits=self.options.credits,
+            token=session.token if cfg.token is not None else None,
+        )
 
-    def _send_welcome(self, identity: bytes, session: str, credits: int,
-                      token: str | None = None) -> None:
-        self._send(identity, encode(Welcome(PROTOCOL_VERSION, session, credits,
-                                            self.options.heartbeat_interval_s, self.options.name,
-                                            token)))
+    def _send_welcome(
+        self, identity: bytes, session: str, credits: int, token: str | None = None
+    ) -> None:
+        self._send(
+            identity,
+            encode(
+                Welcome(
+                    PROTOCOL_VERSION,
+                    session,
+                    credits,
+                    self.options.heartbeat_interval_s,
+                    self.options.name,
+                    token,
+                )
+            ),
+        )
 
     # ------------------------------------------------------------------ session tokens
 
@@ -451,10 +511,15 @@ class Server:
         if session is not None and not session.same_setup(cfg):
             owner = self.peers.get(session.capture_peer) if session.capture_peer else None
             if owner is not None:
-                self._send_error(identity, Error(
-                    code="bad_state", field="hello.config.session",
-                    message=f"session {name!r} is in use by another capture client with a "
-                            "different configuration; choose another session name (--session)"))
+                self._send_error(
+                    identity,
+                    Error(
+                        code="bad_state",
+                        field="hello.config.session",
+                        message=f"session {name!r} is in use by another capture client with a "
+                        "different configuration; choose another session name (--session)",
+                    ),
+                )
                 return None
             self._close_session(session, "replaced by a new configuration")
             session = None
@@ -462,77 +527,147 @@ class Server:
             previous = session.capture_peer
             if previous is not None and previous != identity and previous in self.peers:
                 self._detach_peer(self.peers[previous], reason="replaced by a reconnect")
-            log.info("session %s: capture peer %s resumed it (last seq %d)", name,
-                     identity.hex(), session.queue.highest_seq)
+            log.info(
+                "session %s: capture peer %s resumed it (last seq %d)",
+                name,
+                identity.hex(),
+                session.queue.highest_seq,
+            )
             return session
         if len(self.sessions) >= self.options.max_sessions:
-            self._send_error(identity, Error(
-                code="too_large", field="hello.config.session",
-                message=f"the server already holds {len(self.sessions)} sessions "
-                        f"(limit {self.options.max_sessions}, `arlight serve --max-sessions`); "
-                        "try again later"))
+            self._send_error(
+                identity,
+                Error(
+                    code="too_large",
+                    field="hello.config.session",
+                    message=f"the server already holds {len(self.sessions)} sessions "
+                    f"(limit {self.options.max_sessions}, `arlight serve --max-sessions`); "
+                    "try again later",
+                ),
+            )
             return None
         try:
-            session = Session(cfg, credits=self.options.credits,
-                              max_pixels=self.options.max_pixels,
-                              max_message_bytes=self.options.max_message_bytes,
-                              process=self._process, budget=self.budget, cancel=self._cancel)
+            session = Session(
+                cfg,
+                credits=self.options.credits,
+                max_pixels=self.options.max_pixels,
+                max_message_bytes=self.options.max_message_bytes,
+                process=self._process,
+                budget=self.budget,
+                cancel=self._cancel,
+            )
         except SessionSetupError as exc:
-            self._send_error(identity, Error(code=exc.code, field=f"hello.config.{exc.field}",
-                                             message=str(exc)))
+            self._send_error(
+                identity, Error(code=exc.code, field=f"hello.config.{exc.field}", message=str(exc))
+            )
             return None
         # the client's own token, or one the server makes (never the admin token: the Welcome
         # tells it, and whoever learns a session's token should learn no more than that)
-        session.token = cfg.token if cfg.token and not tokens_equal(
-            cfg.token, self.admin_token) else new_token()
+        session.token = (
+            cfg.token
+            if cfg.token and not tokens_equal(cfg.token, self.admin_token)
+            else new_token()
+        )
         self.sessions[name] = session
         self._check_subscribers(session)
-        size = ("panorama only" if session.camera is None
-                else f"{session.camera.width}x{session.camera.height}")
-        log.info("session %s: created (%s, %s, preset %s, %d virtual objects) by capture "
-                 "peer %s %s", name, cfg.mode, size, cfg.preset,
-                 len(session.scene.objects) if session.scene else 0,
-                 identity.hex(), repr(cfg.client_name) if cfg.client_name else "")
+        size = (
+            "panorama only"
+            if session.camera is None
+            else f"{session.camera.width}x{session.camera.height}"
+        )
+        log.info(
+            "session %s: created (%s, %s, preset %s, %d virtual objects) by capture peer %s %s",
+            name,
+            cfg.mode,
+            size,
+            cfg.preset,
+            len(session.scene.objects) if session.scene else 0,
+            identity.hex(),
+            repr(cfg.client_name) if cfg.client_name else "",
+        )
         return session
 
-    def _on_frame(self, identity: bytes, peer: Peer | None, header: dict, parts: list,
-                  now: float, receive_time_wall: float) -> None:
+    def _on_frame(
+        self,
+        identity: bytes,
+        peer: Peer | None,
+        header: dict,
+        parts: list,
+        now: float,
+        receive_time_wall: float,
+    ) -> None:
         seq = header.get("seq")
         if not isinstance(seq, int) or isinstance(seq, bool) or not 0 <= seq <= MAX_SEQ:
             shown = repr(seq)[:64]
-            self._send_error(identity, Error(code="bad_field", field="frame.seq",
-                                             message=f"seq must be an integer in 0..2^63-1, "
-                                                     f"got {shown}"))
+            self._send_error(
+                identity,
+                Error(
+                    code="bad_field",
+                    field="frame.seq",
+                    message=f"seq must be an integer in 0..2^63-1, got {shown}",
+                ),
+            )
             return
         session = self.sessions.get(peer.session) if peer is not None else None
-        if peer is None or peer.role != "capture" or session is None or \
-                session.capture_peer != identity:
-            self._send_error(identity, Error(
-                code="bad_state", field=ErrorField.SESSION, seq=seq, retryable=True,
-                message="no session for this peer: send Hello first (the server may have "
-                        "restarted or the session expired)"))
+        if (
+            peer is None
+            or peer.role != "capture"
+            or session is None
+            or session.capture_peer != identity
+        ):
+            self._send_error(
+                identity,
+                Error(
+                    code="bad_state",
+                    field=ErrorField.SESSION,
+                    seq=seq,
+                    retryable=True,
+                    message="no session for this peer: send Hello first (the server may have "
+                    "restarted or the session expired)",
+                ),
+            )
             return
         if self._draining:
-            self._send_error(identity, Error(code="bad_state", field=ErrorField.SHUTDOWN,
-                                             seq=seq, retryable=True,
-                                             message="the server is shutting down; frame "
-                                                     "not processed"))
+            self._send_error(
+                identity,
+                Error(
+                    code="bad_state",
+                    field=ErrorField.SHUTDOWN,
+                    seq=seq,
+                    retryable=True,
+                    message="the server is shutting down; frame not processed",
+                ),
+            )
             return
         frames = session.queue
         offer = frames.offer(Job(seq, parts, receive_time_wall, now))
         if offer is Offer.RESEND:  # its Result or final Error, again (the first may be lost)
             self._send(identity, frames.reply(seq))
         elif offer is Offer.EXPIRED:  # answer it, or a lossless client would wait forever
-            self._send_error(identity, Error(
-                code="bad_state", field=ErrorField.DUPLICATE, seq=seq, retryable=False,
-                message=f"frame {seq} is not above the highest seq this session accepted "
-                        f"({frames.highest_seq}) and its Result or Error is no longer kept "
-                        f"(only the last {frames.keeps} are); it is not processed again"))
+            self._send_error(
+                identity,
+                Error(
+                    code="bad_state",
+                    field=ErrorField.DUPLICATE,
+                    seq=seq,
+                    retryable=False,
+                    message=f"frame {seq} is not above the highest seq this session accepted "
+                    f"({frames.highest_seq}) and its Result or Error is no longer kept "
+                    f"(only the last {frames.keeps} are); it is not processed again",
+                ),
+            )
         elif offer is Offer.OVERFLOW:
-            self._send_error(identity, Error(
-                code="bad_state", field=ErrorField.CREDITS, seq=seq, retryable=True,
-                message=f"more than {self.options.credits} frames unacknowledged in lossless "
-                        "mode; wait for Results (credits) before sending more"))
+            self._send_error(
+                identity,
+                Error(
+                    code="bad_state",
+                    field=ErrorField.CREDITS,
+                    seq=seq,
+                    retryable=True,
+                    message=f"more than {self.options.credits} frames unacknowledged in lossless "
+                    "mode; wait for Results (credits) before sending more",
+                ),
+            )
         self._schedule(session)
 
     def _on_bye(self, identity: bytes, peer: Peer | None, bye: Bye) -> None:
@@ -568,8 +703,7 @@ class Server:
             self._busy += 1
         outcome = None
         try:
-            if self.options.workers > 1 and not self._remote and \
-                    not concurrent_pipelines_safe():
+            if self.options.workers > 1 and not self._remote and not concurrent_pipelines_safe():
                 with self._compute_lock:
                     step = run_frame(job, session.compute)
             else:
@@ -577,13 +711,18 @@ class Server:
             outcome = reply_to(session, job, step)
         except BaseException as exc:  # noqa: BLE001 - reported to the client as internal
             log.error("session %s: frame %d: worker failed: %r", session.name, job.seq, exc)
-            outcome = error_reply(session, job, Error(
-                code="internal", seq=job.seq, message=f"the server failed to process this "
-                                                      f"frame ({type(exc).__name__})"))
+            outcome = error_reply(
+                session,
+                job,
+                Error(
+                    code="internal",
+                    seq=job.seq,
+                    message=f"the server failed to process this frame ({type(exc).__name__})",
+                ),
+            )
         finally:
             if outcome is None:  # error_reply itself failed: the bare minimum, still answered
-                error = Error("internal", "the server failed to process this frame", None,
-                              job.seq)
+                error = Error("internal", "the server failed to process this frame", None, job.seq)
                 outcome = Reply(session, job, encode(error), time.monotonic(), error)
             self._completions.put(outcome)
             self._wake()
@@ -600,8 +739,11 @@ class Server:
             try:
                 self._complete(outcome)
             except Exception:  # noqa: BLE001 - a bug: the other outcomes still go out
-                log.exception("session %s: failed to deliver the outcome of frame %d",
-                              outcome.session.name, outcome.job.seq)
+                log.exception(
+                    "session %s: failed to deliver the outcome of frame %d",
+                    outcome.session.name,
+                    outcome.job.seq,
+                )
 
     def _complete(self, outcome: Reply) -> None:
         """Free the session's slot, send the outcome, start the session's next frame."""
@@ -614,8 +756,14 @@ class Server:
         if current and self._draining and not session.lossless:
             frames.drop_pending()
         final = error is None or not error.retryable  # kept for a resent duplicate
-        next_job = frames.finish(job, outcome.parts, final=final, processed=error is None,
-                                 finish_time_mono=outcome.finish_time_mono, start_next=current)
+        next_job = frames.finish(
+            job,
+            outcome.parts,
+            final=final,
+            processed=error is None,
+            finish_time_mono=outcome.finish_time_mono,
+            start_next=current,
+        )
         if session.capture_peer is not None:
             self._send(session.capture_peer, outcome.parts)
         if error is None:
@@ -639,13 +787,22 @@ class Server:
         """The session's pipeline (a Ray actor) was lost with `job`: its `queued` frames,
         un-accepted, are reported retryable too; the client sends them all again, in seq
         order, to the session's next pipeline."""
-        log.warning("session %s: pipeline lost at frame %d; it and %d queued frame(s) reported "
-                    "retryable (pipeline_lost), to be sent again to a new pipeline",
-                    session.name, job.seq, len(queued))
+        log.warning(
+            "session %s: pipeline lost at frame %d; it and %d queued frame(s) reported "
+            "retryable (pipeline_lost), to be sent again to a new pipeline",
+            session.name,
+            job.seq,
+            len(queued),
+        )
         for other in queued:
-            error = Error(code="bad_state", field=ErrorField.PIPELINE_LOST, seq=other.seq,
-                          retryable=True, message="the session's pipeline was lost before this "
-                          "frame was processed: send it again")
+            error = Error(
+                code="bad_state",
+                field=ErrorField.PIPELINE_LOST,
+                seq=other.seq,
+                retryable=True,
+                message="the session's pipeline was lost before this "
+                "frame was processed: send it again",
+            )
             if session.capture_peer is not None:
                 self._send_error(session.capture_peer, error)
 
@@ -695,8 +852,12 @@ class Server:
             if session is not None and session.capture_peer == peer.identity:
                 session.capture_peer = None
         if peer.results_dropped:
-            log.info("session %s: %s lost %d results to a full queue", peer.session,
-                     peer.label, peer.results_dropped)
+            log.info(
+                "session %s: %s lost %d results to a full queue",
+                peer.session,
+                peer.label,
+                peer.results_dropped,
+            )
         log.debug("session %s: %s detached (%s)", peer.session, peer.label, reason)
 
     def _close_session(self, session: Session, reason: str) -> None:
@@ -711,9 +872,15 @@ class Server:
             except Exception:  # noqa: BLE001 - the session is gone either way
                 log.exception("session %s: failed to release its pipeline", session.name)
         c = session.counters()
-        log.info("session %s: closed (%s): %d received, %d processed, %d dropped, %d failed",
-                 session.name, reason, c["frames_received"], c["frames_processed"],
-                 c["frames_dropped"], c["frames_failed"])
+        log.info(
+            "session %s: closed (%s): %d received, %d processed, %d dropped, %d failed",
+            session.name,
+            reason,
+            c["frames_received"],
+            c["frames_processed"],
+            c["frames_dropped"],
+            c["frames_failed"],
+        )
         if session.capture_peer is not None and session.capture_peer in self.peers:
             self._detach_peer(self.peers[session.capture_peer], reason=reason)
         if reason == "end of stream":
@@ -726,8 +893,12 @@ class Server:
         for peer in list(self.peers.values()):
             if now - peer.last_seen > limit:
                 self.stats.peers_expired += 1
-                log.warning("session %s: %s silent for %.1f s: declared dead", peer.session,
-                            peer.label, now - peer.last_seen)
+                log.warning(
+                    "session %s: %s silent for %.1f s: declared dead",
+                    peer.session,
+                    peer.label,
+                    now - peer.last_seen,
+                )
                 self._detach_peer(peer, reason="dead")
 
     def _expire_sessions(self, now: float) -> None:
@@ -754,12 +925,17 @@ class Server:
                 waiting += len(frames.pending) + (frames.in_flight is not None)
             else:
                 frames.drop_pending()
-        log.info("shutting down: %d lossless frame(s) still to finish (grace %g s)", waiting,
-                 self.options.shutdown_grace_s)
+        log.info(
+            "shutting down: %d lossless frame(s) still to finish (grace %g s)",
+            waiting,
+            self.options.shutdown_grace_s,
+        )
 
     def _drained(self) -> bool:
-        return all(s.queue.in_flight is None and not (s.lossless and s.queue.pending)
-                   for s in self.sessions.values())
+        return all(
+            s.queue.in_flight is None and not (s.lossless and s.queue.pending)
+            for s in self.sessions.values()
+        )
 
     def _finish_shutdown(self) -> None:
         """Report unfinished lossless frames, say Bye to every peer, close the socket."""
@@ -772,14 +948,24 @@ class Server:
                 unfinished += session.queue.drop_pending()
                 if session.capture_peer is not None:
                     for job in unfinished:
-                        self._send_error(session.capture_peer, Error(
-                            code="bad_state", field=ErrorField.SHUTDOWN, seq=job.seq,
-                            retryable=True,
-                            message="the server shut down before processing this frame; "
-                                    "send it again after reconnecting"))
+                        self._send_error(
+                            session.capture_peer,
+                            Error(
+                                code="bad_state",
+                                field=ErrorField.SHUTDOWN,
+                                seq=job.seq,
+                                retryable=True,
+                                message="the server shut down before processing this frame; "
+                                "send it again after reconnecting",
+                            ),
+                        )
                 if unfinished:
-                    log.warning("session %s: %d frame(s) not processed at shutdown (reported "
-                                "to the client)", session.name, len(unfinished))
+                    log.warning(
+                        "session %s: %d frame(s) not processed at shutdown (reported "
+                        "to the client)",
+                        session.name,
+                        len(unfinished),
+                    )
             bye = encode(Bye("server shutting down", ByeKind.SHUTDOWN))
             for identity in list(self.peers):
                 self._send(identity, bye)
@@ -797,4 +983,3 @@ class Server:
             self._wake_w.close()
             self.sessions.clear()
             log.info("server stopped")
-

@@ -85,15 +85,26 @@ def camera_from_config(config: SessionConfig, max_pixels: int) -> PinholeCamera:
         raise SessionSetupError("calibration", "a capture session needs the camera calibration")
     if cal.width * cal.height > max_pixels:
         raise SessionSetupError(
-            "calibration", f"{cal.width}x{cal.height} = {cal.width * cal.height} pixels exceeds "
-            f"the server's limit of {max_pixels}", code="too_large")
+            "calibration",
+            f"{cal.width}x{cal.height} = {cal.width * cal.height} pixels exceeds "
+            f"the server's limit of {max_pixels}",
+            code="too_large",
+        )
     if any(float(d) != 0.0 for d in (cal.D or ())):
         raise SessionSetupError(
-            "calibration.D", f"distortion model {cal.distortion_model!r} with non-zero "
-            "coefficients is not supported; undistort the images before streaming")
+            "calibration.D",
+            f"distortion model {cal.distortion_model!r} with non-zero "
+            "coefficients is not supported; undistort the images before streaming",
+        )
     try:
-        return PinholeCamera(int(cal.width), int(cal.height), float(cal.fx), float(cal.fy),
-                             float(cal.cx), float(cal.cy))
+        return PinholeCamera(
+            int(cal.width),
+            int(cal.height),
+            float(cal.fx),
+            float(cal.fy),
+            float(cal.cx),
+            float(cal.cy),
+        )
     except (TypeError, ValueError) as exc:
         raise SessionSetupError("calibration", str(exc)) from None
 
@@ -134,8 +145,11 @@ def panorama_light_from_config(config: SessionConfig) -> PanoramaLight:
     pano = config.panorama or PanoramaConfig()
     operator = pano.operator or DEFAULT_OPERATOR
     if operator not in OPERATORS:
-        raise SessionSetupError("panorama.operator", f"unknown inverse tone mapping operator "
-                                f"{operator[:64]!r}; the server's: {', '.join(OPERATORS)}")
+        raise SessionSetupError(
+            "panorama.operator",
+            f"unknown inverse tone mapping operator "
+            f"{operator[:64]!r}; the server's: {', '.join(OPERATORS)}",
+        )
     rotation = np.asarray(pano.panorama_from_world, dtype=np.float64).reshape(3, 3)
     return PanoramaLight(IblParams(operator=operator), pano.light_source, rotation)
 
@@ -152,9 +166,11 @@ def scene_from_config(config: SessionConfig) -> VirtualScene | None:
         make = BUILT_IN_SCENES.get(config.virtual_scene)
         if make is None:
             raise SessionSetupError(
-                "virtual_scene", f"unknown virtual scene name {config.virtual_scene[:64]!r} "
+                "virtual_scene",
+                f"unknown virtual scene name {config.virtual_scene[:64]!r} "
                 f"(the server's built-in scenes: {', '.join(sorted(BUILT_IN_SCENES))}); send "
-                "the scene itself: arlight stream --scene FILE")
+                "the scene itself: arlight stream --scene FILE",
+            )
         return make()
     if config.scene is None:
         return None
@@ -176,9 +192,15 @@ def virtual_object(spec: SceneObjectSpec) -> VirtualObject:
     reads negative and is refused by the object's own check)."""
     anchor = None if spec.anchor is None else Anchor(spec.anchor.pixel, spec.anchor.yaw_deg)
     pose = np.eye(4) if spec.world_from_object is None else spec.world_from_object
-    return VirtualObject(spec.name, spec.vertices, spec.triangles.view(np.int32), spec.normals,
-                         pose, Material(spec.albedo, spec.roughness, spec.metalness,
-                                        spec.mirror), anchor)
+    return VirtualObject(
+        spec.name,
+        spec.vertices,
+        spec.triangles.view(np.int32),
+        spec.normals,
+        pose,
+        Material(spec.albedo, spec.roughness, spec.metalness, spec.mirror),
+        anchor,
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -199,27 +221,51 @@ class SessionSetup:
     cost: SessionCost | None = None
 
     @classmethod
-    def from_config(cls, config: SessionConfig, *, max_pixels: int, max_message_bytes: int,
-                    budget: SessionBudget | None = None) -> SessionSetup:
+    def from_config(
+        cls,
+        config: SessionConfig,
+        *,
+        max_pixels: int,
+        max_message_bytes: int,
+        budget: SessionBudget | None = None,
+    ) -> SessionSetup:
         """budget: the per-frame time and per-session memory limits (server/budget.py); a
         Hello whose settings could not meet them is refused here (over_budget)."""
         pipeline = pipeline_config(config)
         if config.exports and pipeline.transfer.sh_bands < 3:
-            raise SessionSetupError("exports", f"the engine layouts hold 3 SH bands and the "
-                                    f"session estimates {pipeline.transfer.sh_bands}"
-                                    f" (override sh_bands, `--set sh_bands=N`): ask for 3 or "
-                                    f"more, or no exports")
+            raise SessionSetupError(
+                "exports",
+                f"the engine layouts hold 3 SH bands and the "
+                f"session estimates {pipeline.transfer.sh_bands}"
+                f" (override sh_bands, `--set sh_bands=N`): ask for 3 or "
+                f"more, or no exports",
+            )
         # a Hello without calibration (allowed with config.panorama): a panorama-only session
         camera = None if config.calibration is None else camera_from_config(config, max_pixels)
         panorama_light = panorama_light_from_config(config)
         scene = scene_from_config(config)
-        cost = None if budget is None else budget.check(
-            config, pipeline, camera, len(scene.objects) if scene else 0)
+        cost = (
+            None
+            if budget is None
+            else budget.check(config, pipeline, camera, len(scene.objects) if scene else 0)
+        )
         if not (np.isfinite(config.depth_scale) and config.depth_scale > 0):
-            raise SessionSetupError("depth_scale", f"must be a finite number of units per metre "
-                                                   f"> 0, got {config.depth_scale}")
-        return cls(config.session, config, pipeline, camera, panorama_light, scene, max_pixels,
-                   max_message_bytes, budget, cost)
+            raise SessionSetupError(
+                "depth_scale",
+                f"must be a finite number of units per metre > 0, got {config.depth_scale}",
+            )
+        return cls(
+            config.session,
+            config,
+            pipeline,
+            camera,
+            panorama_light,
+            scene,
+            max_pixels,
+            max_message_bytes,
+            budget,
+            cost,
+        )
 
     def volume_budget_error(self, blocks: int) -> OverBudget | None:
         """The over_budget error of a volume of `blocks` blocks, None within the budget."""
@@ -236,15 +282,24 @@ class Session:
     `volume_budget_error(blocks)` for a volume it holds elsewhere.
     """
 
-    def __init__(self, config: SessionConfig, *, credits: int, max_pixels: int,
-                 max_message_bytes: int, process: ProcessStep | None = None,
-                 budget: SessionBudget | None = None, cancel: threading.Event | None = None):
+    def __init__(
+        self,
+        config: SessionConfig,
+        *,
+        credits: int,
+        max_pixels: int,
+        max_message_bytes: int,
+        process: ProcessStep | None = None,
+        budget: SessionBudget | None = None,
+        cancel: threading.Event | None = None,
+    ):
         """credits: the lossless credit window; process: a compute step in place of the
         Pipeline; budget: the server's limits (None: unlimited); cancel: set when the server
         stops, so a frame in a worker is abandoned at its next stage boundary.
         SessionSetupError for a config it refuses."""
-        setup = SessionSetup.from_config(config, max_pixels=max_pixels,
-                                         max_message_bytes=max_message_bytes, budget=budget)
+        setup = SessionSetup.from_config(
+            config, max_pixels=max_pixels, max_message_bytes=max_message_bytes, budget=budget
+        )
         self.setup = setup
         # what the Hello set up, read-only (also a ProcessStep's view of the session)
         self.name = setup.name
@@ -255,8 +310,7 @@ class Session:
         self.budget = setup.budget
         self.lossless = config.mode == "lossless"
         self.created_mono = time.monotonic()
-        self.queue = FrameQueue(lossless=self.lossless, credits=credits,
-                                now=self.created_mono)
+        self.queue = FrameQueue(lossless=self.lossless, credits=credits, now=self.created_mono)
         self.compute = SessionCompute(self.setup, process, owner=self, cancel=cancel)
         self.capture_peer: bytes | None = None
         self.token: str | None = None  # admits displays and capture Hellos (server.py sets it)
@@ -289,9 +343,12 @@ class Session:
 
     def snapshot(self) -> dict:
         """The session's counters and state, plain (Server.snapshot: tests and logs)."""
-        return {**self.counters(), "mode": self.config.mode,
-                "capture_attached": self.capture_peer is not None,
-                "pending": len(self.queue.pending)}
+        return {
+            **self.counters(),
+            "mode": self.config.mode,
+            "capture_attached": self.capture_peer is not None,
+            "pending": len(self.queue.pending),
+        }
 
     def rate_line(self, now: float, interval_s: float, displays: int) -> str | None:
         """The periodic log line of the last `interval_s` seconds (None: nothing happened):
@@ -301,19 +358,39 @@ class Session:
             return None
         c = self.queue.counters()
         lat_ms = np.asarray(recent) * 1e3
-        latency = (f"latency median {np.median(lat_ms):.0f} ms, p95 "
-                   f"{np.percentile(lat_ms, 95):.0f} ms" if recent else "no frames finished")
-        return (f"session {self.name}: {len(recent) / interval_s:.1f} fps, {latency} (receive "
-                f"to finish); received {c.received}, processed {c.processed}, dropped "
-                f"{c.dropped}, failed {c.failed}; {displays} display(s), {self.display_drops} "
-                "result(s) not delivered")
+        latency = (
+            f"latency median {np.median(lat_ms):.0f} ms, p95 {np.percentile(lat_ms, 95):.0f} ms"
+            if recent
+            else "no frames finished"
+        )
+        return (
+            f"session {self.name}: {len(recent) / interval_s:.1f} fps, {latency} (receive "
+            f"to finish); received {c.received}, processed {c.processed}, dropped "
+            f"{c.dropped}, failed {c.failed}; {displays} display(s), {self.display_drops} "
+            "result(s) not delivered"
+        )
 
     def counters(self) -> dict[str, int]:
         c = self.queue.counters()
-        return {"frames_received": c.received, "frames_processed": c.processed,
-                "frames_dropped": c.dropped, "frames_failed": c.failed}
+        return {
+            "frames_received": c.received,
+            "frames_processed": c.processed,
+            "frames_dropped": c.dropped,
+            "frames_failed": c.failed,
+        }
 
 
-__all__ = ["BUILT_IN_SCENES", "Job", "PanoramaLight", "PipelineLost", "Session",
-           "SessionSetup", "SessionSetupError", "camera_from_config", "panorama_light_from_config",
-           "pipeline_config", "scene_from_config", "virtual_object"]
+__all__ = [
+    "BUILT_IN_SCENES",
+    "Job",
+    "PanoramaLight",
+    "PipelineLost",
+    "Session",
+    "SessionSetup",
+    "SessionSetupError",
+    "camera_from_config",
+    "panorama_light_from_config",
+    "pipeline_config",
+    "scene_from_config",
+    "virtual_object",
+]

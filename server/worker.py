@@ -164,8 +164,13 @@ class SessionCompute:
 
     Used by one worker at a time (the server runs one frame per session at a time)."""
 
-    def __init__(self, setup: SessionSetup, step: ProcessStep | None = None,
-                 owner: Any = None, cancel: threading.Event | None = None):
+    def __init__(
+        self,
+        setup: SessionSetup,
+        step: ProcessStep | None = None,
+        owner: Any = None,
+        cancel: threading.Event | None = None,
+    ):
         self.setup = setup
         self.step = step
         self.owner = owner
@@ -178,10 +183,14 @@ class SessionCompute:
         """The session's Pipeline, built on first use."""
         if self._pipeline is None:
             if self.setup.camera is None:
-                raise FrameError("color", "this session has no camera calibration (a "
-                                 "panorama-only session): send frames without colour and depth")
-            self._pipeline = Pipeline(self.setup.pipeline_config, self.setup.camera,
-                                      scene=self.setup.scene)
+                raise FrameError(
+                    "color",
+                    "this session has no camera calibration (a "
+                    "panorama-only session): send frames without colour and depth",
+                )
+            self._pipeline = Pipeline(
+                self.setup.pipeline_config, self.setup.camera, scene=self.setup.scene
+            )
         return self._pipeline
 
     @property
@@ -193,8 +202,9 @@ class SessionCompute:
         budget = self.setup.budget
         return Deadline(math.inf if budget is None else budget.frame_deadline_s, self.cancel)
 
-    def process(self, frame: FrameInput, render_light: RenderLight | None,
-                deadline: Deadline) -> FrameResult:
+    def process(
+        self, frame: FrameInput, render_light: RenderLight | None, deadline: Deadline
+    ) -> FrameResult:
         """The session's estimate of one frame: its Pipeline, or its ProcessStep."""
         if self.step is None:
             return self.pipeline.process(frame, render_light=render_light, checkpoint=deadline)
@@ -220,35 +230,44 @@ class SessionCompute:
             return result.composite
         if scene and not self._told_no_render:
             self._told_no_render = True
-            log.info("session %s: the pipeline rendered no composite; the Results carry the "
-                     "input frame", self.setup.name)
+            log.info(
+                "session %s: the pipeline rendered no composite; the Results carry the input frame",
+                self.setup.name,
+            )
         return frame.color
 
     def environment(self, panorama: IblResult) -> EnvironmentMap | None:
         """The panorama's HDR map as the environment mirror and glossy objects reflect, or
         None when no virtual object reflects (the mip pyramid costs a pass over the map)."""
         scene = self.setup.scene
-        if panorama.hdr is None or not scene or not any(
-                o.material.mirror or o.material.metalness > 0 for o in scene.objects):
+        if (
+            panorama.hdr is None
+            or not scene
+            or not any(o.material.mirror or o.material.metalness > 0 for o in scene.objects)
+        ):
             return None
-        return EnvironmentMap(mip_pyramid(panorama.hdr),
-                              self.setup.panorama_light.panorama_from_world)
+        return EnvironmentMap(
+            mip_pyramid(panorama.hdr), self.setup.panorama_light.panorama_from_world
+        )
 
 
-def volume_budget_error(blocks: int, budget: SessionBudget | None,
-                        cost: SessionCost | None) -> OverBudget | None:
+def volume_budget_error(
+    blocks: int, budget: SessionBudget | None, cost: SessionCost | None
+) -> OverBudget | None:
     """The over_budget error of a volume of `blocks` blocks, None within the session's
     share of the budget (or without a budget)."""
     if budget is None or cost is None:
         return None
     used = blocks * cost.bytes_per_block
     if used > cost.volume_limit_bytes:
-        return OverBudget("frame",
+        return OverBudget(
+            "frame",
             f"the session's volume grew to {blocks} blocks ({used / 2**20:.0f} "
             f"MiB), over its share of the per-session memory budget "
             f"({cost.volume_limit_bytes / 2**20:.0f} MiB of "
             f"{budget.session_memory_bytes / 2**20:.0f} MiB, `arlight serve "
-            "--session-memory-mb`); the volume is reset and the session goes on")
+            "--session-memory-mb`); the volume is reset and the session goes on",
+        )
     return None
 
 
@@ -267,8 +286,9 @@ def run_frame(job: Job, compute: SessionCompute) -> FrameOutcome:
 def _process(job: Job, compute: SessionCompute, deadline: Deadline) -> Processed:
     setup = compute.setup
     check_declared_sizes(job.parts, setup)
-    frame = decode(job.parts, max_message_bytes=setup.max_message_bytes,
-                   max_pixels=setup.max_pixels)
+    frame = decode(
+        job.parts, max_message_bytes=setup.max_message_bytes, max_pixels=setup.max_pixels
+    )
     if not isinstance(frame, Frame):
         raise ProtocolError("bad_state", f"expected a Frame, got {type(frame).__name__}")
     panorama = world = render_light = None
@@ -283,16 +303,25 @@ def _process(job: Job, compute: SessionCompute, deadline: Deadline) -> Processed
         result = panorama_only_result(frame, world)
     else:
         if setup.camera is None:
-            raise FrameError("color", "this session has no camera calibration (a panorama-only "
-                             "session): send frames without colour and depth")
+            raise FrameError(
+                "color",
+                "this session has no camera calibration (a panorama-only "
+                "session): send frames without colour and depth",
+            )
         frame_input = frame_to_input(frame, setup.camera, setup.config.depth_scale)
         result = compute.process(frame_input, render_light, deadline)
         if setup.config.want_composite:
             composite = compute.composite(frame_input, result)
     compute.check_volume_budget()
-    used = None if panorama is None else PanoramaUse(
-        panorama, "panorama" if frame.color is None else lights.light_source,
-        lights.params.operator)
+    used = (
+        None
+        if panorama is None
+        else PanoramaUse(
+            panorama,
+            "panorama" if frame.color is None else lights.light_source,
+            lights.params.operator,
+        )
+    )
     return Processed(result, composite, frame.color_codec, frame.jpeg_quality, used)
 
 
@@ -309,11 +338,15 @@ def check_declared_sizes(parts: list, setup: SessionSetup) -> None:
             need = w * h * PANORAMA_BYTES_PER_PIXEL
             room = budget.session_memory_bytes - cost.session_bytes
             if need > room:
-                raise OverBudget("frame.panorama", (
-                    f"a {w} x {h} panorama needs about {need / 2**20:.0f} MiB, over what "
-                    f"the session's memory budget leaves for it ({max(room, 0) / 2**20:.0f}"
-                    f" MiB of {budget.session_memory_bytes / 2**20:.0f} MiB, `arlight "
-                    "serve --session-memory-mb`); send a smaller panorama"))
+                raise OverBudget(
+                    "frame.panorama",
+                    (
+                        f"a {w} x {h} panorama needs about {need / 2**20:.0f} MiB, over what "
+                        f"the session's memory budget leaves for it ({max(room, 0) / 2**20:.0f}"
+                        f" MiB of {budget.session_memory_bytes / 2**20:.0f} MiB, `arlight "
+                        "serve --session-memory-mb`); send a smaller panorama"
+                    ),
+                )
     camera = setup.camera
     if camera is None:
         return
@@ -325,8 +358,10 @@ def check_declared_sizes(parts: list, setup: SessionSetup) -> None:
         if type(w) is not int or type(h) is not int or w * h > setup.max_pixels:
             continue  # the decoder names these (bad_field, too_large)
         if (w, h) != (camera.width, camera.height):
-            raise FrameError(key, f"{key} is {w} x {h}, the session's calibration "
-                             f"{camera.width} x {camera.height}")
+            raise FrameError(
+                key,
+                f"{key} is {w} x {h}, the session's calibration {camera.width} x {camera.height}",
+            )
 
 
 def frame_to_input(frame: Frame, camera: PinholeCamera, depth_scale: float) -> FrameInput:
@@ -339,23 +374,38 @@ def frame_to_input(frame: Frame, camera: PinholeCamera, depth_scale: float) -> F
     size = (camera.width, camera.height)
     color, depth = frame.color, frame.depth
     if color is None or depth is None:  # decode gives both or neither
-        raise FrameError("color" if color is None else "depth", "missing: the RGB-D pipeline "
-                         "needs colour and depth (a frame with neither is panorama-only)")
+        raise FrameError(
+            "color" if color is None else "depth",
+            "missing: the RGB-D pipeline "
+            "needs colour and depth (a frame with neither is panorama-only)",
+        )
     try:
         for name, image in (("color", color), ("depth", depth)):
-            check_image(image, name, channels=3 if name == "color" else None, size=size,
-                        size_of="the session's calibration")
+            check_image(
+                image,
+                name,
+                channels=3 if name == "color" else None,
+                size=size,
+                size_of="the session's calibration",
+            )
     except CheckError as exc:
         raise FrameError(exc.field, exc.message) from None
     # the sources' integers and depth_scale, untouched: a stream of recorded depth gives the
     # pipeline the metres that reading the recording directly gives, bit for bit
     pose = None if frame.pose is None else np.asarray(frame.pose, dtype=np.float64)
-    return FrameInput(color=color, depth=depth, depth_scale=float(depth_scale),
-                      timestamp=float(frame.timestamp), pose=pose, panorama=frame.panorama)
+    return FrameInput(
+        color=color,
+        depth=depth,
+        depth_scale=float(depth_scale),
+        timestamp=float(frame.timestamp),
+        pose=pose,
+        panorama=frame.panorama,
+    )
 
 
-def panorama_only_result(frame: Frame, world: tuple[np.ndarray, np.ndarray, np.ndarray]
-                         ) -> FrameResult:
+def panorama_only_result(
+    frame: Frame, world: tuple[np.ndarray, np.ndarray, np.ndarray]
+) -> FrameResult:
     """The FrameResult of a frame without colour and depth (SPEC.md, "result"): the
     panorama's light in the world frame as the estimate; no camera, so pose is the identity
     and the camera frame is the world frame; confidence: the map's SH are a projection, not
@@ -368,13 +418,24 @@ def panorama_only_result(frame: Frame, world: tuple[np.ndarray, np.ndarray, np.n
     samples = height * 2 * height
     bands = sh_lib.bands_of(len(sh_world))
     return FrameResult(
-        timestamp=float(frame.timestamp), sh=sh_world, sh_camera=sh_world,
-        dominant_direction_world=direction, dominant_direction_camera=direction,
+        timestamp=float(frame.timestamp),
+        sh=sh_world,
+        sh_camera=sh_world,
+        dominant_direction_world=direction,
+        dominant_direction_camera=direction,
         intensity=sh_lib.intensity_along(sh_world, direction) if np.any(direction) else 0.0,
-        confidence=Confidence(samples=samples, condition_number=1.0, bands_estimated=bands,
-                              value=1.0 if np.any(direction) else 0.0,
-                              reason="" if np.any(direction) else "black panorama"),
-        pose=np.eye(4), sh_rgb=rgb_world, timings_ms={}, diagnostics={})
+        confidence=Confidence(
+            samples=samples,
+            condition_number=1.0,
+            bands_estimated=bands,
+            value=1.0 if np.any(direction) else 0.0,
+            reason="" if np.any(direction) else "black panorama",
+        ),
+        pose=np.eye(4),
+        sh_rgb=rgb_world,
+        timings_ms={},
+        diagnostics={},
+    )
 
 
 def frame_error(exc: Exception, seq: int | None) -> Error:
@@ -386,20 +447,38 @@ def frame_error(exc: Exception, seq: int | None) -> Error:
         return Error(code="bad_field", message=str(exc), field=f"frame.{exc.field}", seq=seq)
     if isinstance(exc, FrameAbandoned):
         if exc.reason == "shutdown":
-            return Error(code="bad_state", field=ErrorField.SHUTDOWN, seq=seq, retryable=True,
-                         message="the server shut down before finishing this frame; send it "
-                                 "again after reconnecting")
-        return Error(code="deadline", seq=seq, message=(
-            f"frame abandoned before {exc.stage}: {exc.elapsed_s:.1f} s in the pipeline, over "
-            f"the server's per-frame deadline of {exc.limit_s:g} s (`arlight serve "
-            "--frame-deadline`); lower the session's cost (--preset fast, a smaller image, "
-            "fewer rt_directions or robust_iterations)"))
+            return Error(
+                code="bad_state",
+                field=ErrorField.SHUTDOWN,
+                seq=seq,
+                retryable=True,
+                message="the server shut down before finishing this frame; send it "
+                "again after reconnecting",
+            )
+        return Error(
+            code="deadline",
+            seq=seq,
+            message=(
+                f"frame abandoned before {exc.stage}: {exc.elapsed_s:.1f} s in the pipeline, over "
+                f"the server's per-frame deadline of {exc.limit_s:g} s (`arlight serve "
+                "--frame-deadline`); lower the session's cost (--preset fast, a smaller image, "
+                "fewer rt_directions or robust_iterations)"
+            ),
+        )
     if isinstance(exc, OverBudget):
         return Error(code="over_budget", seq=seq, field=exc.field, message=str(exc))
     if isinstance(exc, PipelineLost):
-        return Error(code="bad_state", field=ErrorField.PIPELINE_LOST, seq=seq, retryable=True,
-                     message=f"{exc}; this frame and the session's queued frames were not "
-                             "processed: send them again (a new pipeline, a fresh volume)")
+        return Error(
+            code="bad_state",
+            field=ErrorField.PIPELINE_LOST,
+            seq=seq,
+            retryable=True,
+            message=f"{exc}; this frame and the session's queued frames were not "
+            "processed: send them again (a new pipeline, a fresh volume)",
+        )
     log.error("frame %s: unexpected failure", seq, exc_info=exc)
-    return Error(code="internal", message=f"the server failed to process this frame "
-                                          f"({type(exc).__name__}: {exc})"[:4096], seq=seq)
+    return Error(
+        code="internal",
+        message=f"the server failed to process this frame ({type(exc).__name__}: {exc})"[:4096],
+        seq=seq,
+    )

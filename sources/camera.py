@@ -34,13 +34,18 @@ log = logging.getLogger(__name__)
 CAMERA_KINDS = ("depthai", "openni2", "realsense")
 
 # the pip extra and the Python module of each camera library
-EXTRAS = {"depthai": ("depthai", "depthai"), "openni2": ("openni2", "openni"),
-          "realsense": ("realsense", "pyrealsense2")}
+EXTRAS = {
+    "depthai": ("depthai", "depthai"),
+    "openni2": ("openni2", "openni"),
+    "realsense": ("realsense", "pyrealsense2"),
+}
 
 # what to do where a library is known not to work
-UNSUPPORTED = {"openni": "the openni binding builds its ctypes enums in a way Python 3.13 "
-                         "refuses; use Python 3.10-3.12 for OpenNI2 cameras "
-                         "(docs/guides/cameras.md)"}
+UNSUPPORTED = {
+    "openni": "the openni binding builds its ctypes enums in a way Python 3.13 "
+    "refuses; use Python 3.10-3.12 for OpenNI2 cameras "
+    "(docs/guides/cameras.md)"
+}
 
 DEVICE_LOST = "camera lost"  # the SourceFrame-free end of a camera stream, as logged
 
@@ -68,8 +73,9 @@ class CameraSpec:
         return self.kind if self.device is None else f"{self.kind}:{self.device}"
 
 
-def parse_camera_spec(spec: str, size: tuple[int, int] = (640, 480),
-                      fps: float = 30.0) -> CameraSpec | None:
+def parse_camera_spec(
+    spec: str, size: tuple[int, int] = (640, 480), fps: float = 30.0
+) -> CameraSpec | None:
     """The CameraSpec of a SOURCE argument, or None when it names no camera.
 
     "depthai", "depthai:14442C10D13EABCE00", "openni2", "openni2:FILE.oni", "realsense:8123"
@@ -91,24 +97,29 @@ def import_library(kind: str) -> ModuleType:
     except ImportError as exc:
         raise CameraError(
             f"SOURCE {kind}: the Python package {module!r} is not installed ({exc}); install "
-            f"the camera extra: pip install 'arlight[{extra}]'") from None
+            f"the camera extra: pip install 'arlight[{extra}]'"
+        ) from None
     except Exception as exc:  # installed but broken here (openni on Python >= 3.13)
         version = ".".join(str(v) for v in sys.version_info[:3])
         raise CameraError(
             f"SOURCE {kind}: the Python package {module!r} is installed but cannot be imported "
             f"on Python {version} ({type(exc).__name__}: {exc}); "
-            + (UNSUPPORTED.get(module) or "reinstall it: pip install --force-reinstall "
-               f"'arlight[{extra}]'")) from None
+            + (
+                UNSUPPORTED.get(module)
+                or f"reinstall it: pip install --force-reinstall 'arlight[{extra}]'"
+            )
+        ) from None
 
 
-def no_device_message(spec: CameraSpec, looked_for: str, found: list[str],
-                      permissions: str) -> str:
+def no_device_message(spec: CameraSpec, looked_for: str, found: list[str], permissions: str) -> str:
     """The text of 'no such camera': what was looked for, what was found, what to do."""
     seen = f"found: {', '.join(found)}" if found else "found none"
     wanted = f"device {spec.device!r}" if spec.device else "any device"
-    return (f"SOURCE {spec.text}: no {spec.kind} camera ({wanted}; looked for {looked_for}; "
-            f"{seen}). Plug the camera in (a USB 3 port and cable for 640x480 at 30 Hz), "
-            f"check {permissions}, or name another device as SOURCE {spec.kind}:ID")
+    return (
+        f"SOURCE {spec.text}: no {spec.kind} camera ({wanted}; looked for {looked_for}; "
+        f"{seen}). Plug the camera in (a USB 3 port and cable for 640x480 at 30 Hz), "
+        f"check {permissions}, or name another device as SOURCE {spec.kind}:ID"
+    )
 
 
 def open_camera(spec: CameraSpec, max_frames: int | None = None):
@@ -125,8 +136,9 @@ def open_camera(spec: CameraSpec, max_frames: int | None = None):
 # --------------------------------------------------------------------------- maths
 
 
-def pinhole_from_fov(width: int, height: int, hfov_rad: float,
-                     vfov_rad: float) -> tuple[float, float, float, float]:
+def pinhole_from_fov(
+    width: int, height: int, hfov_rad: float, vfov_rad: float
+) -> tuple[float, float, float, float]:
     """(fx, fy, cx, cy) in pixels of an image of width x height pixels whose horizontal and
     vertical fields of view are hfov_rad and vfov_rad (radians, full angles).
 
@@ -136,8 +148,9 @@ def pinhole_from_fov(width: int, height: int, hfov_rad: float,
     """
     for name, angle in (("horizontal", hfov_rad), ("vertical", vfov_rad)):
         if not (math.isfinite(angle) and 0.0 < angle < math.pi):
-            raise CameraError(f"the camera reports a {name} field of view of {angle!r} rad; "
-                              "expected 0 < fov < pi")
+            raise CameraError(
+                f"the camera reports a {name} field of view of {angle!r} rad; expected 0 < fov < pi"
+            )
     fx = 0.5 * width / math.tan(0.5 * hfov_rad)
     fy = 0.5 * height / math.tan(0.5 * vfov_rad)
     return fx, fy, 0.5 * width, 0.5 * height
@@ -147,8 +160,9 @@ def depth_units_per_metre(metres_per_unit: float) -> float:
     """depth_scale (units per metre) of a sensor whose one depth unit is metres_per_unit
     (RealSense's depth scale, e.g. 0.001 -> 1000.0; 0.0001 -> 10000.0)."""
     if not (math.isfinite(metres_per_unit) and metres_per_unit > 0):
-        raise CameraError(f"the camera reports a depth unit of {metres_per_unit!r} m; "
-                          "expected a positive number")
+        raise CameraError(
+            f"the camera reports a depth unit of {metres_per_unit!r} m; expected a positive number"
+        )
     scale = 1.0 / metres_per_unit
     nearest = round(scale)
     return float(nearest) if abs(scale - nearest) < 1e-6 * scale else scale
@@ -219,9 +233,14 @@ class FrameCounter:
         self._last = sequence_number
 
 
-def camera_frames(spec: CameraSpec, read: Callable[[], SourceFrame | None],
-                  close: Callable[[], None], lost_errors: tuple[type[BaseException], ...],
-                  max_frames: int | None, counter: FrameCounter) -> Iterator[SourceFrame]:
+def camera_frames(
+    spec: CameraSpec,
+    read: Callable[[], SourceFrame | None],
+    close: Callable[[], None],
+    lost_errors: tuple[type[BaseException], ...],
+    max_frames: int | None,
+    counter: FrameCounter,
+) -> Iterator[SourceFrame]:
     """The frames `read()` returns until max_frames, the end of a file (read() -> None) or
     the device going away (one of lost_errors raised): then the stream ends cleanly, with a
     warning saying why, and `close()` releases the device. The frames already yielded are
@@ -232,9 +251,14 @@ def camera_frames(spec: CameraSpec, read: Callable[[], SourceFrame | None],
             try:
                 frame = read()
             except lost_errors as exc:
-                log.warning("SOURCE %s: %s after %d frame(s) (%s); the stream ends here, the "
-                            "frames already sent are delivered", spec.text, DEVICE_LOST, n,
-                            str(exc).strip() or type(exc).__name__)
+                log.warning(
+                    "SOURCE %s: %s after %d frame(s) (%s); the stream ends here, the "
+                    "frames already sent are delivered",
+                    spec.text,
+                    DEVICE_LOST,
+                    n,
+                    str(exc).strip() or type(exc).__name__,
+                )
                 return
             if frame is None:
                 log.info("SOURCE %s: end of recording after %d frame(s)", spec.text, n)
@@ -243,18 +267,26 @@ def camera_frames(spec: CameraSpec, read: Callable[[], SourceFrame | None],
             yield frame
     finally:
         if counter.skipped:
-            log.warning("SOURCE %s: %d camera frame(s) were skipped (not taken in time: in "
-                        "lossless mode the server sets the pace)", spec.text, counter.skipped)
+            log.warning(
+                "SOURCE %s: %d camera frame(s) were skipped (not taken in time: in "
+                "lossless mode the server sets the pace)",
+                spec.text,
+                counter.skipped,
+            )
         try:
             close()
         except Exception as exc:  # a device already gone may refuse to stop
             log.warning("SOURCE %s: closing the camera: %s", spec.text, exc)
 
 
-def camera_stream(spec: CameraSpec, read: Callable[[], SourceFrame | None],
-                  close: Callable[[], None], lost_errors: tuple[type[BaseException], ...],
-                  max_frames: int | None, counter: FrameCounter
-                  ) -> Callable[[], Iterator[SourceFrame]]:
+def camera_stream(
+    spec: CameraSpec,
+    read: Callable[[], SourceFrame | None],
+    close: Callable[[], None],
+    lost_errors: tuple[type[BaseException], ...],
+    max_frames: int | None,
+    counter: FrameCounter,
+) -> Callable[[], Iterator[SourceFrame]]:
     """A camera Source's `frames`: `camera_frames` the first time it is called; a second call
     (a device streams once) is a CameraError saying there is no --loop."""
     started = False

@@ -48,25 +48,29 @@ def check_encoding(encoding: str) -> None:
     if encoding not in DEPTH_ENCODINGS:
         raise DatasetError(
             f"unknown depth encoding {encoding!r}; --depth-encoding takes one of: "
-            f"{', '.join(DEPTH_ENCODINGS)}")
+            f"{', '.join(DEPTH_ENCODINGS)}"
+        )
 
 
-def read_depth(path: str | Path, encoding: str, units_per_metre: float | None = None
-               ) -> tuple[np.ndarray, float]:
+def read_depth(
+    path: str | Path, encoding: str, units_per_metre: float | None = None
+) -> tuple[np.ndarray, float]:
     """(units (H, W) uint16, 0 = missing; units per metre) from a depth image in `encoding`.
 
     units_per_metre overrides the encoding's scale for "tum"/"mm" (e.g. camera.json).
     """
     path = Path(path)
     raw = read_image(path, cv2.IMREAD_UNCHANGED, "depth image")
-    with dataset_errors(f"this is not a depth map in encoding {encoding!r} (a single-channel "
-                        "uint16 image)"):
+    with dataset_errors(
+        f"this is not a depth map in encoding {encoding!r} (a single-channel uint16 image)"
+    ):
         check_image(raw, str(path), dtype=np.uint16)
     return decode_depth(raw, encoding, units_per_metre, source=str(path))
 
 
-def decode_depth(raw: np.ndarray, encoding: str, units_per_metre: float | None = None,
-                 source: str = "depth") -> tuple[np.ndarray, float]:
+def decode_depth(
+    raw: np.ndarray, encoding: str, units_per_metre: float | None = None, source: str = "depth"
+) -> tuple[np.ndarray, float]:
     """(units (H, W) uint16, 0 = missing; units per metre) from stored uint16 depth `raw`.
 
     See DEPTH_ENCODINGS; units_per_metre overrides the scale of "tum"/"mm"/"sun".
@@ -106,11 +110,11 @@ def _decode_nyu(raw: np.ndarray, source: str) -> np.ndarray:
     else:
         raise DatasetError(
             f"{source}: values exceed 2047 in either byte order, so this is not raw Kinect "
-            "disparity (NYU Depth v2 raw PGM); pick another --depth-encoding")
+            "disparity (NYU Depth v2 raw PGM); pick another --depth-encoding"
+        )
     d = disparity.astype(np.float64)
     with np.errstate(divide="ignore"):
         depth_m = 351.3 / (1092.5 - d)
-    bad = (disparity == 2047) | ~np.isfinite(depth_m) | (depth_m <= 0) | (
-        depth_m > NYU_MAX_DEPTH_M)
+    bad = (disparity == 2047) | ~np.isfinite(depth_m) | (depth_m <= 0) | (depth_m > NYU_MAX_DEPTH_M)
     depth_m[bad] = 0.0
     return metres_to_units(depth_m, NYU_DEPTH_SCALE)

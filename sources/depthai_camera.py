@@ -39,10 +39,12 @@ STEREO_SIZE = (640, 400)  # the mono cameras' output fed to StereoDepth (OV9282:
 FIRST_FRAME_TIMEOUT_S = 10.0  # the pipeline's start-up (firmware boot is before it)
 READ_TIMEOUT_S = 2.0  # a device silent this long is gone
 IMU_RATE_HZ = 100
-PERMISSIONS = ("USB permissions: echo 'SUBSYSTEM==\"usb\", ATTRS{idVendor}==\"03e7\", "
-               "MODE=\"0666\"' | sudo tee /etc/udev/rules.d/80-movidius.rules, then "
-               "sudo udevadm control --reload-rules && sudo udevadm trigger; in a container "
-               "pass -v /dev/bus/usb:/dev/bus/usb --device-cgroup-rule='c 189:* rmw'")
+PERMISSIONS = (
+    'USB permissions: echo \'SUBSYSTEM=="usb", ATTRS{idVendor}=="03e7", '
+    'MODE="0666"\' | sudo tee /etc/udev/rules.d/80-movidius.rules, then '
+    "sudo udevadm control --reload-rules && sudo udevadm trigger; in a container "
+    "pass -v /dev/bus/usb:/dev/bus/usb --device-cgroup-rule='c 189:* rmw'"
+)
 
 
 def find_device(dai, spec: CameraSpec):
@@ -58,9 +60,14 @@ def find_device(dai, spec: CameraSpec):
                 return info
         if spec.device.count(".") == 3:  # an IP address: depthai searches it directly
             return dai.DeviceInfo(spec.device)
-    raise CameraError(no_device_message(
-        spec, "Luxonis OAK devices on USB and the network "
-              "(depthai.Device.getAllAvailableDevices)", ids, PERMISSIONS))
+    raise CameraError(
+        no_device_message(
+            spec,
+            "Luxonis OAK devices on USB and the network (depthai.Device.getAllAvailableDevices)",
+            ids,
+            PERMISSIONS,
+        )
+    )
 
 
 def color_from_imgframe(dai, frame) -> np.ndarray:
@@ -68,10 +75,10 @@ def color_from_imgframe(dai, frame) -> np.ndarray:
     kind = frame.getType()
     if kind == dai.ImgFrame.Type.RGB888i:
         return np.ascontiguousarray(
-            np.asarray(frame.getFrame(), np.uint8).reshape(frame.getHeight(), frame.getWidth(), 3))
+            np.asarray(frame.getFrame(), np.uint8).reshape(frame.getHeight(), frame.getWidth(), 3)
+        )
     if kind == dai.ImgFrame.Type.BGR888i:
-        bgr = np.asarray(frame.getFrame(), np.uint8).reshape(frame.getHeight(),
-                                                              frame.getWidth(), 3)
+        bgr = np.asarray(frame.getFrame(), np.uint8).reshape(frame.getHeight(), frame.getWidth(), 3)
         return np.ascontiguousarray(bgr[..., ::-1])
     return np.ascontiguousarray(np.asarray(frame.getCvFrame())[..., ::-1])  # OpenCV's BGR
 
@@ -89,8 +96,10 @@ def intrinsics_of(frame) -> tuple[float, float, float, float]:
     device calibration carried through the ISP's scaling, cropping and padding)."""
     transformation = frame.getTransformation()
     if not transformation.isValid():
-        raise CameraError("the depthai colour frame carries no valid ImgTransformation "
-                          "(calibration) to take intrinsics from")
+        raise CameraError(
+            "the depthai colour frame carries no valid ImgTransformation "
+            "(calibration) to take intrinsics from"
+        )
     k = np.asarray(transformation.getIntrinsicMatrix(), np.float64)
     return float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])
 
@@ -102,8 +111,10 @@ def distortion_notes(frame) -> list[str]:
     if not any(abs(c) > 1e-9 for c in coeffs):
         return []
     shown = ", ".join(f"{c:.4g}" for c in coeffs[:5])
-    return [f"the colour output has lens distortion ({shown}, ...), not corrected: the "
-            "calibration sent is a pinhole"]
+    return [
+        f"the colour output has lens distortion ({shown}, ...), not corrected: the "
+        "calibration sent is a pinhole"
+    ]
 
 
 def camera_from_imu(calibration, socket) -> np.ndarray | None:
@@ -135,14 +146,16 @@ def build_pipeline(dai, pipeline, spec: CameraSpec, with_imu: bool):
     optionally the accelerometer. Returns (synced RGB-D queue, IMU queue or None)."""
     socket = dai.CameraBoardSocket
     color_cam = pipeline.create(dai.node.Camera).build(socket.CAM_A)
-    color = color_cam.requestOutput(tuple(spec.size), dai.ImgFrame.Type.RGB888i,
-                                    fps=float(spec.fps))
+    color = color_cam.requestOutput(
+        tuple(spec.size), dai.ImgFrame.Type.RGB888i, fps=float(spec.fps)
+    )
     left = pipeline.create(dai.node.Camera).build(socket.CAM_B)
     right = pipeline.create(dai.node.Camera).build(socket.CAM_C)
     stereo = pipeline.create(dai.node.StereoDepth).build(
         left.requestOutput(STEREO_SIZE, fps=float(spec.fps)),
         right.requestOutput(STEREO_SIZE, fps=float(spec.fps)),
-        presetMode=dai.node.StereoDepth.PresetMode.DEFAULT)
+        presetMode=dai.node.StereoDepth.PresetMode.DEFAULT,
+    )
     stereo.setLeftRightCheck(True)  # needed to align depth to another camera
     stereo.setDepthAlign(socket.CAM_A)
     stereo.setOutputSize(*spec.size)
@@ -175,8 +188,15 @@ def lost_errors(dai) -> tuple[type[BaseException], ...]:
     return (RuntimeError, TimeoutError, dai.MessageQueue.QueueException)
 
 
-def rgbd_reader(dai, queue, counter: FrameCounter, imu_queue=None, rotation=None, first=None,
-                wall_offset_s: float | None = None):
+def rgbd_reader(
+    dai,
+    queue,
+    counter: FrameCounter,
+    imu_queue=None,
+    rotation=None,
+    first=None,
+    wall_offset_s: float | None = None,
+):
     """read() -> the next SourceFrame from a queue of Sync MessageGroups ("color": RGB888i,
     "depth": RAW16 mm), `first` (already taken from the queue) first; timestamps are the
     colour frame's host-synchronised steady-clock time plus wall_offset_s (default
@@ -189,8 +209,12 @@ def rgbd_reader(dai, queue, counter: FrameCounter, imu_queue=None, rotation=None
         color, depth = group["color"], group["depth"]
         counter.see(int(color.getSequenceNum()))
         stamp = color.getTimestamp().total_seconds() + offset_s
-        return SourceFrame(stamp, color_from_imgframe(dai, color), depth_from_imgframe(depth),
-                           gravity=latest_gravity(imu_queue, rotation))
+        return SourceFrame(
+            stamp,
+            color_from_imgframe(dai, color),
+            depth_from_imgframe(depth),
+            gravity=latest_gravity(imu_queue, rotation),
+        )
 
     return read
 
@@ -202,8 +226,10 @@ def open_depthai(spec: CameraSpec, max_frames: int | None = None) -> Source:
     try:
         device = dai.Device(info)
     except RuntimeError as exc:
-        raise CameraError(f"SOURCE {spec.text}: the device {info.getDeviceId()} cannot be "
-                          f"opened ({exc}); check {PERMISSIONS}") from None
+        raise CameraError(
+            f"SOURCE {spec.text}: the device {info.getDeviceId()} cannot be "
+            f"opened ({exc}); check {PERMISSIONS}"
+        ) from None
     try:
         return _start(dai, device, spec, max_frames)
     except BaseException:
@@ -213,32 +239,43 @@ def open_depthai(spec: CameraSpec, max_frames: int | None = None) -> Source:
 
 def _start(dai, device, spec: CameraSpec, max_frames: int | None) -> Source:
     sockets = set(device.getConnectedCameras())
-    needed = {dai.CameraBoardSocket.CAM_A, dai.CameraBoardSocket.CAM_B,
-              dai.CameraBoardSocket.CAM_C}
+    needed = {dai.CameraBoardSocket.CAM_A, dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C}
     if not needed <= sockets:
-        raise CameraError(f"SOURCE {spec.text}: the device has cameras on "
-                          f"{sorted(str(s) for s in sockets)}; RGB-D needs colour on CAM_A "
-                          "and a stereo pair on CAM_B / CAM_C")
+        raise CameraError(
+            f"SOURCE {spec.text}: the device has cameras on "
+            f"{sorted(str(s) for s in sockets)}; RGB-D needs colour on CAM_A "
+            "and a stereo pair on CAM_B / CAM_C"
+        )
     imu_type = device.getConnectedIMU()
     calibration = device.readCalibration()
-    rotation = camera_from_imu(calibration, dai.CameraBoardSocket.CAM_A) \
-        if imu_type and imu_type.upper() != "NONE" else None
-    notes = [] if rotation is not None else \
-        [f"no IMU gravity (IMU {imu_type or 'none'}, or no IMU-to-camera calibration)"]
+    rotation = (
+        camera_from_imu(calibration, dai.CameraBoardSocket.CAM_A)
+        if imu_type and imu_type.upper() != "NONE"
+        else None
+    )
+    notes = (
+        []
+        if rotation is not None
+        else [f"no IMU gravity (IMU {imu_type or 'none'}, or no IMU-to-camera calibration)"]
+    )
     pipeline = dai.Pipeline(device)
     try:
         rgbd_queue, imu_queue = build_pipeline(dai, pipeline, spec, rotation is not None)
         pipeline.start()
     except RuntimeError as exc:
-        raise CameraError(f"SOURCE {spec.text}: the depthai pipeline cannot start at "
-                          f"{spec.size[0]}x{spec.size[1]} @ {spec.fps:g} Hz ({exc}); try "
-                          "another --size / --fps") from None
+        raise CameraError(
+            f"SOURCE {spec.text}: the depthai pipeline cannot start at "
+            f"{spec.size[0]}x{spec.size[1]} @ {spec.fps:g} Hz ({exc}); try "
+            "another --size / --fps"
+        ) from None
     counter = FrameCounter()
     try:
         first = _get(rgbd_queue, FIRST_FRAME_TIMEOUT_S)
     except lost_errors(dai) as exc:
-        raise CameraError(f"SOURCE {spec.text}: the device started but sent no frame ({exc}); "
-                          "replug it, or check its power (a USB 3 port or a powered hub)") from None
+        raise CameraError(
+            f"SOURCE {spec.text}: the device started but sent no frame ({exc}); "
+            "replug it, or check its power (a USB 3 port or a powered hub)"
+        ) from None
     fx, fy, cx, cy = intrinsics_of(first["color"])
     width, height = first["color"].getWidth(), first["color"].getHeight()
     notes += distortion_notes(first["color"])
@@ -256,5 +293,11 @@ def _start(dai, device, spec: CameraSpec, max_frames: int | None) -> Source:
         log.warning("SOURCE %s: %s", spec.text, note)
     name = f"oak-{device.getDeviceId()}"
     log.info("SOURCE %s: %s, %dx%d @ %g Hz", spec.text, name, width, height, spec.fps)
-    return Source(name, CameraCalibration(width, height, fx, fy, cx, cy), DEPTH_SCALE,
-                  max_frames or 0, frames, notes)
+    return Source(
+        name,
+        CameraCalibration(width, height, fx, fy, cx, cy),
+        DEPTH_SCALE,
+        max_frames or 0,
+        frames,
+        notes,
+    )

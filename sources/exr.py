@@ -48,11 +48,14 @@ def read_exr(path: str | Path) -> np.ndarray:
             if "RGB" in channels:
                 rgb = np.array(channels["RGB"].pixels, dtype=np.float32)
             elif all(c in channels for c in "RGB"):
-                rgb = np.stack([np.asarray(channels[c].pixels, dtype=np.float32)
-                                for c in "RGB"], axis=-1)
+                rgb = np.stack(
+                    [np.asarray(channels[c].pixels, dtype=np.float32) for c in "RGB"], axis=-1
+                )
             else:
-                raise DatasetError(f"{p}: an OpenEXR panorama needs R, G and B channels, "
-                                   f"found {', '.join(sorted(channels)) or 'none'}")
+                raise DatasetError(
+                    f"{p}: an OpenEXR panorama needs R, G and B channels, "
+                    f"found {', '.join(sorted(channels)) or 'none'}"
+                )
     except DatasetError:
         raise
     except Exception as exc:  # the binding raises plain RuntimeError/OSError on bad files

@@ -30,8 +30,12 @@ COLOR_TOKENS = ("color", "colour", "rgb", "image")
 _ENCODING_PREFIXES = {"tum": "tum", "sun": "sun", "nyu": "nyu"}
 
 
-def open_pair(color_path: str | Path, depth_path: str | Path, depth_encoding: str | None,
-              camera: PinholeCamera | None = None) -> RgbdSequence:
+def open_pair(
+    color_path: str | Path,
+    depth_path: str | Path,
+    depth_encoding: str | None,
+    camera: PinholeCamera | None = None,
+) -> RgbdSequence:
     """A one-frame sequence (format "pair", timestamp 0, no pose) from a colour + depth image.
 
     depth_encoding: one of DEPTH_ENCODINGS; None infers it from a TUM_/SUN_/NYU_ file-name
@@ -44,18 +48,37 @@ def open_pair(color_path: str | Path, depth_path: str | Path, depth_encoding: st
     notes: list[str] = []
     if depth_encoding is None:
         depth_encoding = _infer_encoding(color_path, depth_path)
-        note(notes, f"depth encoding {depth_encoding!r} inferred from the file name "
-                    f"{depth_path.name}; --depth-encoding overrides it", logging.INFO)
+        note(
+            notes,
+            f"depth encoding {depth_encoding!r} inferred from the file name "
+            f"{depth_path.name}; --depth-encoding overrides it",
+            logging.INFO,
+        )
     check_encoding(depth_encoding)
     if camera is None:
         camera = default_camera(color_path, notes, f"{color_path}: no intrinsics given")
     if depth_encoding == "nyu":
-        note(notes, f"{depth_path}: NYU raw depth is in the depth camera's frame, not "
-                    "registered to colour (misaligned by a few pixels)", logging.INFO)
+        note(
+            notes,
+            f"{depth_path}: NYU raw depth is in the depth camera's frame, not "
+            "registered to colour (misaligned by a few pixels)",
+            logging.INFO,
+        )
     record = FrameRecord(color_path, depth_path, 0.0)
     name = _common_prefix_name(color_path, depth_path)
-    return build_sequence(name, "pair", color_path, [record], camera, depth_encoding, None,
-                          has_poses=False, use_poses=False, max_frames=None, notes=notes)
+    return build_sequence(
+        name,
+        "pair",
+        color_path,
+        [record],
+        camera,
+        depth_encoding,
+        None,
+        has_poses=False,
+        use_poses=False,
+        max_frames=None,
+        notes=notes,
+    )
 
 
 def without_poses(seq: RgbdSequence, use_poses: bool) -> RgbdSequence:
@@ -63,7 +86,8 @@ def without_poses(seq: RgbdSequence, use_poses: bool) -> RgbdSequence:
     if use_poses:
         raise DatasetError(
             f"{seq.source}: a single colour + depth pair has no camera poses, so "
-            "--poses groundtruth cannot be used; track instead (--poses track)")
+            "--poses groundtruth cannot be used; track instead (--poses track)"
+        )
     return seq
 
 
@@ -72,32 +96,38 @@ def partner_of_color_file(path: Path) -> tuple[Path, Path]:
     if not is_image(path):
         raise DatasetError(
             f"{path}: not an image file ({', '.join(IMAGE_EXTS)}); pass a sequence folder or "
-            "a colour image")
+            "a colour image"
+        )
     lower = path.stem.lower()
     for token in COLOR_TOKENS:
         i = lower.rfind(token)
         if i < 0:
             continue
-        stem = path.stem[:i] + "depth" + path.stem[i + len(token):]
+        stem = path.stem[:i] + "depth" + path.stem[i + len(token) :]
         tried = [path.with_name(stem + ext) for ext in (".png", ".pgm", ".tif", ".tiff")]
         for candidate in tried:
             if candidate.is_file():
                 return path, candidate
         raise DatasetError(
             f"{path}: found no depth partner (looked for {', '.join(p.name for p in tried)}); "
-            "name the depth image with --depth FILE --depth-encoding E")
+            "name the depth image with --depth FILE --depth-encoding E"
+        )
     raise DatasetError(
         f"{path}: a single image is opened as a colour + depth pair, but its name holds none "
         f"of {', '.join(COLOR_TOKENS)} to find the depth partner by; name the depth image "
-        "with --depth FILE --depth-encoding E")
+        "with --depth FILE --depth-encoding E"
+    )
 
 
 def pairs_in_folder(folder: Path) -> list[tuple[Path, Path]]:
     """Every (colour, depth partner) image pair directly in `folder`."""
     pairs = []
     for p in sorted(folder.iterdir()):
-        if is_image(p) and any(t in p.stem.lower() for t in COLOR_TOKENS) and (
-                "depth" not in p.stem.lower()):
+        if (
+            is_image(p)
+            and any(t in p.stem.lower() for t in COLOR_TOKENS)
+            and ("depth" not in p.stem.lower())
+        ):
             try:
                 pairs.append(partner_of_color_file(p))
             except DatasetError:
@@ -113,7 +143,8 @@ def _infer_encoding(color_path: Path, depth_path: Path) -> str:
     described = "; ".join(f"{k}: {v}" for k, v in DEPTH_ENCODINGS.items())
     raise DatasetError(
         f"{depth_path}: cannot tell how this depth image is encoded; name it with "
-        f"--depth-encoding {'|'.join(DEPTH_ENCODINGS)} ({described})")
+        f"--depth-encoding {'|'.join(DEPTH_ENCODINGS)} ({described})"
+    )
 
 
 def _common_prefix_name(a: Path, b: Path) -> str:

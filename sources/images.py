@@ -22,8 +22,10 @@ def check_decodable(path: Path, what: str) -> None:
     if not path.is_file():
         raise DatasetError(f"{path}: {what} file does not exist")
     if not cv2.haveImageReader(str(path)):
-        raise DatasetError(f"{path}: not an image OpenCV can decode (the {what} must be a "
-                           "PNG, JPEG, PPM/PGM, BMP or TIFF file)")
+        raise DatasetError(
+            f"{path}: not an image OpenCV can decode (the {what} must be a "
+            "PNG, JPEG, PPM/PGM, BMP or TIFF file)"
+        )
 
 
 def read_image(path: Path, flags: int, what: str) -> np.ndarray:
@@ -38,7 +40,8 @@ def read_image(path: Path, flags: int, what: str) -> np.ndarray:
     if image is None:
         raise DatasetError(
             f"{path}: OpenCV cannot decode this {what} file (empty, truncated or not an image); "
-            "replace it or remove the frame")
+            "replace it or remove the frame"
+        )
     return image
 
 

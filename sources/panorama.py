@@ -72,8 +72,10 @@ def read_panorama_image(path: str | Path) -> np.ndarray:
     data = np.fromfile(p, dtype=np.uint8)
     bgr = cv2.imdecode(data, flags) if data.size else None
     if bgr is None:
-        raise PanoramaError(f"{p}: OpenCV cannot decode this image (empty, truncated or not "
-                            f"an image); panoramas are PNG/JPEG, Radiance .hdr or OpenEXR")
+        raise PanoramaError(
+            f"{p}: OpenCV cannot decode this image (empty, truncated or not "
+            f"an image); panoramas are PNG/JPEG, Radiance .hdr or OpenEXR"
+        )
     if ext == ".hdr":
         bgr = bgr.astype(np.float32, copy=False)
     elif bgr.dtype != np.uint8:
@@ -96,8 +98,15 @@ class PanoramaSource:
     the consumer waited for it: what decoding still costs the processing path).
     """
 
-    def __init__(self, path: Path, kind: str, hdr: bool, size: tuple[int, int],
-                 num_frames: int | None, fps: float | None):
+    def __init__(
+        self,
+        path: Path,
+        kind: str,
+        hdr: bool,
+        size: tuple[int, int],
+        num_frames: int | None,
+        fps: float | None,
+    ):
         self.path = path
         self.kind = kind
         self.hdr = hdr
@@ -125,12 +134,19 @@ class _ImageSource(PanoramaSource):
 
     fps: float  # given (or the default): an image has no rate of its own
 
-    def __init__(self, path: Path, files: list[Path], kind: str, fps: float,
-                 max_frames: int | None):
+    def __init__(
+        self, path: Path, files: list[Path], kind: str, fps: float, max_frames: int | None
+    ):
         first = read_panorama_image(files[0])
         hdr = first.dtype != np.uint8
-        super().__init__(path, kind, hdr, (first.shape[1], first.shape[0]),
-                         min(len(files), max_frames or len(files)), fps)
+        super().__init__(
+            path,
+            kind,
+            hdr,
+            (first.shape[1], first.shape[0]),
+            min(len(files), max_frames or len(files)),
+            fps,
+        )
         self._files = files[: self.num_frames]
         self._first = first
 
@@ -138,9 +154,11 @@ class _ImageSource(PanoramaSource):
         for i, f in enumerate(self._files):
             image = self._first if i == 0 else read_panorama_image(f)
             if (image.dtype != np.uint8) != self.hdr:
-                raise PanoramaError(f"{f}: an image sequence is all LDR (PNG/JPEG) or all "
-                                    f"HDR (.hdr/.exr); {self._files[0].name} is "
-                                    f"{'HDR' if self.hdr else 'LDR'}")
+                raise PanoramaError(
+                    f"{f}: an image sequence is all LDR (PNG/JPEG) or all "
+                    f"HDR (.hdr/.exr); {self._files[0].name} is "
+                    f"{'HDR' if self.hdr else 'LDR'}"
+                )
             yield i / self.fps, image
 
 
@@ -155,12 +173,13 @@ class _Failure:
 class _VideoSource(PanoramaSource):
     """A video decoded on its own thread into a bounded queue, in order, none dropped."""
 
-    def __init__(self, path: Path, fps: float | None, max_frames: int | None,
-                 queue_frames: int):
+    def __init__(self, path: Path, fps: float | None, max_frames: int | None, queue_frames: int):
         capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
         if not capture.isOpened():
-            raise PanoramaError(f"{path}: OpenCV's FFmpeg backend cannot open this video "
-                                f"(unknown container or codec, or not a video)")
+            raise PanoramaError(
+                f"{path}: OpenCV's FFmpeg backend cannot open this video "
+                f"(unknown container or codec, or not a video)"
+            )
         t0 = time.perf_counter()
         ok, bgr = capture.read()
         self._read_ms = (time.perf_counter() - t0) * 1e3  # the frame's decode, done here
@@ -177,16 +196,23 @@ class _VideoSource(PanoramaSource):
         count = frames if frames > 0 else None
         if max_frames is not None:
             count = min(count, max_frames) if count is not None else max_frames
-        super().__init__(path, "video", False, (bgr.shape[1], bgr.shape[0]), count,
-                         fps or (container_fps if container_fps > 0 else None))
+        super().__init__(
+            path,
+            "video",
+            False,
+            (bgr.shape[1], bgr.shape[0]),
+            count,
+            fps or (container_fps if container_fps > 0 else None),
+        )
         self._fps_given = fps
         self._max_frames = max_frames
         self._capture = capture
         self._queue: queue.Queue = queue.Queue(maxsize=max(1, queue_frames))
         self._stop = threading.Event()
         self._first_ms = capture.get(cv2.CAP_PROP_POS_MSEC)
-        self._thread = threading.Thread(target=self._decode, args=(bgr,),
-                                        name=f"decode {path.name}", daemon=True)
+        self._thread = threading.Thread(
+            target=self._decode, args=(bgr,), name=f"decode {path.name}", daemon=True
+        )
         self._started = False
         self._closed = False
 
@@ -213,9 +239,11 @@ class _VideoSource(PanoramaSource):
             while bgr is not None:
                 t0 = time.perf_counter()
                 if bgr.shape[:2] != (self.size[1], self.size[0]):
-                    raise PanoramaError(f"{self.path}: frame {index} is {bgr.shape[1]}x"
-                                        f"{bgr.shape[0]}, the first was {self.size[0]}x"
-                                        f"{self.size[1]}")
+                    raise PanoramaError(
+                        f"{self.path}: frame {index} is {bgr.shape[1]}x"
+                        f"{bgr.shape[0]}, the first was {self.size[0]}x"
+                        f"{self.size[1]}"
+                    )
                 rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
                 self.decode_ms.append((time.perf_counter() - t0) * 1e3 + self._read_ms)
                 if not self._put((self._timestamp(index, pos_ms), rgb)):
@@ -263,8 +291,12 @@ class _VideoSource(PanoramaSource):
         self._capture.release()
 
 
-def open_panorama(path: str | Path, fps: float | None = None, max_frames: int | None = None,
-                  queue_frames: int = DEFAULT_QUEUE_FRAMES) -> PanoramaSource:
+def open_panorama(
+    path: str | Path,
+    fps: float | None = None,
+    max_frames: int | None = None,
+    queue_frames: int = DEFAULT_QUEUE_FRAMES,
+) -> PanoramaSource:
     """The panorama source at `path`: a video file, a folder of images, or one image.
 
     fps: frames per second for the timestamps of an image sequence (default 30), or to
@@ -276,12 +308,15 @@ def open_panorama(path: str | Path, fps: float | None = None, max_frames: int | 
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a number > 0, got {fps}")
     if p.is_dir():
-        files = sorted((f for f in p.iterdir()
-                        if f.is_file() and f.suffix.lower() in LDR_EXTS + HDR_EXTS),
-                       key=_natural_key)
+        files = sorted(
+            (f for f in p.iterdir() if f.is_file() and f.suffix.lower() in LDR_EXTS + HDR_EXTS),
+            key=_natural_key,
+        )
         if not files:
-            raise PanoramaError(f"{p}: no panorama images in this folder (expected "
-                                f"{', '.join(LDR_EXTS + HDR_EXTS)} files)")
+            raise PanoramaError(
+                f"{p}: no panorama images in this folder (expected "
+                f"{', '.join(LDR_EXTS + HDR_EXTS)} files)"
+            )
         return _ImageSource(p, files, "sequence", fps or DEFAULT_SEQUENCE_FPS, max_frames)
     if not p.exists():
         raise PanoramaError(f"{p}: no such file or folder")
@@ -290,5 +325,7 @@ def open_panorama(path: str | Path, fps: float | None = None, max_frames: int | 
         return _VideoSource(p, fps, max_frames, queue_frames)
     if ext in LDR_EXTS + HDR_EXTS + (".bmp", ".tif", ".tiff", ".ppm"):
         return _ImageSource(p, [p], "image", fps or DEFAULT_SEQUENCE_FPS, 1)
-    raise PanoramaError(f"{p}: not a panorama this reads (videos: {', '.join(VIDEO_EXTS)}; "
-                        f"images: {', '.join(LDR_EXTS + HDR_EXTS)}; or a folder of images)")
+    raise PanoramaError(
+        f"{p}: not a panorama this reads (videos: {', '.join(VIDEO_EXTS)}; "
+        f"images: {', '.join(LDR_EXTS + HDR_EXTS)}; or a folder of images)"
+    )

@@ -41,8 +41,7 @@ def is_panorama_input(spec: str) -> bool:
     if p.is_file():
         return p.suffix.lower() in VIDEO_EXTS + LDR_EXTS + HDR_EXTS
     if p.is_dir():
-        return any(f.is_file() and f.suffix.lower() in LDR_EXTS + HDR_EXTS
-                   for f in p.iterdir())
+        return any(f.is_file() and f.suffix.lower() in LDR_EXTS + HDR_EXTS for f in p.iterdir())
     return False
 
 
@@ -50,14 +49,17 @@ def _open_ldr(path: str, fps: float | None, max_frames: int | None) -> PanoramaS
     source = open_panorama(path, fps=fps, max_frames=max_frames)
     if source.hdr:
         source.close()
-        raise PanoramaError(f"{path}: an HDR panorama; the wire carries 8-bit RGB (rgb8) "
-                            "panoramas only: stream an LDR video or images, or run "
-                            "`arlight ibl` on the HDR file")
+        raise PanoramaError(
+            f"{path}: an HDR panorama; the wire carries 8-bit RGB (rgb8) "
+            "panoramas only: stream an LDR video or images, or run "
+            "`arlight ibl` on the HDR file"
+        )
     return source
 
 
-def _panorama_frames(path: str, fps: float | None, max_frames: int | None
-                     ) -> Iterator[tuple[float, np.ndarray]]:
+def _panorama_frames(
+    path: str, fps: float | None, max_frames: int | None
+) -> Iterator[tuple[float, np.ndarray]]:
     source = _open_ldr(path, fps, max_frames)
     try:
         yield from source
@@ -65,8 +67,9 @@ def _panorama_frames(path: str, fps: float | None, max_frames: int | None
         source.close()
 
 
-def panorama_only_source(path: str, fps: float | None = None,
-                         max_frames: int | None = None) -> Source:
+def panorama_only_source(
+    path: str, fps: float | None = None, max_frames: int | None = None
+) -> Source:
     """The panorama at `path` as a Source of panorama-only frames (calibration None).
     Raises PanoramaError (a DatasetError) when it cannot be read, is HDR or is not 2:1."""
     probe = _open_ldr(path, fps, max_frames)
@@ -78,16 +81,23 @@ def panorama_only_source(path: str, fps: float | None = None,
             yield SourceFrame(timestamp=float(t), panorama=image)
 
     name = Path(path).stem or "panorama"
-    return Source(name, None, PANORAMA_ONLY_DEPTH_SCALE, num_frames, frames,
-                  [f"{path}: panorama-only frames (no colour, no depth)"])
+    return Source(
+        name,
+        None,
+        PANORAMA_ONLY_DEPTH_SCALE,
+        num_frames,
+        frames,
+        [f"{path}: panorama-only frames (no colour, no depth)"],
+    )
 
 
 def with_panorama(source: Source, path: str, fps: float | None = None) -> Source:
     """`source` (RGB-D) with the panorama at `path` attached to its frames, paired by index.
     Recorded frames (sent as recorded) cannot take a panorama: ValueError."""
     if source.recorded_config is not None:
-        raise ValueError("--panorama cannot be added to a recording (its frames are sent "
-                         "exactly as recorded)")
+        raise ValueError(
+            "--panorama cannot be added to a recording (its frames are sent exactly as recorded)"
+        )
     probe = _open_ldr(path, fps, None)
     count = probe.num_frames
     probe.close()
@@ -95,13 +105,24 @@ def with_panorama(source: Source, path: str, fps: float | None = None) -> Source
     def frames() -> Iterator[SourceFrame]:
         pairs = zip(source.frames(), _panorama_frames(path, fps, None), strict=False)
         for frame, (_, image) in pairs:
-            yield SourceFrame(frame.timestamp, frame.color, frame.depth, frame.pose,
-                              frame.parts, image)
+            yield SourceFrame(
+                frame.timestamp, frame.color, frame.depth, frame.pose, frame.parts, image
+            )
 
     num = source.num_frames if count is None else min(source.num_frames, count)
-    return Source(source.name, source.calibration, source.depth_scale, num, frames,
-                  list(source.notes) + [f"with the panorama {path}"])
+    return Source(
+        source.name,
+        source.calibration,
+        source.depth_scale,
+        num,
+        frames,
+        list(source.notes) + [f"with the panorama {path}"],
+    )
 
 
-__all__ = ["PANORAMA_ONLY_DEPTH_SCALE", "is_panorama_input", "panorama_only_source",
-           "with_panorama"]
+__all__ = [
+    "PANORAMA_ONLY_DEPTH_SCALE",
+    "is_panorama_input",
+    "panorama_only_source",
+    "with_panorama",
+]

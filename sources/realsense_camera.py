@@ -30,8 +30,10 @@ from arlight.sources.source import Source, SourceFrame
 log = logging.getLogger(__name__)
 
 READ_TIMEOUT_MS = 2000  # a device silent this long is gone
-PERMISSIONS = ("the udev rules (librealsense's 99-realsense-libusb.rules in "
-               "/etc/udev/rules.d, then replug) and a USB 3 port")
+PERMISSIONS = (
+    "the udev rules (librealsense's 99-realsense-libusb.rules in "
+    "/etc/udev/rules.d, then replug) and a USB 3 port"
+)
 
 
 def find_serial(rs, spec: CameraSpec) -> str:
@@ -41,19 +43,33 @@ def find_serial(rs, spec: CameraSpec) -> str:
         return serials[0]
     if spec.device is not None and spec.device in serials:
         return spec.device
-    raise CameraError(no_device_message(spec, "Intel RealSense devices on USB "
-                                        "(rs.context().query_devices())", serials, PERMISSIONS))
+    raise CameraError(
+        no_device_message(
+            spec,
+            "Intel RealSense devices on USB (rs.context().query_devices())",
+            serials,
+            PERMISSIONS,
+        )
+    )
 
 
 def calibration_from_intrinsics(intrinsics) -> tuple[CameraCalibration, list[str]]:
     """The wire calibration of an rs.intrinsics (pixels), and a note if it has distortion
     coefficients the wire does not carry (D4xx colour streams usually have none)."""
-    calibration = CameraCalibration(int(intrinsics.width), int(intrinsics.height),
-                                    float(intrinsics.fx), float(intrinsics.fy),
-                                    float(intrinsics.ppx), float(intrinsics.ppy))
+    calibration = CameraCalibration(
+        int(intrinsics.width),
+        int(intrinsics.height),
+        float(intrinsics.fx),
+        float(intrinsics.fy),
+        float(intrinsics.ppx),
+        float(intrinsics.ppy),
+    )
     coeffs = [float(c) for c in intrinsics.coeffs]
-    notes = [] if not any(abs(c) > 1e-9 for c in coeffs) else \
-        [f"the colour stream has {intrinsics.model} distortion {coeffs}, not corrected"]
+    notes = (
+        []
+        if not any(abs(c) > 1e-9 for c in coeffs)
+        else [f"the colour stream has {intrinsics.model} distortion {coeffs}, not corrected"]
+    )
     return calibration, notes
 
 
@@ -71,8 +87,10 @@ def rgbd_of(frameset) -> tuple[np.ndarray, np.ndarray]:
     color = np.asanyarray(frameset.get_color_frame().get_data())
     depth = np.asanyarray(frameset.get_depth_frame().get_data())
     if color.ndim != 3 or color.dtype != np.uint8 or depth.dtype != np.uint16:
-        raise CameraError(f"RealSense frames of {color.dtype}{color.shape} / "
-                          f"{depth.dtype}{depth.shape}; expected rgb8 and z16")
+        raise CameraError(
+            f"RealSense frames of {color.dtype}{color.shape} / "
+            f"{depth.dtype}{depth.shape}; expected rgb8 and z16"
+        )
     return np.array(color), np.array(depth)
 
 
@@ -106,12 +124,15 @@ def open_realsense(spec: CameraSpec, max_frames: int | None = None) -> Source:
     try:
         profile = pipeline.start(config)
     except RuntimeError as exc:
-        raise CameraError(f"SOURCE {spec.text}: device {serial} cannot stream depth and "
-                          f"colour at {width}x{height} @ {spec.fps:g} Hz ({exc}); choose "
-                          "another --size / --fps, check " + PERMISSIONS) from None
+        raise CameraError(
+            f"SOURCE {spec.text}: device {serial} cannot stream depth and "
+            f"colour at {width}x{height} @ {spec.fps:g} Hz ({exc}); choose "
+            "another --size / --fps, check " + PERMISSIONS
+        ) from None
     try:
         depth_scale = depth_units_per_metre(
-            profile.get_device().first_depth_sensor().get_depth_scale())
+            profile.get_device().first_depth_sensor().get_depth_scale()
+        )
         color_profile = profile.get_stream(rs.stream.color).as_video_stream_profile()
         calibration, notes = calibration_from_intrinsics(color_profile.get_intrinsics())
     except BaseException:
@@ -123,5 +144,4 @@ def open_realsense(spec: CameraSpec, max_frames: int | None = None) -> Source:
 
     for note in notes:
         log.warning("SOURCE %s: %s", spec.text, note)
-    return Source(f"realsense-{serial}", calibration, depth_scale, max_frames or 0, frames,
-                  notes)
+    return Source(f"realsense-{serial}", calibration, depth_scale, max_frames or 0, frames, notes)

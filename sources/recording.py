@@ -49,10 +49,12 @@ def unpack_parts(data: bytes, where: str) -> list[bytes]:
         parts = msgpack.unpackb(data, raw=False)
     except Exception as exc:  # msgpack raises many types for bad input
         raise RecordingError(f"{where}: message is not msgpack ({type(exc).__name__})") from None
-    if (not isinstance(parts, list) or not 1 <= len(parts) <= MAX_PARTS
-            or not all(isinstance(p, bytes) for p in parts)):
-        raise RecordingError(f"{where}: expected a msgpack array of 1..{MAX_PARTS} binary "
-                             "parts")
+    if (
+        not isinstance(parts, list)
+        or not 1 <= len(parts) <= MAX_PARTS
+        or not all(isinstance(p, bytes) for p in parts)
+    ):
+        raise RecordingError(f"{where}: expected a msgpack array of 1..{MAX_PARTS} binary parts")
     return parts
 
 
@@ -62,8 +64,10 @@ class Recording:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         if not self.path.is_file():
-            raise RecordingError(f"{self.path}: no such file; record one with "
-                                 "`arlight record SOURCE --out FILE.mcap`")
+            raise RecordingError(
+                f"{self.path}: no such file; record one with "
+                "`arlight record SOURCE --out FILE.mcap`"
+            )
         self.hello_parts: list[bytes] | None = None
         self.metadata: dict[str, str] = {}
         self.num_frames = 0
@@ -80,29 +84,35 @@ class Recording:
             except RecordingError:
                 raise
             except Exception as exc:  # mcap raises many types for corrupt files
-                raise RecordingError(f"{self.path}: not a readable MCAP file "
-                                     f"({type(exc).__name__}: {exc})") from None
+                raise RecordingError(
+                    f"{self.path}: not a readable MCAP file ({type(exc).__name__}: {exc})"
+                ) from None
         if self.hello_parts is None and self.metadata.get("content") == "results":
-            raise RecordingError(f"{self.path}: a display's recording (`arlight display "
-                                 "--record`) holds Results, no frames to replay; open it in "
-                                 "Foxglove, or replay a capture-side recording (`arlight "
-                                 "record`, `arlight stream --record`)")
+            raise RecordingError(
+                f"{self.path}: a display's recording (`arlight display "
+                "--record`) holds Results, no frames to replay; open it in "
+                "Foxglove, or replay a capture-side recording (`arlight "
+                "record`, `arlight stream --record`)"
+            )
         if self.hello_parts is None:
-            raise RecordingError(f"{self.path}: no {HELLO_TOPIC} message; this is not an "
-                                 "arlight recording (make one with `arlight record`)")
+            raise RecordingError(
+                f"{self.path}: no {HELLO_TOPIC} message; this is not an "
+                "arlight recording (make one with `arlight record`)"
+            )
         try:
             hello = decode(self.hello_parts)
         except ProtocolError as exc:
-            raise RecordingError(f"{self.path}: the recorded Hello does not decode: {exc}") \
-                from None
+            raise RecordingError(
+                f"{self.path}: the recorded Hello does not decode: {exc}"
+            ) from None
         if not isinstance(hello, Hello):
-            raise RecordingError(f"{self.path}: {HELLO_TOPIC} holds a "
-                                 f"{type(hello).__name__}, not a Hello")
+            raise RecordingError(
+                f"{self.path}: {HELLO_TOPIC} holds a {type(hello).__name__}, not a Hello"
+            )
         self.hello: Hello = hello
         if summary is not None and summary.statistics is not None:
             ids = [c.id for c in summary.channels.values() if c.topic == FRAME_TOPIC]
-            self.num_frames = sum(summary.statistics.channel_message_counts.get(i, 0)
-                                  for i in ids)
+            self.num_frames = sum(summary.statistics.channel_message_counts.get(i, 0) for i in ids)
         else:
             self.num_frames = sum(1 for _ in self.frames())
 
@@ -112,21 +122,22 @@ class Recording:
         try:
             return make_reader(f)
         except Exception as exc:  # noqa: BLE001
-            raise RecordingError(f"{self.path}: not an MCAP file ({type(exc).__name__}: "
-                                 f"{exc})") from None
+            raise RecordingError(
+                f"{self.path}: not an MCAP file ({type(exc).__name__}: {exc})"
+            ) from None
 
     def frames(self) -> Iterator[tuple[int, list[bytes]]]:
         """(log_time_ns, parts) of every recorded Frame, in file order."""
         with open(self.path, "rb") as f:
             reader = self._reader(f)
             try:
-                for _, _, message in reader.iter_messages(topics=[FRAME_TOPIC],
-                                                          log_time_order=False):
-                    yield message.log_time, unpack_parts(message.data,
-                                                          f"{self.path} {FRAME_TOPIC}")
+                for _, _, message in reader.iter_messages(
+                    topics=[FRAME_TOPIC], log_time_order=False
+                ):
+                    yield message.log_time, unpack_parts(message.data, f"{self.path} {FRAME_TOPIC}")
             except RecordingError:
                 raise
             except Exception as exc:  # noqa: BLE001
-                raise RecordingError(f"{self.path}: corrupt MCAP data ({type(exc).__name__}: "
-                                     f"{exc})") from None
-
+                raise RecordingError(
+                    f"{self.path}: corrupt MCAP data ({type(exc).__name__}: {exc})"
+                ) from None

@@ -37,8 +37,13 @@ def redwood_color_dir(folder: Path) -> Path | None:
     return None
 
 
-def open_redwood(folder: Path, color_dir: Path, depth_encoding: str | None, use_poses: bool,
-                 max_frames: int | None) -> RgbdSequence:
+def open_redwood(
+    folder: Path,
+    color_dir: Path,
+    depth_encoding: str | None,
+    use_poses: bool,
+    max_frames: int | None,
+) -> RgbdSequence:
     """Open a Redwood folder (module docstring); depth_encoding overrides "mm"."""
     notes: list[str] = []
     colors = sorted(p for p in color_dir.iterdir() if is_image(p))
@@ -55,23 +60,41 @@ def open_redwood(folder: Path, color_dir: Path, depth_encoding: str | None, use_
     traj = folder / "trajectory.log"
     if use_poses:
         if not traj.is_file():
-            raise DatasetError(f"{folder}: --poses groundtruth, but there is no "
-                               "trajectory.log; track instead (--poses track)")
+            raise DatasetError(
+                f"{folder}: --poses groundtruth, but there is no "
+                "trajectory.log; track instead (--poses track)"
+            )
         poses = _read_trajectory_log(traj)
         # trajectory.log entries follow the sorted colour images, as Open3D writes them
         if len(poses) != len(colors):
-            note(notes, f"{traj}: {len(poses)} poses for {len(colors)} colour images; frames "
-                        "beyond the last pose are skipped")
-        records = [FrameRecord(r.color_path, r.depth_path, r.timestamp_s,
-                               poses[index_of[r.color_path]])
-                   for r in records if index_of[r.color_path] < len(poses)]
-    return build_sequence(folder.name, "redwood", folder, records, camera,
-                          depth_encoding or "mm", None, traj.is_file(), use_poses, max_frames,
-                          notes)
+            note(
+                notes,
+                f"{traj}: {len(poses)} poses for {len(colors)} colour images; frames "
+                "beyond the last pose are skipped",
+            )
+        records = [
+            FrameRecord(r.color_path, r.depth_path, r.timestamp_s, poses[index_of[r.color_path]])
+            for r in records
+            if index_of[r.color_path] < len(poses)
+        ]
+    return build_sequence(
+        folder.name,
+        "redwood",
+        folder,
+        records,
+        camera,
+        depth_encoding or "mm",
+        None,
+        traj.is_file(),
+        use_poses,
+        max_frames,
+        notes,
+    )
 
 
-def _pairs(folder: Path, color_dir: Path, colors: list[Path], notes: list[str]
-           ) -> list[tuple[Path, Path]]:
+def _pairs(
+    folder: Path, color_dir: Path, colors: list[Path], notes: list[str]
+) -> list[tuple[Path, Path]]:
     """(colour, depth) image pairs: by file name, else in sorted order when the counts agree."""
     depth_dir = folder / "depth"
     depths = sorted(p for p in depth_dir.iterdir() if is_image(p))
@@ -82,16 +105,23 @@ def _pairs(folder: Path, color_dir: Path, colors: list[Path], notes: list[str]
     if all(c.stem in depth_by_stem for c in colors):
         return [(c, depth_by_stem[c.stem]) for c in colors]
     if len(colors) == len(depths):
-        note(notes, f"{folder}: colour and depth file names differ; paired in sorted order",
-             logging.INFO)
+        note(
+            notes,
+            f"{folder}: colour and depth file names differ; paired in sorted order",
+            logging.INFO,
+        )
         return list(zip(colors, depths, strict=True))
     matched = [(c, depth_by_stem[c.stem]) for c in colors if c.stem in depth_by_stem]
     if not matched:
         raise DatasetError(
             f"{folder}: {len(colors)} colour and {len(depths)} depth images share no file "
-            "names; name each colour/depth pair alike (00000.jpg + 00000.png)")
-    note(notes, f"{folder}: {len(colors) - len(matched)} colour images have no depth "
-                "image of the same name; skipped")
+            "names; name each colour/depth pair alike (00000.jpg + 00000.png)"
+        )
+    note(
+        notes,
+        f"{folder}: {len(colors) - len(matched)} colour images have no depth "
+        "image of the same name; skipped",
+    )
     return matched
 
 
@@ -107,7 +137,8 @@ def _read_open3d_intrinsics(path: Path) -> PinholeCamera:
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise DatasetError(
             f"{path}: cannot read Open3D camera intrinsics ({exc!s}); expected width, height "
-            "and a 9-value column-major intrinsic_matrix") from exc
+            "and a 9-value column-major intrinsic_matrix"
+        ) from exc
 
 
 def _read_trajectory_log(path: Path) -> list[np.ndarray]:
@@ -119,7 +150,8 @@ def _read_trajectory_log(path: Path) -> list[np.ndarray]:
     if len(lines) % 5:
         raise DatasetError(
             f"{path}: {len(lines)} non-empty lines is not a multiple of 5; each pose is a "
-            "header line 'i j k' and 4 rows of a 4x4 matrix")
+            "header line 'i j k' and 4 rows of a 4x4 matrix"
+        )
     poses = []
     for e in range(0, len(lines), 5):
         where = f"{path}, lines {e + 2}-{e + 5}"

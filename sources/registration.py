@@ -17,8 +17,12 @@ from arlight.pipeline.splat import splat_nearest
 from arlight.sources.depth_encodings import metres_to_units
 
 
-def register_depth(depth_m: np.ndarray, depth_camera: PinholeCamera,
-                   color_camera: PinholeCamera, color_from_depth: np.ndarray) -> np.ndarray:
+def register_depth(
+    depth_m: np.ndarray,
+    depth_camera: PinholeCamera,
+    color_camera: PinholeCamera,
+    color_from_depth: np.ndarray,
+) -> np.ndarray:
     """Depth (H_c, W_c) float32 metres in the colour camera from depth (H_d, W_d) metres.
 
     Each valid depth pixel is unprojected with depth_camera, moved by color_from_depth (4x4)
@@ -56,10 +60,10 @@ class DepthRegistration:
     color_from_depth: np.ndarray
     depth_scale: float
 
-    def __call__(self, units: np.ndarray, units_per_metre: float,
-                 color_camera: PinholeCamera) -> np.ndarray:
+    def __call__(
+        self, units: np.ndarray, units_per_metre: float, color_camera: PinholeCamera
+    ) -> np.ndarray:
         """(H_c, W_c) uint16 at self.depth_scale from the depth camera's uint16 `units`."""
         depth_m = depth_metres(units, units_per_metre)
-        registered = register_depth(depth_m, self.depth_camera, color_camera,
-                                    self.color_from_depth)
+        registered = register_depth(depth_m, self.depth_camera, color_camera, self.color_from_depth)
         return metres_to_units(registered, self.depth_scale)

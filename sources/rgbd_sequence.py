@@ -102,9 +102,15 @@ class RgbdSequence:
 class _Loader:
     """Reads and decodes the frames of one sequence."""
 
-    def __init__(self, records: list[FrameRecord], camera: PinholeCamera, encoding: str,
-                 units_per_metre: float | None, attach_poses: bool,
-                 registration: DepthRegistration | None = None) -> None:
+    def __init__(
+        self,
+        records: list[FrameRecord],
+        camera: PinholeCamera,
+        encoding: str,
+        units_per_metre: float | None,
+        attach_poses: bool,
+        registration: DepthRegistration | None = None,
+    ) -> None:
         self.records = records
         self.camera = camera
         self.encoding = encoding
@@ -121,7 +127,8 @@ class _Loader:
             raise DatasetError(
                 f"{rec.color_path}: colour image is {w}x{h} but the camera is "
                 f"{self.camera.width}x{self.camera.height}; fix the intrinsics file or the "
-                "images so that they agree")
+                "images so that they agree"
+            )
         dh, dw = depth.shape
         if self.registration is not None:
             reg = self.registration
@@ -129,24 +136,40 @@ class _Loader:
                 raise DatasetError(
                     f"{rec.depth_path}: depth image is {dw}x{dh} but the depth camera is "
                     f"{reg.depth_camera.width}x{reg.depth_camera.height}; all depth images "
-                    "of a sequence must have one size")
+                    "of a sequence must have one size"
+                )
             depth, depth_scale = reg(depth, depth_scale, self.camera), reg.depth_scale
         elif (dh, dw) != (h, w):
             raise DatasetError(
                 f"colour {rec.color_path} is {w}x{h} but depth {rec.depth_path} is {dw}x{dh}; "
-                "colour and depth must have the same size (register or resize the depth first)")
+                "colour and depth must have the same size (register or resize the depth first)"
+            )
         pose = None
         if with_pose and self.attach_poses and rec.world_from_cam is not None:
             pose = rec.world_from_cam.copy()
-        return FrameInput(color=color, depth=depth, depth_scale=depth_scale,
-                          timestamp=float(rec.timestamp_s), pose=pose)
+        return FrameInput(
+            color=color,
+            depth=depth,
+            depth_scale=depth_scale,
+            timestamp=float(rec.timestamp_s),
+            pose=pose,
+        )
 
 
-def build_sequence(name: str, fmt: str, source: Path, records: list[FrameRecord],
-                   camera: PinholeCamera, encoding: str, units_per_metre: float | None,
-                   has_poses: bool, use_poses: bool, max_frames: int | None,
-                   notes: list[str], registration: DepthRegistration | None = None
-                   ) -> RgbdSequence:
+def build_sequence(
+    name: str,
+    fmt: str,
+    source: Path,
+    records: list[FrameRecord],
+    camera: PinholeCamera,
+    encoding: str,
+    units_per_metre: float | None,
+    has_poses: bool,
+    use_poses: bool,
+    max_frames: int | None,
+    notes: list[str],
+    registration: DepthRegistration | None = None,
+) -> RgbdSequence:
     """The RgbdSequence of a reader's records; reads the first frame now, so that sizes,
     dtypes and codecs fail at opening, not later. units_per_metre None: the encoding's."""
     if not records:
@@ -154,9 +177,17 @@ def build_sequence(name: str, fmt: str, source: Path, records: list[FrameRecord]
     if max_frames is not None:
         records = records[:max_frames]
     loader = _Loader(records, camera, encoding, units_per_metre, use_poses, registration)
-    seq = RgbdSequence(name=name, camera=camera, frames=LazyFrames(loader, range(len(records))),
-                       format=fmt, has_poses=has_poses, poses_attached=use_poses,
-                       depth_encoding=encoding, source=source, notes=notes)
+    seq = RgbdSequence(
+        name=name,
+        camera=camera,
+        frames=LazyFrames(loader, range(len(records))),
+        format=fmt,
+        has_poses=has_poses,
+        poses_attached=use_poses,
+        depth_encoding=encoding,
+        source=source,
+        notes=notes,
+    )
     loader(0)
     return seq
 
@@ -172,6 +203,9 @@ def default_camera(color_path: Path, notes: list[str], missing: str) -> PinholeC
     (the intrinsics file) was not found."""
     first = read_color(color_path)
     camera = PinholeCamera.kinect_v1(first.shape[1], first.shape[0])
-    note(notes, f"{missing}; using Kinect v1 default intrinsics "
-                f"(fx = fy = {camera.fx:g}, cx = {camera.cx:g}, cy = {camera.cy:g})")
+    note(
+        notes,
+        f"{missing}; using Kinect v1 default intrinsics "
+        f"(fx = fy = {camera.fx:g}, cx = {camera.cx:g}, cy = {camera.cy:g})",
+    )
     return camera

@@ -38,8 +38,13 @@ _LOOKED_FOR = (
 )
 
 
-def open_sequence(path: str | Path, *, depth_encoding: str | None = None,
-                  use_poses: bool = False, max_frames: int | None = None) -> RgbdSequence:
+def open_sequence(
+    path: str | Path,
+    *,
+    depth_encoding: str | None = None,
+    use_poses: bool = False,
+    max_frames: int | None = None,
+) -> RgbdSequence:
     """Open recorded RGB-D data, detecting its layout (see the module docstring).
 
     path: a sequence folder, a 7-Scenes scene folder with one seq-XX, a folder holding one
@@ -56,17 +61,19 @@ def open_sequence(path: str | Path, *, depth_encoding: str | None = None,
         raise DatasetError(f"--max-frames must be >= 1, got {max_frames}")
     if not path.exists():
         raise DatasetError(
-            f"{path}: no such file or folder; pass a recorded RGB-D sequence folder "
-            f"({_LOOKED_FOR})")
+            f"{path}: no such file or folder; pass a recorded RGB-D sequence folder ({_LOOKED_FOR})"
+        )
     try:
         return _open_detected(path, depth_encoding, use_poses, max_frames)
     except OSError as exc:  # unreadable folders, broken links, permissions
-        raise DatasetError(f"{path}: cannot read ({exc}); check the path and its "
-                           "permissions") from exc
+        raise DatasetError(
+            f"{path}: cannot read ({exc}); check the path and its permissions"
+        ) from exc
 
 
-def _open_detected(path: Path, depth_encoding: str | None, use_poses: bool,
-                   max_frames: int | None) -> RgbdSequence:
+def _open_detected(
+    path: Path, depth_encoding: str | None, use_poses: bool, max_frames: int | None
+) -> RgbdSequence:
     if path.is_file():
         color_path, depth_path = partner_of_color_file(path)
         return without_poses(open_pair(color_path, depth_path, depth_encoding), use_poses)
@@ -85,5 +92,6 @@ def _open_detected(path: Path, depth_encoding: str | None, use_poses: bool,
         listing = "; ".join(f"{c.name} + {d.name}" for c, d in pairs)
         raise DatasetError(
             f"{path}: holds {len(pairs)} colour + depth pairs ({listing}); pass one colour "
-            "image file instead of the folder (its *depth* partner is found beside it)")
+            "image file instead of the folder (its *depth* partner is found beside it)"
+        )
     raise DatasetError(f"{path}: not a recognised RGB-D data set. Looked for: {_LOOKED_FOR}")

@@ -44,15 +44,29 @@ SEVEN_SCENES_DEPTH_K = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0,
 SEVEN_SCENES_COLOR_FOCAL_PX = 525.0
 #: color_from_depth 4x4 (metres): generic Kinect v1 calibration (LIRIS), as used for
 #: 7-Scenes' "calibrated depth" in DSAC* and ACE. Depth camera -> colour camera.
-SEVEN_SCENES_COLOR_FROM_DEPTH = np.array([
-    [9.9996518012567637e-01, 2.6765126468950343e-03, -7.9041012313000904e-03,
-     -2.5558943178152542e-02],
-    [-2.7409311281316700e-03, 9.9996302803027592e-01, -8.1504520778013286e-03,
-     1.0109636268061706e-04],
-    [7.8819942130445332e-03, 8.1718328771890631e-03, 9.9993554558014031e-01,
-     2.0318321729487039e-03],
-    [0.0, 0.0, 0.0, 1.0],
-])
+SEVEN_SCENES_COLOR_FROM_DEPTH = np.array(
+    [
+        [
+            9.9996518012567637e-01,
+            2.6765126468950343e-03,
+            -7.9041012313000904e-03,
+            -2.5558943178152542e-02,
+        ],
+        [
+            -2.7409311281316700e-03,
+            9.9996302803027592e-01,
+            -8.1504520778013286e-03,
+            1.0109636268061706e-04,
+        ],
+        [
+            7.8819942130445332e-03,
+            8.1718328771890631e-03,
+            9.9993554558014031e-01,
+            2.0318321729487039e-03,
+        ],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
 
 _SEVEN_DEPTH = re.compile(r"^frame-(\d+)\.depth\.png$")
 
@@ -71,24 +85,30 @@ def seven_scenes_folder(folder: Path) -> Path | None:
     if len(seqs) > 1:
         raise DatasetError(
             f"{folder}: holds {len(seqs)} 7-Scenes sequences "
-            f"({', '.join(s.name for s in seqs)}); pass one of them, e.g. {seqs[0]}")
+            f"({', '.join(s.name for s in seqs)}); pass one of them, e.g. {seqs[0]}"
+        )
     return None
 
 
-def open_seven_scenes(folder: Path, depth_encoding: str | None, use_poses: bool,
-                      max_frames: int | None) -> RgbdSequence:
+def open_seven_scenes(
+    folder: Path, depth_encoding: str | None, use_poses: bool, max_frames: int | None
+) -> RgbdSequence:
     """Open a 7-Scenes sequence folder (module docstring); depth_encoding overrides "mm"."""
     notes: list[str] = []
     files = _frame_files(folder, notes)
     depth_camera, camera = _cameras(folder, files[0], notes)
-    registration = DepthRegistration(depth_camera, SEVEN_SCENES_COLOR_FROM_DEPTH,
-                                     SEVEN_SCENES_DEPTH_SCALE)
-    note(notes, "7-Scenes depth is not registered to colour: reprojected into the colour "
-                f"camera (fx = fy = {camera.fx:g}) with a generic Kinect v1 depth-to-colour "
-                "calibration (poses moved to the colour camera too) and quantised at "
-                f"{SEVEN_SCENES_DEPTH_SCALE:g} units per metre; expect a few pixels of "
-                "residual misalignment at depth edges",
-         logging.INFO)
+    registration = DepthRegistration(
+        depth_camera, SEVEN_SCENES_COLOR_FROM_DEPTH, SEVEN_SCENES_DEPTH_SCALE
+    )
+    note(
+        notes,
+        "7-Scenes depth is not registered to colour: reprojected into the colour "
+        f"camera (fx = fy = {camera.fx:g}) with a generic Kinect v1 depth-to-colour "
+        "calibration (poses moved to the colour camera too) and quantised at "
+        f"{SEVEN_SCENES_DEPTH_SCALE:g} units per metre; expect a few pixels of "
+        "residual misalignment at depth edges",
+        logging.INFO,
+    )
     has_poses = all(f[3].is_file() for f in files)
     if use_poses:
         if max_frames is not None:  # read only the poses that will be used
@@ -96,9 +116,20 @@ def open_seven_scenes(folder: Path, depth_encoding: str | None, use_poses: bool,
         records = _records_with_poses(folder, files, notes)
     else:
         records = [FrameRecord(c, d, n / SEVEN_SCENES_FPS) for n, c, d, _ in files]
-    return build_sequence(folder.name, "7scenes", folder, records, camera,
-                          depth_encoding or "mm", None, has_poses, use_poses, max_frames, notes,
-                          registration)
+    return build_sequence(
+        folder.name,
+        "7scenes",
+        folder,
+        records,
+        camera,
+        depth_encoding or "mm",
+        None,
+        has_poses,
+        use_poses,
+        max_frames,
+        notes,
+        registration,
+    )
 
 
 def _frame_files(folder: Path, notes: list[str]) -> list[_Files]:
@@ -110,24 +141,33 @@ def _frame_files(folder: Path, notes: list[str]) -> list[_Files]:
         if not match:
             continue
         stem = f"frame-{match.group(1)}"
-        color = next((folder / f"{stem}.color{ext}" for ext in (".png", ".jpg")
-                      if (folder / f"{stem}.color{ext}").is_file()), None)
+        color = next(
+            (
+                folder / f"{stem}.color{ext}"
+                for ext in (".png", ".jpg")
+                if (folder / f"{stem}.color{ext}").is_file()
+            ),
+            None,
+        )
         if color is None:
             missing_color += 1
             continue
         files.append((int(match.group(1)), color, p, folder / f"{stem}.pose.txt"))
     files.sort(key=lambda f: f[0])
     if missing_color:
-        note(notes, f"{folder}: {missing_color} depth images have no "
-                    "frame-NNNNNN.color.png|jpg; skipped")
+        note(
+            notes,
+            f"{folder}: {missing_color} depth images have no frame-NNNNNN.color.png|jpg; skipped",
+        )
     if not files:
-        raise DatasetError(f"{folder}: empty sequence: no frame-NNNNNN.depth.png has a "
-                           "frame-NNNNNN.color.png|jpg beside it")
+        raise DatasetError(
+            f"{folder}: empty sequence: no frame-NNNNNN.depth.png has a "
+            "frame-NNNNNN.color.png|jpg beside it"
+        )
     return files
 
 
-def _cameras(folder: Path, first: _Files, notes: list[str]
-             ) -> tuple[PinholeCamera, PinholeCamera]:
+def _cameras(folder: Path, first: _Files, notes: list[str]) -> tuple[PinholeCamera, PinholeCamera]:
     """(depth camera, colour camera), at the sizes of the first frame's images."""
     intr = folder / "camera-intrinsics.txt"
     first_depth = read_image(first[2], cv2.IMREAD_UNCHANGED, "depth image")
@@ -142,8 +182,11 @@ def _cameras(folder: Path, first: _Files, notes: list[str]
     else:  # defaults are for 640x480: scale them to the depth image
         s = dw / 640.0
         k = SEVEN_SCENES_DEPTH_K * np.array([[s, 1.0, s], [1.0, s, s], [1.0, 1.0, 1.0]])
-        note(notes, f"{folder}: no camera-intrinsics.txt; using the 7-Scenes depth camera "
-                    "defaults fx = fy = 585, cx = 320, cy = 240 (at 640x480, scaled)")
+        note(
+            notes,
+            f"{folder}: no camera-intrinsics.txt; using the 7-Scenes depth camera "
+            "defaults fx = fy = 585, cx = 320, cy = 240 (at 640x480, scaled)",
+        )
     try:
         depth_camera = PinholeCamera.from_matrix(k, dw, dh)
     except ValueError as exc:
@@ -153,16 +196,20 @@ def _cameras(folder: Path, first: _Files, notes: list[str]
     return depth_camera, PinholeCamera(cw, ch, f, f, cw / 2.0, ch / 2.0)
 
 
-def _records_with_poses(folder: Path, files: list[_Files], notes: list[str]
-                        ) -> list[FrameRecord]:
+def _records_with_poses(folder: Path, files: list[_Files], notes: list[str]) -> list[FrameRecord]:
     """Records of the frames with a pose.txt, each pose moved to the colour camera."""
     if not any(f[3].is_file() for f in files):
-        raise DatasetError(f"{folder}: --poses groundtruth, but there are no "
-                           "frame-NNNNNN.pose.txt files; track instead (--poses track)")
+        raise DatasetError(
+            f"{folder}: --poses groundtruth, but there are no "
+            "frame-NNNNNN.pose.txt files; track instead (--poses track)"
+        )
     # the files hold world_from_depth-camera; the frames are in the colour camera
     depth_from_color = np.linalg.inv(SEVEN_SCENES_COLOR_FROM_DEPTH)
-    records = [FrameRecord(c, d, n / SEVEN_SCENES_FPS, _read_pose_file(p) @ depth_from_color)
-               for n, c, d, p in files if p.is_file()]
+    records = [
+        FrameRecord(c, d, n / SEVEN_SCENES_FPS, _read_pose_file(p) @ depth_from_color)
+        for n, c, d, p in files
+        if p.is_file()
+    ]
     if len(records) < len(files):
         note(notes, f"{folder}: {len(files) - len(records)} frames have no pose.txt; skipped")
     return records

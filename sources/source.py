@@ -66,12 +66,19 @@ class Source:
 
 def calibration_of(camera) -> CameraCalibration:
     """The wire calibration of a PinholeCamera (no distortion: images are undistorted)."""
-    return CameraCalibration(int(camera.width), int(camera.height), float(camera.fx),
-                             float(camera.fy), float(camera.cx), float(camera.cy))
+    return CameraCalibration(
+        int(camera.width),
+        int(camera.height),
+        float(camera.fx),
+        float(camera.fy),
+        float(camera.cx),
+        float(camera.cy),
+    )
 
 
-def sequence_source(name: str, camera, frames: Sequence[FrameInput],
-                    notes: list[str] | None = None) -> Source:
+def sequence_source(
+    name: str, camera, frames: Sequence[FrameInput], notes: list[str] | None = None
+) -> Source:
     """A Source over FrameInputs with raw depth (a data set, the synthetic scene).
 
     Every frame must carry (H, W) uint16 depth with one depth_scale (what the readers
@@ -80,21 +87,30 @@ def sequence_source(name: str, camera, frames: Sequence[FrameInput],
     first = frames[0]
     scale = first.depth_scale
     if scale is None:
-        raise ValueError(f"{name}: frame depth is float metres (depth_scale None); a Source "
-                         "sends the sensor's uint16 depth with its units per metre")
+        raise ValueError(
+            f"{name}: frame depth is float metres (depth_scale None); a Source "
+            "sends the sensor's uint16 depth with its units per metre"
+        )
 
     def iterate() -> Iterator[SourceFrame]:
         for i in range(len(frames)):
             f = frames[i]
             if f.depth_scale != scale:
-                raise ValueError(f"{name}: frame {i} has depth_scale {f.depth_scale}, the "
-                                 f"first frame {scale}; a source has one depth_scale")
+                raise ValueError(
+                    f"{name}: frame {i} has depth_scale {f.depth_scale}, the "
+                    f"first frame {scale}; a source has one depth_scale"
+                )
             depth = check_image(f.depth, f"{name} frame {i} depth", dtype=np.uint16)
-            yield SourceFrame(float(f.timestamp), np.ascontiguousarray(f.color),
-                              np.ascontiguousarray(depth), f.pose)
+            yield SourceFrame(
+                float(f.timestamp),
+                np.ascontiguousarray(f.color),
+                np.ascontiguousarray(depth),
+                f.pose,
+            )
 
-    return Source(name, calibration_of(camera), float(scale), len(frames), iterate,
-                  list(notes or []))
+    return Source(
+        name, calibration_of(camera), float(scale), len(frames), iterate, list(notes or [])
+    )
 
 
 def open_recording_source(path: str | Path, max_frames: int | None = None) -> Source:
@@ -110,14 +126,27 @@ def open_recording_source(path: str | Path, max_frames: int | None = None) -> So
             yield SourceFrame(timestamp=log_ns * 1e-9, parts=parts)
 
     name = config.session if config.session else recording.path.stem
-    return Source(name, config.calibration, config.depth_scale, n, iterate,
-                  [f"recording of session {config.session!r}: {recording.num_frames} frames"],
-                  recorded_config=config)
+    return Source(
+        name,
+        config.calibration,
+        config.depth_scale,
+        n,
+        iterate,
+        [f"recording of session {config.session!r}: {recording.num_frames} frames"],
+        recorded_config=config,
+    )
 
 
-def open_source(spec: str, *, use_poses: bool = False, max_frames: int | None = None,
-                depth_encoding: str | None = None, synthetic_size: tuple[int, int] = (640, 480),
-                synthetic_frames: int = 12, camera_fps: float = 30.0) -> Source:
+def open_source(
+    spec: str,
+    *,
+    use_poses: bool = False,
+    max_frames: int | None = None,
+    depth_encoding: str | None = None,
+    synthetic_size: tuple[int, int] = (640, 480),
+    synthetic_frames: int = 12,
+    camera_fps: float = 30.0,
+) -> Source:
     """A frame source: "synthetic", a data set folder (arlight.sources.sequence), FILE.mcap,
     or a camera (arlight.sources.camera; synthetic_size is then its image size, camera_fps
     its frame rate).
@@ -133,12 +162,13 @@ def open_source(spec: str, *, use_poses: bool = False, max_frames: int | None = 
     if spec == "synthetic":
         n = max_frames or synthetic_frames
         seq = make_sequence(num_frames=n, width=synthetic_size[0], height=synthetic_size[1])
-        frames = seq.frames if use_poses else [dataclasses.replace(f, pose=None)
-                                               for f in seq.frames]
+        frames = (
+            seq.frames if use_poses else [dataclasses.replace(f, pose=None) for f in seq.frames]
+        )
         return sequence_source("synthetic", seq.camera, frames, [])
     if spec.lower().endswith(".mcap"):
         return open_recording_source(spec, max_frames=max_frames)
-    sequence = open_sequence(spec, depth_encoding=depth_encoding, use_poses=use_poses,
-                             max_frames=max_frames)
-    return sequence_source(sequence.name, sequence.camera, sequence.frames,
-                           list(sequence.notes))
+    sequence = open_sequence(
+        spec, depth_encoding=depth_encoding, use_poses=use_poses, max_frames=max_frames
+    )
+    return sequence_source(sequence.name, sequence.camera, sequence.frames, list(sequence.notes))

@@ -116,8 +116,9 @@ def _columns(a: np.ndarray, index: np.ndarray) -> np.ndarray:
     return a if a.shape[1] == 1 else a[:, index]
 
 
-def _sphere_hit(centre: np.ndarray, radius: float, origins: np.ndarray,
-                dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _sphere_hit(
+    centre: np.ndarray, radius: float, origins: np.ndarray, dirs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Entry t (N,) and hit mask of rays against a sphere; origins outside it, t > 0."""
     oc = origins - centre[:, None]
     b = _dot(oc, dirs)
@@ -126,8 +127,9 @@ def _sphere_hit(centre: np.ndarray, radius: float, origins: np.ndarray,
     return t, (disc >= 0) & (t > 0)
 
 
-def _may_hit(centre: np.ndarray, radius: float, origins: np.ndarray,
-             dirs: np.ndarray) -> np.ndarray:
+def _may_hit(
+    centre: np.ndarray, radius: float, origins: np.ndarray, dirs: np.ndarray
+) -> np.ndarray:
     """Indices of the rays (3, N) that meet a bounding sphere ahead of (or around) their
     origins: a conservative cull before exact tests."""
     oc = origins - centre[:, None]
@@ -214,8 +216,11 @@ class Box:
     def normals(self, points: np.ndarray) -> np.ndarray:
         """Outward unit normals (3, N) of the faces that surface points (3, N) lie on."""
         rot = self.world_from_box
-        q = (rot.T @ (points - np.asarray(self.centre, np.float32)[:, None])
-             / np.asarray(self.half_extents, np.float32)[:, None])
+        q = (
+            rot.T
+            @ (points - np.asarray(self.centre, np.float32)[:, None])
+            / np.asarray(self.half_extents, np.float32)[:, None]
+        )
         axis = np.abs(q).argmax(axis=0)
         cols = np.arange(q.shape[1])
         n_box = np.zeros_like(q)
@@ -247,8 +252,9 @@ def _cluster_bound(objects: tuple[Primitive, ...]) -> tuple[np.ndarray, float]:
     return centre, radius
 
 
-def _intersect_all(origins: np.ndarray, dirs: np.ndarray,
-                   objects: tuple[Primitive, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _intersect_all(
+    origins: np.ndarray, dirs: np.ndarray, objects: tuple[Primitive, ...]
+) -> tuple[np.ndarray, np.ndarray]:
     """Nearest object hit of rays (3, N): t (N,) (inf = none) and object index (N,) (-1)."""
     n = max(origins.shape[1], dirs.shape[1])
     t = np.full(n, np.inf, np.float32)
@@ -329,7 +335,8 @@ class Lighting:
         y = dirs[..., 1:2]
         side = dirs @ h.astype(dirs.dtype)
         return (a + b_y * y + q * y * y + self.sky_sun_side_rgb * side[..., None]).astype(
-            dirs.dtype)
+            dirs.dtype
+        )
 
     def sky_sh_rgb(self) -> np.ndarray:
         """Exact radiance SH (3, 16) of the sky, world frame."""
@@ -378,16 +385,23 @@ def ground_albedo(points: np.ndarray, distance_m: np.ndarray) -> np.ndarray:
     x, z = points[0], points[2]
     k = np.float32(math.pi / GROUND_CHECKER_M)
     checker = np.clip(np.float32(3.0) * np.sin(k * x) * np.sin(k * z), -1.0, 1.0)
-    noise = (np.sin(3.1 * x + 1.3 * z + 0.4) + np.sin(-1.7 * x + 4.3 * z + 2.1)
-             + np.sin(5.9 * x - 0.7 * z + 4.0)) / 3.0
+    noise = (
+        np.sin(3.1 * x + 1.3 * z + 0.4)
+        + np.sin(-1.7 * x + 4.3 * z + 2.1)
+        + np.sin(5.9 * x - 0.7 * z + 4.0)
+    ) / 3.0
     near, far = GROUND_TEXTURE_FADE_M
     fade = np.clip((far - distance_m) / (far - near), 0.0, 1.0)
     tex = np.float32(GROUND_TEXTURE_AMPLITUDE) * fade * (0.5 * checker + 0.5 * noise)
     return GROUND_ALBEDO.astype(np.float32)[:, None] * (1.0 + tex)
 
 
-def sun_visibility(points: np.ndarray, normals: np.ndarray, direction: np.ndarray,
-                   objects: tuple[Primitive, ...] = SCENE_OBJECTS) -> np.ndarray:
+def sun_visibility(
+    points: np.ndarray,
+    normals: np.ndarray,
+    direction: np.ndarray,
+    objects: tuple[Primitive, ...] = SCENE_OBJECTS,
+) -> np.ndarray:
     """1 where the sun (unit `direction`, (3,)) is unoccluded from surface points, else 0.
 
     points, normals: (3, N) float32. The ground never occludes (the sun is above the
@@ -398,8 +412,9 @@ def sun_visibility(points: np.ndarray, normals: np.ndarray, direction: np.ndarra
     return np.isinf(t).astype(np.float32)
 
 
-def ambient_occlusion(points: np.ndarray, normals: np.ndarray,
-                      objects: tuple[Primitive, ...] = SCENE_OBJECTS) -> np.ndarray:
+def ambient_occlusion(
+    points: np.ndarray, normals: np.ndarray, objects: tuple[Primitive, ...] = SCENE_OBJECTS
+) -> np.ndarray:
     """Fraction (N,) of cosine-weighted sky left open by the objects, each seen as a sphere.
 
     points, normals: (3, N) float32. A sphere of radius r at distance d, fully above the
@@ -409,14 +424,15 @@ def ambient_occlusion(points: np.ndarray, normals: np.ndarray,
     for obj in objects:
         centre, radius = obj.occluder()
         v = centre[:, None] - points
-        dist2 = np.maximum(_dot(v, v), np.float32(radius ** 2))
+        dist2 = np.maximum(_dot(v, v), np.float32(radius**2))
         cos = np.maximum(_dot(v, normals), 0.0) / np.sqrt(dist2)
-        hidden += np.float32(radius ** 2) / dist2 * cos
+        hidden += np.float32(radius**2) / dist2 * cos
     return 1.0 - np.minimum(hidden, np.float32(0.8))
 
 
-def _cast(origin: np.ndarray, dirs: np.ndarray, t_ground: np.ndarray,
-          objects: tuple[Primitive, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _cast(
+    origin: np.ndarray, dirs: np.ndarray, t_ground: np.ndarray, objects: tuple[Primitive, ...]
+) -> tuple[np.ndarray, np.ndarray]:
     """First hit of rays (3, N) from one origin (3, 1) given their ground hits t_ground (N,)
     float64: t (N,) float64 (inf = nothing) and id (N,) (-1 sky, 0 ground, 1 + k object k)."""
     ids = np.where(np.isfinite(t_ground), 0, -1).astype(np.int16)
@@ -435,8 +451,9 @@ def _ground_hits(world_from_cam: np.ndarray, rays_cam: np.ndarray) -> np.ndarray
         return np.where(dirs_y < 0, -world_from_cam[1, 3] / dirs_y, np.inf)
 
 
-def _surface(points: np.ndarray, ids: np.ndarray, t: np.ndarray,
-             objects: tuple[Primitive, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _surface(
+    points: np.ndarray, ids: np.ndarray, t: np.ndarray, objects: tuple[Primitive, ...]
+) -> tuple[np.ndarray, np.ndarray]:
     """Normals (3, N) and albedo (3, N) at hit points (3, N); ids < 1 get the ground's."""
     normals = np.zeros_like(points)
     normals[1] = 1.0
@@ -457,8 +474,14 @@ def _sky_irradiance(lighting: Lighting, normals: np.ndarray, ids: np.ndarray) ->
     return e
 
 
-def _shade(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, ids: np.ndarray,
-           lighting: Lighting, objects: tuple[Primitive, ...]) -> np.ndarray:
+def _shade(
+    points: np.ndarray,
+    normals: np.ndarray,
+    albedo: np.ndarray,
+    ids: np.ndarray,
+    lighting: Lighting,
+    objects: tuple[Primitive, ...],
+) -> np.ndarray:
     """Lambertian outgoing radiance (3, N) (module docstring)."""
     s = np.asarray(lighting.sun_direction, np.float32)
     cos_sun = np.maximum(_dot(normals, s[:, None]), 0.0)
@@ -469,9 +492,13 @@ def _shade(points: np.ndarray, normals: np.ndarray, albedo: np.ndarray, ids: np.
     return albedo * np.float32(1.0 / math.pi) * (sun + sky)
 
 
-def render_frame(camera: PinholeCamera, world_from_cam: np.ndarray, lighting: Lighting,
-                 objects: tuple[Primitive, ...] = SCENE_OBJECTS,
-                 rays_cam: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def render_frame(
+    camera: PinholeCamera,
+    world_from_cam: np.ndarray,
+    lighting: Lighting,
+    objects: tuple[Primitive, ...] = SCENE_OBJECTS,
+    rays_cam: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Linear radiance (H, W, 3) float32 and clean depth (H, W) float32 (camera z, metres,
     0 = sky) of the scene seen from the pose `world_from_cam` (4, 4), OpenCV camera axes.
 
@@ -512,8 +539,9 @@ def _srgb_lut(size: int = 65536) -> np.ndarray:
 _SRGB_LUT_255 = _srgb_lut().astype(np.float32)
 
 
-def encode_color(radiance: np.ndarray, exposure: float,
-                 rng: np.random.Generator | None = None) -> np.ndarray:
+def encode_color(
+    radiance: np.ndarray, exposure: float, rng: np.random.Generator | None = None
+) -> np.ndarray:
     """uint8 sRGB (H, W, 3) of clip(exposure * radiance, 0, 1) (linear radiance (H, W, 3));
     Gaussian noise of sigma COLOR_NOISE_SIGMA added before rounding when `rng` is given."""
     top = len(_SRGB_LUT_255) - 1
@@ -577,8 +605,9 @@ def orbit_poses(num_frames: int, start_azimuth: float) -> list[np.ndarray]:
     poses = []
     for i in range(num_frames):
         phi = start_azimuth + ORBIT_SWEEP_RAD * (i / max(1, num_frames - 1))
-        eye = np.array([ORBIT_RADIUS_M * math.sin(phi), ORBIT_HEIGHT_M,
-                        ORBIT_RADIUS_M * math.cos(phi)])
+        eye = np.array(
+            [ORBIT_RADIUS_M * math.sin(phi), ORBIT_HEIGHT_M, ORBIT_RADIUS_M * math.cos(phi)]
+        )
         poses.append(look_at(eye, ORBIT_TARGET))
     return poses
 
@@ -589,8 +618,11 @@ TREMOR_M = 0.001
 TREMOR_RAD = math.radians(0.05)
 
 
-def held_poses(num_frames: int, start_azimuth: float, rng: np.random.Generator,
-               ) -> list[np.ndarray]:
+def held_poses(
+    num_frames: int,
+    start_azimuth: float,
+    rng: np.random.Generator,
+) -> list[np.ndarray]:
     """Camera-to-world poses of a camera held still at the orbit's start (hand tremor)."""
     from scipy.spatial.transform import Rotation
 
@@ -598,8 +630,9 @@ def held_poses(num_frames: int, start_azimuth: float, rng: np.random.Generator,
     poses = []
     for _ in range(num_frames):
         pose = start.copy()
-        pose[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, TREMOR_RAD, 3)).as_matrix() \
-            @ start[:3, :3]
+        pose[:3, :3] = (
+            Rotation.from_rotvec(rng.normal(0.0, TREMOR_RAD, 3)).as_matrix() @ start[:3, :3]
+        )
         pose[:3, 3] += rng.normal(0.0, TREMOR_M, 3)
         poses.append(pose)
     return poses
@@ -647,26 +680,34 @@ def parse_size(text: str) -> tuple[int, int]:
     if w < 8 or h < 8:
         raise ValueError(f"size must be at least 8x8, got {w}x{h}")
     if w * h > MAX_PIXELS:
-        raise ValueError(f"size {w}x{h} is larger than the built-in scene renders (at most "
-                         "3840x2160 pixels)")
+        raise ValueError(
+            f"size {w}x{h} is larger than the built-in scene renders (at most 3840x2160 pixels)"
+        )
     return w, h
 
 
-def _check_arguments(num_frames: int, width: int, height: int,
-                     light_change_frame: int | None) -> None:
+def _check_arguments(
+    num_frames: int, width: int, height: int, light_change_frame: int | None
+) -> None:
     if num_frames < 1:
         raise ValueError(f"num_frames must be >= 1, got {num_frames}")
     if width < 1 or height < 1:
         raise ValueError(f"image size must be >= 1x1 pixels, got {width}x{height}")
     if light_change_frame is not None and not 0 <= light_change_frame < num_frames:
-        raise ValueError(f"light_change_frame must be in [0, {num_frames - 1}] or None, "
-                         f"got {light_change_frame}")
+        raise ValueError(
+            f"light_change_frame must be in [0, {num_frames - 1}] or None, got {light_change_frame}"
+        )
 
 
-def make_sequence(num_frames: int = 12, width: int = 640, height: int = 480, seed: int = 0,
-                  sensor_noise: bool = True,
-                  light_change_frame: int | None = None, held: bool = False,
-                  ) -> SyntheticSequence:
+def make_sequence(
+    num_frames: int = 12,
+    width: int = 640,
+    height: int = 480,
+    seed: int = 0,
+    sensor_noise: bool = True,
+    light_change_frame: int | None = None,
+    held: bool = False,
+) -> SyntheticSequence:
     """Render the procedural scene along an orbit (module docstring), deterministically;
     held: a camera held still at the orbit's start instead (`held_poses`).
 
@@ -679,20 +720,31 @@ def make_sequence(num_frames: int = 12, width: int = 640, height: int = 480, see
     noise_rng = np.random.default_rng([seed, 1])
     azimuth = float(scene_rng.uniform(0.0, 2.0 * math.pi))
     elevation = float(scene_rng.uniform(*SUN_ELEVATION_RANGE_RAD))
-    lights = [make_lighting(azimuth, elevation),
-              make_lighting(azimuth + LIGHT_CHANGE_AZIMUTH_RAD, elevation)]
+    lights = [
+        make_lighting(azimuth, elevation),
+        make_lighting(azimuth + LIGHT_CHANGE_AZIMUTH_RAD, elevation),
+    ]
     exposure = exposure_for(lights[0])  # same elevation after a change: same ground brightness
 
     camera = PinholeCamera.kinect_v1(width, height)
     rays_cam = np.ascontiguousarray(camera.ray_directions().reshape(-1, 3).T)
-    seq = SyntheticSequence(name=f"arlight_synthetic{'_held' if held else ''}_seed{seed}",
-                            camera=camera, frames=[],
-                            sh_world=[], dominant_direction_world=[],
-                            dominant_direction_camera=[], exposure=exposure,
-                            sun_direction_world=[], light_change_frame=light_change_frame)
+    seq = SyntheticSequence(
+        name=f"arlight_synthetic{'_held' if held else ''}_seed{seed}",
+        camera=camera,
+        frames=[],
+        sh_world=[],
+        dominant_direction_world=[],
+        dominant_direction_camera=[],
+        exposure=exposure,
+        sun_direction_world=[],
+        light_change_frame=light_change_frame,
+    )
     start = azimuth + ORBIT_START_FROM_SUN_RAD
-    poses = (held_poses(num_frames, start, np.random.default_rng([seed, 2])) if held
-             else orbit_poses(num_frames, start))
+    poses = (
+        held_poses(num_frames, start, np.random.default_rng([seed, 2]))
+        if held
+        else orbit_poses(num_frames, start)
+    )
     for i, pose in enumerate(poses):
         changed = light_change_frame is not None and i >= light_change_frame
         light = lights[int(changed)]
@@ -703,8 +755,15 @@ def make_sequence(num_frames: int = 12, width: int = 640, height: int = 480, see
             sensor_depth, depth_scale = kinect_depth(depth, noise_rng), DEPTH_SCALE
         else:
             sensor_depth, depth_scale = depth, None
-        seq.frames.append(FrameInput(color=color, depth=sensor_depth, depth_scale=depth_scale,
-                                     pose=pose, timestamp=FIRST_TIMESTAMP_S + i / FRAME_RATE_HZ))
+        seq.frames.append(
+            FrameInput(
+                color=color,
+                depth=sensor_depth,
+                depth_scale=depth_scale,
+                pose=pose,
+                timestamp=FIRST_TIMESTAMP_S + i / FRAME_RATE_HZ,
+            )
+        )
         _append_ground_truth(seq, light, pose)
         seq.depth_gt.append(depth)
     return seq

@@ -55,12 +55,14 @@ def sun_direction(elevation_rad: float, azimuth_rad: float) -> np.ndarray:
     """Unit direction at `elevation_rad` above the horizon, `azimuth_rad` from -z towards +x
     (the map's column u = azimuth / 2 pi)."""
     c = math.cos(elevation_rad)
-    return np.array([c * math.sin(azimuth_rad), math.sin(elevation_rad),
-                     -c * math.cos(azimuth_rad)])
+    return np.array(
+        [c * math.sin(azimuth_rad), math.sin(elevation_rad), -c * math.cos(azimuth_rad)]
+    )
 
 
-def synthetic_sky(width: int = 512, sun: np.ndarray | None = None,
-                  sun_radiance: float = 2000.0) -> np.ndarray:
+def synthetic_sky(
+    width: int = 512, sun: np.ndarray | None = None, sun_radiance: float = 2000.0
+) -> np.ndarray:
     """(width / 2, width, 3) float32 linear HDR sky: sun disc, aureole, sky, ground.
 
     sun: unit direction towards the sun (default 35 degrees up, azimuth 60 degrees);
@@ -69,16 +71,19 @@ def synthetic_sky(width: int = 512, sun: np.ndarray | None = None,
     """
     if width < 2 or width % 2:
         raise ValueError(f"width must be even and >= 2, got {width}")
-    s = np.asarray(sun if sun is not None else sun_direction(math.radians(35), math.radians(60)),
-                   dtype=np.float64)
+    s = np.asarray(
+        sun if sun is not None else sun_direction(math.radians(35), math.radians(60)),
+        dtype=np.float64,
+    )
     s = s / np.linalg.norm(s)
     d = equirect.pixel_directions(width // 2, width)
     y = d[..., 1]
     cos_sun = np.clip(d @ s, -1.0, 1.0)
     angle = np.arccos(cos_sun)
     horizon = np.exp(-np.maximum(y, 0.0) / 0.25)  # brighter towards the horizon
-    sky = (np.array([0.18, 0.28, 0.45])[None, None, :]
-           + 0.35 * horizon[..., None] * np.array([1.0, 0.95, 0.85]))
+    sky = np.array([0.18, 0.28, 0.45])[None, None, :] + 0.35 * horizon[..., None] * np.array(
+        [1.0, 0.95, 0.85]
+    )
     aureole = 4.0 * np.exp(-angle / math.radians(6.0))[..., None] * np.array([1.0, 0.9, 0.7])
     disc = (angle <= SUN_RADIUS_RAD)[..., None] * sun_radiance * np.array([1.0, 0.95, 0.85])
     upper = sky + aureole + disc

@@ -40,15 +40,17 @@ def is_tum_folder(folder: Path) -> bool:
     return any((folder / name).is_file() for name in ("associations.txt", "rgb.txt", "depth.txt"))
 
 
-def open_tum(folder: Path, depth_encoding: str | None, use_poses: bool,
-             max_frames: int | None) -> RgbdSequence:
+def open_tum(
+    folder: Path, depth_encoding: str | None, use_poses: bool, max_frames: int | None
+) -> RgbdSequence:
     """Open a TUM RGB-D folder (module docstring); depth_encoding overrides "tum"."""
     notes: list[str] = []
     pairs, listed_in = _listed_pairs(folder, notes)
     if not pairs:
         raise DatasetError(
             f"{folder}: empty sequence: no colour + depth pair listed in {listed_in} has both "
-            "image files present")
+            "image files present"
+        )
     pairs.sort(key=lambda p: p[0])
     camera, units = _camera(folder, folder / pairs[0][1], notes)
     encoding = "tum"
@@ -60,11 +62,24 @@ def open_tum(folder: Path, depth_encoding: str | None, use_poses: bool,
     records = [FrameRecord(folder / c, folder / d, t) for t, c, _, d in pairs]
     if use_poses:
         if not gt_path.is_file():
-            raise DatasetError(f"{folder}: --poses groundtruth, but there is no "
-                               "groundtruth.txt; track instead (--poses track)")
+            raise DatasetError(
+                f"{folder}: --poses groundtruth, but there is no "
+                "groundtruth.txt; track instead (--poses track)"
+            )
         records = _with_groundtruth(records, gt_path, notes)
-    return build_sequence(folder.name, "tum", folder, records, camera, encoding, units,
-                          gt_path.is_file(), use_poses, max_frames, notes)
+    return build_sequence(
+        folder.name,
+        "tum",
+        folder,
+        records,
+        camera,
+        encoding,
+        units,
+        gt_path.is_file(),
+        use_poses,
+        max_frames,
+        notes,
+    )
 
 
 # --------------------------------------------------------------------------- pairing
@@ -78,8 +93,11 @@ def _listed_pairs(folder: Path, notes: list[str]) -> tuple[list[Pair], str]:
     pairs = _read_associations(folder, assoc_path)
     present = [p for p in pairs if (folder / p[1]).is_file() and (folder / p[3]).is_file()]
     if len(present) < len(pairs):
-        note(notes, f"{folder}: {len(pairs) - len(present)} of {len(pairs)} pairs listed in "
-                    f"{assoc_path.name} have absent image files; skipped")
+        note(
+            notes,
+            f"{folder}: {len(pairs) - len(present)} of {len(pairs)} pairs listed in "
+            f"{assoc_path.name} have absent image files; skipped",
+        )
     return present, assoc_path.name
 
 
@@ -92,7 +110,8 @@ def _read_associations(folder: Path, assoc_path: Path) -> list[Pair]:
         t2, f2 = _float_field(f[2], assoc_path, n), f[3]
         # TUM's associate.py writes whichever list it was given first: tell them apart
         swapped = (f2 in rgb_names and f1 not in rgb_names) or (
-            not rgb_names and "depth" in f1.lower() and "depth" not in f2.lower())
+            not rgb_names and "depth" in f1.lower() and "depth" not in f2.lower()
+        )
         pairs.append((t2, f2, t1, f1) if swapped else (t1, f1, t2, f2))
     return pairs
 
@@ -103,22 +122,30 @@ def _pairs_by_timestamp(folder: Path, notes: list[str]) -> list[Pair]:
         have = rgb_path.name if rgb_path.is_file() else depth_path.name
         raise DatasetError(
             f"{folder}: TUM RGB-D layout needs associations.txt or both rgb.txt and "
-            f"depth.txt, found only {have}")
+            f"depth.txt, found only {have}"
+        )
     listed = _read_timed_list(rgb_path)
     rgb = [(t, n) for t, n in listed if (folder / n).is_file()]
     depth = [(t, n) for t, n in _read_timed_list(depth_path) if (folder / n).is_file()]
     if len(rgb) < len(listed):
-        note(notes, f"{folder}: {len(listed) - len(rgb)} of {len(listed)} images listed in "
-                    "rgb.txt are absent; skipped")
+        note(
+            notes,
+            f"{folder}: {len(listed) - len(rgb)} of {len(listed)} images listed in "
+            "rgb.txt are absent; skipped",
+        )
     pairs = _associate(rgb, depth, TUM_ASSOCIATION_MAX_DT_S)
     if rgb and len(pairs) < len(rgb):
-        note(notes, f"{folder}: {len(rgb) - len(pairs)} colour images have no depth "
-                    f"image within {TUM_ASSOCIATION_MAX_DT_S} s; skipped")
+        note(
+            notes,
+            f"{folder}: {len(rgb) - len(pairs)} colour images have no depth "
+            f"image within {TUM_ASSOCIATION_MAX_DT_S} s; skipped",
+        )
     return pairs
 
 
-def _associate(rgb: list[tuple[float, str]], depth: list[tuple[float, str]], max_dt: float
-               ) -> list[Pair]:
+def _associate(
+    rgb: list[tuple[float, str]], depth: list[tuple[float, str]], max_dt: float
+) -> list[Pair]:
     """One-to-one nearest-timestamp pairs (|dt| <= max_dt), closest pairs first."""
     if not rgb or not depth:
         return []
@@ -177,15 +204,17 @@ def _float_field(value: str, path: Path, n: int) -> float:
 
 
 def _read_timed_list(path: Path) -> list[tuple[float, str]]:
-    return [(_float_field(f[0], path, n), f[1])
-            for n, f in _read_table(path, 2, "timestamp filename")]
+    return [
+        (_float_field(f[0], path, n), f[1]) for n, f in _read_table(path, 2, "timestamp filename")
+    ]
 
 
 # --------------------------------------------------------------------------- camera
 
 
-def _camera(folder: Path, first_color: Path, notes: list[str]
-            ) -> tuple[PinholeCamera, float | None]:
+def _camera(
+    folder: Path, first_color: Path, notes: list[str]
+) -> tuple[PinholeCamera, float | None]:
     """The colour camera and camera.json's depth_scale (None: not given)."""
     camera_json = folder / "camera.json"
     if camera_json.is_file():
@@ -205,21 +234,33 @@ def _read_camera_json(path: Path) -> tuple[PinholeCamera, float | None]:
         if key not in data:
             raise DatasetError(
                 f"{path}: missing {key!r}; camera.json needs fx, fy, cx, cy, width, height "
-                "(and optionally depth_scale, units per metre)")
+                "(and optionally depth_scale, units per metre)"
+            )
         if not isinstance(data[key], (int, float)) or isinstance(data[key], bool):
             raise DatasetError(f"{path}: {key!r} must be a number, got {data[key]!r}")
         values[key] = data[key]
     try:
-        camera = PinholeCamera(int(values["width"]), int(values["height"]), float(values["fx"]),
-                               float(values["fy"]), float(values["cx"]), float(values["cy"]))
+        camera = PinholeCamera(
+            int(values["width"]),
+            int(values["height"]),
+            float(values["fx"]),
+            float(values["fy"]),
+            float(values["cx"]),
+            float(values["cy"]),
+        )
     except ValueError as exc:
         raise DatasetError(f"{path}: {exc}") from exc
     scale = data.get("depth_scale")
     if scale is not None:
-        if (not isinstance(scale, (int, float)) or isinstance(scale, bool)
-                or not np.isfinite(scale) or scale <= 0):
-            raise DatasetError(f"{path}: depth_scale must be a number > 0 (units per metre), "
-                               f"got {scale!r}")
+        if (
+            not isinstance(scale, (int, float))
+            or isinstance(scale, bool)
+            or not np.isfinite(scale)
+            or scale <= 0
+        ):
+            raise DatasetError(
+                f"{path}: depth_scale must be a number > 0 (units per metre), got {scale!r}"
+            )
         scale = float(scale)
     return camera, scale
 
@@ -260,8 +301,9 @@ def _read_tum_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(times)[order], np.asarray(poses)[order]
 
 
-def _nearest_pose(times: np.ndarray, poses: np.ndarray, t: float, max_dt: float
-                  ) -> np.ndarray | None:
+def _nearest_pose(
+    times: np.ndarray, poses: np.ndarray, t: float, max_dt: float
+) -> np.ndarray | None:
     k = int(np.searchsorted(times, t))
     best = None
     for j in (k - 1, k):
@@ -271,8 +313,9 @@ def _nearest_pose(times: np.ndarray, poses: np.ndarray, t: float, max_dt: float
     return None if best is None else poses[best]
 
 
-def _with_groundtruth(records: list[FrameRecord], gt_path: Path, notes: list[str]
-                      ) -> list[FrameRecord]:
+def _with_groundtruth(
+    records: list[FrameRecord], gt_path: Path, notes: list[str]
+) -> list[FrameRecord]:
     """The records with a pose within TUM_POSE_MAX_DT_S, each carrying it."""
     times, poses = _read_tum_groundtruth(gt_path)
     with_pose = []
@@ -281,9 +324,14 @@ def _with_groundtruth(records: list[FrameRecord], gt_path: Path, notes: list[str
         if pose is not None:
             with_pose.append(FrameRecord(rec.color_path, rec.depth_path, rec.timestamp_s, pose))
     if len(with_pose) < len(records):
-        note(notes, f"{gt_path}: {len(records) - len(with_pose)} of {len(records)} frames "
-                    f"have no pose within {TUM_POSE_MAX_DT_S} s; skipped")
+        note(
+            notes,
+            f"{gt_path}: {len(records) - len(with_pose)} of {len(records)} frames "
+            f"have no pose within {TUM_POSE_MAX_DT_S} s; skipped",
+        )
     if not with_pose:
-        raise DatasetError(f"{gt_path}: no pose lies within {TUM_POSE_MAX_DT_S} s of any "
-                           "frame's timestamp; check that the timestamps share a clock")
+        raise DatasetError(
+            f"{gt_path}: no pose lies within {TUM_POSE_MAX_DT_S} s of any "
+            "frame's timestamp; check that the timestamps share a clock"
+        )
     return with_pose

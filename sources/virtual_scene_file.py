@@ -35,12 +35,24 @@ from arlight.pipeline.virtual_scene import (
 FRAMES = ("world", "cam0")  # --scene-frame: which pose key of the file is the run's world
 MESH_SUFFIXES = (".ply", ".obj", ".glb", ".gltf")  # what open3d.io reads (tested)
 SCENE_KEYS = ("objects", "description")
-OBJECT_KEYS = ("name", "mesh", "primitive", "world_from_object", "cam0_from_object", "anchor",
-               "scale", "material", "albedo_rgb")
+OBJECT_KEYS = (
+    "name",
+    "mesh",
+    "primitive",
+    "world_from_object",
+    "cam0_from_object",
+    "anchor",
+    "scale",
+    "material",
+    "albedo_rgb",
+)
 MATERIAL_KEYS = ("albedo", "roughness", "metalness", "mirror")
 ANCHOR_KEYS = ("pixel", "yaw_deg")
-PRIMITIVE_KEYS = {"sphere": ("radius_m",), "box": ("size_m",),
-                  "torus": ("ring_radius_m", "tube_radius_m")}
+PRIMITIVE_KEYS = {
+    "sphere": ("radius_m",),
+    "box": ("size_m",),
+    "torus": ("ring_radius_m", "tube_radius_m"),
+}
 DATASET_MARK = "world_from_cam0"  # top-level key of a data set's render description
 
 
@@ -57,28 +69,36 @@ def load_virtual_scene(path: str | Path, frame: str = "world") -> VirtualScene:
         raise SceneError(f"--scene-frame must be world or cam0, got {frame!r}")
     doc = _read_document(path)
     if not isinstance(doc, dict):
-        raise SceneError(f"scene file {path}: expected an object with an \"objects\" list at "
-                         "the top level (see docs/scene-files.md)")
+        raise SceneError(
+            f'scene file {path}: expected an object with an "objects" list at '
+            "the top level (see docs/scene-files.md)"
+        )
     strict = DATASET_MARK not in doc
     if strict:
         _check_keys(doc, SCENE_KEYS, f"scene file {path}")
     entries = doc.get("objects")
     if not isinstance(entries, list) or not entries:
-        raise SceneError(f"scene file {path}: \"objects\" must be a non-empty list of objects "
-                         "(see docs/scene-files.md)")
+        raise SceneError(
+            f'scene file {path}: "objects" must be a non-empty list of objects '
+            "(see docs/scene-files.md)"
+        )
     if len(entries) > MAX_OBJECTS:
-        raise SceneError(f"scene file {path}: {len(entries)} objects, at most {MAX_OBJECTS}; "
-                         "remove some")
+        raise SceneError(
+            f"scene file {path}: {len(entries)} objects, at most {MAX_OBJECTS}; remove some"
+        )
     objects: list[VirtualObject] = []
     seen: dict[str, int] = {}
     for i, entry in enumerate(entries):
         name = entry.get("name") if isinstance(entry, dict) else None
         if not isinstance(name, str) or not name.strip():
-            raise SceneError(f"scene file {path}, objects[{i}]: needs an object with a "
-                             "non-empty string \"name\"")
+            raise SceneError(
+                f'scene file {path}, objects[{i}]: needs an object with a non-empty string "name"'
+            )
         if name in seen:
-            raise SceneError(f"scene file {path}, object {name!r}: the name is used by "
-                             f"objects[{seen[name]}] and objects[{i}]; names must be unique")
+            raise SceneError(
+                f"scene file {path}, object {name!r}: the name is used by "
+                f"objects[{seen[name]}] and objects[{i}]; names must be unique"
+            )
         seen[name] = i
         where = f"scene file {path}, object {name!r}"
         budget = MAX_TRIANGLES - sum(len(o.triangles) for o in objects)
@@ -86,8 +106,9 @@ def load_virtual_scene(path: str | Path, frame: str = "world") -> VirtualScene:
             objects.append(_load_object(entry, path.parent, frame, strict, budget, where))
         except SceneError as exc:
             text = str(exc)
-            raise SceneError(text if text.startswith("scene file") else
-                             f"scene file {path}: {text}") from None
+            raise SceneError(
+                text if text.startswith("scene file") else f"scene file {path}: {text}"
+            ) from None
     return VirtualScene(tuple(objects))
 
 
@@ -110,27 +131,32 @@ def _read_document(path: Path) -> Any:
                 return tomllib.loads(text)
             except tomllib.TOMLDecodeError as exc:
                 raise SceneError(f"scene file {path} is not valid TOML: {exc}") from None
-        raise SceneError(f"scene file {path}: TOML needs Python >= 3.11 (tomllib); write "
-                         "the scene as JSON")
+        raise SceneError(
+            f"scene file {path}: TOML needs Python >= 3.11 (tomllib); write the scene as JSON"
+        )
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
-        raise SceneError(f"scene file {path} is not valid JSON: {exc.msg} at line "
-                         f"{exc.lineno}, column {exc.colno}") from None
+        raise SceneError(
+            f"scene file {path} is not valid JSON: {exc.msg} at line "
+            f"{exc.lineno}, column {exc.colno}"
+        ) from None
 
 
-def _load_object(entry: dict, folder: Path, frame: str, strict: bool, budget: int,
-                 where: str) -> VirtualObject:
+def _load_object(
+    entry: dict, folder: Path, frame: str, strict: bool, budget: int, where: str
+) -> VirtualObject:
     """One object of the file; `where` names it in errors; `budget`: triangles left."""
     if strict:
         _check_keys(entry, OBJECT_KEYS, where)
     if ("mesh" in entry) == ("primitive" in entry):
-        raise SceneError(f"{where}: give exactly one of \"mesh\" (a {'/'.join(MESH_SUFFIXES)} "
-                         "file) and \"primitive\"")
+        raise SceneError(
+            f'{where}: give exactly one of "mesh" (a {"/".join(MESH_SUFFIXES)} '
+            'file) and "primitive"'
+        )
     if "mesh" in entry:
         if not isinstance(entry["mesh"], str):
-            raise SceneError(f"{where}: \"mesh\" must be a file path (relative to the scene "
-                             "file)")
+            raise SceneError(f'{where}: "mesh" must be a file path (relative to the scene file)')
         mesh = _read_mesh(folder / entry["mesh"], budget, where)
     else:
         mesh = _primitive(entry["primitive"], where)
@@ -140,10 +166,11 @@ def _load_object(entry: dict, folder: Path, frame: str, strict: bool, budget: in
     if "scale" in entry:
         scale = _numbers(entry["scale"], (), where, "scale")
         if not scale > 0:
-            raise SceneError(f"{where}: \"scale\" must be > 0, got {float(scale):g}")
+            raise SceneError(f'{where}: "scale" must be > 0, got {float(scale):g}')
         world_from_object = world_from_object @ np.diag([scale, scale, scale, 1.0])
-    return object_from_open3d(entry["name"], mesh, world_from_object, _material(entry, where),
-                              anchor)
+    return object_from_open3d(
+        entry["name"], mesh, world_from_object, _material(entry, where), anchor
+    )
 
 
 def _read_mesh(file: Path, budget: int, where: str) -> o3d.geometry.TriangleMesh:
@@ -152,8 +179,9 @@ def _read_mesh(file: Path, budget: int, where: str) -> o3d.geometry.TriangleMesh
     if file.suffix.lower() not in MESH_SUFFIXES:
         raise SceneError(f"{where}: mesh {file} must be one of {', '.join(MESH_SUFFIXES)}")
     if not file.is_file():
-        raise SceneError(f"{where}: mesh file {file} not found (mesh paths are relative to "
-                         "the scene file)")
+        raise SceneError(
+            f"{where}: mesh file {file} not found (mesh paths are relative to the scene file)"
+        )
     try:
         counts = _ply_counts(file) if file.suffix.lower() == ".ply" else None
     except OSError as exc:
@@ -167,12 +195,16 @@ def _read_mesh(file: Path, budget: int, where: str) -> o3d.geometry.TriangleMesh
         raise SceneError(f"{where}: mesh {file} cannot be read ({exc})") from None
     triangles = len(mesh.triangles)
     if triangles == 0:
-        raise SceneError(f"{where}: mesh {file} holds no triangles (broken, or not a triangle "
-                         "mesh); re-export it as a triangle mesh (PLY, OBJ, glTF)")
+        raise SceneError(
+            f"{where}: mesh {file} holds no triangles (broken, or not a triangle "
+            "mesh); re-export it as a triangle mesh (PLY, OBJ, glTF)"
+        )
     if counts is not None and (len(mesh.vertices) != counts[0] or triangles < counts[1]):
-        raise SceneError(f"{where}: mesh {file} is truncated or broken: its header lists "
-                         f"{counts[0]} vertices and {counts[1]} faces, {len(mesh.vertices)} and "
-                         f"{triangles} could be read; re-export it")
+        raise SceneError(
+            f"{where}: mesh {file} is truncated or broken: its header lists "
+            f"{counts[0]} vertices and {counts[1]} faces, {len(mesh.vertices)} and "
+            f"{triangles} could be read; re-export it"
+        )
     return mesh
 
 
@@ -192,17 +224,21 @@ def _ply_counts(file: Path) -> tuple[int, int] | None:
 
 
 def _too_many(triangles: int, budget: int, where: str) -> SceneError:
-    return SceneError(f"{where}: {triangles} triangles, but the scene may hold {MAX_TRIANGLES} "
-                      f"in all ({max(budget, 0)} left for this object); simplify the mesh "
-                      "(e.g. Open3D simplify_quadric_decimation)")
+    return SceneError(
+        f"{where}: {triangles} triangles, but the scene may hold {MAX_TRIANGLES} "
+        f"in all ({max(budget, 0)} left for this object); simplify the mesh "
+        "(e.g. Open3D simplify_quadric_decimation)"
+    )
 
 
 def _primitive(spec: Any, where: str) -> o3d.geometry.TriangleMesh:
     """A built-in primitive from {"shape": ..., its sizes in metres}."""
     shape = spec.get("shape") if isinstance(spec, dict) else None
     if shape not in PRIMITIVES:
-        raise SceneError(f"{where}: \"primitive\" must be an object with \"shape\" one of "
-                         f"{', '.join(PRIMITIVES)}, got {spec!r}")
+        raise SceneError(
+            f'{where}: "primitive" must be an object with "shape" one of '
+            f"{', '.join(PRIMITIVES)}, got {spec!r}"
+        )
     _check_keys(spec, ("shape", *PRIMITIVE_KEYS[shape]), f"{where}, {shape}")
     sizes = {}
     for key in PRIMITIVE_KEYS[shape]:
@@ -220,10 +256,11 @@ def _pose(entry: dict, frame: str, where: str) -> tuple[np.ndarray, Anchor | Non
     spec = entry.get("anchor")
     if spec is not None:
         if key in entry or other in entry:
-            raise SceneError(f"{where}: give a pose ({key}) or an \"anchor\", not both")
+            raise SceneError(f'{where}: give a pose ({key}) or an "anchor", not both')
         if not isinstance(spec, dict):
-            raise SceneError(f"{where}: \"anchor\" must be an object {{\"pixel\": [u, v] or "
-                             "null, \"yaw_deg\": 0}")
+            raise SceneError(
+                f'{where}: "anchor" must be an object {{"pixel": [u, v] or null, "yaw_deg": 0}}'
+            )
         _check_keys(spec, ANCHOR_KEYS, f"{where}, anchor")
         pixel = spec.get("pixel")
         if pixel is not None:
@@ -233,18 +270,23 @@ def _pose(entry: dict, frame: str, where: str) -> tuple[np.ndarray, Anchor | Non
     if key in entry:
         return _numbers(entry[key], (4, 4), where, key), None
     if other in entry:
-        raise SceneError(f"{where}: has {other} but no {key}; run with --scene-frame "
-                         f"{other.split('_')[0]} or add {key}")
-    raise SceneError(f"{where}: needs a pose (\"{key}\": 4x4 row-major) or an \"anchor\" "
-                     "({\"pixel\": [u, v] or null, \"yaw_deg\": 0})")
+        raise SceneError(
+            f"{where}: has {other} but no {key}; run with --scene-frame "
+            f"{other.split('_')[0]} or add {key}"
+        )
+    raise SceneError(
+        f'{where}: needs a pose ("{key}": 4x4 row-major) or an "anchor" '
+        '({"pixel": [u, v] or null, "yaw_deg": 0})'
+    )
 
 
 def _material(entry: dict, where: str) -> Material:
     """The object's Material from "material" and/or a top-level "albedo_rgb"."""
     spec = entry.get("material", {})
     if not isinstance(spec, dict):
-        raise SceneError(f"{where}: \"material\" must be an object with keys "
-                         f"{', '.join(MATERIAL_KEYS)}")
+        raise SceneError(
+            f'{where}: "material" must be an object with keys {", ".join(MATERIAL_KEYS)}'
+        )
     _check_keys(spec, MATERIAL_KEYS, f"{where}, material")
     if "albedo" in spec and "albedo_rgb" in entry:
         raise SceneError(f"{where}: give the albedo once (material.albedo or albedo_rgb)")
@@ -272,8 +314,9 @@ def _numbers(value: Any, shape: tuple[int, ...], where: str, field: str) -> np.n
         a = np.array(value, dtype=object)
     except ValueError:
         a = np.array(None)
-    if a.shape != shape or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                   for x in a.flat):
+    if a.shape != shape or not all(
+        isinstance(x, (int, float)) and not isinstance(x, bool) for x in a.flat
+    ):
         raise SceneError(f"{where}: {field} must be {expected}, got {value!r}")
     try:
         out = a.astype(np.float64)
@@ -287,5 +330,6 @@ def _numbers(value: Any, shape: tuple[int, ...], where: str, field: str) -> np.n
 def _check_keys(spec: dict, valid: tuple[str, ...], where: str) -> None:
     unknown = sorted(set(spec) - set(valid))
     if unknown:
-        raise SceneError(f"{where}: unknown key(s) {', '.join(unknown)}; valid keys: "
-                         f"{', '.join(valid)}")
+        raise SceneError(
+            f"{where}: unknown key(s) {', '.join(unknown)}; valid keys: {', '.join(valid)}"
+        )

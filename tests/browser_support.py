@@ -33,8 +33,10 @@ def chromium_or_skip() -> str:
         path = shutil.which(name)
         if path:
             return path
-    pytest.skip("no Chromium installed (apt-get install chromium; run-tests.sh does so "
-                "where apt is available): the browser display's page test needs one")
+    pytest.skip(
+        "no Chromium installed (apt-get install chromium; run-tests.sh does so "
+        "where apt is available): the browser display's page test needs one"
+    )
 
 
 class Chromium:
@@ -52,19 +54,36 @@ class Chromium:
             os.dup2(b, 4)
 
         self.process = subprocess.Popen(
-            [executable, "--headless=new", "--no-sandbox", "--disable-gpu",
-             "--no-first-run", "--disable-extensions", "--remote-debugging-pipe",
-             f"--user-data-dir={self._profile.name}",
-             f"--window-size={window[0]},{window[1]}", "about:blank"],
-            preexec_fn=child_fds, close_fds=False, stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            [
+                executable,
+                "--headless=new",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--no-first-run",
+                "--disable-extensions",
+                "--remote-debugging-pipe",
+                f"--user-data-dir={self._profile.name}",
+                f"--window-size={window[0]},{window[1]}",
+                "about:blank",
+            ],
+            preexec_fn=child_fds,
+            close_fds=False,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         os.close(to_read)
         os.close(from_write)
         self._id = 0
         self._buffer = b""
 
-    def call(self, method: str, params: dict | None = None, session: str | None = None,
-             timeout_s: float = 20.0) -> dict:
+    def call(
+        self,
+        method: str,
+        params: dict | None = None,
+        session: str | None = None,
+        timeout_s: float = 20.0,
+    ) -> dict:
         self._id += 1
         message = {"id": self._id, "method": method, "params": params or {}}
         if session is not None:
@@ -92,19 +111,22 @@ class Chromium:
     def open(self, url: str) -> str:
         """Open url in a new tab; the DevTools session id to pass to call()."""
         target = self.call("Target.createTarget", {"url": url})["targetId"]
-        return self.call("Target.attachToTarget", {"targetId": target,
-                                                   "flatten": True})["sessionId"]
+        return self.call("Target.attachToTarget", {"targetId": target, "flatten": True})[
+            "sessionId"
+        ]
 
     def evaluate(self, session: str, expression: str):
         """The JSON value of a JavaScript expression in the tab."""
-        reply = self.call("Runtime.evaluate", {"expression": expression,
-                                               "returnByValue": True}, session)
+        reply = self.call(
+            "Runtime.evaluate", {"expression": expression, "returnByValue": True}, session
+        )
         return reply["result"].get("value")
 
     def screenshot(self, session: str) -> bytes:
         """The tab as a PNG."""
-        return base64.b64decode(self.call("Page.captureScreenshot", {"format": "png"},
-                                          session)["data"])
+        return base64.b64decode(
+            self.call("Page.captureScreenshot", {"format": "png"}, session)["data"]
+        )
 
     def close(self) -> None:
         try:

@@ -30,8 +30,13 @@ STEP_TIMEOUT_S = 60.0
 def server_options(**overrides) -> ServerOptions:
     """Options of a loopback test server. Session tokens are off (these tests are about other
     things and speak for several clients at once); tests/test_security.py turns them on."""
-    base = dict(bind="tcp://127.0.0.1:*", heartbeat_interval_s=HEARTBEAT_S, log_interval_s=60.0,
-                shutdown_grace_s=5.0, session_tokens=False)
+    base = dict(
+        bind="tcp://127.0.0.1:*",
+        heartbeat_interval_s=HEARTBEAT_S,
+        log_interval_s=60.0,
+        shutdown_grace_s=5.0,
+        session_tokens=False,
+    )
     base.update(overrides)
     return ServerOptions(**base)
 
@@ -46,17 +51,29 @@ def identity_step(delay_s: float = 0.0):
         sh = np.zeros(16)
         sh[0] = float(np.asarray(frame.color, dtype=np.float64).mean())
         pose = np.eye(4) if frame.pose is None else np.asarray(frame.pose)
-        return FrameResult(timestamp=frame.timestamp, sh=sh, sh_camera=sh,
-                           dominant_direction_world=np.zeros(3),
-                           dominant_direction_camera=np.zeros(3),
-                           intensity=float(depth_metres(frame.depth, frame.depth_scale).mean()),
-                           confidence=Confidence(), pose=pose, timings_ms={"Identity": 0.0})
+        return FrameResult(
+            timestamp=frame.timestamp,
+            sh=sh,
+            sh_camera=sh,
+            dominant_direction_world=np.zeros(3),
+            dominant_direction_camera=np.zeros(3),
+            intensity=float(depth_metres(frame.depth, frame.depth_scale).mean()),
+            confidence=Confidence(),
+            pose=pose,
+            timings_ms={"Identity": 0.0},
+        )
 
     return step
 
 
-def flat_source(num_frames: int, width: int = 64, height: int = 48, base: int = 10,
-                name: str = "flat", noise: bool = False) -> Source:
+def flat_source(
+    num_frames: int,
+    width: int = 64,
+    height: int = 48,
+    base: int = 10,
+    name: str = "flat",
+    noise: bool = False,
+) -> Source:
     """Frames of one flat colour each (value base + i, wrapping at 256) and depth 1.5 m;
     noise=True: random colour instead (large after compression)."""
     camera = PinholeCamera.kinect_v1(width, height)
@@ -64,8 +81,11 @@ def flat_source(num_frames: int, width: int = 64, height: int = 48, base: int = 
     def frames():
         rng = np.random.default_rng(0)
         for i in range(num_frames):
-            color = np.full((height, width, 3), (base + i) % 256, np.uint8) if not noise else \
-                rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+            color = (
+                np.full((height, width, 3), (base + i) % 256, np.uint8)
+                if not noise
+                else rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+            )
             depth = np.full((height, width), 7500, np.uint16)
             yield SourceFrame(timestamp=1000.0 + i / 30.0, color=color, depth=depth)
 
@@ -170,13 +190,32 @@ class RawPeer:
         """The next message other than a Heartbeat, as received (undecoded parts)."""
         return self._receive_parts(timeout_s, skip_heartbeats=True)[0]
 
-    def hello(self, session: str, mode: str = "lossless", role: str = "capture",
-              width: int = 64, height: int = 48, timeout_s: float = 10.0, **config):
-        calibration = calibration_of(PinholeCamera.kinect_v1(width, height)) \
-            if role == "capture" else None
-        self.send_message(Hello(PROTOCOL_VERSION, SessionConfig(
-            session=session, role=role, calibration=calibration, depth_scale=5000.0,
-            mode=mode, **config)))
+    def hello(
+        self,
+        session: str,
+        mode: str = "lossless",
+        role: str = "capture",
+        width: int = 64,
+        height: int = 48,
+        timeout_s: float = 10.0,
+        **config,
+    ):
+        calibration = (
+            calibration_of(PinholeCamera.kinect_v1(width, height)) if role == "capture" else None
+        )
+        self.send_message(
+            Hello(
+                PROTOCOL_VERSION,
+                SessionConfig(
+                    session=session,
+                    role=role,
+                    calibration=calibration,
+                    depth_scale=5000.0,
+                    mode=mode,
+                    **config,
+                ),
+            )
+        )
         return self.receive(timeout_s)
 
     def keep_alive(self, interval_s: float = 0.1) -> threading.Event:

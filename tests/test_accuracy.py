@@ -30,8 +30,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.data, needs_data(SYNTHETIC)]
 def test_angular_error_does_not_regress(preset):
     sequences = sorted(p for p in SYNTHETIC.iterdir() if (p / "lighting_gt.json").is_file())
     assert len(sequences) == 15
-    errors = [evaluate_sequence(folder, Config.from_preset(preset), FRAMES)
-              for folder in sequences]
+    errors = [evaluate_sequence(folder, Config.from_preset(preset), FRAMES) for folder in sequences]
     every = np.concatenate(errors)
     assert np.all(np.isfinite(every))
     median_of_medians = float(np.median([np.median(e) for e in errors]))

@@ -14,8 +14,14 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 # folder -> subpackage name, as pyproject's package-dir maps them
-FOLDERS = {"pipeline": "pipeline", "protocols": "protocols", "sources": "sources",
-           "client": "client", "server": "server", "arlight": "arlight"}
+FOLDERS = {
+    "pipeline": "pipeline",
+    "protocols": "protocols",
+    "sources": "sources",
+    "client": "client",
+    "server": "server",
+    "arlight": "arlight",
+}
 
 # package -> the arlight packages it may import. The lowest layer is a module of arlight/
 # each: "checks" = arlight.checks (the edge checks), "contracts" = arlight.contracts (the
@@ -28,8 +34,17 @@ ALLOWED = {
     "sources": {"checks", "contracts", "pipeline", "protocols", "version"},
     "server": {"checks", "contracts", "pipeline", "protocols", "version"},
     "client": {"checks", "contracts", "pipeline", "protocols", "sources", "version"},
-    "arlight": {"checks", "contracts", "pipeline", "protocols", "sources", "server", "client",
-                "version", "arlight"},
+    "arlight": {
+        "checks",
+        "contracts",
+        "pipeline",
+        "protocols",
+        "sources",
+        "server",
+        "client",
+        "version",
+        "arlight",
+    },
 }
 LOWEST = ("checks", "contracts")  # the modules of arlight/ that are layers of their own
 
@@ -77,16 +92,20 @@ def test_imports_follow_the_package_table(path: Path):
     package = _package_of(path)
     imported = _imported_packages(path) - {package}
     forbidden = imported - ALLOWED[package]
-    assert not forbidden, (f"{path.relative_to(ROOT)} ({package}) imports {sorted(forbidden)}; "
-                           f"allowed: {sorted(ALLOWED[package])}")
+    assert not forbidden, (
+        f"{path.relative_to(ROOT)} ({package}) imports {sorted(forbidden)}; "
+        f"allowed: {sorted(ALLOWED[package])}"
+    )
 
 
 def _top_modules(path: Path) -> set[str]:
     tree = ast.parse(path.read_text())
-    modules = {a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import)
-               for a in n.names}
-    modules |= {n.module.split(".")[0] for n in ast.walk(tree)
-                if isinstance(n, ast.ImportFrom) and n.module}
+    modules = {
+        a.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names
+    }
+    modules |= {
+        n.module.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module
+    }
     return modules
 
 
@@ -102,8 +121,11 @@ def test_contracts_module_needs_nothing_but_the_standard_library():
 
 def test_package_table_has_no_cycles():
     def reaches(a: str, b: str, seen: frozenset = frozenset()) -> bool:
-        return any(n == b or (n not in seen and reaches(n, b, seen | {n}))
-                   for n in ALLOWED.get(a, ()) if n != "version")
+        return any(
+            n == b or (n not in seen and reaches(n, b, seen | {n}))
+            for n in ALLOWED.get(a, ())
+            if n != "version"
+        )
 
     for package in ALLOWED:
         if package == "arlight":

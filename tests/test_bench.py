@@ -28,7 +28,8 @@ class TestMetrics:
 
     def test_sh_error_is_free_of_scale_and_bounded_by_nothing(self):
         truth = sh.directional_light(np.array([0.0, 1.0, 0.0]), 2.0, 4) + 0.3 * sh.sh_basis(
-            np.array([1.0, 0.0, 0.0]), 4)
+            np.array([1.0, 0.0, 0.0]), 4
+        )
         assert evaluation.sh_error(5.0 * truth, truth) == pytest.approx(0.0, abs=1e-12)
         assert evaluation.sh_error(np.zeros(16), truth) == pytest.approx(1.0)
         other = sh.directional_light(np.array([1.0, 0.0, 0.0]), 1.0, 4)
@@ -48,8 +49,7 @@ class TestMetrics:
         scene = make_sequence(num_frames=2, width=32, height=24)
         truth = evaluation.scene_truth(scene)
         assert len(truth) == 2
-        for t, frame, cam in zip(truth, scene.frames, scene.dominant_direction_camera,
-                                 strict=True):
+        for t, frame, cam in zip(truth, scene.frames, scene.dominant_direction_camera, strict=True):
             np.testing.assert_allclose(t.dominant_camera, cam, atol=1e-9)
             # the upper hemisphere holds the sun and most of the sky: close to the whole
             assert evaluation.angular_error_deg(t.dominant_upper_camera, cam) < 15.0
@@ -61,8 +61,12 @@ class TestMetrics:
         data = json.loads((SEQUENCE / "lighting_gt.json").read_text())["frames"][0]
         t = evaluation.load_ground_truth(SEQUENCE)[0]
         # the upper SH, in our basis (phase removed), points where the file says it does
-        assert evaluation.angular_error_deg(sh.dominant_direction(t.sh_upper_world),
-                                            data["dominant_dir_upper_world"]) < 0.5
+        assert (
+            evaluation.angular_error_deg(
+                sh.dominant_direction(t.sh_upper_world), data["dominant_dir_upper_world"]
+            )
+            < 0.5
+        )
         np.testing.assert_allclose(t.dominant_upper_camera, data["dominant_dir_upper_camera"])
 
 
@@ -72,16 +76,25 @@ class TestSweeps:
         assert parse_sweep("denoise=on,off") == ("denoise", [True, False])
         assert parse_sweep("size=160x120,320x240") == ("size", [(160, 120), (320, 240)])
 
-    @pytest.mark.parametrize("text", ["rt_directions", "bogus=1,2", "rt_directions=a,b",
-                                      "size=4x4", "sh_bands="])
+    @pytest.mark.parametrize(
+        "text", ["rt_directions", "bogus=1,2", "rt_directions=a,b", "size=4x4", "sh_bands="]
+    )
     def test_bad_sweeps(self, text):
         with pytest.raises(BenchError, match="--sweep"):
             parse_sweep(text)
 
 
 def test_report_of_the_built_in_scene(tmp_path):
-    report = run_benchmark(["synthetic"], ["fast", "baseline"], [parse_sweep("sh_bands=2,3")],
-                           frames=2, warmup=1, overrides={}, progress=False, size=(80, 60))
+    report = run_benchmark(
+        ["synthetic"],
+        ["fast", "baseline"],
+        [parse_sweep("sh_bands=2,3")],
+        frames=2,
+        warmup=1,
+        overrides={},
+        progress=False,
+        size=(80, 60),
+    )
     names = list(report["configs"])
     assert names == ["fast", "baseline", "fast sh_bands=2", "fast sh_bands=3"]
     for name, c in report["configs"].items():
@@ -94,8 +107,10 @@ def test_report_of_the_built_in_scene(tmp_path):
     assert report["configs"]["fast sh_bands=2"]["value"] == 2
     paths = write_report(report, tmp_path / "r")
     assert sorted(p.name for p in paths) == ["report.json", "report.md", "trade.png"]
-    assert json.loads((tmp_path / "r" / "report.json").read_text())["configs"].keys() == \
-        report["configs"].keys()
+    assert (
+        json.loads((tmp_path / "r" / "report.json").read_text())["configs"].keys()
+        == report["configs"].keys()
+    )
     text = markdown(report)
     assert "| RadTransfer |" in text and "| fast sh_bands=3 |" in text
 
@@ -103,12 +118,19 @@ def test_report_of_the_built_in_scene(tmp_path):
 def test_a_held_camera_reports_its_reuse():
     """synthetic-held: the reuse of a still camera's work shows in the report's "What the
     scenes required" table, and not without reuse."""
-    report = run_benchmark(["synthetic-held"], ["fast"], [parse_sweep("still_reuse_frames=0")],
-                           frames=3, warmup=1, overrides={}, progress=False, size=(160, 120))
+    report = run_benchmark(
+        ["synthetic-held"],
+        ["fast"],
+        [parse_sweep("still_reuse_frames=0")],
+        frames=3,
+        warmup=1,
+        overrides={},
+        progress=False,
+        size=(160, 120),
+    )
     reused = report["configs"]["fast"]["model"]["reused_share"]
     assert reused["Surface"] >= 0.5 and reused["RadTransfer"] >= 0.5  # 1 of 4 does the work
-    assert not any(report["configs"]["fast still_reuse_frames=0"]["model"]["reused_share"]
-                   .values())
+    assert not any(report["configs"]["fast still_reuse_frames=0"]["model"]["reused_share"].values())
     model = report["configs"]["fast"]["model"]
     bands = model["bands_estimated_frames"]  # at 160 x 120 fewer normals: often 2
     assert sum(bands.values()) == 4 and set(bands) <= {"1", "2", "3", "4"}
@@ -118,8 +140,9 @@ def test_a_held_camera_reports_its_reuse():
 
 @needs_data(SEQUENCE)
 def test_report_of_a_ground_truth_sequence():
-    report = run_benchmark([str(SEQUENCE)], ["fast"], [], frames=2, warmup=1, overrides={},
-                           progress=False)
+    report = run_benchmark(
+        [str(SEQUENCE)], ["fast"], [], frames=2, warmup=1, overrides={}, progress=False
+    )
     acc = report["configs"]["fast"]["accuracy"]
     assert list(acc["sequences"]) == ["dev_a_static_venice"]
     assert acc["sequences"]["dev_a_static_venice"]["frames"] == 2
@@ -130,5 +153,12 @@ def test_report_of_a_ground_truth_sequence():
 
 def test_size_sweep_needs_the_built_in_scene(tmp_path):
     with pytest.raises(BenchError, match="built-in scene"):
-        run_benchmark([str(tmp_path)], ["fast"], [parse_sweep("size=64x48")], frames=1,
-                      warmup=0, overrides={}, progress=False)
+        run_benchmark(
+            [str(tmp_path)],
+            ["fast"],
+            [parse_sweep("size=64x48")],
+            frames=1,
+            warmup=0,
+            overrides={},
+            progress=False,
+        )

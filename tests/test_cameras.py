@@ -47,8 +47,9 @@ def _has(module: str) -> bool:
 
 
 def _run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
-    return subprocess.run([*ARLIGHT, *args], capture_output=True, text=True, timeout=timeout,
-                          cwd=ROOT, env=ENV)
+    return subprocess.run(
+        [*ARLIGHT, *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT, env=ENV
+    )
 
 
 # --------------------------------------------------------------------------- the spec
@@ -58,8 +59,9 @@ class TestParseCameraSpec:
     def test_names_and_devices(self):
         assert parse_camera_spec("depthai") == CameraSpec("depthai")
         assert parse_camera_spec("depthai:14442C10D13EABCE00").device == "14442C10D13EABCE00"
-        assert parse_camera_spec("realsense:817612070540", (848, 480), 15.0) == \
-            CameraSpec("realsense", "817612070540", (848, 480), 15.0)
+        assert parse_camera_spec("realsense:817612070540", (848, 480), 15.0) == CameraSpec(
+            "realsense", "817612070540", (848, 480), 15.0
+        )
         assert parse_camera_spec("openni2:Dummy").device == "Dummy"
 
     def test_oni_file_is_openni2(self):
@@ -100,8 +102,10 @@ class TestPinholeFromFov:
 
 
 class TestDepthUnits:
-    @pytest.mark.parametrize("unit, scale", [(0.001, 1000.0), (0.0001, 10000.0),
-                                             (0.00025, 4000.0), (0.0010000000474974513, 1000.0)])
+    @pytest.mark.parametrize(
+        "unit, scale",
+        [(0.001, 1000.0), (0.0001, 10000.0), (0.00025, 4000.0), (0.0010000000474974513, 1000.0)],
+    )
     def test_units_per_metre(self, unit, scale):
         assert depth_units_per_metre(unit) == scale
 
@@ -158,16 +162,27 @@ class TestCameraFrames:
                 raise RuntimeError("X_LINK_ERROR: device disconnected")
             return value
 
-        frames = list(camera_frames(spec, read, lambda: closed.append(1), (RuntimeError,),
-                                    None, FrameCounter()))
+        frames = list(
+            camera_frames(
+                spec, read, lambda: closed.append(1), (RuntimeError,), None, FrameCounter()
+            )
+        )
         assert frames == [1, 2, 3] and closed == [1]
         assert "camera lost after 3 frame(s)" in caplog.text
         assert "X_LINK_ERROR" in caplog.text and "frames already sent are delivered" in caplog.text
 
     def test_max_frames_and_close(self):
         closed = []
-        out = list(camera_frames(CameraSpec("realsense"), lambda: "f", lambda: closed.append(1),
-                                 (RuntimeError,), 2, FrameCounter()))
+        out = list(
+            camera_frames(
+                CameraSpec("realsense"),
+                lambda: "f",
+                lambda: closed.append(1),
+                (RuntimeError,),
+                2,
+                FrameCounter(),
+            )
+        )
         assert out == ["f", "f"] and closed == [1]
 
     def test_other_errors_are_not_swallowed(self):
@@ -175,16 +190,18 @@ class TestCameraFrames:
             raise ValueError("a bug")
 
         with pytest.raises(ValueError, match="a bug"):
-            list(camera_frames(CameraSpec("openni2"), read, lambda: None, (RuntimeError,),
-                               None, FrameCounter()))
+            list(
+                camera_frames(
+                    CameraSpec("openni2"), read, lambda: None, (RuntimeError,), None, FrameCounter()
+                )
+            )
 
     def test_skipped_frames_are_counted_and_reported(self, caplog):
         counter = FrameCounter()
         for seq in (5, 6, 9, 10, 14):
             counter.see(seq)
         assert counter.skipped == 5
-        list(camera_frames(CameraSpec("depthai"), lambda: None, lambda: None, (), None,
-                           counter))
+        list(camera_frames(CameraSpec("depthai"), lambda: None, lambda: None, (), None, counter))
         assert "5 camera frame(s) were skipped" in caplog.text
 
 
@@ -205,22 +222,33 @@ def test_device_lost_mid_stream_delivers_every_frame_sent(caplog):
     def read():
         i = next(sent, None)
         if i is None:
-            raise RuntimeError("Communication exception - possible device error/misconfiguration"
-                               ". Original message 'Couldn't read data from stream: X_LINK_ERROR'")
-        return SourceFrame(1000.0 + i / 30, np.full((48, 64, 3), 10 + i, np.uint8),
-                           np.full((48, 64), 1500, np.uint16))
+            raise RuntimeError(
+                "Communication exception - possible device error/misconfiguration"
+                ". Original message 'Couldn't read data from stream: X_LINK_ERROR'"
+            )
+        return SourceFrame(
+            1000.0 + i / 30,
+            np.full((48, 64, 3), 10 + i, np.uint8),
+            np.full((48, 64), 1500, np.uint16),
+        )
 
     counter = FrameCounter()
-    source = Source("oak-test", CameraCalibration(64, 48, 60.0, 60.0, 32.0, 24.0), 1000.0, 0,
-                    lambda: camera_frames(spec, read, lambda: closed.append(1),
-                                          (RuntimeError,), None, counter))
+    source = Source(
+        "oak-test",
+        CameraCalibration(64, 48, 60.0, 60.0, 32.0, 24.0),
+        1000.0,
+        0,
+        lambda: camera_frames(spec, read, lambda: closed.append(1), (RuntimeError,), None, counter),
+    )
     server = Server(server_options(), process=identity_step(delay_s=0.05)).start()
     try:
         results = []
-        options = StreamOptions(server=server.connect_address, session="lost",
-                                mode="lossless", rate="max")
-        summary = run_with_timeout(CaptureClient(
-            source, options, on_result=lambda r, t: results.append(r)).run)
+        options = StreamOptions(
+            server=server.connect_address, session="lost", mode="lossless", rate="max"
+        )
+        summary = run_with_timeout(
+            CaptureClient(source, options, on_result=lambda r, t: results.append(r)).run
+        )
     finally:
         server.stop(timeout=15)
     assert summary.frames_sent == 5 and summary.results == 5 and summary.errors == []
@@ -261,6 +289,7 @@ def test_broken_library_says_why(monkeypatch):
 
 # --------------------------------------------------------------------------- OpenNI2
 
+
 def _openni_importable() -> bool:
     try:
         import_library("openni2")
@@ -270,8 +299,9 @@ def _openni_importable() -> bool:
 
 
 needs_openni = pytest.mark.skipif(
-    not _openni_importable(), reason="the OpenNI2 binding: pip install 'arlight[openni2]' "
-                                     "(Python 3.10-3.12)")
+    not _openni_importable(),
+    reason="the OpenNI2 binding: pip install 'arlight[openni2]' (Python 3.10-3.12)",
+)
 
 
 def _runtime():
@@ -283,8 +313,9 @@ def _runtime():
 
 
 needs_runtime = pytest.mark.skipif(
-    _runtime() is None, reason="the OpenNI2 runtime: apt-get install libopenni2-0 and pip "
-                               "install 'arlight[openni2]'")
+    _runtime() is None,
+    reason="the OpenNI2 runtime: apt-get install libopenni2-0 and pip install 'arlight[openni2]'",
+)
 
 
 class TestOpenNI2Conversion:
@@ -335,9 +366,11 @@ class TestOpenNI2Modes:
         from openni import _openni2 as c_api
 
         fmt = c_api.OniPixelFormat
-        return [c_api.OniVideoMode(fmt.ONI_PIXEL_FORMAT_DEPTH_1_MM, 320, 240, 30),
-                c_api.OniVideoMode(fmt.ONI_PIXEL_FORMAT_DEPTH_100_UM, 640, 480, 30),
-                c_api.OniVideoMode(fmt.ONI_PIXEL_FORMAT_DEPTH_1_MM, 640, 480, 30)]
+        return [
+            c_api.OniVideoMode(fmt.ONI_PIXEL_FORMAT_DEPTH_1_MM, 320, 240, 30),
+            c_api.OniVideoMode(fmt.ONI_PIXEL_FORMAT_DEPTH_100_UM, 640, 480, 30),
+            c_api.OniVideoMode(fmt.ONI_PIXEL_FORMAT_DEPTH_1_MM, 640, 480, 30),
+        ]
 
     def test_chooses_size_rate_and_preferred_format(self):
         from arlight.sources.openni2_camera import DEPTH_FORMATS, choose_mode
@@ -350,8 +383,14 @@ class TestOpenNI2Modes:
         from arlight.sources.openni2_camera import DEPTH_FORMATS, choose_mode
 
         with pytest.raises(CameraError) as err:
-            choose_mode(self._modes(), (1280, 720), 30.0, tuple(DEPTH_FORMATS), "depth",
-                        "openni2:1d27/0601@1/5")
+            choose_mode(
+                self._modes(),
+                (1280, 720),
+                30.0,
+                tuple(DEPTH_FORMATS),
+                "depth",
+                "openni2:1d27/0601@1/5",
+            )
         text = str(err.value)
         assert "SOURCE openni2:1d27/0601@1/5" in text and "320x240@30 DEPTH_1_MM" in text
         assert "--size WxH" in text and "--fps F" in text
@@ -361,6 +400,7 @@ class TestOpenNI2Modes:
 class TestOpenNI2Runtime:
     def test_initialise_and_enumerate(self):
         from arlight.sources.openni2_camera import initialize
+
         openni2 = initialize()
         assert openni2.is_initialized()
         assert openni2.get_version().major == 2
@@ -379,8 +419,20 @@ class TestOpenNI2Runtime:
         from arlight.sources.recording import Recording
 
         out = tmp_path / "dummy.mcap"
-        run = _run("record", "openni2:Dummy", "--size", "320x240", "--max-frames", "4",
-                   "--mode", "lossless", "--depth-codec", "zstd", "--out", str(out))
+        run = _run(
+            "record",
+            "openni2:Dummy",
+            "--size",
+            "320x240",
+            "--max-frames",
+            "4",
+            "--mode",
+            "lossless",
+            "--depth-codec",
+            "zstd",
+            "--out",
+            str(out),
+        )
         assert run.returncode == 0, run.stderr
         # what the dummy driver cannot do is said, not hidden
         assert "cannot register depth to colour" in run.stderr
@@ -437,8 +489,14 @@ print(json.dumps([source.name, c.width, c.height, c.cx, source.depth_scale,
                   source.num_frames, source.notes]))
 """
         for script in (make, read):
-            run = subprocess.run([sys.executable, "-c", script], capture_output=True,
-                                 text=True, timeout=60, cwd=ROOT, env=ENV)
+            run = subprocess.run(
+                [sys.executable, "-c", script],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                cwd=ROOT,
+                env=ENV,
+            )
             assert run.returncode == 0, run.stderr
         name, width, height, cx, scale, n, notes = json.loads(run.stdout.splitlines()[-1])
         assert (name, width, height, cx, scale) == ("dummy", 320, 240, 160.0, 1000.0)
@@ -458,8 +516,20 @@ print(json.dumps([source.name, c.width, c.height, c.cx, source.depth_scale,
 
         server = Server(server_options(), process=identity_step()).start()
         try:
-            run = _run("stream", "openni2:Dummy", "--size", "320x240", "--max-frames", "3",
-                       "--mode", mode, "--server", server.connect_address, "--out", "-")
+            run = _run(
+                "stream",
+                "openni2:Dummy",
+                "--size",
+                "320x240",
+                "--max-frames",
+                "3",
+                "--mode",
+                mode,
+                "--server",
+                server.connect_address,
+                "--out",
+                "-",
+            )
         finally:
             server.stop(timeout=15)
         assert run.returncode == 0, run.stderr
@@ -491,8 +561,9 @@ print(json.dumps([source.name, c.width, c.height, c.cx, source.depth_scale,
 
 # --------------------------------------------------------------------------- depthai
 
-needs_depthai = pytest.mark.skipif(not _has("depthai"),
-                                   reason="depthai: pip install 'arlight[depthai]'")
+needs_depthai = pytest.mark.skipif(
+    not _has("depthai"), reason="depthai: pip install 'arlight[depthai]'"
+)
 
 
 def _depthai_devices() -> list:
@@ -512,8 +583,10 @@ class TestDepthai:
 
         rgb = np.zeros((4, 6, 3), np.uint8)
         rgb[..., 0] = 200  # red
-        for kind, data in ((dai.ImgFrame.Type.RGB888i, rgb),
-                           (dai.ImgFrame.Type.BGR888i, rgb[..., ::-1])):
+        for kind, data in (
+            (dai.ImgFrame.Type.RGB888i, rgb),
+            (dai.ImgFrame.Type.BGR888i, rgb[..., ::-1]),
+        ):
             frame = dai.ImgFrame()
             frame.setType(kind)
             frame.setWidth(6)
@@ -560,8 +633,11 @@ class TestDepthai:
         frame = dai.ImgFrame()
         frame.setTransformation(dai.ImgTransformation(640, 480, k))
         assert distortion_notes(frame) == []
-        frame.setTransformation(dai.ImgTransformation(
-            640, 480, k, dai.CameraModel.Perspective, [-0.12, 0.05] + [0.0] * 12))
+        frame.setTransformation(
+            dai.ImgTransformation(
+                640, 480, k, dai.CameraModel.Perspective, [-0.12, 0.05] + [0.0] * 12
+            )
+        )
         assert "lens distortion (-0.12, 0.05" in distortion_notes(frame)[0]
 
     def test_imu_extrinsics_from_the_calibration(self):
@@ -574,11 +650,12 @@ class TestDepthai:
         calibration.setImuExtrinsics(dai.CameraBoardSocket.CAM_A, rotation, [1.0, 2.0, 0.0])
         # no data for the camera yet: the IMU is linked to nothing, so no gravity
         assert camera_from_imu(calibration, dai.CameraBoardSocket.CAM_A) is None
-        calibration.setCameraIntrinsics(dai.CameraBoardSocket.CAM_A,
-                                        [[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]],
-                                        1920, 1080)
-        np.testing.assert_allclose(camera_from_imu(calibration, dai.CameraBoardSocket.CAM_A),
-                                   rotation)
+        calibration.setCameraIntrinsics(
+            dai.CameraBoardSocket.CAM_A, [[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]], 1920, 1080
+        )
+        np.testing.assert_allclose(
+            camera_from_imu(calibration, dai.CameraBoardSocket.CAM_A), rotation
+        )
 
     def test_reader_over_a_depthai_queue_then_the_queue_closes(self, caplog):
         """The read path over depthai's own MessageQueue of Sync MessageGroups, as the device
@@ -606,8 +683,14 @@ class TestDepthai:
             queue.send(group)
         counter, closed = FrameCounter(), []
         read = rgbd_reader(dai, queue, counter, wall_offset_s=1.7e9)
-        frames = camera_frames(CameraSpec("depthai", "X"), read, lambda: closed.append(1),
-                               lost_errors(dai), None, counter)
+        frames = camera_frames(
+            CameraSpec("depthai", "X"),
+            read,
+            lambda: closed.append(1),
+            lost_errors(dai),
+            None,
+            counter,
+        )
         got = [next(frames) for _ in range(3)]
         assert [int(f.color[0, 0, 0]) for f in got] == [3, 4, 6]
         assert [int(f.depth[1, 3]) for f in got] == [1003, 1004, 1006]
@@ -679,8 +762,9 @@ class TestDepthai:
 
 # --------------------------------------------------------------------------- RealSense
 
-needs_realsense = pytest.mark.skipif(not _has("pyrealsense2"),
-                                     reason="pyrealsense2: pip install 'arlight[realsense]'")
+needs_realsense = pytest.mark.skipif(
+    not _has("pyrealsense2"), reason="pyrealsense2: pip install 'arlight[realsense]'"
+)
 
 
 def _realsense_devices() -> int:
@@ -704,13 +788,15 @@ class TestRealSense:
         intrinsics.model = rs.distortion.inverse_brown_conrady
         intrinsics.coeffs = [0.0] * 5
         calibration, notes = calibration_from_intrinsics(intrinsics)
-        assert (calibration.fx, calibration.fy, calibration.cx, calibration.cy) == \
-            pytest.approx((615.2, 615.9, 318.4, 241.7))
+        assert (calibration.fx, calibration.fy, calibration.cx, calibration.cy) == pytest.approx(
+            (615.2, 615.9, 318.4, 241.7)
+        )
         assert notes == []
         # the library's own projection agrees with the pinhole the wire carries
         u, v = rs.rs2_project_point_to_pixel(intrinsics, [0.1, -0.2, 1.5])
-        assert (u, v) == pytest.approx((615.2 * 0.1 / 1.5 + 318.4, -615.9 * 0.2 / 1.5 + 241.7),
-                                       abs=1e-3)
+        assert (u, v) == pytest.approx(
+            (615.2 * 0.1 / 1.5 + 318.4, -615.9 * 0.2 / 1.5 + 241.7), abs=1e-3
+        )
         intrinsics.coeffs = [0.1, 0.0, 0.0, 0.0, 0.0]
         assert "distortion" in calibration_from_intrinsics(intrinsics)[1][0]
 
@@ -738,9 +824,11 @@ class TestRealSense:
         device = rs.software_device()
         depth_sensor, color_sensor = device.add_sensor("Depth"), device.add_sensor("Color")
         depth_profile = depth_sensor.add_video_stream(
-            stream(rs.stream.depth, 0, 8, 6, rs.format.z16, 2, 8.0))
+            stream(rs.stream.depth, 0, 8, 6, rs.format.z16, 2, 8.0)
+        )
         color_profile = color_sensor.add_video_stream(
-            stream(rs.stream.color, 1, 16, 12, rs.format.rgb8, 3, 16.0))
+            stream(rs.stream.color, 1, 16, 12, rs.format.rgb8, 3, 16.0)
+        )
         same_place = rs.extrinsics()
         same_place.rotation, same_place.translation = [1, 0, 0, 0, 1, 0, 0, 0, 1], [0, 0, 0]
         depth_profile.register_extrinsics_to(color_profile, same_place)
@@ -764,8 +852,9 @@ class TestRealSense:
         color[..., 1] = 200
         for number in (0, 1, 3):
             for sensor, profile, pixels, bpp, width in (
-                    (depth_sensor, depth_profile, depth, 2, 8),
-                    (color_sensor, color_profile, color, 3, 16)):
+                (depth_sensor, depth_profile, depth, 2, 8),
+                (color_sensor, color_profile, color, 3, 16),
+            ):
                 f = rs.software_video_frame()
                 f.pixels, f.bpp, f.stride = pixels, bpp, bpp * width
                 f.timestamp, f.domain = 5000.0 + 33.0 * number, rs.timestamp_domain.hardware_clock
@@ -786,8 +875,16 @@ class TestRealSense:
         # arrive faster than their stamps: the fixed clock keeps their spacing
         counter, clock, closed = FrameCounter(), DeviceClock(live=False), []
         read = rgbd_reader(rs, wait, counter, clock)
-        got = list(camera_frames(CameraSpec("realsense", "SW"), read,
-                                 lambda: closed.append(1), (RuntimeError,), None, counter))
+        got = list(
+            camera_frames(
+                CameraSpec("realsense", "SW"),
+                read,
+                lambda: closed.append(1),
+                (RuntimeError,),
+                None,
+                counter,
+            )
+        )
         for sensor in (depth_sensor, color_sensor):
             sensor.stop()
             sensor.close()

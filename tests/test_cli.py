@@ -59,11 +59,31 @@ BAD_INPUT = [
     (["estimate", "--set", "change_reset_deg=200"], "change_reset_deg must be in (0, 180]"),
     (["estimate", "/no/such/folder"], "no such file"),
     (["estimate", "{d}/noise_color.png", "--depth", "{d}/noise_depth.png"], "not an image"),
-    (["estimate", "{d}/shot_color.png", "--depth", "{d}/noise_depth.png",
-      "--depth-encoding", "tum"], "not an image"),
+    (
+        [
+            "estimate",
+            "{d}/shot_color.png",
+            "--depth",
+            "{d}/noise_depth.png",
+            "--depth-encoding",
+            "tum",
+        ],
+        "not an image",
+    ),
     (["estimate", "{d}/shot_color.png", "--depth", "{d}/shot_depth.png"], "--depth-encoding"),
-    (["estimate", "{d}/shot_color.png", "--depth", "{d}/shot_depth.png",
-      "--depth-encoding", "mm", "--poses", "groundtruth"], "--poses"),
+    (
+        [
+            "estimate",
+            "{d}/shot_color.png",
+            "--depth",
+            "{d}/shot_depth.png",
+            "--depth-encoding",
+            "mm",
+            "--poses",
+            "groundtruth",
+        ],
+        "--poses",
+    ),
     (["--open3d-threads", "0", "estimate"], "--open3d-threads"),
     (["stream", "synthetic", "--size", "100000x100000"], "--size"),
     (["stream", "synthetic", "--size", "4x4"], "--size"),
@@ -73,14 +93,17 @@ BAD_INPUT = [
     (["record", "synthetic", "--out", "{d}/stream.txt"], "--out"),
     (["serve", "--bind", "5555"], "--bind"),
     (["serve", "--workers", "0"], "--workers"),
-    (["display", "--server", "tcp://127.0.0.1:1", "--session", "x", "--video", "{d}/v.avi"],
-     "--video"),
+    (
+        ["display", "--server", "tcp://127.0.0.1:1", "--session", "x", "--video", "{d}/v.avi"],
+        "--video",
+    ),
     (["demo", "--frames", "0"], "--frames"),
 ]
 
 
-@pytest.mark.parametrize("argv, names", BAD_INPUT, ids=lambda v: " ".join(v)
-                         if isinstance(v, list) else None)
+@pytest.mark.parametrize(
+    "argv, names", BAD_INPUT, ids=lambda v: " ".join(v) if isinstance(v, list) else None
+)
 def test_bad_input_names_the_flag(argv, names, files, capsys):
     code, text = run_cli([a.format(d=files) for a in argv], capsys)
     assert "Traceback" not in text, text
@@ -109,8 +132,9 @@ def test_a_session_asking_for_cuda_is_refused_at_hello():
 
 def test_tiny_demo_runs_and_reports_what_it_could_not_measure(tmp_path, capsys):
     """16x12 frames give no estimate: the summary says '-' instead of failing to format."""
-    code, text = run_cli(["demo", "--size", "16x12", "--frames", "2", "--out",
-                          str(tmp_path / "out")], capsys)
+    code, text = run_cli(
+        ["demo", "--size", "16x12", "--frames", "2", "--out", str(tmp_path / "out")], capsys
+    )
     assert "Traceback" not in text, text
     assert code == 0, text
     assert "2/2 results" in text and "error median - deg" in text, text
@@ -118,8 +142,11 @@ def test_tiny_demo_runs_and_reports_what_it_could_not_measure(tmp_path, capsys):
 
 def test_no_traceback_as_a_process():
     """The installed entry point as a user runs it (a fresh interpreter, real stderr)."""
-    run = subprocess.run([sys.executable, "-m", "arlight.cli", "bench", "--frames", "0"],
-                         capture_output=True, text=True)
+    run = subprocess.run(
+        [sys.executable, "-m", "arlight.cli", "bench", "--frames", "0"],
+        capture_output=True,
+        text=True,
+    )
     assert run.returncode == EXIT_BAD_INPUT
     assert "Traceback" not in run.stderr and "--frames" in run.stderr, run.stderr
 
@@ -127,8 +154,9 @@ def test_no_traceback_as_a_process():
 def test_estimate_on_the_built_in_scene_compares_in_the_camera_frame(capsys):
     """Tracking's world is the first camera, the scene's is its own: compared in the camera
     frame both share, the error is the estimator's, not the frames' (80 deg)."""
-    code, text = run_cli(["--open3d-threads", "1", "estimate", "--preset", "fast",
-                          "--max-frames", "3"], capsys)
+    code, text = run_cli(
+        ["--open3d-threads", "1", "estimate", "--preset", "fast", "--max-frames", "3"], capsys
+    )
     assert code == 0, text
     median = float(text.split("median angular error of the dominant light: ")[1].split()[0])
     # 80 when the frames differ; the estimator itself is 15-35 deg off on this scene's first
@@ -158,8 +186,9 @@ class TestFrontDoor:
         assert "without --scene, the input colour image unchanged" in flat
 
     def test_settings_over_the_servers_budget_are_refused_before_any_frame(self, capsys):
-        code, text = run_cli(["estimate", "--max-frames", "1", "--set",
-                              "rt_directions=100000000"], capsys)
+        code, text = run_cli(
+            ["estimate", "--max-frames", "1", "--set", "rt_directions=100000000"], capsys
+        )
         assert code == EXIT_BAD_INPUT and "Traceback" not in text
         assert "--set rt_directions=100000000" in text, text
         assert "per-frame deadline of 60 s" in text and "--frame-deadline" in text, text
@@ -168,16 +197,25 @@ class TestFrontDoor:
     def test_the_deadline_is_the_users_to_set(self, capsys):
         """--frame-deadline 0.001 prices even the defaults out: the error names what costs
         most (here the image size) and the limit given."""
-        code, text = run_cli(["estimate", "--max-frames", "1", "--frame-deadline", "0.001"],
-                             capsys)
+        code, text = run_cli(["estimate", "--max-frames", "1", "--frame-deadline", "0.001"], capsys)
         assert code == EXIT_BAD_INPUT and "Traceback" not in text
         assert "image size 640x480" in text and "deadline of 0.001 s" in text, text
 
     def test_a_frame_without_depth_says_so(self, files, tmp_path, capsys):
         out = tmp_path / "blank.jsonl"
-        code, text = run_cli(["estimate", f"{files}/shot_color.png", "--depth",
-                              f"{files}/blank_depth.png", "--depth-encoding", "mm", "--out",
-                              str(out)], capsys)
+        code, text = run_cli(
+            [
+                "estimate",
+                f"{files}/shot_color.png",
+                "--depth",
+                f"{files}/blank_depth.png",
+                "--depth-encoding",
+                "mm",
+                "--out",
+                str(out),
+            ],
+            capsys,
+        )
         assert code == 0, text
         assert "[1/1] no usable depth" in text, text
         assert "1 of 1 frames without usable depth" in text, text
@@ -188,9 +226,19 @@ class TestFrontDoor:
         """A flat wall of 16x12 pixels constrains no direction: the reason the pipeline gives
         (Confidence.reason, also in the record) is on the terminal."""
         out = tmp_path / "wall.jsonl"
-        code, text = run_cli(["estimate", f"{files}/shot_color.png", "--depth",
-                              f"{files}/shot_depth.png", "--depth-encoding", "mm", "--out",
-                              str(out)], capsys)
+        code, text = run_cli(
+            [
+                "estimate",
+                f"{files}/shot_color.png",
+                "--depth",
+                f"{files}/shot_depth.png",
+                "--depth-encoding",
+                "mm",
+                "--out",
+                str(out),
+            ],
+            capsys,
+        )
         assert code == 0, text
         confidence = json.loads(out.read_text())["confidence"]
         assert confidence["value"] < 0.3 and confidence["reason"], confidence

@@ -72,8 +72,9 @@ class TestSources:
         assert frames[0].color.shape == (48, 64, 3) and frames[0].color.dtype == np.uint8
         assert frames[0].depth.shape == (48, 64) and frames[0].depth.dtype == np.uint16
         assert frames[0].pose is None  # the server tracks unless poses are asked for
-        assert open_source("synthetic", synthetic_size=(64, 48), max_frames=1,
-                           use_poses=True).frames().__next__().pose.shape == (4, 4)
+        assert open_source(
+            "synthetic", synthetic_size=(64, 48), max_frames=1, use_poses=True
+        ).frames().__next__().pose.shape == (4, 4)
 
     @pytest.mark.data
     def test_tum_depth_travels_bit_exactly(self):
@@ -106,8 +107,10 @@ class TestSources:
         raw = cv2.imread(str(folder / "depth" / "00000.png"), cv2.IMREAD_UNCHANGED)
         np.testing.assert_array_equal(sent.depth, raw)
         frame = open_sequence(folder, max_frames=1).frames[0]
-        np.testing.assert_array_equal(depth_metres(sent.depth, source.depth_scale),
-                                      depth_metres(frame.depth, frame.depth_scale))
+        np.testing.assert_array_equal(
+            depth_metres(sent.depth, source.depth_scale),
+            depth_metres(frame.depth, frame.depth_scale),
+        )
 
     @pytest.mark.data
     def test_registered_depth_goes_at_the_readers_stated_scale(self):
@@ -119,8 +122,9 @@ class TestSources:
         source = open_source(str(folder), max_frames=1)
         assert source.depth_scale == SEVEN_SCENES_DEPTH_SCALE == 5000.0
         assert any("quantised at 5000" in note for note in source.notes)
-        np.testing.assert_array_equal(next(source.frames()).depth,
-                                      open_sequence(folder, max_frames=1).frames[0].depth)
+        np.testing.assert_array_equal(
+            next(source.frames()).depth, open_sequence(folder, max_frames=1).frames[0].depth
+        )
 
     def test_float_metres_are_refused(self):
         """A Source sends the sensor's integers: frames of float metres cannot be one."""
@@ -146,11 +150,17 @@ class TestSources:
             return step(frame, session, render_light, deadline)
 
         server = make_server(process=process)
-        options = StreamOptions(server=server.connect_address, session="metres",
-                                mode="lossless", rate="max", color_codec="png",
-                                depth_codec="zstd")
-        summary = run_with_timeout(CaptureClient(open_source(str(folder), max_frames=3),
-                                                 options).run)
+        options = StreamOptions(
+            server=server.connect_address,
+            session="metres",
+            mode="lossless",
+            rate="max",
+            color_codec="png",
+            depth_codec="zstd",
+        )
+        summary = run_with_timeout(
+            CaptureClient(open_source(str(folder), max_frames=3), options).run
+        )
         assert summary.errors == [] and summary.results == 3
         reference = open_sequence(folder, max_frames=3)
         assert len(received) == 3
@@ -165,8 +175,9 @@ class TestSources:
 class TestRecording:
     def _record(self, path, n=3, **options):
         source = flat_source(n, 64, 48)
-        opts = StreamOptions(session="rec", mode="lossless", color_codec="png",
-                             depth_codec="zstd", **options)
+        opts = StreamOptions(
+            session="rec", mode="lossless", color_codec="png", depth_codec="zstd", **options
+        )
         assert record(source, path, opts) == (n, "rec")
         return source, opts
 
@@ -193,8 +204,14 @@ class TestRecording:
             summary = reader.get_summary()
             topics = {c.topic: c for c in summary.channels.values()}
             # arlight's own channels, and the Foxglove ones beside them (tests/test_foxglove.py)
-            assert set(topics) == {HELLO_TOPIC, FRAME_TOPIC, INFO_TOPIC, "/camera/color",
-                                   "/camera/depth", "/camera/calibration"}
+            assert set(topics) == {
+                HELLO_TOPIC,
+                FRAME_TOPIC,
+                INFO_TOPIC,
+                "/camera/color",
+                "/camera/depth",
+                "/camera/calibration",
+            }
             assert topics[FRAME_TOPIC].message_encoding == "msgpack"
             assert topics[INFO_TOPIC].message_encoding == "json"
             assert summary.schemas[topics[INFO_TOPIC].schema_id].encoding == "jsonschema"
@@ -243,18 +260,34 @@ class TestRecording:
             return _dummy_result(message)
 
         source = open_source(str(path))
-        summary = _stream_to_fake_server(answer, lambda address: StreamOptions(
-            server=address, session="replay", mode="lossless", rate="max"), source)
+        summary = _stream_to_fake_server(
+            answer,
+            lambda address: StreamOptions(
+                server=address, session="replay", mode="lossless", rate="max"
+            ),
+            source,
+        )
         assert summary.results == 4
         assert received == [parts for _, parts in Recording(path).frames()]
 
 
 def _dummy_result(frame: Frame) -> Result:
-    return Result(seq=frame.seq, timestamp=frame.timestamp, sh=[0.0],
-                  dominant_direction_camera=[0, 0, 1], dominant_direction_world=[0, 0, 1],
-                  intensity=0.0, confidence={}, pose=np.eye(4).tolist(), timings_ms={},
-                  frames_received=0, frames_processed=0, frames_dropped=0,
-                  server_receive_time=0.0, server_finish_time=0.0)
+    return Result(
+        seq=frame.seq,
+        timestamp=frame.timestamp,
+        sh=[0.0],
+        dominant_direction_camera=[0, 0, 1],
+        dominant_direction_world=[0, 0, 1],
+        intensity=0.0,
+        confidence={},
+        pose=np.eye(4).tolist(),
+        timings_ms={},
+        frames_received=0,
+        frames_processed=0,
+        frames_dropped=0,
+        server_receive_time=0.0,
+        server_finish_time=0.0,
+    )
 
 
 def _stream_to_fake_server(answer, make_options, source):
@@ -298,15 +331,26 @@ class TestDisplay:
     def test_writes_results_frames_and_video(self, make_server, tmp_path):
         server = make_server(process=identity_step())
         out = tmp_path / "out"
-        display = DisplayClient(DisplayOptions(server=server.connect_address, session="show",
-                                               out_dir=str(out), video=str(out / "v.mp4"),
-                                               idle_exit_s=30.0))
+        display = DisplayClient(
+            DisplayOptions(
+                server=server.connect_address,
+                session="show",
+                out_dir=str(out),
+                video=str(out / "v.mp4"),
+                idle_exit_s=30.0,
+            )
+        )
         thread = threading.Thread(target=display.run, daemon=True)
         thread.start()
         assert display.subscribed.wait(10)
-        options = StreamOptions(server=server.connect_address, session="show",
-                                mode="lossless", rate="max", want_composite=True,
-                                timestamps="capture")
+        options = StreamOptions(
+            server=server.connect_address,
+            session="show",
+            mode="lossless",
+            rate="max",
+            want_composite=True,
+            timestamps="capture",
+        )
         summary = run_with_timeout(lambda: CaptureClient(flat_source(5), options).run())
         assert summary.results == 5
         thread.join(30)
@@ -326,7 +370,6 @@ class TestDisplay:
         info = display.summary.to_dict()
         assert info["results"] == 5 and info["latency_ms"]["kind"] == "end_to_end"
 
-
     def test_export_adds_engine_layouts_to_results_jsonl(self, make_server, tmp_path):
         """DisplayOptions.exports (`arlight display --out DIR --export ...`): each line
         carries the layouts of its own SH and pose."""
@@ -334,21 +377,29 @@ class TestDisplay:
 
         server = make_server(process=identity_step())
         out = tmp_path / "out"
-        display = DisplayClient(DisplayOptions(server=server.connect_address, session="exp",
-                                               out_dir=str(out), exports=("gltf", "unity"),
-                                               idle_exit_s=30.0))
+        display = DisplayClient(
+            DisplayOptions(
+                server=server.connect_address,
+                session="exp",
+                out_dir=str(out),
+                exports=("gltf", "unity"),
+                idle_exit_s=30.0,
+            )
+        )
         thread = threading.Thread(target=display.run, daemon=True)
         thread.start()
         assert display.subscribed.wait(10)
-        options = StreamOptions(server=server.connect_address, session="exp",
-                                mode="lossless", rate="max")
+        options = StreamOptions(
+            server=server.connect_address, session="exp", mode="lossless", rate="max"
+        )
         assert run_with_timeout(lambda: CaptureClient(flat_source(2), options).run()).results == 2
         thread.join(30)
         lines = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
         assert len(lines) == 2
         for line in lines:
-            expected = camera_exports(np.asarray(line["sh"]), np.asarray(line["pose"]),
-                                      ("gltf", "unity"))
+            expected = camera_exports(
+                np.asarray(line["sh"]), np.asarray(line["pose"]), ("gltf", "unity")
+            )
             assert json.loads(json.dumps(expected)) == line["exports"]
 
 
@@ -367,47 +418,128 @@ class TestCommands:
         server = make_server(process=identity_step())
         addr = server.connect_address
         first, second = tmp_path / "first.mcap", tmp_path / "replayed.mcap"
-        assert main(["stream", "synthetic", "--server", addr, "--session", "cli",
-                     "--mode", "lossless", "--rate", "max", "--max-frames", "3", "--size",
-                     "64x48", "--color-codec", "png", "--record", str(first), "--out",
-                     str(tmp_path / "r.jsonl")]) == 0
+        assert (
+            main(
+                [
+                    "stream",
+                    "synthetic",
+                    "--server",
+                    addr,
+                    "--session",
+                    "cli",
+                    "--mode",
+                    "lossless",
+                    "--rate",
+                    "max",
+                    "--max-frames",
+                    "3",
+                    "--size",
+                    "64x48",
+                    "--color-codec",
+                    "png",
+                    "--record",
+                    str(first),
+                    "--out",
+                    str(tmp_path / "r.jsonl"),
+                ]
+            )
+            == 0
+        )
         assert len((tmp_path / "r.jsonl").read_text().splitlines()) == 3
-        assert main(["stream", str(first), "--server", addr, "--session", "again", "--rate",
-                     "max", "--record", str(second)]) == 0
+        assert (
+            main(
+                [
+                    "stream",
+                    str(first),
+                    "--server",
+                    addr,
+                    "--session",
+                    "again",
+                    "--rate",
+                    "max",
+                    "--record",
+                    str(second),
+                ]
+            )
+            == 0
+        )
         err = capsys.readouterr().err
         assert "sent as recorded" in err
-        assert [p for _, p in Recording(first).frames()] == \
-            [p for _, p in Recording(second).frames()]
+        assert [p for _, p in Recording(first).frames()] == [
+            p for _, p in Recording(second).frames()
+        ]
         assert Recording(second).hello.config.mode == "lossless"  # the recording's own mode
 
-    def test_estimate_stream_and_display_write_one_record_layout(self, make_server,
-                                                                  tmp_path):
+    def test_estimate_stream_and_display_write_one_record_layout(self, make_server, tmp_path):
         """docs/reference/output-record.md: the same keys from every command (the
         streaming ones add the delivery fields; estimate adds the error against truth)."""
         from arlight.protocols import result_record
 
         est = tmp_path / "est.jsonl"
-        assert main(["estimate", "synthetic", "--max-frames", "1", "--preset", "mobile",
-                     "--out", str(est)]) == 0
+        assert (
+            main(
+                [
+                    "estimate",
+                    "synthetic",
+                    "--max-frames",
+                    "1",
+                    "--preset",
+                    "mobile",
+                    "--out",
+                    str(est),
+                ]
+            )
+            == 0
+        )
         record = json.loads(est.read_text().splitlines()[0])
-        core = ["timestamp", "frame", "sh", "sh_camera", "sh_rgb", "dominant_direction_camera",
-                "dominant_direction_world", "intensity", "confidence", "pose", "timings_ms",
-                "diagnostics"]
+        core = [
+            "timestamp",
+            "frame",
+            "sh",
+            "sh_camera",
+            "sh_rgb",
+            "dominant_direction_camera",
+            "dominant_direction_world",
+            "intensity",
+            "confidence",
+            "pose",
+            "timings_ms",
+            "diagnostics",
+        ]
         assert list(record) == [*core, "angular_error_deg"]
         assert record["frame"] == 0 and len(record["sh_camera"]) == len(record["sh"])
         assert "tracking_ok" in record["diagnostics"]
         server = make_server(process=identity_step())
         streamed = tmp_path / "s.jsonl"
-        assert main(["stream", "synthetic", "--server", server.connect_address, "--session",
-                     "records", "--mode", "lossless", "--rate", "max", "--max-frames", "2",
-                     "--size", "64x48", "--out", str(streamed)]) == 0
+        assert (
+            main(
+                [
+                    "stream",
+                    "synthetic",
+                    "--server",
+                    server.connect_address,
+                    "--session",
+                    "records",
+                    "--mode",
+                    "lossless",
+                    "--rate",
+                    "max",
+                    "--max-frames",
+                    "2",
+                    "--size",
+                    "64x48",
+                    "--out",
+                    str(streamed),
+                ]
+            )
+            == 0
+        )
         lines = [json.loads(x) for x in streamed.read_text().splitlines()]
         assert [x["frame"] for x in lines] == [0, 1]
-        assert all(list(x)[:len(core)] == core for x in lines)
+        assert all(list(x)[: len(core)] == core for x in lines)
         assert list(result_record(_dummy_result(Frame(0, 1.0, None, None)))) == core
 
-    def test_stream_export_writes_engine_layouts_matching_estimates(self, make_server,
-                                                                    tmp_path):
+    def test_stream_export_writes_engine_layouts_matching_estimates(self, make_server, tmp_path):
         """`arlight stream --out F --export ...`: the server puts the layouts into every
         Result (Hello config.exports), the numbers the exporters give for that Result's own
         world SH and pose; a display of the session receives them without asking."""
@@ -416,15 +548,42 @@ class TestCommands:
 
         server = make_server(process=identity_step())
         streamed, shown = tmp_path / "s.jsonl", tmp_path / "shown"
-        display = DisplayClient(DisplayOptions(server=server.connect_address, session="export",
-                                               out_dir=str(shown), idle_exit_s=30.0))
+        display = DisplayClient(
+            DisplayOptions(
+                server=server.connect_address,
+                session="export",
+                out_dir=str(shown),
+                idle_exit_s=30.0,
+            )
+        )
         thread = threading.Thread(target=display.run, daemon=True)
         thread.start()
         assert display.subscribed.wait(10)
-        assert main(["stream", "synthetic", "--server", server.connect_address, "--session",
-                     "export", "--mode", "lossless", "--rate", "max", "--max-frames", "2",
-                     "--size", "64x48", "--out", str(streamed), "--export",
-                     "arcore,webxr"]) == 0
+        assert (
+            main(
+                [
+                    "stream",
+                    "synthetic",
+                    "--server",
+                    server.connect_address,
+                    "--session",
+                    "export",
+                    "--mode",
+                    "lossless",
+                    "--rate",
+                    "max",
+                    "--max-frames",
+                    "2",
+                    "--size",
+                    "64x48",
+                    "--out",
+                    str(streamed),
+                    "--export",
+                    "arcore,webxr",
+                ]
+            )
+            == 0
+        )
         thread.join(30)
         lines = streamed.read_text().splitlines()
         displayed = [json.loads(x) for x in (shown / "results.jsonl").read_text().splitlines()]
@@ -433,27 +592,54 @@ class TestCommands:
         for line in lines:
             record = json.loads(line)
             assert set(record["exports"]) == {"arcore", "webxr"}
-            light = np.asarray(record["sh_rgb"] if record["sh_rgb"] is not None
-                               else record["sh"], np.float64)
+            light = np.asarray(
+                record["sh_rgb"] if record["sh_rgb"] is not None else record["sh"], np.float64
+            )
             axes = sh_lib.GL_FROM_CV @ np.asarray(record["pose"])[:3, :3].T
             np.testing.assert_allclose(record["exports"]["arcore"], to_arcore(light, axes))
             np.testing.assert_allclose(record["exports"]["webxr"], to_webxr(light, axes))
 
     def test_record_command(self, tmp_path):
         path = tmp_path / "r.mcap"
-        assert main(["record", "synthetic", "--out", str(path), "--max-frames", "2", "--size",
-                     "64x48", "--mode", "lossless"]) == 0
+        assert (
+            main(
+                [
+                    "record",
+                    "synthetic",
+                    "--out",
+                    str(path),
+                    "--max-frames",
+                    "2",
+                    "--size",
+                    "64x48",
+                    "--mode",
+                    "lossless",
+                ]
+            )
+            == 0
+        )
         assert Recording(path).num_frames == 2
 
-    @pytest.mark.parametrize("argv, message", [
-        (["stream", "/no/such/folder", "--server", "tcp://127.0.0.1:9"], "no such file"),
-        (["stream", "synthetic", "--server", "localhost:5555"], "tcp://HOST:PORT"),
-        (["record", "synthetic", "--out", "x.txt"], ".mcap"),
-        (["display", "--server", "tcp://127.0.0.1:9", "--session", "s", "--video", "v.avi"],
-         ".mp4"),
-        (["serve", "--bind", "127.0.0.1:5555"], "tcp://HOST:PORT"),
-    ], ids=["missing source", "bad server address", "record not mcap", "video not mp4",
-            "bad bind address"])
+    @pytest.mark.parametrize(
+        "argv, message",
+        [
+            (["stream", "/no/such/folder", "--server", "tcp://127.0.0.1:9"], "no such file"),
+            (["stream", "synthetic", "--server", "localhost:5555"], "tcp://HOST:PORT"),
+            (["record", "synthetic", "--out", "x.txt"], ".mcap"),
+            (
+                ["display", "--server", "tcp://127.0.0.1:9", "--session", "s", "--video", "v.avi"],
+                ".mp4",
+            ),
+            (["serve", "--bind", "127.0.0.1:5555"], "tcp://HOST:PORT"),
+        ],
+        ids=[
+            "missing source",
+            "bad server address",
+            "record not mcap",
+            "video not mp4",
+            "bad bind address",
+        ],
+    )
     def test_bad_input_exits_2_with_a_message(self, argv, message, capsys):
         assert main(argv) == 2
         assert message in capsys.readouterr().err
@@ -466,15 +652,45 @@ class TestCommands:
 
     def test_session_refused_by_the_server_exits_2(self, make_server, capsys):
         server = make_server(process=identity_step())
-        assert main(["stream", "synthetic", "--server", server.connect_address, "--size",
-                     "64x48", "--max-frames", "1", "--set", "sh_bands=99"]) == 2
+        assert (
+            main(
+                [
+                    "stream",
+                    "synthetic",
+                    "--server",
+                    server.connect_address,
+                    "--size",
+                    "64x48",
+                    "--max-frames",
+                    "1",
+                    "--set",
+                    "sh_bands=99",
+                ]
+            )
+            == 2
+        )
         assert "sh_bands" in capsys.readouterr().err
 
     def test_no_server_exits_1_after_the_reconnect_timeout(self, capsys):
         with zmq.Context.instance().socket(zmq.ROUTER) as probe:  # a port nobody serves
             port = probe.bind_to_random_port("tcp://127.0.0.1")
-        assert main(["stream", "synthetic", "--server", f"tcp://127.0.0.1:{port}", "--size",
-                     "64x48", "--max-frames", "1", "--reconnect-timeout", "1"]) == 1
+        assert (
+            main(
+                [
+                    "stream",
+                    "synthetic",
+                    "--server",
+                    f"tcp://127.0.0.1:{port}",
+                    "--size",
+                    "64x48",
+                    "--max-frames",
+                    "1",
+                    "--reconnect-timeout",
+                    "1",
+                ]
+            )
+            == 1
+        )
         assert "no arlight server answered" in capsys.readouterr().err
 
     def test_unknown_mode_is_a_usage_error(self):
@@ -486,8 +702,9 @@ class TestCommands:
 def test_bye_ends_a_capture_stream(make_server):
     """A capture client's Bye closes its session once idle (displays get Bye too)."""
     server = make_server(process=identity_step())
-    options = StreamOptions(server=server.connect_address, session="byebye", mode="lossless",
-                            rate="max")
+    options = StreamOptions(
+        server=server.connect_address, session="byebye", mode="lossless", rate="max"
+    )
     run_with_timeout(lambda: CaptureClient(flat_source(2), options).run())
     for _ in range(100):
         if "byebye" not in server.snapshot()["sessions"]:
@@ -507,9 +724,13 @@ def test_lossless_frame_whose_result_was_lost_is_sent_again():
             return None  # this Result is "lost"
         return _dummy_result(message)
 
-    summary = _stream_to_fake_server(answer, lambda address: StreamOptions(
-        server=address, session="lost", mode="lossless", rate="max", resend_after_s=0.5),
-        flat_source(3))
+    summary = _stream_to_fake_server(
+        answer,
+        lambda address: StreamOptions(
+            server=address, session="lost", mode="lossless", rate="max", resend_after_s=0.5
+        ),
+        flat_source(3),
+    )
     assert summary.results == 3 and not summary.errors
     assert summary.reconnects == 0  # the frame came back by the resend timer, not a reconnect
     assert seen.count(1) == 2 and seen.count(0) == 1 and seen.count(2) == 1
@@ -524,5 +745,6 @@ def test_refused_hello_fields_name_their_flag():
     assert hello_field_flag("hello.config.exports") == "--export"
     assert hello_field_flag("hello.config.panorama.operator") == "--panorama-operator"
     assert hello_field_flag("hello.config.panorama.panorama_from_world").startswith(
-        "--light-source")
+        "--light-source"
+    )
     assert hello_field_flag("frame.depth") is None and hello_field_flag(None) is None

@@ -27,8 +27,11 @@ class TestFlatKeys:
         assert Config.from_preset("fast").transfer.rt_subsample == 4
         mobile = Config.from_preset("mobile")
         assert mobile.preset is Preset.MOBILE
-        assert (mobile.volume.volume_resolution, mobile.filter.denoise,
-                mobile.transfer.rt_subsample) == (64, False, 4)
+        assert (
+            mobile.volume.volume_resolution,
+            mobile.filter.denoise,
+            mobile.transfer.rt_subsample,
+        ) == (64, False, 4)
 
     def test_every_stage_field_has_one_flat_key(self):
         for stage in ("volume", "aux", "filter", "transfer", "estimation", "temporal"):
@@ -36,8 +39,14 @@ class TestFlatKeys:
                 assert FLAT_KEYS[f.name] == (stage, f.name)
 
     def test_overrides_reach_their_stage(self):
-        c = Config.from_preset("fast", rt_directions=128, visibility=False, seed=3,
-                               merge_window=10, regularization=1e-3)
+        c = Config.from_preset(
+            "fast",
+            rt_directions=128,
+            visibility=False,
+            seed=3,
+            merge_window=10,
+            regularization=1e-3,
+        )
         assert c.transfer.rt_directions == 128 and not c.transfer.visibility
         assert c.transfer.rt_subsample == 4  # the preset's own value kept
         assert c.seed == 3 and c.filter.merge_window == 10
@@ -82,27 +91,30 @@ class TestFlatKeys:
 
 
 class TestValidation:
-    @pytest.mark.parametrize("key, value, match", [
-        ("rt_directions", 2, r"rt_directions must be >= 4 \(--set rt_directions=N\), got 2"),
-        ("sh_bands", 13, r"sh_bands must be in 1\.\.12"),
-        ("sh_bands", "many", "sh_bands must be an integer"),
-        ("rt_steps", 1.5, "rt_steps must be an integer"),
-        ("visibility", 1, "visibility must be true or false"),
-        ("rt_radius_m", 0.0, "rt_radius_m must be > 0"),
-        ("rt_visibility_ramp", "steep", "rt_visibility_ramp must be one of paper|half"),
-        ("segment_features", "hue", "segment_features must be one of invariant|chroma"),
-        ("merge_window", 65, r"merge_window must be in 1\.\.64"),
-        ("merge_depth_threshold_m", float("nan"), "merge_depth_threshold_m must be finite"),
-        ("volume_resolution", 4, "volume_resolution must be >= 8"),
-        ("depth_max_m", 0.05, "depth_max_m must be >"),
-        ("aux_update_interval", 0, "aux_update_interval must be >= 1"),
-        ("light_max_samples", 10, r"light_max_samples must be >= min_samples \(200\)"),
-        ("horizon_ground_albedo", 1.5, "horizon_ground_albedo must be <= 1"),
-        ("temporal_half_life_frames", 0.0, "temporal_half_life_frames must be > 0"),
-        ("change_reset_rad", 4.0, "change_reset_rad must be <="),
-        ("device", "GPU", "device must be 'CPU:0' or 'CUDA:0'"),
-        ("seed", -1, "seed must be >= 0"),
-    ])
+    @pytest.mark.parametrize(
+        "key, value, match",
+        [
+            ("rt_directions", 2, r"rt_directions must be >= 4 \(--set rt_directions=N\), got 2"),
+            ("sh_bands", 13, r"sh_bands must be in 1\.\.12"),
+            ("sh_bands", "many", "sh_bands must be an integer"),
+            ("rt_steps", 1.5, "rt_steps must be an integer"),
+            ("visibility", 1, "visibility must be true or false"),
+            ("rt_radius_m", 0.0, "rt_radius_m must be > 0"),
+            ("rt_visibility_ramp", "steep", "rt_visibility_ramp must be one of paper|half"),
+            ("segment_features", "hue", "segment_features must be one of invariant|chroma"),
+            ("merge_window", 65, r"merge_window must be in 1\.\.64"),
+            ("merge_depth_threshold_m", float("nan"), "merge_depth_threshold_m must be finite"),
+            ("volume_resolution", 4, "volume_resolution must be >= 8"),
+            ("depth_max_m", 0.05, "depth_max_m must be >"),
+            ("aux_update_interval", 0, "aux_update_interval must be >= 1"),
+            ("light_max_samples", 10, r"light_max_samples must be >= min_samples \(200\)"),
+            ("horizon_ground_albedo", 1.5, "horizon_ground_albedo must be <= 1"),
+            ("temporal_half_life_frames", 0.0, "temporal_half_life_frames must be > 0"),
+            ("change_reset_rad", 4.0, "change_reset_rad must be <="),
+            ("device", "GPU", "device must be 'CPU:0' or 'CUDA:0'"),
+            ("seed", -1, "seed must be >= 0"),
+        ],
+    )
     def test_bad_values_name_the_key(self, key, value, match):
         with pytest.raises(ValueError, match=match):
             Config.from_preset("full", **{key: value})

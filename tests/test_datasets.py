@@ -110,8 +110,9 @@ class TestTumSynthetic:
         check_rigid(pose)
         t, tx, ty, tz, qx, qy, qz, qw = first_data_line(self.folder / "groundtruth.txt")
         np.testing.assert_allclose(pose[:3, 3], [tx, ty, tz])
-        np.testing.assert_allclose(pose[:3, :3], Rotation.from_quat([qx, qy, qz, qw]).as_matrix(),
-                                   atol=1e-6)
+        np.testing.assert_allclose(
+            pose[:3, :3], Rotation.from_quat([qx, qy, qz, qw]).as_matrix(), atol=1e-6
+        )
         assert seq.frame(0, with_pose=False).pose is None
         for f in seq.frames[1::7]:
             check_rigid(f.pose)
@@ -152,8 +153,7 @@ class TestTumCorner:
 
     def test_65535_becomes_missing(self):
         seq = open_sequence(self.folder)
-        raw = cv2.imread(str(self.folder / "depth" / "1628069033.660061.png"),
-                         cv2.IMREAD_UNCHANGED)
+        raw = cv2.imread(str(self.folder / "depth" / "1628069033.660061.png"), cv2.IMREAD_UNCHANGED)
         saturated = raw == 65535
         assert saturated.mean() > 0.01
         depth = metres(seq.frame(0))
@@ -224,20 +224,28 @@ class TestSevenScenes:
             dist = cv2.distanceTransform((edges == 0).astype(np.uint8), cv2.DIST_L2, 3)
             raw = depth_metres(*read_depth(self.folder / f"frame-{i:06d}.depth.png", "mm"))
             for depth, out in ((raw, raw_d), (metres(seq.frame(i)), reg_d)):
-                jump = (np.abs(np.diff(depth, axis=1)) > 0.1) & (depth[:, 1:] > 0) & (
-                    depth[:, :-1] > 0)
+                jump = (
+                    (np.abs(np.diff(depth, axis=1)) > 0.1)
+                    & (depth[:, 1:] > 0)
+                    & (depth[:, :-1] > 0)
+                )
                 ys, xs = np.nonzero(jump)
                 out.append(np.median(dist[ys, xs]))
         assert np.mean(reg_d) < 0.7 * np.mean(raw_d)
         # and the registration is the documented one, quantised at the stated scale
         assert seq.frame(0).depth_scale == SEVEN_SCENES_DEPTH_SCALE == 5000.0
         registered = register_depth(
-            depth_metres(*read_depth(self.folder / "frame-000000.depth.png", "mm")), depth_cam,
-            seq.camera, SEVEN_SCENES_COLOR_FROM_DEPTH)
+            depth_metres(*read_depth(self.folder / "frame-000000.depth.png", "mm")),
+            depth_cam,
+            seq.camera,
+            SEVEN_SCENES_COLOR_FROM_DEPTH,
+        )
         np.testing.assert_allclose(
             metres(seq.frame(0)),
-            depth_metres(metres_to_units(registered, SEVEN_SCENES_DEPTH_SCALE),
-                         SEVEN_SCENES_DEPTH_SCALE))
+            depth_metres(
+                metres_to_units(registered, SEVEN_SCENES_DEPTH_SCALE), SEVEN_SCENES_DEPTH_SCALE
+            ),
+        )
         # which is within half a step (0.1 mm) of the reprojected depth
         both = (registered > 0) & (metres(seq.frame(0)) > 0)
         assert np.abs(metres(seq.frame(0)) - registered)[both].max() <= 0.5 / 5000 + 1e-6
@@ -249,8 +257,9 @@ class TestSevenScenes:
         pose = seq.frame(0).pose
         check_rigid(pose, atol=1e-3)  # KinectFusion's own poses are orthonormal to ~2e-4
         # the file's pose is the depth camera's; frames are in the colour camera
-        np.testing.assert_allclose(pose @ SEVEN_SCENES_COLOR_FROM_DEPTH, world_from_depth,
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            pose @ SEVEN_SCENES_COLOR_FROM_DEPTH, world_from_depth, atol=1e-9
+        )
         assert np.linalg.norm(pose[:3, 3] - world_from_depth[:3, 3]) < 0.05
 
     def test_scene_folder_with_one_seq(self, tmp_path):
@@ -263,11 +272,14 @@ class TestSingleFrames:
     pytestmark = data_driven
     folder = REAL / "single_frames"
 
-    @pytest.mark.parametrize("prefix,color_ext,depth_ext,encoding", [
-        ("TUM", "png", "png", "tum"),
-        ("SUN", "jpg", "png", "sun"),
-        ("NYU", "ppm", "pgm", "nyu"),
-    ])
+    @pytest.mark.parametrize(
+        "prefix,color_ext,depth_ext,encoding",
+        [
+            ("TUM", "png", "png", "tum"),
+            ("SUN", "jpg", "png", "sun"),
+            ("NYU", "ppm", "pgm", "nyu"),
+        ],
+    )
     def test_each_encoding_is_plausible(self, prefix, color_ext, depth_ext, encoding):
         color = self.folder / f"{prefix}_color.{color_ext}"
         depth = self.folder / f"{prefix}_depth.{depth_ext}"
@@ -284,8 +296,9 @@ class TestSingleFrames:
 
     def test_nyu_missing_and_formula(self):
         raw = cv2.imread(str(self.folder / "NYU_depth.pgm"), cv2.IMREAD_UNCHANGED).byteswap()
-        frame = open_pair(self.folder / "NYU_color.ppm", self.folder / "NYU_depth.pgm",
-                          "nyu").frame(0)
+        frame = open_pair(
+            self.folder / "NYU_color.ppm", self.folder / "NYU_depth.pgm", "nyu"
+        ).frame(0)
         assert frame.depth.dtype == np.uint16 and frame.depth_scale == NYU_DEPTH_SCALE == 5000.0
         depth = metres(frame)
         missing = raw == 2047
@@ -327,18 +340,17 @@ def write_png(path: Path, image: np.ndarray) -> None:
     assert cv2.imwrite(str(path), image)
 
 
-def color_image(h: int = 6, w: int = 8, value: tuple[int, int, int] = (200, 100, 50)
-                ) -> np.ndarray:
+def color_image(h: int = 6, w: int = 8, value: tuple[int, int, int] = (200, 100, 50)) -> np.ndarray:
     return np.broadcast_to(np.array(value, np.uint8), (h, w, 3)).copy()
 
 
-def depth_image(h: int = 6, w: int = 8, metres: float = 1.5, scale: float = 5000.0
-                ) -> np.ndarray:
+def depth_image(h: int = 6, w: int = 8, metres: float = 1.5, scale: float = 5000.0) -> np.ndarray:
     return np.full((h, w), int(round(metres * scale)), np.uint16)
 
 
-def make_tum(folder: Path, n: int = 3, assoc: bool = True, gt: bool = True,
-             camera_json: str | None = None) -> Path:
+def make_tum(
+    folder: Path, n: int = 3, assoc: bool = True, gt: bool = True, camera_json: str | None = None
+) -> Path:
     rgb_lines, depth_lines, assoc_lines = ["# color"], ["# depth"], []
     for i in range(n):
         t = 100.0 + i / 30.0
@@ -374,13 +386,15 @@ class TestTinyTum:
         np.testing.assert_allclose(metres(f), 3.0)
         assert f.timestamp == pytest.approx(100.0 + 2 / 30.0)
         np.testing.assert_allclose(f.pose[:3, 3], [2, 2, 3])
-        np.testing.assert_allclose(f.pose[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]],
-                                   atol=1e-6)
+        np.testing.assert_allclose(f.pose[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-6)
         assert any("within 0.02 s" in n for n in seq.notes)
 
     def test_camera_json_and_depth_scale(self, tmp_path):
-        folder = make_tum(tmp_path, camera_json='{"fx": 10, "fy": 11, "cx": 3.5, "cy": 2.5, '
-                                                '"width": 8, "height": 6, "depth_scale": 1000}')
+        folder = make_tum(
+            tmp_path,
+            camera_json='{"fx": 10, "fy": 11, "cx": 3.5, "cy": 2.5, '
+            '"width": 8, "height": 6, "depth_scale": 1000}',
+        )
         seq = open_sequence(folder)
         assert seq.camera == PinholeCamera(8, 6, 10.0, 11.0, 3.5, 2.5)
         np.testing.assert_allclose(metres(seq.frame(0)), 5.0)  # 5000 units at 1000 / m
@@ -454,8 +468,11 @@ class TestBadInput:
             open_sequence(folder)
 
     def test_camera_size_differs_from_images(self, tmp_path):
-        folder = make_tum(tmp_path, n=1, camera_json='{"fx": 10, "fy": 10, "cx": 3, "cy": 2, '
-                                                     '"width": 640, "height": 480}')
+        folder = make_tum(
+            tmp_path,
+            n=1,
+            camera_json='{"fx": 10, "fy": 10, "cx": 3, "cy": 2, "width": 640, "height": 480}',
+        )
         with pytest.raises(DatasetError, match=r"8x6.*640x480"):
             open_sequence(folder)
 
@@ -537,8 +554,12 @@ class TestBadInput:
         with pytest.raises(DatasetError, match="--depth FILE"):
             open_sequence(tmp_path / "c.png", depth_encoding="mm")
         with pytest.raises(DatasetError, match="does not exist"):
-            open_pair(tmp_path / "a_color.png", tmp_path / "nope.png", "mm",
-                      camera=PinholeCamera.kinect_v1(8, 6))
+            open_pair(
+                tmp_path / "a_color.png",
+                tmp_path / "nope.png",
+                "mm",
+                camera=PinholeCamera.kinect_v1(8, 6),
+            )
         with pytest.raises(DatasetError, match="not raw Kinect disparity"):
             open_pair(tmp_path / "a_color.png", tmp_path / "a_depth.png", "nyu")
 
@@ -558,8 +579,9 @@ class TestDecodeDepth:
     def test_sun_bit_rotation(self):
         mm = np.array([0, 1234, 8191, 9870], np.uint32)
         stored = (((mm << 3) | (mm >> 13)) & 0xFFFF).astype(np.uint16)
-        np.testing.assert_allclose(depth_metres(*decode_depth(stored[None], "sun"))[0],
-                                   mm / 1000.0, rtol=1e-6)
+        np.testing.assert_allclose(
+            depth_metres(*decode_depth(stored[None], "sun"))[0], mm / 1000.0, rtol=1e-6
+        )
         units, scale = decode_depth(stored[None], "sun")
         assert units[0].tolist() == mm.tolist() and scale == 1000.0  # the millimetre integers
 
@@ -568,10 +590,12 @@ class TestDecodeDepth:
         expected = [0.0, 0.0, 0.0, 351.3 / 92.5, 351.3 / 792.5]  # missing, >10 m, negative
         # quantised at NYU_DEPTH_SCALE units per metre (disparity is not linear in depth)
         expected = np.rint(np.array(expected) * NYU_DEPTH_SCALE) / NYU_DEPTH_SCALE
-        np.testing.assert_allclose(depth_metres(*decode_depth(disparity.byteswap(), "nyu")),
-                                   [expected], rtol=1e-6)
-        np.testing.assert_allclose(depth_metres(*decode_depth(disparity, "nyu")), [expected],
-                                   rtol=1e-6)
+        np.testing.assert_allclose(
+            depth_metres(*decode_depth(disparity.byteswap(), "nyu")), [expected], rtol=1e-6
+        )
+        np.testing.assert_allclose(
+            depth_metres(*decode_depth(disparity, "nyu")), [expected], rtol=1e-6
+        )
         assert decode_depth(disparity, "nyu")[1] == NYU_DEPTH_SCALE
 
     def test_metres_to_units_edges(self):
@@ -582,10 +606,14 @@ class TestDecodeDepth:
 
     def test_quaternion_to_matrix(self):
         q = [0.1, -0.2, 0.3, 0.9]  # x, y, z, w as TUM writes them; not unit length
-        np.testing.assert_allclose(quaternion_to_matrix(*q),
-                                   Rotation.from_quat(q).as_matrix(), atol=1e-12)
-        np.testing.assert_allclose(quaternion_to_matrix(0, 0, 0.7071068, 0.7071068),
-                                   [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-6)
+        np.testing.assert_allclose(
+            quaternion_to_matrix(*q), Rotation.from_quat(q).as_matrix(), atol=1e-12
+        )
+        np.testing.assert_allclose(
+            quaternion_to_matrix(0, 0, 0.7071068, 0.7071068),
+            [[0, -1, 0], [1, 0, 0], [0, 0, 1]],
+            atol=1e-6,
+        )
         with pytest.raises(ValueError, match="no direction"):
             quaternion_to_matrix(0, 0, 0, 0)
 
@@ -626,10 +654,13 @@ class TestPackage:
         import subprocess
         import sys
 
-        code = ("import sys, arlight.sources.source\n"
-                "bad = sorted(m for m in sys.modules\n"
-                "             if m.startswith(('arlight.client', 'arlight.server')))\n"
-                "print(bad); sys.exit(1 if bad else 0)")
-        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                              timeout=120)
+        code = (
+            "import sys, arlight.sources.source\n"
+            "bad = sorted(m for m in sys.modules\n"
+            "             if m.startswith(('arlight.client', 'arlight.server')))\n"
+            "print(bad); sys.exit(1 if bad else 0)"
+        )
+        done = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=120
+        )
         assert done.returncode == 0, done.stdout + done.stderr

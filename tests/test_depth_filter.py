@@ -54,14 +54,18 @@ class TestIntensity:
 
     def test_black_and_saturated(self):
         assert intensity_from_rgb(np.zeros((2, 3, 3), np.uint8)).max() == 0
-        np.testing.assert_allclose(intensity_from_rgb(np.full((2, 3, 3), 255, np.uint8)),
-                                   255.0, rtol=1e-6)
+        np.testing.assert_allclose(
+            intensity_from_rgb(np.full((2, 3, 3), 255, np.uint8)), 255.0, rtol=1e-6
+        )
 
-    @pytest.mark.parametrize("bad, message", [
-        (np.zeros((4, 4), np.uint8), r"\(H, W, 3\)"),
-        (np.zeros((4, 4, 4), np.uint8), r"\(H, W, 3\)"),
-        (np.zeros((4, 4, 3), np.float32), "uint8"),
-    ])
+    @pytest.mark.parametrize(
+        "bad, message",
+        [
+            (np.zeros((4, 4), np.uint8), r"\(H, W, 3\)"),
+            (np.zeros((4, 4, 4), np.uint8), r"\(H, W, 3\)"),
+            (np.zeros((4, 4, 3), np.float32), "uint8"),
+        ],
+    )
     def test_rejects(self, bad, message):
         with pytest.raises(ValueError, match="color_rgb_u8.*" + message):
             intensity_from_rgb(bad)
@@ -215,8 +219,7 @@ class TestJointBilateralMedian:
         depth[4, 4] = 0
         out = df.joint_bilateral_median(depth, _flat(9, 9, DARK))
         assert out[4, 4] == np.float32(1.5)
-        assert df.joint_bilateral_median(np.zeros((9, 9), np.float32),
-                                         _flat(9, 9, DARK)).max() == 0
+        assert df.joint_bilateral_median(np.zeros((9, 9), np.float32), _flat(9, 9, DARK)).max() == 0
 
     @pytest.mark.parametrize("seed", [0, 1])
     def test_kernel_matches_reference(self, seed):
@@ -250,8 +253,9 @@ class TestMedianDepth:
     @pytest.mark.parametrize("window", [1, 2, 3, 6])
     def test_kernel_matches_reference(self, window):
         dc, _, _ = _random_inputs(window)
-        np.testing.assert_array_equal(df.median_depth(dc, window),
-                                      df._median_depth_reference(dc, window))
+        np.testing.assert_array_equal(
+            df.median_depth(dc, window), df._median_depth_reference(dc, window)
+        )
 
 
 class TestFilterDepth:
@@ -279,11 +283,11 @@ class TestFilterDepth:
         np.testing.assert_array_equal(passes["merged"], raw)
         only_smooth = Config().replace(merge=False, denoise=False).filter
         final, passes = df.filter_depth(dc, dv, intensity, only_smooth)
-        np.testing.assert_array_equal(final, df.joint_bilateral_median(raw, intensity, 8,
-                                                                       7.0, 5))
+        np.testing.assert_array_equal(final, df.joint_bilateral_median(raw, intensity, 8, 7.0, 5))
         merged = df.merge_depth(dc, dv, intensity, 20, 7.0, 0.05)
-        final, _ = df.filter_depth(dc, dv, intensity,
-                                   Config().replace(smooth=False, denoise=False).filter)
+        final, _ = df.filter_depth(
+            dc, dv, intensity, Config().replace(smooth=False, denoise=False).filter
+        )
         np.testing.assert_array_equal(final, merged)
 
     def test_all_missing_gives_zeros(self):
@@ -296,11 +300,13 @@ class TestFilterDepth:
         assert not final.any()
 
     def test_one_pixel(self):
-        final, _ = df.filter_depth(_flat(1, 1, 1.5), _flat(1, 1, 1.52), _flat(1, 1, DARK),
-                                   Config().filter)
+        final, _ = df.filter_depth(
+            _flat(1, 1, 1.5), _flat(1, 1, 1.52), _flat(1, 1, DARK), Config().filter
+        )
         assert final.shape == (1, 1) and final[0, 0] == np.float32(1.52)
-        final, _ = df.filter_depth(_flat(1, 1, 0.0), _flat(1, 1, 0.0), _flat(1, 1, DARK),
-                                   Config().filter)
+        final, _ = df.filter_depth(
+            _flat(1, 1, 0.0), _flat(1, 1, 0.0), _flat(1, 1, DARK), Config().filter
+        )
         assert final[0, 0] == 0
 
     @pytest.mark.parametrize("depth_m", [0.1, 10.0])
@@ -314,8 +320,13 @@ class TestFilterDepth:
         if df.cuda_available():
             pytest.skip("a GPU is present")
         with pytest.raises(RuntimeError, match="cuda"):
-            df.filter_depth(_flat(2, 2, 1.0), None, _flat(2, 2, DARK), Config().filter,
-                            backend=df.backend_for_device(Config(device="CUDA:0").device))
+            df.filter_depth(
+                _flat(2, 2, 1.0),
+                None,
+                _flat(2, 2, DARK),
+                Config().filter,
+                backend=df.backend_for_device(Config(device="CUDA:0").device),
+            )
 
 
 class TestNormals:
@@ -325,8 +336,7 @@ class TestNormals:
         for depth_m in (0.1, 2.0, 10.0):
             normals = df.normals_from_depth(_flat(48, 64, depth_m), self.camera)
             assert normals.dtype == np.float32 and normals.shape == (48, 64, 3)
-            np.testing.assert_allclose(normals.reshape(-1, 3), [[0, 0, -1]] * (48 * 64),
-                                       atol=1e-6)
+            np.testing.assert_allclose(normals.reshape(-1, 3), [[0, 0, -1]] * (48 * 64), atol=1e-6)
 
     @pytest.mark.parametrize("offset_m", [0.1, 1.5, 10.0])
     def test_tilted_plane(self, offset_m):
@@ -350,8 +360,7 @@ class TestNormals:
         depth = _flat(48, 64, 1.0)
         depth[:, 32:] = 1.5
         normals = df.normals_from_depth(depth, self.camera)
-        np.testing.assert_allclose(normals.reshape(-1, 3), [[0, 0, -1]] * (48 * 64),
-                                   atol=1e-6)
+        np.testing.assert_allclose(normals.reshape(-1, 3), [[0, 0, -1]] * (48 * 64), atol=1e-6)
 
     def test_missing_and_isolated_pixels_are_zero(self):
         depth = np.zeros((48, 64), np.float32)
@@ -379,16 +388,21 @@ class TestNormals:
         depth *= (1 + rng.normal(0, 0.01, depth.shape)).astype(np.float32)  # some jumps
         depth[rng.random(depth.shape) < 0.2] = 0
         depth[:, 40:] *= 1.3
-        np.testing.assert_allclose(df.normals_from_depth(depth, self.camera),
-                                   df._normals_from_depth_reference(depth, self.camera),
-                                   atol=1e-5)
+        np.testing.assert_allclose(
+            df.normals_from_depth(depth, self.camera),
+            df._normals_from_depth_reference(depth, self.camera),
+            atol=1e-5,
+        )
 
 
 class TestValidation:
     def test_shape_mismatch_names_argument(self):
         dc = _flat(4, 5, 1.0)
-        with pytest.raises(ValueError, match=r"depth_volume_m: expected shape \(4, 5\).*"
-                                             r"got \(5, 4\)"):
+        with pytest.raises(
+            ValueError,
+            match=r"depth_volume_m: expected shape \(4, 5\).*"
+            r"got \(5, 4\)",
+        ):
             df.merge_depth(dc, _flat(5, 4, 1.0), _flat(4, 5, DARK))
         with pytest.raises(ValueError, match=r"intensity: expected shape \(4, 5\)"):
             df.merge_depth(dc, dc, _flat(4, 4, DARK))
@@ -422,8 +436,9 @@ class TestValidation:
     def test_float64_and_non_contiguous_inputs(self):
         dc, dv, intensity = _random_inputs(9)
         out = df.merge_depth(dc.astype(np.float64).T, dv.T.copy(), intensity.T)
-        np.testing.assert_array_equal(out, df.merge_depth(dc.T.copy(), dv.T.copy(),
-                                                          intensity.T.copy()))
+        np.testing.assert_array_equal(
+            out, df.merge_depth(dc.T.copy(), dv.T.copy(), intensity.T.copy())
+        )
 
 
 _CUDA_CHECK = textwrap.dedent("""
@@ -464,8 +479,13 @@ class TestCuda:
     def test_kernels_in_cuda_simulator_match_cpu(self):
         """The CUDA drivers run (as Python) in numba's simulator and match the CPU drivers."""
         env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
-        result = subprocess.run([sys.executable, "-c", _CUDA_CHECK.format(h=9, w=13)],
-                                env=env, capture_output=True, text=True, timeout=120)
+        result = subprocess.run(
+            [sys.executable, "-c", _CUDA_CHECK.format(h=9, w=13)],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert result.returncode == 0, result.stderr[-3000:]
         assert "CUDA == CPU" in result.stdout
 

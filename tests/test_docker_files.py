@@ -25,8 +25,9 @@ SMOKE_TEST = DOCKER / "smoke-test.sh"
 
 def _logical_lines(path: Path) -> list[str]:
     """The file's lines without comments, backslash continuations joined."""
-    text = "\n".join(line for line in path.read_text().splitlines()
-                     if not line.lstrip().startswith("#"))
+    text = "\n".join(
+        line for line in path.read_text().splitlines() if not line.lstrip().startswith("#")
+    )
     return [line.strip() for line in text.replace("\\\n", " ").splitlines()]
 
 
@@ -52,18 +53,25 @@ def _compose_commands() -> list[list[str]]:
 def _containerfile_commands() -> list[list[str]]:
     """Each target's CMD (the image's ENTRYPOINT is `arlight`)."""
     lines = _logical_lines(CONTAINERFILE)
-    entrypoints = [json.loads(line.split(None, 1)[1]) for line in lines
-                   if line.startswith("ENTRYPOINT")]
+    entrypoints = [
+        json.loads(line.split(None, 1)[1]) for line in lines if line.startswith("ENTRYPOINT")
+    ]
     assert entrypoints == [["arlight"]]
-    return [json.loads(line.split(None, 1)[1]) for line in lines
-            if line.startswith("CMD") and "--help" not in line]
+    return [
+        json.loads(line.split(None, 1)[1])
+        for line in lines
+        if line.startswith("CMD") and "--help" not in line
+    ]
 
 
 def _smoke_test_commands() -> list[list[str]]:
     """The `podman run ... IMAGE ARGS` lines of smoke-test.sh whose entrypoint is arlight,
     its variables filled in as the script sets them."""
-    values = {"$K": "--server-key /keys/server.key --client-key /keys/client.key_secret "
-                    "--token-file /keys/session.token", '"$FRAMES"': "24"}
+    values = {
+        "$K": "--server-key /keys/server.key --client-key /keys/client.key_secret "
+        "--token-file /keys/session.token",
+        '"$FRAMES"': "24",
+    }
     commands = []
     for line in _logical_lines(SMOKE_TEST):
         m = re.search(r'"\$(?:CLIENT|SERVER)"\s+(.*)', line)
@@ -78,9 +86,11 @@ def _smoke_test_commands() -> list[list[str]]:
     return commands
 
 
-COMMANDS = ([("compose.yaml", c) for c in _compose_commands()]
-            + [("Containerfile", c) for c in _containerfile_commands()]
-            + [("smoke-test.sh", c) for c in _smoke_test_commands()])
+COMMANDS = (
+    [("compose.yaml", c) for c in _compose_commands()]
+    + [("Containerfile", c) for c in _containerfile_commands()]
+    + [("smoke-test.sh", c) for c in _smoke_test_commands()]
+)
 
 
 def test_the_files_run_the_commands_they_should():

@@ -31,9 +31,13 @@ NORMALS = sh.fibonacci_sphere(20000)  # about 1.6 degrees apart
 def _rotation(seed: int) -> np.ndarray:
     q = np.random.default_rng(seed).normal(size=4)
     w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _directional(bands: int = 4) -> tuple[np.ndarray, np.ndarray]:
@@ -57,8 +61,14 @@ def _environment(bands: int = 4) -> tuple[np.ndarray, np.ndarray]:
 FRAMES = {"camera": np.eye(3), "posed": _rotation(11)}
 
 
-def _check(engine_irradiance, sh_cam: np.ndarray, light_cam: np.ndarray,
-           world_from_cam: np.ndarray, engine_from_cv: np.ndarray, exporter):
+def _check(
+    engine_irradiance,
+    sh_cam: np.ndarray,
+    light_cam: np.ndarray,
+    world_from_cam: np.ndarray,
+    engine_from_cv: np.ndarray,
+    exporter,
+):
     """Export the light of a world = world_from_cam camera to the engine and check the
     engine's irradiance (a function of (exported, engine normals (K, 3)) -> (3, K))."""
     sh_world = sh.rotate(sh_cam, world_from_cam)
@@ -84,16 +94,16 @@ LIGHTS = {"directional": _directional, "environment": _environment}
 # --- ARCore -------------------------------------------------------------------------------
 # hello_ar (github.com/google-ar/arcore-android-sdk, samples/hello_ar_kotlin,
 # HelloArRenderer.kt `sphericalHarmonicFactors`) and shaders/environmental_hdr.frag.
-ARCORE_FACTORS = np.array([0.282095, -0.325735, 0.325735, -0.325735, 0.273137, -0.273137,
-                           0.078848, -0.273137, 0.136569])
+ARCORE_FACTORS = np.array(
+    [0.282095, -0.325735, 0.325735, -0.325735, 0.273137, -0.273137, 0.078848, -0.273137, 0.136569]
+)
 
 
 def _sh_polynomial(s: np.ndarray, n: np.ndarray) -> np.ndarray:
     """sh[0] + sh[1] n.y + sh[2] n.z + sh[3] n.x + sh[4] n.y n.x + sh[5] n.y n.z
     + sh[6] (3 n.z^2 - 1) + sh[7] n.z n.x + sh[8] (n.x^2 - n.y^2): s (9, 3) -> (3, K)."""
     x, y, z = n[:, 0], n[:, 1], n[:, 2]
-    terms = np.stack([np.ones_like(x), y, z, x, y * x, y * z, 3 * z * z - 1, z * x,
-                      x * x - y * y])
+    terms = np.stack([np.ones_like(x), y, z, x, y * x, y * z, 3 * z * z - 1, z * x, x * x - y * y])
     return s.T @ terms
 
 
@@ -108,11 +118,19 @@ def arcore_irradiance(floats: list[float], n: np.ndarray) -> np.ndarray:
 def threejs_irradiance(floats: list[float], n: np.ndarray) -> np.ndarray:
     c = np.asarray(floats).reshape(9, 3)
     x, y, z = n[:, 0], n[:, 1], n[:, 2]
-    terms = np.stack([0.886227 * np.ones_like(x),  # pi * 0.282095
-                      2.0 * 0.511664 * y, 2.0 * 0.511664 * z, 2.0 * 0.511664 * x,
-                      2.0 * 0.429043 * x * y, 2.0 * 0.429043 * y * z,
-                      0.743125 * z * z - 0.247708,
-                      2.0 * 0.429043 * x * z, 0.429043 * (x * x - y * y)])
+    terms = np.stack(
+        [
+            0.886227 * np.ones_like(x),  # pi * 0.282095
+            2.0 * 0.511664 * y,
+            2.0 * 0.511664 * z,
+            2.0 * 0.511664 * x,
+            2.0 * 0.429043 * x * y,
+            2.0 * 0.429043 * y * z,
+            0.743125 * z * z - 0.247708,
+            2.0 * 0.429043 * x * z,
+            0.429043 * (x * x - y * y),
+        ]
+    )
     return c.T @ terms
 
 
@@ -120,12 +138,19 @@ def threejs_irradiance(floats: list[float], n: np.ndarray) -> np.ndarray:
 # Babylon.js loaders/src/glTF/2.0/Extensions/EXT_lights_image_based.ts: FromArray,
 # scaleInPlace(intensity), convertIrradianceToLambertianRadiance (x 1/pi); basis of
 # core/src/Maths/sphericalPolynomial.ts SH3ylmBasisConstants x SH3ylmBasisTrigonometricTerms.
-BABYLON_CONSTANTS = np.array([
-    math.sqrt(1 / (4 * math.pi)),
-    -math.sqrt(3 / (4 * math.pi)), math.sqrt(3 / (4 * math.pi)), -math.sqrt(3 / (4 * math.pi)),
-    math.sqrt(15 / (4 * math.pi)), -math.sqrt(15 / (4 * math.pi)),
-    math.sqrt(5 / (16 * math.pi)),
-    -math.sqrt(15 / (4 * math.pi)), math.sqrt(15 / (16 * math.pi))])
+BABYLON_CONSTANTS = np.array(
+    [
+        math.sqrt(1 / (4 * math.pi)),
+        -math.sqrt(3 / (4 * math.pi)),
+        math.sqrt(3 / (4 * math.pi)),
+        -math.sqrt(3 / (4 * math.pi)),
+        math.sqrt(15 / (4 * math.pi)),
+        -math.sqrt(15 / (4 * math.pi)),
+        math.sqrt(5 / (16 * math.pi)),
+        -math.sqrt(15 / (4 * math.pi)),
+        math.sqrt(15 / (16 * math.pi)),
+    ]
+)
 
 
 def babylon_irradiance(light: dict, n: np.ndarray) -> np.ndarray:
@@ -158,8 +183,13 @@ _NUMBER = re.compile(r"[-+]?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?")
 
 def parse_sh_text(text: str) -> np.ndarray:
     """(n, 3) coefficients of cmgen's SH text."""
-    return np.array([[float(v) for v in _NUMBER.findall(line.split("//")[0])]
-                     for line in text.splitlines() if "//" in line])
+    return np.array(
+        [
+            [float(v) for v in _NUMBER.findall(line.split("//")[0])]
+            for line in text.splitlines()
+            if "//" in line
+        ]
+    )
 
 
 def filament_irradiance(text: str, n: np.ndarray) -> np.ndarray:
@@ -180,24 +210,21 @@ TARGETS = {
 @pytest.mark.parametrize("light", LIGHTS)
 class TestConformance:
     def test_arcore(self, frame, light):
-        _check(TARGETS["arcore"][0], *LIGHTS[light](), FRAMES[frame], sh.GL_FROM_CV,
-               ee.to_arcore)
+        _check(TARGETS["arcore"][0], *LIGHTS[light](), FRAMES[frame], sh.GL_FROM_CV, ee.to_arcore)
 
     def test_webxr_threejs(self, frame, light):
-        _check(threejs_irradiance, *LIGHTS[light](), FRAMES[frame], sh.GL_FROM_CV,
-               ee.to_webxr)
+        _check(threejs_irradiance, *LIGHTS[light](), FRAMES[frame], sh.GL_FROM_CV, ee.to_webxr)
 
     def test_gltf_babylon(self, frame, light):
-        _check(babylon_irradiance, *LIGHTS[light](), FRAMES[frame], sh.GL_FROM_CV,
-               ee.to_gltf_ibl)
+        _check(babylon_irradiance, *LIGHTS[light](), FRAMES[frame], sh.GL_FROM_CV, ee.to_gltf_ibl)
 
     def test_unity(self, frame, light):
-        _check(unity_irradiance, *LIGHTS[light](), FRAMES[frame], ee.UNITY_FROM_CV,
-               ee.to_unity)
+        _check(unity_irradiance, *LIGHTS[light](), FRAMES[frame], ee.UNITY_FROM_CV, ee.to_unity)
 
     def test_filament(self, frame, light):
-        _check(filament_irradiance, *LIGHTS[light](), FRAMES[frame], sh.GL_FROM_CV,
-               ee.to_filament_text)
+        _check(
+            filament_irradiance, *LIGHTS[light](), FRAMES[frame], sh.GL_FROM_CV, ee.to_filament_text
+        )
 
 
 class TestLayoutsAndRegressions:
@@ -210,8 +237,9 @@ class TestLayoutsAndRegressions:
         e = arcore_irradiance(list(wrong), NORMALS)[0]
         best, towards = NORMALS[int(np.argmax(e))], sh.GL_FROM_CV @ d
         assert best @ towards < 0.5
-        np.testing.assert_allclose(sh.to_arcore_27(c, sh.GL_FROM_CV),
-                                   ee.to_arcore(c, sh.GL_FROM_CV))
+        np.testing.assert_allclose(
+            sh.to_arcore_27(c, sh.GL_FROM_CV), ee.to_arcore(c, sh.GL_FROM_CV)
+        )
 
     def test_luminance_goes_to_three_channels(self):
         c = sh.directional_light(LIGHT_CV, 1.0, 3)
@@ -226,12 +254,19 @@ class TestLayoutsAndRegressions:
         assert np.shape(ee.to_gltf_ibl(c)["irradianceCoefficients"]) == (9, 3)
         lines = ee.to_filament_text(c).splitlines()
         assert len(lines) == 16 and lines[1].endswith("// L1-1") and lines[15].endswith("L33")
-        np.testing.assert_allclose(parse_sh_text(ee.to_filament_text(c)).T,
-                                   sh.toggle_condon_shortley(c), atol=1e-12)
+        np.testing.assert_allclose(
+            parse_sh_text(ee.to_filament_text(c)).T, sh.toggle_condon_shortley(c), atol=1e-12
+        )
 
-    @pytest.mark.parametrize("bad, match", [
-        (np.zeros((3, 4)), "at least 3 bands"), (np.zeros((2, 9)), "shape"),
-        (np.zeros(10), "bands"), (np.full(9, np.nan), "non-finite")])
+    @pytest.mark.parametrize(
+        "bad, match",
+        [
+            (np.zeros((3, 4)), "at least 3 bands"),
+            (np.zeros((2, 9)), "shape"),
+            (np.zeros(10), "bands"),
+            (np.full(9, np.nan), "non-finite"),
+        ],
+    )
     def test_bad_light(self, bad, match):
         for export in ee.EXPORTERS.values():
             with pytest.raises(ee.ExportError, match=match):
@@ -254,7 +289,6 @@ class TestLayoutsAndRegressions:
             ee.to_unity(np.zeros(9), np.diag([1.0, 2.0, 1.0]))
 
 
-
 class TestFilamentAgainstCmgen:
     def test_cmgen_reads_like_our_text(self):
         """Our Filament text of an HDR map against Filament's cmgen's of the same map
@@ -267,6 +301,7 @@ class TestFilamentAgainstCmgen:
             pytest.skip(f"no .hdr maps in {HDRI}")
         from arlight.pipeline.ibl import radiance_sh
         from benchmarks import ibl_cmgen as bench
+
         path = maps[0]
         ours = parse_sh_text(ee.to_filament_text(radiance_sh(bench.read_hdr(path), 4))).T
         theirs, _ = bench.cmgen_sh(cmgen, path, 256)

@@ -42,8 +42,14 @@ def test_equirect_is_the_sh_at_each_pixel_direction_clamped():
 def test_cube_faces_follow_the_opengl_table():
     """Face centres are the axes; the top-left texel of +X looks along (1, 1, 1) and that of
     +Y along (-1, 1, -1) (OpenGL 4.6 table 8.19, t from the top row)."""
-    axes = {"px": (1, 0, 0), "nx": (-1, 0, 0), "py": (0, 1, 0), "ny": (0, -1, 0),
-            "pz": (0, 0, 1), "nz": (0, 0, -1)}
+    axes = {
+        "px": (1, 0, 0),
+        "nx": (-1, 0, 0),
+        "py": (0, 1, 0),
+        "ny": (0, -1, 0),
+        "pz": (0, 0, 1),
+        "nz": (0, 0, -1),
+    }
     for face in CUBE_FACES:
         d = cube_face_directions(face, 3)
         np.testing.assert_allclose(d[1, 1], axes[face], atol=1e-12)
@@ -69,9 +75,22 @@ def test_bad_sizes_and_shapes_are_refused():
 
 def test_estimate_writes_maps_faces_and_engine_layouts(tmp_path, capsys):
     out = tmp_path / "r.jsonl"
-    code = main(["estimate", "--max-frames", "2", "--out", str(out), "--env-exr",
-                 str(tmp_path / "env"), "--env-size", "32", "--cubemap", "--export",
-                 "arcore,webxr,gltf,unity,filament"])
+    code = main(
+        [
+            "estimate",
+            "--max-frames",
+            "2",
+            "--out",
+            str(out),
+            "--env-exr",
+            str(tmp_path / "env"),
+            "--env-size",
+            "32",
+            "--cubemap",
+            "--export",
+            "arcore,webxr,gltf,unity,filament",
+        ]
+    )
     capsys.readouterr()
     assert code == 0
     records = [json.loads(line) for line in out.read_text().splitlines()]
@@ -89,11 +108,14 @@ def test_estimate_writes_maps_faces_and_engine_layouts(tmp_path, capsys):
         assert read_exr(tmp_path / "env" / f"000000_{face}.exr").shape == (8, 8, 3)
 
 
-@pytest.mark.parametrize(("argv", "flag"), [
-    (["--cubemap"], "--env-exr"),
-    (["--export", "opengl"], "--export"),
-    (["--env-exr", "x", "--env-size", "33"], "--env-size"),
-])
+@pytest.mark.parametrize(
+    ("argv", "flag"),
+    [
+        (["--cubemap"], "--env-exr"),
+        (["--export", "opengl"], "--export"),
+        (["--env-exr", "x", "--env-size", "33"], "--env-size"),
+    ],
+)
 def test_bad_environment_flags_exit_2_naming_the_flag(tmp_path, capsys, argv, flag):
     argv = [a if a != "x" else str(tmp_path / "x") for a in argv]
     try:
@@ -123,7 +145,10 @@ def test_ibl_cubemap_writes_six_faces_per_frame(tmp_path, capsys):
     hdr = read_exr(tmp_path / "hdr" / "000000.exr")
     for face in CUBE_FACES:
         assert read_exr(tmp_path / "hdr" / f"000000_{face}.exr").shape == (
-            hdr.shape[0] // 2, hdr.shape[0] // 2, 3)
+            hdr.shape[0] // 2,
+            hdr.shape[0] // 2,
+            3,
+        )
     try:
         code = main(["ibl", "--max-frames", "1", "--cubemap"])
     except SystemExit as exc:

@@ -38,8 +38,9 @@ def _grey(width=W, height=H, value=128):
 
 
 def _process(config, camera, color, depth, pose=None, depth_scale=None):
-    frame = FrameInput(color, depth, 0.0, np.eye(4) if pose is None else pose,
-                       depth_scale=depth_scale)
+    frame = FrameInput(
+        color, depth, 0.0, np.eye(4) if pose is None else pose, depth_scale=depth_scale
+    )
     return Pipeline(config, camera).process(frame)
 
 
@@ -56,7 +57,7 @@ def _assert_finite_and_honest(result, sh_bands):
         norm = float(np.linalg.norm(getattr(result, name)))
         assert norm == 0.0 or abs(norm - 1.0) < 1e-6, f"{name} neither unit nor zero: {norm}"
     assert 0 <= c.bands_estimated <= sh_bands
-    assert not np.any(result.sh[c.bands_estimated ** 2:]), "bands beyond the estimated ones"
+    assert not np.any(result.sh[c.bands_estimated**2 :]), "bands beyond the estimated ones"
     if c.value < LOW_CONFIDENCE:
         assert c.reason, f"confidence {c.value:.3f} without a reason"
     if c.value == 0.0:
@@ -73,8 +74,9 @@ def test_constant_near_and_far_depth(scene, preset, depth_m):
     """Depth 0.1 m (depth_min) and 10 m (beyond depth_max 4 m) everywhere: finite, a wall's
     bands cut back; at 10 m no voxel is fused and no direction is claimed."""
     f = scene.frames[0]
-    result = _process(_config(preset), scene.camera, f.color,
-                      np.full((H, W), depth_m, np.float32), f.pose)
+    result = _process(
+        _config(preset), scene.camera, f.color, np.full((H, W), depth_m, np.float32), f.pose
+    )
     _assert_finite_and_honest(result, 4)
     assert result.confidence.bands_estimated < 4
     if depth_m > 4.0:
@@ -83,9 +85,12 @@ def test_constant_near_and_far_depth(scene, preset, depth_m):
         assert not np.any(result.dominant_direction_world)
 
 
-@pytest.mark.xfail(strict=True, reason="known: with every depth beyond depth_max V stays "
-                                       "empty, so each frame 'starts the map' at the kept "
-                                       "pose and tracking reports ok with no reason")
+@pytest.mark.xfail(
+    strict=True,
+    reason="known: with every depth beyond depth_max V stays "
+    "empty, so each frame 'starts the map' at the kept "
+    "pose and tracking reports ok with no reason",
+)
 @pytest.mark.parametrize("preset", PRESETS)
 def test_far_depth_without_pose_says_the_pose_was_kept(scene, preset):
     """10 m everywhere and no pose: the second frame keeps the first one's pose (V is empty:
@@ -93,8 +98,9 @@ def test_far_depth_without_pose_says_the_pose_was_kept(scene, preset):
     f = scene.frames[0]
     pipe = Pipeline(_config(preset), scene.camera)
     for i in range(2):
-        result = pipe.process(FrameInput(f.color, np.full((H, W), 10.0, np.float32),
-                                         float(i), None))
+        result = pipe.process(
+            FrameInput(f.color, np.full((H, W), 10.0, np.float32), float(i), None)
+        )
         _assert_finite_and_honest(result, 4)
     np.testing.assert_array_equal(result.pose, np.eye(4))
     tracking = result.diagnostics["tracking"]
@@ -131,8 +137,9 @@ def _floor_depth(camera, height_m=1.0, tilt_deg=30.0):
     return np.where((z > 0) & (z < 20), z, 0.0).astype(np.float32)
 
 
-@pytest.mark.parametrize("preset,plane", [
-    ("full", "wall"), ("fast", "wall"), ("fast", "floor"), ("full", "floor")])
+@pytest.mark.parametrize(
+    "preset,plane", [("full", "wall"), ("fast", "wall"), ("fast", "floor"), ("full", "floor")]
+)
 def test_one_plane_filling_the_view(scene, preset, plane):
     """A single plane (rank-deficient normals): bands cut back, the conditioning reported,
     a low confidence with its reason. (The full preset fits band 1 on the tilted floor:
@@ -193,9 +200,20 @@ def test_4k_frame():
     color = _grey(3840, 2160, 128)
     color[:, ::2] = 150
     cfg = Config.from_preset(
-        "fast", use_volume=False, rt_directions=16, rt_subsample=16, rt_upsample=False,
-        merge_window=2, smooth_window=2, smooth_subsample=2, denoise=False, normal_window=5,
-        robust_iterations=1, albedo_segments=False, light_max_samples=20000)
+        "fast",
+        use_volume=False,
+        rt_directions=16,
+        rt_subsample=16,
+        rt_upsample=False,
+        merge_window=2,
+        smooth_window=2,
+        smooth_subsample=2,
+        denoise=False,
+        normal_window=5,
+        robust_iterations=1,
+        albedo_segments=False,
+        light_max_samples=20000,
+    )
     result = _process(cfg, camera, color, depth)
     _assert_finite_and_honest(result, 4)
     assert 200 <= result.confidence.samples <= 20000
@@ -240,8 +258,9 @@ def test_upsampled_transfer_is_per_channel(channels):
     assert up.transfer.shape == (32, 40, channels)
     assert up.valid.sum() > 32 * 40 // 2 and not up.valid.all()
     for k in {0, channels // 2, channels - 1}:
-        alone = upsample_transfer(dataclasses.replace(grid, transfer=transfer[..., k:k + 1]),
-                                  full)
+        alone = upsample_transfer(
+            dataclasses.replace(grid, transfer=transfer[..., k : k + 1]), full
+        )
         # within float32 rounding: cv2 interpolates other channel counts by other code paths
         np.testing.assert_allclose(up.transfer[..., k], alone.transfer[..., 0], rtol=1e-6)
     np.testing.assert_allclose(up.transfer[up.valid].min(), 0.1, atol=0.1)
@@ -272,19 +291,23 @@ def test_tiny_and_huge_voxels(scene, size_m, resolution):
     """Voxels of 2 mm (0.5 m at 256) to 2.5 m (20 m at 8): finite, an estimate from the
     image-space depth, tracking on the given pose."""
     f = scene.frames[0]
-    cfg = Config.from_preset("fast", volume_size_m=size_m, volume_resolution=resolution,
-                             aux_resolution=32)
+    cfg = Config.from_preset(
+        "fast", volume_size_m=size_m, volume_resolution=resolution, aux_resolution=32
+    )
     result = _process(cfg, scene.camera, f.color, f.depth, f.pose)
     _assert_finite_and_honest(result, 4)
     assert result.confidence.samples > 1000
     np.testing.assert_array_equal(result.pose, f.pose)
 
 
-@pytest.mark.parametrize("key,value,message", [
-    ("volume_size_m", 0.0, "volume_size_m must be > 0"),
-    ("volume_size_m", float("inf"), "volume_size_m must be finite"),
-    ("volume_resolution", 7, "volume_resolution must be >= 8"),
-])
+@pytest.mark.parametrize(
+    "key,value,message",
+    [
+        ("volume_size_m", 0.0, "volume_size_m must be > 0"),
+        ("volume_size_m", float("inf"), "volume_size_m must be finite"),
+        ("volume_resolution", 7, "volume_resolution must be >= 8"),
+    ],
+)
 def test_voxel_limits_are_config_errors(key, value, message):
     """Beyond what the Config accepts: a ValueError naming the key and its limit."""
     with pytest.raises(ValueError, match=message):
@@ -293,11 +316,14 @@ def test_voxel_limits_are_config_errors(key, value, message):
 
 # ------------------------------------------------------------------ 9 intrinsics
 @pytest.mark.parametrize("preset", PRESETS)
-@pytest.mark.parametrize("fx,cx,cy", [
-    (1e4, (W - 1) / 2, (H - 1) / 2),
-    (1.0, (W - 1) / 2, (H - 1) / 2),
-    (65.625, 1e4, -1e4),
-])
+@pytest.mark.parametrize(
+    "fx,cx,cy",
+    [
+        (1e4, (W - 1) / 2, (H - 1) / 2),
+        (1.0, (W - 1) / 2, (H - 1) / 2),
+        (65.625, 1e4, -1e4),
+    ],
+)
 def test_extreme_intrinsics(scene, preset, fx, cx, cy):
     """fx = fy = 1e4 px or 1 px, principal point far outside the image, on the scene's depth:
     finite; the geometry is then implausible and the confidence low, with its reason."""

@@ -68,8 +68,7 @@ def decoded(message):
     from mcap.records import Schema
 
     schema = type(message).get_schema()
-    mcap_schema = Schema(id=1, name=schema.name, encoding=schema.encoding,
-                         data=bytes(schema.data))
+    mcap_schema = Schema(id=1, name=schema.name, encoding=schema.encoding, data=bytes(schema.data))
     return DecoderFactory().decoder_for("protobuf", mcap_schema)(message.encode())
 
 
@@ -78,16 +77,24 @@ def rotation_of(q) -> np.ndarray:
     if not hasattr(q, "x"):
         q = decoded(q)
     x, y, z, w = q.x, q.y, q.z, q.w
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 class TestMapping:
     def test_quaternion_round_trips_rotations(self):
         rng = np.random.default_rng(3)
-        rotations = [np.eye(3), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]),
-                     np.diag([-1.0, -1.0, 1.0])]
+        rotations = [
+            np.eye(3),
+            np.diag([1.0, -1.0, -1.0]),
+            np.diag([-1.0, 1.0, -1.0]),
+            np.diag([-1.0, -1.0, 1.0]),
+        ]
         for _ in range(20):
             q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
             rotations.append(q * np.sign(np.linalg.det(q)))
@@ -104,9 +111,14 @@ class TestMapping:
         assert (t.seconds, t.nanos) == (1700000000, 250000000)
 
     def test_lighting_message_is_strict_json(self):
-        record = {"timestamp": 12.5, "frame": 3, "sh": [1.0, float("nan")],
-                  "confidence": {"condition_number": float("inf"), "value": 0.2},
-                  "timings_ms": {"LightEst": 2.0}, "end_to_end_ms": None}
+        record = {
+            "timestamp": 12.5,
+            "frame": 3,
+            "sh": [1.0, float("nan")],
+            "confidence": {"condition_number": float("inf"), "value": 0.2},
+            "timings_ms": {"LightEst": 2.0},
+            "end_to_end_ms": None,
+        }
         message = fx.lighting_message(record)
         text = json.dumps(message, allow_nan=False)  # raises on NaN / Infinity
         assert json.loads(text)["confidence"] == {"condition_number": None, "value": 0.2}
@@ -118,8 +130,9 @@ class TestMapping:
         (entity,) = update.entities
         assert entity.frame_id == "world" and len(entity.spheres) == 2
         (arrow,) = entity.arrows
-        np.testing.assert_allclose(rotation_of(arrow.pose.orientation) @ [1, 0, 0], [0, -1, 0],
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            rotation_of(arrow.pose.orientation) @ [1, 0, 0], [0, -1, 0], atol=1e-9
+        )
         start = np.array([arrow.pose.position.x, arrow.pose.position.y, arrow.pose.position.z])
         np.testing.assert_allclose(start, np.add(fx.MARKER_CENTRE_M, [0, -fx.MARKER_RADIUS_M, 0]))
 
@@ -128,36 +141,41 @@ class TestRecordings:
     def test_record_writes_camera_topics_foxglove_decodes(self, tmp_path):
         """`arlight record`: colour as sent (JPEG bytes unchanged), depth 16UC1 bit-exact with
         its depth_scale, the calibration, the pose on /tf; the protocol channels still replay."""
-        source = open_source("synthetic", synthetic_size=(64, 48), max_frames=3,
-                             use_poses=True, synthetic_frames=3)
+        source = open_source(
+            "synthetic", synthetic_size=(64, 48), max_frames=3, use_poses=True, synthetic_frames=3
+        )
         path = tmp_path / "s.mcap"
         n, _ = record(source, path, StreamOptions(server="tcp://127.0.0.1:1", session="fox"))
         assert n == 3
         topics = read_topics(path)
-        assert {fx.COLOR_TOPIC: "foxglove.CompressedImage", fx.DEPTH_TOPIC: "foxglove.RawImage",
-                fx.CALIBRATION_TOPIC: "foxglove.CameraCalibration",
-                fx.TF_TOPIC: "foxglove.FrameTransform"} == {
-            t: topics[t][0][3].name for t in CAMERA_TOPICS}
+        assert {
+            fx.COLOR_TOPIC: "foxglove.CompressedImage",
+            fx.DEPTH_TOPIC: "foxglove.RawImage",
+            fx.CALIBRATION_TOPIC: "foxglove.CameraCalibration",
+            fx.TF_TOPIC: "foxglove.FrameTransform",
+        } == {t: topics[t][0][3].name for t in CAMERA_TOPICS}
         frames = [unpack_parts(m.data, "t") for _, m, _, _ in topics[FRAME_TOPIC]]
         assert all(len(topics[t]) == 3 for t in CAMERA_TOPICS)
         for parts, (_, _, color, _), (channel, _, depth, _), (_, _, tf, _) in zip(
-                frames, topics[fx.COLOR_TOPIC], topics[fx.DEPTH_TOPIC], topics[fx.TF_TOPIC],
-                strict=True):
+            frames, topics[fx.COLOR_TOPIC], topics[fx.DEPTH_TOPIC], topics[fx.TF_TOPIC], strict=True
+        ):
             header, frame = peek_header(parts), decode(parts)
             assert color.format == "jpeg"
             assert color.data == parts[1 + header["color"]["buffer"]]  # the bytes as sent
-            assert (depth.encoding, depth.width, depth.height, depth.step) == \
-                ("16UC1", 64, 48, 128)
+            assert (depth.encoding, depth.width, depth.height, depth.step) == ("16UC1", 64, 48, 128)
             np.testing.assert_array_equal(
-                np.frombuffer(depth.data, "<u2").reshape(48, 64), frame.depth)
+                np.frombuffer(depth.data, "<u2").reshape(48, 64), frame.depth
+            )
             assert float(channel.metadata["depth_scale"]) == source.depth_scale
             assert depth.frame_id == color.frame_id == "camera"
-            np.testing.assert_allclose([tf.translation.x, tf.translation.y, tf.translation.z],
-                                       frame.pose[:3, 3])
+            np.testing.assert_allclose(
+                [tf.translation.x, tf.translation.y, tf.translation.z], frame.pose[:3, 3]
+            )
             np.testing.assert_allclose(rotation_of(tf.rotation), frame.pose[:3, :3], atol=1e-9)
             assert (tf.parent_frame_id, tf.child_frame_id) == ("world", "camera")
-            assert color.timestamp.seconds + color.timestamp.nanos * 1e-9 == \
-                pytest.approx(frame.timestamp)
+            assert color.timestamp.seconds + color.timestamp.nanos * 1e-9 == pytest.approx(
+                frame.timestamp
+            )
         cal = topics[fx.CALIBRATION_TOPIC][0][2]
         c = source.calibration
         assert list(cal.K) == [c.fx, 0, c.cx, 0, c.fy, c.cy, 0, 0, 1]
@@ -179,10 +197,15 @@ class TestRecordings:
 
 
 def _stream(server, session: str, frames: int, rate: str = "max", base: int = 10):
-    options = StreamOptions(server=server.connect_address, session=session, mode="lossless",
-                            rate=rate, want_composite=True, timestamps="capture")
-    return run_with_timeout(lambda: CaptureClient(flat_source(frames, base=base),
-                                                  options).run())
+    options = StreamOptions(
+        server=server.connect_address,
+        session=session,
+        mode="lossless",
+        rate=rate,
+        want_composite=True,
+        timestamps="capture",
+    )
+    return run_with_timeout(lambda: CaptureClient(flat_source(frames, base=base), options).run())
 
 
 class TestDisplayRecord:
@@ -191,9 +214,15 @@ class TestDisplayRecord:
         composite, light and lighting JSON in Foxglove's schemas, and DIR/latency.png."""
         server = make_server(process=identity_step())
         path, out = tmp_path / "d.mcap", tmp_path / "out"
-        display = DisplayClient(DisplayOptions(server=server.connect_address, session="rec",
-                                               record=str(path), out_dir=str(out),
-                                               idle_exit_s=30.0))
+        display = DisplayClient(
+            DisplayOptions(
+                server=server.connect_address,
+                session="rec",
+                record=str(path),
+                out_dir=str(out),
+                idle_exit_s=30.0,
+            )
+        )
         got: list[Result] = []
         display.on_result = lambda result, record: got.append(result)
         thread = threading.Thread(target=display.run, daemon=True)
@@ -203,8 +232,13 @@ class TestDisplayRecord:
         thread.join(30)
         assert not thread.is_alive()
         topics = read_topics(path)
-        assert set(topics) == {RESULT_TOPIC, fx.COMPOSITE_TOPIC, fx.TF_TOPIC, fx.LIGHT_TOPIC,
-                               fx.LIGHTING_TOPIC}  # no empty Hello / Frame channels
+        assert set(topics) == {
+            RESULT_TOPIC,
+            fx.COMPOSITE_TOPIC,
+            fx.TF_TOPIC,
+            fx.LIGHT_TOPIC,
+            fx.LIGHTING_TOPIC,
+        }  # no empty Hello / Frame channels
         results = [decode(unpack_parts(m.data, "r")) for _, m, _, _ in topics[RESULT_TOPIC]]
         assert [r.seq for r in results] == [r.seq for r in got] == list(range(5))
         assert [r.sh for r in results] == [r.sh for r in got]
@@ -241,7 +275,8 @@ class FoxgloveClient:
         self.sock.sendall(
             f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
             f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
-            "Sec-WebSocket-Protocol: foxglove.sdk.v1, foxglove.websocket.v1\r\n\r\n".encode())
+            "Sec-WebSocket-Protocol: foxglove.sdk.v1, foxglove.websocket.v1\r\n\r\n".encode()
+        )
         self.buffer = b""
         while b"\r\n\r\n" not in self.buffer:
             self.buffer += self.sock.recv(4096)
@@ -266,8 +301,8 @@ class FoxgloveClient:
             self._need(10)
             n, offset = struct.unpack(">Q", self.buffer[2:10])[0], 10
         self._need(offset + n)
-        opcode, data = self.buffer[0] & 15, self.buffer[offset:offset + n]
-        self.buffer = self.buffer[offset + n:]
+        opcode, data = self.buffer[0] & 15, self.buffer[offset : offset + n]
+        self.buffer = self.buffer[offset + n :]
         return opcode, data
 
     def send_json(self, message: dict) -> None:
@@ -285,8 +320,14 @@ class TestLiveFoxglove:
         """`arlight display --foxglove --port 0`: the Foxglove app's protocol advertises the
         composite, light, lighting and /tf channels and streams each Result's messages."""
         server = make_server(process=identity_step())
-        display = DisplayClient(DisplayOptions(server=server.connect_address, session="live",
-                                               foxglove=("127.0.0.1", 0), idle_exit_s=30.0))
+        display = DisplayClient(
+            DisplayOptions(
+                server=server.connect_address,
+                session="live",
+                foxglove=("127.0.0.1", 0),
+                idle_exit_s=30.0,
+            )
+        )
         thread = threading.Thread(target=display.run, daemon=True)
         thread.start()
         assert display.subscribed.wait(10)
@@ -295,8 +336,9 @@ class TestLiveFoxglove:
             assert "101" in client.status
             opcode, data = client.frame()
             assert opcode == 1 and json.loads(data)["op"] == "serverInfo"
-            streamer = threading.Thread(target=_stream, args=(server, "live", 40, "native"),
-                                        daemon=True)
+            streamer = threading.Thread(
+                target=_stream, args=(server, "live", 40, "native"), daemon=True
+            )
             streamer.start()
             channels: dict[str, dict] = {}
             deadline = time.monotonic() + 20
@@ -304,14 +346,19 @@ class TestLiveFoxglove:
                 opcode, data = client.frame()
                 if opcode == 1 and json.loads(data)["op"] == "advertise":
                     channels.update({c["topic"]: c for c in json.loads(data)["channels"]})
-            assert {fx.COMPOSITE_TOPIC, fx.LIGHT_TOPIC, fx.LIGHTING_TOPIC, fx.TF_TOPIC} <= \
-                set(channels)
+            assert {fx.COMPOSITE_TOPIC, fx.LIGHT_TOPIC, fx.LIGHTING_TOPIC, fx.TF_TOPIC} <= set(
+                channels
+            )
             assert channels[fx.COMPOSITE_TOPIC]["schemaName"] == "foxglove.CompressedImage"
             assert channels[fx.LIGHT_TOPIC]["schemaName"] == "foxglove.SceneUpdate"
             assert channels[fx.LIGHTING_TOPIC]["encoding"] == "json"
             time.sleep(0.3)  # the SDK refuses a subscribe that follows its advertise at once
-            client.send_json({"op": "subscribe", "subscriptions": [
-                {"id": 7, "channelId": channels[fx.LIGHTING_TOPIC]["id"]}]})
+            client.send_json(
+                {
+                    "op": "subscribe",
+                    "subscriptions": [{"id": 7, "channelId": channels[fx.LIGHTING_TOPIC]["id"]}],
+                }
+            )
             frames_seen = []
             while len(frames_seen) < 3 and time.monotonic() < deadline:
                 opcode, data = client.frame()
@@ -325,7 +372,6 @@ class TestLiveFoxglove:
             thread.join(30)
         assert not thread.is_alive() and display.foxglove is None  # closed at the end
 
-
     def test_stream_serves_the_camera_over_foxglove_websocket(self, make_server):
         """`arlight stream --foxglove`: the capture side's colour, depth and calibration go
         live beside the Results (FoxgloveStream as the capture client's recorder)."""
@@ -337,11 +383,20 @@ class TestLiveFoxglove:
         server = make_server(process=identity_step())
         live = FoxgloveStream(LiveSink("127.0.0.1", 0))
         client = FoxgloveClient(live.sink.port)
-        options = StreamOptions(server=server.connect_address, session="cam", mode="lossless",
-                                rate="native", want_composite=True, timestamps="capture")
+        options = StreamOptions(
+            server=server.connect_address,
+            session="cam",
+            mode="lossless",
+            rate="native",
+            want_composite=True,
+            timestamps="capture",
+        )
         capture = CaptureClient(
-            flat_source(40, base=90), options, recorder=Recorders(None, live),
-            on_result=lambda r, t: live.write_result(r, received_record(r, t), time.time_ns()))
+            flat_source(40, base=90),
+            options,
+            recorder=Recorders(None, live),
+            on_result=lambda r, t: live.write_result(r, received_record(r, t), time.time_ns()),
+        )
         streamer = threading.Thread(target=lambda: run_with_timeout(capture.run), daemon=True)
         try:
             assert json.loads(client.frame()[1])["op"] == "serverInfo"
@@ -352,15 +407,19 @@ class TestLiveFoxglove:
                 opcode, data = client.frame()
                 if opcode == 1 and json.loads(data)["op"] == "advertise":
                     channels.update({c["topic"]: c for c in json.loads(data)["channels"]})
-            assert set(CAMERA_TOPICS[:3]) | {fx.COMPOSITE_TOPIC, fx.LIGHTING_TOPIC} <= \
-                set(channels)
+            assert set(CAMERA_TOPICS[:3]) | {fx.COMPOSITE_TOPIC, fx.LIGHTING_TOPIC} <= set(channels)
             depth = channels[fx.DEPTH_TOPIC]
             assert depth["metadata"]["depth_scale"] == "5000.0"  # flat_source's scale
             time.sleep(0.3)  # the SDK refuses a subscribe that follows its advertise at once
-            client.send_json({"op": "subscribe", "subscriptions": [
-                {"id": 3, "channelId": depth["id"]}]})
-            schema = Schema(id=1, name=depth["schemaName"], encoding="protobuf",
-                            data=base64.b64decode(depth["schema"]))
+            client.send_json(
+                {"op": "subscribe", "subscriptions": [{"id": 3, "channelId": depth["id"]}]}
+            )
+            schema = Schema(
+                id=1,
+                name=depth["schemaName"],
+                encoding="protobuf",
+                data=base64.b64decode(depth["schema"]),
+            )
             decoder = DecoderFactory().decoder_for("protobuf", schema)
             while time.monotonic() < deadline:
                 opcode, data = client.frame()
@@ -385,25 +444,41 @@ class TestLatencyPlot:
         np.testing.assert_allclose(burst, [0.0, 2.0, 1.0, 10.0, 10.0])
 
     def test_write_latency_plot(self, tmp_path):
-        path = write_latency_plot(tmp_path / "p" / "l.png", [0.0, 0.1, 0.2, 0.35],
-                                  [10.0, 12.0, 11.0, 30.0], "end-to-end")
+        path = write_latency_plot(
+            tmp_path / "p" / "l.png", [0.0, 0.1, 0.2, 0.35], [10.0, 12.0, 11.0, 30.0], "end-to-end"
+        )
         assert cv2.imread(str(path)) is not None
 
 
 class TestCli:
-    @pytest.mark.parametrize("argv, flag", [
-        (["--port", "9000"], "--port"),
-        (["--http", "localhost:http"], "--http"),
-        (["--record", "x.json"], "--record"),
-    ])
+    @pytest.mark.parametrize(
+        "argv, flag",
+        [
+            (["--port", "9000"], "--port"),
+            (["--http", "localhost:http"], "--http"),
+            (["--record", "x.json"], "--record"),
+        ],
+    )
     def test_bad_display_options_name_their_flag(self, argv, flag, capsys):
         code = main(["display", "--server", "tcp://127.0.0.1:9", "--session", "s", *argv])
         assert code == EXIT_BAD_INPUT
         assert flag in capsys.readouterr().err
 
     def test_stream_port_needs_foxglove(self, capsys):
-        code = main(["stream", "synthetic", "--server", "tcp://127.0.0.1:9", "--size", "32x24",
-                     "--max-frames", "1", "--port", "9000"])
+        code = main(
+            [
+                "stream",
+                "synthetic",
+                "--server",
+                "tcp://127.0.0.1:9",
+                "--size",
+                "32x24",
+                "--max-frames",
+                "1",
+                "--port",
+                "9000",
+            ]
+        )
         assert code == EXIT_BAD_INPUT and "--foxglove" in capsys.readouterr().err
 
     def test_foxglove_port_in_use_is_an_error_naming_the_flag(self, capsys):
@@ -411,7 +486,17 @@ class TestCli:
             busy.bind(("127.0.0.1", 0))
             busy.listen()
             port = busy.getsockname()[1]
-            code = main(["display", "--server", "tcp://127.0.0.1:9", "--session", "s",
-                         "--foxglove", "--port", str(port)])
+            code = main(
+                [
+                    "display",
+                    "--server",
+                    "tcp://127.0.0.1:9",
+                    "--session",
+                    "s",
+                    "--foxglove",
+                    "--port",
+                    str(port),
+                ]
+            )
         err = capsys.readouterr().err
         assert code == 1 and "--foxglove/--port" in err and "Traceback" not in err

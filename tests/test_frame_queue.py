@@ -21,8 +21,7 @@ from arlight.server.frame_queue import (
 
 
 def job(seq: int, t: float = 0.0) -> Job:
-    return Job(seq, [f"frame {seq}".encode()], receive_time_wall=1000.0 + t,
-               receive_time_mono=t)
+    return Job(seq, [f"frame {seq}".encode()], receive_time_wall=1000.0 + t, receive_time_mono=t)
 
 
 def reply(seq: int) -> list:
@@ -69,8 +68,12 @@ class TestLive:
         assert q.next_job() is None
         second = q.finish(first, reply(0), final=True, processed=True, finish_time_mono=1.0)
         assert second is not None and second.seq == 1 and q.in_flight is second
-        assert q.finish(second, reply(1), final=True, processed=True, finish_time_mono=2.0,
-                        start_next=False) is None
+        assert (
+            q.finish(
+                second, reply(1), final=True, processed=True, finish_time_mono=2.0, start_next=False
+            )
+            is None
+        )
 
     def test_live_keeps_no_replies_and_drops_pending_at_shutdown(self):
         q = FrameQueue(lossless=False, credits=4)
@@ -142,8 +145,7 @@ class TestLossless:
             q.offer(job(seq))
         lost = q.next_job()  # frame 0 was in the lost pipeline: the server un-accepts the
         assert [j.seq for j in q.unaccept(lost)] == [1, 2, 3]  # rest before it finishes it
-        assert q.finish(lost, reply(0), final=False, processed=False,
-                        finish_time_mono=1.0) is None
+        assert q.finish(lost, reply(0), final=False, processed=False, finish_time_mono=1.0) is None
         assert q.counters().received == 0
         assert q.offer(job(1)) is Offer.OVERFLOW  # not before frame 0 comes again
         for seq in range(4):

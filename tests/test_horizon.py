@@ -54,9 +54,13 @@ class TestSupportPlane:
         camera = PinholeCamera(160, 120, 120.0, 120.0, 79.5, 59.5)
         pitch = math.radians(35.0)
         # columns: the camera's x (right), y (down), z (forward) in the world (y up); symmetric
-        r_wc = np.array([[1.0, 0, 0],
-                         [0, -math.cos(pitch), -math.sin(pitch)],
-                         [0, -math.sin(pitch), math.cos(pitch)]])
+        r_wc = np.array(
+            [
+                [1.0, 0, 0],
+                [0, -math.cos(pitch), -math.sin(pitch)],
+                [0, -math.sin(pitch), math.cos(pitch)],
+            ]
+        )
         rays = camera.unproject(np.ones((120, 160), np.float32)).astype(np.float64)
         d_world = rays @ r_wc.T
         height = np.full((120, 160), 0.0)
@@ -123,6 +127,7 @@ class TestBelowHorizonPrior:
         assert with_up.horizon_prior_used
         d_free, d_up = sh.dominant_direction(free.sh), sh.dominant_direction(with_up.sh)
         assert d_up[1] > d_free[1]  # pulled up towards the horizon
-        off = le.estimate_light(t, color, EstimationParams(horizon_prior=0.0),
-                                up=np.array([0.0, 1.0, 0.0]))
+        off = le.estimate_light(
+            t, color, EstimationParams(horizon_prior=0.0), up=np.array([0.0, 1.0, 0.0])
+        )
         assert not off.horizon_prior_used

@@ -96,15 +96,19 @@ class TestEquirect:
             np.testing.assert_allclose(
                 (small * equirect.pixel_solid_angles(h, w)[..., None]).sum((0, 1)),
                 (image * equirect.pixel_solid_angles(64, 128)[..., None]).sum((0, 1)),
-                rtol=1e-4)
+                rtol=1e-4,
+            )
 
     def test_rotation_about_y_is_a_column_shift(self):
         image = synthetic_sky(256)
         turned = equirect.rotate_about_y(image, math.pi / 2)
         d = np.array([0.3, 0.4, -0.866])
         d /= np.linalg.norm(d)
-        np.testing.assert_allclose(equirect.sample_bilinear(turned, r_y(math.pi / 2) @ d),
-                                   equirect.sample_bilinear(image, d), rtol=1e-5)
+        np.testing.assert_allclose(
+            equirect.sample_bilinear(turned, r_y(math.pi / 2) @ d),
+            equirect.sample_bilinear(image, d),
+            rtol=1e-5,
+        )
 
 
 class TestInverseTone:
@@ -112,16 +116,17 @@ class TestInverseTone:
         # white: L_i = 1, L_s = 11.8; mid grey 0.5: L_s = 10 / 1024 + 1.8
         out = paper_expand(np.array([[1.0, 1.0, 1.0], [0.5, 0.5, 0.5], [1.0, 0.0, 0.0]]))
         np.testing.assert_allclose(out[0], 11.8, rtol=1e-6)
-        np.testing.assert_allclose(out[1], 0.5 * (10 * 0.5 ** 10 + 1.8), rtol=1e-6)
-        np.testing.assert_allclose(out[2], [10 * 0.3 ** 10 + 1.8, 0, 0], rtol=1e-6)
+        np.testing.assert_allclose(out[1], 0.5 * (10 * 0.5**10 + 1.8), rtol=1e-6)
+        np.testing.assert_allclose(out[2], [10 * 0.3**10 + 1.8, 0, 0], rtol=1e-6)
         grey = np.full((2, 4, 3), 128, np.uint8)
         lin = srgb_to_linear(grey)
         np.testing.assert_allclose(expand(grey, "paper"), paper_expand(grey / 255.0), rtol=1e-6)
         np.testing.assert_allclose(expand(grey, "paper-linear"), paper_expand(lin), rtol=1e-6)
 
     def test_boost_keeps_unclipped_pixels_and_boosts_clipped_white(self):
-        image = np.array([[[10, 120, 200], [255, 255, 255], [255, 90, 30], [255, 255, 240]]],
-                         dtype=np.uint8)
+        image = np.array(
+            [[[10, 120, 200], [255, 255, 255], [255, 90, 30], [255, 255, 240]]], dtype=np.uint8
+        )
         out = expand(image, "boost")
         lin = srgb_to_linear(image)
         np.testing.assert_allclose(out[0, 0], lin[0, 0])  # unclipped: exact decoding
@@ -183,8 +188,11 @@ class TestLighting:
 
     @needs_hdri
     def test_real_map_rotation(self, hdr_maps):
-        hdr = hdr_maps["forest_slope_1k.hdr"] if "forest_slope_1k.hdr" in hdr_maps else \
-            next(iter(hdr_maps.values()))
+        hdr = (
+            hdr_maps["forest_slope_1k.hdr"]
+            if "forest_slope_1k.hdr" in hdr_maps
+            else next(iter(hdr_maps.values()))
+        )
         ldr = ldr_frame(hdr, 0.18)
         base = lighting_from_ldr(ldr).dominant_direction
         w = ldr.shape[1]
@@ -232,16 +240,18 @@ class TestSources:
             got = list(src)
         assert [round(t, 3) for t, _ in got] == [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
         # in order, every frame (the codec moves flat levels by a few units)
-        np.testing.assert_allclose([img.mean() for _, img in got], [50 * i for i in range(6)],
-                                   atol=8)
+        np.testing.assert_allclose(
+            [img.mean() for _, img in got], [50 * i for i in range(6)], atol=8
+        )
         with open_panorama(tmp_path / "pano.mp4", fps=2.0, max_frames=3) as src:
             assert [t for t, _ in src] == [0.0, 0.5, 1.0]
         src = open_panorama(tmp_path / "pano.mp4", queue_frames=1)
         for _ in src:
             break  # stopping early stops the decoder
         src.close()
-        assert not any(t.name.startswith("decode pano") and t.is_alive()
-                       for t in threading.enumerate())
+        assert not any(
+            t.name.startswith("decode pano") and t.is_alive() for t in threading.enumerate()
+        )
 
     def test_exr_round_trip_is_half_float(self, tmp_path):
         import OpenEXR
@@ -270,8 +280,19 @@ class TestCli:
         frames = [np.roll(sky_ldr, -k * 64, axis=1) for k in range(4)]  # 45 degrees per frame
         write_video(tmp_path / "sky.mp4", frames, fps=5.0)
         out_file, exr_dir = tmp_path / "r.jsonl", tmp_path / "exr"
-        code, _, err = run_cli(["ibl", str(tmp_path / "sky.mp4"), "--out", str(out_file),
-                                "--exr", str(exr_dir), "--diffuse-size", "16x8"], capsys)
+        code, _, err = run_cli(
+            [
+                "ibl",
+                str(tmp_path / "sky.mp4"),
+                "--out",
+                str(out_file),
+                "--exr",
+                str(exr_dir),
+                "--diffuse-size",
+                "16x8",
+            ],
+            capsys,
+        )
         assert code == 0, err
         lines = [json.loads(line) for line in out_file.read_text().splitlines()]
         assert [round(r["timestamp"], 3) for r in lines] == [0.0, 0.2, 0.4, 0.6]
@@ -289,17 +310,23 @@ class TestCli:
         cap = cv2.VideoCapture(str(tmp_path / "sky.mp4"))
         for _ in range(4):
             ok, bgr = cap.read()
-        np.testing.assert_allclose(pixels.astype(np.float32),
-                                   expand(np.ascontiguousarray(bgr[..., ::-1])), rtol=2e-3,
-                                   atol=1e-4)
+        np.testing.assert_allclose(
+            pixels.astype(np.float32),
+            expand(np.ascontiguousarray(bgr[..., ::-1])),
+            rtol=2e-3,
+            atol=1e-4,
+        )
         assert pixels.max() == pytest.approx(5.0, rel=1e-3)  # the boosted sun
 
-    @pytest.mark.parametrize("argv, text", [
-        (["--diffuse-size", "30x16"], "--diffuse-size"),
-        (["--diffuse-size", "1024x512"], "--diffuse-size"),
-        (["--fps", "0"], "--fps"),
-        (["--operator", "magic"], "--operator"),
-    ])
+    @pytest.mark.parametrize(
+        "argv, text",
+        [
+            (["--diffuse-size", "30x16"], "--diffuse-size"),
+            (["--diffuse-size", "1024x512"], "--diffuse-size"),
+            (["--fps", "0"], "--fps"),
+            (["--operator", "magic"], "--operator"),
+        ],
+    )
     def test_bad_flags(self, capsys, argv, text):
         code, _, err = run_cli(["ibl", *argv], capsys)
         assert code == EXIT_BAD_INPUT and text in err and "Traceback" not in err
@@ -307,9 +334,11 @@ class TestCli:
     def test_bad_panoramas(self, tmp_path, capsys):
         cv2.imwrite(str(tmp_path / "square.jpg"), np.zeros((64, 64, 3), np.uint8))
         (tmp_path / "broken.mp4").write_bytes(b"not a video at all")
-        for path, text in ((tmp_path / "square.jpg", "(2:1), got 64x64"),
-                           (tmp_path / "broken.mp4", "broken.mp4"),
-                           (tmp_path / "missing.png", "missing.png")):
+        for path, text in (
+            (tmp_path / "square.jpg", "(2:1), got 64x64"),
+            (tmp_path / "broken.mp4", "broken.mp4"),
+            (tmp_path / "missing.png", "missing.png"),
+        ):
             code, _, err = run_cli(["ibl", str(path)], capsys)
             assert code == EXIT_BAD_INPUT and text in err and "Traceback" not in err, err
 

@@ -71,11 +71,15 @@ def errors(pyramid, hdr, roughness, n: int = 48) -> dict[str, float]:
     out = {}
     for name, dirs in (("spread", fibonacci_directions(n)), ("peak", peak_directions(hdr))):
         ref = glossy.glossy_brute_force(hdr, dirs, roughness) @ LUMA
-        for label, got in (("glossy", glossy.glossy(pyramid, dirs, roughness) @ LUMA),
-                           ("mirror", glossy.mirror(pyramid, dirs) @ LUMA)):
+        for label, got in (
+            ("glossy", glossy.glossy(pyramid, dirs, roughness) @ LUMA),
+            ("mirror", glossy.mirror(pyramid, dirs) @ LUMA),
+        ):
             out[f"{label}_{name}"] = float(
-                np.median(np.abs(got / ref - 1.0)) if name == "spread"
-                else np.abs(got - ref).sum() / ref.sum())
+                np.median(np.abs(got / ref - 1.0))
+                if name == "spread"
+                else np.abs(got - ref).sum() / ref.sum()
+            )
     return out
 
 
@@ -120,8 +124,9 @@ class TestGlossy:
 
     def test_constant_map_gives_its_value(self):
         pyr = glossy.mip_pyramid(np.full((64, 128, 3), 0.25, np.float32))
-        np.testing.assert_allclose(glossy.glossy(pyr, fibonacci_directions(50), 0.3), 0.25,
-                                   rtol=1e-5)
+        np.testing.assert_allclose(
+            glossy.glossy(pyr, fibonacci_directions(50), 0.3), 0.25, rtol=1e-5
+        )
 
     def test_against_brute_force_on_the_built_in_sky(self):
         hdr = synthetic_sky(512)
@@ -175,8 +180,13 @@ class TestCuda:
         import sys
 
         env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
-        result = subprocess.run([sys.executable, "-c", _CUDA_CHECK.format(width=64, n=12)],
-                                env=env, capture_output=True, text=True, timeout=120)
+        result = subprocess.run(
+            [sys.executable, "-c", _CUDA_CHECK.format(width=64, n=12)],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert result.returncode == 0, result.stderr[-3000:]
         assert "CUDA == CPU" in result.stdout
 
@@ -226,8 +236,9 @@ class TestRendering:
             p = centre + radius * n
         cam = np.linalg.inv(pose)
         q = cam[:3, :3] @ p + cam[:3, 3]
-        expected = np.array([camera.fx * q[0] / q[2] + camera.cx,
-                             camera.fy * q[1] / q[2] + camera.cy])
+        expected = np.array(
+            [camera.fx * q[0] / q[2] + camera.cx, camera.fy * q[1] / q[2] + camera.cy]
+        )
         lum = out.radiance @ LUMA.astype(np.float32)
         bright = np.argwhere(lum > 0.5 * lum.max())  # (row, col)
         found = bright.mean(axis=0)[::-1]
@@ -240,8 +251,11 @@ class TestRendering:
         hdr = np.full((64, 128, 3), c, np.float32)
         light = ibl_render.frame_light(hdr, diffuse_map_brute_force(hdr, (32, 16)))
         camera = ibl_render.view_camera((160, 120), 60.0)
-        for material in (Material((0.5, 0.6, 0.7)), Material((0.5, 0.6, 0.7), mirror=True),
-                         Material((0.5, 0.6, 0.7), 0.3, 0.6)):
+        for material in (
+            Material((0.5, 0.6, 0.7)),
+            Material((0.5, 0.6, 0.7), mirror=True),
+            Material((0.5, 0.6, 0.7), 0.3, 0.6),
+        ):
             renderer = ibl_render.IblRenderer(single_object(material))
             out = renderer.render(renderer.prepare_view(camera, np.eye(4)), light)
             got = out.radiance[out.mask]
@@ -264,9 +278,20 @@ class TestRendering:
 
 class TestCli:
     def test_mono_render_one_png_per_frame(self, tmp_path, capsys):
-        code, _, err = run_cli(["ibl", "--max-frames", "2", "--out", str(tmp_path / "r.jsonl"),
-                                "--render", str(tmp_path / "mono"), "--render-size", "320x180"],
-                               capsys)
+        code, _, err = run_cli(
+            [
+                "ibl",
+                "--max-frames",
+                "2",
+                "--out",
+                str(tmp_path / "r.jsonl"),
+                "--render",
+                str(tmp_path / "mono"),
+                "--render-size",
+                "320x180",
+            ],
+            capsys,
+        )
         assert code == 0, err
         files = sorted(p.name for p in (tmp_path / "mono").iterdir())
         assert files == ["000000.png", "000001.png"]
@@ -275,8 +300,19 @@ class TestCli:
         assert "5 objects" in err
 
     def test_stereo_render_1182x1464_per_eye(self, tmp_path, capsys):
-        code, _, err = run_cli(["ibl", "--max-frames", "1", "--out", str(tmp_path / "r.jsonl"),
-                                "--render", str(tmp_path / "st"), "--stereo"], capsys)
+        code, _, err = run_cli(
+            [
+                "ibl",
+                "--max-frames",
+                "1",
+                "--out",
+                str(tmp_path / "r.jsonl"),
+                "--render",
+                str(tmp_path / "st"),
+                "--stereo",
+            ],
+            capsys,
+        )
         assert code == 0, err
         image = cv2.imread(str(tmp_path / "st" / "000000.png"))
         assert image.shape == (1464, 2 * 1182, 3)
@@ -284,9 +320,22 @@ class TestCli:
         assert not np.array_equal(left, right)  # the objects shift between the eyes
 
     def test_scene_demo_is_the_built_in_one(self, tmp_path, capsys):
-        code, _, err = run_cli(["ibl", "--max-frames", "1", "--out", str(tmp_path / "r.jsonl"),
-                                "--render", str(tmp_path / "d"), "--render-size", "64x36",
-                                "--scene", "demo"], capsys)
+        code, _, err = run_cli(
+            [
+                "ibl",
+                "--max-frames",
+                "1",
+                "--out",
+                str(tmp_path / "r.jsonl"),
+                "--render",
+                str(tmp_path / "d"),
+                "--render-size",
+                "64x36",
+                "--scene",
+                "demo",
+            ],
+            capsys,
+        )
         assert code == 0, err
         assert "5 objects" in err
 
@@ -294,38 +343,74 @@ class TestCli:
         mesh = o3d.geometry.TriangleMesh.create_box(0.3, 0.3, 0.3)
         mesh.compute_vertex_normals()
         o3d.io.write_triangle_mesh(str(tmp_path / "box.ply"), mesh)
-        scene = {"objects": [
-            {"name": "box", "mesh": "box.ply",
-             "world_from_object": [[1, 0, 0, -0.15], [0, 1, 0, -0.15], [0, 0, 1, 1.5],
-                                   [0, 0, 0, 1]],
-             "material": {"albedo": [0.9, 0.9, 0.9], "metalness": 1.0, "roughness": 0.2}}]}
+        scene = {
+            "objects": [
+                {
+                    "name": "box",
+                    "mesh": "box.ply",
+                    "world_from_object": [
+                        [1, 0, 0, -0.15],
+                        [0, 1, 0, -0.15],
+                        [0, 0, 1, 1.5],
+                        [0, 0, 0, 1],
+                    ],
+                    "material": {"albedo": [0.9, 0.9, 0.9], "metalness": 1.0, "roughness": 0.2},
+                }
+            ]
+        }
         (tmp_path / "scene.json").write_text(json.dumps(scene))
-        code, _, err = run_cli(["ibl", "--max-frames", "1", "--out", str(tmp_path / "r.jsonl"),
-                                "--render", str(tmp_path / "sc"), "--render-size", "160x90",
-                                "--scene", str(tmp_path / "scene.json")], capsys)
+        code, _, err = run_cli(
+            [
+                "ibl",
+                "--max-frames",
+                "1",
+                "--out",
+                str(tmp_path / "r.jsonl"),
+                "--render",
+                str(tmp_path / "sc"),
+                "--render-size",
+                "160x90",
+                "--scene",
+                str(tmp_path / "scene.json"),
+            ],
+            capsys,
+        )
         assert code == 0, err
         assert "1 object);" in err
         image = cv2.imread(str(tmp_path / "sc" / "000000.png"))
         assert image.shape == (90, 160, 3)
 
-    @pytest.mark.parametrize("argv, flag", [
-        (["--render", "{d}", "--roughness", "0.7,0.1"], "--roughness"),
-        (["--render", "{d}", "--roughness", "0.1"], "--roughness"),
-        (["--stereo"], "--stereo"),
-        (["--render", "{d}", "--render-size", "8192x8192"], "--render-size"),
-        (["--render", "{d}", "--scene", "{d}/missing.json"], "--scene"),
-        (["--render", "{d}", "--scene", "{d}/rough.json"], "--scene"),
-        (["--render", "{d}", "--scene", "{d}/rough.json", "--roughness", "0.1,0.2"],
-         "--roughness"),
-    ])
+    @pytest.mark.parametrize(
+        "argv, flag",
+        [
+            (["--render", "{d}", "--roughness", "0.7,0.1"], "--roughness"),
+            (["--render", "{d}", "--roughness", "0.1"], "--roughness"),
+            (["--stereo"], "--stereo"),
+            (["--render", "{d}", "--render-size", "8192x8192"], "--render-size"),
+            (["--render", "{d}", "--scene", "{d}/missing.json"], "--scene"),
+            (["--render", "{d}", "--scene", "{d}/rough.json"], "--scene"),
+            (
+                ["--render", "{d}", "--scene", "{d}/rough.json", "--roughness", "0.1,0.2"],
+                "--roughness",
+            ),
+        ],
+    )
     def test_bad_flags_exit_2_naming_the_flag(self, tmp_path, capsys, argv, flag):
-        scene = {"objects": [{"name": "ball", "primitive": {"shape": "sphere"},
-                              "world_from_object": np.eye(4).tolist(),
-                              "material": {"metalness": 1.0, "roughness": 0.9}}]}
+        scene = {
+            "objects": [
+                {
+                    "name": "ball",
+                    "primitive": {"shape": "sphere"},
+                    "world_from_object": np.eye(4).tolist(),
+                    "material": {"metalness": 1.0, "roughness": 0.9},
+                }
+            ]
+        }
         (tmp_path / "rough.json").write_text(json.dumps(scene))
         argv = [a.format(d=tmp_path) for a in argv]
-        code, _, err = run_cli(["ibl", "--max-frames", "1", "--out", str(tmp_path / "r"), *argv],
-                               capsys)
+        code, _, err = run_cli(
+            ["ibl", "--max-frames", "1", "--out", str(tmp_path / "r"), *argv], capsys
+        )
         assert code == EXIT_BAD_INPUT
         assert flag in err
         if "rough.json" in " ".join(argv) and flag == "--scene":

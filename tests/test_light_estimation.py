@@ -59,8 +59,9 @@ class TestSrgb:
     def test_known_values(self):
         lin = color.srgb_to_linear(np.array([0, 10, 128, 255], np.uint8))
         assert lin.dtype == np.float32
-        np.testing.assert_allclose(lin, [0.0, 10 / 255 / 12.92, 0.21586050, 1.0], rtol=1e-6,
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            lin, [0.0, 10 / 255 / 12.92, 0.21586050, 1.0], rtol=1e-6, atol=1e-9
+        )
 
     def test_monotonic_and_shape_kept(self):
         img = np.arange(256, dtype=np.uint8).reshape(16, 16)[..., None].repeat(3, axis=2)
@@ -96,7 +97,8 @@ class TestRecovery:
         light = _light((-0.2, 0.4, 0.9))
         rng = np.random.default_rng(seed + 10)
         noisy = (t @ light) * (1.0 + 0.05 * rng.normal(size=len(t))) + 0.005 * rng.normal(
-            size=len(t))
+            size=len(t)
+        )
         est = le.estimate_light(t, _grey(noisy), EstimationParams())
         assert _angle_deg(est.sh, light) < 1.0
         assert np.all(np.isfinite(est.sh)) and est.residual_rel < 0.2
@@ -134,17 +136,22 @@ class TestAlbedoSegments:
         # regularisation the exact light comes back for any layout
         n, t = _synthetic()
         light = _light(direction)
-        segments = {"azimuth": np.digitize(np.arctan2(n[:, 1], n[:, 0]), [-1.05, 1.05]),
-                    "latitude": np.digitize(n[:, 2], [-1 / 3, 1 / 3]),
-                    "x": np.digitize(n[:, 0], [-1 / 3, 1 / 3])}[layout]
+        segments = {
+            "azimuth": np.digitize(np.arctan2(n[:, 1], n[:, 0]), [-1.05, 1.05]),
+            "latitude": np.digitize(n[:, 2], [-1 / 3, 1 / 3]),
+            "x": np.digitize(n[:, 0], [-1 / 3, 1 / 3]),
+        }[layout]
         color = _grey((t @ light) * self.ALBEDO[segments])
         cfg = EstimationParams(robust_iterations=60, regularization=1e-6)
         est = le.estimate_light(t, color, cfg, segments=segments)
         assert _angle_deg(est.sh, light) < 0.5
 
-    @pytest.mark.xfail(strict=True, reason="known limitation: with the default 8 alternations "
-                       "and regularisation the albedo alternation stops (or converges) "
-                       "several degrees off for some segment layouts")
+    @pytest.mark.xfail(
+        strict=True,
+        reason="known limitation: with the default 8 alternations "
+        "and regularisation the albedo alternation stops (or converges) "
+        "several degrees off for some segment layouts",
+    )
     def test_default_config_any_layout(self):
         n, t = _synthetic()
         light = _light()
@@ -206,8 +213,9 @@ class TestDegenerate:
     @pytest.mark.parametrize("rgb", [False, True])
     def test_too_few_samples(self, rgb):
         _, t = _synthetic(m=150)
-        est = le.estimate_light(t, _grey(t @ _light()), EstimationParams(min_samples=200,
-                                                               estimate_rgb=rgb))
+        est = le.estimate_light(
+            t, _grey(t @ _light()), EstimationParams(min_samples=200, estimate_rgb=rgb)
+        )
         assert est.confidence.value == 0.0 and est.confidence.samples == 150
         assert "min_samples" in est.confidence.reason
         np.testing.assert_array_equal(est.sh, np.zeros(16))
@@ -312,8 +320,9 @@ class TestBounceTerm:
         rng = np.random.default_rng(3)
         bounce = rng.uniform(0.0, 2.0, len(t))
         light, beta = _light(), 0.12
-        est = le.estimate_light(t, _grey(t @ light + beta * bounce), EstimationParams(),
-                                bounce=bounce)
+        est = le.estimate_light(
+            t, _grey(t @ light + beta * bounce), EstimationParams(), bounce=bounce
+        )
         assert est.bounce_scale == pytest.approx(beta, rel=0.05)
         assert _angle_deg(est.sh, light) < 1.0
         # ignoring the bounce light biases the estimate
@@ -324,8 +333,9 @@ class TestBounceTerm:
         _, t = _synthetic()
         bounce = np.random.default_rng(4).uniform(0.0, 2.0, len(t))
         light = _light()
-        est = le.estimate_light(t, _grey(np.maximum(t @ light - 0.1 * bounce, 0.01)),
-                                EstimationParams(), bounce=bounce)
+        est = le.estimate_light(
+            t, _grey(np.maximum(t @ light - 0.1 * bounce, 0.01)), EstimationParams(), bounce=bounce
+        )
         assert est.bounce_scale == 0.0
 
 

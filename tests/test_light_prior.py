@@ -28,7 +28,7 @@ class TestPriorMatrix:
         mean, _ = pooled()
         p = prior_matrix(np.array([0.0, 1.0, 0.0]), 4)
         for scale in (0.1, 1.0, 50.0):
-            assert (scale * mean) @ p @ (scale * mean) == pytest.approx(0.0, abs=1e-6 * scale ** 2)
+            assert (scale * mean) @ p @ (scale * mean) == pytest.approx(0.0, abs=1e-6 * scale**2)
 
     def test_follows_the_support_plane(self):
         """A light rotated with the up vector costs the same: the prior is about 'up'."""
@@ -51,8 +51,9 @@ class TestPriorMatrix:
         assert turned @ p @ turned == pytest.approx(light @ p @ light, rel=1e-4)
 
     def test_light_from_below_costs_more_than_from_above(self):
-        above = sh.directional_light(np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5]),
-                                     1.0, 4) + sh.project(lambda d: np.full(len(d), 0.2), 4)
+        above = sh.directional_light(
+            np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5]), 1.0, 4
+        ) + sh.project(lambda d: np.full(len(d), 0.2), 4)
         below = above.copy()
         below[[1, 5, 9, 11, 13]] *= -1  # mirrored through the horizon plane (y -> -y)
         p = prior_matrix(np.array([0.0, 1.0, 0.0]), 4)

@@ -39,8 +39,9 @@ def _box_on_floor_mesh() -> ost.SurfaceMesh:
     box.translate([-BOX_HALF_M, -BOX_HALF_M, 0.0])
     floor_v = np.array([[-3, -3, 0], [3, -3, 0], [3, 3, 0], [-3, 3, 0]], np.float32)
     vertices = np.concatenate([floor_v, np.asarray(box.vertices, np.float32)])
-    triangles = np.concatenate([np.array([[0, 1, 2], [0, 2, 3]]),
-                                np.asarray(box.triangles) + 4]).astype(np.int32)
+    triangles = np.concatenate(
+        [np.array([[0, 1, 2], [0, 2, 3]]), np.asarray(box.triangles) + 4]
+    ).astype(np.int32)
     return ost.SurfaceMesh(vertices, triangles, in_world=True)
 
 
@@ -77,16 +78,18 @@ def box_scene():
 
 def _floor_pixels(world, normals_world_up, x_range, y_range):
     x, y = world[..., 0], world[..., 1]
-    return (normals_world_up & (x > x_range[0]) & (x < x_range[1]) & (y > y_range[0])
-            & (y < y_range[1]))
+    return (
+        normals_world_up & (x > x_range[0]) & (x < x_range[1]) & (y > y_range[0]) & (y < y_range[1])
+    )
 
 
 def _transfer(box_scene, scene, **overrides):
     camera, points, normals, world_from_cam, _ = box_scene
     cfg = Config().replace(rt_method="raycast", **overrides)
     pattern = make_sampling_pattern(cfg.transfer, cfg.seed)
-    return ost.object_space_transfer(points, normals, camera, world_from_cam, pattern, scene,
-                                     cfg.transfer)
+    return ost.object_space_transfer(
+        points, normals, camera, world_from_cam, pattern, scene, cfg.transfer
+    )
 
 
 def _on_floor(box_scene):
@@ -109,8 +112,12 @@ class TestBoxOnFloor:
         res = _transfer(box_scene, scene, rt_directions=256)
         floor = _on_floor(box_scene) & res.valid
         # in front of the box (towards the camera, -y) and well away from it (> rt_radius)
-        near = floor & (np.abs(world[..., 0]) < 0.1) & (world[..., 1] > -0.32) & (
-            world[..., 1] < -0.22)
+        near = (
+            floor
+            & (np.abs(world[..., 0]) < 0.1)
+            & (world[..., 1] > -0.32)
+            & (world[..., 1] < -0.22)
+        )
         far = floor & (np.abs(world[..., 0]) > 0.9)
         assert near.sum() >= 5 and far.sum() >= 20
         t_near, t_far = res.transfer[near].mean(axis=0), res.transfer[far].mean(axis=0)
@@ -135,19 +142,25 @@ class TestBoxOnFloor:
         # nothing within rt_radius_m: no ray is blocked, not even by the floor itself
         np.testing.assert_array_equal(res.transfer[far], free.transfer[far])
         expected = LAMBERT_PER_COEFF * sh.sh_basis(UP, 4)  # A_l Y_lm(n), world frame
-        np.testing.assert_allclose(res.transfer[far], np.broadcast_to(expected, (far.sum(), 16)),
-                                   atol=0.03)
+        np.testing.assert_allclose(
+            res.transfer[far], np.broadcast_to(expected, (far.sum(), 16)), atol=0.03
+        )
 
     def test_occluders_return_their_light(self, box_scene, scene):
         camera, points, normals, world_from_cam, world = box_scene
         cfg = Config().replace(rt_method="raycast", rt_directions=128)
         pattern = make_sampling_pattern(cfg.transfer, cfg.seed)
         lum = np.full((camera.height, camera.width), 0.5, np.float32)
-        res = ost.object_space_transfer(points, normals, camera, world_from_cam, pattern, scene,
-                                        cfg.transfer, luminance=lum)
+        res = ost.object_space_transfer(
+            points, normals, camera, world_from_cam, pattern, scene, cfg.transfer, luminance=lum
+        )
         floor = _on_floor(box_scene) & res.valid
-        near = floor & (np.abs(world[..., 0]) < 0.1) & (world[..., 1] > -0.32) & (
-            world[..., 1] < -0.22)
+        near = (
+            floor
+            & (np.abs(world[..., 0]) < 0.1)
+            & (world[..., 1] > -0.32)
+            & (world[..., 1] < -0.22)
+        )
         far = floor & (np.hypot(world[..., 0], world[..., 1]) > 0.9)
         free = _transfer(box_scene, None, rt_directions=128)
         # what the box takes from the transfer's band 0 it gives back as bounce (x 0.5 / Y_00)
@@ -165,17 +178,30 @@ def test_depth_mesh_drops_triangles_across_depth_edges(box_scene):
     assert np.all(z.max(axis=1) - z.min(axis=1) <= ost.DEPTH_EDGE_REL * z.min(axis=1))
     empty = ost.depth_mesh(np.zeros((4, 5, 3), np.float32))
     assert empty.empty
-    assert _transfer((box_scene[0], np.zeros((60, 80, 3), np.float32), np.zeros(
-        (60, 80, 3), np.float32), box_scene[3], box_scene[4]), ost.OcclusionScene(empty)
-        ).valid.sum() == 0
+    assert (
+        _transfer(
+            (
+                box_scene[0],
+                np.zeros((60, 80, 3), np.float32),
+                np.zeros((60, 80, 3), np.float32),
+                box_scene[3],
+                box_scene[4],
+            ),
+            ost.OcclusionScene(empty),
+        ).valid.sum()
+        == 0
+    )
 
 
 def test_volume_mesh_is_rebuilt_every_interval(box_scene):
     """The TSDF volume's marching-cubes mesh lies on the surface, shadows like the true
     one, and is rebuilt only after `update_interval` more fused frames."""
     camera, points, normals, world_from_cam, world = box_scene
-    volume = VolumeReconstruction(VolumeParams(volume_size_m=4.0, volume_resolution=256),
-                                  AuxBufferParams(aux_buffers=False), camera)
+    volume = VolumeReconstruction(
+        VolumeParams(volume_size_m=4.0, volume_resolution=256),
+        AuxBufferParams(aux_buffers=False),
+        camera,
+    )
     raycast = ost.ObjectSpaceTransfer(update_interval=2)
     for i in range(4):
         volume.process_validated(points[..., 2], world_from_cam)
@@ -186,13 +212,15 @@ def test_volume_mesh_is_rebuilt_every_interval(box_scene):
     # every vertex within 2 voxels of the floor or of the box
     d_box = np.max(np.abs(vertices[:, :2]), axis=1) - BOX_HALF_M
     on_floor = np.abs(vertices[:, 2]) < 2 * 4.0 / 256
-    on_box = (np.abs(d_box) < 2 * 4.0 / 256) | (np.abs(vertices[:, 2] - 2 * BOX_HALF_M)
-                                                 < 2 * 4.0 / 256)
+    on_box = (np.abs(d_box) < 2 * 4.0 / 256) | (
+        np.abs(vertices[:, 2] - 2 * BOX_HALF_M) < 2 * 4.0 / 256
+    )
     assert np.mean(on_floor | on_box) > 0.99
     cfg = Config().replace(rt_method="raycast", rt_directions=256)
     pattern = make_sampling_pattern(cfg.transfer, cfg.seed)
-    res = raycast.compute(points, normals, camera, world_from_cam, pattern, cfg.transfer,
-                          volume=volume)
+    res = raycast.compute(
+        points, normals, camera, world_from_cam, pattern, cfg.transfer, volume=volume
+    )
     exact = _transfer(box_scene, ost.OcclusionScene(_box_on_floor_mesh()), rt_directions=256)
     floor = _on_floor(box_scene) & res.valid & exact.valid
     assert floor.sum() > 500
@@ -207,8 +235,10 @@ def test_agrees_with_ssdo_on_the_built_in_scene():
     seq = make_sequence(num_frames=4, width=160, height=120, sensor_noise=False)
     found = {}
     for method in RtMethod:
-        pipe = Pipeline(Config.from_preset("full", rt_method=method, volume_resolution=64,
-                                           aux_resolution=32), seq.camera)
+        pipe = Pipeline(
+            Config.from_preset("full", rt_method=method, volume_resolution=64, aux_resolution=32),
+            seq.camera,
+        )
         for frame in seq.frames:
             result = pipe.process(frame)
         found[method] = result.dominant_direction_camera
@@ -231,7 +261,9 @@ def test_bench_runs_it_as_a_comparator():
     from arlight.cli import build_parser
 
     assert build_parser().parse_args(["bench", "--presets", "full", "raycast"]).presets == [
-        "full", "raycast"]
+        "full",
+        "raycast",
+    ]
     (bench,) = make_configs(["raycast"], [], {})
     assert bench.name == "raycast"
     assert bench.config.transfer.rt_method is RtMethod.RAYCAST

@@ -38,9 +38,19 @@ def write_tum(folder: Path, n: int = 2) -> Path:
         assoc.append(f"{f.timestamp:.6f} rgb/{i}.png {f.timestamp:.6f} depth/{i}.png")
     (folder / "associations.txt").write_text("\n".join(assoc) + "\n")
     c = seq.camera
-    (folder / "camera.json").write_text(json.dumps({
-        "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width, "height": c.height,
-        "depth_scale": float(seq.frames[0].depth_scale)}))
+    (folder / "camera.json").write_text(
+        json.dumps(
+            {
+                "fx": c.fx,
+                "fy": c.fy,
+                "cx": c.cx,
+                "cy": c.cy,
+                "width": c.width,
+                "height": c.height,
+                "depth_scale": float(seq.frames[0].depth_scale),
+            }
+        )
+    )
     return folder
 
 
@@ -50,8 +60,21 @@ def streams(tmp_path_factory):
     d = tmp_path_factory.mktemp("offline")
     folder = write_tum(d / "scene")
     recording = d / "scene.mcap"
-    assert main(["record", str(folder), "--out", str(recording), "--mode", "lossless",
-                 "--color-codec", "png"]) == 0
+    assert (
+        main(
+            [
+                "record",
+                str(folder),
+                "--out",
+                str(recording),
+                "--mode",
+                "lossless",
+                "--color-codec",
+                "png",
+            ]
+        )
+        == 0
+    )
     return folder, recording
 
 
@@ -81,7 +104,10 @@ class TestOpenRecording:
         seq = open_sequence(str(folder), use_poses=False)
         assert n == len(seq.frames) == 2
         assert (camera.width, camera.height, camera.fx) == (
-            seq.camera.width, seq.camera.height, seq.camera.fx)
+            seq.camera.width,
+            seq.camera.height,
+            seq.camera.fx,
+        )
         for got, want in zip(frames, seq.frames, strict=True):
             assert np.array_equal(got.color, want.color)
             assert np.array_equal(got.depth, want.depth)
@@ -108,9 +134,11 @@ class TestOpenRecording:
             f"                  ({str(recording)!r}, {str(tmp_path / 'b.jsonl')!r})):\n"
             "    assert process_stream(path, out, options).frames == 1\n"
             "bad = sorted(m for m in sys.modules if m.startswith('arlight.server'))\n"
-            "print(bad); sys.exit(1 if bad else 0)\n")
-        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                              timeout=300)
+            "print(bad); sys.exit(1 if bad else 0)\n"
+        )
+        done = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=300
+        )
         assert done.returncode == 0, done.stdout + done.stderr
 
 
@@ -125,15 +153,20 @@ class TestFrameNotes:
         notes = FrameNotes()
         low = LOW_CONFIDENCE / 2
         first = notes.note(low, "few normal directions (spread 0.07)")
-        assert first == (f"low confidence {low:.2f} (below {LOW_CONFIDENCE:g}): "
-                         "few normal directions (spread 0.07)")
+        assert first == (
+            f"low confidence {low:.2f} (below {LOW_CONFIDENCE:g}): "
+            "few normal directions (spread 0.07)"
+        )
         assert notes.note(low, "few normal directions (spread 0.09)") is None  # same causes
         assert "jumped" in notes.note(low, "few normal directions (spread 0.09); jumped 9 deg")
         assert notes.note(0.9, "") is None
-        assert notes.note(low, "") == f"low confidence {low:.2f} (below " \
-                                      f"{LOW_CONFIDENCE:g}): no reason recorded"
-        assert notes.summary().startswith(f"4 of 5 frames with a confidence below "
-                                          f"{LOW_CONFIDENCE:g}")
+        assert (
+            notes.note(low, "") == f"low confidence {low:.2f} (below "
+            f"{LOW_CONFIDENCE:g}): no reason recorded"
+        )
+        assert notes.summary().startswith(
+            f"4 of 5 frames with a confidence below {LOW_CONFIDENCE:g}"
+        )
 
     def test_nothing_to_say(self):
         notes = FrameNotes()

@@ -60,8 +60,10 @@ def _sky_frames(n: int = 3, width: int = 128) -> list[np.ndarray]:
     """LDR 2:1 frames of the built-in sky turning about +y (one exposure)."""
     first = synthetic_sky(width, sun_direction(math.radians(35), 0.0))
     exposure = keyed_exposure(first, 0.18)
-    return [ldr_frame(synthetic_sky(width, sun_direction(math.radians(35), i * 0.7)),
-                      exposure=exposure) for i in range(n)]
+    return [
+        ldr_frame(synthetic_sky(width, sun_direction(math.radians(35), i * 0.7)), exposure=exposure)
+        for i in range(n)
+    ]
 
 
 @pytest.fixture
@@ -80,17 +82,30 @@ def sky_video(tmp_path):
 
 def _result(**extra) -> Result:
     sh = [0.1 * i for i in range(16)]
-    return Result(seq=1, timestamp=2.0, sh=sh, dominant_direction_camera=[0.0, 0.0, 1.0],
-                  dominant_direction_world=[0.0, 0.0, 1.0], intensity=1.0, confidence={},
-                  pose=np.eye(4).tolist(), timings_ms={}, frames_received=1,
-                  frames_processed=1, frames_dropped=0, server_receive_time=1.0,
-                  server_finish_time=1.5, **extra)
+    return Result(
+        seq=1,
+        timestamp=2.0,
+        sh=sh,
+        dominant_direction_camera=[0.0, 0.0, 1.0],
+        dominant_direction_world=[0.0, 0.0, 1.0],
+        intensity=1.0,
+        confidence={},
+        pose=np.eye(4).tolist(),
+        timings_ms={},
+        frames_received=1,
+        frames_processed=1,
+        frames_dropped=0,
+        server_receive_time=1.0,
+        server_finish_time=1.5,
+        **extra,
+    )
 
 
 def _pano_fields(sh=None) -> dict:
     sh = sh or [0.2] * 16
-    return dict(panorama_sh=sh, panorama_sh_rgb=[sh, sh, sh],
-                panorama_dominant_direction=[0.0, 1.0, 0.0])
+    return dict(
+        panorama_sh=sh, panorama_sh_rgb=[sh, sh, sh], panorama_dominant_direction=[0.0, 1.0, 0.0]
+    )
 
 
 # --------------------------------------------------------------------------- wire
@@ -144,19 +159,32 @@ class TestWire:
         assert info.value.field == "frame.color"
 
     def test_hello_panorama_config(self):
-        hello = Hello(PROTOCOL_VERSION, SessionConfig(
-            session="p", role="capture", panorama=PanoramaConfig("paper", "panorama", YAW_90)))
+        hello = Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(
+                session="p", role="capture", panorama=PanoramaConfig("paper", "panorama", YAW_90)
+            ),
+        )
         got = decode(encode(hello))
         assert got.config.panorama == PanoramaConfig("paper", "panorama", YAW_90)
         assert got.config.calibration is None  # panorama-only: no camera
-        bad = SessionConfig(session="p", role="capture",
-                            panorama=PanoramaConfig(panorama_from_world=(2.0,) + YAW_90[1:]))
+        bad = SessionConfig(
+            session="p",
+            role="capture",
+            panorama=PanoramaConfig(panorama_from_world=(2.0,) + YAW_90[1:]),
+        )
         with pytest.raises(ProtocolError) as info:
             encode(Hello(PROTOCOL_VERSION, bad))
         assert info.value.field == "hello.config.panorama.panorama_from_world"
         with pytest.raises(ProtocolError) as info:
-            encode(Hello(PROTOCOL_VERSION, SessionConfig(
-                session="p", role="capture", panorama=PanoramaConfig(light_source="sun"))))
+            encode(
+                Hello(
+                    PROTOCOL_VERSION,
+                    SessionConfig(
+                        session="p", role="capture", panorama=PanoramaConfig(light_source="sun")
+                    ),
+                )
+            )
         assert info.value.field == "hello.config.panorama.light_source"
         with pytest.raises(ProtocolError) as info:  # capture without calibration nor panorama
             encode(Hello(PROTOCOL_VERSION, SessionConfig(session="p", role="capture")))
@@ -176,8 +204,7 @@ def test_panorama_sources(sky_video, tmp_path):
     assert len(list(source.frames())) == 4  # a second pass opens the video again
     both = with_panorama(flat_source(3), str(sky_video))
     paired = list(both.frames())
-    assert len(paired) == 3 and all(f.color is not None and f.panorama is not None
-                                    for f in paired)
+    assert len(paired) == 3 and all(f.color is not None and f.panorama is not None for f in paired)
 
 
 # --------------------------------------------------------------------------- service
@@ -195,20 +222,31 @@ class TestPanoramaOnlySession:
     def test_results_equal_arlight_ibl_offline(self, make_server, sky_video):
         server = make_server()  # the real session code (no RGB-D pipeline is built)
         results: list[Result] = []
-        options = StreamOptions(server=server.connect_address, session="pano-only",
-                                mode="lossless", rate="max", color_codec="png",
-                                panorama=PanoramaConfig("paper"))
-        summary = run_with_timeout(lambda: stream(panorama_only_source(str(sky_video)),
-                                                  options,
-                                                  on_result=lambda r, _: results.append(r)))
+        options = StreamOptions(
+            server=server.connect_address,
+            session="pano-only",
+            mode="lossless",
+            rate="max",
+            color_codec="png",
+            panorama=PanoramaConfig("paper"),
+        )
+        summary = run_with_timeout(
+            lambda: stream(
+                panorama_only_source(str(sky_video)),
+                options,
+                on_result=lambda r, _: results.append(r),
+            )
+        )
         assert summary.errors == [] and len(results) == 4
         offline = _offline(sky_video, "paper")
         for got, want in zip(results, offline, strict=True):
             np.testing.assert_allclose(got.panorama_sh, want.result.sh, rtol=1e-6, atol=1e-9)
-            np.testing.assert_allclose(got.panorama_sh_rgb, want.result.sh_rgb, rtol=1e-6,
-                                       atol=1e-9)
-            np.testing.assert_allclose(got.panorama_dominant_direction,
-                                       want.result.dominant_direction, atol=1e-9)
+            np.testing.assert_allclose(
+                got.panorama_sh_rgb, want.result.sh_rgb, rtol=1e-6, atol=1e-9
+            )
+            np.testing.assert_allclose(
+                got.panorama_dominant_direction, want.result.dominant_direction, atol=1e-9
+            )
             # identity panorama_from_world: the world light is the panorama's
             np.testing.assert_allclose(got.sh, want.result.sh, rtol=1e-6, atol=1e-9)
             assert got.diagnostics["light_source"] == "panorama"
@@ -219,9 +257,17 @@ class TestPanoramaOnlySession:
     def test_panorama_from_world_rotates_the_world_light(self, make_server):
         server = make_server()
         peer = RawPeer(server.connect_address)
-        peer.send_message(Hello(PROTOCOL_VERSION, SessionConfig(
-            session="rotated", role="capture", mode="lossless",
-            panorama=PanoramaConfig(panorama_from_world=YAW_90))))
+        peer.send_message(
+            Hello(
+                PROTOCOL_VERSION,
+                SessionConfig(
+                    session="rotated",
+                    role="capture",
+                    mode="lossless",
+                    panorama=PanoramaConfig(panorama_from_world=YAW_90),
+                ),
+            )
+        )
         assert isinstance(peer.receive(), Welcome)
         pano = _sky_frames(1)[0]
         peer.send_message(Frame(0, 1.0, None, None, panorama=pano, color_codec="png"))
@@ -232,15 +278,22 @@ class TestPanoramaOnlySession:
         np.testing.assert_allclose(got.dominant_direction_world, r.T @ d_pano, atol=1e-9)
         np.testing.assert_allclose(got.sh, sh_lib.rotate(got.panorama_sh, r.T), atol=1e-9)
         # the world direction is where the light is: the world light evaluated there peaks
-        np.testing.assert_allclose(sh_lib.dominant_direction(np.array(got.sh)),
-                                   got.dominant_direction_world, atol=1e-6)
+        np.testing.assert_allclose(
+            sh_lib.dominant_direction(np.array(got.sh)), got.dominant_direction_world, atol=1e-6
+        )
         peer.close()
 
     def test_rgbd_frame_in_a_panorama_only_session_is_an_error(self, make_server):
         server = make_server()
         peer = RawPeer(server.connect_address)
-        peer.send_message(Hello(PROTOCOL_VERSION, SessionConfig(
-            session="pano", role="capture", mode="lossless", panorama=PanoramaConfig())))
+        peer.send_message(
+            Hello(
+                PROTOCOL_VERSION,
+                SessionConfig(
+                    session="pano", role="capture", mode="lossless", panorama=PanoramaConfig()
+                ),
+            )
+        )
         assert isinstance(peer.receive(), Welcome)
         color = np.zeros((48, 64, 3), np.uint8)
         peer.send_message(Frame(0, 1.0, color, np.zeros((48, 64), np.uint16)))
@@ -251,8 +304,12 @@ class TestPanoramaOnlySession:
     def test_unknown_operator_refuses_the_hello(self, make_server):
         server = make_server()
         peer = RawPeer(server.connect_address)
-        peer.send_message(Hello(PROTOCOL_VERSION, SessionConfig(
-            session="pano", role="capture", panorama=PanoramaConfig("nosuch"))))
+        peer.send_message(
+            Hello(
+                PROTOCOL_VERSION,
+                SessionConfig(session="pano", role="capture", panorama=PanoramaConfig("nosuch")),
+            )
+        )
         error = peer.receive()
         assert isinstance(error, Error) and error.field == "hello.config.panorama.operator"
         peer.close()
@@ -271,19 +328,28 @@ class TestRgbdWithPanorama:
         offline = _offline(sky_video, "boost")
         for light_source in ("rgbd", "panorama"):
             results: list[Result] = []
-            options = StreamOptions(server=server.connect_address, session=light_source,
-                                    mode="lossless", rate="max", color_codec="png",
-                                    panorama=PanoramaConfig(light_source=light_source))
+            options = StreamOptions(
+                server=server.connect_address,
+                session=light_source,
+                mode="lossless",
+                rate="max",
+                color_codec="png",
+                panorama=PanoramaConfig(light_source=light_source),
+            )
             source = with_panorama(flat_source(3), str(sky_video))
-            summary = run_with_timeout(lambda: stream(  # noqa: B023 - run at once
-                source, options, on_result=lambda r, _: results.append(r)))  # noqa: B023
+
+            def run(source=source, options=options, results=results):
+                return stream(source, options, on_result=lambda r, _: results.append(r))
+
+            summary = run_with_timeout(run)
             assert summary.errors == [] and len(results) == 3
             for i, got in enumerate(results):
                 # the RGB-D estimate (the identity step's: sh[0] = mean colour) ...
                 assert got.sh[0] == pytest.approx(10 + i)
                 # ... and the panorama's light, as arlight ibl computes it offline
-                np.testing.assert_allclose(got.panorama_sh, offline[i].result.sh, rtol=1e-6,
-                                           atol=1e-9)
+                np.testing.assert_allclose(
+                    got.panorama_sh, offline[i].result.sh, rtol=1e-6, atol=1e-9
+                )
                 assert got.diagnostics["light_source"] == light_source
             lights = [light for name, light in seen if name == light_source]
             if light_source == "rgbd":
@@ -291,15 +357,14 @@ class TestRgbdWithPanorama:
             else:
                 for i, (sh_world, rgb_world, environment) in enumerate(lights):
                     assert environment is None  # no virtual object reflects: no mip pyramid
-                    np.testing.assert_allclose(sh_world, offline[i].result.sh, rtol=1e-6,
-                                               atol=1e-9)
-                    np.testing.assert_allclose(rgb_world, offline[i].result.sh_rgb, rtol=1e-6,
-                                               atol=1e-9)
+                    np.testing.assert_allclose(sh_world, offline[i].result.sh, rtol=1e-6, atol=1e-9)
+                    np.testing.assert_allclose(
+                        rgb_world, offline[i].result.sh_rgb, rtol=1e-6, atol=1e-9
+                    )
 
 
 class TestReflectingObjects:
-    def test_a_mirror_object_gets_the_panoramas_hdr_map_to_reflect(self, make_server,
-                                                                   sky_video):
+    def test_a_mirror_object_gets_the_panoramas_hdr_map_to_reflect(self, make_server, sky_video):
         """light_source "panorama" with a mirror among the virtual objects: the Pipeline is
         also given the panorama's HDR map (its mip pyramid) and map_from_world."""
         from arlight.pipeline.rendering import EnvironmentMap
@@ -314,14 +379,21 @@ class TestReflectingObjects:
             return identity(frame, session, render_light, deadline)
 
         server = make_server(process=step)
-        mirror = object_from_open3d("mirror", ball(0.1), np.eye(4),
-                                    Material((0.9, 0.9, 0.9), mirror=True))
-        options = StreamOptions(server=server.connect_address, session="reflect",
-                                mode="lossless", rate="max", color_codec="png",
-                                scene=VirtualScene((mirror,)),
-                                panorama=PanoramaConfig(light_source="panorama"))
-        summary = run_with_timeout(lambda: stream(
-            with_panorama(flat_source(2), str(sky_video)), options))
+        mirror = object_from_open3d(
+            "mirror", ball(0.1), np.eye(4), Material((0.9, 0.9, 0.9), mirror=True)
+        )
+        options = StreamOptions(
+            server=server.connect_address,
+            session="reflect",
+            mode="lossless",
+            rate="max",
+            color_codec="png",
+            scene=VirtualScene((mirror,)),
+            panorama=PanoramaConfig(light_source="panorama"),
+        )
+        summary = run_with_timeout(
+            lambda: stream(with_panorama(flat_source(2), str(sky_video)), options)
+        )
         assert summary.errors == [] and len(seen) == 2
         from arlight.pipeline.inverse_tone import expand
 
@@ -332,8 +404,9 @@ class TestReflectingObjects:
             np.testing.assert_array_equal(environment.map_from_world, np.eye(3))
             assert environment.pyramid.num_levels > 3
             # level 0 is the HDR map of the same frame (the session's operator, boost)
-            np.testing.assert_allclose(environment.pyramid.levels[0],
-                                       expand(frames[i], "boost"), rtol=1e-6, atol=1e-7)
+            np.testing.assert_allclose(
+                environment.pyramid.levels[0], expand(frames[i], "boost"), rtol=1e-6, atol=1e-7
+            )
 
 
 class TestMalformedPanorama:
@@ -342,8 +415,14 @@ class TestMalformedPanorama:
         good = _sky_frames(1, 64)[0]
         bad = np.zeros((40, 60, 3), np.uint8)
         only = RawPeer(server.connect_address)
-        only.send_message(Hello(PROTOCOL_VERSION, SessionConfig(
-            session="only", role="capture", mode="lossless", panorama=PanoramaConfig())))
+        only.send_message(
+            Hello(
+                PROTOCOL_VERSION,
+                SessionConfig(
+                    session="only", role="capture", mode="lossless", panorama=PanoramaConfig()
+                ),
+            )
+        )
         assert isinstance(only.receive(), Welcome)
         rgbd = RawPeer(server.connect_address)
         assert isinstance(rgbd.hello("rgbd"), Welcome)
@@ -353,10 +432,8 @@ class TestMalformedPanorama:
         depth = np.full((48, 64), 7500, np.uint16)
         for seq in range(3):
             pano = bad if seq == 1 else good
-            only.send_message(Frame(seq, 1.0 + seq, None, None, panorama=pano,
-                                    color_codec="png"))
-            rgbd.send_message(Frame(seq, 1.0 + seq, color, depth, panorama=pano,
-                                    color_codec="png"))
+            only.send_message(Frame(seq, 1.0 + seq, None, None, panorama=pano, color_codec="png"))
+            rgbd.send_message(Frame(seq, 1.0 + seq, color, depth, panorama=pano, color_codec="png"))
             other.send_message(Frame(seq, 1.0 + seq, color, depth, color_codec="png"))
         for peer in (only, rgbd):
             replies = [peer.receive() for _ in range(3)]
@@ -395,10 +472,14 @@ def test_pipeline_renders_with_the_given_light():
     frame = seq.frames[0]
 
     def run(render_light):
-        obj = object_from_open3d("ball", sphere_mesh(0.08), np.eye(4),
-                                 Material((0.6, 0.6, 0.6)), Anchor((80.0, 85.0)))
-        pipe = Pipeline(Config.from_preset("full", volume_resolution=64, aux_resolution=32),
-                        seq.camera, VirtualScene((obj,)))
+        obj = object_from_open3d(
+            "ball", sphere_mesh(0.08), np.eye(4), Material((0.6, 0.6, 0.6)), Anchor((80.0, 85.0))
+        )
+        pipe = Pipeline(
+            Config.from_preset("full", volume_resolution=64, aux_resolution=32),
+            seq.camera,
+            VirtualScene((obj,)),
+        )
         result = pipe.process(frame, render_light=render_light)
         return result, pipe.last_render
 
@@ -409,8 +490,7 @@ def test_pipeline_renders_with_the_given_light():
     lit, (inputs_pano, out_pano) = run((bright, rgb))
     np.testing.assert_array_equal(lit.sh, estimate.sh)  # the estimate does not change
     np.testing.assert_array_equal(inputs_pano.light_sh, bright)
-    np.testing.assert_allclose(inputs_pano.light_rgb @ LUMA, 1.0,
-                               rtol=0.05)
+    np.testing.assert_allclose(inputs_pano.light_rgb @ LUMA, 1.0, rtol=0.05)
     assert inputs_pano.light_rgb[0] > inputs_pano.light_rgb[2]  # the panorama's colour
     mask = out_pano.virtual_mask
     assert mask.sum() > 20
@@ -435,9 +515,27 @@ def test_arlight_stream_a_360_video(make_server, sky_video, tmp_path, capsys):
 
     server = make_server()
     out = tmp_path / "results.jsonl"
-    assert main(["stream", str(sky_video), "--server", server.connect_address, "--mode",
-                 "lossless", "--rate", "max", "--color-codec", "png", "--panorama-operator",
-                 "paper", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "stream",
+                str(sky_video),
+                "--server",
+                server.connect_address,
+                "--mode",
+                "lossless",
+                "--rate",
+                "max",
+                "--color-codec",
+                "png",
+                "--panorama-operator",
+                "paper",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     records = [json.loads(line) for line in out.read_text().splitlines()]
     offline = _offline(sky_video, "paper")
     assert len(records) == len(offline) == 4

@@ -40,8 +40,9 @@ class TestProcess:
         np.testing.assert_allclose(result.pose, clean_sequence.frames[0].pose)
         # camera-frame direction is the world one seen from the camera
         r = result.pose[:3, :3]
-        np.testing.assert_allclose(result.dominant_direction_camera,
-                                   r.T @ result.dominant_direction_world, atol=1e-9)
+        np.testing.assert_allclose(
+            result.dominant_direction_camera, r.T @ result.dominant_direction_world, atol=1e-9
+        )
         _finite_result(result)
 
     def test_light_comes_from_above_on_clean_synthetic(self, clean_sequence):
@@ -52,8 +53,12 @@ class TestProcess:
         for frame in clean_sequence.frames:
             result = pipe.process(frame)
         assert result.dominant_direction_world[1] > 0.2
-        assert angular_error_deg(result.dominant_direction_world,
-                                 clean_sequence.dominant_direction_world[-1]) < 65
+        assert (
+            angular_error_deg(
+                result.dominant_direction_world, clean_sequence.dominant_direction_world[-1]
+            )
+            < 65
+        )
 
     def test_deterministic(self, clean_sequence):
         cfg = Config.from_preset("fast", **SMALL)
@@ -122,9 +127,11 @@ class TestExtremes:
         pipe = Pipeline(Config.from_preset("fast", use_volume=False), cam)
         result = pipe.process(FrameInput(color, depth, 0.0, np.eye(4)))
         _finite_result(result)
-        assert (result.confidence.bands_estimated < 4
-                or result.confidence.condition_number is None
-                or result.confidence.condition_number > 1e3)
+        assert (
+            result.confidence.bands_estimated < 4
+            or result.confidence.condition_number is None
+            or result.confidence.condition_number > 1e3
+        )
 
     @pytest.mark.parametrize("depth_m", [0.1, 10.0])
     def test_near_and_far_depth(self, depth_m):
@@ -139,8 +146,11 @@ class TestExtremes:
     def test_one_pixel_frame(self):
         cam = PinholeCamera(1, 1, 1.0, 1.0, 0.0, 0.0)
         pipe = Pipeline(Config.from_preset("fast", use_volume=False), cam)
-        result = pipe.process(FrameInput(np.full((1, 1, 3), 90, np.uint8),
-                                         np.ones((1, 1), np.float32), 0.0, np.eye(4)))
+        result = pipe.process(
+            FrameInput(
+                np.full((1, 1, 3), 90, np.uint8), np.ones((1, 1), np.float32), 0.0, np.eye(4)
+            )
+        )
         assert result.confidence.value == 0.0
         _finite_result(result)
 

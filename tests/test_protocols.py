@@ -132,11 +132,21 @@ def frame(**kw) -> Frame:
 
 def result(**kw) -> Result:
     args = dict(
-        seq=3, timestamp=12.5, sh=[0.1] * 9, sh_rgb=None,
-        dominant_direction_camera=[0.0, 0.0, 1.0], dominant_direction_world=[0.0, 1.0, 0.0],
-        intensity=1.5, confidence={"samples": 10, "condition": math.inf}, pose=np.eye(4),
-        timings_ms={"render": 1.25}, frames_received=4, frames_processed=3, frames_dropped=1,
-        server_receive_time=1.0, server_finish_time=1.5,
+        seq=3,
+        timestamp=12.5,
+        sh=[0.1] * 9,
+        sh_rgb=None,
+        dominant_direction_camera=[0.0, 0.0, 1.0],
+        dominant_direction_world=[0.0, 1.0, 0.0],
+        intensity=1.5,
+        confidence={"samples": 10, "condition": math.inf},
+        pose=np.eye(4),
+        timings_ms={"render": 1.25},
+        frames_received=4,
+        frames_processed=3,
+        frames_dropped=1,
+        server_receive_time=1.0,
+        server_finish_time=1.5,
     )
     args.update(kw)
     return Result(**args)
@@ -174,8 +184,16 @@ class TestRoundTrip:
     def test_every_simple_message(self):
         cal = CameraCalibration(640, 480, 525.0, 525.0, 319.5, 239.5, "plumb_bob", (0.1, 0.2))
         config = SessionConfig(
-            "s-1.a_b", "tablet", "capture", cal, 5000.0, "mobile",
-            {"b": True, "i": 3, "f": 0.5, "s": "x"}, "scene.ply", "lossless", True,
+            "s-1.a_b",
+            "tablet",
+            "capture",
+            cal,
+            5000.0,
+            "mobile",
+            {"b": True, "i": 3, "f": 0.5, "s": "x"},
+            "scene.ply",
+            "lossless",
+            True,
         )
         for msg in (
             Hello(PROTOCOL_VERSION, config),
@@ -194,8 +212,12 @@ class TestRoundTrip:
     @pytest.mark.parametrize("depth_codec", DEPTH_CODECS)
     @pytest.mark.parametrize("color_codec", COLOR_CODECS)
     def test_frame(self, color_codec, depth_codec):
-        msg = frame(color_codec=color_codec, depth_codec=depth_codec,
-                    panorama=smooth_rgb(16, 32), jpeg_quality=85)
+        msg = frame(
+            color_codec=color_codec,
+            depth_codec=depth_codec,
+            panorama=smooth_rgb(16, 32),
+            jpeg_quality=85,
+        )
         back = decode(encode(msg))
         assert (back.seq, back.timestamp) == (msg.seq, msg.timestamp)
         assert back.depth.dtype == np.uint16 and np.array_equal(back.depth, msg.depth)
@@ -226,9 +248,11 @@ class TestRoundTrip:
         assert np.shares_memory(np.frombuffer(color_view, np.uint8), msg.color)
 
     def test_result(self):
-        msg = result(sh=[float(i) for i in range(16)],
-                     sh_rgb=[[float(i)] * 16 for i in range(3)],
-                     composite=smooth_rgb())
+        msg = result(
+            sh=[float(i) for i in range(16)],
+            sh_rgb=[[float(i)] * 16 for i in range(3)],
+            composite=smooth_rgb(),
+        )
         back = decode(encode(msg))
         assert back.sh == msg.sh and back.sh_rgb == msg.sh_rgb
         assert back.pose == np.eye(4).tolist()
@@ -239,10 +263,14 @@ class TestRoundTrip:
         assert back.composite_codec == "jpeg" and psnr(back.composite, msg.composite) > 30
 
     def test_numpy_values_are_accepted_on_encode(self):
-        msg = result(sh=np.full(4, 0.5, np.float32), intensity=np.float32(2.0),
-                     confidence={"n": np.int64(3), "v": np.arange(3)},
-                     timings_ms={"a": np.float32(1.5)}, frames_received=np.int64(4),
-                     dominant_direction_camera=np.array([0.0, 0.0, 1.0]))
+        msg = result(
+            sh=np.full(4, 0.5, np.float32),
+            intensity=np.float32(2.0),
+            confidence={"n": np.int64(3), "v": np.arange(3)},
+            timings_ms={"a": np.float32(1.5)},
+            frames_received=np.int64(4),
+            dominant_direction_camera=np.array([0.0, 0.0, 1.0]),
+        )
         back = decode(encode(msg))
         assert back.sh == [0.5] * 4 and back.confidence_map == {"n": 3, "v": [0, 1, 2]}
         assert back.frames_received == 4
@@ -276,7 +304,14 @@ class TestRoundTrip:
 
     def test_message_types_table(self):
         assert set(MESSAGE_TYPES) == {
-            "hello", "welcome", "frame", "result", "credit", "error", "heartbeat", "bye"
+            "hello",
+            "welcome",
+            "frame",
+            "result",
+            "credit",
+            "error",
+            "heartbeat",
+            "bye",
         }
 
 
@@ -284,8 +319,11 @@ class TestCodecs:
     @pytest.mark.parametrize("codec", DEPTH_CODECS)
     @pytest.mark.parametrize("shape", [(1, 1), (1, 7), (5, 1), (48, 64), (3, 1000)])
     def test_depth_bit_exact(self, codec, shape):
-        for d in (noisy_depth(*shape), np.zeros(shape, np.uint16),
-                  np.full(shape, 65535, np.uint16)):
+        for d in (
+            noisy_depth(*shape),
+            np.zeros(shape, np.uint16),
+            np.full(shape, 65535, np.uint16),
+        ):
             payload, meta = encode_depth(d, codec)
             back = decode_depth(payload, meta)
             assert back.dtype == np.uint16 and back.shape == shape
@@ -339,17 +377,26 @@ class TestCodecs:
         expect("bad_field", encode, frame(pose=np.eye(3)), field="frame.pose")
         expect("bad_field", encode, frame(timestamp=math.inf), field="frame.timestamp")
         expect("bad_field", encode, frame(seq=-1), field="frame.seq")
-        expect("bad_field", encode, Hello(PROTOCOL_VERSION, SessionConfig("bad name!")),
-               field="hello.config.session")
-        expect("bad_field", encode,  # capture needs calibration
-               Hello(PROTOCOL_VERSION, SessionConfig("s")), field="hello.config.calibration")
+        expect(
+            "bad_field",
+            encode,
+            Hello(PROTOCOL_VERSION, SessionConfig("bad name!")),
+            field="hello.config.session",
+        )
+        expect(
+            "bad_field",
+            encode,  # capture needs calibration
+            Hello(PROTOCOL_VERSION, SessionConfig("s")),
+            field="hello.config.calibration",
+        )
         expect("bad_field", encode, result(sh=[0.1] * 5), field="result.sh")
         expect("bad_field", encode, result(timings_ms={"a": -1.0}), field="result.timings_ms.a")
         expect("unknown_type", encode, object())
 
     def test_encode_enforces_the_message_size_limit(self):
-        expect("too_large", encode, frame(color_codec="raw", depth_codec="raw"),
-               max_message_bytes=1000)
+        expect(
+            "too_large", encode, frame(color_codec="raw", depth_codec="raw"), max_message_bytes=1000
+        )
 
 
 # --------------------------------------------------------------------------- RVL
@@ -537,10 +584,25 @@ class TestGoldenVectors:
 
     def test_header_layout_is_pinned(self):
         header = msgpack.unpackb(bytes(golden_parts("frame_png_zstd")[0]), raw=False)
-        assert list(header) == ["v", "type", "seq", "timestamp", "pose", "color", "depth",
-                                "panorama", "buffers"]
-        assert header["depth"] == {"format": "zstd", "encoding": "16UC1", "width": 8,
-                                   "height": 6, "step": 16, "buffer": 1}
+        assert list(header) == [
+            "v",
+            "type",
+            "seq",
+            "timestamp",
+            "pose",
+            "color",
+            "depth",
+            "panorama",
+            "buffers",
+        ]
+        assert header["depth"] == {
+            "format": "zstd",
+            "encoding": "16UC1",
+            "width": 8,
+            "height": 6,
+            "step": 16,
+            "buffer": 1,
+        }
         assert header["color"]["encoding"] == "rgb8" and header["color"]["step"] == 24
         assert header["panorama"]["buffer"] == 2
 
@@ -559,9 +621,17 @@ class TestGoldenVectors:
 
 
 class TestHostileInput:
-    @pytest.mark.parametrize("parts", [
-        [b""], [b"\xc1"], [b"\xff" * 64], [b"\x81"], [bytes(range(256))], [b"\x92\x01\x02"],
-    ])
+    @pytest.mark.parametrize(
+        "parts",
+        [
+            [b""],
+            [b"\xc1"],
+            [b"\xff" * 64],
+            [b"\x81"],
+            [bytes(range(256))],
+            [b"\x92\x01\x02"],
+        ],
+    )
     def test_garbage_header(self, parts):
         expect("malformed", decode, parts)
 
@@ -576,14 +646,22 @@ class TestHostileInput:
 
     def test_version_and_type(self):
         parts = encode(Heartbeat(1.0))
-        expect("bad_version", decode, tamper(parts, lambda h: h.update(v=PROTOCOL_VERSION + 1)),
-               field="v")
-        expect("bad_version", decode,
-               encode(Hello(PROTOCOL_VERSION + 1, SessionConfig("s", role="display"))))
+        expect(
+            "bad_version",
+            decode,
+            tamper(parts, lambda h: h.update(v=PROTOCOL_VERSION + 1)),
+            field="v",
+        )
+        expect(
+            "bad_version",
+            decode,
+            encode(Hello(PROTOCOL_VERSION + 1, SessionConfig("s", role="display"))),
+        )
         expect("malformed", decode, tamper(parts, lambda h: h.update(v="1")), field="v")
         expect("malformed", decode, tamper(parts, lambda h: h.pop("v")), field="v")
-        expect("unknown_type", decode, tamper(parts, lambda h: h.update(type="Frame")),
-               field="type")
+        expect(
+            "unknown_type", decode, tamper(parts, lambda h: h.update(type="Frame")), field="type"
+        )
         expect("malformed", decode, tamper(parts, lambda h: h.update(type=3)), field="type")
         expect("bad_version", peek_header, tamper(parts, lambda h: h.update(v=0)))
 
@@ -591,25 +669,45 @@ class TestHostileInput:
         parts = encode(frame())
         expect("bad_field", decode, tamper(parts, lambda h: h.pop("seq")), field="frame.seq")
         expect("bad_field", decode, tamper(parts, lambda h: h.update(seq="3")), field="frame.seq")
-        expect("bad_field", decode, tamper(parts, lambda h: h.update(seq=True)),
-               field="frame.seq")
-        expect("bad_field", decode, tamper(parts, lambda h: h.update(timestamp=None)),
-               field="frame.timestamp")
-        expect("bad_field", decode, tamper(parts, lambda h: h.update(extra=1)),
-               field="frame.extra")
-        expect("bad_field", decode, tamper(parts, lambda h: h["depth"].update(width=-1)),
-               field="frame.depth.width")
+        expect("bad_field", decode, tamper(parts, lambda h: h.update(seq=True)), field="frame.seq")
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h.update(timestamp=None)),
+            field="frame.timestamp",
+        )
+        expect("bad_field", decode, tamper(parts, lambda h: h.update(extra=1)), field="frame.extra")
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h["depth"].update(width=-1)),
+            field="frame.depth.width",
+        )
         hello = encode(Hello(PROTOCOL_VERSION, SessionConfig("s", calibration=calibration())))
-        expect("bad_field", decode,
-               tamper(hello, lambda h: h["config"]["calibration"].update(K=[1.0] * 9)),
-               field="hello.config.calibration.K")
-        expect("bad_field", decode, tamper(hello, lambda h: h["config"].update(mode="fast")),
-               field="hello.config.mode")
-        expect("bad_field", decode,
-               tamper(hello, lambda h: h["config"].update(overrides={"a": [1]})),
-               field="hello.config.overrides.a")
-        expect("bad_field", decode, tamper(hello, lambda h: h["config"].update(depth_scale=0)),
-               field="hello.config.depth_scale")
+        expect(
+            "bad_field",
+            decode,
+            tamper(hello, lambda h: h["config"]["calibration"].update(K=[1.0] * 9)),
+            field="hello.config.calibration.K",
+        )
+        expect(
+            "bad_field",
+            decode,
+            tamper(hello, lambda h: h["config"].update(mode="fast")),
+            field="hello.config.mode",
+        )
+        expect(
+            "bad_field",
+            decode,
+            tamper(hello, lambda h: h["config"].update(overrides={"a": [1]})),
+            field="hello.config.overrides.a",
+        )
+        expect(
+            "bad_field",
+            decode,
+            tamper(hello, lambda h: h["config"].update(depth_scale=0)),
+            field="hello.config.depth_scale",
+        )
 
     def test_non_finite_numbers(self):
         parts = encode(frame())
@@ -618,24 +716,44 @@ class TestHostileInput:
             h["pose"][1][2] = float("nan")
 
         expect("bad_field", decode, tamper(parts, nan_pose), field="frame.pose[1][2]")
-        expect("bad_field", decode, tamper(parts, lambda h: h.update(timestamp=math.inf)),
-               field="frame.timestamp")
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h.update(timestamp=math.inf)),
+            field="frame.timestamp",
+        )
         res = encode(result())
-        expect("bad_field", decode, tamper(res, lambda h: h["sh"].__setitem__(0, math.nan)),
-               field="result.sh[0]")
-        expect("bad_field", decode, tamper(encode(Heartbeat(1.0)),
-                                           lambda h: h.update(time=-math.inf)),
-               field="heartbeat.time")
+        expect(
+            "bad_field",
+            decode,
+            tamper(res, lambda h: h["sh"].__setitem__(0, math.nan)),
+            field="result.sh[0]",
+        )
+        expect(
+            "bad_field",
+            decode,
+            tamper(encode(Heartbeat(1.0)), lambda h: h.update(time=-math.inf)),
+            field="heartbeat.time",
+        )
 
     def test_pose_must_be_a_rigid_4x4(self):
         parts = encode(frame())
-        expect("bad_field", decode, tamper(parts, lambda h: h.update(pose=[[1.0] * 4] * 3)),
-               field="frame.pose")
-        expect("bad_field", decode, tamper(parts, lambda h: h.update(pose=[1.0] * 16)),
-               field="frame.pose")
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h.update(pose=[[1.0] * 4] * 3)),
+            field="frame.pose",
+        )
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h.update(pose=[1.0] * 16)),
+            field="frame.pose",
+        )
         scaled = (np.eye(4) * 2).tolist()
-        expect("bad_field", decode, tamper(parts, lambda h: h.update(pose=scaled)),
-               field="frame.pose")
+        expect(
+            "bad_field", decode, tamper(parts, lambda h: h.update(pose=scaled)), field="frame.pose"
+        )
 
     def test_mismatched_color_and_depth_sizes(self):
         parts = encode(frame(color_codec="raw", depth_codec="raw"))
@@ -678,8 +796,7 @@ class TestHostileInput:
         expect("malformed", decode, parts[:1], field="frame.buffers")
         expect("malformed", decode, [*parts, b"extra"], field="frame.buffers")
         expect("malformed", decode, [*as_bytes(encode(Bye())), b""], field="bye.buffers")
-        expect("malformed", decode, [parts[0], parts[1][:-1], *parts[2:]],
-               field="frame.buffers[0]")
+        expect("malformed", decode, [parts[0], parts[1][:-1], *parts[2:]], field="frame.buffers[0]")
 
         def unused_buffer(h):
             h["buffers"].append(0)
@@ -719,8 +836,7 @@ class TestHostileInput:
         payload, meta = encode_depth(d, "png")
         calls = []
         real = codecs_module._cv_decode
-        monkeypatch.setattr(codecs_module, "_cv_decode",
-                            lambda *a: calls.append(1) or real(*a))
+        monkeypatch.setattr(codecs_module, "_cv_decode", lambda *a: calls.append(1) or real(*a))
         for fix_crc in (True, False):
             lie = png_with_ihdr(payload, 60000, 60000, fix_crc)
             err = expect("decode_failed", decode_depth, lie, meta, field="depth")
@@ -751,8 +867,11 @@ class TestHostileInput:
     def test_jpeg_whose_sof_lies(self, monkeypatch):
         payload, meta = encode_color(smooth_rgb(6, 8), "jpeg")
         data = bytearray(bytes(payload))
-        sof = next(i for i in range(2, len(data) - 1)
-                   if data[i] == 0xFF and data[i + 1] in (0xC0, 0xC1, 0xC2))
+        sof = next(
+            i
+            for i in range(2, len(data) - 1)
+            if data[i] == 0xFF and data[i + 1] in (0xC0, 0xC1, 0xC2)
+        )
         monkeypatch.setattr(codecs_module, "_cv_decode", lambda *a: pytest.fail("decoded"))
         for h, w in ((65000, 65000), (6, 9), (0, 8)):
             lie = bytearray(data)
@@ -781,8 +900,13 @@ class TestHostileInput:
         expect("bad_field", decode_depth, payload, "not a map")
         expect("bad_field", decode_depth, payload, dict(meta, width=8.0), field="depth.width")
         expect("bad_field", decode_depth, payload, dict(meta, height=0), field="depth.height")
-        expect("bad_field", decode_depth, payload, {k: v for k, v in meta.items()
-                                                    if k != "step"}, field="depth.step")
+        expect(
+            "bad_field",
+            decode_depth,
+            payload,
+            {k: v for k, v in meta.items() if k != "step"},
+            field="depth.step",
+        )
         expect("bad_codec", decode_depth, payload, dict(meta, encoding="mono16"))
         expect("bad_field", decode_depth, payload, dict(meta, format=None))
         expect("too_large", decode_depth, payload, meta, max_pixels=47)
@@ -862,20 +986,34 @@ class TestVersion2Fields:
         assert error_from_exception(ProtocolError("bad_field", "x")).retryable is False
 
     def test_retryable_and_kind_are_checked(self):
-        expect("bad_field", decode, tamper(encode(Error("a", "b")),
-                                           lambda h: h.update(retryable=1)),
-               field="error.retryable")
-        expect("bad_field", decode, tamper(encode(Error("a", "b")),
-                                           lambda h: h.pop("retryable")),
-               field="error.retryable")
-        expect("bad_field", decode, tamper(encode(Bye()), lambda h: h.update(kind="ended")),
-               field="bye.kind")
+        expect(
+            "bad_field",
+            decode,
+            tamper(encode(Error("a", "b")), lambda h: h.update(retryable=1)),
+            field="error.retryable",
+        )
+        expect(
+            "bad_field",
+            decode,
+            tamper(encode(Error("a", "b")), lambda h: h.pop("retryable")),
+            field="error.retryable",
+        )
+        expect(
+            "bad_field",
+            decode,
+            tamper(encode(Bye()), lambda h: h.update(kind="ended")),
+            field="bye.kind",
+        )
         expect("bad_field", encode, Bye("x", "ended"), field="bye.kind")
 
     def test_result_sh_camera_and_diagnostics_round_trip(self):
-        diagnostics = {"tracking": {"ok": False, "reason": "too few points"},
-                       "residuals": [0.5, 1, math.inf], "bands_estimated": 3,
-                       "up": None, "a": {"b": {"c": {"d": 1.5}}}}
+        diagnostics = {
+            "tracking": {"ok": False, "reason": "too few points"},
+            "residuals": [0.5, 1, math.inf],
+            "bands_estimated": 3,
+            "up": None,
+            "a": {"b": {"c": {"d": 1.5}}},
+        }
         back = decode(encode(result(sh_camera=[0.2] * 9, diagnostics=diagnostics)))
         assert back.sh_camera == [0.2] * 9
         assert back.diagnostics == diagnostics
@@ -883,46 +1021,84 @@ class TestVersion2Fields:
         assert decode(encode(result())).diagnostics == {}
 
     def test_numpy_diagnostics_are_made_plain(self):
-        d = {"n": np.int64(3), "ok": np.bool_(True), "v": np.arange(3, dtype=np.float32),
-             "t": (1.0, 2.0)}
-        assert plain_diagnostics(d) == {"n": 3, "ok": True, "v": [0.0, 1.0, 2.0],
-                                        "t": [1.0, 2.0]}
+        d = {
+            "n": np.int64(3),
+            "ok": np.bool_(True),
+            "v": np.arange(3, dtype=np.float32),
+            "t": (1.0, 2.0),
+        }
+        assert plain_diagnostics(d) == {"n": 3, "ok": True, "v": [0.0, 1.0, 2.0], "t": [1.0, 2.0]}
         assert decode(encode(result(diagnostics=d))).diagnostics == plain_diagnostics(d)
 
-    @pytest.mark.parametrize("diagnostics, field", [
-        ({"s": {1, 2}}, "result.diagnostics.s"),
-        ({"o": object()}, "result.diagnostics.o"),
-        ({"b": b"bytes"}, "result.diagnostics.b"),
-        ({"m": np.eye(2)}, "result.diagnostics.m[0]"),
-        ({"strings": ["a"]}, "result.diagnostics.strings[0]"),
-        ({"a": {"b": {"c": {"d": {"e": 1}}}}}, "result.diagnostics.a.b.c.d"),
-        ({f"k{i}": i for i in range(65)}, "result.diagnostics"),
-        ({"long": "x" * 1025}, "result.diagnostics.long"),
-        ({"big": [0.0] * 1025}, "result.diagnostics.big"),
-        ({f"k{i}": [0.0] * 1000 for i in range(5)}, "result.diagnostics.k4"),
-        ({"bad key!": 1}, "result.diagnostics key"),
-        ({3: 1}, "result.diagnostics key"),
-        ({"huge": 2**70}, "result.diagnostics.huge"),
-    ], ids=["set", "object", "bytes", "2-D array", "array of strings", "too deep",
-            "too many keys", "long string", "long array", "too many values", "bad key",
-            "int key", "huge int"])
+    @pytest.mark.parametrize(
+        "diagnostics, field",
+        [
+            ({"s": {1, 2}}, "result.diagnostics.s"),
+            ({"o": object()}, "result.diagnostics.o"),
+            ({"b": b"bytes"}, "result.diagnostics.b"),
+            ({"m": np.eye(2)}, "result.diagnostics.m[0]"),
+            ({"strings": ["a"]}, "result.diagnostics.strings[0]"),
+            ({"a": {"b": {"c": {"d": {"e": 1}}}}}, "result.diagnostics.a.b.c.d"),
+            ({f"k{i}": i for i in range(65)}, "result.diagnostics"),
+            ({"long": "x" * 1025}, "result.diagnostics.long"),
+            ({"big": [0.0] * 1025}, "result.diagnostics.big"),
+            ({f"k{i}": [0.0] * 1000 for i in range(5)}, "result.diagnostics.k4"),
+            ({"bad key!": 1}, "result.diagnostics key"),
+            ({3: 1}, "result.diagnostics key"),
+            ({"huge": 2**70}, "result.diagnostics.huge"),
+        ],
+        ids=[
+            "set",
+            "object",
+            "bytes",
+            "2-D array",
+            "array of strings",
+            "too deep",
+            "too many keys",
+            "long string",
+            "long array",
+            "too many values",
+            "bad key",
+            "int key",
+            "huge int",
+        ],
+    )
     def test_non_plain_diagnostics_are_refused_naming_the_key(self, diagnostics, field):
         expect("bad_field", encode, result(diagnostics=diagnostics), field=field)
         expect("bad_field", plain_diagnostics, diagnostics, field=field)
 
     def test_hostile_diagnostics_and_sh_camera_on_decode(self):
         parts = encode(result(sh_camera=[0.0] * 9, diagnostics={"a": 1}))
-        expect("bad_field", decode, tamper(parts, lambda h: h.update(diagnostics=None)),
-               field="result.diagnostics")
-        expect("bad_field", decode, tamper(parts, lambda h: h.update(diagnostics=[1])),
-               field="result.diagnostics")
-        expect("bad_field", decode,
-               tamper(parts, lambda h: h["diagnostics"].update(a=[[1.0]])),
-               field="result.diagnostics.a[0]")
-        expect("bad_field", decode, tamper(parts, lambda h: h.update(sh_camera=[0.0] * 4)),
-               field="result.sh_camera")
-        expect("bad_field", decode, tamper(parts, lambda h: h.pop("sh_camera")),
-               field="result.sh_camera")
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h.update(diagnostics=None)),
+            field="result.diagnostics",
+        )
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h.update(diagnostics=[1])),
+            field="result.diagnostics",
+        )
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h["diagnostics"].update(a=[[1.0]])),
+            field="result.diagnostics.a[0]",
+        )
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h.update(sh_camera=[0.0] * 4)),
+            field="result.sh_camera",
+        )
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h.pop("sh_camera")),
+            field="result.sh_camera",
+        )
 
     def test_result_is_built_with_keywords_only(self):
         with pytest.raises(TypeError):
@@ -937,14 +1113,15 @@ class TestEngineLayouts:
         return _load_vector_script().exports()
 
     def hello(self, **kw) -> Hello:
-        return Hello(PROTOCOL_VERSION, SessionConfig(session="s", role="capture",
-                                                     calibration=calibration(), **kw))
+        return Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(session="s", role="capture", calibration=calibration(), **kw),
+        )
 
     def test_round_trip_and_absent_when_not_asked(self):
         back = decode(encode(self.hello(exports=("unity", "arcore"))))
         assert back.config.exports == ("unity", "arcore")
-        assert "exports" not in msgpack.unpackb(bytes(encode(self.hello())[0]), raw=False)[
-            "config"]
+        assert "exports" not in msgpack.unpackb(bytes(encode(self.hello())[0]), raw=False)["config"]
         assert decode(encode(self.hello())).config.exports == ()
         got = decode(encode(result(exports=self.layouts())))
         assert got.exports == self.layouts()
@@ -958,64 +1135,122 @@ class TestEngineLayouts:
         assert EXPORT_LAYOUTS == tuple(EXPORTERS)
         assert LAYOUT_NAMES == ", ".join(EXPORT_LAYOUTS)  # the --export help
 
-    @pytest.mark.parametrize("names, field", [
-        (("arcore", "arcore"), "hello.config.exports"),
-        (("opengl",), "hello.config.exports[0]"),
-        (tuple(EXPORT_LAYOUTS) + ("arcore",), "hello.config.exports"),
-    ], ids=["twice", "unknown", "too many"])
+    @pytest.mark.parametrize(
+        "names, field",
+        [
+            (("arcore", "arcore"), "hello.config.exports"),
+            (("opengl",), "hello.config.exports[0]"),
+            (tuple(EXPORT_LAYOUTS) + ("arcore",), "hello.config.exports"),
+        ],
+        ids=["twice", "unknown", "too many"],
+    )
     def test_bad_names_refused_both_ways(self, names, field):
         expect("bad_field", encode, self.hello(exports=names), field=field)
         parts = encode(self.hello(exports=("arcore",)))
-        expect("bad_field", decode,
-               tamper(parts, lambda h: h["config"].update(exports=list(names))), field=field)
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h["config"].update(exports=list(names))),
+            field=field,
+        )
 
     def test_nil_is_none_and_displays_do_not_choose(self):
         parts = encode(self.hello(exports=("arcore",)))
-        assert decode(tamper(parts, lambda h: h["config"].update(exports=None))
-                      ).config.exports == ()
-        display = Hello(PROTOCOL_VERSION, SessionConfig(session="s", role="display",
-                                                        exports=("arcore",)))
+        assert (
+            decode(tamper(parts, lambda h: h["config"].update(exports=None))).config.exports == ()
+        )
+        display = Hello(
+            PROTOCOL_VERSION, SessionConfig(session="s", role="display", exports=("arcore",))
+        )
         expect("bad_field", encode, display, field="hello.config.exports")
         parts = encode(Hello(PROTOCOL_VERSION, SessionConfig(session="s", role="display")))
-        expect("bad_field", decode, tamper(parts, lambda h: h["config"].update(
-            exports=["arcore"])), field="hello.config.exports")
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h["config"].update(exports=["arcore"])),
+            field="hello.config.exports",
+        )
 
-    @pytest.mark.parametrize("layout, value, field", [
-        ("arcore", [0.0] * 26, "result.exports.arcore"),
-        ("webxr", [0.0] * 26 + [math.nan], "result.exports.webxr[26]"),
-        ("unity", [[0.0] * 9] * 2, "result.exports.unity"),
-        ("unity", [[0.0] * 9, [0.0] * 9, [0.0] * 8], "result.exports.unity[2]"),
-        ("gltf", {"intensity": 1.0, "rotation": [0.0] * 4}, "result.exports.gltf"),
-        ("gltf", {"intensity": 1.0, "rotation": [0.0] * 3,
-                  "irradianceCoefficients": [[0.0] * 3] * 9}, "result.exports.gltf.rotation"),
-        ("filament", 3.0, "result.exports.filament"),
-        ("main_light", {"direction": [0.0, 1.0], "intensity": [1.0] * 3},
-         "result.exports.main_light.direction"),
-        ("opengl", [0.0], "result.exports key"),
-    ], ids=["arcore short", "webxr nan", "unity rows", "unity cols", "gltf keys",
-            "gltf rotation", "filament type", "main light", "unknown layout"])
+    @pytest.mark.parametrize(
+        "layout, value, field",
+        [
+            ("arcore", [0.0] * 26, "result.exports.arcore"),
+            ("webxr", [0.0] * 26 + [math.nan], "result.exports.webxr[26]"),
+            ("unity", [[0.0] * 9] * 2, "result.exports.unity"),
+            ("unity", [[0.0] * 9, [0.0] * 9, [0.0] * 8], "result.exports.unity[2]"),
+            ("gltf", {"intensity": 1.0, "rotation": [0.0] * 4}, "result.exports.gltf"),
+            (
+                "gltf",
+                {
+                    "intensity": 1.0,
+                    "rotation": [0.0] * 3,
+                    "irradianceCoefficients": [[0.0] * 3] * 9,
+                },
+                "result.exports.gltf.rotation",
+            ),
+            ("filament", 3.0, "result.exports.filament"),
+            (
+                "main_light",
+                {"direction": [0.0, 1.0], "intensity": [1.0] * 3},
+                "result.exports.main_light.direction",
+            ),
+            ("opengl", [0.0], "result.exports key"),
+        ],
+        ids=[
+            "arcore short",
+            "webxr nan",
+            "unity rows",
+            "unity cols",
+            "gltf keys",
+            "gltf rotation",
+            "filament type",
+            "main light",
+            "unknown layout",
+        ],
+    )
     def test_bad_layouts_refused_both_ways(self, layout, value, field):
         expect("bad_field", encode, result(exports={layout: value}), field=field)
         parts = encode(result(exports={"arcore": [0.0] * 27}))
-        expect("bad_field", decode, tamper(parts, lambda h: h.update(exports={layout: value})),
-               field=field)
+        expect(
+            "bad_field",
+            decode,
+            tamper(parts, lambda h: h.update(exports={layout: value})),
+            field=field,
+        )
 
     def test_empty_or_non_map_exports_refused(self):
         parts = encode(result(exports={"arcore": [0.0] * 27}))
         for bad in ({}, None, [1.0]):
-            expect("bad_field", decode, tamper(parts, lambda h, b=bad: h.update(exports=b)),
-                   field="result.exports")
+            expect(
+                "bad_field",
+                decode,
+                tamper(parts, lambda h, b=bad: h.update(exports=b)),
+                field="result.exports",
+            )
 
 
 class TestRecords:
     def test_result_record_layout(self):
-        msg = result(sh_camera=[0.2] * 9, diagnostics={"tracking": {"ok": True}},
-                     timings_ms={"render": 1.23456})
+        msg = result(
+            sh_camera=[0.2] * 9,
+            diagnostics={"tracking": {"ok": True}},
+            timings_ms={"render": 1.23456},
+        )
         record = result_record(msg)
-        assert list(record) == ["timestamp", "frame", "sh", "sh_camera", "sh_rgb",
-                                "dominant_direction_camera", "dominant_direction_world",
-                                "intensity", "confidence", "pose", "timings_ms",
-                                "diagnostics"]
+        assert list(record) == [
+            "timestamp",
+            "frame",
+            "sh",
+            "sh_camera",
+            "sh_rgb",
+            "dominant_direction_camera",
+            "dominant_direction_world",
+            "intensity",
+            "confidence",
+            "pose",
+            "timings_ms",
+            "diagnostics",
+        ]
         assert record["frame"] == 3 and record["sh_camera"] == [0.2] * 9
         assert record["timings_ms"] == {"render": 1.235}
         assert record["diagnostics"] == {"tracking": {"ok": True}}
@@ -1034,9 +1269,17 @@ class TestConfidenceContract:
     """Result.confidence is the pipeline's Confidence on both sides of the wire; the map on
     the wire is `to_dict()`'s, and any other plain map still goes out as it came."""
 
-    FULL = Confidence(samples=1234, condition_number=56.5, bands_estimated=3, value=0.75,
-                      reason="few samples", normal_spread=0.25, horizon_disagreement_deg=4.0,
-                      side_share=0.125, jump_deg=2.5)
+    FULL = Confidence(
+        samples=1234,
+        condition_number=56.5,
+        bands_estimated=3,
+        value=0.75,
+        reason="few samples",
+        normal_spread=0.25,
+        horizon_disagreement_deg=4.0,
+        side_share=0.125,
+        jump_deg=2.5,
+    )
 
     def test_the_pipelines_type_round_trips(self):
         from arlight.pipeline.frames import Confidence as PipelineConfidence
@@ -1058,8 +1301,17 @@ class TestConfidenceContract:
         assert decode(encode(msg)).confidence.condition_number == math.inf
 
     def test_from_dict_reads_known_keys_of_the_right_type(self):
-        got = Confidence.from_dict({"samples": 7, "value": 1, "reason": "r", "side_share": None,
-                                    "bands_estimated": True, "jump_deg": "3", "extra": [1]})
+        got = Confidence.from_dict(
+            {
+                "samples": 7,
+                "value": 1,
+                "reason": "r",
+                "side_share": None,
+                "bands_estimated": True,
+                "jump_deg": "3",
+                "extra": [1],
+            }
+        )
         assert got == Confidence(samples=7, value=1.0, reason="r")  # bool, str: defaults
         assert isinstance(got.value, float)
         assert Confidence.from_dict(self.FULL.to_dict()) == self.FULL
@@ -1087,17 +1339,20 @@ class TestConfidenceContract:
 
 def scene_object(name: str = "obj", nv: int = 5, nt: int = 4, seed: int = 0, **kw):
     rng = np.random.default_rng(seed)
-    args = dict(vertices=rng.standard_normal((nv, 3)).astype(np.float32),
-                triangles=rng.integers(0, nv, (nt, 3)).astype(np.uint32),
-                normals=rng.standard_normal((nv, 3)).astype(np.float32),
-                world_from_object=np.diag([2.0, 2.0, 2.0, 1.0]))
+    args = dict(
+        vertices=rng.standard_normal((nv, 3)).astype(np.float32),
+        triangles=rng.integers(0, nv, (nt, 3)).astype(np.uint32),
+        normals=rng.standard_normal((nv, 3)).astype(np.float32),
+        world_from_object=np.diag([2.0, 2.0, 2.0, 1.0]),
+    )
     args.update(kw)
     return SceneObjectSpec(name, **args)
 
 
 def scene_hello(scene: SceneSpec | None, **config) -> Hello:
-    return Hello(PROTOCOL_VERSION, SessionConfig("s", calibration=calibration(), scene=scene,
-                                                 **config))
+    return Hello(
+        PROTOCOL_VERSION, SessionConfig("s", calibration=calibration(), scene=scene, **config)
+    )
 
 
 def bits(a: np.ndarray) -> np.ndarray:
@@ -1108,14 +1363,35 @@ class TestScene:
     """Hello.config.scene: the virtual scene inline (SPEC.md section 4, "scene")."""
 
     def test_round_trip_is_bit_exact(self):
-        odd = scene_object("odd", 6, 3, seed=1, world_from_object=None,
-                           anchor=SceneAnchorSpec((320.5, 400.25), -15.0))
+        odd = scene_object(
+            "odd",
+            6,
+            3,
+            seed=1,
+            world_from_object=None,
+            anchor=SceneAnchorSpec((320.5, 400.25), -15.0),
+        )
         odd.vertices[0] = (-0.0, np.float32(1e-42), np.finfo(np.float32).max)  # -0, subnormal
-        msg = scene_hello(SceneSpec((
-            scene_object("a"), odd,
-            scene_object("centre", 3, 1, seed=2, world_from_object=None,
-                         anchor=SceneAnchorSpec(None, 0.0), albedo=(1.0, 0.0, 0.5),
-                         roughness=0.25, metalness=1.0, mirror=True))))
+        msg = scene_hello(
+            SceneSpec(
+                (
+                    scene_object("a"),
+                    odd,
+                    scene_object(
+                        "centre",
+                        3,
+                        1,
+                        seed=2,
+                        world_from_object=None,
+                        anchor=SceneAnchorSpec(None, 0.0),
+                        albedo=(1.0, 0.0, 0.5),
+                        roughness=0.25,
+                        metalness=1.0,
+                        mirror=True,
+                    ),
+                )
+            )
+        )
         parts = encode(msg)
         back = decode(as_bytes(parts))
         assert back == msg
@@ -1128,8 +1404,16 @@ class TestScene:
         assert header["buffers"] == [(5 + 6 + 3) * 12, (4 + 3 + 1) * 12, (5 + 6 + 3) * 12]
         assert list(header["config"]["scene"]) == ["vertices", "triangles", "normals", "objects"]
         assert list(header["config"]["scene"]["objects"][0]) == [
-            "name", "vertex_count", "triangle_count", "world_from_object", "anchor", "albedo",
-            "roughness", "metalness", "mirror"]
+            "name",
+            "vertex_count",
+            "triangle_count",
+            "world_from_object",
+            "anchor",
+            "albedo",
+            "roughness",
+            "metalness",
+            "mirror",
+        ]
 
     def test_decoded_arrays_are_owned_copies(self):
         parts = as_bytes(encode(scene_hello(SceneSpec((scene_object(),)))))
@@ -1158,19 +1442,27 @@ class TestScene:
         """2M triangles with 1M vertices (a closed mesh: N ~ M / 2): 48 MB of parts, under the
         default 64 MiB; the same scene against a 32 MiB limit is too_large."""
         n, m = 1_000_000, SCENE_MAX_TRIANGLES
-        obj = SceneObjectSpec("big", np.zeros((n, 3), np.float32), np.zeros((m, 3), np.uint32),
-                              np.zeros((n, 3), np.float32), np.eye(4))
+        obj = SceneObjectSpec(
+            "big",
+            np.zeros((n, 3), np.float32),
+            np.zeros((m, 3), np.uint32),
+            np.zeros((n, 3), np.float32),
+            np.eye(4),
+        )
         parts = encode(scene_hello(SceneSpec((obj,))))
         assert sum(len(memoryview(p)) for p in parts) < DEFAULT_MAX_MESSAGE_BYTES
         assert decode(parts).config.scene.objects[0].triangles.shape == (m, 3)
         expect("too_large", decode, parts, max_message_bytes=32 * 2**20)
-        expect("too_large", encode, scene_hello(SceneSpec((obj,))),
-               max_message_bytes=32 * 2**20)
+        expect("too_large", encode, scene_hello(SceneSpec((obj,))), max_message_bytes=32 * 2**20)
 
     def test_encode_refuses_what_decode_would(self):
         def refused(field, **kw):
-            expect("bad_field", encode, scene_hello(SceneSpec((scene_object(**kw),))),
-                   field=f"hello.config.scene.objects[0].{field}")
+            expect(
+                "bad_field",
+                encode,
+                scene_hello(SceneSpec((scene_object(**kw),))),
+                field=f"hello.config.scene.objects[0].{field}",
+            )
 
         refused("triangles", triangles=-np.ones((2, 3), np.int32))
         refused("triangles", triangles=np.zeros((2, 3), np.float32))
@@ -1181,13 +1473,17 @@ class TestScene:
         refused("world_from_object", world_from_object=None)
         refused("anchor", anchor=SceneAnchorSpec())
         refused("albedo[1]", albedo=(0.5, 1.5, 0.5))
-        expect("bad_field", encode, scene_hello(SceneSpec((scene_object(),)),
-                                                virtual_scene="demo"),
-               field="hello.config.scene")
+        expect(
+            "bad_field",
+            encode,
+            scene_hello(SceneSpec((scene_object(),)), virtual_scene="demo"),
+            field="hello.config.scene",
+        )
 
     def test_hostile_scenes_are_refused_naming_the_field(self):
-        parts = as_bytes(encode(scene_hello(SceneSpec((scene_object("a"),
-                                                       scene_object("b", 3, 1, seed=1))))))
+        parts = as_bytes(
+            encode(scene_hello(SceneSpec((scene_object("a"), scene_object("b", 3, 1, seed=1)))))
+        )
         s = "hello.config.scene"
         o0, o1 = f"{s}.objects[0]", f"{s}.objects[1]"
 
@@ -1195,7 +1491,7 @@ class TestScene:
             return lambda h: h["config"]["scene"]["objects"][i].update(**kw)
 
         def part(i, data):
-            return [*parts[:i], data, *parts[i + 1:]]
+            return [*parts[:i], data, *parts[i + 1 :]]
 
         def fix_buffers(p):
             return tamper(p, lambda h: h.update(buffers=[len(x) for x in p[1:]]))
@@ -1211,21 +1507,40 @@ class TestScene:
             (tamper(parts, obj(1, vertex_count=2)), f"{o1}.vertex_count"),
             (tamper(parts, obj(0, triangle_count=0)), f"{o0}.triangle_count"),
             (tamper(parts, obj(1, triangle_count=SCENE_MAX_TRIANGLES)), f"{o1}.triangle_count"),
-            (tamper(parts, lambda h: h["config"]["scene"].update(
-                objects=h["config"]["scene"]["objects"] * 33)), f"{s}.objects"),
+            (
+                tamper(
+                    parts,
+                    lambda h: h["config"]["scene"].update(
+                        objects=h["config"]["scene"]["objects"] * 33
+                    ),
+                ),
+                f"{s}.objects",
+            ),
             # the pose, the anchor, the material, the name
-            (tamper(parts, obj(0, world_from_object=[math.nan] + [0.0] * 15)),
-             f"{o0}.world_from_object[0]"),
+            (
+                tamper(parts, obj(0, world_from_object=[math.nan] + [0.0] * 15)),
+                f"{o0}.world_from_object[0]",
+            ),
             (tamper(parts, obj(0, world_from_object=[1.0] * 16)), f"{o0}.world_from_object"),
-            (tamper(parts, obj(0, world_from_object=[[1.0] * 4] * 4)),  # 16 flat numbers
-             f"{o0}.world_from_object"),
+            (
+                tamper(parts, obj(0, world_from_object=[[1.0] * 4] * 4)),  # 16 flat numbers
+                f"{o0}.world_from_object",
+            ),
             (tamper(parts, obj(0, anchor={"pixel": None, "yaw_deg": 0.0})), f"{o0}.anchor"),
             (tamper(parts, obj(0, world_from_object=None)), f"{o0}.world_from_object"),
-            (tamper(parts, obj(0, world_from_object=None, anchor={"pixel": [1.0]})),
-             f"{o0}.anchor.pixel"),
-            (tamper(parts, obj(0, world_from_object=None,
-                               anchor={"pixel": None, "yaw_deg": 0.0, "roll": 1})),
-             f"{o0}.anchor.roll"),
+            (
+                tamper(parts, obj(0, world_from_object=None, anchor={"pixel": [1.0]})),
+                f"{o0}.anchor.pixel",
+            ),
+            (
+                tamper(
+                    parts,
+                    obj(
+                        0, world_from_object=None, anchor={"pixel": None, "yaw_deg": 0.0, "roll": 1}
+                    ),
+                ),
+                f"{o0}.anchor.roll",
+            ),
             (tamper(parts, obj(0, albedo=[0.5, 0.5])), f"{o0}.albedo"),
             (tamper(parts, obj(0, roughness=-0.5)), f"{o0}.roughness"),
             (tamper(parts, obj(0, mirror=1)), f"{o0}.mirror"),
@@ -1241,13 +1556,13 @@ class TestScene:
         ]
         # values in the parts: non-finite vertices or normals, an index out of range
         nan = bytearray(parts[1])
-        nan[12 * 5 + 4:12 * 5 + 8] = struct.pack("<f", math.nan)  # object 1's first vertex
+        nan[12 * 5 + 4 : 12 * 5 + 8] = struct.pack("<f", math.nan)  # object 1's first vertex
         cases.append((part(1, bytes(nan)), f"{o1}.vertices"))
         inf = bytearray(parts[3])
         inf[0:4] = struct.pack("<f", math.inf)
         cases.append((part(3, bytes(inf)), f"{o0}.normals"))
         out = bytearray(parts[2])
-        out[12 * 4:12 * 4 + 4] = struct.pack("<I", 3)  # object 1 has 3 vertices
+        out[12 * 4 : 12 * 4 + 4] = struct.pack("<I", 3)  # object 1 has 3 vertices
         cases.append((part(2, bytes(out)), f"{o1}.triangles"))
         for hostile, field in cases:
             expect("bad_field", decode, hostile, field=field)

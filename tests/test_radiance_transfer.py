@@ -148,8 +148,10 @@ class TestOcclusionK:
 
     def test_rises_with_angle(self):
         w = np.array([0.0, 0.0, 1.0])
-        k = [self._both(np.zeros(3), np.array([math.sin(a), 0.0, math.cos(a)]), w)
-             for a in np.radians([0, 20, 40, 60, 89])]
+        k = [
+            self._both(np.zeros(3), np.array([math.sin(a), 0.0, math.cos(a)]), w)
+            for a in np.radians([0, 20, 40, 60, 89])
+        ]
         assert np.all(np.diff(k) > 0)
         assert k[3] == pytest.approx((1 - math.cos(math.radians(60))) / self.CHI)
 
@@ -177,8 +179,15 @@ class TestKernelAgainstReference:
         # holes are invalid with zero transfer, and the scene really occludes something
         assert 0 < fast.valid.sum() < fast.valid.size
         assert np.all(fast.transfer[~fast.valid] == 0)
-        free = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, aux,
-                                   cfg.replace(visibility=False).transfer)
+        free = rt.compute_transfer(
+            points,
+            normals,
+            camera,
+            world_from_cam,
+            pattern,
+            aux,
+            cfg.replace(visibility=False).transfer,
+        )
         assert (free.transfer[..., 0] - fast.transfer[..., 0])[fast.valid].mean() > 0.05
 
     def test_aux_buffers_add_occlusion(self):
@@ -186,10 +195,10 @@ class TestKernelAgainstReference:
         cfg = Config().replace(rt_directions=32)
         tp = cfg.transfer
         pattern = rt.make_sampling_pattern(tp, cfg.seed)
-        main_only = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
-                                        tp)
-        with_aux = rt.compute_transfer(points, normals, camera, world_from_cam, pattern,
-                                       _hand_made_aux(0), tp)
+        main_only = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, tp)
+        with_aux = rt.compute_transfer(
+            points, normals, camera, world_from_cam, pattern, _hand_made_aux(0), tp
+        )
         dc_drop = (main_only.transfer[..., 0] - with_aux.transfer[..., 0])[main_only.valid]
         assert np.all(dc_drop >= -1e-6) and dc_drop.mean() > 0.05
 
@@ -213,8 +222,15 @@ class TestVisibilityFree:
         camera, points, normals, world_from_cam = _plane_facing_camera(3)
         cfg = Config().replace(rt_directions=512, visibility=False)
         tp = cfg.transfer
-        res = rt.compute_transfer(points, normals, camera, world_from_cam,
-                                  rt.make_sampling_pattern(tp, cfg.seed), None, tp)
+        res = rt.compute_transfer(
+            points,
+            normals,
+            camera,
+            world_from_cam,
+            rt.make_sampling_pattern(tp, cfg.seed),
+            None,
+            tp,
+        )
         assert res.valid.all()
         t = res.transfer.reshape(-1, 16)
         np.testing.assert_allclose(t, t[:1].repeat(len(t), axis=0), atol=1e-6)
@@ -226,8 +242,9 @@ class TestVisibilityFree:
         for _ in range(5):
             light = rng.normal(size=16)
             irradiance = sh.evaluate(sh.irradiance_from_radiance(light), n_world[None])[0]
-            assert float(t[0] @ light) == pytest.approx(irradiance,
-                                                        abs=0.02 * np.linalg.norm(light))
+            assert float(t[0] @ light) == pytest.approx(
+                irradiance, abs=0.02 * np.linalg.norm(light)
+            )
 
 
 class TestExactUnoccluded:
@@ -238,8 +255,9 @@ class TestExactUnoccluded:
         camera, points, normals, world_from_cam = _plane_facing_camera(5)
         cfg = Config().replace(rt_directions=64, visibility=visibility)
         pattern = rt.make_sampling_pattern(cfg.transfer, cfg.seed)
-        res = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
-                                  cfg.transfer)
+        res = rt.compute_transfer(
+            points, normals, camera, world_from_cam, pattern, None, cfg.transfer
+        )
         samples = rt.transfer_samples(res, None, 1000, 0)
         n_world = world_from_cam[:3, :3] @ np.array([0.0, 0.0, -1.0])
         table = rt.quadrature_error_table(pattern, 4)
@@ -252,9 +270,9 @@ class TestExactUnoccluded:
         assert raw_error > 0.01  # 64 directions alone miss (what the correction is for)
         fixed = rt.with_exact_unoccluded(samples, normals, pose, table)
         # exact but for the table's bilinear lookup (128 texels a side: ~1.4 degrees)
-        np.testing.assert_allclose(fixed.transfer, np.broadcast_to(expected,
-                                                                   fixed.transfer.shape),
-                                   atol=1.5e-3)
+        np.testing.assert_allclose(
+            fixed.transfer, np.broadcast_to(expected, fixed.transfer.shape), atol=1.5e-3
+        )
         assert fixed.transfer.dtype == samples.transfer.dtype
 
     def test_blocked_light_stays_blocked(self):
@@ -263,8 +281,9 @@ class TestExactUnoccluded:
         pattern = rt.make_sampling_pattern(cfg.transfer, cfg.seed)
         res = rt.compute_transfer(points, normals, camera, pose, pattern, None, cfg.transfer)
         samples = rt.transfer_samples(res, None, 10**6, 0)
-        fixed = rt.with_exact_unoccluded(samples, normals, pose,
-                                         rt.quadrature_error_table(pattern, 4))
+        fixed = rt.with_exact_unoccluded(
+            samples, normals, pose, rt.quadrature_error_table(pattern, 4)
+        )
         # band 0 is the visible fraction of the clamped cosine: the correction moves it by
         # the quadrature error only, never restores what the wall blocks for the floor
         floor_near_wall = ~on_wall[samples.pixel_v, samples.pixel_u]
@@ -288,8 +307,9 @@ class TestExactUnoccluded:
         pose = np.eye(4)
         pose[:3, :3] = _random_rotation(rng)
         fixed = rt.with_exact_unoccluded(samples, normals, pose, table)
-        direct = rt.unoccluded_quadrature_error(n @ pose[:3, :3].T,
-                                                pattern.directions @ pose[:3, :3].T, 4)
+        direct = rt.unoccluded_quadrature_error(
+            n @ pose[:3, :3].T, pattern.directions @ pose[:3, :3].T, 4
+        )
         scale = np.abs(direct).max()
         assert np.abs(fixed.transfer - direct).max() < 0.03 * scale
         assert np.median(np.abs(fixed.transfer - direct)) < 0.003 * scale
@@ -340,8 +360,15 @@ class TestOccluder:
         camera, points, normals, world_from_cam, world, on_wall = _floor_and_wall()
         cfg = Config().replace(rt_directions=64, rt_steps=2)
         tp = cfg.transfer
-        res = rt.compute_transfer(points, normals, camera, world_from_cam,
-                                  rt.make_sampling_pattern(tp, cfg.seed), None, tp)
+        res = rt.compute_transfer(
+            points,
+            normals,
+            camera,
+            world_from_cam,
+            rt.make_sampling_pattern(tp, cfg.seed),
+            None,
+            tp,
+        )
         floor = ~on_wall & res.valid
         central = np.abs(world[..., 0]) < 0.4
         near = floor & central & (world[..., 1] > 0.3) & (world[..., 1] < 0.45)
@@ -349,8 +376,9 @@ class TestOccluder:
         assert near.sum() >= 10 and far.sum() >= 10
         t_near, t_far = res.transfer[near].mean(axis=0), res.transfer[far].mean(axis=0)
         # far from the wall the floor sees the whole upper hemisphere: A_0 Y_00
-        assert t_far[0] == pytest.approx(LAMBERT_PER_COEFF[0] * sh.sh_basis(
-            np.array([0.0, 0.0, 1.0]), 1)[0], rel=0.05)
+        assert t_far[0] == pytest.approx(
+            LAMBERT_PER_COEFF[0] * sh.sh_basis(np.array([0.0, 0.0, 1.0]), 1)[0], rel=0.05
+        )
         assert t_near[0] < 0.9 * t_far[0]
         # the wall (+y_w) blocks directions towards it: band 1 tilts to -y_w, away from it
         d_near, d_far = sh.dominant_direction(t_near), sh.dominant_direction(t_far)
@@ -371,8 +399,15 @@ class TestSubsampling:
         np.testing.assert_array_equal(sub.pixel_u, [2, 6, 10, 12])  # last clamped to W - 1
         np.testing.assert_array_equal(sub.pixel_v, [2, 6, 9])
         # each grid cell is the full-resolution transfer of its pixel (same 2x2 radii)
-        full = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
-                                   cfg.replace(rt_subsample=1).transfer)
+        full = rt.compute_transfer(
+            points,
+            normals,
+            camera,
+            world_from_cam,
+            pattern,
+            None,
+            cfg.replace(rt_subsample=1).transfer,
+        )
         grid = np.ix_(sub.pixel_v, sub.pixel_u)
         np.testing.assert_array_equal(sub.valid, full.valid[grid])
         np.testing.assert_allclose(sub.transfer, full.transfer[grid], atol=1e-6)
@@ -386,12 +421,26 @@ class TestExtremes:
         tp = cfg.transfer
         pattern = rt.make_sampling_pattern(tp, cfg.seed)
         normal = np.array([[[0.0, 0.0, -1.0]]], np.float32)
-        missing = rt.compute_transfer(camera.unproject(np.zeros((1, 1), np.float32)), normal,
-                                      camera, np.eye(4), pattern, None, tp)
+        missing = rt.compute_transfer(
+            camera.unproject(np.zeros((1, 1), np.float32)),
+            normal,
+            camera,
+            np.eye(4),
+            pattern,
+            None,
+            tp,
+        )
         assert missing.transfer.shape == (1, 1, 16) and not missing.valid.any()
         assert np.all(missing.transfer == 0)
-        present = rt.compute_transfer(camera.unproject(np.ones((1, 1), np.float32)), normal,
-                                      camera, np.eye(4), pattern, None, tp)
+        present = rt.compute_transfer(
+            camera.unproject(np.ones((1, 1), np.float32)),
+            normal,
+            camera,
+            np.eye(4),
+            pattern,
+            None,
+            tp,
+        )
         assert present.valid.all() and np.all(np.isfinite(present.transfer))
         assert present.transfer[0, 0, 0] > 0
 
@@ -439,8 +488,9 @@ class TestUpsampling:
         assert np.all(up.transfer[~up.valid] == 0)
 
     def test_full_resolution_grid_is_returned_unchanged(self):
-        full = rt.TransferResult(np.ones((4, 5, 2), np.float32), np.ones((4, 5), bool),
-                                 np.arange(5), np.arange(4))
+        full = rt.TransferResult(
+            np.ones((4, 5, 2), np.float32), np.ones((4, 5), bool), np.arange(5), np.arange(4)
+        )
         assert rt.upsample_transfer(full, np.ones((4, 5), bool)) is full
 
 
@@ -457,13 +507,12 @@ class TestTransferSamples:
         geometry[0, 0] = False
         grid = self._grid(valid)
         up = rt.upsample_transfer(grid, geometry)
-        got = rt.transfer_samples(grid, geometry, max_pixels=10 ** 6, seed=0)
+        got = rt.transfer_samples(grid, geometry, max_pixels=10**6, seed=0)
         kept = np.zeros((10, 13), bool)
         kept[got.pixel_v, got.pixel_u] = True
         np.testing.assert_array_equal(kept, up.valid)  # the same pixels kept
         # cv2.remap places its taps to 1/32 pixel: its field is within that of the exact one
-        np.testing.assert_allclose(got.transfer, up.transfer[got.pixel_v, got.pixel_u],
-                                   atol=0.2)
+        np.testing.assert_allclose(got.transfer, up.transfer[got.pixel_v, got.pixel_u], atol=0.2)
         inside = (got.pixel_u >= 2) & (got.pixel_v >= 2)
         np.testing.assert_allclose(got.transfer[inside, 0], got.pixel_u[inside], atol=1e-4)
         np.testing.assert_allclose(got.transfer[inside, 1], got.pixel_v[inside], atol=1e-4)
@@ -496,15 +545,27 @@ class TestBounce:
         pattern = rt.make_sampling_pattern(tp, cfg.seed)
         c = 0.37
         lum = np.full(points.shape[:2], c, np.float32)
-        res = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
-                                  tp, luminance=lum)
-        free = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
-                                   cfg.replace(visibility=False).transfer)
+        res = rt.compute_transfer(
+            points, normals, camera, world_from_cam, pattern, None, tp, luminance=lum
+        )
+        free = rt.compute_transfer(
+            points,
+            normals,
+            camera,
+            world_from_cam,
+            pattern,
+            None,
+            cfg.replace(visibility=False).transfer,
+        )
         y00 = sh.sh_basis(np.array([0.0, 0.0, 1.0]), 1)[0]
         v = res.valid
         assert res.bounce is not None and np.count_nonzero(res.bounce[v] > 1e-3) >= 10
-        np.testing.assert_allclose(res.transfer[v, 0] / y00 + res.bounce[v] / c,
-                                   free.transfer[v, 0] / y00, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(
+            res.transfer[v, 0] / y00 + res.bounce[v] / c,
+            free.transfer[v, 0] / y00,
+            rtol=1e-4,
+            atol=1e-5,
+        )
         # without a luminance image there is no bounce term
         plain = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, tp)
         assert plain.bounce is None
@@ -515,9 +576,16 @@ class TestBounce:
         cfg = Config().replace(rt_directions=16)
         tp = cfg.transfer
         with pytest.raises(ValueError, match="luminance"):
-            rt.compute_transfer(points, normals, camera, world_from_cam,
-                                rt.make_sampling_pattern(tp, cfg.seed), None, tp,
-                                luminance=np.ones((3, 3), np.float32))
+            rt.compute_transfer(
+                points,
+                normals,
+                camera,
+                world_from_cam,
+                rt.make_sampling_pattern(tp, cfg.seed),
+                None,
+                tp,
+                luminance=np.ones((3, 3), np.float32),
+            )
 
 
 def _floor_plane(world_from_cam, on_floor):
@@ -535,15 +603,16 @@ class TestHorizonPlane:
         rng = np.random.default_rng(seed)
         up = rng.normal(size=3)
         up /= np.linalg.norm(up)
-        plane = SupportPlane(up, -float(np.median(points[..., 2])) * up[2],
-                             np.zeros((1, 1), bool))
+        plane = SupportPlane(up, -float(np.median(points[..., 2])) * up[2], np.zeros((1, 1), bool))
         cfg = Config().replace(rt_directions=32, seed=seed)
         tp = cfg.transfer
         pattern = rt.make_sampling_pattern(tp, cfg.seed)
-        fast = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, tp,
-                                   plane=plane)
-        ref = rt.transfer_reference(points, normals, camera, world_from_cam, pattern, None, tp,
-                                    plane=plane)
+        fast = rt.compute_transfer(
+            points, normals, camera, world_from_cam, pattern, None, tp, plane=plane
+        )
+        ref = rt.transfer_reference(
+            points, normals, camera, world_from_cam, pattern, None, tp, plane=plane
+        )
         np.testing.assert_allclose(fast.transfer, ref.transfer, atol=1e-4)
         without = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, tp)
         assert np.abs(without.transfer - fast.transfer).max() > 0.05  # the plane did something
@@ -556,26 +625,40 @@ class TestHorizonPlane:
         plane = _floor_plane(world_from_cam, ~on_wall & (points[..., 2] > 0))
         c = 0.37
         lum = np.full(points.shape[:2], c, np.float32)
-        res = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None, tp,
-                                  luminance=lum, plane=plane)
-        free = rt.compute_transfer(points, normals, camera, world_from_cam, pattern, None,
-                                   cfg.replace(visibility=False).transfer)
+        res = rt.compute_transfer(
+            points, normals, camera, world_from_cam, pattern, None, tp, luminance=lum, plane=plane
+        )
+        free = rt.compute_transfer(
+            points,
+            normals,
+            camera,
+            world_from_cam,
+            pattern,
+            None,
+            cfg.replace(visibility=False).transfer,
+        )
         v = res.valid
         # a light only below the floor's horizon reaches no pixel
-        below = sh.directional_light(np.array([0.3, -0.2, -0.93]) / np.linalg.norm(
-            [0.3, -0.2, -0.93]), 1.0, 4)
+        below = sh.directional_light(
+            np.array([0.3, -0.2, -0.93]) / np.linalg.norm([0.3, -0.2, -0.93]), 1.0, 4
+        )
         below_only = np.clip(sh.sh_basis(sh.fibonacci_sphere(4096), 4) @ below, 0, None)
         below_only[sh.fibonacci_sphere(4096)[:, 2] >= 0] = 0  # cut at the horizon exactly
-        light = sh.project_samples(sh.fibonacci_sphere(4096), below_only,
-                                   np.full(4096, 4 * np.pi / 4096), 4)
+        light = sh.project_samples(
+            sh.fibonacci_sphere(4096), below_only, np.full(4096, 4 * np.pi / 4096), 4
+        )
         lit = res.transfer[v] @ light
         assert np.abs(lit).max() < 0.15 * np.abs(free.transfer[v] @ light).max()
         # what the wall loses below the horizon comes back as the ground's luminance
         y00 = sh.sh_basis(np.array([0.0, 0.0, 1.0]), 1)[0]
         wall = v & on_wall[res.pixel_v][:, res.pixel_u]
         assert wall.sum() > 20
-        np.testing.assert_allclose(res.transfer[wall, 0] / y00 + res.bounce[wall] / c,
-                                   free.transfer[wall, 0] / y00, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(
+            res.transfer[wall, 0] / y00 + res.bounce[wall] / c,
+            free.transfer[wall, 0] / y00,
+            rtol=1e-4,
+            atol=1e-5,
+        )
         # the wall's lower half of directions is gone from the transfer: about half its DC
         ratio = res.transfer[wall, 0] / free.transfer[wall, 0]
         assert 0.3 < np.median(ratio) < 0.7
@@ -595,8 +678,7 @@ class TestEdgeRefinement:
     def test_pixels_across_the_edge_are_refined_and_no_others(self):
         grid = self._shadow_edge_grid()
         geometry = np.ones((10, 13), bool)
-        samples, (vs, us) = rt.interpolated_samples(grid, geometry, 10 ** 6, 0,
-                                                    edge_spread=0.1)
+        samples, (vs, us) = rt.interpolated_samples(grid, geometry, 10**6, 0, edge_spread=0.1)
         # between grid columns 6 and 10 the corners differ: those pixels are the edge
         assert len(us) and np.all((us > 6) & (us < 10))
         assert not np.any((samples.pixel_u > 6) & (samples.pixel_u < 10))
@@ -606,7 +688,7 @@ class TestEdgeRefinement:
     def test_off_by_default_and_identical_to_transfer_samples(self):
         grid = self._shadow_edge_grid()
         geometry = np.ones((10, 13), bool)
-        samples, (vs, us) = rt.interpolated_samples(grid, geometry, 10 ** 6, 0)
-        plain = rt.transfer_samples(grid, geometry, 10 ** 6, 0)
+        samples, (vs, us) = rt.interpolated_samples(grid, geometry, 10**6, 0)
+        plain = rt.transfer_samples(grid, geometry, 10**6, 0)
         assert len(vs) == len(us) == 0
         np.testing.assert_array_equal(samples.transfer, plain.transfer)

@@ -55,8 +55,14 @@ def ray_server(local_ray):
 
 def capture(server, session: str, on_result=None, frames: int = FRAMES) -> CaptureClient:
     source = open_source("synthetic", use_poses=True, max_frames=frames, synthetic_size=SIZE)
-    options = StreamOptions(server=server.connect_address, session=session, mode="lossless",
-                            rate="max", preset="fast", overrides=dict(SMALL))
+    options = StreamOptions(
+        server=server.connect_address,
+        session=session,
+        mode="lossless",
+        rate="max",
+        preset="fast",
+        overrides=dict(SMALL),
+    )
     return CaptureClient(source, options, on_result=on_result)
 
 
@@ -77,6 +83,7 @@ def test_two_sessions_each_on_its_own_actor(ray_server):
             session = server.sessions.get(name)
             if session is not None and compute.actor(session) is not None:
                 actors[name] = compute.actor(session)
+
         return record
 
     threads = [CaptureClientThread(capture(server, n, on_result(n))) for n in seqs]
@@ -126,8 +133,9 @@ def test_a_killed_actor_loses_no_frame(ray_server, caplog):
 def test_pipeline_lost_is_retryable_in_the_protocol():
     from arlight.protocols import Error, decode, encode
 
-    error = Error(code="bad_state", field=ErrorField.PIPELINE_LOST, seq=7, retryable=True,
-                  message="lost")
+    error = Error(
+        code="bad_state", field=ErrorField.PIPELINE_LOST, seq=7, retryable=True, message="lost"
+    )
     assert decode(encode(error)) == error
 
 
@@ -138,10 +146,13 @@ def test_without_ray_serve_exits_2_naming_the_extra(monkeypatch, capsys):
     assert "pip install 'arlight[ray]'" in err and "Traceback" not in err
 
 
-@pytest.mark.parametrize(("address", "says"), [
-    ("not an address", "--ray expects"),
-    ("127.0.0.1:1", "no Ray cluster answers there"),
-])
+@pytest.mark.parametrize(
+    ("address", "says"),
+    [
+        ("not an address", "--ray expects"),
+        ("127.0.0.1:1", "no Ray cluster answers there"),
+    ],
+)
 def test_bad_address_exits_2(address, says, capsys, monkeypatch):
     monkeypatch.setattr(ray, "is_initialized", lambda: False)  # as in a fresh process
     assert main(["serve", "--ray", address]) == EXIT_BAD_INPUT
@@ -158,9 +169,23 @@ def test_arlight_serve_ray_local_end_to_end(tmp_path):
     log_path = tmp_path / "serve.log"
     env = {**os.environ, "RAY_ADDRESS": ""}
     with open(log_path, "w") as log_file:
-        proc = subprocess.Popen([sys.executable, "-m", "arlight.cli", "serve", "--ray", "local",
-                                 "--bind", f"tcp://127.0.0.1:{port}", "--heartbeat", "0.5"],
-                                stdout=log_file, stderr=subprocess.STDOUT, env=env)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "arlight.cli",
+                "serve",
+                "--ray",
+                "local",
+                "--bind",
+                f"tcp://127.0.0.1:{port}",
+                "--heartbeat",
+                "0.5",
+            ],
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
     try:
         deadline = time.monotonic() + 60
         while "listening on" not in log_path.read_text():
@@ -168,12 +193,18 @@ def test_arlight_serve_ray_local_end_to_end(tmp_path):
             assert time.monotonic() < deadline, "serve --ray did not start"
             time.sleep(0.2)
         source = open_source("synthetic", use_poses=True, max_frames=4, synthetic_size=SIZE)
-        options = StreamOptions(server=f"tcp://127.0.0.1:{port}", session="cli",
-                                mode="lossless", rate="max", preset="fast",
-                                overrides=dict(SMALL))
+        options = StreamOptions(
+            server=f"tcp://127.0.0.1:{port}",
+            session="cli",
+            mode="lossless",
+            rate="max",
+            preset="fast",
+            overrides=dict(SMALL),
+        )
         seqs = []
-        thread = CaptureClientThread(CaptureClient(
-            source, options, on_result=lambda r, _w: seqs.append(r.seq)))
+        thread = CaptureClientThread(
+            CaptureClient(source, options, on_result=lambda r, _w: seqs.append(r.seq))
+        )
         thread.start()
         summary = thread.join(120)
         assert summary.results == 4 and not summary.errors

@@ -104,8 +104,10 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 CAMERA = PinholeCamera.kinect_v1(320, 240)
 COLOR = np.zeros((CAMERA.height, CAMERA.width, 3), np.uint8)
 PITCH = np.deg2rad(20.0)
-POSES = [make_pose(rotation(yaw=0.05 * k - 0.1, pitch=PITCH), [0.05 * k, 0.0, 0.02 * k])
-         for k in range(4)]
+POSES = [
+    make_pose(rotation(yaw=0.05 * k - 0.1, pitch=PITCH), [0.05 * k, 0.0, 0.02 * k])
+    for k in range(4)
+]
 LIGHT = np.array([0.3, -0.9, 0.3]) / np.linalg.norm([0.3, -0.9, 0.3])
 
 
@@ -187,8 +189,11 @@ class TestGeometryBuffer:
             c = subsample // 2
             centres = full[c::subsample, c::subsample]
             picked = sub[c::subsample, c::subsample]
-            ok = (centres > 0) & (picked > 0) & smooth_mask(truth, normals)[c::subsample,
-                                                                           c::subsample]
+            ok = (
+                (centres > 0)
+                & (picked > 0)
+                & smooth_mask(truth, normals)[c::subsample, c::subsample]
+            )
             diff = np.abs(picked[ok] - centres[ok])
             assert np.mean(diff < 1e-4) > 0.5  # 70 % here: the same depth
             # the others within the full cast's own error (its p99 against truth: 0.3 voxel)
@@ -208,12 +213,28 @@ def ray_cast(fused):
     hashmap = grid.hashmap()
     blocks = hashmap.key_tensor()[hashmap.active_buf_indices().to(o3c.int64)]
     result = grid.ray_cast(
-        blocks, o3c.Tensor(CAMERA.matrix), o3c.Tensor(np.linalg.inv(pose)), CAMERA.width,
-        CAMERA.height, ["depth", "index", "mask", "interp_ratio"], 1.0, c.depth_min_m,
-        c.depth_max_m, 3.0, c.sdf_trunc_voxels)
-    return (result["depth"].numpy()[..., 0], grid.attribute("tsdf").numpy().reshape(-1),
-            result["index"].numpy(), result["mask"].numpy(),
-            result["interp_ratio"].numpy(), pose, CAMERA, c.voxel_size_m)
+        blocks,
+        o3c.Tensor(CAMERA.matrix),
+        o3c.Tensor(np.linalg.inv(pose)),
+        CAMERA.width,
+        CAMERA.height,
+        ["depth", "index", "mask", "interp_ratio"],
+        1.0,
+        c.depth_min_m,
+        c.depth_max_m,
+        3.0,
+        c.sdf_trunc_voxels,
+    )
+    return (
+        result["depth"].numpy()[..., 0],
+        grid.attribute("tsdf").numpy().reshape(-1),
+        result["index"].numpy(),
+        result["mask"].numpy(),
+        result["interp_ratio"].numpy(),
+        pose,
+        CAMERA,
+        c.voxel_size_m,
+    )
 
 
 class TestRefineRayCast:
@@ -229,16 +250,27 @@ class TestRefineRayCast:
         m = mask[hit]
         r = ratio[hit].astype(np.float64)
         values = np.where(m, source[index[hit]], 0.0).reshape(-1, 2, 2, 2)  # [n, dz, dy, dx]
-        fx, fy, fz = (r[:, [1, 3, 5, 7]].sum(1), r[:, [2, 3, 6, 7]].sum(1),
-                      r[:, [4, 5, 6, 7]].sum(1))
+        fx, fy, fz = (
+            r[:, [1, 3, 5, 7]].sum(1),
+            r[:, [2, 3, 6, 7]].sum(1),
+            r[:, [4, 5, 6, 7]].sum(1),
+        )
         wx, wy, wz = (np.stack([1 - f, f], axis=1) for f in (fx, fy, fz))
         phi = np.sum(r * values.reshape(-1, 8), axis=1)
-        grad = np.stack([
-            np.einsum("nzy,nz,ny->n", values[..., 1] - values[..., 0], wz, wy),
-            np.einsum("nzx,nz,nx->n", values[:, :, 1] - values[:, :, 0], wz, wx),
-            np.einsum("nyx,ny,nx->n", values[:, 1] - values[:, 0], wy, wx)], axis=1)
-        rays = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy,
-                         np.ones_like(t)], axis=1) @ pose[:3, :3].T
+        grad = np.stack(
+            [
+                np.einsum("nzy,nz,ny->n", values[..., 1] - values[..., 0], wz, wy),
+                np.einsum("nzx,nz,nx->n", values[:, :, 1] - values[:, :, 0], wz, wx),
+                np.einsum("nyx,ny,nx->n", values[:, 1] - values[:, 0], wy, wx),
+            ],
+            axis=1,
+        )
+        rays = (
+            np.stack(
+                [(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones_like(t)], axis=1
+            )
+            @ pose[:3, :3].T
+        )
         slope = np.sum(grad * rays, axis=1) / voxel
         with np.errstate(divide="ignore", invalid="ignore"):
             step = -phi / slope
@@ -275,8 +307,13 @@ class TestRefineRayCast:
 class TestTracking:
     @staticmethod
     def true_poses(n: int = 5) -> list[np.ndarray]:
-        return [make_pose(rotation(yaw=np.deg2rad(0.6) * k, pitch=PITCH + np.deg2rad(0.3) * k),
-                          [0.01 * k, -0.005 * k, 0.01 * k]) for k in range(n)]
+        return [
+            make_pose(
+                rotation(yaw=np.deg2rad(0.6) * k, pitch=PITCH + np.deg2rad(0.3) * k),
+                [0.01 * k, -0.005 * k, 0.01 * k],
+            )
+            for k in range(n)
+        ]
 
     def test_relative_poses_match_truth(self):
         recon = VolumeReconstruction.from_config(config(aux_buffers=False), CAMERA)
@@ -341,8 +378,12 @@ class TestAuxBufferPoses:
         poses = aux_buffer_poses(cam_pose, 1.5, 4.0, LIGHT)
         assert list(poses) == ["left", "right", "top", "light"]
         centre = position + 1.5 * ez
-        expected = {"left": (-ez, ey, ex), "right": (ez, ey, -ex), "top": (ex, -ez, ey),
-                    "light": (None, None, -LIGHT)}
+        expected = {
+            "left": (-ez, ey, ex),
+            "right": (ez, ey, -ex),
+            "top": (ex, -ez, ey),
+            "light": (None, None, -LIGHT),
+        }
         for name, t in poses.items():
             np.testing.assert_allclose(t[:3, :3] @ t[:3, :3].T, np.eye(3), atol=1e-12)
             assert np.linalg.det(t[:3, :3]) == pytest.approx(1.0)
@@ -383,8 +424,9 @@ class TestAuxBuffers:
         # points on the box top, away from its edges (seen by the camera from above)
         s = np.linspace(-0.15, 0.15, 7)
         gx, gz = np.meshgrid(BOX_CENTRE[0] + s, BOX_CENTRE[2] + s)
-        points = np.stack([gx.ravel(), np.full(gx.size, BOX_CENTRE[1] - BOX_HALF[1]),
-                           gz.ravel()], axis=-1)
+        points = np.stack(
+            [gx.ravel(), np.full(gx.size, BOX_CENTRE[1] - BOX_HALF[1]), gz.ravel()], axis=-1
+        )
         uv, depth = top.project(points)
         u, v = np.rint(uv).astype(int).T
         stored = top.depth_m[v, u]
@@ -448,14 +490,16 @@ class TestAuxBuffers:
 
 class TestRenderOrthographic:
     def test_known_points_and_z_buffer(self):
-        points = np.array([
-            [0.0, 0.0, 1.0],  # centre pixel (2, 2)
-            [0.0, 0.0, 0.5],  # same pixel, nearer: wins
-            [0.1, -0.2, 2.0],  # pixel u = 3, v = 0
-            [0.0, 0.0, -1.0],  # behind the image plane: ignored
-            [0.3, 0.0, 1.0],  # outside the image: ignored
-            [-0.2, 0.2, 9.0],  # beyond max depth: ignored
-        ])
+        points = np.array(
+            [
+                [0.0, 0.0, 1.0],  # centre pixel (2, 2)
+                [0.0, 0.0, 0.5],  # same pixel, nearer: wins
+                [0.1, -0.2, 2.0],  # pixel u = 3, v = 0
+                [0.0, 0.0, -1.0],  # behind the image plane: ignored
+                [0.3, 0.0, 1.0],  # outside the image: ignored
+                [-0.2, 0.2, 9.0],  # beyond max depth: ignored
+            ]
+        )
         depth = render_orthographic(points, np.eye(4), 5, 0.1, max_depth_m=5.0)
         expected = np.zeros((5, 5), np.float32)
         expected[2, 2] = 0.5
@@ -504,8 +548,9 @@ class TestDeterminism:
         runs = []
         for _ in range(2):
             recon = VolumeReconstruction.from_config(config(aux_update_interval=2), CAMERA)
-            runs.append([recon.process(COLOR, render_scene(CAMERA, p)[0], None, LIGHT)
-                         for p in POSES])
+            runs.append(
+                [recon.process(COLOR, render_scene(CAMERA, p)[0], None, LIGHT) for p in POSES]
+            )
         for a, b in zip(*runs, strict=True):
             np.testing.assert_array_equal(a.pose, b.pose)
             np.testing.assert_array_equal(a.depth_volume_m, b.depth_volume_m)
@@ -542,19 +587,25 @@ class TestBadInput:
         assert out.tracking_ok
         assert np.mean(out.depth_volume_m > 0) > 0.5
 
-    @pytest.mark.parametrize("field, kwargs, match", [
-        ("depth", {"depth_m": np.zeros((10, 10), np.float32)}, "depth_m"),
-        ("depth", {"depth_m": np.zeros((CAMERA.height, CAMERA.width), np.uint16)}, "depth_m"),
-        ("color", {"color_rgb_u8": np.zeros((CAMERA.height, CAMERA.width, 3))}, "color_rgb_u8"),
-        ("color", {"color_rgb_u8": np.zeros((10, 10, 3), np.uint8)}, "color_rgb_u8"),
-        ("pose", {"pose": np.eye(3)}, "pose"),
-        ("pose", {"pose": np.full((4, 4), np.nan)}, "pose"),
-        ("light", {"light_direction_world": np.zeros(3)}, "light_direction_world"),
-    ])
+    @pytest.mark.parametrize(
+        "field, kwargs, match",
+        [
+            ("depth", {"depth_m": np.zeros((10, 10), np.float32)}, "depth_m"),
+            ("depth", {"depth_m": np.zeros((CAMERA.height, CAMERA.width), np.uint16)}, "depth_m"),
+            ("color", {"color_rgb_u8": np.zeros((CAMERA.height, CAMERA.width, 3))}, "color_rgb_u8"),
+            ("color", {"color_rgb_u8": np.zeros((10, 10, 3), np.uint8)}, "color_rgb_u8"),
+            ("pose", {"pose": np.eye(3)}, "pose"),
+            ("pose", {"pose": np.full((4, 4), np.nan)}, "pose"),
+            ("light", {"light_direction_world": np.zeros(3)}, "light_direction_world"),
+        ],
+    )
     def test_invalid_arguments_raise(self, field, kwargs, match):
         recon = VolumeReconstruction.from_config(config(), CAMERA)
-        args = {"color_rgb_u8": COLOR,
-                "depth_m": np.zeros((CAMERA.height, CAMERA.width), np.float32), "pose": None}
+        args = {
+            "color_rgb_u8": COLOR,
+            "depth_m": np.zeros((CAMERA.height, CAMERA.width), np.float32),
+            "pose": None,
+        }
         args.update(kwargs)
         with pytest.raises(ValueError, match=match):
             recon.process(**args)
@@ -614,14 +665,17 @@ def test_unique_block_keys_matches_numpy_rows_including_negative_and_far_blocks(
     assert unique_block_keys(keys).dtype == np.int32
 
 
-@pytest.mark.parametrize(("width", "asked", "used"),
-                         [(80, 2, 1), (320, 2, 1), (640, 2, 2), (1280, 4, 4), (960, 4, 3)])
+@pytest.mark.parametrize(
+    ("width", "asked", "used"), [(80, 2, 1), (320, 2, 1), (640, 2, 2), (1280, 4, 4), (960, 4, 3)]
+)
 def test_surface_subsample_keeps_the_cast_320_columns_wide(width, asked, used):
     from arlight.pipeline.reconstruction import surface_subsample
 
     camera = PinholeCamera.kinect_v1(width, width * 3 // 4)
-    assert surface_subsample(Config.from_preset("fast", surface_subsample=asked).volume,
-                             camera) == used
+    assert (
+        surface_subsample(Config.from_preset("fast", surface_subsample=asked).volume, camera)
+        == used
+    )
 
 
 def test_upsample_depth_interpolates_smooth_surfaces_and_keeps_edges():

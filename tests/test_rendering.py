@@ -104,16 +104,18 @@ def look_at(eye, target) -> np.ndarray:
     return m
 
 
-def ground_view(width: int = WIDTH, height: int = HEIGHT, distance_m: float = 1.0,
-                tilt_deg: float = 45.0) -> GroundView:
+def ground_view(
+    width: int = WIDTH, height: int = HEIGHT, distance_m: float = 1.0, tilt_deg: float = 45.0
+) -> GroundView:
     """Kinect-v1 intrinsics, camera distance_m from the origin in the y-z plane, tilt_deg
     above the ground, looking at the origin."""
     camera = PinholeCamera.kinect_v1(width, height)
     tilt = math.radians(tilt_deg)
     pose = look_at([0.0, distance_m * math.sin(tilt), distance_m * math.cos(tilt)], [0, 0, 0])
     uu, vv = np.meshgrid(np.arange(width), np.arange(height))
-    rays_cam = np.stack([(uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy,
-                         np.ones(uu.shape)], axis=-1)
+    rays_cam = np.stack(
+        [(uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy, np.ones(uu.shape)], axis=-1
+    )
     rays_world = rays_cam @ pose[:3, :3].T
     t = -pose[1, 3] / np.where(rays_world[..., 1] < 0, rays_world[..., 1], -1e-300)
     depth = np.where(rays_world[..., 1] < 0, t, 0.0).astype(np.float32)
@@ -128,8 +130,9 @@ def light_direction(side: int, elevation_deg: float = LIGHT_ELEVATION_DEG) -> np
     return np.array([side * math.cos(e), math.sin(e), 0.0])
 
 
-def light_sh(direction: np.ndarray, intensity: float = LIGHT_INTENSITY,
-             ambient: float = AMBIENT_RADIANCE) -> np.ndarray:
+def light_sh(
+    direction: np.ndarray, intensity: float = LIGHT_INTENSITY, ambient: float = AMBIENT_RADIANCE
+) -> np.ndarray:
     """(16,) world-frame radiance SH: the delta (4 bands) plus a constant ambient radiance."""
     coeffs = sh.directional_light(direction, intensity, 4)
     coeffs[0] += ambient / sh.sh_basis(UP, 1)[0]  # constant radiance `ambient`
@@ -138,8 +141,9 @@ def light_sh(direction: np.ndarray, intensity: float = LIGHT_INTENSITY,
 
 def irradiance(coeffs: np.ndarray, normals_world: np.ndarray) -> np.ndarray:
     """(K,) analytic irradiance of the band-limited light on normals (K, 3), no occlusion."""
-    return np.atleast_1d(sh.evaluate(sh.irradiance_from_radiance(coeffs),
-                                     np.atleast_2d(normals_world)))
+    return np.atleast_1d(
+        sh.evaluate(sh.irradiance_from_radiance(coeffs), np.atleast_2d(normals_world))
+    )
 
 
 def frame_inputs(view: GroundView, coeffs: np.ndarray) -> RenderInputs:
@@ -147,23 +151,41 @@ def frame_inputs(view: GroundView, coeffs: np.ndarray) -> RenderInputs:
     h, w = view.depth_m.shape
     ground = GROUND_ALBEDO / math.pi * float(irradiance(coeffs, UP)[0])
     color = linear_to_srgb_u8(np.full((h, w, 3), ground))
-    return RenderInputs(color, srgb_to_linear(color), view.depth_m, view.normals_cam,
-                        view.world_from_cam, [], None, coeffs)
+    return RenderInputs(
+        color,
+        srgb_to_linear(color),
+        view.depth_m,
+        view.normals_cam,
+        view.world_from_cam,
+        [],
+        None,
+        coeffs,
+    )
 
 
-def sphere(name: str = "ball", radius_m: float = SPHERE_RADIUS_M, base_world=(0.0, 0.0, 0.0),
-           albedo: float = SPHERE_ALBEDO) -> VirtualObject:
+def sphere(
+    name: str = "ball",
+    radius_m: float = SPHERE_RADIUS_M,
+    base_world=(0.0, 0.0, 0.0),
+    albedo: float = SPHERE_ALBEDO,
+) -> VirtualObject:
     """A virtual UV sphere whose lowest point is at base_world."""
     pose = np.eye(4)
     pose[:3, 3] = base_world
     return object_from_open3d(name, sphere_mesh(radius_m), pose, Material((albedo,) * 3))
 
 
-def render(view: GroundView, coeffs: np.ndarray, objects, inputs: RenderInputs | None = None,
-           **config_changes) -> tuple[RenderInputs, RenderOutput, DifferentialRenderer]:
+def render(
+    view: GroundView,
+    coeffs: np.ndarray,
+    objects,
+    inputs: RenderInputs | None = None,
+    **config_changes,
+) -> tuple[RenderInputs, RenderOutput, DifferentialRenderer]:
     """One render of `objects` into the ground frame (or `inputs`), with flat config keys."""
-    renderer = DifferentialRenderer(VirtualScene(tuple(objects)), view.camera,
-                                    Config().replace(**config_changes))
+    renderer = DifferentialRenderer(
+        VirtualScene(tuple(objects)), view.camera, Config().replace(**config_changes)
+    )
     inputs = inputs if inputs is not None else frame_inputs(view, coeffs)
     return inputs, renderer.render(inputs), renderer
 
@@ -180,8 +202,9 @@ def centroid(mask: np.ndarray) -> np.ndarray:
     return np.array([u.mean(), v.mean()])
 
 
-def shadow_prediction(view: GroundView, direction: np.ndarray,
-                      n_directions: int) -> tuple[np.ndarray, float]:
+def shadow_prediction(
+    view: GroundView, direction: np.ndarray, n_directions: int
+) -> tuple[np.ndarray, float]:
     """((u, v) of the shadow's centre, tolerance in pixels) for the sphere on the origin.
 
     Centre: the sphere's centre projected along -direction onto y = 0, then into the image.
@@ -212,7 +235,7 @@ def analytic_sphere_hit(view: GroundView, centre, radius_m: float) -> np.ndarray
     d = view.rays_world
     a = np.einsum("hwi,hwi->hw", d, d)
     b = d @ oc
-    c = oc @ oc - radius_m ** 2
+    c = oc @ oc - radius_m**2
     disc = b * b - a * c
     t = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
     return np.where((disc > 0) & (t > 0), t, np.inf)
@@ -248,8 +271,9 @@ class TestShadowPosition:
         inputs, out, renderer = render(view, light_sh(direction), [sphere()])
         dark = darkened(inputs, out)
         assert dark.sum() > 100  # a shadow of some size: R = 13 px, so ~500 px
-        expected, tolerance = shadow_prediction(view, direction,
-                                                renderer.config.transfer.rt_directions)
+        expected, tolerance = shadow_prediction(
+            view, direction, renderer.config.transfer.rt_directions
+        )
         assert np.linalg.norm(centroid(dark) - expected) < tolerance
 
     def test_light_from_the_other_side_moves_the_shadow_to_the_other_side(self, view):
@@ -262,8 +286,9 @@ class TestShadowPosition:
             direction = light_direction(side)
             inputs, out, renderer = render(view, light_sh(direction), [sphere()])
             found[side] = centroid(darkened(inputs, out))[0]
-            predicted = shadow_prediction(view, direction,
-                                          renderer.config.transfer.rt_directions)[0][0]
+            predicted = shadow_prediction(view, direction, renderer.config.transfer.rt_directions)[
+                0
+            ][0]
             offset = predicted - base_u
             assert (found[side] - base_u) / offset > 0.5
         assert found[+1] < base_u < found[-1]
@@ -281,7 +306,7 @@ class TestRealOccluder:
         rows, cols = np.nonzero(bare.virtual_mask)
         hand = np.zeros(view.depth_m.shape, bool)
         base_u = int(round(view.project([0.0, SPHERE_RADIUS_M, 0.0])[0][0]))
-        hand[rows.min() - 5: rows.max() + 6, cols.min() - 5: base_u] = True
+        hand[rows.min() - 5 : rows.max() + 6, cols.min() - 5 : base_u] = True
         inputs = frame_inputs(view, coeffs)
         depth = inputs.depth_m.copy()
         depth[hand] = 0.5
@@ -289,8 +314,13 @@ class TestRealOccluder:
         normals[hand] = (0.0, 0.0, -1.0)
         color = inputs.color.copy()
         color[hand] = (190, 140, 110)
-        inputs = dataclasses.replace(inputs, color=color, color_linear=srgb_to_linear(color),
-                                     depth_m=depth, normals_cam=normals)
+        inputs = dataclasses.replace(
+            inputs,
+            color=color,
+            color_linear=srgb_to_linear(color),
+            depth_m=depth,
+            normals_cam=normals,
+        )
         _, out, _ = render(view, coeffs, [sphere()], inputs=inputs)
         assert not np.any(out.virtual_mask[hand])
         np.testing.assert_array_equal(out.composite[hand], color[hand])
@@ -384,8 +414,11 @@ class TestVirtualPixels:
         np.testing.assert_allclose(measured, analytic, rtol=0.01)
         dirs = renderer.pattern.directions @ inputs.world_from_cam[:3, :3].T
         basis = sh.sh_basis(dirs, 4) * (4.0 * math.pi / len(dirs))
-        quadrature = SPHERE_ALBEDO / math.pi * np.mean(
-            np.maximum(normals @ dirs.T, 0.0) @ basis @ inputs.light_sh)
+        quadrature = (
+            SPHERE_ALBEDO
+            / math.pi
+            * np.mean(np.maximum(normals @ dirs.T, 0.0) @ basis @ inputs.light_sh)
+        )
         assert abs(quadrature - analytic) / analytic > 0.03
 
 
@@ -454,10 +487,10 @@ class TestFastPath:
         """render_subsample 4 (OursFast): the shadow centroid keeps the tolerance of the
         full render, and pixels outside the region are still the input bit for bit."""
         direction = light_direction(+1)
-        inputs, out, renderer = render(view, light_sh(direction), [sphere()],
-                                       render_subsample=4)
-        expected, tolerance = shadow_prediction(view, direction,
-                                                renderer.config.transfer.rt_directions)
+        inputs, out, renderer = render(view, light_sh(direction), [sphere()], render_subsample=4)
+        expected, tolerance = shadow_prediction(
+            view, direction, renderer.config.transfer.rt_directions
+        )
         assert np.linalg.norm(centroid(darkened(inputs, out)) - expected) < tolerance
         outside = ~out.region
         assert np.array_equal(out.composite[outside], inputs.color[outside])
@@ -484,10 +517,13 @@ class TestPaste:
         assert out.virtual_mask.sum() > 100
         assert np.array_equal(out.composite[real], inputs.color[real])
         np.testing.assert_array_equal(out.region, out.virtual_mask)
-        n = out.gbuffer.normals_cam[out.virtual_mask].astype(np.float64) \
+        n = (
+            out.gbuffer.normals_cam[out.virtual_mask].astype(np.float64)
             @ inputs.world_from_cam[:3, :3].T
-        expected = linear_to_srgb_u8(SPHERE_ALBEDO / math.pi
-                                     * np.maximum(irradiance(coeffs, n), 0.0))
+        )
+        expected = linear_to_srgb_u8(
+            SPHERE_ALBEDO / math.pi * np.maximum(irradiance(coeffs, n), 0.0)
+        )
         diff = out.composite[out.virtual_mask].astype(int) - expected[:, None].astype(int)
         assert np.abs(diff).max() <= 1
 
@@ -502,8 +538,13 @@ class TestAnchoredInPipeline:
         pose (within the plane fit's error), upright, and stays put while the camera moves,
         rendered around its projection."""
         seq = tiny_sequence
-        obj = object_from_open3d("anchored", sphere_mesh(0.08), np.eye(4),
-                                 Material((0.6, 0.6, 0.6)), Anchor(self.ANCHOR_PIXEL))
+        obj = object_from_open3d(
+            "anchored",
+            sphere_mesh(0.08),
+            np.eye(4),
+            Material((0.6, 0.6, 0.6)),
+            Anchor(self.ANCHOR_PIXEL),
+        )
         pipe = Pipeline(Config.from_preset("full", **SMALL), seq.camera, VirtualScene((obj,)))
         assert pipe.scene.anchored
         poses = []
@@ -517,8 +558,12 @@ class TestAnchoredInPipeline:
             # the object's pixels surround the projection of its centre in this frame
             centre = poses[-1] @ np.array([0.0, 0.08, 0.0, 1.0])
             cam = np.linalg.inv(frame.pose) @ centre
-            uv = np.array([seq.camera.fx * cam[0] / cam[2] + seq.camera.cx,
-                           seq.camera.fy * cam[1] / cam[2] + seq.camera.cy])
+            uv = np.array(
+                [
+                    seq.camera.fx * cam[0] / cam[2] + seq.camera.cx,
+                    seq.camera.fy * cam[1] / cam[2] + seq.camera.cy,
+                ]
+            )
             assert np.linalg.norm(centroid(out.virtual_mask) - uv) < 3.0
         for later in poses[1:]:
             np.testing.assert_array_equal(later, poses[0])
@@ -533,16 +578,21 @@ class TestAnchoredInPipeline:
         truth = pose0[:3, 3] - pose0[1, 3] / ray[1] * ray
         assert np.linalg.norm(base - truth) < 0.03
         cam_base = np.linalg.inv(pose0) @ np.r_[base, 1.0]
-        uv = np.array([cam.fx * cam_base[0] / cam_base[2] + cam.cx,
-                       cam.fy * cam_base[1] / cam_base[2] + cam.cy])
+        uv = np.array(
+            [
+                cam.fx * cam_base[0] / cam_base[2] + cam.cx,
+                cam.fy * cam_base[1] / cam_base[2] + cam.cy,
+            ]
+        )
         assert np.linalg.norm(uv - self.ANCHOR_PIXEL) < 1.0
 
     def test_anchor_above_the_horizon_waits(self, tiny_sequence):
         """An anchor pixel in the sky never meets the plane: the object stays anchored and
         nothing is rendered (composite None), frame after frame."""
         obj = object_from_open3d("sky", sphere_mesh(0.08), np.eye(4), anchor=Anchor((80.0, 2.0)))
-        pipe = Pipeline(Config.from_preset("full", **SMALL), tiny_sequence.camera,
-                        VirtualScene((obj,)))
+        pipe = Pipeline(
+            Config.from_preset("full", **SMALL), tiny_sequence.camera, VirtualScene((obj,))
+        )
         for frame in tiny_sequence.frames[:2]:
             assert pipe.process(frame).composite is None
             assert pipe.scene.anchored
@@ -574,8 +624,7 @@ class TestEnvironmentReflections:
 
         hdr = np.full((64, 128, 3), 0.05, np.float32)
         hdr[24:40, 24:40] = (4.0, 3.0, 2.0)  # u = atan2(x, -z) / 2 pi: +X at column 32
-        return hdr, EnvironmentMap(mip_pyramid(hdr), np.eye(3) if rotation is None
-                                   else rotation)
+        return hdr, EnvironmentMap(mip_pyramid(hdr), np.eye(3) if rotation is None else rotation)
 
     @pytest.mark.parametrize("turn_deg", [0.0, 90.0])
     def test_mirror_sphere_shows_the_map_along_the_mirrored_view(self, view, turn_deg):
@@ -588,14 +637,24 @@ class TestEnvironmentReflections:
         turn = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
         hdr, env = self._environment(turn)
         coeffs = light_sh(light_direction(+1))
-        mirror_ball = object_from_open3d("mirror", sphere_mesh(SPHERE_RADIUS_M), np.eye(4),
-                                         Material((0.9, 0.9, 0.9), mirror=True))
+        mirror_ball = object_from_open3d(
+            "mirror",
+            sphere_mesh(SPHERE_RADIUS_M),
+            np.eye(4),
+            Material((0.9, 0.9, 0.9), mirror=True),
+        )
         inputs = dataclasses.replace(frame_inputs(view, coeffs), environment=env)
         _, out, _ = render(view, coeffs, [mirror_ball], inputs)
         vs_, us_ = np.nonzero(out.virtual_mask)
         assert len(vs_) > 100
-        rays = np.stack([(us_ - view.camera.cx) / view.camera.fx,
-                         (vs_ - view.camera.cy) / view.camera.fy, np.ones(len(us_))], 1)
+        rays = np.stack(
+            [
+                (us_ - view.camera.cx) / view.camera.fx,
+                (vs_ - view.camera.cy) / view.camera.fy,
+                np.ones(len(us_)),
+            ],
+            1,
+        )
         rays = rays @ view.world_from_cam[:3, :3].T
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)
         n = out.gbuffer.normals_cam[vs_, us_].astype(np.float64) @ view.world_from_cam[:3, :3].T
@@ -611,8 +670,9 @@ class TestEnvironmentReflections:
         coeffs = light_sh(light_direction(+1))
         plain = frame_inputs(view, coeffs)
         _, without, _ = render(view, coeffs, [sphere()], plain)
-        _, with_env, _ = render(view, coeffs, [sphere()],
-                                dataclasses.replace(plain, environment=env))
+        _, with_env, _ = render(
+            view, coeffs, [sphere()], dataclasses.replace(plain, environment=env)
+        )
         np.testing.assert_array_equal(without.composite, with_env.composite)
 
 
@@ -623,13 +683,15 @@ class TestWithinReach:
     @staticmethod
     def _scene_and_points():
         # a sphere of radius 0.2 m centred on the origin, its distance as the renderer asks it
-        raycaster = VirtualRaycaster(VirtualScene((sphere(radius_m=0.2,
-                                                          base_world=(0.0, -0.2, 0.0)),)))
+        raycaster = VirtualRaycaster(
+            VirtualScene((sphere(radius_m=0.2, base_world=(0.0, -0.2, 0.0)),))
+        )
         # a 120 x 160 grid of ground points 4 mm apart with a 0.3 m step in height halfway
         # (a depth edge: neighbours far apart in 3D)
         v, u = np.mgrid[0:120, 0:160]
-        points = np.stack([(u - 80) * 0.004, np.where(u < 80, -0.25, 0.05),
-                           (v - 60) * 0.004], axis=-1).astype(np.float64)
+        points = np.stack(
+            [(u - 80) * 0.004, np.where(u < 80, -0.25, 0.05), (v - 60) * 0.004], axis=-1
+        ).astype(np.float64)
         calls = []
 
         def distance(p):

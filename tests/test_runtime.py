@@ -25,12 +25,14 @@ def test_configure_open3d_threads():
 
 
 def test_numba_uses_openmp_without_probing_tbb():
-    code = ("import warnings; warnings.simplefilter('error'); "
-            "from arlight.pipeline.runtime import configure_process; configure_process(); "
-            "import numba, numpy as np\n"
-            "@numba.njit(parallel=True)\n"
-            "def f(a):\n    return a.sum()\n"
-            "f(np.ones(8)); print(numba.threading_layer())")
+    code = (
+        "import warnings; warnings.simplefilter('error'); "
+        "from arlight.pipeline.runtime import configure_process; configure_process(); "
+        "import numba, numpy as np\n"
+        "@numba.njit(parallel=True)\n"
+        "def f(a):\n    return a.sum()\n"
+        "f(np.ones(8)); print(numba.threading_layer())"
+    )
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_THREADING_LAYER"}
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert run.returncode == 0, run.stderr
@@ -57,27 +59,32 @@ def test_open3d_version_outside_the_supported_range_is_refused():
 
 def _python(code: str, env: dict | None = None) -> str:
     """stdout of `python -c code` in a fresh interpreter (imports not yet done here)."""
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         env=env, timeout=120)
+    run = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120
+    )
     assert run.returncode == 0, run.stderr
     return run.stdout
 
 
 class TestNoSideEffectsOnImport:
     def test_importing_arlight_and_the_pipeline_changes_no_environment_variable(self):
-        out = _python("import os\nbefore = dict(os.environ)\n"
-                      "import arlight, arlight.pipeline\n"
-                      "print(sorted(set(os.environ.items()) ^ set(before.items())))")
+        out = _python(
+            "import os\nbefore = dict(os.environ)\n"
+            "import arlight, arlight.pipeline\n"
+            "print(sorted(set(os.environ.items()) ^ set(before.items())))"
+        )
         assert out.strip() == "[]"
 
     # what OpenBLAS reads is the environment when numpy is imported: watched by a finder
-    WATCH = ("import os, sys\n"
-             "class Watch:\n"
-             "    def find_spec(self, name, path=None, target=None):\n"
-             "        if name == 'numpy':\n"
-             "            print('at numpy:', os.environ.get('OPENBLAS_NUM_THREADS'), flush=True)\n"
-             "sys.meta_path.insert(0, Watch())\n"
-             "import arlight.cli\n")
+    WATCH = (
+        "import os, sys\n"
+        "class Watch:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'numpy':\n"
+        "            print('at numpy:', os.environ.get('OPENBLAS_NUM_THREADS'), flush=True)\n"
+        "sys.meta_path.insert(0, Watch())\n"
+        "import arlight.cli\n"
+    )
 
     def test_the_command_sets_one_blas_thread_before_numpy_loads(self):
         env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}

@@ -61,8 +61,9 @@ def make_server():
 
 def secure_server(make_server, process=None, **overrides):
     """A loopback server with session tokens on and a known admin token."""
-    return make_server(process=process or identity_step(), session_tokens=True,
-                       admin_token=ADMIN, **overrides)
+    return make_server(
+        process=process or identity_step(), session_tokens=True, admin_token=ADMIN, **overrides
+    )
 
 
 def run_cli(argv, capsys):
@@ -86,13 +87,15 @@ def keys(tmp_path_factory):
 def client_keys(keys, who: str = "client", server_dir: str = "k") -> ClientKeys:
     folder = "stranger" if who == "stranger" else "k"
     name = "client" if who == "stranger" else who
-    return ClientKeys.load(str(keys / server_dir / "server.key"),
-                           str(keys / folder / f"{name}.key_secret"))
+    return ClientKeys.load(
+        str(keys / server_dir / "server.key"), str(keys / folder / f"{name}.key_secret")
+    )
 
 
 def stream_opts(address: str, session: str, **kw) -> StreamOptions:
-    base = dict(server=address, session=session, mode="lossless", rate="max",
-                reconnect_timeout_s=5.0)
+    base = dict(
+        server=address, session=session, mode="lossless", rate="max", reconnect_timeout_s=5.0
+    )
     base.update(kw)
     return StreamOptions(**base)
 
@@ -106,8 +109,13 @@ class TestKeyFiles:
         code, text = run_cli(["keys", "generate", str(d)], capsys)
         assert code == 0, text
         names = sorted(p.name for p in d.iterdir())
-        assert names == ["authorized", "client.key", "client.key_secret", "server.key",
-                         "server.key_secret"]
+        assert names == [
+            "authorized",
+            "client.key",
+            "client.key_secret",
+            "server.key",
+            "server.key_secret",
+        ]
         assert (d / "authorized" / "client.key").read_bytes() == (d / "client.key").read_bytes()
         for secret in ("server.key_secret", "client.key_secret"):
             assert stat.S_IMODE((d / secret).stat().st_mode) == 0o600  # owner only
@@ -142,8 +150,9 @@ class TestKeyFiles:
 class TestCurve:
     def test_keyed_server_admits_an_authorised_client_and_streams(self, make_server, keys):
         server = secure_server(make_server, keys_dir=str(keys / "k"))
-        summary = CaptureClient(flat_source(4), stream_opts(
-            server.connect_address, "curve", keys=client_keys(keys))).run()
+        summary = CaptureClient(
+            flat_source(4), stream_opts(server.connect_address, "curve", keys=client_keys(keys))
+        ).run()
         assert summary.results == 4 and not summary.errors
 
     def test_second_authorised_client_and_display(self, make_server, keys, tmp_path):
@@ -153,18 +162,26 @@ class TestCurve:
         server = secure_server(make_server, keys_dir=str(folder))
         tablet = ClientKeys.load(str(folder / "server.key"), str(folder / "tablet.key_secret"))
         got = []
-        display = DisplayClient(DisplayOptions(server=server.connect_address, session="two",
-                                               token=TOKEN, keys=tablet, max_results=3,
-                                               idle_exit_s=10.0),
-                                on_result=lambda r, rec: got.append(r.seq))
+        display = DisplayClient(
+            DisplayOptions(
+                server=server.connect_address,
+                session="two",
+                token=TOKEN,
+                keys=tablet,
+                max_results=3,
+                idle_exit_s=10.0,
+            ),
+            on_result=lambda r, rec: got.append(r.seq),
+        )
         import threading
 
         thread = threading.Thread(target=display.run, daemon=True)
         thread.start()
         assert display.subscribed.wait(10)
         mine = ClientKeys.load(str(folder / "server.key"), str(folder / "client.key_secret"))
-        CaptureClient(flat_source(3), stream_opts(server.connect_address, "two", token=TOKEN,
-                                                  keys=mine)).run()
+        CaptureClient(
+            flat_source(3), stream_opts(server.connect_address, "two", token=TOKEN, keys=mine)
+        ).run()
         thread.join(20)
         assert got == [0, 1, 2]
 
@@ -172,8 +189,10 @@ class TestCurve:
         server = secure_server(make_server, keys_dir=str(keys / "k"))
         t0 = time.monotonic()
         with pytest.raises(StreamError, match="refused this client's key") as caught:
-            CaptureClient(flat_source(2), stream_opts(
-                server.connect_address, "intruder", keys=client_keys(keys, "stranger"))).run()
+            CaptureClient(
+                flat_source(2),
+                stream_opts(server.connect_address, "intruder", keys=client_keys(keys, "stranger")),
+            ).run()
         assert time.monotonic() - t0 < 5.0  # within its reconnect timeout
         assert "arlight keys add" in str(caught.value)
         assert server.stats.messages == 0 and not server.sessions
@@ -187,8 +206,14 @@ class TestCurve:
         with pytest.raises(StreamError, match="--server-key"):
             CaptureClient(flat_source(2), stream_opts(server.connect_address, "plain")).run()
         with pytest.raises(DisplayError, match="--client-key"):
-            DisplayClient(DisplayOptions(server=server.connect_address, session="plain",
-                                         token=TOKEN, reconnect_timeout_s=5.0)).run()
+            DisplayClient(
+                DisplayOptions(
+                    server=server.connect_address,
+                    session="plain",
+                    token=TOKEN,
+                    reconnect_timeout_s=5.0,
+                )
+            ).run()
         assert time.monotonic() - t0 < 10.0
         assert server.stats.messages == 0
 
@@ -196,14 +221,16 @@ class TestCurve:
         server = secure_server(make_server, keys_dir=str(keys / "k"))
         wrong = client_keys(keys, server_dir="stranger")  # another server's public key
         with pytest.raises(StreamError, match="--server-key"):
-            CaptureClient(flat_source(2), stream_opts(server.connect_address, "mitm",
-                                                      keys=wrong)).run()
+            CaptureClient(
+                flat_source(2), stream_opts(server.connect_address, "mitm", keys=wrong)
+            ).run()
 
     def test_keyed_client_against_plain_server(self, make_server, keys):
         server = secure_server(make_server)
         with pytest.raises(StreamError, match="runs without keys"):
-            CaptureClient(flat_source(2), stream_opts(server.connect_address, "k",
-                                                      keys=client_keys(keys))).run()
+            CaptureClient(
+                flat_source(2), stream_opts(server.connect_address, "k", keys=client_keys(keys))
+            ).run()
 
     def test_keyed_lossless_stream_survives_a_network_drop(self, make_server, keys):
         """A CURVE client whose connection drops mid-stream reconnects (its handshakes may
@@ -224,9 +251,16 @@ class TestCurve:
 
         server = secure_server(make_server, process=process, keys_dir=str(keys / "k"))
         proxy = CuttableProxy(server.port)
-        client = CaptureClient(flat_source(6), stream_opts(
-            proxy.address, "dropped", keys=client_keys(keys), color_codec="png",
-            reconnect_timeout_s=20.0))
+        client = CaptureClient(
+            flat_source(6),
+            stream_opts(
+                proxy.address,
+                "dropped",
+                keys=client_keys(keys),
+                color_codec="png",
+                reconnect_timeout_s=20.0,
+            ),
+        )
         runner = CaptureClientThread(client)
         try:
             runner.start()
@@ -255,12 +289,23 @@ class TestCurve:
 
 
 class TestExposure:
-    @pytest.mark.parametrize("address, local", [
-        ("tcp://127.0.0.1:5555", True), ("tcp://127.8.0.1:1", True), ("tcp://[::1]:5555", True),
-        ("tcp://localhost:5555", True), ("ipc:///tmp/arlight", True), ("inproc://x", True),
-        ("tcp://*:5555", False), ("tcp://0.0.0.0:5555", False), ("tcp://[::]:5555", False),
-        ("tcp://192.168.1.4:5555", False), ("tcp://eth0:5555", False),
-        ("tcp://example.org:5555", False)])
+    @pytest.mark.parametrize(
+        "address, local",
+        [
+            ("tcp://127.0.0.1:5555", True),
+            ("tcp://127.8.0.1:1", True),
+            ("tcp://[::1]:5555", True),
+            ("tcp://localhost:5555", True),
+            ("ipc:///tmp/arlight", True),
+            ("inproc://x", True),
+            ("tcp://*:5555", False),
+            ("tcp://0.0.0.0:5555", False),
+            ("tcp://[::]:5555", False),
+            ("tcp://192.168.1.4:5555", False),
+            ("tcp://eth0:5555", False),
+            ("tcp://example.org:5555", False),
+        ],
+    )
     def test_loopback(self, address, local):
         assert is_loopback(address) is local
 
@@ -286,9 +331,20 @@ class TestExposure:
         assert len(warnings) == 2
 
     def test_cli_insecure_starts_with_a_warning(self):
-        proc = subprocess.Popen([sys.executable, "-m", "arlight.cli", "serve", "--bind",
-                                 "tcp://0.0.0.0:0", "--insecure"], stderr=subprocess.PIPE,
-                                text=True, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "arlight.cli",
+                "serve",
+                "--bind",
+                "tcp://0.0.0.0:0",
+                "--insecure",
+            ],
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+        )
         lines = []
         try:
             deadline = time.monotonic() + 60
@@ -362,8 +418,7 @@ class TestTokens:
         assert isinstance(other.hello("b", token=OTHER), Welcome)  # b stays open
         other.send(frame_parts(0))
         assert isinstance(other.receive(), Result)
-        CaptureClient(flat_source(1), stream_opts(server.connect_address, "a",
-                                                  token=TOKEN)).run()
+        CaptureClient(flat_source(1), stream_opts(server.connect_address, "a", token=TOKEN)).run()
         assert display.receive().seq == 0  # session a's only Result
         assert_no_result(display)
         reply = RawPeer(server.connect_address).hello("b", role="display", token=TOKEN)
@@ -393,12 +448,30 @@ class TestTokens:
 
     def test_stream_cli_prints_the_display_command(self, make_server, capsys):
         server = secure_server(make_server)
-        code, text = run_cli(["stream", "synthetic", "--size", "32x24", "--max-frames", "1",
-                              "--server", server.connect_address, "--session", "cli",
-                              "--rate", "max", "--token", TOKEN], capsys)
+        code, text = run_cli(
+            [
+                "stream",
+                "synthetic",
+                "--size",
+                "32x24",
+                "--max-frames",
+                "1",
+                "--server",
+                server.connect_address,
+                "--session",
+                "cli",
+                "--rate",
+                "max",
+                "--token",
+                TOKEN,
+            ],
+            capsys,
+        )
         assert code == 0, text
-        assert f"arlight display --server {server.connect_address} --session cli --token " \
-               f"{TOKEN}" in text
+        assert (
+            f"arlight display --server {server.connect_address} --session cli --token "
+            f"{TOKEN}" in text
+        )
 
     def test_capture_client_reconnects_into_its_session(self, make_server):
         """The reference client presents its token when it says Hello again."""
@@ -422,8 +495,9 @@ class TestTokens:
         streamed = tmp_path / "s.mcap"
         source = flat_source(2)
         with Recorder(streamed, source=source.name, depth_scale=source.depth_scale) as rec:
-            CaptureClient(source, stream_opts(server.connect_address, "rec2", token=TOKEN),
-                          recorder=rec).run()
+            CaptureClient(
+                source, stream_opts(server.connect_address, "rec2", token=TOKEN), recorder=rec
+            ).run()
         assert TOKEN.encode() not in streamed.read_bytes()
 
     def test_admin_token_file(self, tmp_path, capsys):
@@ -451,8 +525,17 @@ class TestTokens:
         token_file.write_text(TOKEN)
         from arlight.cli import _token_of, build_parser
 
-        args = build_parser().parse_args(["display", "--server", server.connect_address,
-                                          "--session", "s", "--token-file", str(token_file)])
+        args = build_parser().parse_args(
+            [
+                "display",
+                "--server",
+                server.connect_address,
+                "--session",
+                "s",
+                "--token-file",
+                str(token_file),
+            ]
+        )
         assert _token_of(args) == TOKEN
 
     def test_tokens_off_checks_nothing(self, make_server):
@@ -465,8 +548,15 @@ def frame_parts(seq: int) -> list:
 
     from arlight.protocols import Frame
 
-    return encode(Frame(seq, 1.0 + seq, np.full((48, 64, 3), 9, np.uint8),
-                        np.full((48, 64), 5000, np.uint16), None))
+    return encode(
+        Frame(
+            seq,
+            1.0 + seq,
+            np.full((48, 64, 3), 9, np.uint8),
+            np.full((48, 64), 5000, np.uint16),
+            None,
+        )
+    )
 
 
 def assert_no_result(peer: RawPeer, wait_s: float = 0.5) -> None:
@@ -487,12 +577,14 @@ class TestTokenWireFormat:
         assert decode(encode(Welcome(PROTOCOL_VERSION, "s", 0, 1.0, "x", TOKEN))).token == TOKEN
         import msgpack
 
-        header = msgpack.unpackb(bytes(encode(Hello(PROTOCOL_VERSION, SessionConfig(
-            "s", role="display")))[0]))
+        header = msgpack.unpackb(
+            bytes(encode(Hello(PROTOCOL_VERSION, SessionConfig("s", role="display")))[0])
+        )
         assert "token" not in header["config"]  # absent: byte for byte as before
 
-    @pytest.mark.parametrize("bad", ["short", "x" * 129, "has space in it 0123",
-                                     "ünïcode-0123456789"])
+    @pytest.mark.parametrize(
+        "bad", ["short", "x" * 129, "has space in it 0123", "ünïcode-0123456789"]
+    )
     def test_bad_tokens_are_refused_without_echo(self, bad):
         with pytest.raises(ProtocolError) as caught:
             encode(Hello(PROTOCOL_VERSION, SessionConfig("s", role="display", token=bad)))
@@ -500,11 +592,15 @@ class TestTokenWireFormat:
         assert bad not in str(caught.value)
 
     def test_cli_flags(self, capsys):
-        code, text = run_cli(["display", "--server", "tcp://127.0.0.1:9", "--session", "s",
-                              "--token", "short"], capsys)
+        code, text = run_cli(
+            ["display", "--server", "tcp://127.0.0.1:9", "--session", "s", "--token", "short"],
+            capsys,
+        )
         assert code == EXIT_BAD_INPUT and "--token" in text and "Traceback" not in text
-        code, text = run_cli(["display", "--server", "tcp://127.0.0.1:9", "--session", "s",
-                              "--server-key", "x.key"], capsys)
+        code, text = run_cli(
+            ["display", "--server", "tcp://127.0.0.1:9", "--session", "s", "--server-key", "x.key"],
+            capsys,
+        )
         assert code == EXIT_BAD_INPUT and "--client-key" in text
         code, text = run_cli(["serve", "--keys", "/no/such/dir"], capsys)
         assert code == EXIT_BAD_INPUT and "--keys" in text and "Traceback" not in text

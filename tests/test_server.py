@@ -71,10 +71,12 @@ def make_server():
 def _assert_result_equals(result: Result, expected) -> None:
     """A Result carries exactly what Pipeline.process returned (float64 through msgpack)."""
     np.testing.assert_array_equal(result.sh, expected.sh)
-    np.testing.assert_array_equal(result.dominant_direction_world,
-                                  expected.dominant_direction_world)
-    np.testing.assert_array_equal(result.dominant_direction_camera,
-                                  expected.dominant_direction_camera)
+    np.testing.assert_array_equal(
+        result.dominant_direction_world, expected.dominant_direction_world
+    )
+    np.testing.assert_array_equal(
+        result.dominant_direction_camera, expected.dominant_direction_camera
+    )
     assert result.intensity == expected.intensity
     assert result.confidence == expected.confidence  # the same type on both sides
     assert result.confidence_map == expected.confidence.to_dict()  # as on the wire
@@ -84,8 +86,13 @@ def _assert_result_equals(result: Result, expected) -> None:
 def _wire_input(frame) -> FrameInput:
     """The pipeline input a SourceFrame becomes on the server (uint16 at 5000 units per
     metre, converted to metres by Pipeline.process)."""
-    return FrameInput(color=frame.color, depth=frame.depth, depth_scale=5000.0,
-                      timestamp=frame.timestamp, pose=frame.pose)
+    return FrameInput(
+        color=frame.color,
+        depth=frame.depth,
+        depth_scale=5000.0,
+        timestamp=frame.timestamp,
+        pose=frame.pose,
+    )
 
 
 class TestLossless:
@@ -100,11 +107,19 @@ class TestLossless:
         source = open_source(str(folder), max_frames=4)
         assert source.depth_scale == 5000.0  # TUM's integers, so metres survive bit for bit
         results: list[Result] = []
-        options = StreamOptions(server=server.connect_address, session="tum", mode="lossless",
-                                rate="max", color_codec="png", depth_codec="zstd",
-                                preset="fast", overrides=SMALL)
-        summary = run_with_timeout(lambda: stream(
-            source, options, on_result=lambda r, _: results.append(r)))
+        options = StreamOptions(
+            server=server.connect_address,
+            session="tum",
+            mode="lossless",
+            rate="max",
+            color_codec="png",
+            depth_codec="zstd",
+            preset="fast",
+            overrides=SMALL,
+        )
+        summary = run_with_timeout(
+            lambda: stream(source, options, on_result=lambda r, _: results.append(r))
+        )
         assert summary.errors == []
         assert [r.seq for r in results] == [0, 1, 2, 3]
         sequence = open_sequence(folder, max_frames=4)
@@ -123,11 +138,24 @@ class TestLossless:
             seq = make_sequence(num_frames=3, width=160, height=120, seed=seed)
             sources[name] = sequence_source(name, seq.camera, seq.frames)
         results: dict[str, list[Result]] = {"left": [], "right": []}
-        clients = [CaptureClientThread(CaptureClient(
-            sources[name], StreamOptions(server=server.connect_address, session=name,
-                                         mode="lossless", rate="max", color_codec="png",
-                                         preset="fast", overrides=SMALL),
-            on_result=lambda r, _, name=name: results[name].append(r))) for name in sources]
+        clients = [
+            CaptureClientThread(
+                CaptureClient(
+                    sources[name],
+                    StreamOptions(
+                        server=server.connect_address,
+                        session=name,
+                        mode="lossless",
+                        rate="max",
+                        color_codec="png",
+                        preset="fast",
+                        overrides=SMALL,
+                    ),
+                    on_result=lambda r, _, name=name: results[name].append(r),
+                )
+            )
+            for name in sources
+        ]
         for client in clients:
             client.start()
         for client in clients:
@@ -155,8 +183,7 @@ class TestLossless:
         assert counters["frames_received"] == counters["frames_processed"] == 1
         peer.close()
 
-    def test_final_error_lost_while_detached_is_sent_again_for_the_duplicate(
-            self, make_server):
+    def test_final_error_lost_while_detached_is_sent_again_for_the_duplicate(self, make_server):
         """A frame's final Error that never reached its client (the client disconnected
         before it was sent) is sent again when the reconnected client resends the frame, as a
         Result is; the server used to answer nothing and a lossless client waited forever."""
@@ -173,12 +200,18 @@ class TestLossless:
         good, bad = _frame_parts(seq=0, value=21), _frame_parts(seq=1, width=32, height=24)
         first.send(good)  # held in the worker until the client is gone
         first.send(bad)  # fails validation in the worker: a final Error
-        wait_for(lambda: server.snapshot()["sessions"]["lost-error"]["frames_received"] == 2,
-                 10, what="both frames received")
+        wait_for(
+            lambda: server.snapshot()["sessions"]["lost-error"]["frames_received"] == 2,
+            10,
+            what="both frames received",
+        )
         first.close()
         gate.set()
-        wait_for(lambda: server.stats.error_codes["bad_field"] == 1, 10,
-                 what="the Error to be sent to the departed client")
+        wait_for(
+            lambda: server.stats.error_codes["bad_field"] == 1,
+            10,
+            what="the Error to be sent to the departed client",
+        )
         second = RawPeer(server.connect_address)  # the client again, on a new connection
         assert isinstance(second.hello("lost-error"), Welcome)  # resumes the session
         second.send(good)
@@ -197,8 +230,7 @@ class TestLossless:
         assert counters["frames_processed"] == 1 and counters["frames_failed"] == 1
         second.close()
 
-    def test_stream_completes_when_a_final_error_is_lost_in_a_network_drop(self,
-                                                                          make_server):
+    def test_stream_completes_when_a_final_error_is_lost_in_a_network_drop(self, make_server):
         """CaptureClient end to end: the connection drops while a frame that will fail is in
         a worker, so its Error is lost; the client reconnects, resends its unacknowledged
         frames, gets the Error again and the lossless stream completes (it used to hang)."""
@@ -220,18 +252,28 @@ class TestLossless:
         proxy = CuttableProxy(server.port)
         seqs: list[int] = []
         client = CaptureClient(
-            flat_source(n), StreamOptions(server=proxy.address, session="dropped",
-                                          mode="lossless", rate="max", color_codec="png",
-                                          reconnect_timeout_s=20.0),
-            on_result=lambda r, _: seqs.append(r.seq))
+            flat_source(n),
+            StreamOptions(
+                server=proxy.address,
+                session="dropped",
+                mode="lossless",
+                rate="max",
+                color_codec="png",
+                reconnect_timeout_s=20.0,
+            ),
+            on_result=lambda r, _: seqs.append(r.seq),
+        )
         runner = CaptureClientThread(client)
         try:
             runner.start()
             assert at_bad.wait(30)
             proxy.cut()  # the network drops while frame 3 is in the worker ...
             go.set()  # ... so its Error (and the next Results) go to a peer that is gone
-            wait_for(lambda: server.stats.error_codes["bad_field"] == 1, 10,
-                     what="the Error to be sent into the void")
+            wait_for(
+                lambda: server.stats.error_codes["bad_field"] == 1,
+                10,
+                what="the Error to be sent into the void",
+            )
             proxy.release()
             summary = runner.join(30)
         finally:
@@ -240,7 +282,8 @@ class TestLossless:
         assert summary.reconnects >= 1
         assert seqs == [s for s in range(n) if s != bad_seq]  # each once, in order
         assert [(e.seq, e.code, e.field) for e in summary.errors] == [
-            (bad_seq, "bad_field", "frame.pose")]
+            (bad_seq, "bad_field", "frame.pose")
+        ]
         assert all(calls[s] == 1 for s in range(n)) and sum(calls.values()) == n
 
     def test_duplicate_older_than_the_cache_gets_a_final_error(self, make_server):
@@ -265,8 +308,7 @@ class TestLossless:
         assert counters["frames_received"] == counters["frames_processed"] == 8
         peer.close()
 
-    def test_duplicate_of_a_waiting_frame_is_answered_once_when_it_finishes(self,
-                                                                           make_server):
+    def test_duplicate_of_a_waiting_frame_is_answered_once_when_it_finishes(self, make_server):
         gate = threading.Event()
         step = identity_step()
 
@@ -286,7 +328,8 @@ class TestLossless:
         peer.close()
 
     def test_restarted_client_resuming_a_session_gets_an_answer_for_every_frame(
-            self, make_server, caplog):
+        self, make_server, caplog
+    ):
         """A second client with the same session and config resumes the session and sends
         seqs the server already processed: recent ones get their cached Results, older ones
         the final "duplicate" Error (logged by the client); none is processed again."""
@@ -298,8 +341,13 @@ class TestLossless:
             return step(frame, session, render_light, deadline)
 
         server = make_server(process=process, credits=1)
-        options = StreamOptions(server=server.connect_address, session="again",
-                                mode="lossless", rate="max", color_codec="png")
+        options = StreamOptions(
+            server=server.connect_address,
+            session="again",
+            mode="lossless",
+            rate="max",
+            color_codec="png",
+        )
         first = CaptureClient(flat_source(8), options)
         first.on_result = lambda r, _: first.stop() if r.seq == 7 else None  # no Bye
         assert run_with_timeout(first.run, 30).results == 8
@@ -307,7 +355,8 @@ class TestLossless:
         with caplog.at_level(logging.WARNING, logger="arlight.client.capture"):
             summary = run_with_timeout(second.run, 30, stop=second.stop)
         assert [(e.seq, e.code, e.field) for e in summary.errors] == [
-            (s, "bad_state", "duplicate") for s in (0, 1, 2)]
+            (s, "bad_state", "duplicate") for s in (0, 1, 2)
+        ]
         assert summary.results == 5  # 3..7: the last credits + 4 outcomes
         assert "no longer keeps" in caplog.text
         assert sum(calls.values()) == 8
@@ -324,8 +373,9 @@ class TestLossless:
         def serve():
             identity, *parts = router.recv_multipart()
             assert isinstance(decode(parts), Hello)
-            router.send_multipart([identity, *encode(Welcome(PROTOCOL_VERSION, "twice", 1,
-                                                             5.0, "fake"))])
+            router.send_multipart(
+                [identity, *encode(Welcome(PROTOCOL_VERSION, "twice", 1, 5.0, "fake"))]
+            )
             while not done.is_set():
                 if not router.poll(100):
                     continue
@@ -333,14 +383,26 @@ class TestLossless:
                 message = decode(parts)
                 if not isinstance(message, Frame):
                     continue
-                reply = Error(code="bad_field", message="test", field="frame.pose",
-                              seq=message.seq) if message.seq % 2 == 0 else \
-                    Result(seq=message.seq, timestamp=1.0, sh=[0.0],
-                           dominant_direction_camera=[0, 0, 1],
-                           dominant_direction_world=[0, 0, 1], intensity=0.0, confidence={},
-                           pose=np.eye(4).tolist(), timings_ms={}, frames_received=0,
-                           frames_processed=0, frames_dropped=0, server_receive_time=0.0,
-                           server_finish_time=0.0)
+                reply = (
+                    Error(code="bad_field", message="test", field="frame.pose", seq=message.seq)
+                    if message.seq % 2 == 0
+                    else Result(
+                        seq=message.seq,
+                        timestamp=1.0,
+                        sh=[0.0],
+                        dominant_direction_camera=[0, 0, 1],
+                        dominant_direction_world=[0, 0, 1],
+                        intensity=0.0,
+                        confidence={},
+                        pose=np.eye(4).tolist(),
+                        timings_ms={},
+                        frames_received=0,
+                        frames_processed=0,
+                        frames_dropped=0,
+                        server_receive_time=0.0,
+                        server_finish_time=0.0,
+                    )
+                )
                 for _ in range(2):
                     router.send_multipart([identity, *encode(reply)])
 
@@ -348,10 +410,19 @@ class TestLossless:
         server.start()
         errors: list[Error] = []
         try:
-            summary = run_with_timeout(lambda: stream(
-                flat_source(4), StreamOptions(server=f"tcp://127.0.0.1:{port}",
-                                              session="twice", mode="lossless", rate="max"),
-                on_error=errors.append), 30)
+            summary = run_with_timeout(
+                lambda: stream(
+                    flat_source(4),
+                    StreamOptions(
+                        server=f"tcp://127.0.0.1:{port}",
+                        session="twice",
+                        mode="lossless",
+                        rate="max",
+                    ),
+                    on_error=errors.append,
+                ),
+                30,
+            )
         finally:
             done.set()
             server.join(5)
@@ -359,10 +430,10 @@ class TestLossless:
         assert summary.results == 2
         assert [e.seq for e in summary.errors] == [e.seq for e in errors] == [0, 2]
 
-    def test_frames_beyond_the_credit_window_are_refused_then_accepted_in_order(
-            self, make_server):
-        server = make_server(process=identity_step(delay_s=0.1), credits=2,
-                             heartbeat_interval_s=5.0)  # the raw peer sends no heartbeats
+    def test_frames_beyond_the_credit_window_are_refused_then_accepted_in_order(self, make_server):
+        server = make_server(
+            process=identity_step(delay_s=0.1), credits=2, heartbeat_interval_s=5.0
+        )  # the raw peer sends no heartbeats
         peer = RawPeer(server.connect_address)
         assert peer.hello("greedy").credits == 2
         for seq in range(8):  # the queue holds credits + 2 = 4 (and 1 in a worker)
@@ -393,10 +464,12 @@ class TestLive:
     def test_fast_producer_drops_frames_and_reports_them(self, make_server):
         server = make_server(process=identity_step(delay_s=0.05))
         results: list[Result] = []
-        options = StreamOptions(server=server.connect_address, session="live", mode="live",
-                                rate="max")
-        summary = run_with_timeout(lambda: stream(
-            flat_source(40), options, on_result=lambda r, _: results.append(r)))
+        options = StreamOptions(
+            server=server.connect_address, session="live", mode="live", rate="max"
+        )
+        summary = run_with_timeout(
+            lambda: stream(flat_source(40), options, on_result=lambda r, _: results.append(r))
+        )
         assert summary.frames_sent == 40 and summary.frames_not_sent == 0
         last = results[-1]
         assert last.seq == 39  # the newest frame is never dropped
@@ -419,11 +492,14 @@ class TestDisplays:
         deaf = RawPeer(address, rcvhwm=1, rcvbuf=4096)  # subscribes, then never reads
         assert isinstance(deaf.hello("shared", role="display"), Welcome)
         deaf_alive = deaf.keep_alive()  # heartbeats only: the server must not think it dead
-        slow = DisplayClient(DisplayOptions(server=address, session="shared", idle_exit_s=3.0),
-                             read_delay_s=0.02)
+        slow = DisplayClient(
+            DisplayOptions(server=address, session="shared", idle_exit_s=3.0), read_delay_s=0.02
+        )
         late = DisplayClient(DisplayOptions(server=address, session="shared", idle_exit_s=3.0))
-        threads = {"slow": threading.Thread(target=slow.run, daemon=True),
-                   "late": threading.Thread(target=late.run, daemon=True)}
+        threads = {
+            "slow": threading.Thread(target=slow.run, daemon=True),
+            "late": threading.Thread(target=late.run, daemon=True),
+        }
         threads["slow"].start()
         assert slow.subscribed.wait(10)
         late_seqs: list[int] = []
@@ -434,10 +510,18 @@ class TestDisplays:
                 threads["late"].start()
 
         n = 300
-        options = StreamOptions(server=address, session="shared", mode="lossless", rate="max",
-                                color_codec="raw", depth_codec="raw", want_composite=True)
-        summary = run_with_timeout(lambda: stream(flat_source(n, 320, 240, noise=True),
-                                                  options, on_result=on_result))
+        options = StreamOptions(
+            server=address,
+            session="shared",
+            mode="lossless",
+            rate="max",
+            color_codec="raw",
+            depth_codec="raw",
+            want_composite=True,
+        )
+        summary = run_with_timeout(
+            lambda: stream(flat_source(n, 320, 240, noise=True), options, on_result=on_result)
+        )
         assert summary.results == n and summary.errors == []
         for thread in threads.values():
             thread.join(30)
@@ -469,8 +553,7 @@ class TestLiveness:
         assert error.field == "session" and error.seq == 1
         peer.close()
 
-    def test_killed_capture_client_leaves_the_server_serving_others(self, make_server,
-                                                                     tmp_path):
+    def test_killed_capture_client_leaves_the_server_serving_others(self, make_server, tmp_path):
         server = make_server(process=identity_step())
         script = tmp_path / "victim.py"
         script.write_text(
@@ -479,49 +562,66 @@ class TestLiveness:
             "from streaming_support import flat_source\n"
             "from arlight.client.capture import StreamOptions, stream\n"
             f"stream(flat_source(100000), StreamOptions(server={server.connect_address!r}, "
-            "session='victim', mode='live', rate='native'))\n")
-        victim = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.PIPE)
+            "session='victim', mode='live', rate='native'))\n"
+        )
+        victim = subprocess.Popen(
+            [sys.executable, str(script)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+        )
         try:
-            wait_for(lambda: server.snapshot()["sessions"].get("victim", {}).get(
-                "frames_received", 0) >= 5, 60, what="the victim's frames")
+            wait_for(
+                lambda: (
+                    server.snapshot()["sessions"].get("victim", {}).get("frames_received", 0) >= 5
+                ),
+                60,
+                what="the victim's frames",
+            )
         finally:
             victim.kill()
             victim.wait(10)
-        survivor = StreamOptions(server=server.connect_address, session="survivor",
-                                 mode="lossless", rate="max")
+        survivor = StreamOptions(
+            server=server.connect_address, session="survivor", mode="lossless", rate="max"
+        )
         summary = run_with_timeout(lambda: stream(flat_source(5), survivor))
         assert summary.results == 5 and summary.errors == []
-        wait_for(lambda: not server.snapshot()["sessions"]["victim"]["capture_attached"], 10,
-                 what="the dead capture peer to be detached")
+        wait_for(
+            lambda: not server.snapshot()["sessions"]["victim"]["capture_attached"],
+            10,
+            what="the dead capture peer to be detached",
+        )
 
-    def test_capture_client_survives_a_server_restart_without_losing_frames(self,
-                                                                             make_server):
+    def test_capture_client_survives_a_server_restart_without_losing_frames(self, make_server):
         server = make_server(process=identity_step(delay_s=0.02))
         port = server.port
         seqs: list[int] = []
         client = CaptureClient(
-            flat_source(60), StreamOptions(server=f"tcp://127.0.0.1:{port}", session="phoenix",
-                                           mode="lossless", rate="max",
-                                           reconnect_timeout_s=20.0),
-            on_result=lambda r, _: seqs.append(r.seq))
+            flat_source(60),
+            StreamOptions(
+                server=f"tcp://127.0.0.1:{port}",
+                session="phoenix",
+                mode="lossless",
+                rate="max",
+                reconnect_timeout_s=20.0,
+            ),
+            on_result=lambda r, _: seqs.append(r.seq),
+        )
         runner = CaptureClientThread(client)
         runner.start()
         wait_for(lambda: len(seqs) >= 15, 30, what="15 results before the restart")
         server.stop()
         time.sleep(0.3)  # the client notices (Bye) and retries while the port is closed
-        second = make_server(process=identity_step(delay_s=0.02),
-                             bind=f"tcp://127.0.0.1:{port}")
+        second = make_server(process=identity_step(delay_s=0.02), bind=f"tcp://127.0.0.1:{port}")
         summary = runner.join()
         assert summary.reconnects >= 1
         assert seqs == list(range(60))  # every frame exactly once, in order
         assert summary.errors == []
-        assert "phoenix" in second.snapshot()["sessions"] or \
-            second.stats.sessions_closed >= 1  # it said Hello again to the new server
+        assert (
+            "phoenix" in second.snapshot()["sessions"] or second.stats.sessions_closed >= 1
+        )  # it said Hello again to the new server
 
     def test_shutdown_finishes_or_reports_in_flight_lossless_frames(self, make_server):
-        server = make_server(process=identity_step(delay_s=0.4), shutdown_grace_s=1.0,
-                             heartbeat_interval_s=5.0)  # the raw peer sends no heartbeats
+        server = make_server(
+            process=identity_step(delay_s=0.4), shutdown_grace_s=1.0, heartbeat_interval_s=5.0
+        )  # the raw peer sends no heartbeats
         peer = RawPeer(server.connect_address)
         welcome = peer.hello("drain")
         assert welcome.credits >= 4
@@ -551,8 +651,20 @@ class TestLiveness:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         proc = subprocess.Popen(
-            [sys.executable, "-m", "arlight.cli", "serve", "--bind", f"tcp://127.0.0.1:{port}",
-             "--heartbeat", "0.2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            [
+                sys.executable,
+                "-m",
+                "arlight.cli",
+                "serve",
+                "--bind",
+                f"tcp://127.0.0.1:{port}",
+                "--heartbeat",
+                "0.2",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             peer = RawPeer(f"tcp://127.0.0.1:{port}")
             welcome = peer.hello("cli", timeout_s=60)  # includes the interpreter's start-up
@@ -571,11 +683,24 @@ class TestLiveness:
 # --------------------------------------------------------------------------- hostile input
 
 
-def _frame_parts(seq: int = 0, width: int = 64, height: int = 48, value: int = 7,
-                 color_codec: str = "raw", depth_codec: str = "raw") -> list[bytes]:
-    frame = Frame(seq, 1.0, np.full((height, width, 3), value, np.uint8),
-                  np.full((height, width), 7500, np.uint16), None, None, color_codec,
-                  depth_codec)
+def _frame_parts(
+    seq: int = 0,
+    width: int = 64,
+    height: int = 48,
+    value: int = 7,
+    color_codec: str = "raw",
+    depth_codec: str = "raw",
+) -> list[bytes]:
+    frame = Frame(
+        seq,
+        1.0,
+        np.full((height, width, 3), value, np.uint8),
+        np.full((height, width), 7500, np.uint16),
+        None,
+        None,
+        color_codec,
+        depth_codec,
+    )
     return [bytes(memoryview(p)) for p in encode(frame)]
 
 
@@ -628,10 +753,20 @@ HOSTILE = [
     ("garbage bytes", False, [b"\x00\xffnot msgpack at all"], "malformed", None),
     ("empty part", False, [b""], "malformed", None),
     ("header not a map", False, [msgpack.packb([1, 2, 3])], "malformed", None),
-    ("unknown version", False,
-     [msgpack.packb({"v": 99, "type": "hello", "config": {}})], "bad_version", "v"),
-    ("unknown type", False, [msgpack.packb({"v": PROTOCOL_VERSION, "type": "teleport"})],
-     "unknown_type", "type"),
+    (
+        "unknown version",
+        False,
+        [msgpack.packb({"v": 99, "type": "hello", "config": {}})],
+        "bad_version",
+        "v",
+    ),
+    (
+        "unknown type",
+        False,
+        [msgpack.packb({"v": PROTOCOL_VERSION, "type": "teleport"})],
+        "unknown_type",
+        "type",
+    ),
     ("frame before hello", False, _frame_parts(), "bad_state", "session"),
     ("hello without calibration", False, None, "bad_field", "hello.config.calibration"),
     ("unknown preset", False, None, "bad_field", "hello.config.preset"),
@@ -639,21 +774,51 @@ HOSTILE = [
     ("wrong override type", False, None, "bad_field", "hello.config.overrides"),
     ("engine layouts with 2 SH bands", False, None, "bad_field", "hello.config.exports"),
     ("a client sending a Result", False, None, "bad_state", "type"),
-    ("huge declared image", True, _edit(_frame_parts(), lambda h: _set_sizes(h, 60000, 60000)),
-     "too_large", "frame.color"),
-    ("huge declared buffer", True, _edit(_frame_parts(), _declare_huge_buffer), "malformed",
-     "frame.buffers"),
+    (
+        "huge declared image",
+        True,
+        _edit(_frame_parts(), lambda h: _set_sizes(h, 60000, 60000)),
+        "too_large",
+        "frame.color",
+    ),
+    (
+        "huge declared buffer",
+        True,
+        _edit(_frame_parts(), _declare_huge_buffer),
+        "malformed",
+        "frame.buffers",
+    ),
     ("truncated multipart", True, _frame_parts()[:-1], "malformed", "frame.buffers"),
     ("NaN pose", True, _edit(_frame_parts(), _pose_nan), "bad_field", "frame.pose"),
-    ("colour and depth sizes differ", True,
-     _edit(_frame_parts(), lambda h: h["depth"].update(width=32)), "bad_field", "frame"),
-    ("frame size differs from the calibration", True, _frame_parts(width=32, height=24),
-     "bad_field", "frame.color"),
+    (
+        "colour and depth sizes differ",
+        True,
+        _edit(_frame_parts(), lambda h: h["depth"].update(width=32)),
+        "bad_field",
+        "frame",
+    ),
+    (
+        "frame size differs from the calibration",
+        True,
+        _frame_parts(width=32, height=24),
+        "bad_field",
+        "frame.color",
+    ),
     ("undecodable JPEG", True, _corrupt_jpeg(), "decode_failed", "frame.color"),
-    ("unknown depth codec", True, _edit(_frame_parts(), _bad_depth_codec), "bad_codec",
-     "frame.depth"),
-    ("negative seq", True, _edit(_frame_parts(), lambda h: h.update(seq=-1)), "bad_field",
-     "frame.seq"),
+    (
+        "unknown depth codec",
+        True,
+        _edit(_frame_parts(), _bad_depth_codec),
+        "bad_codec",
+        "frame.depth",
+    ),
+    (
+        "negative seq",
+        True,
+        _edit(_frame_parts(), lambda h: h.update(seq=-1)),
+        "bad_field",
+        "frame.seq",
+    ),
 ]
 
 
@@ -670,20 +835,39 @@ def _hello_case(name: str) -> list:
     if name == "engine layouts with 2 SH bands":
         return _hello_parts(**_calibrated(overrides={"sh_bands": 2}, exports=("arcore",)))
     if name == "a client sending a Result":
-        return encode(Result(seq=0, timestamp=1.0, sh=[0.0], dominant_direction_camera=[0, 0, 1],
-                             dominant_direction_world=[0, 0, 1], intensity=0.0, confidence={},
-                             pose=np.eye(4).tolist(), timings_ms={}, frames_received=0,
-                             frames_processed=0, frames_dropped=0, server_receive_time=0.0,
-                             server_finish_time=0.0))
+        return encode(
+            Result(
+                seq=0,
+                timestamp=1.0,
+                sh=[0.0],
+                dominant_direction_camera=[0, 0, 1],
+                dominant_direction_world=[0, 0, 1],
+                intensity=0.0,
+                confidence={},
+                pose=np.eye(4).tolist(),
+                timings_ms={},
+                frames_received=0,
+                frames_processed=0,
+                frames_dropped=0,
+                server_receive_time=0.0,
+                server_finish_time=0.0,
+            )
+        )
     raise KeyError(name)
 
 
 @pytest.fixture(scope="module")
 def hostile_server():
     """One server for every hostile message, with a bystander session that must not notice."""
-    server = Server(ServerOptions(bind="tcp://127.0.0.1:*", heartbeat_interval_s=1.0,
-                                  log_interval_s=60.0, max_message_bytes=2**20),
-                    process=identity_step()).start()
+    server = Server(
+        ServerOptions(
+            bind="tcp://127.0.0.1:*",
+            heartbeat_interval_s=1.0,
+            log_interval_s=60.0,
+            max_message_bytes=2**20,
+        ),
+        process=identity_step(),
+    ).start()
     bystander = RawPeer(server.connect_address)
     assert isinstance(bystander.hello("bystander"), Welcome)
     bystander.send(_frame_parts(seq=0, value=11))
@@ -694,10 +878,10 @@ def hostile_server():
 
 
 class TestHostileInput:
-    @pytest.mark.parametrize("name, needs_session, parts, code, field", HOSTILE,
-                             ids=[case[0] for case in HOSTILE])
-    def test_gets_an_error_reply(self, hostile_server, name, needs_session, parts, code,
-                                 field):
+    @pytest.mark.parametrize(
+        "name, needs_session, parts, code, field", HOSTILE, ids=[case[0] for case in HOSTILE]
+    )
+    def test_gets_an_error_reply(self, hostile_server, name, needs_session, parts, code, field):
         server, _ = hostile_server
         peer = RawPeer(server.connect_address)
         try:
@@ -733,8 +917,9 @@ class TestHostileInput:
         assert result.frames_received == result.frames_processed == 2
         assert result.frames_dropped == 0
         assert server.snapshot()["sessions"]["bystander"]["frames_failed"] == 0
-        fresh = StreamOptions(server=server.connect_address, session="fresh", mode="lossless",
-                              rate="max")
+        fresh = StreamOptions(
+            server=server.connect_address, session="fresh", mode="lossless", rate="max"
+        )
         summary = run_with_timeout(lambda: stream(flat_source(3), fresh))
         assert summary.results == 3 and summary.errors == []
 
@@ -746,13 +931,18 @@ class TestTypedMeaning:
     """What a client acts on is typed in the message: Error.retryable, Bye.kind (v2)."""
 
     def test_retryable_errors_are_flagged_and_final_ones_not(self, make_server):
-        server = make_server(process=identity_step(delay_s=0.1), credits=1,
-                             heartbeat_interval_s=5.0)
+        server = make_server(
+            process=identity_step(delay_s=0.1), credits=1, heartbeat_interval_s=5.0
+        )
         stranger = RawPeer(server.connect_address)
         stranger.send(_frame_parts(seq=0))
         error = stranger.receive()
-        assert (error.code, error.field, error.seq, error.retryable) == \
-            ("bad_state", "session", 0, True)
+        assert (error.code, error.field, error.seq, error.retryable) == (
+            "bad_state",
+            "session",
+            0,
+            True,
+        )
         stranger.close()
         peer = RawPeer(server.connect_address)
         assert isinstance(peer.hello("typed"), Welcome)
@@ -774,23 +964,29 @@ class TestTypedMeaning:
 
         def with_diagnostics(frame, session, render_light, deadline):
             result = step(frame, session, render_light, deadline)
-            result.diagnostics = {"tracking": {"ok": True, "reason": ""},
-                                  "residuals": np.array([0.5, 0.25]), "n": np.int64(3)}
+            result.diagnostics = {
+                "tracking": {"ok": True, "reason": ""},
+                "residuals": np.array([0.5, 0.25]),
+                "n": np.int64(3),
+            }
             return result
 
         server = make_server(process=with_diagnostics)
-        display = DisplayClient(DisplayOptions(server=server.connect_address, session="diag",
-                                               idle_exit_s=30.0))
+        display = DisplayClient(
+            DisplayOptions(server=server.connect_address, session="diag", idle_exit_s=30.0)
+        )
         thread = threading.Thread(target=display.run, daemon=True)
         shown: list[Result] = []
         display.on_result = lambda r, _: shown.append(r)
         thread.start()
         assert display.subscribed.wait(10)
         results: list[Result] = []
-        options = StreamOptions(server=server.connect_address, session="diag",
-                                mode="lossless", rate="max")
-        run_with_timeout(lambda: stream(flat_source(2), options,
-                                        on_result=lambda r, _: results.append(r)))
+        options = StreamOptions(
+            server=server.connect_address, session="diag", mode="lossless", rate="max"
+        )
+        run_with_timeout(
+            lambda: stream(flat_source(2), options, on_result=lambda r, _: results.append(r))
+        )
         thread.join(30)
         expected = {"tracking": {"ok": True, "reason": ""}, "residuals": [0.5, 0.25], "n": 3}
         assert [r.diagnostics for r in results] == [expected, expected]
@@ -837,21 +1033,31 @@ class TestTypedMeaning:
 
 
 def _scene_object(name: str = "tri", **kw) -> SceneObjectSpec:
-    args = dict(vertices=np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], np.float32),
-                triangles=np.array([[0, 1, 2]], np.uint32),
-                normals=np.array([[0, 0, -1]] * 3, np.float32), world_from_object=np.eye(4))
+    args = dict(
+        vertices=np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]], np.float32),
+        triangles=np.array([[0, 1, 2]], np.uint32),
+        normals=np.array([[0, 0, -1]] * 3, np.float32),
+        world_from_object=np.eye(4),
+    )
     args.update(kw)
     return SceneObjectSpec(name, **args)
 
 
 def _scene_hello(scene: SceneSpec | None = None, session: str = "scene", **config) -> list:
-    return [bytes(memoryview(p)) for p in _hello_parts(**_calibrated(
-        session=session, scene=SceneSpec((_scene_object(),)) if scene is None else scene,
-        **config))]
+    return [
+        bytes(memoryview(p))
+        for p in _hello_parts(
+            **_calibrated(
+                session=session,
+                scene=SceneSpec((_scene_object(),)) if scene is None else scene,
+                **config,
+            )
+        )
+    ]
 
 
 def _replace_part(parts: list[bytes], i: int, data: bytes) -> list[bytes]:
-    parts = [*parts[:i], data, *parts[i + 1:]]
+    parts = [*parts[:i], data, *parts[i + 1 :]]
     return _edit(parts, lambda h: h.update(buffers=[len(p) for p in parts[1:]]))
 
 
@@ -871,28 +1077,65 @@ def _assert_same_object(got, sent, vertices=None) -> None:
 
 # (name, Hello parts, expected field prefix)
 BAD_SCENES = [
-    ("vertices part one vertex short",
-     _replace_part(_scene_hello(), 1, _scene_hello()[1][:-12]), "hello.config.scene.vertices"),
-    ("triangles part not whole triangles",
-     _replace_part(_scene_hello(), 2, _scene_hello()[2] + b"\0\0"),
-     "hello.config.scene.triangles"),
-    ("too many triangles", _edit(_scene_hello(), _object_edit(triangle_count=2_000_001)),
-     "hello.config.scene.objects[0].triangle_count"),
-    ("triangle index out of range",
-     _replace_part(_scene_hello(), 2, np.array([[0, 1, 3]], "<u4").tobytes()),
-     "hello.config.scene.objects[0].triangles"),
-    ("NaN pose", _edit(_scene_hello(), _object_edit(world_from_object=[math.nan] * 16)),
-     "hello.config.scene.objects[0].world_from_object"),
-    ("pose and anchor", _edit(_scene_hello(), _object_edit(
-        anchor={"pixel": [32.0, 24.0], "yaw_deg": 0.0})), "hello.config.scene.objects[0].anchor"),
-    ("sheared pose (the pipeline's own check)", _scene_hello(SceneSpec((_scene_object(
-        "sheared", world_from_object=np.array([[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],
-                                               [0, 0, 0, 1.0]])),))),
-     "hello.config.scene.objects[0]"),
-    ("scene and virtual_scene", _edit(_scene_hello(), lambda h: h["config"].update(
-        virtual_scene="demo")), "hello.config.scene"),
-    ("unknown scene name", [bytes(memoryview(p)) for p in _hello_parts(**_calibrated(
-        session="scene", virtual_scene="bunny.ply"))], "hello.config.virtual_scene"),
+    (
+        "vertices part one vertex short",
+        _replace_part(_scene_hello(), 1, _scene_hello()[1][:-12]),
+        "hello.config.scene.vertices",
+    ),
+    (
+        "triangles part not whole triangles",
+        _replace_part(_scene_hello(), 2, _scene_hello()[2] + b"\0\0"),
+        "hello.config.scene.triangles",
+    ),
+    (
+        "too many triangles",
+        _edit(_scene_hello(), _object_edit(triangle_count=2_000_001)),
+        "hello.config.scene.objects[0].triangle_count",
+    ),
+    (
+        "triangle index out of range",
+        _replace_part(_scene_hello(), 2, np.array([[0, 1, 3]], "<u4").tobytes()),
+        "hello.config.scene.objects[0].triangles",
+    ),
+    (
+        "NaN pose",
+        _edit(_scene_hello(), _object_edit(world_from_object=[math.nan] * 16)),
+        "hello.config.scene.objects[0].world_from_object",
+    ),
+    (
+        "pose and anchor",
+        _edit(_scene_hello(), _object_edit(anchor={"pixel": [32.0, 24.0], "yaw_deg": 0.0})),
+        "hello.config.scene.objects[0].anchor",
+    ),
+    (
+        "sheared pose (the pipeline's own check)",
+        _scene_hello(
+            SceneSpec(
+                (
+                    _scene_object(
+                        "sheared",
+                        world_from_object=np.array(
+                            [[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]
+                        ),
+                    ),
+                )
+            )
+        ),
+        "hello.config.scene.objects[0]",
+    ),
+    (
+        "scene and virtual_scene",
+        _edit(_scene_hello(), lambda h: h["config"].update(virtual_scene="demo")),
+        "hello.config.scene",
+    ),
+    (
+        "unknown scene name",
+        [
+            bytes(memoryview(p))
+            for p in _hello_parts(**_calibrated(session="scene", virtual_scene="bunny.ply"))
+        ],
+        "hello.config.virtual_scene",
+    ),
 ]
 
 
@@ -910,12 +1153,19 @@ class TestVirtualScene:
             sphere_mesh,
         )
 
-        placed = object_from_open3d("ball", sphere_mesh(0.05, 8), np.array(
-            [[0, 0, 1, 0.1], [0, 1, 0, 0.2], [-1, 0, 0, 1.5], [0, 0, 0, 1.0]]),
-            Material((0.2, 0.4, 0.6), 0.5, 0.25, True))
-        anchored = object_from_open3d("crate", box_mesh((0.1, 0.1, 0.1)),
-                                      np.diag([2.0, 2.0, 2.0, 1.0]), Material(),
-                                      Anchor((80.0, 90.0), 30.0))
+        placed = object_from_open3d(
+            "ball",
+            sphere_mesh(0.05, 8),
+            np.array([[0, 0, 1, 0.1], [0, 1, 0, 0.2], [-1, 0, 0, 1.5], [0, 0, 0, 1.0]]),
+            Material((0.2, 0.4, 0.6), 0.5, 0.25, True),
+        )
+        anchored = object_from_open3d(
+            "crate",
+            box_mesh((0.1, 0.1, 0.1)),
+            np.diag([2.0, 2.0, 2.0, 1.0]),
+            Material(),
+            Anchor((80.0, 90.0), 30.0),
+        )
         scene = VirtualScene((placed, anchored))
         server = make_server()
         seq = make_sequence(num_frames=2, width=160, height=120, seed=1)
@@ -925,19 +1175,24 @@ class TestVirtualScene:
         def on_result(result, _):
             seen.append((result, server.sessions["scene"].compute.pipeline.requested_scene))
 
-        options = StreamOptions(server=server.connect_address, session="scene",
-                                mode="lossless", rate="max", preset="fast", overrides=SMALL,
-                                scene=scene)
+        options = StreamOptions(
+            server=server.connect_address,
+            session="scene",
+            mode="lossless",
+            rate="max",
+            preset="fast",
+            overrides=SMALL,
+            scene=scene,
+        )
         summary = run_with_timeout(lambda: stream(source, options, on_result=on_result))
         assert summary.errors == [] and [r.seq for r, _ in seen] == [0, 1]
         got = seen[0][1]
-        assert isinstance(got, VirtualScene) and [o.name for o in got.objects] == [
-            "ball", "crate"]
+        assert isinstance(got, VirtualScene) and [o.name for o in got.objects] == ["ball", "crate"]
         _assert_same_object(got.objects[0], placed)
-        np.testing.assert_array_equal(got.objects[0].world_from_object,
-                                      placed.world_from_object)
-        _assert_same_object(got.objects[1], anchored,
-                            vertices=(anchored.vertices * 2.0).astype(np.float32))
+        np.testing.assert_array_equal(got.objects[0].world_from_object, placed.world_from_object)
+        _assert_same_object(
+            got.objects[1], anchored, vertices=(anchored.vertices * 2.0).astype(np.float32)
+        )
         np.testing.assert_array_equal(got.objects[1].world_from_object, np.eye(4))
 
     def test_demo_scene_by_name_and_none_without(self, make_server):
@@ -963,8 +1218,9 @@ class TestVirtualScene:
         again.send(_scene_hello())  # equal arrays, other buffers: the same configuration
         assert isinstance(again.receive(), Welcome)
         assert server.sessions["scene"] is session
-        moved = SceneSpec((_scene_object(world_from_object=np.diag([1.0, 1.0, 1.0, 1.0])
-                                         + np.eye(4, k=3)),))
+        moved = SceneSpec(
+            (_scene_object(world_from_object=np.diag([1.0, 1.0, 1.0, 1.0]) + np.eye(4, k=3)),)
+        )
         other.send(_scene_hello(moved))
         error = other.receive()
         assert (error.code, error.field) == ("bad_state", "hello.config.session")
@@ -993,8 +1249,9 @@ class TestVirtualScene:
             assert isinstance(result, Result) and result.seq == seq
         bystander.close()
         # the refusal reaches a capture client as a clear, final StreamError
-        options = StreamOptions(server=server.connect_address, session="named",
-                                virtual_scene="bunny.ply")
+        options = StreamOptions(
+            server=server.connect_address, session="named", virtual_scene="bunny.ply"
+        )
         with pytest.raises(StreamError, match="unknown virtual scene name 'bunny.ply'"):
             run_with_timeout(lambda: stream(flat_source(1), options))
 
@@ -1005,11 +1262,17 @@ class TestVirtualScene:
         display = RawPeer(server.connect_address)
         assert isinstance(display.hello("composite", role="display"), Welcome)
         results: list[Result] = []
-        options = StreamOptions(server=server.connect_address, session="composite",
-                                mode="lossless", rate="max", color_codec=codec,
-                                want_composite=True)
-        summary = run_with_timeout(lambda: stream(source, options,
-                                                  on_result=lambda r, _: results.append(r)))
+        options = StreamOptions(
+            server=server.connect_address,
+            session="composite",
+            mode="lossless",
+            rate="max",
+            color_codec=codec,
+            want_composite=True,
+        )
+        summary = run_with_timeout(
+            lambda: stream(source, options, on_result=lambda r, _: results.append(r))
+        )
         assert summary.errors == [] and len(results) == 3
         shown = [display.receive() for _ in range(3)]
         for got, also, frame in zip(results, shown, source.frames(), strict=True):
@@ -1025,17 +1288,27 @@ class TestVirtualScene:
 
         def rendering(frame, session, render_light, deadline):
             out = identity(frame, session, render_light, deadline)
-            return dataclasses.replace(out, composite=255 - frame.color) \
-                if frame.timestamp > 1000.02 else out  # none for the first frame
+            return (
+                dataclasses.replace(out, composite=255 - frame.color)
+                if frame.timestamp > 1000.02
+                else out
+            )  # none for the first frame
 
         server = make_server(process=rendering)
         results: list[Result] = []
         source = flat_source(2, 64, 48, noise=True)
-        options = StreamOptions(server=server.connect_address, session="rendered",
-                                mode="lossless", rate="max", color_codec="png",
-                                want_composite=True, scene=_virtual_scene())
-        summary = run_with_timeout(lambda: stream(source, options,
-                                                  on_result=lambda r, _: results.append(r)))
+        options = StreamOptions(
+            server=server.connect_address,
+            session="rendered",
+            mode="lossless",
+            rate="max",
+            color_codec="png",
+            want_composite=True,
+            scene=_virtual_scene(),
+        )
+        summary = run_with_timeout(
+            lambda: stream(source, options, on_result=lambda r, _: results.append(r))
+        )
         assert summary.errors == []
         first, second = (frame.color for frame in source.frames())
         np.testing.assert_array_equal(results[0].composite, first)
@@ -1043,15 +1316,18 @@ class TestVirtualScene:
         # the same step without a scene: the input frame, whatever the pipeline made
         results.clear()
         options = dataclasses.replace(options, session="unrendered", scene=None)
-        run_with_timeout(lambda: stream(source, options,
-                                        on_result=lambda r, _: results.append(r)))
+        run_with_timeout(lambda: stream(source, options, on_result=lambda r, _: results.append(r)))
         np.testing.assert_array_equal(results[1].composite, second)
 
 
 def test_a_hello_that_cannot_be_sent_is_a_stream_error():
     """Refused by encode() before any socket opens: scene and virtual_scene together."""
-    options = StreamOptions(server="tcp://127.0.0.1:9", session="unsendable",
-                            virtual_scene="demo", scene=_virtual_scene())
+    options = StreamOptions(
+        server="tcp://127.0.0.1:9",
+        session="unsendable",
+        virtual_scene="demo",
+        scene=_virtual_scene(),
+    )
     with pytest.raises(StreamError, match=r"cannot be sent: bad_field \(hello.config.scene\)"):
         run_with_timeout(lambda: stream(flat_source(1), options), timeout_s=10)
 
@@ -1060,5 +1336,14 @@ def _virtual_scene():
     from arlight.pipeline.virtual_scene import VirtualObject, VirtualScene
 
     spec = _scene_object()
-    return VirtualScene((VirtualObject(spec.name, spec.vertices, spec.triangles.astype(np.int32),
-                                       spec.normals, spec.world_from_object),))
+    return VirtualScene(
+        (
+            VirtualObject(
+                spec.name,
+                spec.vertices,
+                spec.triangles.astype(np.int32),
+                spec.normals,
+                spec.world_from_object,
+            ),
+        )
+    )

@@ -54,8 +54,16 @@ def make_server():
 
 
 def frame_parts(seq: int, width: int = 64, height: int = 48, value: int = 7) -> list[bytes]:
-    frame = Frame(seq, 1.0, np.full((height, width, 3), value, np.uint8),
-                  np.full((height, width), 7500, np.uint16), None, None, "raw", "raw")
+    frame = Frame(
+        seq,
+        1.0,
+        np.full((height, width, 3), value, np.uint8),
+        np.full((height, width), 7500, np.uint16),
+        None,
+        None,
+        "raw",
+        "raw",
+    )
     return [bytes(memoryview(p)) for p in encode(frame)]
 
 
@@ -75,8 +83,7 @@ def no_tracebacks(caplog) -> bool:
 
 class TestSeqRange:
     @pytest.mark.parametrize("seq", [2**63, 2**64 - 1, -1, 1.5, "7"])
-    def test_out_of_range_seq_is_refused_and_the_session_goes_on(self, make_server, caplog,
-                                                                 seq):
+    def test_out_of_range_seq_is_refused_and_the_session_goes_on(self, make_server, caplog, seq):
         server = make_server(process=identity_step())
         peer = RawPeer(server.connect_address)
         caplog.set_level(logging.INFO, logger="arlight")
@@ -106,8 +113,9 @@ class TestSeqRange:
         finally:
             peer.close()
 
-    def test_unknown_peer_with_a_huge_seq_gets_one_error_and_no_traceback(self, make_server,
-                                                                         caplog):
+    def test_unknown_peer_with_a_huge_seq_gets_one_error_and_no_traceback(
+        self, make_server, caplog
+    ):
         server = make_server(process=identity_step())
         caplog.set_level(logging.INFO, logger="arlight")
         peer = RawPeer(server.connect_address)
@@ -153,8 +161,11 @@ class Boom(BaseException):
 
 
 class TestWorkerFailures:
-    @pytest.mark.parametrize("exc", [RuntimeError("kaput"), MemoryError(), Boom()],
-                             ids=["exception", "memory", "base-exception"])
+    @pytest.mark.parametrize(
+        "exc",
+        [RuntimeError("kaput"), MemoryError(), Boom()],
+        ids=["exception", "memory", "base-exception"],
+    )
     def test_a_failing_worker_answers_the_frame_and_frees_the_slot(self, make_server, exc):
         calls = []
         step = identity_step()
@@ -206,12 +217,15 @@ def _hello(peer: RawPeer, session: str, width: int = 64, height: int = 48, **con
 
 
 class TestHelloBudgets:
-    @pytest.mark.parametrize("overrides, key", [
-        ({"block_count": "many"}, "block_count"),
-        ({"robust_iterations": 1.5}, "robust_iterations"),
-        ({"rt_directions": True}, "rt_directions"),
-        ({"use_volume": 1}, "use_volume"),
-    ])
+    @pytest.mark.parametrize(
+        "overrides, key",
+        [
+            ({"block_count": "many"}, "block_count"),
+            ({"robust_iterations": 1.5}, "robust_iterations"),
+            ({"rt_directions": True}, "rt_directions"),
+            ({"use_volume": 1}, "use_volume"),
+        ],
+    )
     def test_override_types_are_checked_at_hello(self, make_server, overrides, key):
         server = make_server(process=identity_step())
         peer = RawPeer(server.connect_address)
@@ -223,15 +237,19 @@ class TestHelloBudgets:
         finally:
             peer.close()
 
-    @pytest.mark.parametrize("overrides, key", [
-        ({"robust_iterations": 1_000_000}, "robust_iterations"),
-        ({"rt_directions": 10**7}, "rt_directions"),
-        ({"rt_steps": 10**6}, "rt_steps"),
-        ({"depth_max_m": 1e7}, "depth_max_m"),
-        ({"merge_window": 64, "smooth_window": 64, "render_steps": 10**6}, None),
-    ])
-    def test_settings_over_the_frame_deadline_are_refused_naming_them(self, make_server,
-                                                                       overrides, key):
+    @pytest.mark.parametrize(
+        "overrides, key",
+        [
+            ({"robust_iterations": 1_000_000}, "robust_iterations"),
+            ({"rt_directions": 10**7}, "rt_directions"),
+            ({"rt_steps": 10**6}, "rt_steps"),
+            ({"depth_max_m": 1e7}, "depth_max_m"),
+            ({"merge_window": 64, "smooth_window": 64, "render_steps": 10**6}, None),
+        ],
+    )
+    def test_settings_over_the_frame_deadline_are_refused_naming_them(
+        self, make_server, overrides, key
+    ):
         server = make_server(process=identity_step())
         peer = RawPeer(server.connect_address)
         try:
@@ -279,8 +297,7 @@ class TestHelloBudgets:
 
     def test_the_memory_bound_is_logged_at_start(self, make_server, caplog):
         caplog.set_level(logging.INFO, logger="arlight")
-        make_server(process=identity_step(), max_sessions=4,
-                    session_memory_bytes=512 * 2**20)
+        make_server(process=identity_step(), max_sessions=4, session_memory_bytes=512 * 2**20)
         assert any("4 x 512 MiB = 2.0 GiB" in r.getMessage() for r in caplog.records)
 
 
@@ -321,12 +338,12 @@ class TestDeadline:
     def test_the_pipeline_calls_the_checkpoint_between_stages(self):
         seq = make_sequence(1, 64, 48)
         # the same frame again and again: a still camera, whose reuse would skip stages
-        pipeline = Pipeline(Config.from_preset("mobile", aux_resolution=32,
-                                               still_reuse_frames=0), seq.camera)
+        pipeline = Pipeline(
+            Config.from_preset("mobile", aux_resolution=32, still_reuse_frames=0), seq.camera
+        )
         stages: list[str] = []
         pipeline.process(seq.frames[0], checkpoint=stages.append)
-        assert list(dict.fromkeys(stages)) == ["Reconstruct", "DynGeo", "RadTransfer",
-                                               "LightEst"]
+        assert list(dict.fromkeys(stages)) == ["Reconstruct", "DynGeo", "RadTransfer", "LightEst"]
         # and before each robust iteration of the light estimate
         assert stages.count("LightEst") >= 1 + pipeline.config.estimation.robust_iterations
 
@@ -351,8 +368,7 @@ class TestDeadline:
 
 
 class TestSessionMemory:
-    def test_a_panorama_over_the_sessions_memory_is_refused_before_decoding(self,
-                                                                          make_server):
+    def test_a_panorama_over_the_sessions_memory_is_refused_before_decoding(self, make_server):
         # the session (its volume's 39 MiB hash map, ...) fits; a 2048 x 1024 panorama's
         # 80 MiB does not fit beside it
         server = make_server(process=identity_step(), session_memory_bytes=100 * 2**20)
@@ -376,17 +392,24 @@ class TestSessionMemory:
     def test_a_volume_outgrowing_its_budget_is_reset_with_an_error(self):
         seq = make_sequence(2, 64, 48)
         calibration = calibration_of(seq.camera)
-        config = SessionConfig(session="grow", role="capture", calibration=calibration,
-                               depth_scale=5000.0, mode="lossless",
-                               overrides={"block_count": 1, "volume_resolution": 512,
-                                          "aux_resolution": 32})
-        probe = SessionBudget().check(config, Config.from_preset(
-            "full", **config.overrides), seq.camera)
+        config = SessionConfig(
+            session="grow",
+            role="capture",
+            calibration=calibration,
+            depth_scale=5000.0,
+            mode="lossless",
+            overrides={"block_count": 1, "volume_resolution": 512, "aux_resolution": 32},
+        )
+        probe = SessionBudget().check(
+            config, Config.from_preset("full", **config.overrides), seq.camera
+        )
         # room for the one initial block and 3 more: the first frame allocates far more
-        budget = SessionBudget(session_memory_bytes=int(
-            probe.session_bytes + 3 * probe.bytes_per_block))
-        session = Session(config, credits=4, max_pixels=2**22, max_message_bytes=2**26,
-                          budget=budget)
+        budget = SessionBudget(
+            session_memory_bytes=int(probe.session_bytes + 3 * probe.bytes_per_block)
+        )
+        session = Session(
+            config, credits=4, max_pixels=2**22, max_message_bytes=2**26, budget=budget
+        )
         f = seq.frames[0]
         parts = encode(Frame(0, f.timestamp, f.color, f.depth, None, None, "raw", "raw"))
         outcome = run_frame(Job(0, parts, time.time(), time.monotonic()), session.compute)
@@ -427,26 +450,32 @@ class TestSigterm:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         # `arlight serve` whose compute step never returns (a stage that does not end)
-        code = ("import sys, threading\n"
-                "from arlight.server import server as srv\n"
-                "init = srv.Server.__init__\n"
-                "def stuck(frame, session, render_light, deadline):\n"
-                "    print('worker busy', file=sys.stderr, flush=True)\n"
-                "    threading.Event().wait()\n"
-                "srv.Server.__init__ = lambda self, options=None, process=None: init(\n"
-                "    self, options, process=stuck)\n"
-                "from arlight.cli import main\n"
-                f"sys.exit(main(['serve', '--bind', 'tcp://127.0.0.1:{port}', "
-                "'--heartbeat', '2', '--shutdown-grace', '0.5']))\n")
-        proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True)
+        code = (
+            "import sys, threading\n"
+            "from arlight.server import server as srv\n"
+            "init = srv.Server.__init__\n"
+            "def stuck(frame, session, render_light, deadline):\n"
+            "    print('worker busy', file=sys.stderr, flush=True)\n"
+            "    threading.Event().wait()\n"
+            "srv.Server.__init__ = lambda self, options=None, process=None: init(\n"
+            "    self, options, process=stuck)\n"
+            "from arlight.cli import main\n"
+            f"sys.exit(main(['serve', '--bind', 'tcp://127.0.0.1:{port}', "
+            "'--heartbeat', '2', '--shutdown-grace', '0.5']))\n"
+        )
+        proc = subprocess.Popen(
+            [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
         peer = RawPeer(f"tcp://127.0.0.1:{port}")
         try:
             assert isinstance(peer.hello("stuck", timeout_s=60), Welcome)
             peer.send(frame_parts(0))
             lines = []
-            wait_for(lambda: lines.append(proc.stderr.readline()) or "worker busy" in lines[-1],
-                     60, "the worker to start the frame")
+            wait_for(
+                lambda: lines.append(proc.stderr.readline()) or "worker busy" in lines[-1],
+                60,
+                "the worker to start the frame",
+            )
             proc.send_signal(signal.SIGTERM)
             messages = [peer.receive(15), peer.receive(15)]
             _, stderr = proc.communicate(timeout=30)
@@ -465,22 +494,65 @@ class TestSigterm:
 
 _LEGIT = "legit-session-0"  # a name the fuzzer's strategies never produce (digits, dashes)
 
-_scalars = st.one_of(st.none(), st.booleans(), st.integers(-2**70, 2**70).filter(
-    lambda x: -2**63 <= x < 2**64), st.floats(allow_nan=True), st.text(max_size=20),
-    st.binary(max_size=32))
-_values = st.one_of(_scalars, st.lists(_scalars, max_size=4),
-                    st.dictionaries(st.text(max_size=8), _scalars, max_size=3))
-_keys = st.sampled_from(["v", "type", "seq", "timestamp", "pose", "color", "depth",
-                         "panorama", "buffers", "config", "code", "message", "field",
-                         "retryable", "time", "reason", "kind", "credits", "session"])
-_types = st.sampled_from(["hello", "frame", "heartbeat", "bye", "credit", "error", "welcome",
-                          "result", "teleport"])
+_scalars = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(2**70), 2**70).filter(lambda x: -(2**63) <= x < 2**64),
+    st.floats(allow_nan=True),
+    st.text(max_size=20),
+    st.binary(max_size=32),
+)
+_values = st.one_of(
+    _scalars,
+    st.lists(_scalars, max_size=4),
+    st.dictionaries(st.text(max_size=8), _scalars, max_size=3),
+)
+_keys = st.sampled_from(
+    [
+        "v",
+        "type",
+        "seq",
+        "timestamp",
+        "pose",
+        "color",
+        "depth",
+        "panorama",
+        "buffers",
+        "config",
+        "code",
+        "message",
+        "field",
+        "retryable",
+        "time",
+        "reason",
+        "kind",
+        "credits",
+        "session",
+    ]
+)
+_types = st.sampled_from(
+    ["hello", "frame", "heartbeat", "bye", "credit", "error", "welcome", "result", "teleport"]
+)
 
 
-_BASE = {"frame": frame_parts(0), "hello": [bytes(memoryview(p)) for p in encode(Hello(
-    PROTOCOL_VERSION, SessionConfig(
-        session="x", role="capture", calibration=calibration_of(PinholeCamera.kinect_v1(64, 48)),
-        depth_scale=5000.0, mode="live")))]}
+_BASE = {
+    "frame": frame_parts(0),
+    "hello": [
+        bytes(memoryview(p))
+        for p in encode(
+            Hello(
+                PROTOCOL_VERSION,
+                SessionConfig(
+                    session="x",
+                    role="capture",
+                    calibration=calibration_of(PinholeCamera.kinect_v1(64, 48)),
+                    depth_scale=5000.0,
+                    mode="live",
+                ),
+            )
+        )
+    ],
+}
 
 
 @st.composite
@@ -510,9 +582,23 @@ def hostile_message(draw) -> list[bytes]:
         else:
             target[key] = draw(_values)
     if kind == "hello" and draw(st.booleans()):
-        target["overrides"] = draw(st.dictionaries(st.sampled_from(
-            ["robust_iterations", "block_count", "rt_directions", "sh_bands", "nope",
-             "volume_resolution", "light_max_samples"]), _values, max_size=2))
+        target["overrides"] = draw(
+            st.dictionaries(
+                st.sampled_from(
+                    [
+                        "robust_iterations",
+                        "block_count",
+                        "rt_directions",
+                        "sh_bands",
+                        "nope",
+                        "volume_resolution",
+                        "light_max_samples",
+                    ]
+                ),
+                _values,
+                max_size=2,
+            )
+        )
     return [msgpack.packb(header, use_bin_type=True), *parts[1:]]
 
 
@@ -526,8 +612,12 @@ def hostile_batch(draw) -> list[list[bytes]]:
     flipped = bytearray(head)
     if flipped:
         flipped[n % len(flipped)] ^= 1 + n % 255
-    return [parts, [head[:n % (len(head) + 1)], *parts[1:]], [bytes(flipped), *parts[1:]],
-            parts[:-1] if len(parts) > 1 else parts * 2]
+    return [
+        parts,
+        [head[: n % (len(head) + 1)], *parts[1:]],
+        [bytes(flipped), *parts[1:]],
+        parts[:-1] if len(parts) > 1 else parts * 2,
+    ]
 
 
 MUTANTS = 4
@@ -538,8 +628,13 @@ class TestFuzz:
         """FUZZ_MESSAGES hostile messages (ARLIGHT_FUZZ_MESSAGES, default 10,000) from a few
         peers; after each batch a legitimate lossless session gets its Result."""
         caplog.set_level(logging.WARNING, logger="arlight")
-        server = make_server(process=identity_step(), heartbeat_interval_s=5.0, liveness=10**6,
-                             max_sessions=8, session_timeout_s=600.0)
+        server = make_server(
+            process=identity_step(),
+            heartbeat_interval_s=5.0,
+            liveness=10**6,
+            max_sessions=8,
+            session_timeout_s=600.0,
+        )
         legit = RawPeer(server.connect_address)
         hostiles = [RawPeer(server.connect_address) for _ in range(4)]
         assert isinstance(legit.hello(_LEGIT), Welcome)
@@ -552,8 +647,13 @@ class TestFuzz:
             assert isinstance(reply, Result) and reply.seq == seq, reply
             state["seq"] += 1
 
-        @settings(max_examples=-(-FUZZ_MESSAGES // MUTANTS), deadline=None,
-                  derandomize=True, database=None, suppress_health_check=list(HealthCheck))
+        @settings(
+            max_examples=-(-FUZZ_MESSAGES // MUTANTS),
+            deadline=None,
+            derandomize=True,
+            database=None,
+            suppress_health_check=list(HealthCheck),
+        )
         @given(hostile_batch())
         def one(batch):
             for parts in batch:

@@ -30,17 +30,27 @@ class TestBasis:
         d = rng.normal(size=(50, 3))
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         x, y, z = d.T
-        expected = np.stack([
-            np.full_like(x, 0.28209479177387814),
-            0.4886025119029199 * y, 0.4886025119029199 * z, 0.4886025119029199 * x,
-            1.0925484305920792 * x * y, 1.0925484305920792 * y * z,
-            0.31539156525252005 * (3 * z * z - 1), 1.0925484305920792 * x * z,
-            0.5462742152960396 * (x * x - y * y),
-            0.5900435899266435 * y * (3 * x * x - y * y), 2.890611442640554 * x * y * z,
-            0.4570457994644658 * y * (5 * z * z - 1), 0.3731763325901154 * z * (5 * z * z - 3),
-            0.4570457994644658 * x * (5 * z * z - 1), 1.445305721320277 * z * (x * x - y * y),
-            0.5900435899266435 * x * (x * x - 3 * y * y),
-        ], axis=-1)
+        expected = np.stack(
+            [
+                np.full_like(x, 0.28209479177387814),
+                0.4886025119029199 * y,
+                0.4886025119029199 * z,
+                0.4886025119029199 * x,
+                1.0925484305920792 * x * y,
+                1.0925484305920792 * y * z,
+                0.31539156525252005 * (3 * z * z - 1),
+                1.0925484305920792 * x * z,
+                0.5462742152960396 * (x * x - y * y),
+                0.5900435899266435 * y * (3 * x * x - y * y),
+                2.890611442640554 * x * y * z,
+                0.4570457994644658 * y * (5 * z * z - 1),
+                0.3731763325901154 * z * (5 * z * z - 3),
+                0.4570457994644658 * x * (5 * z * z - 1),
+                1.445305721320277 * z * (x * x - y * y),
+                0.5900435899266435 * x * (x * x - 3 * y * y),
+            ],
+            axis=-1,
+        )
         np.testing.assert_allclose(sh.sh_basis(d, 4), expected, atol=1e-12)
 
     def test_poles_and_zero_vector_are_finite(self):
@@ -194,6 +204,7 @@ class TestAboveHorizonDirection:
 
     def test_no_first_band_is_no_direction(self):
         assert not np.any(sh.above_horizon_direction(np.array([1.0]), np.array([0, 1.0, 0])))
-        assert not np.any(sh.above_horizon_direction(np.r_[1.0, np.zeros(8)],
-                                                     np.array([0, 1.0, 0])))
+        assert not np.any(
+            sh.above_horizon_direction(np.r_[1.0, np.zeros(8)], np.array([0, 1.0, 0]))
+        )
         assert not np.any(sh.above_horizon_direction(np.zeros(16), np.array([0, 1.0, 0])))

@@ -62,8 +62,9 @@ def _errors_and_reuse(config: Config, seq) -> tuple[list[float], list[dict]]:
     errors, reused = [], []
     for frame, truth in zip(seq.frames, evaluation.scene_truth(seq), strict=True):
         out = pipeline.process(frame)
-        errors.append(evaluation.angular_error_deg(out.dominant_direction_camera,
-                                                   truth.dominant_upper_camera))
+        errors.append(
+            evaluation.angular_error_deg(out.dominant_direction_camera, truth.dominant_upper_camera)
+        )
         reused.append(out.diagnostics["reused"])
     return errors, reused
 
@@ -73,8 +74,7 @@ class TestPipelineReuse:
     @classmethod
     def held(cls):
         """The built-in scene, 160 x 120, a camera held still, the sun moving at frame 4."""
-        return make_sequence(num_frames=8, width=160, height=120, held=True,
-                             light_change_frame=4)
+        return make_sequence(num_frames=8, width=160, height=120, held=True, light_change_frame=4)
 
     def test_a_held_camera_reuses_and_follows_the_light(self, held):
         config = Config.from_preset("fast")

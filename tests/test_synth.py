@@ -57,9 +57,27 @@ def tiny(tmp_path_factory):
     root = tmp_path_factory.mktemp("synth")
     write_patch_map(root / "patch.hdr")
     seq = root / "tiny_static"
-    code = main(["synth", "--map", str(root / "patch.hdr"), "--rotation", str(ROTATION_DEG),
-                 "--layout", "static", "--frames", "2", "--size", "32x24", "--spp", "4",
-                 "--ar-frames", "1", "--out", str(seq)])
+    code = main(
+        [
+            "synth",
+            "--map",
+            str(root / "patch.hdr"),
+            "--rotation",
+            str(ROTATION_DEG),
+            "--layout",
+            "static",
+            "--frames",
+            "2",
+            "--size",
+            "32x24",
+            "--spp",
+            "4",
+            "--ar-frames",
+            "1",
+            "--out",
+            str(seq),
+        ]
+    )
     assert code == 0
     return seq
 
@@ -77,8 +95,11 @@ class TestTruth:
 
     def test_camera_frame_is_the_pose_applied(self, tiny):
         gt = json.loads((tiny / "lighting_gt.json").read_text())
-        rows = [line.split() for line in (tiny / "groundtruth.txt").read_text().splitlines()
-                if not line.startswith("#")]
+        rows = [
+            line.split()
+            for line in (tiny / "groundtruth.txt").read_text().splitlines()
+            if not line.startswith("#")
+        ]
         from scipy.spatial.transform import Rotation
 
         for frame, row in zip(gt["frames"], rows, strict=True):
@@ -91,8 +112,12 @@ class TestTruth:
         point where the texel truth does (a wrong rotation convention would miss by 60 deg)."""
         gt = json.loads((tiny / "lighting_gt.json").read_text())
         for frame in gt["frames"]:
-            assert env.angle_deg(frame["probe"]["dominant_dir_upper_world"],
-                                 frame["dominant_dir_upper_world"]) < 5.0
+            assert (
+                env.angle_deg(
+                    frame["probe"]["dominant_dir_upper_world"], frame["dominant_dir_upper_world"]
+                )
+                < 5.0
+            )
 
     @needs_shared_sequences
     @pytest.mark.data
@@ -103,31 +128,47 @@ class TestTruth:
         for name in ("dev_a_static_venice", "dev_c_lightswitch_forest_kiara"):
             folder = DATA / "synthetic" / name
             gt = json.loads((folder / "lighting_gt.json").read_text())
-            rows = [line.split() for line in (folder / "groundtruth.txt").read_text()
-                    .splitlines() if not line.startswith("#")]
+            rows = [
+                line.split()
+                for line in (folder / "groundtruth.txt").read_text().splitlines()
+                if not line.startswith("#")
+            ]
             for frame in gt["frames"][::8]:
                 radiance = env.load_map(DATA / "hdri" / f"{frame['env_map']}.hdr")
                 truth = env.environment_truth(radiance, frame["env_rotation_deg"])
-                r_wc = Rotation.from_quat([float(x) for x in rows[frame["index"]][4:8]]
-                                          ).as_matrix()
+                r_wc = Rotation.from_quat([float(x) for x in rows[frame["index"]][4:8]]).as_matrix()
                 upper = env.dominant(truth.sh_lum_upper_world)
                 whole = env.dominant(truth.sh_lum_world)
                 assert env.angle_deg(upper, frame["dominant_dir_upper_world"]) < 1.0
                 assert env.angle_deg(whole, frame["dominant_dir_world"]) < 1.0
                 assert env.angle_deg(r_wc.T @ upper, frame["dominant_dir_upper_camera"]) < 1.0
-                np.testing.assert_allclose(env.to_file_convention(truth.sh_lum_world),
-                                           frame["sh_lum_world"], atol=0.01 * abs(
-                                               frame["sh_lum_world"][0]))
+                np.testing.assert_allclose(
+                    env.to_file_convention(truth.sh_lum_world),
+                    frame["sh_lum_world"],
+                    atol=0.01 * abs(frame["sh_lum_world"][0]),
+                )
 
 
 class TestFiles:
     def test_layout_of_the_shared_set(self, tiny):
-        for item in ("rgb/000000.png", "depth/000001.png", "depth_gt/000000.png",
-                     "rgb.txt", "depth.txt", "associations.txt", "groundtruth.txt",
-                     "camera.json", "lighting_gt.json", "ar/real/000001.png",
-                     "ar/real_virtual/000001.png", "ar/mask_virtual/000001.png",
-                     "ar/mask_affected/000001.png", "ar/virtual_scene.json",
-                     "ar/virtual_sphere.ply", "ar/virtual_arch.ply"):
+        for item in (
+            "rgb/000000.png",
+            "depth/000001.png",
+            "depth_gt/000000.png",
+            "rgb.txt",
+            "depth.txt",
+            "associations.txt",
+            "groundtruth.txt",
+            "camera.json",
+            "lighting_gt.json",
+            "ar/real/000001.png",
+            "ar/real_virtual/000001.png",
+            "ar/mask_virtual/000001.png",
+            "ar/mask_affected/000001.png",
+            "ar/virtual_scene.json",
+            "ar/virtual_sphere.ply",
+            "ar/virtual_arch.ply",
+        ):
             assert (tiny / item).is_file(), item
         camera = json.loads((tiny / "camera.json").read_text())
         assert (camera["width"], camera["height"], camera["depth_scale"]) == (32, 24, 5000.0)
@@ -144,8 +185,19 @@ class TestFiles:
 
     def test_loads_with_arlight_estimate(self, tiny, tmp_path, capsys):
         out = tmp_path / "r.jsonl"
-        code, text = run_cli(["estimate", str(tiny), "--poses", "groundtruth", "--preset",
-                              "fast", "--out", str(out)], capsys)
+        code, text = run_cli(
+            [
+                "estimate",
+                str(tiny),
+                "--poses",
+                "groundtruth",
+                "--preset",
+                "fast",
+                "--out",
+                str(out),
+            ],
+            capsys,
+        )
         assert code == 0, text
         assert len(out.read_text().splitlines()) == 2
 
@@ -157,35 +209,61 @@ class TestFiles:
 
     def test_resumes_and_skips_what_is_complete(self, tiny, capsys):
         before = (tiny / "lighting_gt.json").stat().st_mtime_ns
-        code, text = run_cli(["synth", "--map", str(tiny.parent / "patch.hdr"), "--out",
-                              str(tiny), "--frames", "2", "--size", "32x24", "--spp", "4"],
-                             capsys)
+        code, text = run_cli(
+            [
+                "synth",
+                "--map",
+                str(tiny.parent / "patch.hdr"),
+                "--out",
+                str(tiny),
+                "--frames",
+                "2",
+                "--size",
+                "32x24",
+                "--spp",
+                "4",
+            ],
+            capsys,
+        )
         assert code == 0 and "complete already" in text
         assert (tiny / "lighting_gt.json").stat().st_mtime_ns == before
 
 
 class TestBadInput:
     def test_missing_map(self, tmp_path, capsys):
-        code, text = run_cli(["synth", "--map", str(tmp_path / "nope.hdr"), "--out",
-                              str(tmp_path / "s")], capsys)
+        code, text = run_cli(
+            ["synth", "--map", str(tmp_path / "nope.hdr"), "--out", str(tmp_path / "s")], capsys
+        )
         assert code == EXIT_BAD_INPUT and "--map" in text and "no such file" in text
 
     def test_map_not_two_to_one(self, tmp_path, capsys):
         cv2.imwrite(str(tmp_path / "square.hdr"), np.ones((16, 16, 3), np.float32))
-        code, text = run_cli(["synth", "--map", str(tmp_path / "square.hdr"), "--out",
-                              str(tmp_path / "s")], capsys)
+        code, text = run_cli(
+            ["synth", "--map", str(tmp_path / "square.hdr"), "--out", str(tmp_path / "s")], capsys
+        )
         assert code == EXIT_BAD_INPUT and "--map" in text and "twice the height" in text
 
     def test_unknown_layout(self, tmp_path, capsys):
-        code, text = run_cli(["synth", "--map", "x.hdr", "--layout", "castle", "--out",
-                              str(tmp_path / "s")], capsys)
+        code, text = run_cli(
+            ["synth", "--map", "x.hdr", "--layout", "castle", "--out", str(tmp_path / "s")], capsys
+        )
         assert code == EXIT_BAD_INPUT and "--layout" in text
 
     def test_extra_not_installed(self, tmp_path, capsys, monkeypatch):
         write_patch_map(tmp_path / "p.hdr", 8)
         monkeypatch.setitem(sys.modules, "mitsuba", None)  # import mitsuba -> ImportError
-        code, text = run_cli(["synth", "--map", str(tmp_path / "p.hdr"), "--out",
-                              str(tmp_path / "s"), "--size", "8x8"], capsys)
+        code, text = run_cli(
+            [
+                "synth",
+                "--map",
+                str(tmp_path / "p.hdr"),
+                "--out",
+                str(tmp_path / "s"),
+                "--size",
+                "8x8",
+            ],
+            capsys,
+        )
         assert code == EXIT_BAD_INPUT and "arlight[synth]" in text
         assert "Traceback" not in text
 
@@ -211,9 +289,16 @@ class TestCorpus:
 
 
 class TestGeometry:
-    @pytest.mark.parametrize("mesh", [meshes.box((0.2, 0.3, 0.1)), meshes.uv_sphere(0.3),
-                                      meshes.cylinder(0.1, 0.4), meshes.arch()],
-                             ids=["box", "sphere", "cylinder", "arch"])
+    @pytest.mark.parametrize(
+        "mesh",
+        [
+            meshes.box((0.2, 0.3, 0.1)),
+            meshes.uv_sphere(0.3),
+            meshes.cylinder(0.1, 0.4),
+            meshes.arch(),
+        ],
+        ids=["box", "sphere", "cylinder", "arch"],
+    )
     def test_faces_wind_outwards(self, mesh):
         v = mesh.vertices[mesh.faces]
         face_normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])

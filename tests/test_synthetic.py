@@ -21,8 +21,7 @@ def _world_points(seq, i):
 
 @pytest.fixture(scope="module")
 def clean():
-    return synthetic.make_sequence(num_frames=4, width=320, height=240, seed=3,
-                                   sensor_noise=False)
+    return synthetic.make_sequence(num_frames=4, width=320, height=240, seed=3, sensor_noise=False)
 
 
 @pytest.fixture(scope="module")
@@ -35,12 +34,14 @@ class TestGroundTruth:
         for i, pose in enumerate(f.pose for f in clean.frames):
             world = sh.dominant_direction(clean.sh_world[i])
             np.testing.assert_allclose(clean.dominant_direction_world[i], world, atol=1e-12)
-            np.testing.assert_allclose(clean.dominant_direction_camera[i],
-                                       pose[:3, :3].T @ world, atol=1e-12)
+            np.testing.assert_allclose(
+                clean.dominant_direction_camera[i], pose[:3, :3].T @ world, atol=1e-12
+            )
 
     def test_luminance_sh_is_weighted_sum_of_channels(self, clean):
-        np.testing.assert_allclose(clean.sh_world[0],
-                                   synthetic.LUMINANCE_RGB @ clean.sh_rgb_world[0], atol=1e-12)
+        np.testing.assert_allclose(
+            clean.sh_world[0], synthetic.LUMINANCE_RGB @ clean.sh_rgb_world[0], atol=1e-12
+        )
         assert clean.sh_world[0].shape == (16,)
 
     def test_quadratic_closed_form_matches_quadrature(self):
@@ -77,14 +78,21 @@ class TestGroundTruth:
 
     @pytest.mark.parametrize("seed", [0, 1, 2, 7])
     def test_dominant_direction_between_sun_and_zenith(self, seed):
-        seq = synthetic.make_sequence(num_frames=1, width=8, height=6, seed=seed,
-                                      sensor_noise=False)
+        seq = synthetic.make_sequence(
+            num_frames=1, width=8, height=6, seed=seed, sensor_noise=False
+        )
         dom, sun = seq.dominant_direction_world[0], seq.sun_direction_world[0]
         up = np.array([0.0, 1.0, 0.0])
         assert angular_error_deg(dom, sun) < 15.0
         assert angular_error_deg(dom, up) < angular_error_deg(sun, up)
-        assert abs(angular_error_deg(dom, sun) + angular_error_deg(dom, up)
-                   - angular_error_deg(sun, up)) < 0.5
+        assert (
+            abs(
+                angular_error_deg(dom, sun)
+                + angular_error_deg(dom, up)
+                - angular_error_deg(sun, up)
+            )
+            < 0.5
+        )
         elevation = math.degrees(math.asin(sun[1]))
         assert 25.0 <= elevation <= 60.0
 
@@ -118,8 +126,9 @@ class TestGroundTruth:
         sky = rays[:, 1] >= 0
         assert sky.sum() > 100  # a strip of sky above the horizon
         assert np.all(depth.reshape(-1)[sky] == 0)
-        np.testing.assert_allclose(radiance.reshape(-1, 3)[sky],
-                                   light.sky_radiance(rays[sky]), rtol=1e-5)
+        np.testing.assert_allclose(
+            radiance.reshape(-1, 3)[sky], light.sky_radiance(rays[sky]), rtol=1e-5
+        )
 
 
 class TestPoses:
@@ -168,8 +177,11 @@ class TestImage:
             normals = np.zeros_like(pts)
             normals[1] = 1.0
             lit = synthetic.sun_visibility(pts, normals, clean.sun_direction_world[i]) > 0
-            grey = clean.frames[i].color.reshape(-1, 3)[near].astype(float) @ [0.2126, 0.7152,
-                                                                               0.0722]
+            grey = clean.frames[i].color.reshape(-1, 3)[near].astype(float) @ [
+                0.2126,
+                0.7152,
+                0.0722,
+            ]
             assert (~lit).sum() > 300, "no visible sun shadow on the ground"
             assert np.median(grey[~lit]) < 0.8 * np.median(grey[lit])
 
@@ -225,8 +237,9 @@ class TestImage:
         assert reddish > 0.002
 
     def test_color_noise_level(self, noisy):
-        clean_seq = synthetic.make_sequence(num_frames=1, width=320, height=240, seed=3,
-                                            sensor_noise=False)
+        clean_seq = synthetic.make_sequence(
+            num_frames=1, width=320, height=240, seed=3, sensor_noise=False
+        )
         diff = noisy.frames[0].color.astype(float) - clean_seq.frames[0].color.astype(float)
         assert 1.2 < diff.std() < 1.9
 
@@ -284,8 +297,9 @@ class TestSequence:
         assert a.exposure == b.exposure
 
     def test_light_change(self):
-        seq = synthetic.make_sequence(num_frames=6, width=32, height=24, seed=4,
-                                      sensor_noise=False, light_change_frame=3)
+        seq = synthetic.make_sequence(
+            num_frames=6, width=32, height=24, seed=4, sensor_noise=False, light_change_frame=3
+        )
         dom = seq.dominant_direction_world
         for i in (1, 2):
             np.testing.assert_array_equal(dom[i], dom[0])
@@ -296,8 +310,9 @@ class TestSequence:
         azimuth = angular_error_deg([s0[0], s0[2]], [s1[0], s1[2]])
         assert azimuth >= 60.0
         assert s0[1] == pytest.approx(s1[1])
-        steady = synthetic.make_sequence(num_frames=6, width=32, height=24, seed=4,
-                                         sensor_noise=False)
+        steady = synthetic.make_sequence(
+            num_frames=6, width=32, height=24, seed=4, sensor_noise=False
+        )
         np.testing.assert_array_equal(steady.frames[2].color, seq.frames[2].color)
         assert not np.array_equal(steady.frames[3].color, seq.frames[3].color)
 
@@ -313,18 +328,28 @@ class TestSequence:
             assert depth.shape == (24, 32) and depth.dtype == np.float32
             assert frame.pose.shape == (4, 4)
         assert seq.exposure > 0
-        for field in (seq.sh_world, seq.dominant_direction_world, seq.dominant_direction_camera,
-                      seq.sun_direction_world):
+        for field in (
+            seq.sh_world,
+            seq.dominant_direction_world,
+            seq.dominant_direction_camera,
+            seq.sun_direction_world,
+        ):
             assert len(field) == 3 and all(np.all(np.isfinite(x)) for x in field)
 
     def test_single_frame(self):
         seq = synthetic.make_sequence(num_frames=1, width=4, height=3, sensor_noise=False)
         assert len(seq) == 1
 
-    @pytest.mark.parametrize("kwargs", [
-        {"num_frames": 0}, {"width": 0}, {"height": -1},
-        {"num_frames": 4, "light_change_frame": 4}, {"light_change_frame": -1},
-    ])
+    @pytest.mark.parametrize(
+        "kwargs",
+        [
+            {"num_frames": 0},
+            {"width": 0},
+            {"height": -1},
+            {"num_frames": 4, "light_change_frame": 4},
+            {"light_change_frame": -1},
+        ],
+    )
     def test_bad_arguments(self, kwargs):
         with pytest.raises(ValueError):
             synthetic.make_sequence(**kwargs)

@@ -31,8 +31,13 @@ TETRA_T = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
 
 
 def tetra(name: str = "tetra", **changes) -> VirtualObject:
-    fields = dict(name=name, vertices=TETRA_V, triangles=TETRA_T,
-                  normals=TETRA_V - TETRA_V.mean(axis=0), world_from_object=np.eye(4))
+    fields = dict(
+        name=name,
+        vertices=TETRA_V,
+        triangles=TETRA_T,
+        normals=TETRA_V - TETRA_V.mean(axis=0),
+        world_from_object=np.eye(4),
+    )
     fields.update(changes)
     return VirtualObject(**fields)
 
@@ -58,8 +63,11 @@ NAN_V[1, 0] = np.nan
 # (case id, changes, fragment of the message)
 BAD_OBJECTS = [
     ("vertices_2d", {"vertices": TETRA_V[:, :2]}, "vertices must be (N >= 3, 3)"),
-    ("vertices_too_few", {"vertices": TETRA_V[:2], "normals": TETRA_V[:2]},
-     "vertices must be (N >= 3, 3)"),
+    (
+        "vertices_too_few",
+        {"vertices": TETRA_V[:2], "normals": TETRA_V[:2]},
+        "vertices must be (N >= 3, 3)",
+    ),
     ("vertices_list", {"vertices": TETRA_V.tolist()}, "vertices must be"),
     ("triangles_2_columns", {"triangles": TETRA_T[:, :2]}, "triangles must be (M >= 1, 3)"),
     ("triangles_empty", {"triangles": np.zeros((0, 3), np.int32)}, "triangles must be"),
@@ -73,12 +81,24 @@ BAD_OBJECTS = [
     ("pose_mirror", {"world_from_object": np.diag([-1.0, 1, 1, 1])}, "det <= 0"),
     ("pose_zero", {"world_from_object": np.diag([0.0, 0, 0, 1])}, "det <= 0"),
     ("pose_non_uniform", {"world_from_object": np.diag([1.0, 2, 1, 1])}, "uniform scale"),
-    ("pose_shear", {"world_from_object": np.array([[1, 0.3, 0, 0], [0, 1, 0, 0],
-                                                   [0, 0, 1, 0], [0, 0, 0, 1.0]])},
-     "uniform scale"),
-    ("pose_last_row", {"world_from_object": np.array([[1, 0, 0, 0], [0, 1, 0, 0],
-                                                      [0, 0, 1, 0], [0.5, 0, 0, 1.0]])},
-     "uniform scale"),
+    (
+        "pose_shear",
+        {
+            "world_from_object": np.array(
+                [[1, 0.3, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]
+            )
+        },
+        "uniform scale",
+    ),
+    (
+        "pose_last_row",
+        {
+            "world_from_object": np.array(
+                [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0.5, 0, 0, 1.0]]
+            )
+        },
+        "uniform scale",
+    ),
     ("albedo_above_1", {"material": Material((1.2, 0.5, 0.5))}, "[0, 1]"),
     ("albedo_negative", {"material": Material((0.5, -0.1, 0.5))}, "[0, 1]"),
     ("albedo_nan", {"material": Material((0.5, np.nan, 0.5))}, "[0, 1]"),
@@ -91,8 +111,9 @@ class TestCheckObject:
         obj = tetra(world_from_object=pose(scale=2.5))
         assert virtual_scene._scale(obj) == pytest.approx(2.5)
 
-    @pytest.mark.parametrize("changes, fragment", [c[1:] for c in BAD_OBJECTS],
-                             ids=[c[0] for c in BAD_OBJECTS])
+    @pytest.mark.parametrize(
+        "changes, fragment", [c[1:] for c in BAD_OBJECTS], ids=[c[0] for c in BAD_OBJECTS]
+    )
     def test_bad(self, changes: dict, fragment: str):
         with pytest.raises(SceneError) as info:
             tetra("the_object", **changes)
@@ -141,19 +162,22 @@ class TestPrimitives:
         def extent(mesh):
             v = np.asarray(mesh.vertices)
             return v.max(axis=0) - v.min(axis=0)
+
         np.testing.assert_allclose(extent(PRIMITIVES["sphere"](0.3)), [0.6, 0.6, 0.6], atol=2e-3)
         np.testing.assert_allclose(extent(PRIMITIVES["box"]((0.1, 0.2, 0.3))), [0.1, 0.2, 0.3])
         # upright ring in the x-y plane, standing on its rim
-        np.testing.assert_allclose(extent(PRIMITIVES["torus"](0.2, 0.05)), [0.5, 0.5, 0.1],
-                                   atol=2e-3)
+        np.testing.assert_allclose(
+            extent(PRIMITIVES["torus"](0.2, 0.05)), [0.5, 0.5, 0.1], atol=2e-3
+        )
 
     def test_box_flat_and_sphere_radial_normals(self):
         box = object_from_open3d("box", PRIMITIVES["box"](), np.eye(4))
         a, b, c = (box.vertices[box.triangles[:, i]] for i in range(3))
         face = np.cross(b - a, c - a)
         face /= np.linalg.norm(face, axis=1, keepdims=True)
-        np.testing.assert_allclose(box.normals[box.triangles],
-                                   np.repeat(face[:, None], 3, axis=1), atol=1e-6)
+        np.testing.assert_allclose(
+            box.normals[box.triangles], np.repeat(face[:, None], 3, axis=1), atol=1e-6
+        )
         sphere = object_from_open3d("sphere", PRIMITIVES["sphere"](0.1), np.eye(4))
         radial = sphere.vertices - np.array([0, 0.1, 0], np.float32)
         radial /= np.linalg.norm(radial, axis=1, keepdims=True)
@@ -173,13 +197,18 @@ def project(world_from_cam: np.ndarray, point_world: np.ndarray) -> np.ndarray:
 class TestResolveAnchors:
     def test_anchored_object_stands_under_its_pixel(self):
         world_from_cam = pose()
-        scene = VirtualScene((
-            tetra("px", anchor=Anchor((400.0, 330.0), yaw_deg=0.0),
-                  world_from_object=np.diag([2.0, 2.0, 2.0, 1.0])),
-            tetra("yawed", anchor=Anchor((400.0, 330.0), yaw_deg=90.0)),
-            tetra("centre", anchor=Anchor(None)),
-            tetra("fixed", world_from_object=pose(translation=(5, 5, 5))),
-        ))
+        scene = VirtualScene(
+            (
+                tetra(
+                    "px",
+                    anchor=Anchor((400.0, 330.0), yaw_deg=0.0),
+                    world_from_object=np.diag([2.0, 2.0, 2.0, 1.0]),
+                ),
+                tetra("yawed", anchor=Anchor((400.0, 330.0), yaw_deg=90.0)),
+                tetra("centre", anchor=Anchor(None)),
+                tetra("fixed", world_from_object=pose(translation=(5, 5, 5))),
+            )
+        )
         out = resolve_anchors(scene, UP_CAM, OFFSET_M, world_from_cam, CAMERA)
         px, yawed, centre, fixed = out.objects
         assert not out.anchored
@@ -190,20 +219,24 @@ class TestResolveAnchors:
             assert UP_CAM @ base_cam + OFFSET_M == pytest.approx(0.0, abs=1e-9)  # on the plane
             # object +y along the plane's up, in the world frame
             y = obj.world_from_object[:3, 1]
-            np.testing.assert_allclose(y / np.linalg.norm(y), world_from_cam[:3, :3] @ UP_CAM,
-                                       atol=1e-9)
+            np.testing.assert_allclose(
+                y / np.linalg.norm(y), world_from_cam[:3, :3] @ UP_CAM, atol=1e-9
+            )
         assert virtual_scene._scale(px) == pytest.approx(2.0)  # the anchored scale kept
         # yaw turns the object about up: x axes 90 degrees apart
         x0 = px.world_from_object[:3, 0] / 2.0
         x90 = yawed.world_from_object[:3, 0]
         assert x0 @ x90 == pytest.approx(0.0, abs=1e-9)
-        np.testing.assert_allclose(np.cross(x0, x90), world_from_cam[:3, :3] @ UP_CAM,
-                                   atol=1e-9)
+        np.testing.assert_allclose(np.cross(x0, x90), world_from_cam[:3, :3] @ UP_CAM, atol=1e-9)
         np.testing.assert_array_equal(fixed.world_from_object, scene.objects[3].world_from_object)
 
     def test_ray_above_the_horizon_stays_anchored(self):
-        scene = VirtualScene((tetra("sky", anchor=Anchor((CAMERA.cx, 0.0))),
-                              tetra("floor", anchor=Anchor((CAMERA.cx, CAMERA.height - 1)))))
+        scene = VirtualScene(
+            (
+                tetra("sky", anchor=Anchor((CAMERA.cx, 0.0))),
+                tetra("floor", anchor=Anchor((CAMERA.cx, CAMERA.height - 1))),
+            )
+        )
         ray = np.array([0.0, -CAMERA.cy / CAMERA.fy, 1.0])
         assert UP_CAM @ ray > 0  # the top row looks above the horizon
         out = resolve_anchors(scene, UP_CAM, OFFSET_M, pose(), CAMERA)
@@ -240,8 +273,9 @@ class TestGeometry:
     def test_world_vertices_and_normals(self):
         m = pose(scale=2.0)
         obj = object_from_open3d("sphere", PRIMITIVES["sphere"](0.1), m)
-        np.testing.assert_allclose(obj.world_vertices()[0],
-                                   m[:3, :3] @ obj.vertices[0] + m[:3, 3], atol=1e-6)
+        np.testing.assert_allclose(
+            obj.world_vertices()[0], m[:3, :3] @ obj.vertices[0] + m[:3, 3], atol=1e-6
+        )
         n = obj.world_normals()
         np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-9)
         expected = m[:3, :3] @ obj.normals[0] / 2.0

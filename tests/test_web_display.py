@@ -29,21 +29,37 @@ def make_server():
 def _result(seq: int, value: int = 120) -> tuple[Result, dict]:
     now = time.time()
     sh = [0.5, 0.0, -0.3, 0.2] + [0.0] * 12
-    result = Result(seq=seq, timestamp=now - 0.05, sh=sh, sh_camera=sh,
-                    dominant_direction_camera=[0.6, -0.8, 0.0],
-                    dominant_direction_world=[0.0, 0.0, 1.0], intensity=1.0,
-                    confidence={"value": 0.5}, pose=np.eye(4).tolist(),
-                    timings_ms={"Input": 1.5, "LightEst": 2.0}, frames_received=seq + 1,
-                    frames_processed=seq + 1, frames_dropped=0,
-                    server_receive_time=now - 0.03, server_finish_time=now - 0.01,
-                    composite=np.full((24, 32, 3), value, np.uint8))
+    result = Result(
+        seq=seq,
+        timestamp=now - 0.05,
+        sh=sh,
+        sh_camera=sh,
+        dominant_direction_camera=[0.6, -0.8, 0.0],
+        dominant_direction_world=[0.0, 0.0, 1.0],
+        intensity=1.0,
+        confidence={"value": 0.5},
+        pose=np.eye(4).tolist(),
+        timings_ms={"Input": 1.5, "LightEst": 2.0},
+        frames_received=seq + 1,
+        frames_processed=seq + 1,
+        frames_dropped=0,
+        server_receive_time=now - 0.03,
+        server_finish_time=now - 0.01,
+        composite=np.full((24, 32, 3), value, np.uint8),
+    )
     return result, received_record(result, now)
 
 
 class TestAddress:
-    @pytest.mark.parametrize("text, expected", [
-        ("8080", ("127.0.0.1", 8080)), ("0.0.0.0:80", ("0.0.0.0", 80)),
-        ("[::1]:9000", ("::1", 9000)), (":0", ("127.0.0.1", 0))])
+    @pytest.mark.parametrize(
+        "text, expected",
+        [
+            ("8080", ("127.0.0.1", 8080)),
+            ("0.0.0.0:80", ("0.0.0.0", 80)),
+            ("[::1]:9000", ("::1", 9000)),
+            (":0", ("127.0.0.1", 0)),
+        ],
+    )
     def test_parses(self, text, expected):
         assert parse_http_address(text) == expected
 
@@ -81,8 +97,10 @@ class TestEndpoints:
             stream = http.client.HTTPConnection("127.0.0.1", web.port, timeout=10)
             stream.request("GET", "/stream.mjpeg")
             mjpeg = stream.getresponse()
-            assert mjpeg.getheader("Content-Type") == \
-                f"multipart/x-mixed-replace; boundary={MJPEG_BOUNDARY}"
+            assert (
+                mjpeg.getheader("Content-Type")
+                == f"multipart/x-mixed-replace; boundary={MJPEG_BOUNDARY}"
+            )
             events = http.client.HTTPConnection("127.0.0.1", web.port, timeout=10)
             events.request("GET", "/events")
             sse = events.getresponse()
@@ -90,6 +108,7 @@ class TestEndpoints:
             first = json.loads(sse.readline().removeprefix(b"data: "))
             sse.readline()
             assert first["frame"] == 0
+
             def mjpeg_part() -> bytes:
                 assert mjpeg.readline() == f"--{MJPEG_BOUNDARY}\r\n".encode()
                 headers = {}
@@ -108,8 +127,9 @@ class TestEndpoints:
                 data = sse.readline()
                 sse.readline()
                 assert json.loads(data.removeprefix(b"data: "))["frame"] == seq
-            means = [cv2.imdecode(np.frombuffer(p, np.uint8), cv2.IMREAD_COLOR).mean()
-                     for p in parts]
+            means = [
+                cv2.imdecode(np.frombuffer(p, np.uint8), cv2.IMREAD_COLOR).mean() for p in parts
+            ]
             np.testing.assert_allclose(means, [200, 60, 120], atol=3)
             _wait(lambda: web.jpegs_streamed == 3 and web.events_sent == 3, "the counts")
             stream.close()
@@ -125,29 +145,51 @@ class TestBrowser:
         update (Server-Sent Events), the sphere is drawn; a screenshot is kept."""
         executable = chromium_or_skip()
         server = make_server(process=identity_step())
-        display = DisplayClient(DisplayOptions(server=server.connect_address, session="web",
-                                               http=("127.0.0.1", 0), idle_exit_s=30.0))
+        display = DisplayClient(
+            DisplayOptions(
+                server=server.connect_address,
+                session="web",
+                http=("127.0.0.1", 0),
+                idle_exit_s=30.0,
+            )
+        )
         thread = threading.Thread(target=display.run, daemon=True)
         thread.start()
         assert display.subscribed.wait(10)
         web = display.web
         with Chromium(executable) as browser:
             tab = browser.open(web.url)
-            _wait(lambda: (browser.evaluate(
-                tab, "document.body ? Number(document.body.dataset.updates) : 0") or 0) >= 1,
-                "the page's first state")
-            options = StreamOptions(server=server.connect_address, session="web",
-                                    mode="live", rate="native", want_composite=True,
-                                    timestamps="capture")
+            _wait(
+                lambda: (
+                    (
+                        browser.evaluate(
+                            tab, "document.body ? Number(document.body.dataset.updates) : 0"
+                        )
+                        or 0
+                    )
+                    >= 1
+                ),
+                "the page's first state",
+            )
+            options = StreamOptions(
+                server=server.connect_address,
+                session="web",
+                mode="live",
+                rate="native",
+                want_composite=True,
+                timestamps="capture",
+            )
             source = flat_source(75, width=160, height=120, base=180)  # 2.5 s at 30 fps
             streamer = threading.Thread(
                 target=lambda: run_with_timeout(lambda: CaptureClient(source, options).run()),
-                daemon=True)
+                daemon=True,
+            )
             streamer.start()
             seen = "document.body.dataset.framesSeen || ''"
-            _wait(lambda: len(browser.evaluate(tab, seen).split(",")) >= 5,
-                  "five Results shown")
-            state = browser.evaluate(tab, """JSON.stringify({
+            _wait(lambda: len(browser.evaluate(tab, seen).split(",")) >= 5, "five Results shown")
+            state = browser.evaluate(
+                tab,
+                """JSON.stringify({
                 fps: document.getElementById('fps').textContent,
                 latency: document.getElementById('latency').textContent,
                 confidence: document.getElementById('confidence').textContent,
@@ -156,11 +198,14 @@ class TestBrowser:
                 status: document.getElementById('status').textContent,
                 width: document.getElementById('composite').naturalWidth,
                 rect: document.getElementById('composite').getBoundingClientRect(),
-                sphere: document.getElementById('sphere').getBoundingClientRect()})""")
+                sphere: document.getElementById('sphere').getBoundingClientRect()})""",
+            )
             png = browser.screenshot(tab)
             later = browser.evaluate(tab, seen)
-            _wait(lambda: browser.evaluate(tab, seen) != later or not streamer.is_alive(),
-                  "the numbers to change again")
+            _wait(
+                lambda: browser.evaluate(tab, seen) != later or not streamer.is_alive(),
+                "the numbers to change again",
+            )
             changed = browser.evaluate(tab, seen) != later
             streamer.join(30)
             later2 = browser.evaluate(tab, seen)
@@ -177,10 +222,10 @@ class TestBrowser:
         shot = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
         ratio = shot.shape[1] / 1000  # device pixels per CSS pixel
         r = {k: int(v * ratio) for k, v in state["rect"].items() if k in "xywidthheight"}
-        inner = shot[r["y"] + 5:r["y"] + r["height"] - 5, r["x"] + 5:r["x"] + r["width"] - 5]
+        inner = shot[r["y"] + 5 : r["y"] + r["height"] - 5, r["x"] + 5 : r["x"] + r["width"] - 5]
         assert inner.size and inner.mean() > 150  # the bright composite, not the dark page
         s = {k: int(v * ratio) for k, v in state["sphere"].items() if k in "xywidthheight"}
-        disc = shot[s["y"]:s["y"] + s["height"], s["x"]:s["x"] + s["width"]]
+        disc = shot[s["y"] : s["y"] + s["height"], s["x"] : s["x"] + s["width"]]
         assert disc.max() > 200 and disc.std() > 20  # a shaded sphere on the dark panel
 
 

@@ -34,16 +34,27 @@ W, H = 64, 48
 
 
 def session(step=None, budget=None, cancel=None, **config) -> Session:
-    base = dict(session="w", role="capture", calibration=CameraCalibration(
-        W, H, 50.0, 50.0, W / 2, H / 2), mode="lossless")
+    base = dict(
+        session="w",
+        role="capture",
+        calibration=CameraCalibration(W, H, 50.0, 50.0, W / 2, H / 2),
+        mode="lossless",
+    )
     base.update(config)
-    return Session(SessionConfig(**base), credits=4, max_pixels=2**22,
-                   max_message_bytes=2**26, process=step or identity_step(), budget=budget,
-                   cancel=cancel)
+    return Session(
+        SessionConfig(**base),
+        credits=4,
+        max_pixels=2**22,
+        max_message_bytes=2**26,
+        process=step or identity_step(),
+        budget=budget,
+        cancel=cancel,
+    )
 
 
-def frame_job(seq: int = 0, width: int = W, panorama: np.ndarray | None = None,
-              rgbd: bool = True) -> Job:
+def frame_job(
+    seq: int = 0, width: int = W, panorama: np.ndarray | None = None, rgbd: bool = True
+) -> Job:
     color = np.full((H, width, 3), 40 + seq, np.uint8) if rgbd else None
     depth = np.full((H, width), 1500, np.uint16) if rgbd else None
     parts = encode(Frame(seq, 1.0 + seq, color, depth, None, panorama, "png", "zstd"))
@@ -94,18 +105,27 @@ class TestProcessed:
         assert out.result.timings_ms == {"Identity": 0.0}
         assert out.panorama is not None and out.panorama.light_source == "panorama"
         assert set(out.panorama.timings_ms) >= {"PanoramaSH", "PanoramaInverseTone"}
-        message = result_message(out.result, seq=0, counters=(1, 1, 0), receive_time_wall=1.0,
-                                 finish_time_wall=2.0, panorama=out.panorama.light,
-                                 extra_timings_ms=out.panorama.timings_ms,
-                                 extra_diagnostics=out.panorama.diagnostics)
+        message = result_message(
+            out.result,
+            seq=0,
+            counters=(1, 1, 0),
+            receive_time_wall=1.0,
+            finish_time_wall=2.0,
+            panorama=out.panorama.light,
+            extra_timings_ms=out.panorama.timings_ms,
+            extra_diagnostics=out.panorama.diagnostics,
+        )
         assert list(message.timings_ms)[0] == "Identity"  # the pipeline's stages first
-        assert message.diagnostics == {"light_source": "panorama",
-                                       "panorama_operator": s.setup.panorama_light.params.operator}
+        assert message.diagnostics == {
+            "light_source": "panorama",
+            "panorama_operator": s.setup.panorama_light.params.operator,
+        }
 
     def test_a_panorama_only_frame_needs_no_pipeline(self):
         calls = []
-        s = session(lambda frame, *_: calls.append(frame),
-                    panorama=PanoramaConfig(), calibration=None)
+        s = session(
+            lambda frame, *_: calls.append(frame), panorama=PanoramaConfig(), calibration=None
+        )
         out = run_frame(frame_job(panorama=sky(), rgbd=False), s.compute)
         assert isinstance(out, Processed) and not calls
         assert out.result.confidence.samples > 0

@@ -55,20 +55,29 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="arlight",
         description="Probeless light estimation from RGB-D: spherical-harmonics lighting per "
-                    "frame from recorded data sets, recordings, live cameras (Luxonis OAK, "
-                    "OpenNI2, RealSense) or the built-in scene, in-process (estimate, batch "
-                    "on Ray) or as a streaming service (serve, stream, display, record, "
-                    "demo), with virtual objects rendered into the frames under the "
-                    "estimated light (--scene). Also: lighting from 360-degree video (ibl), "
-                    "speed/accuracy benchmarks (bench) and path-traced ground-truth "
-                    "sequences (synth).")
+        "frame from recorded data sets, recordings, live cameras (Luxonis OAK, "
+        "OpenNI2, RealSense) or the built-in scene, in-process (estimate, batch "
+        "on Ray) or as a streaming service (serve, stream, display, record, "
+        "demo), with virtual objects rendered into the frames under the "
+        "estimated light (--scene). Also: lighting from 360-degree video (ibl), "
+        "speed/accuracy benchmarks (bench) and path-traced ground-truth "
+        "sequences (synth).",
+    )
     parser.add_argument("--version", action="version", version=f"arlight {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log details (warnings "
-                        "about defaults chosen for the data are shown either way)")
-    parser.add_argument("--open3d-threads", type=positive_int, metavar="N",
-                        help="CPU threads for Open3D (volume, ray cast, tracking); default: "
-                             "all cores. 1 makes tracked poses reproducible run to run, at the "
-                             "cost of a slower Surface stage")
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="store_true",
+        help="log details (warnings about defaults chosen for the data are shown either way)",
+    )
+    parser.add_argument(
+        "--open3d-threads",
+        type=positive_int,
+        metavar="N",
+        help="CPU threads for Open3D (volume, ray cast, tracking); default: "
+        "all cores. 1 makes tracked poses reproducible run to run, at the "
+        "cost of a slower Surface stage",
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     estimate.add_parser(sub)
     bench.add_parser(sub)
@@ -87,8 +96,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
     from arlight.pipeline.pipeline import FrameError
     from arlight.pipeline.runtime import configure_process
     from arlight.sources.errors import DatasetError

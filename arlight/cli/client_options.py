@@ -35,75 +35,155 @@ from arlight.server.security import is_loopback, read_token_file
 
 def add_source_options(p: argparse.ArgumentParser) -> None:
     """SOURCE and the session's settings, shared by stream and record."""
-    p.add_argument("source", metavar="SOURCE",
-                   help="'synthetic' (the built-in scene), a TUM / Open3D-Redwood / 7-Scenes "
-                        "folder, a recording FILE.mcap (sent exactly as recorded), or a "
-                        "camera: depthai[:DEVICE_ID] (Luxonis OAK), openni2[:URI] or FILE.oni "
-                        "(OpenNI2 device or recording), realsense[:SERIAL] (Intel RealSense); "
-                        "cameras need their extra: pip install 'arlight[depthai]' etc.")
-    p.add_argument("--session", metavar="NAME", help="session name, [A-Za-z0-9_.-]{1,64} "
-                   "(default: the source's name plus 4 random hex digits; a recording: its own)")
-    p.add_argument("--mode", choices=("live", "lossless"),
-                   help="live: latest frame wins, drops counted (default); lossless: every "
-                        "frame processed once, in order (for recorded streams)")
-    p.add_argument("--color-codec", choices=COLOR_CODECS, default=DEFAULT_COLOR_CODEC,
-                   help=f"colour codec (default {DEFAULT_COLOR_CODEC}; png/raw are lossless)")
-    p.add_argument("--depth-codec", choices=DEPTH_CODECS, default=DEFAULT_DEPTH_CODEC,
-                   help=f"depth codec, all lossless (default {DEFAULT_DEPTH_CODEC})")
-    p.add_argument("--jpeg-quality", type=jpeg_quality, default=DEFAULT_JPEG_QUALITY, metavar="Q",
-                   help=f"JPEG quality 1..100 (default {DEFAULT_JPEG_QUALITY})")
-    p.add_argument("--preset", choices=PRESETS,
-                   help="the session's pipeline preset (default full; a recording: its own)")
-    p.add_argument("--set", action="append", type=config_override, metavar="KEY=VALUE",
-                   help="override a pipeline Config field for the session")
-    p.add_argument("--composite", action="store_true",
-                   help="ask the server for the composited frame in every Result (for "
-                        "display clients): the input colour image with the --scene objects "
-                        "rendered in under the estimated light (their shading, shadows "
-                        "and one bounce of indirect light); without --scene, the input "
-                        "colour image unchanged")
-    p.add_argument("--poses", choices=("groundtruth", "track"), default="track",
-                   help="'groundtruth': send the data set's camera poses (tracking is then "
-                        "skipped); 'track' (default): the server tracks the camera")
-    p.add_argument("--max-frames", type=positive_int, metavar="N", help="only the first N frames "
-                   "(with --loop: N frames in total); synthetic: the number of frames (12)")
-    p.add_argument("--depth-encoding", choices=DEPTH_ENCODINGS,
-                   help="depth encoding of a data set (default: from its layout)")
-    p.add_argument("--size", type=image_size, default=(640, 480), metavar="WxH",
-                   help="image size of the synthetic scene or of a camera (default 640x480)")
-    p.add_argument("--fps", type=positive_float, default=30.0, metavar="F",
-                   help="a camera's frame rate in Hz (default 30)")
-    p.add_argument("--timestamps", choices=("capture", "source"),
-                   help="frame timestamps: 'capture' = time.time() when sent (end-to-end "
-                        "latency measurable; default in live mode), 'source' = the data set's "
-                        "(default in lossless mode); recordings keep theirs")
+    p.add_argument(
+        "source",
+        metavar="SOURCE",
+        help="'synthetic' (the built-in scene), a TUM / Open3D-Redwood / 7-Scenes "
+        "folder, a recording FILE.mcap (sent exactly as recorded), or a "
+        "camera: depthai[:DEVICE_ID] (Luxonis OAK), openni2[:URI] or FILE.oni "
+        "(OpenNI2 device or recording), realsense[:SERIAL] (Intel RealSense); "
+        "cameras need their extra: pip install 'arlight[depthai]' etc.",
+    )
+    p.add_argument(
+        "--session",
+        metavar="NAME",
+        help="session name, [A-Za-z0-9_.-]{1,64} "
+        "(default: the source's name plus 4 random hex digits; a recording: its own)",
+    )
+    p.add_argument(
+        "--mode",
+        choices=("live", "lossless"),
+        help="live: latest frame wins, drops counted (default); lossless: every "
+        "frame processed once, in order (for recorded streams)",
+    )
+    p.add_argument(
+        "--color-codec",
+        choices=COLOR_CODECS,
+        default=DEFAULT_COLOR_CODEC,
+        help=f"colour codec (default {DEFAULT_COLOR_CODEC}; png/raw are lossless)",
+    )
+    p.add_argument(
+        "--depth-codec",
+        choices=DEPTH_CODECS,
+        default=DEFAULT_DEPTH_CODEC,
+        help=f"depth codec, all lossless (default {DEFAULT_DEPTH_CODEC})",
+    )
+    p.add_argument(
+        "--jpeg-quality",
+        type=jpeg_quality,
+        default=DEFAULT_JPEG_QUALITY,
+        metavar="Q",
+        help=f"JPEG quality 1..100 (default {DEFAULT_JPEG_QUALITY})",
+    )
+    p.add_argument(
+        "--preset",
+        choices=PRESETS,
+        help="the session's pipeline preset (default full; a recording: its own)",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        type=config_override,
+        metavar="KEY=VALUE",
+        help="override a pipeline Config field for the session",
+    )
+    p.add_argument(
+        "--composite",
+        action="store_true",
+        help="ask the server for the composited frame in every Result (for "
+        "display clients): the input colour image with the --scene objects "
+        "rendered in under the estimated light (their shading, shadows "
+        "and one bounce of indirect light); without --scene, the input "
+        "colour image unchanged",
+    )
+    p.add_argument(
+        "--poses",
+        choices=("groundtruth", "track"),
+        default="track",
+        help="'groundtruth': send the data set's camera poses (tracking is then "
+        "skipped); 'track' (default): the server tracks the camera",
+    )
+    p.add_argument(
+        "--max-frames",
+        type=positive_int,
+        metavar="N",
+        help="only the first N frames "
+        "(with --loop: N frames in total); synthetic: the number of frames (12)",
+    )
+    p.add_argument(
+        "--depth-encoding",
+        choices=DEPTH_ENCODINGS,
+        help="depth encoding of a data set (default: from its layout)",
+    )
+    p.add_argument(
+        "--size",
+        type=image_size,
+        default=(640, 480),
+        metavar="WxH",
+        help="image size of the synthetic scene or of a camera (default 640x480)",
+    )
+    p.add_argument(
+        "--fps",
+        type=positive_float,
+        default=30.0,
+        metavar="F",
+        help="a camera's frame rate in Hz (default 30)",
+    )
+    p.add_argument(
+        "--timestamps",
+        choices=("capture", "source"),
+        help="frame timestamps: 'capture' = time.time() when sent (end-to-end "
+        "latency measurable; default in live mode), 'source' = the data set's "
+        "(default in lossless mode); recordings keep theirs",
+    )
     add_scene_options(p)
 
 
 def add_key_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--server-key", metavar="DIR/server.key",
-                   help="the server's public CURVE key (for a server run with --keys DIR)")
-    p.add_argument("--client-key", metavar="DIR/NAME.key_secret",
-                   help="this client's CURVE key pair; its public half must be in the "
-                        "server's DIR/authorized/")
+    p.add_argument(
+        "--server-key",
+        metavar="DIR/server.key",
+        help="the server's public CURVE key (for a server run with --keys DIR)",
+    )
+    p.add_argument(
+        "--client-key",
+        metavar="DIR/NAME.key_secret",
+        help="this client's CURVE key pair; its public half must be in the "
+        "server's DIR/authorized/",
+    )
 
 
 def add_reconnect_timeout(p: argparse.ArgumentParser) -> None:
     """--reconnect-timeout, shared by the two clients (stream, display)."""
-    p.add_argument("--reconnect-timeout", type=positive_float, default=30.0, metavar="S",
-                   help="give up after S seconds without a server (default 30)")
+    p.add_argument(
+        "--reconnect-timeout",
+        type=positive_float,
+        default=30.0,
+        metavar="S",
+        help="give up after S seconds without a server (default 30)",
+    )
 
 
 def add_foxglove_options(parser, what: str) -> None:
     """--foxglove, --port, --foxglove-host (stream and display)."""
-    parser.add_argument("--foxglove", action="store_true",
-                        help=f"serve {what} live over Foxglove's WebSocket protocol (open "
-                             "ws://HOST:PORT in the Foxglove app)")
-    parser.add_argument("--port", type=port, metavar="P",
-                        help="with --foxglove: its port (default 8765; 0 = any free port)")
-    parser.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
-                        help="with --foxglove: the address to bind (default 127.0.0.1; "
-                             "0.0.0.0 for other machines)")
+    parser.add_argument(
+        "--foxglove",
+        action="store_true",
+        help=f"serve {what} live over Foxglove's WebSocket protocol (open "
+        "ws://HOST:PORT in the Foxglove app)",
+    )
+    parser.add_argument(
+        "--port",
+        type=port,
+        metavar="P",
+        help="with --foxglove: its port (default 8765; 0 = any free port)",
+    )
+    parser.add_argument(
+        "--foxglove-host",
+        default="127.0.0.1",
+        metavar="HOST",
+        help="with --foxglove: the address to bind (default 127.0.0.1; 0.0.0.0 for other machines)",
+    )
 
 
 def foxglove_address(args: argparse.Namespace) -> tuple[str, int] | None:
@@ -121,9 +201,13 @@ def warn_if_exposed(flag: str, host: str, port: int) -> None:
     """A viewer served beyond loopback has neither keys nor token: say so
     (docs/guides/security.md)."""
     if not is_loopback(f"tcp://{host}:{port}"):
-        print(f"arlight: warning: {flag} {host}: what it shows (composite, light; a stream: "
-              f"the camera) is served on port {port} to anyone who can reach this machine, "
-              f"without keys or token (docs/guides/security.md)", file=sys.stderr, flush=True)
+        print(
+            f"arlight: warning: {flag} {host}: what it shows (composite, light; a stream: "
+            f"the camera) is served on port {port} to anyone who can reach this machine, "
+            f"without keys or token (docs/guides/security.md)",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def client_keys(args: argparse.Namespace) -> ClientKeys | None:
@@ -133,8 +217,10 @@ def client_keys(args: argparse.Namespace) -> ClientKeys | None:
     if server_key is None and client_key is None:
         return None
     if server_key is None or client_key is None:
-        raise BadInput("give both --server-key DIR/server.key and --client-key "
-                       "DIR/NAME.key_secret (made by `arlight keys generate DIR`), or neither")
+        raise BadInput(
+            "give both --server-key DIR/server.key and --client-key "
+            "DIR/NAME.key_secret (made by `arlight keys generate DIR`), or neither"
+        )
     return ClientKeys.load(server_key, client_key)
 
 
@@ -147,8 +233,10 @@ def token_of(args: argparse.Namespace) -> str | None:
     if token_file:
         return read_token_file(token_file, "--token-file")
     if token is not None and not TOKEN_RE.fullmatch(token):
-        raise BadInput("--token expects 16..128 characters from A-Z a-z 0-9 _ - (as "
-                       "`arlight stream` prints it)")
+        raise BadInput(
+            "--token expects 16..128 characters from A-Z a-z 0-9 _ - (as "
+            "`arlight stream` prints it)"
+        )
     return token
 
 
@@ -160,8 +248,9 @@ def panorama_config(args: argparse.Namespace) -> PanoramaConfig | None:
     rotation = getattr(args, "panorama_from_world", None)
     if operator is None and light_source is None and rotation is None:
         return None
-    return PanoramaConfig(operator, light_source or "rgbd",
-                          rotation or PanoramaConfig().panorama_from_world)
+    return PanoramaConfig(
+        operator, light_source or "rgbd", rotation or PanoramaConfig().panorama_from_world
+    )
 
 
 def stream_options(args: argparse.Namespace, source):
@@ -176,19 +265,27 @@ def stream_options(args: argparse.Namespace, source):
         overrides[key] = value
     composite = args.composite or bool(recorded and recorded.want_composite)
     return StreamOptions(
-        server=check_address(getattr(args, "server", None) or "tcp://127.0.0.1:5555",
-                             "--server"),
+        server=check_address(getattr(args, "server", None) or "tcp://127.0.0.1:5555", "--server"),
         session=args.session or (recorded.session if recorded else None),
-        client_name=f"arlight-{args.command}", mode=mode, rate=getattr(args, "rate", "max"),
-        loop=getattr(args, "loop", False), color_codec=args.color_codec,
-        depth_codec=args.depth_codec, jpeg_quality=args.jpeg_quality, preset=preset,
-        overrides=overrides, want_composite=composite, timestamps=args.timestamps,
+        client_name=f"arlight-{args.command}",
+        mode=mode,
+        rate=getattr(args, "rate", "max"),
+        loop=getattr(args, "loop", False),
+        color_codec=args.color_codec,
+        depth_codec=args.depth_codec,
+        jpeg_quality=args.jpeg_quality,
+        preset=preset,
+        overrides=overrides,
+        want_composite=composite,
+        timestamps=args.timestamps,
         max_frames=args.max_frames if getattr(args, "loop", False) else None,
         reconnect_timeout_s=getattr(args, "reconnect_timeout", 30.0),
-        scene=load_scene(args), panorama=panorama_config(args),
-        exports=tuple(getattr(args, "export", None) or
-                      (recorded.exports if recorded else ())),
-        token=token_of(args), keys=client_keys(args))
+        scene=load_scene(args),
+        panorama=panorama_config(args),
+        exports=tuple(getattr(args, "export", None) or (recorded.exports if recorded else ())),
+        token=token_of(args),
+        keys=client_keys(args),
+    )
 
 
 def open_stream_source(args: argparse.Namespace):
@@ -211,10 +308,17 @@ def _open_rgbd_source(args: argparse.Namespace):
     from arlight.sources.source import open_source
 
     if getattr(args, "loop", False) and parse_camera_spec(args.source) is not None:
-        raise BadInput(f"--loop does not apply to a camera (SOURCE {args.source}): it streams "
-                       "until --max-frames N or Ctrl-C")
+        raise BadInput(
+            f"--loop does not apply to a camera (SOURCE {args.source}): it streams "
+            "until --max-frames N or Ctrl-C"
+        )
     # its notes (defaults chosen for the data) are logged as warnings
-    return open_source(args.source, use_poses=args.poses == "groundtruth",
-                       max_frames=args.max_frames, depth_encoding=args.depth_encoding,
-                       synthetic_size=args.size, synthetic_frames=args.max_frames or 12,
-                       camera_fps=args.fps)
+    return open_source(
+        args.source,
+        use_poses=args.poses == "groundtruth",
+        max_frames=args.max_frames,
+        depth_encoding=args.depth_encoding,
+        synthetic_size=args.size,
+        synthetic_frames=args.max_frames or 12,
+        camera_fps=args.fps,
+    )

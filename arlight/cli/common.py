@@ -25,6 +25,7 @@ class BadInput(ValueError):
 
 # --------------------------------------------------------------------------- argument types
 
+
 def int_at_least(text: str, low: int) -> int:
     try:
         value = int(text)
@@ -100,8 +101,9 @@ def rotation_3x3(text: str) -> tuple[float, ...]:
     except ValueError:
         values = ()
     if len(values) != 9:
-        raise argparse.ArgumentTypeError(f"expected 9 comma-separated numbers (a 3x3 rotation, "
-                                         f"row-major), got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"expected 9 comma-separated numbers (a 3x3 rotation, row-major), got {text!r}"
+        )
     return values
 
 
@@ -127,23 +129,31 @@ def engine_layouts(text: str) -> list[str]:
     if bad or not names:
         raise argparse.ArgumentTypeError(
             f"unknown engine layout {', '.join(bad) or repr(text)}; choose from "
-            f"{', '.join(EXPORTERS)} (comma-separated)")
+            f"{', '.join(EXPORTERS)} (comma-separated)"
+        )
     return names
 
 
 # --------------------------------------------------------------------------- shared options
 
+
 def add_scene_options(p: argparse.ArgumentParser) -> None:
     """--scene and --scene-frame, shared by estimate, stream and record."""
-    p.add_argument("--scene", metavar="FILE",
-                   help="virtual objects to render into the frames: a scene file (JSON or "
-                        "TOML, see docs/scene-files.md; e.g. a data set's ar/virtual_scene."
-                        "json), or 'demo' (a sphere and a torus standing on the detected "
-                        "ground)")
-    p.add_argument("--scene-frame", choices=("world", "cam0"),
-                   help="frame of the scene file's poses: 'world' = the data set's pose frame "
-                        "(default with --poses groundtruth), 'cam0' = the first camera "
-                        "(default when tracking, whose world is the first camera)")
+    p.add_argument(
+        "--scene",
+        metavar="FILE",
+        help="virtual objects to render into the frames: a scene file (JSON or "
+        "TOML, see docs/scene-files.md; e.g. a data set's ar/virtual_scene."
+        "json), or 'demo' (a sphere and a torus standing on the detected "
+        "ground)",
+    )
+    p.add_argument(
+        "--scene-frame",
+        choices=("world", "cam0"),
+        help="frame of the scene file's poses: 'world' = the data set's pose frame "
+        "(default with --poses groundtruth), 'cam0' = the first camera "
+        "(default when tracking, whose world is the first camera)",
+    )
 
 
 def build_config(args: argparse.Namespace):
@@ -181,8 +191,9 @@ def load_scene(args: argparse.Namespace, image_size: tuple[int, int] = (640, 480
 def check_address(address: str, option: str) -> str:
     """A ZeroMQ address, or BadInput naming `option`."""
     if not address.startswith(("tcp://", "ipc://", "inproc://")):
-        raise BadInput(f"{option} expects a ZeroMQ address such as tcp://HOST:PORT, "
-                       f"got {address!r}")
+        raise BadInput(
+            f"{option} expects a ZeroMQ address such as tcp://HOST:PORT, got {address!r}"
+        )
     return address
 
 
@@ -199,6 +210,7 @@ def output_folder(path: str | None, option: str) -> Path | None:
 
 
 # --------------------------------------------------------------------------- output text
+
 
 def count(n: int, noun: str) -> str:
     """'1 frame', '2 frames'."""

@@ -37,56 +37,104 @@ DEFAULT_MEMORY_MB = 1024.0
 
 def add_parser(sub) -> None:
     est = sub.add_parser(
-        "estimate", help="estimate the lighting of an RGB-D sequence, one JSON line per frame",
+        "estimate",
+        help="estimate the lighting of an RGB-D sequence, one JSON line per frame",
         description="Estimate spherical-harmonics lighting per frame. PATH is a TUM RGB-D "
-                    "folder, an Open3D/Redwood folder, a 7-Scenes folder, a colour image "
-                    "(with --depth, or a *depth* file beside it), or 'synthetic' (the "
-                    "built-in scene with known light; the default).")
+        "folder, an Open3D/Redwood folder, a 7-Scenes folder, a colour image "
+        "(with --depth, or a *depth* file beside it), or 'synthetic' (the "
+        "built-in scene with known light; the default).",
+    )
     est.add_argument("path", nargs="?", default="synthetic", metavar="PATH")
-    est.add_argument("--preset", choices=PRESETS, default="full",
-                     help="speed/accuracy preset (default: full, the paper's 'Ours')")
-    est.add_argument("--poses", choices=("groundtruth", "track"), default="track",
-                     help="'groundtruth': use the data set's camera poses and skip tracking; "
-                          "'track' (default): frame-to-model tracking")
+    est.add_argument(
+        "--preset",
+        choices=PRESETS,
+        default="full",
+        help="speed/accuracy preset (default: full, the paper's 'Ours')",
+    )
+    est.add_argument(
+        "--poses",
+        choices=("groundtruth", "track"),
+        default="track",
+        help="'groundtruth': use the data set's camera poses and skip tracking; "
+        "'track' (default): frame-to-model tracking",
+    )
     est.add_argument("--rgb", action="store_true", help="also estimate one SH per RGB channel")
     est.add_argument("--out", metavar="FILE", help="write results as JSON lines to FILE")
-    est.add_argument("--max-frames", type=positive_int, metavar="N",
-                     help="only the first N frames (synthetic: its length, default 12)")
+    est.add_argument(
+        "--max-frames",
+        type=positive_int,
+        metavar="N",
+        help="only the first N frames (synthetic: its length, default 12)",
+    )
     est.add_argument("--depth", metavar="FILE", help="depth image for a single colour image")
-    est.add_argument("--depth-encoding", choices=DEPTH_ENCODINGS,
-                     help="depth encoding (default: from the data set's layout or file name)")
+    est.add_argument(
+        "--depth-encoding",
+        choices=DEPTH_ENCODINGS,
+        help="depth encoding (default: from the data set's layout or file name)",
+    )
     est.add_argument("--device", help="Open3D device for the volume, e.g. CUDA:0 (default CPU:0)")
-    est.add_argument("--set", action="append", type=config_override, metavar="KEY=VALUE",
-                     help="override any Config field, e.g. --set rt_directions=128; the "
-                          "settings are priced by the server's cost model first (see "
-                          "--frame-deadline)")
+    est.add_argument(
+        "--set",
+        action="append",
+        type=config_override,
+        metavar="KEY=VALUE",
+        help="override any Config field, e.g. --set rt_directions=128; the "
+        "settings are priced by the server's cost model first (see "
+        "--frame-deadline)",
+    )
     add_scene_options(est)
-    est.add_argument("--composite-out", metavar="DIR",
-                     help="write each frame's composite (the virtual objects rendered in) as "
-                          "DIR/NNNNNN.png, NNNNNN the frame's index; without --scene, the "
-                          "input frames")
-    est.add_argument("--export", type=engine_layouts, metavar="LAYOUTS",
-                     help="also put the light in these engines' layouts into each JSON line "
-                          "(\"exports\"; camera frame, the engine's axes): comma-separated "
-                          "from " + LAYOUT_NAMES)
-    est.add_argument("--env-exr", metavar="DIR",
-                     help="write the estimated light per frame as an equirectangular HDR map "
-                          "DIR/NNNNNN.exr (OpenEXR half float, world frame, +y up)")
-    est.add_argument("--env-size", type=even_int_at_least_2, default=256, metavar="W",
-                     help="width of the --env-exr maps in pixels (even; default 256)")
-    est.add_argument("--cubemap", action="store_true",
-                     help="with --env-exr, also write the six cube faces NNNNNN_px.exr ... "
-                          "(OpenGL face order and orientation, W / 4 pixels a side)")
-    est.add_argument("--frame-deadline", type=positive_float, default=DEFAULT_FRAME_DEADLINE_S,
-                     metavar="S",
-                     help="refuse settings (--preset, --set, image size, --scene) that the "
-                          "server's cost model prices over S seconds a frame, as `arlight "
-                          f"serve` does (default {DEFAULT_FRAME_DEADLINE_S:g}, the server's); "
-                          "raise it for a slow offline run")
-    est.add_argument("--memory-mb", type=at_least_1_mb, default=DEFAULT_MEMORY_MB,
-                     metavar="MB",
-                     help="likewise for the memory the cost model prices (default "
-                          f"{DEFAULT_MEMORY_MB:g}, the server's per-session budget)")
+    est.add_argument(
+        "--composite-out",
+        metavar="DIR",
+        help="write each frame's composite (the virtual objects rendered in) as "
+        "DIR/NNNNNN.png, NNNNNN the frame's index; without --scene, the "
+        "input frames",
+    )
+    est.add_argument(
+        "--export",
+        type=engine_layouts,
+        metavar="LAYOUTS",
+        help="also put the light in these engines' layouts into each JSON line "
+        '("exports"; camera frame, the engine\'s axes): comma-separated '
+        "from " + LAYOUT_NAMES,
+    )
+    est.add_argument(
+        "--env-exr",
+        metavar="DIR",
+        help="write the estimated light per frame as an equirectangular HDR map "
+        "DIR/NNNNNN.exr (OpenEXR half float, world frame, +y up)",
+    )
+    est.add_argument(
+        "--env-size",
+        type=even_int_at_least_2,
+        default=256,
+        metavar="W",
+        help="width of the --env-exr maps in pixels (even; default 256)",
+    )
+    est.add_argument(
+        "--cubemap",
+        action="store_true",
+        help="with --env-exr, also write the six cube faces NNNNNN_px.exr ... "
+        "(OpenGL face order and orientation, W / 4 pixels a side)",
+    )
+    est.add_argument(
+        "--frame-deadline",
+        type=positive_float,
+        default=DEFAULT_FRAME_DEADLINE_S,
+        metavar="S",
+        help="refuse settings (--preset, --set, image size, --scene) that the "
+        "server's cost model prices over S seconds a frame, as `arlight "
+        f"serve` does (default {DEFAULT_FRAME_DEADLINE_S:g}, the server's); "
+        "raise it for a slow offline run",
+    )
+    est.add_argument(
+        "--memory-mb",
+        type=at_least_1_mb,
+        default=DEFAULT_MEMORY_MB,
+        metavar="MB",
+        help="likewise for the memory the cost model prices (default "
+        f"{DEFAULT_MEMORY_MB:g}, the server's per-session budget)",
+    )
     est.set_defaults(func=run)
 
 
@@ -99,8 +147,11 @@ def run(args: argparse.Namespace) -> int:
     require_device(config.device)  # before the source is read
     camera, frames, truth = _open_source(args)
     n = len(frames)
-    print(f"arlight estimate: {args.path} ({count(n, 'frame')}, {camera.width}x{camera.height}), "
-          f"preset {config.preset}, poses {args.poses}", file=sys.stderr)
+    print(
+        f"arlight estimate: {args.path} ({count(n, 'frame')}, {camera.width}x{camera.height}), "
+        f"preset {config.preset}, poses {args.poses}",
+        file=sys.stderr,
+    )
     scene = load_scene(args, (camera.width, camera.height))
     _check_cost(args, config, camera, len(scene.objects) if scene else 0)
     pipeline = Pipeline(config, camera, scene)
@@ -112,26 +163,29 @@ def run(args: argparse.Namespace) -> int:
     errors = []
     notes = FrameNotes()
     try:
-        for done in estimate_frames(pipeline, (frames[i] for i in range(n)),
-                                    tuple(args.export or ())):
+        for done in estimate_frames(
+            pipeline, (frames[i] for i in range(n)), tuple(args.export or ())
+        ):
             i, result, record = done.index, done.result, done.record
             d = result.dominant_direction_camera
-            line = (f"[{i + 1:>4}/{n}] t={result.timestamp:.3f}s  light(cam)=({d[0]:+.2f}, "
-                    f"{d[1]:+.2f}, {d[2]:+.2f})  intensity={result.intensity:.3g}  "
-                    f"conf={result.confidence.value:.2f}  bands={result.confidence.bands_estimated}"
-                    f"  {done.process_ms:.0f} ms")
+            line = (
+                f"[{i + 1:>4}/{n}] t={result.timestamp:.3f}s  light(cam)=({d[0]:+.2f}, "
+                f"{d[1]:+.2f}, {d[2]:+.2f})  intensity={result.intensity:.3g}  "
+                f"conf={result.confidence.value:.2f}  bands={result.confidence.bands_estimated}"
+                f"  {done.process_ms:.0f} ms"
+            )
             if truth is not None:
                 # in the camera frame: tracking's world is the first camera, the scene's
                 # world is its own, and the camera frame is the one both share; against the
                 # light that can reach the scene (its upper hemisphere), as `arlight bench`
-                err = _angle_deg(result.dominant_direction_camera,
-                                 truth[i].dominant_upper_camera)
+                err = _angle_deg(result.dominant_direction_camera, truth[i].dominant_upper_camera)
                 errors.append(err)
                 record["angular_error_deg"] = err
                 line += f"  error={err:.1f} deg"
             print(line, flush=True)
-            note = notes.note(result.confidence.value, result.confidence.reason,
-                              has_usable_depth(done.frame))
+            note = notes.note(
+                result.confidence.value, result.confidence.reason, has_usable_depth(done.frame)
+            )
             if note:
                 print(f"arlight estimate: [{i + 1}/{n}] {note}", file=sys.stderr, flush=True)
             if out:
@@ -147,15 +201,21 @@ def run(args: argparse.Namespace) -> int:
     if notes.summary():
         print(f"arlight estimate: {notes.summary()}", file=sys.stderr)
     if errors:
-        print(f"median angular error of the dominant light: {np.nanmedian(errors):.1f} deg "
-              f"(90th percentile {np.nanpercentile(errors, 90):.1f})", file=sys.stderr)
+        print(
+            f"median angular error of the dominant light: {np.nanmedian(errors):.1f} deg "
+            f"(90th percentile {np.nanpercentile(errors, 90):.1f})",
+            file=sys.stderr,
+        )
     if args.out:
         print(f"wrote {count(n, 'result')} to {args.out}", file=sys.stderr)
     if composites is not None:
         print(f"wrote {count(n, 'composite')} to {composites}/", file=sys.stderr)
     if environments is not None:
-        print(f"wrote {count(n, 'environment map')} to {environments}/ (OpenEXR, half float"
-              f"{', with cubemap faces' if args.cubemap else ''})", file=sys.stderr)
+        print(
+            f"wrote {count(n, 'environment map')} to {environments}/ (OpenEXR, half float"
+            f"{', with cubemap faces' if args.cubemap else ''})",
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -170,12 +230,18 @@ def _check_cost(args: argparse.Namespace, config, camera, objects: int) -> None:
         check_cost(config, camera, objects, budget)
     except BudgetError as exc:
         given = {key for key, _ in args.set or ()}
-        flag = (f"--set {exc}" if exc.setting in given
-                else f"the image size {camera.width}x{camera.height} of {args.path}: {exc}"
-                if exc.setting == "calibration" else f"--preset {config.preset}: {exc}")
-        raise BadInput(f"{flag}. arlight estimate prices its settings as the server does; "
-                       f"--frame-deadline S and --memory-mb MB raise its limits "
-                       f"({args.frame_deadline:g} s, {args.memory_mb:g} MiB)") from None
+        flag = (
+            f"--set {exc}"
+            if exc.setting in given
+            else f"the image size {camera.width}x{camera.height} of {args.path}: {exc}"
+            if exc.setting == "calibration"
+            else f"--preset {config.preset}: {exc}"
+        )
+        raise BadInput(
+            f"{flag}. arlight estimate prices its settings as the server does; "
+            f"--frame-deadline S and --memory-mb MB raise its limits "
+            f"({args.frame_deadline:g} s, {args.memory_mb:g} MiB)"
+        ) from None
 
 
 def _open_source(args: argparse.Namespace):
@@ -189,14 +255,17 @@ def _open_source(args: argparse.Namespace):
         from arlight.sources.synthetic import make_sequence
 
         synthetic = make_sequence(num_frames=args.max_frames or 12)
-        frames = [f if use_poses else dataclasses.replace(f, pose=None)
-                  for f in synthetic.frames]
+        frames = [f if use_poses else dataclasses.replace(f, pose=None) for f in synthetic.frames]
         return synthetic.camera, frames, scene_truth(synthetic)
     if args.depth:
         seq = without_poses(open_pair(args.path, args.depth, args.depth_encoding), use_poses)
     else:
-        seq = open_sequence(args.path, depth_encoding=args.depth_encoding, use_poses=use_poses,
-                            max_frames=args.max_frames)
+        seq = open_sequence(
+            args.path,
+            depth_encoding=args.depth_encoding,
+            use_poses=use_poses,
+            max_frames=args.max_frames,
+        )
     return seq.camera, seq.frames, None
 
 
@@ -218,4 +287,3 @@ def _write_environment(folder: Path, index: int, result, width: int, cubemap: bo
     if cubemap:
         for face, image in cubemap_from_sh(light, max(1, width // 4)).items():
             write_exr(folder / f"{index:06d}_{face}.exr", image)
-

@@ -12,10 +12,12 @@ from arlight.cli.common import BadInput, count
 
 def add_parser(sub) -> None:
     rec = sub.add_parser(
-        "record", help="record a source as a stream into one MCAP file (no server needed)",
+        "record",
+        help="record a source as a stream into one MCAP file (no server needed)",
         description="Write the stream `arlight stream SOURCE` would send (session config, "
-                    "frames as encoded, timestamps) to one MCAP file; `arlight stream "
-                    "FILE.mcap` replays it bit-exactly.")
+        "frames as encoded, timestamps) to one MCAP file; `arlight stream "
+        "FILE.mcap` replays it bit-exactly.",
+    )
     add_source_options(rec)
     rec.add_argument("--out", required=True, metavar="FILE.mcap", help="the MCAP file to write")
     rec.set_defaults(func=run)
@@ -33,12 +35,14 @@ def run(args: argparse.Namespace) -> int:
 
     def on_frame(seq: int, parts) -> None:
         size = sum(len(memoryview(p)) for p in parts)
-        print(f"[{seq + 1:>5}/{source.num_frames or 'live'}] {size / 1024:8.1f} KiB",
-              flush=True)
+        print(f"[{seq + 1:>5}/{source.num_frames or 'live'}] {size / 1024:8.1f} KiB", flush=True)
 
     n, session = record(source, args.out, options, on_frame=on_frame)
-    print(f"arlight record: wrote {count(n, 'frame')} (session {session}, "
-          f"{options.mode}, colour {options.color_codec}, depth {options.depth_codec}) to "
-          f"{args.out} in {time.perf_counter() - t0:.1f} s; replay with `arlight stream "
-          f"{args.out} --server tcp://HOST:PORT`", file=sys.stderr)
+    print(
+        f"arlight record: wrote {count(n, 'frame')} (session {session}, "
+        f"{options.mode}, colour {options.color_codec}, depth {options.depth_codec}) to "
+        f"{args.out} in {time.perf_counter() - t0:.1f} s; replay with `arlight stream "
+        f"{args.out} --server tcp://HOST:PORT`",
+        file=sys.stderr,
+    )
     return 0

@@ -35,47 +35,81 @@ from arlight.protocols.records import pipeline_ms
 
 def add_parser(sub) -> None:
     stream = sub.add_parser(
-        "stream", help="stream a source to a server and print the lighting per frame",
+        "stream",
+        help="stream a source to a server and print the lighting per frame",
         description="Stream RGB-D frames to an arlight server (`arlight serve`) and print "
-                    "the Result of each frame. Reconnects if the server restarts (lossless "
-                    "mode re-sends unacknowledged frames, so none is lost).")
+        "the Result of each frame. Reconnects if the server restarts (lossless "
+        "mode re-sends unacknowledged frames, so none is lost).",
+    )
     add_source_options(stream)
-    stream.add_argument("--server", default="tcp://127.0.0.1:5555", metavar="ADDRESS",
-                        help="the server, tcp://HOST:PORT (default tcp://127.0.0.1:5555)")
-    stream.add_argument("--rate", choices=("native", "max"), default="native",
-                        help="native: at the source's own frame rate (default); max: as fast "
-                             "as the mode allows")
-    stream.add_argument("--loop", action="store_true", help="start over at the end (until "
-                        "--max-frames or Ctrl-C)")
-    stream.add_argument("--out", metavar="FILE",
-                        help="also write the Results as JSON lines ('-': standard output; "
-                             "the per-frame lines then go to standard error)")
-    stream.add_argument("--export", type=engine_layouts, metavar="LAYOUTS",
-                        help="ask the server for the light in these engines' layouts in every "
-                             "Result (\"exports\", also in the --out lines and what displays "
-                             "receive; camera frame, the engine's axes): comma-separated from "
-                             + LAYOUT_NAMES)
-    stream.add_argument("--record", metavar="FILE.mcap",
-                        help="also record the stream as sent to an MCAP file")
-    add_foxglove_options(stream, "the camera (colour, depth, calibration, pose) and the "
-                                 "Results that come back")
-    stream.add_argument("--panorama", metavar="FILE",
-                        help="also send this LDR 360-degree video (or images) with the RGB-D "
-                             "frames, paired by index; a SOURCE that is itself a video or "
-                             "image streams panorama-only frames")
-    stream.add_argument("--panorama-operator", choices=tuple(OPERATORS), metavar="NAME",
-                        help="the session's inverse tone mapping operator for the panorama "
-                             f"({', '.join(OPERATORS)}; default: the server's)")
-    stream.add_argument("--light-source", choices=("rgbd", "panorama"),
-                        help="which light renders the virtual objects when a frame has both "
-                             "RGB-D and a panorama (default rgbd)")
-    stream.add_argument("--panorama-from-world", type=rotation_3x3, metavar="R00,...,R22",
-                        help="3x3 rotation, row-major: d_panorama = R d_world (default "
-                             "identity)")
-    stream.add_argument("--token", metavar="T",
-                        help="the session token (16..128 of A-Z a-z 0-9 _ -): a new session "
-                             "takes it, resuming an existing one needs it; default random, "
-                             "printed for the displays")
+    stream.add_argument(
+        "--server",
+        default="tcp://127.0.0.1:5555",
+        metavar="ADDRESS",
+        help="the server, tcp://HOST:PORT (default tcp://127.0.0.1:5555)",
+    )
+    stream.add_argument(
+        "--rate",
+        choices=("native", "max"),
+        default="native",
+        help="native: at the source's own frame rate (default); max: as fast as the mode allows",
+    )
+    stream.add_argument(
+        "--loop", action="store_true", help="start over at the end (until --max-frames or Ctrl-C)"
+    )
+    stream.add_argument(
+        "--out",
+        metavar="FILE",
+        help="also write the Results as JSON lines ('-': standard output; "
+        "the per-frame lines then go to standard error)",
+    )
+    stream.add_argument(
+        "--export",
+        type=engine_layouts,
+        metavar="LAYOUTS",
+        help="ask the server for the light in these engines' layouts in every "
+        'Result ("exports", also in the --out lines and what displays '
+        "receive; camera frame, the engine's axes): comma-separated from " + LAYOUT_NAMES,
+    )
+    stream.add_argument(
+        "--record", metavar="FILE.mcap", help="also record the stream as sent to an MCAP file"
+    )
+    add_foxglove_options(
+        stream, "the camera (colour, depth, calibration, pose) and the Results that come back"
+    )
+    stream.add_argument(
+        "--panorama",
+        metavar="FILE",
+        help="also send this LDR 360-degree video (or images) with the RGB-D "
+        "frames, paired by index; a SOURCE that is itself a video or "
+        "image streams panorama-only frames",
+    )
+    stream.add_argument(
+        "--panorama-operator",
+        choices=tuple(OPERATORS),
+        metavar="NAME",
+        help="the session's inverse tone mapping operator for the panorama "
+        f"({', '.join(OPERATORS)}; default: the server's)",
+    )
+    stream.add_argument(
+        "--light-source",
+        choices=("rgbd", "panorama"),
+        help="which light renders the virtual objects when a frame has both "
+        "RGB-D and a panorama (default rgbd)",
+    )
+    stream.add_argument(
+        "--panorama-from-world",
+        type=rotation_3x3,
+        metavar="R00,...,R22",
+        help="3x3 rotation, row-major: d_panorama = R d_world (default identity)",
+    )
+    stream.add_argument(
+        "--token",
+        metavar="T",
+        help="the session token (16..128 of A-Z a-z 0-9 _ -): a new session "
+        "takes it, resuming an existing one needs it; default random, "
+        "printed for the displays",
+    )
     stream.add_argument("--token-file", metavar="FILE", help="read --token from FILE")
     add_key_options(stream)
     add_reconnect_timeout(stream)
@@ -102,8 +136,11 @@ def run(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise BadInput(f"--foxglove/--port: {exc}") from None
         live = FoxgloveStream(sink)
-        print(f"arlight stream: Foxglove WebSocket on ws://{foxglove[0]}:{sink.port}",
-              file=sys.stderr, flush=True)
+        print(
+            f"arlight stream: Foxglove WebSocket on ws://{foxglove[0]}:{sink.port}",
+            file=sys.stderr,
+            flush=True,
+        )
     recorder = None
     if args.record:
         from arlight.client.recording import Recorder
@@ -118,17 +155,24 @@ def run(args: argparse.Namespace) -> int:
         d = result.dominant_direction_camera
         in_server_ms = (result.server_finish_time - result.server_receive_time) * 1e3
         conf = result.confidence.value
-        print(f"[{result.seq + 1:>5}/{total}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
-              f"{d[2]:+.2f})  conf={conf:.2f}  "
-              f"pipeline {pipeline_ms(result):5.0f} ms  in server {in_server_ms:5.0f} ms  "
-              f"received {result.frames_received}  dropped {result.frames_dropped}"
-              + ("" if result.panorama_dominant_direction is None else "  panorama light=("
-                 + ", ".join(f"{x:+.2f}" for x in result.panorama_dominant_direction) + ")"),
-              file=sys.stderr if to_stdout else sys.stdout, flush=True)
+        print(
+            f"[{result.seq + 1:>5}/{total}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
+            f"{d[2]:+.2f})  conf={conf:.2f}  "
+            f"pipeline {pipeline_ms(result):5.0f} ms  in server {in_server_ms:5.0f} ms  "
+            f"received {result.frames_received}  dropped {result.frames_dropped}"
+            + (
+                ""
+                if result.panorama_dominant_direction is None
+                else "  panorama light=("
+                + ", ".join(f"{x:+.2f}" for x in result.panorama_dominant_direction)
+                + ")"
+            ),
+            file=sys.stderr if to_stdout else sys.stdout,
+            flush=True,
+        )
         note = notes.note(conf, result.confidence.reason)
         if note:
-            print(f"arlight stream: [{result.seq + 1}/{total}] {note}", file=sys.stderr,
-                  flush=True)
+            print(f"arlight stream: [{result.seq + 1}/{total}] {note}", file=sys.stderr, flush=True)
         if out or recorder is not None or live is not None:
             record = received_record(result, receive_time_wall)  # with the server's exports
         if recorder is not None:  # the Foxglove channels of the Result beside the frames
@@ -140,22 +184,36 @@ def run(args: argparse.Namespace) -> int:
 
     sinks = recorder if live is None else Recorders(recorder, live)
     client = CaptureClient(source, options, on_result=on_result, recorder=sinks)
-    size = ("panorama only" if source.calibration is None
-            else f"{source.calibration.width}x{source.calibration.height}")
+    size = (
+        "panorama only"
+        if source.calibration is None
+        else f"{source.calibration.width}x{source.calibration.height}"
+    )
     frames = count(source.num_frames, "frame") if source.num_frames else "live"
-    print(f"arlight stream: {args.source} ({frames}, "
-          f"{size}) -> {options.server}, "
-          f"session {client.session!r}, {options.mode}, rate {options.rate}, colour "
-          f"{options.color_codec}, depth {options.depth_codec}"
-          + ("" if source.recorded_config is None else " (recorded frames, sent as recorded)"),
-          file=sys.stderr, flush=True)
-    keys = (f" --server-key {args.server_key} --client-key DIR/NAME.key_secret"
-            if options.keys else "")
-    token = (f"--token-file {args.token_file}" if getattr(args, "token_file", None)
-             else f"--token {client.token}")  # a token from a file stays off the screen
-    print(f"arlight stream: display with: arlight display --server {options.server} --session "
-          f"{client.session} {token}{keys}  (the token is a secret: whoever has it sees this "
-          "session)", file=sys.stderr, flush=True)
+    print(
+        f"arlight stream: {args.source} ({frames}, "
+        f"{size}) -> {options.server}, "
+        f"session {client.session!r}, {options.mode}, rate {options.rate}, colour "
+        f"{options.color_codec}, depth {options.depth_codec}"
+        + ("" if source.recorded_config is None else " (recorded frames, sent as recorded)"),
+        file=sys.stderr,
+        flush=True,
+    )
+    keys = (
+        f" --server-key {args.server_key} --client-key DIR/NAME.key_secret" if options.keys else ""
+    )
+    token = (
+        f"--token-file {args.token_file}"
+        if getattr(args, "token_file", None)
+        else f"--token {client.token}"
+    )  # a token from a file stays off the screen
+    print(
+        f"arlight stream: display with: arlight display --server {options.server} --session "
+        f"{client.session} {token}{keys}  (the token is a secret: whoever has it sees this "
+        "session)",
+        file=sys.stderr,
+        flush=True,
+    )
     try:
         summary = client.run()
     except StreamError as exc:
@@ -170,22 +228,31 @@ def run(args: argparse.Namespace) -> int:
         if live is not None:
             live.close()
     lat = summary.latencies_s
-    drops = (f"{summary.frames_dropped} dropped by the server (live: newest frame wins), "
-             f"{summary.frames_not_sent} not sent (send queue full), "
-             if options.mode == "live" else "")
+    drops = (
+        f"{summary.frames_dropped} dropped by the server (live: newest frame wins), "
+        f"{summary.frames_not_sent} not sent (send queue full), "
+        if options.mode == "live"
+        else ""
+    )
     median = f"{np.median(lat) * 1e3:.0f} ms" if lat else "-"
-    print(f"arlight stream: {count(summary.frames_sent, 'frame')} sent, "
-          f"{count(summary.results, 'result')}, "
-          f"{drops}{len(summary.errors)} rejected, {summary.reconnects} reconnect(s); "
-          f"send-to-result median {median}; {summary.elapsed_s:.1f} s", file=sys.stderr)
+    print(
+        f"arlight stream: {count(summary.frames_sent, 'frame')} sent, "
+        f"{count(summary.results, 'result')}, "
+        f"{drops}{len(summary.errors)} rejected, {summary.reconnects} reconnect(s); "
+        f"send-to-result median {median}; {summary.elapsed_s:.1f} s",
+        file=sys.stderr,
+    )
     if notes.summary():
         print(f"arlight stream: {notes.summary()}", file=sys.stderr)
     if recorder is not None:
         print(f"recorded {count(recorder.frames, 'frame')} to {args.record}", file=sys.stderr)
     if summary.errors:
         first = summary.errors[0]
-        print(f"arlight stream: {count(len(summary.errors), 'frame')} rejected by the server, "
-              "first: "
-              f"{first.code} {first.field or ''}: {first.message}", file=sys.stderr)
+        print(
+            f"arlight stream: {count(len(summary.errors), 'frame')} rejected by the server, "
+            "first: "
+            f"{first.code} {first.field or ''}: {first.message}",
+            file=sys.stderr,
+        )
         return 1
     return 0

@@ -23,8 +23,7 @@ def _frames_list(text: str) -> tuple[int, ...]:
     try:
         return tuple(int(x) for x in text.split(",") if x.strip())
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected frame indices like 1,4, got {text!r}"
-                                         ) from None
+        raise argparse.ArgumentTypeError(f"expected frame indices like 1,4, got {text!r}") from None
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -40,44 +39,99 @@ def add_parser(sub) -> None:
     from arlight.synth.virtual_objects import VIRTUAL_MATERIALS
 
     p = sub.add_parser(
-        "synth", help="render ground-truth RGB-D sequences under HDR maps (Mitsuba 3)",
+        "synth",
+        help="render ground-truth RGB-D sequences under HDR maps (Mitsuba 3)",
         description="Path-trace RGB-D sequences with per-frame lighting truth, in the layout "
-                    "of ../shared/data/synthetic (TUM folders, camera.json, groundtruth.txt, "
-                    "clean and sensor-like depth, lighting_gt.json, AR pairs in ar/). Either "
-                    "one sequence (--map, --layout, --out) or the benchmark corpus (--corpus: "
-                    "64 sequences over the 26 shared maps, into a cache folder, resumable). "
-                    "Needs the synth extra: pip install 'arlight[synth]'.")
-    p.add_argument("--map", action="append", default=[], metavar="NAME|FILE",
-                   help="equirectangular HDR map (.hdr/.exr; 2:1), a file or a name in "
-                        "--maps-dir; give it twice for a light change at --change-at")
-    p.add_argument("--rotation", action="append", type=float, default=[], metavar="DEG",
-                   help="rotation of each --map about world +Y in degrees (default 0)")
-    p.add_argument("--layout", default="static", choices=LAYOUTS,
-                   help="scene layout (default static)")
-    p.add_argument("--out", metavar="DIR",
-                   help="output folder: the sequence folder itself for one sequence; the "
-                        "corpus root with --corpus (default: " + str(default_cache()) + ")")
+        "of ../shared/data/synthetic (TUM folders, camera.json, groundtruth.txt, "
+        "clean and sensor-like depth, lighting_gt.json, AR pairs in ar/). Either "
+        "one sequence (--map, --layout, --out) or the benchmark corpus (--corpus: "
+        "64 sequences over the 26 shared maps, into a cache folder, resumable). "
+        "Needs the synth extra: pip install 'arlight[synth]'.",
+    )
+    p.add_argument(
+        "--map",
+        action="append",
+        default=[],
+        metavar="NAME|FILE",
+        help="equirectangular HDR map (.hdr/.exr; 2:1), a file or a name in "
+        "--maps-dir; give it twice for a light change at --change-at",
+    )
+    p.add_argument(
+        "--rotation",
+        action="append",
+        type=float,
+        default=[],
+        metavar="DEG",
+        help="rotation of each --map about world +Y in degrees (default 0)",
+    )
+    p.add_argument(
+        "--layout", default="static", choices=LAYOUTS, help="scene layout (default static)"
+    )
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="output folder: the sequence folder itself for one sequence; the "
+        "corpus root with --corpus (default: " + str(default_cache()) + ")",
+    )
     p.add_argument("--frames", type=int, default=8, metavar="N", help="frames (default 8)")
-    p.add_argument("--size", type=_size, default=(640, 480), metavar="WxH",
-                   help="image size (default 640x480; Kinect v1 focal length scaled)")
-    p.add_argument("--spp", type=int, default=32, metavar="N",
-                   help="samples per pixel (default 32, as the shared set)")
+    p.add_argument(
+        "--size",
+        type=_size,
+        default=(640, 480),
+        metavar="WxH",
+        help="image size (default 640x480; Kinect v1 focal length scaled)",
+    )
+    p.add_argument(
+        "--spp",
+        type=int,
+        default=32,
+        metavar="N",
+        help="samples per pixel (default 32, as the shared set)",
+    )
     p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
-    p.add_argument("--change-at", type=int, metavar="FRAME",
-                   help="with two --map: the frame the second one takes over (default half-way)")
-    p.add_argument("--ar-frames", type=_frames_list, default=(), metavar="I,J",
-                   help="frames rendered again with two virtual objects (AR pairs in ar/)")
-    p.add_argument("--virtual-material", choices=VIRTUAL_MATERIALS, default="diffuse",
-                   help="the virtual sphere's material in the AR pairs (default diffuse)")
-    p.add_argument("--maps-dir", default=str(DEFAULT_MAPS), metavar="DIR",
-                   help="where map names are looked up (default ../shared/data/hdri)")
-    p.add_argument("--corpus", nargs="?", const="builtin", metavar="FILE",
-                   help="render the corpus: the built-in definition, or a definition FILE")
-    p.add_argument("--only", metavar="PATTERN",
-                   help="with --corpus: only sequences whose name matches (glob, e.g. '*room*')")
-    p.add_argument("--limit", type=int, metavar="N",
-                   help="with --corpus: only the first N sequences (the order covers every "
-                        "layout early)")
+    p.add_argument(
+        "--change-at",
+        type=int,
+        metavar="FRAME",
+        help="with two --map: the frame the second one takes over (default half-way)",
+    )
+    p.add_argument(
+        "--ar-frames",
+        type=_frames_list,
+        default=(),
+        metavar="I,J",
+        help="frames rendered again with two virtual objects (AR pairs in ar/)",
+    )
+    p.add_argument(
+        "--virtual-material",
+        choices=VIRTUAL_MATERIALS,
+        default="diffuse",
+        help="the virtual sphere's material in the AR pairs (default diffuse)",
+    )
+    p.add_argument(
+        "--maps-dir",
+        default=str(DEFAULT_MAPS),
+        metavar="DIR",
+        help="where map names are looked up (default ../shared/data/hdri)",
+    )
+    p.add_argument(
+        "--corpus",
+        nargs="?",
+        const="builtin",
+        metavar="FILE",
+        help="render the corpus: the built-in definition, or a definition FILE",
+    )
+    p.add_argument(
+        "--only",
+        metavar="PATTERN",
+        help="with --corpus: only sequences whose name matches (glob, e.g. '*room*')",
+    )
+    p.add_argument(
+        "--limit",
+        type=int,
+        metavar="N",
+        help="with --corpus: only the first N sequences (the order covers every layout early)",
+    )
     p.set_defaults(func=run)
 
 
@@ -98,8 +152,9 @@ def run(args: argparse.Namespace) -> int:
 def _progress(total: int, label: str):
     from tqdm import tqdm
 
-    return tqdm(total=total, unit="frame", desc=label, disable=not sys.stderr.isatty(),
-                dynamic_ncols=True)
+    return tqdm(
+        total=total, unit="frame", desc=label, disable=not sys.stderr.isatty(), dynamic_ncols=True
+    )
 
 
 def _one(args: argparse.Namespace) -> int:
@@ -116,28 +171,48 @@ def _one(args: argparse.Namespace) -> int:
     change = args.change_at if args.change_at is not None else args.frames // 2
     if len(args.map) == 2 and not 0 < change < args.frames:
         raise ValueError(f"--change-at must be in 1..{args.frames - 1}, got {change}")
-    lights = tuple(LightState(m, float(r), 0 if k == 0 else change)
-                   for k, (m, r) in enumerate(zip(args.map, rotations, strict=False)))
+    lights = tuple(
+        LightState(m, float(r), 0 if k == 0 else change)
+        for k, (m, r) in enumerate(zip(args.map, rotations, strict=False))
+    )
     out = Path(args.out)
-    spec = SequenceSpec(out.name, args.layout, args.seed, lights, frames=args.frames,
-                        width=args.size[0], height=args.size[1], spp=args.spp,
-                        ar_frames=args.ar_frames, virtual_material=args.virtual_material)
+    spec = SequenceSpec(
+        out.name,
+        args.layout,
+        args.seed,
+        lights,
+        frames=args.frames,
+        width=args.size[0],
+        height=args.size[1],
+        spp=args.spp,
+        ar_frames=args.ar_frames,
+        virtual_material=args.virtual_material,
+    )
     spec.check(Path(args.maps_dir))
     mitsuba()
     bar = _progress(spec.frames, spec.name)
     t0 = time.perf_counter()
     try:
-        stats = generate(spec, out.parent if str(out.parent) else Path("."), Path(args.maps_dir),
-                         on_frame=lambda: bar.update(1))
+        stats = generate(
+            spec,
+            out.parent if str(out.parent) else Path("."),
+            Path(args.maps_dir),
+            on_frame=lambda: bar.update(1),
+        )
     finally:
         bar.close()
     if stats.frames_rendered == 0:
-        print(f"arlight synth: {out} is complete already (delete it to render it again)",
-              file=sys.stderr)
+        print(
+            f"arlight synth: {out} is complete already (delete it to render it again)",
+            file=sys.stderr,
+        )
     else:
-        print(f"arlight synth: wrote {out} ({spec.frames} frames, "
-              f"{stats.seconds / max(1, stats.frames_rendered):.1f} s a frame, "
-              f"{time.perf_counter() - t0:.0f} s in all)", file=sys.stderr)
+        print(
+            f"arlight synth: wrote {out} ({spec.frames} frames, "
+            f"{stats.seconds / max(1, stats.frames_rendered):.1f} s a frame, "
+            f"{time.perf_counter() - t0:.0f} s in all)",
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -151,7 +226,7 @@ def _corpus(args: argparse.Namespace) -> int:
     if args.only:
         chosen = [s for s in chosen if fnmatch.fnmatch(s.name, args.only)]
     if args.limit is not None:
-        chosen = chosen[:args.limit]
+        chosen = chosen[: args.limit]
     if not chosen:
         raise ValueError("no sequence of the corpus selected (check --only and --limit)")
     names = {s.name for s in chosen}
@@ -169,19 +244,35 @@ def _corpus(args: argparse.Namespace) -> int:
             import json
 
             with open(log, "a") as f:
-                f.write(json.dumps({"sequence": spec.name, "frames": spec.frames,
-                                    "renders": stats.renders, "spp": spec.spp,
-                                    "seconds": round(stats.seconds, 2),
-                                    "time": time.strftime("%Y-%m-%dT%H:%M:%S")}) + "\n")
+                f.write(
+                    json.dumps(
+                        {
+                            "sequence": spec.name,
+                            "frames": spec.frames,
+                            "renders": stats.renders,
+                            "spp": spec.spp,
+                            "seconds": round(stats.seconds, 2),
+                            "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                        }
+                    )
+                    + "\n"
+                )
         if not sys.stderr.isatty():
             print(f"arlight synth: {spec.name} done", file=sys.stderr, flush=True)
 
-    print(f"arlight synth: {len(chosen)} sequences ({len(done)} complete already) into {out}",
-          file=sys.stderr)
+    print(
+        f"arlight synth: {len(chosen)} sequences ({len(done)} complete already) into {out}",
+        file=sys.stderr,
+    )
     try:
-        render_corpus(definition, out, maps, only=lambda s: s.name in names and
-                      not (out / s.name / "lighting_gt.json").is_file(),
-                      on_frame=lambda: bar.update(1), on_sequence=finished)
+        render_corpus(
+            definition,
+            out,
+            maps,
+            only=lambda s: s.name in names and not (out / s.name / "lighting_gt.json").is_file(),
+            on_frame=lambda: bar.update(1),
+            on_sequence=finished,
+        )
     finally:
         bar.close()
     print(f"arlight synth: corpus complete in {out}", file=sys.stderr)

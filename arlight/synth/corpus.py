@@ -24,22 +24,50 @@ from arlight.synth.virtual_objects import VIRTUAL_MATERIALS
 
 DEFINITION_FILE = "corpus.json"
 # ../shared/data/README.md's table: the maps lit indoors (the rest are outdoor)
-INDOOR_MAPS = ("empty_warehouse_01", "studio_small_03", "aerodynamics_workshop", "autoshop_01",
-               "blocky_photo_studio", "brown_photostudio_01", "brown_photostudio_06",
-               "brown_photostudio_07", "christmas_photo_studio_07", "circus_arena",
-               "dancing_hall", "peppermint_powerplant", "sepulchral_chapel_rotunda",
-               "studio_small_05", "thatch_chapel", "vestibule")
-OUTDOOR_MAPS = ("venice_sunset", "potsdamer_platz", "forest_slope", "kiara_1_dawn",
-                "aristea_wreck_puresky", "chinese_garden", "hilly_terrain_01",
-                "modern_buildings_2", "phalzer_forest_01", "st_peters_square_night")
+INDOOR_MAPS = (
+    "empty_warehouse_01",
+    "studio_small_03",
+    "aerodynamics_workshop",
+    "autoshop_01",
+    "blocky_photo_studio",
+    "brown_photostudio_01",
+    "brown_photostudio_06",
+    "brown_photostudio_07",
+    "christmas_photo_studio_07",
+    "circus_arena",
+    "dancing_hall",
+    "peppermint_powerplant",
+    "sepulchral_chapel_rotunda",
+    "studio_small_05",
+    "thatch_chapel",
+    "vestibule",
+)
+OUTDOOR_MAPS = (
+    "venice_sunset",
+    "potsdamer_platz",
+    "forest_slope",
+    "kiara_1_dawn",
+    "aristea_wreck_puresky",
+    "chinese_garden",
+    "hilly_terrain_01",
+    "modern_buildings_2",
+    "phalzer_forest_01",
+    "st_peters_square_night",
+)
 # the layout whose distant light never holds gets more samples: its interior is lit
 # indirectly through openings, and 32 spp leave it too noisy to judge (docs/decisions)
 SPP_FACTOR = {"room": 3}
 
 
-def make_definition(maps: tuple[str, ...] = INDOOR_MAPS + OUTDOOR_MAPS, seed: int = 2026,
-                    maps_per_layout: int = 8, frames: int = 6, spp: int = 32,
-                    width: int = 640, height: int = 480) -> dict:
+def make_definition(
+    maps: tuple[str, ...] = INDOOR_MAPS + OUTDOOR_MAPS,
+    seed: int = 2026,
+    maps_per_layout: int = 8,
+    frames: int = 6,
+    spp: int = 32,
+    width: int = 640,
+    height: int = 480,
+) -> dict:
     """The corpus definition (a JSON-able dict) drawn from `seed`."""
     rng = np.random.default_rng(seed)
     uses = {m: 0 for m in maps}
@@ -61,25 +89,46 @@ def make_definition(maps: tuple[str, ...] = INDOOR_MAPS + OUTDOOR_MAPS, seed: in
             lights = [{"map": name_map, "rotation_deg": rotation, "from_frame": 0}]
             if layout == "light_change":
                 if r % 2 == 0:  # the same map turned
-                    lights.append({"map": name_map, "from_frame": frames // 2,
-                                   "rotation_deg": float((rotation + rng.integers(18, 37) * 5)
-                                                         % 360)})
+                    lights.append(
+                        {
+                            "map": name_map,
+                            "from_frame": frames // 2,
+                            "rotation_deg": float((rotation + rng.integers(18, 37) * 5) % 360),
+                        }
+                    )
                 else:  # another map, the least used
-                    other = sorted((m for m in maps if m != name_map),
-                                   key=lambda m: (uses[m], rng.random()))[0]
+                    other = sorted(
+                        (m for m in maps if m != name_map), key=lambda m: (uses[m], rng.random())
+                    )[0]
                     uses[other] += 1
-                    lights.append({"map": other, "from_frame": frames // 2,
-                                   "rotation_deg": float(rng.integers(0, 72) * 5)})
-            sequences.append({
-                "name": f"c{index:03d}_{layout}_{name_map}", "layout": layout,
-                "seed": 1000 + index, "lights": lights, "frames": frames,
-                "spp": spp * SPP_FACTOR.get(layout, 1),
-                "ar_frames": [1, frames - 2] if frames >= 3 else [0],
-                "virtual_material": VIRTUAL_MATERIALS[(r + k) % len(VIRTUAL_MATERIALS)]})
-    return {"description": "arlight's benchmark corpus: every layout on several maps, every "
-                           "map in at least two sequences (docs/results/corpus.md)",
-            "seed": seed, "width": width, "height": height, "maps": list(maps),
-            "sequences": sequences}
+                    lights.append(
+                        {
+                            "map": other,
+                            "from_frame": frames // 2,
+                            "rotation_deg": float(rng.integers(0, 72) * 5),
+                        }
+                    )
+            sequences.append(
+                {
+                    "name": f"c{index:03d}_{layout}_{name_map}",
+                    "layout": layout,
+                    "seed": 1000 + index,
+                    "lights": lights,
+                    "frames": frames,
+                    "spp": spp * SPP_FACTOR.get(layout, 1),
+                    "ar_frames": [1, frames - 2] if frames >= 3 else [0],
+                    "virtual_material": VIRTUAL_MATERIALS[(r + k) % len(VIRTUAL_MATERIALS)],
+                }
+            )
+    return {
+        "description": "arlight's benchmark corpus: every layout on several maps, every "
+        "map in at least two sequences (docs/results/corpus.md)",
+        "seed": seed,
+        "width": width,
+        "height": height,
+        "maps": list(maps),
+        "sequences": sequences,
+    }
 
 
 def load_definition(path: str | Path | None = None) -> dict:
@@ -89,8 +138,7 @@ def load_definition(path: str | Path | None = None) -> dict:
     else:
         p = Path(path)
         if not p.is_file():
-            raise ValueError(f"--corpus {p}: no such file (omit the value for the built-in "
-                             "corpus)")
+            raise ValueError(f"--corpus {p}: no such file (omit the value for the built-in corpus)")
         text = p.read_text()
     try:
         doc = json.loads(text)
@@ -104,13 +152,24 @@ def specs(definition: dict) -> list[SequenceSpec]:
     """The SequenceSpecs of a definition."""
     out = []
     for s in definition["sequences"]:
-        lights = tuple(LightState(x["map"], float(x["rotation_deg"]), int(x["from_frame"]))
-                       for x in s["lights"])
-        out.append(SequenceSpec(s["name"], s["layout"], int(s["seed"]), lights,
-                                frames=int(s["frames"]), width=int(definition["width"]),
-                                height=int(definition["height"]), spp=int(s["spp"]),
-                                ar_frames=tuple(s.get("ar_frames", ())),
-                                virtual_material=s.get("virtual_material", "diffuse")))
+        lights = tuple(
+            LightState(x["map"], float(x["rotation_deg"]), int(x["from_frame"]))
+            for x in s["lights"]
+        )
+        out.append(
+            SequenceSpec(
+                s["name"],
+                s["layout"],
+                int(s["seed"]),
+                lights,
+                frames=int(s["frames"]),
+                width=int(definition["width"]),
+                height=int(definition["height"]),
+                spp=int(s["spp"]),
+                ar_frames=tuple(s.get("ar_frames", ())),
+                virtual_material=s.get("virtual_material", "diffuse"),
+            )
+        )
     return out
 
 
@@ -123,14 +182,20 @@ def coverage(definition: dict) -> dict:
         for m in names:
             per_map[m] = per_map.get(m, 0) + 1
         per_layout.setdefault(s["layout"], set()).update(names)
-    return {"sequences_per_map": per_map,
-            "maps_per_layout": {k: len(v) for k, v in per_layout.items()}}
+    return {
+        "sequences_per_map": per_map,
+        "maps_per_layout": {k: len(v) for k, v in per_layout.items()},
+    }
 
 
-def render_corpus(definition: dict, out_root: Path, map_folder: Path,
-                  only: Callable[[SequenceSpec], bool] | None = None,
-                  on_frame: Callable[[], None] | None = None,
-                  on_sequence: Callable[[SequenceSpec, object], None] | None = None) -> list:
+def render_corpus(
+    definition: dict,
+    out_root: Path,
+    map_folder: Path,
+    only: Callable[[SequenceSpec], bool] | None = None,
+    on_frame: Callable[[], None] | None = None,
+    on_sequence: Callable[[SequenceSpec, object], None] | None = None,
+) -> list:
     """Render every (selected) sequence not yet complete in out_root; returns the stats."""
     out_root.mkdir(parents=True, exist_ok=True)
     results = []

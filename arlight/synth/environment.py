@@ -48,8 +48,10 @@ def load_map(path: str | Path) -> np.ndarray:
         rgb = np.ascontiguousarray(bgr[..., ::-1], np.float32)
     h, w = rgb.shape[:2]
     if w != 2 * h:
-        raise MapError(f"--map {path}: {w}x{h} pixels is not an equirectangular map (width "
-                       "must be twice the height)")
+        raise MapError(
+            f"--map {path}: {w}x{h} pixels is not an equirectangular map (width "
+            "must be twice the height)"
+        )
     if not np.all(np.isfinite(rgb)) or rgb.min() < 0:
         raise MapError(f"--map {path}: holds negative or non-finite radiance")
     return rgb
@@ -74,8 +76,9 @@ def texel_directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
     return dirs, solid
 
 
-def map_direction_to_pixel(direction_map: np.ndarray, height: int, width: int
-                           ) -> tuple[float, float]:
+def map_direction_to_pixel(
+    direction_map: np.ndarray, height: int, width: int
+) -> tuple[float, float]:
     """(column, row) in pixels (continuous, texel centres at +0.5) of a map-frame direction."""
     d = np.asarray(direction_map, float) / np.linalg.norm(direction_map)
     u = (math.atan2(d[0], -d[2]) / (2 * math.pi)) % 1.0
@@ -113,8 +116,7 @@ def environment_truth(radiance: np.ndarray, rotation_deg: float) -> EnvironmentT
 
 def rotate_to_camera(coeffs_world: np.ndarray, world_from_cam: np.ndarray) -> np.ndarray:
     """SH of the same distant light in the camera frame (w_cam = R_wc^T w_world)."""
-    return sh.rotate(np.asarray(coeffs_world, float),
-                     np.asarray(world_from_cam, float)[:3, :3].T)
+    return sh.rotate(np.asarray(coeffs_world, float), np.asarray(world_from_cam, float)[:3, :3].T)
 
 
 def dominant(coeffs: np.ndarray) -> np.ndarray:

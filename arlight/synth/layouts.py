@@ -30,12 +30,26 @@ import numpy as np
 from arlight.synth import meshes
 from arlight.synth.materials import Material, ground_material, random_material
 
-LAYOUTS = ("static", "dynamic", "light_change", "indoor", "few_normals", "room", "textured",
-           "tabletop")
-CATEGORY = {"static": "a_static", "dynamic": "b_dynamic_object",
-            "light_change": "c_light_change", "indoor": "d_indoor_env",
-            "few_normals": "e_few_normals", "room": "f_room", "textured": "g_textured",
-            "tabletop": "h_tabletop"}
+LAYOUTS = (
+    "static",
+    "dynamic",
+    "light_change",
+    "indoor",
+    "few_normals",
+    "room",
+    "textured",
+    "tabletop",
+)
+CATEGORY = {
+    "static": "a_static",
+    "dynamic": "b_dynamic_object",
+    "light_change": "c_light_change",
+    "indoor": "d_indoor_env",
+    "few_normals": "e_few_normals",
+    "room": "f_room",
+    "textured": "g_textured",
+    "tabletop": "h_tabletop",
+}
 DESCRIPTION = {
     "static": "static scene, static light",
     "dynamic": "an object moves through the view and leaves it",
@@ -71,21 +85,33 @@ class Shape:
     def mesh(self) -> meshes.TriangleMesh:
         """The triangle mesh in the world frame."""
         p = self.params
-        local = {"plane": lambda: meshes.quad(*p["size_m"]),
-                 "box": lambda: meshes.box(p["half_extents"]),
-                 "sphere": lambda: meshes.uv_sphere(p["radius"]),
-                 "cylinder": lambda: meshes.cylinder(p["radius"], p["height"]),
-                 "arch": lambda: meshes.arch(p["width"], p["height"], p["depth"], p["post"]),
-                 }[self.kind]()
+        local = {
+            "plane": lambda: meshes.quad(*p["size_m"]),
+            "box": lambda: meshes.box(p["half_extents"]),
+            "sphere": lambda: meshes.uv_sphere(p["radius"]),
+            "cylinder": lambda: meshes.cylinder(p["radius"], p["height"]),
+            "arch": lambda: meshes.arch(p["width"], p["height"], p["depth"], p["post"]),
+        }[self.kind]()
         return local.transformed(self.world_from_shape)
 
     def describe(self) -> dict:
         m = self.world_from_shape
-        out = {"name": self.name, "type": self.kind,
-               "centre": [round(float(x), 5) for x in m[:3, 3]],
-               "yaw_deg": round(math.degrees(math.atan2(m[0, 2], m[0, 0])) % 360, 3)}
-        out.update({k: (np.round(v, 5).tolist() if isinstance(v, (list, tuple, np.ndarray))
-                        else round(float(v), 5)) for k, v in self.params.items()})
+        out = {
+            "name": self.name,
+            "type": self.kind,
+            "centre": [round(float(x), 5) for x in m[:3, 3]],
+            "yaw_deg": round(math.degrees(math.atan2(m[0, 2], m[0, 0])) % 360, 3),
+        }
+        out.update(
+            {
+                k: (
+                    np.round(v, 5).tolist()
+                    if isinstance(v, (list, tuple, np.ndarray))
+                    else round(float(v), 5)
+                )
+                for k, v in self.params.items()
+            }
+        )
         out["material"] = self.material.describe()
         return out
 
@@ -133,13 +159,23 @@ def look_at(eye, target) -> np.ndarray:
     right = np.cross(forward, UP)
     right /= np.linalg.norm(right)
     pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), \
-        forward, eye
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = (
+        right,
+        np.cross(forward, right),
+        forward,
+        eye,
+    )
     return pose
 
 
-def _orbit(rng, n: int, radius: tuple[float, float], height: tuple[float, float],
-           target: np.ndarray, sweep_deg: tuple[float, float]) -> tuple[list, float]:
+def _orbit(
+    rng,
+    n: int,
+    radius: tuple[float, float],
+    height: tuple[float, float],
+    target: np.ndarray,
+    sweep_deg: tuple[float, float],
+) -> tuple[list, float]:
     """Camera poses on an arc about `target` (radius, height drawn from the ranges; a little
     bob and breathing so the path is not a perfect circle) and the arc's middle azimuth."""
     r, h = rng.uniform(*radius), rng.uniform(*height)
@@ -150,15 +186,25 @@ def _orbit(rng, n: int, radius: tuple[float, float], height: tuple[float, float]
         s = i / max(1, n - 1)
         phi = start + sweep * s
         rr = r * (1 + 0.05 * math.sin(2 * math.pi * s))
-        eye = target + [rr * math.sin(phi), h + 0.05 * math.sin(3 * math.pi * s),
-                        rr * math.cos(phi)]
+        eye = target + [
+            rr * math.sin(phi),
+            h + 0.05 * math.sin(3 * math.pi * s),
+            rr * math.cos(phi),
+        ]
         poses.append(look_at(eye, target))
     return poses, start + sweep / 2
 
 
-def _scatter(rng, count: int, keep_out: list[tuple[np.ndarray, float]], extent: float,
-             scale: float, kinds: tuple[str, ...], base_y: float = 0.0,
-             name_prefix: str = "obj") -> list[Shape]:
+def _scatter(
+    rng,
+    count: int,
+    keep_out: list[tuple[np.ndarray, float]],
+    extent: float,
+    scale: float,
+    kinds: tuple[str, ...],
+    base_y: float = 0.0,
+    name_prefix: str = "obj",
+) -> list[Shape]:
     """`count` objects (sphere, box, cylinder) standing at y = base_y within `extent` of the
     origin, footprints apart from each other and from the discs in `keep_out`."""
     shapes: list[Shape] = []
@@ -166,8 +212,11 @@ def _scatter(rng, count: int, keep_out: list[tuple[np.ndarray, float]], extent: 
     for k in range(count * 30):
         if len(shapes) == count:
             break
-        kind = ("sphere", "box", "cylinder")[len(shapes) % 3] if k < count else \
-            str(rng.choice(["sphere", "box", "cylinder"]))
+        kind = (
+            ("sphere", "box", "cylinder")[len(shapes) % 3]
+            if k < count
+            else str(rng.choice(["sphere", "box", "cylinder"]))
+        )
         xz = rng.uniform(-extent, extent, 2)
         size = rng.uniform(0.08, 0.2) * scale
         centre = np.array([xz[0], 0.0, xz[1]])
@@ -178,26 +227,48 @@ def _scatter(rng, count: int, keep_out: list[tuple[np.ndarray, float]], extent: 
         name = f"{name_prefix}{len(shapes):02d}_{kind}"
         yaw = float(rng.uniform(0, 360))
         if kind == "sphere":
-            shapes.append(Shape(name, "sphere", {"radius": size},
-                                pose_matrix(0, centre + [0, base_y + size, 0]), material))
+            shapes.append(
+                Shape(
+                    name,
+                    "sphere",
+                    {"radius": size},
+                    pose_matrix(0, centre + [0, base_y + size, 0]),
+                    material,
+                )
+            )
         elif kind == "box":
             half = (size, rng.uniform(0.6, 1.6) * size, rng.uniform(0.5, 1.0) * size)
-            shapes.append(Shape(name, "box", {"half_extents": half},
-                                pose_matrix(yaw, centre + [0, base_y + half[1], 0]), material))
+            shapes.append(
+                Shape(
+                    name,
+                    "box",
+                    {"half_extents": half},
+                    pose_matrix(yaw, centre + [0, base_y + half[1], 0]),
+                    material,
+                )
+            )
         else:
-            shapes.append(Shape(name, "cylinder", {"radius": size * 0.6,
-                                                   "height": rng.uniform(1.2, 3.0) * size},
-                                pose_matrix(yaw, centre + [0, base_y, 0]), material))
+            shapes.append(
+                Shape(
+                    name,
+                    "cylinder",
+                    {"radius": size * 0.6, "height": rng.uniform(1.2, 3.0) * size},
+                    pose_matrix(yaw, centre + [0, base_y, 0]),
+                    material,
+                )
+            )
     return shapes
 
 
 def _ground(rng, seed: int, kinds=("noise", "checker", "grey"), size=GROUND_SIZE_M) -> Shape:
-    return Shape("ground", "plane", {"size_m": [size, size]}, np.eye(4),
-                 ground_material(rng, seed, kinds))
+    return Shape(
+        "ground", "plane", {"size_m": [size, size]}, np.eye(4), ground_material(rng, seed, kinds)
+    )
 
 
-def _anchor(mid_azimuth: float, distance: float, base_y: float = 0.0
-            ) -> tuple[np.ndarray, np.ndarray]:
+def _anchor(
+    mid_azimuth: float, distance: float, base_y: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """A point `distance` from the scene centre towards the middle camera, and the
     horizontal direction the cameras look along there."""
     towards_camera = np.array([math.sin(mid_azimuth), 0.0, math.cos(mid_azimuth)])
@@ -211,21 +282,27 @@ TEXTURED_KINDS = ("wood", "fabric", "paint", "checker")
 def build_layout(name: str, seed: int, num_frames: int) -> Layout:
     """The layout `name` (LAYOUTS) drawn from `seed`, with `num_frames` camera poses."""
     if name not in LAYOUTS:
-        raise LayoutError(f"--layout {name!r} is not a layout; choose from "
-                          f"{', '.join(LAYOUTS)}")
+        raise LayoutError(f"--layout {name!r} is not a layout; choose from {', '.join(LAYOUTS)}")
     if num_frames < 1:
         raise LayoutError(f"--frames must be >= 1, got {num_frames}")
     rng = np.random.default_rng(seed)
     builder = {"few_normals": _few_normals, "room": _room, "tabletop": _tabletop}.get(
-        name, _objects_on_ground)
+        name, _objects_on_ground
+    )
     return builder(name, seed, num_frames, rng)
 
 
 def _objects_on_ground(name: str, seed: int, n: int, rng) -> Layout:
     far = name == "indoor"
     target = np.array([0.0, 0.15, 0.0])
-    poses, mid = _orbit(rng, n, (2.6, 3.2) if far else (1.8, 2.4),
-                        (1.3, 1.8) if far else (0.8, 1.4), target, (45, 75))
+    poses, mid = _orbit(
+        rng,
+        n,
+        (2.6, 3.2) if far else (1.8, 2.4),
+        (1.3, 1.8) if far else (0.8, 1.4),
+        target,
+        (45, 75),
+    )
     anchor, view = _anchor(mid, 0.45)
     kinds = TEXTURED_KINDS if name == "textured" else OBJECT_KINDS
     ground_kinds = ("wood",) if name == "textured" else ("noise", "checker", "grey")
@@ -251,8 +328,7 @@ def _rolling_ball(rng, n: int, poses, anchor: np.ndarray, view: np.ndarray) -> t
             continue
         s = -1.1 + 2.2 * i / max(1, visible - 1)
         p = centre + side * s + UP * radius
-        out.append(Shape("moving_ball", "sphere", {"radius": radius}, pose_matrix(0, p),
-                         material))
+        out.append(Shape("moving_ball", "sphere", {"radius": radius}, pose_matrix(0, p), material))
     return tuple(out)
 
 
@@ -261,9 +337,13 @@ def _few_normals(name: str, seed: int, n: int, rng) -> Layout:
     target = np.array([0.0, 0.15, 0.0])
     poses, mid = _orbit(rng, n, (1.8, 2.3), (0.9, 1.3), target, (30, 50))
     anchor, view = _anchor(mid + rng.choice([-0.6, 0.6]), 0.75)
-    box = Shape("big_box", "box", {"half_extents": half},
-                pose_matrix(rng.uniform(0, 360), [0, half[1], 0]),
-                random_material(rng, ("grey", "colour"), seed=int(rng.integers(1 << 30))))
+    box = Shape(
+        "big_box",
+        "box",
+        {"half_extents": half},
+        pose_matrix(rng.uniform(0, 360), [0, half[1], 0]),
+        random_material(rng, ("grey", "colour"), seed=int(rng.integers(1 << 30))),
+    )
     return Layout(name, seed, (_ground(rng, seed), box), tuple(poses), anchor, 1.0, view)
 
 
@@ -272,25 +352,41 @@ ROOM_HEIGHT_M = 2.6
 WALL_M = 0.1
 
 
-def _wall_with_opening(name: str, length: float, height: float, opening: tuple | None,
-                       world_from_wall: np.ndarray, material: Material) -> list[Shape]:
+def _wall_with_opening(
+    name: str,
+    length: float,
+    height: float,
+    opening: tuple | None,
+    world_from_wall: np.ndarray,
+    material: Material,
+) -> list[Shape]:
     """A wall slab in its own frame (x along it, y up from 0, z through it), with a
     rectangular opening (x0, x1, y0, y1) cut out as four slabs around it."""
     if opening is None:
         rects = [(-length / 2, length / 2, 0.0, height)]
     else:
         x0, x1, y0, y1 = opening
-        rects = [(-length / 2, x0, 0.0, height), (x1, length / 2, 0.0, height),
-                 (x0, x1, 0.0, y0), (x0, x1, y1, height)]
+        rects = [
+            (-length / 2, x0, 0.0, height),
+            (x1, length / 2, 0.0, height),
+            (x0, x1, 0.0, y0),
+            (x0, x1, y1, height),
+        ]
     out = []
     for k, (a, b, c, d) in enumerate(rects):
         if b - a < 1e-3 or d - c < 1e-3:
             continue
         local = np.eye(4)
         local[:3, 3] = [(a + b) / 2, (c + d) / 2, 0.0]
-        out.append(Shape(f"{name}_{k}", "box", {"half_extents": ((b - a) / 2, (d - c) / 2,
-                                                                 WALL_M / 2)},
-                         world_from_wall @ local, material))
+        out.append(
+            Shape(
+                f"{name}_{k}",
+                "box",
+                {"half_extents": ((b - a) / 2, (d - c) / 2, WALL_M / 2)},
+                world_from_wall @ local,
+                material,
+            )
+        )
     return out
 
 
@@ -307,23 +403,26 @@ def _room(name: str, seed: int, n: int, rng) -> Layout:
             x = rng.uniform(-ROOM_HALF_M + w / 2 + 0.3, ROOM_HALF_M - w / 2 - 0.3)
             sill = rng.uniform(0.8, 1.0)
             opening = (x - w / 2, x + w / 2, sill, sill + h)
-        shapes += _wall_with_opening(f"wall{k}", 2 * ROOM_HALF_M + 2 * WALL_M, ROOM_HEIGHT_M,
-                                     opening, world, paint)
+        shapes += _wall_with_opening(
+            f"wall{k}", 2 * ROOM_HALF_M + 2 * WALL_M, ROOM_HEIGHT_M, opening, world, paint
+        )
     # the ceiling: a wall slab laid flat (its x along world x, its y along world z, its z
     # down), with a skylight
     span = 2 * ROOM_HALF_M + 2 * WALL_M
     size = rng.uniform(0.9, 1.3)
     cx, cz = rng.uniform(-1.0, 1.0, 2)
-    world_from_ceiling = np.array([[1, 0, 0, 0], [0, 0, -1, ROOM_HEIGHT_M + WALL_M / 2],
-                                   [0, 1, 0, -span / 2], [0, 0, 0, 1.0]])
+    world_from_ceiling = np.array(
+        [[1, 0, 0, 0], [0, 0, -1, ROOM_HEIGHT_M + WALL_M / 2], [0, 1, 0, -span / 2], [0, 0, 0, 1.0]]
+    )
     skylight = (cx - size / 2, cx + size / 2, cz + span / 2 - size / 2, cz + span / 2 + size / 2)
     shapes += _wall_with_opening("ceiling", span, span, skylight, world_from_ceiling, paint)
     target = np.array([0.0, 0.2, 0.0])
     poses, mid = _orbit(rng, n, (1.6, 2.0), (0.9, 1.3), target, (45, 75))
     anchor, view = _anchor(mid, 0.45)
     shapes += _scatter(rng, int(rng.integers(3, 5)), [(anchor, 0.45)], 0.65, 1.0, OBJECT_KINDS)
-    return Layout(name, seed, tuple(shapes), tuple(poses), anchor, 1.0, view,
-                  distant_light_holds=False)
+    return Layout(
+        name, seed, tuple(shapes), tuple(poses), anchor, 1.0, view, distant_light_holds=False
+    )
 
 
 TABLE_HEIGHT_M = 0.74
@@ -333,18 +432,35 @@ TABLE_TOP_M = (0.6, 0.02, 0.4)  # half extents of the top
 def _tabletop(name: str, seed: int, n: int, rng) -> Layout:
     wood = random_material(rng, ("wood", "paint"), seed=int(rng.integers(1 << 30)))
     top_y = TABLE_HEIGHT_M
-    shapes = [_ground(rng, seed),
-              Shape("table_top", "box", {"half_extents": TABLE_TOP_M},
-                    pose_matrix(0, [0, top_y - TABLE_TOP_M[1], 0]), wood)]
+    shapes = [
+        _ground(rng, seed),
+        Shape(
+            "table_top",
+            "box",
+            {"half_extents": TABLE_TOP_M},
+            pose_matrix(0, [0, top_y - TABLE_TOP_M[1], 0]),
+            wood,
+        ),
+    ]
     for k, (sx, sz) in enumerate(((-1, -1), (1, -1), (1, 1), (-1, 1))):
-        leg = Shape(f"table_leg{k}", "cylinder", {"radius": 0.025,
-                                                  "height": top_y - 2 * TABLE_TOP_M[1]},
-                    pose_matrix(0, [sx * (TABLE_TOP_M[0] - 0.06), 0,
-                                    sz * (TABLE_TOP_M[2] - 0.06)]), wood)
+        leg = Shape(
+            f"table_leg{k}",
+            "cylinder",
+            {"radius": 0.025, "height": top_y - 2 * TABLE_TOP_M[1]},
+            pose_matrix(0, [sx * (TABLE_TOP_M[0] - 0.06), 0, sz * (TABLE_TOP_M[2] - 0.06)]),
+            wood,
+        )
         shapes.append(leg)
     target = np.array([0.0, top_y + 0.04, 0.0])
     poses, mid = _orbit(rng, n, (0.6, 0.8), (0.3, 0.45), target, (35, 60))
     anchor, view = _anchor(mid, 0.14, base_y=top_y)
-    objects = _scatter(rng, int(rng.integers(3, 5)), [(anchor - [0, top_y, 0], 0.14)], 0.25,
-                       0.35, OBJECT_KINDS + ("wood", "fabric"), base_y=top_y)
+    objects = _scatter(
+        rng,
+        int(rng.integers(3, 5)),
+        [(anchor - [0, top_y, 0], 0.14)],
+        0.25,
+        0.35,
+        OBJECT_KINDS + ("wood", "fabric"),
+        base_y=top_y,
+    )
     return Layout(name, seed, tuple(shapes + objects), tuple(poses), anchor, 0.3, view)

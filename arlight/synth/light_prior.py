@@ -63,17 +63,25 @@ def main(argv: list[str] | None = None) -> int:
     maps = {}
     for f in files:
         mean, second = map_moments(env.load_map(f))
-        maps[f.stem] = {"mean": np.round(mean, 7).tolist(),
-                        "second_moment": np.round(second, 7).tolist()}
+        maps[f.stem] = {
+            "mean": np.round(mean, 7).tolist(),
+            "second_moment": np.round(second, 7).tolist(),
+        }
         first = sh.dominant_direction(received_light_sh(env.load_map(f)))
-        print(f"{f.stem}: light {math.degrees(math.asin(first[1])):.0f} deg above the "
-              f"horizon, band 1 / band 0 {np.linalg.norm(mean[1:4]):.2f} (over headings)",
-              file=sys.stderr)
-    doc = {"description": "Per-map moments of the received light's SH / band 0 (bands 0..3, "
-                          "arlight basis, +y up, 36 headings about +y); pooled by "
-                          "pipeline/light_prior.py",
-           "made_by": "python -m arlight.synth.light_prior", "headings": HEADINGS,
-           "ground_albedo": GROUND_ALBEDO, "maps": maps}
+        print(
+            f"{f.stem}: light {math.degrees(math.asin(first[1])):.0f} deg above the "
+            f"horizon, band 1 / band 0 {np.linalg.norm(mean[1:4]):.2f} (over headings)",
+            file=sys.stderr,
+        )
+    doc = {
+        "description": "Per-map moments of the received light's SH / band 0 (bands 0..3, "
+        "arlight basis, +y up, 36 headings about +y); pooled by "
+        "pipeline/light_prior.py",
+        "made_by": "python -m arlight.synth.light_prior",
+        "headings": HEADINGS,
+        "ground_albedo": GROUND_ALBEDO,
+        "maps": maps,
+    }
     Path(args.out).write_text(json.dumps(doc, indent=1) + "\n")
     print(f"wrote {args.out} ({len(maps)} maps)", file=sys.stderr)
     return 0

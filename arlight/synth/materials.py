@@ -57,14 +57,15 @@ class Material:
         t = TEXTURE_SIZE
         c = [np.asarray(x, np.float32) for x in self.colours] or [np.asarray(self.albedo_rgb)]
         if self.kind == "checker":
-            i = (np.arange(t) * 2 // t)
+            i = np.arange(t) * 2 // t
             mask = (i[:, None] + i[None, :]) % 2 == 0
             return np.where(mask[..., None], c[0], c[1]).astype(np.float32)
         noise = _value_noise(rng, t, cells=8)
         if self.kind == "noise":
             base = c[0] if len(c) == 1 else c[0] * (1 - noise[..., None]) + c[1] * noise[..., None]
-            return np.clip(base * (0.85 + 0.3 * _value_noise(rng, t, 16))[..., None], 0, 0.9
-                           ).astype(np.float32)
+            return np.clip(
+                base * (0.85 + 0.3 * _value_noise(rng, t, 16))[..., None], 0, 0.9
+            ).astype(np.float32)
         y, x = np.mgrid[0:t, 0:t] / t
         if self.kind == "wood":
             rings = 0.5 + 0.5 * np.sin(2 * math.pi * (6 * x + 2.5 * noise))
@@ -83,7 +84,7 @@ def _value_noise(rng: np.random.Generator, size: int, cells: int) -> np.ndarray:
     grid = rng.random((cells, cells)).astype(np.float32)
     tiled = np.tile(grid, (3, 3))
     big = cv2.resize(tiled, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)
-    out = big[size:2 * size, size:2 * size]
+    out = big[size : 2 * size, size : 2 * size]
     return (out - out.min()) / max(float(np.ptp(out)), 1e-6)
 
 
@@ -96,8 +97,9 @@ def _triple(values) -> RGB:
     return r, g, b
 
 
-def _rgb(rng: np.random.Generator, low: float, high: float, saturation: float
-         ) -> tuple[float, float, float]:
+def _rgb(
+    rng: np.random.Generator, low: float, high: float, saturation: float
+) -> tuple[float, float, float]:
     """A colour of mean albedo in [low, high] and the given saturation (0 = grey)."""
     hue = rng.random()
     rgb = np.array([0.5 + 0.5 * math.cos(2 * math.pi * (hue + k / 3)) for k in range(3)])
@@ -119,20 +121,23 @@ def random_material(rng: np.random.Generator, kinds: tuple[str, ...], seed: int)
         light = np.array([0.45, 0.30, 0.17]) * rng.uniform(0.7, 1.1)
         dark = light * rng.uniform(0.45, 0.65)
         colours = (_triple(light), _triple(dark))
-        return Material("wood", _triple((light + dark) / 2), colours,
-                        float(rng.uniform(1, 3)), seed)
+        return Material(
+            "wood", _triple((light + dark) / 2), colours, float(rng.uniform(1, 3)), seed
+        )
     if kind == "fabric":
         c = _rgb(rng, 0.1, 0.55, float(rng.uniform(0.3, 0.9)))
         return Material("fabric", c, (c,), float(rng.uniform(1, 2)), seed)
     a, b = _rgb(rng, 0.1, 0.7, 0.7), _rgb(rng, 0.4, 0.8, 0.0)
     if kind == "checker":
-        return Material("checker", _triple(np.add(a, b) / 2), (a, b),
-                        float(rng.choice([2.0, 4.0])), seed)
+        return Material(
+            "checker", _triple(np.add(a, b) / 2), (a, b), float(rng.choice([2.0, 4.0])), seed
+        )
     return Material("noise", _triple(np.add(a, b) / 2), (a, b), 1.0, seed)
 
 
-def ground_material(rng: np.random.Generator, seed: int, kinds=("noise", "checker", "grey")
-                    ) -> Material:
+def ground_material(
+    rng: np.random.Generator, seed: int, kinds=("noise", "checker", "grey")
+) -> Material:
     """A ground (concrete, tiles, earth): albedo 0.2-0.45, textured over metres."""
     kind = str(rng.choice(kinds))
     if kind == "wood":

@@ -35,22 +35,32 @@ class TriangleMesh:
             faces = self.faces[:, ::-1]
         else:
             faces = self.faces
-        return TriangleMesh((self.vertices @ linear.T + m[:3, 3]).astype(np.float32),
-                            normals.astype(np.float32), self.uvs, faces)
+        return TriangleMesh(
+            (self.vertices @ linear.T + m[:3, 3]).astype(np.float32),
+            normals.astype(np.float32),
+            self.uvs,
+            faces,
+        )
 
 
 def _mesh(vertices, normals, uvs, faces) -> TriangleMesh:
-    return TriangleMesh(np.asarray(vertices, np.float32), np.asarray(normals, np.float32),
-                        np.asarray(uvs, np.float32), np.asarray(faces, np.int32))
+    return TriangleMesh(
+        np.asarray(vertices, np.float32),
+        np.asarray(normals, np.float32),
+        np.asarray(uvs, np.float32),
+        np.asarray(faces, np.int32),
+    )
 
 
 def merge(meshes: list[TriangleMesh]) -> TriangleMesh:
     """One mesh holding all of `meshes` (same frame)."""
     offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
-    return _mesh(np.concatenate([m.vertices for m in meshes]),
-                 np.concatenate([m.normals for m in meshes]),
-                 np.concatenate([m.uvs for m in meshes]),
-                 np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)]))
+    return _mesh(
+        np.concatenate([m.vertices for m in meshes]),
+        np.concatenate([m.normals for m in meshes]),
+        np.concatenate([m.uvs for m in meshes]),
+        np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)]),
+    )
 
 
 def quad(width_m: float, depth_m: float) -> TriangleMesh:
@@ -98,8 +108,9 @@ def uv_sphere(radius_m: float, rings: int = 48, segments: int = 96) -> TriangleM
     c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
     faces = np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, d], 1)])
     # drop the degenerate triangles at the poles
-    area = np.linalg.norm(np.cross(n[faces[:, 1]] - n[faces[:, 0]],
-                                   n[faces[:, 2]] - n[faces[:, 0]]), axis=1)
+    area = np.linalg.norm(
+        np.cross(n[faces[:, 1]] - n[faces[:, 0]], n[faces[:, 2]] - n[faces[:, 0]]), axis=1
+    )
     return _mesh(n * radius_m, n, uv, faces[area > 1e-12])
 
 
@@ -109,12 +120,17 @@ def cylinder(radius_m: float, height_m: float, segments: int = 64) -> TriangleMe
     ring = np.stack([np.cos(phi), np.zeros_like(phi), -np.sin(phi)], -1)
     side_v = np.concatenate([ring * radius_m, ring * radius_m + [0, height_m, 0]])
     side_n = np.concatenate([ring, ring])
-    side_uv = np.concatenate([np.stack([phi / (2 * math.pi), np.zeros_like(phi)], -1),
-                              np.stack([phi / (2 * math.pi), np.ones_like(phi)], -1)])
+    side_uv = np.concatenate(
+        [
+            np.stack([phi / (2 * math.pi), np.zeros_like(phi)], -1),
+            np.stack([phi / (2 * math.pi), np.ones_like(phi)], -1),
+        ]
+    )
     k = segments + 1
     i = np.arange(segments)
-    side_f = np.concatenate([np.stack([i, i + 1, i + k], 1),
-                             np.stack([i + 1, i + k + 1, i + k], 1)])
+    side_f = np.concatenate(
+        [np.stack([i, i + 1, i + k], 1), np.stack([i + 1, i + k + 1, i + k], 1)]
+    )
     parts = [_mesh(side_v, side_n, side_uv, side_f)]
     for y, sign in ((0.0, -1.0), (height_m, 1.0)):
         centre = [[0, y, 0]]
@@ -135,21 +151,33 @@ def translated(mesh: TriangleMesh, offset) -> TriangleMesh:
     return mesh.transformed(m)
 
 
-def arch(width_m: float = 0.4, height_m: float = 0.3, depth_m: float = 0.12,
-         post_m: float = 0.09) -> TriangleMesh:
+def arch(
+    width_m: float = 0.4, height_m: float = 0.3, depth_m: float = 0.12, post_m: float = 0.09
+) -> TriangleMesh:
     """Two posts and a lintel (non-convex), base centre at the origin, +y up, flat faces."""
     post_h = height_m - post_m
     post = box((post_m / 2, post_h / 2, depth_m / 2))
     lintel = box((width_m / 2, post_m / 2, depth_m / 2))
     x = width_m / 2 - post_m / 2
-    return merge([translated(post, (-x, post_h / 2, 0)), translated(post, (x, post_h / 2, 0)),
-                  translated(lintel, (0, post_h + post_m / 2, 0))])
+    return merge(
+        [
+            translated(post, (-x, post_h / 2, 0)),
+            translated(post, (x, post_h / 2, 0)),
+            translated(lintel, (0, post_h + post_m / 2, 0)),
+        ]
+    )
 
 
 def write_ply(mesh: TriangleMesh, path: str | Path, with_uv: bool = True) -> None:
     """Binary little-endian PLY: float x y z nx ny nz [u v], uchar-count int faces."""
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"),
-              ("nz", "<f4")] + ([("u", "<f4"), ("v", "<f4")] if with_uv else [])
+    fields = [
+        ("x", "<f4"),
+        ("y", "<f4"),
+        ("z", "<f4"),
+        ("nx", "<f4"),
+        ("ny", "<f4"),
+        ("nz", "<f4"),
+    ] + ([("u", "<f4"), ("v", "<f4")] if with_uv else [])
     vert = np.empty(len(mesh.vertices), dtype=fields)
     for k, name in enumerate("xyz"):
         vert[name] = mesh.vertices[:, k]
@@ -159,8 +187,10 @@ def write_ply(mesh: TriangleMesh, path: str | Path, with_uv: bool = True) -> Non
     face = np.empty(len(mesh.faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     face["n"], face["i"] = 3, mesh.faces
     props = "".join(f"property float {name}\n" for name, _ in fields)
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vert)}\n{props}"
-              f"element face {len(face)}\nproperty list uchar int vertex_indices\nend_header\n")
+    header = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vert)}\n{props}"
+        f"element face {len(face)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
     with open(path, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(vert.tobytes())

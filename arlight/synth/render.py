@@ -35,8 +35,10 @@ def mitsuba():
     try:
         import mitsuba as mi
     except ImportError:
-        raise MissingExtra("arlight synth needs Mitsuba 3: pip install 'arlight[synth]' (or "
-                           ".venv/bin/pip install mitsuba)") from None
+        raise MissingExtra(
+            "arlight synth needs Mitsuba 3: pip install 'arlight[synth]' (or "
+            ".venv/bin/pip install mitsuba)"
+        ) from None
     if mi.variant() != VARIANT:
         mi.set_variant(VARIANT)
     return mi
@@ -65,78 +67,115 @@ class Camera:
 
     def rays_camera(self) -> np.ndarray:
         """(H, W, 3) ray directions through the pixel centres with z = 1 (OpenCV)."""
-        v, u = np.mgrid[0:self.height, 0:self.width].astype(np.float64)
+        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
         return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], -1)
 
 
 def _bsdf(mi, material: Material, texture_cache: dict) -> dict:
     if material.mirror:
-        return {"type": "conductor", "material": "none",
-                "specular_reflectance": {"type": "rgb", "value": list(material.albedo_rgb)}}
+        return {
+            "type": "conductor",
+            "material": "none",
+            "specular_reflectance": {"type": "rgb", "value": list(material.albedo_rgb)},
+        }
     if material.textured:
         key = (material.kind, material.seed, material.colours)
         if key not in texture_cache:
             texture_cache[key] = mi.Bitmap(material.texture())
-        reflectance = {"type": "bitmap", "bitmap": texture_cache[key], "raw": True,
-                       "filter_type": "bilinear", "wrap_mode": "repeat",
-                       "to_uv": mi.ScalarTransform4f().scale([material.repeats,
-                                                              material.repeats, 1])}
+        reflectance = {
+            "type": "bitmap",
+            "bitmap": texture_cache[key],
+            "raw": True,
+            "filter_type": "bilinear",
+            "wrap_mode": "repeat",
+            "to_uv": mi.ScalarTransform4f().scale([material.repeats, material.repeats, 1]),
+        }
     else:
         reflectance = {"type": "rgb", "value": list(material.albedo_rgb)}
     if material.roughness is not None:
-        return {"type": "principled", "base_color": reflectance,
-                "roughness": float(material.roughness), "metallic": float(material.metalness)}
+        return {
+            "type": "principled",
+            "base_color": reflectance,
+            "roughness": float(material.roughness),
+            "metallic": float(material.metalness),
+        }
     return {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": reflectance}}
 
 
 def _environment(mi, map_path: Path, rotation_deg: float) -> dict:
-    return {"type": "envmap", "filename": str(map_path),
-            "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], rotation_deg)}
+    return {
+        "type": "envmap",
+        "filename": str(map_path),
+        "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], rotation_deg),
+    }
 
 
 class SceneRenderer:
     """Renders one scene state (shapes + one rotated map) from any camera pose."""
 
-    def __init__(self, shapes: list[Shape], map_path: Path, rotation_deg: float,
-                 max_depth: int = 4):
+    def __init__(
+        self, shapes: list[Shape], map_path: Path, rotation_deg: float, max_depth: int = 4
+    ):
         self._mi = mi = mitsuba()
         self._tmp = tempfile.TemporaryDirectory(prefix="arlight-synth-")
         cache: dict = {}
-        self._objects: dict = {"type": "scene",
-                               "integrator": {"type": "path", "max_depth": int(max_depth)},
-                               "environment": _environment(mi, map_path, rotation_deg)}
+        self._objects: dict = {
+            "type": "scene",
+            "integrator": {"type": "path", "max_depth": int(max_depth)},
+            "environment": _environment(mi, map_path, rotation_deg),
+        }
         for k, shape in enumerate(shapes):
             ply = Path(self._tmp.name) / f"{k:03d}.ply"
             from arlight.synth.meshes import write_ply
 
             write_ply(shape.mesh(), ply)
             self._objects[f"s{k:03d}_{shape.name}"] = {
-                "type": "ply", "filename": str(ply), "face_normals": False,
-                "bsdf": _bsdf(mi, shape.material, cache)}
+                "type": "ply",
+                "filename": str(ply),
+                "face_normals": False,
+                "bsdf": _bsdf(mi, shape.material, cache),
+            }
         self._scene = mi.load_dict(self._objects)
 
     def close(self) -> None:
         self._tmp.cleanup()
 
-    def render(self, camera: Camera, world_from_cam: np.ndarray, spp: int, seed: int,
-               rfilter: str = "gaussian") -> np.ndarray:
+    def render(
+        self,
+        camera: Camera,
+        world_from_cam: np.ndarray,
+        spp: int,
+        seed: int,
+        rfilter: str = "gaussian",
+    ) -> np.ndarray:
         """(H, W, 3) float32 linear radiance seen through `camera` at `world_from_cam`."""
         mi = self._mi
         fov = math.degrees(2 * math.atan(camera.height / 2 / camera.fy))
         aspect_ok = abs(camera.fx - camera.fy) < 1e-9
         if not aspect_ok:
             raise ValueError("the generator's cameras have square pixels (fx == fy)")
-        sensor = mi.load_dict({
-            "type": "perspective", "fov": fov, "fov_axis": "y",
-            "to_world": mi.ScalarTransform4f(np.asarray(world_from_cam, float) @ FLIP),
-            "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
-                     "rfilter": {"type": rfilter}, "pixel_format": "rgb"},
-            "sampler": {"type": "independent", "sample_count": int(spp)}})
+        sensor = mi.load_dict(
+            {
+                "type": "perspective",
+                "fov": fov,
+                "fov_axis": "y",
+                "to_world": mi.ScalarTransform4f(np.asarray(world_from_cam, float) @ FLIP),
+                "film": {
+                    "type": "hdrfilm",
+                    "width": camera.width,
+                    "height": camera.height,
+                    "rfilter": {"type": rfilter},
+                    "pixel_format": "rgb",
+                },
+                "sampler": {"type": "independent", "sample_count": int(spp)},
+            }
+        )
         image = mi.render(self._scene, sensor=sensor, seed=int(seed), spp=int(spp))
         return np.asarray(image, np.float32)[..., :3]
 
 
 # --------------------------------------------------------------------------- ray casting
+
 
 class GeometryCaster:
     """Open3D ray casting against the shapes' meshes: clean depth and which shape is hit."""
@@ -148,8 +187,10 @@ class GeometryCaster:
         self.names: list[str] = []
         for shape in shapes:
             mesh = shape.mesh()
-            self._scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
-                                      o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+            self._scene.add_triangles(
+                o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                o3d.core.Tensor(mesh.faces.astype(np.uint32)),
+            )
             self.names.append(shape.name)
 
     def cast(self, camera: Camera, world_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -164,16 +205,20 @@ class GeometryCaster:
         t = hit["t_hit"].numpy().reshape(camera.height, camera.width)
         ids = hit["geometry_ids"].numpy().astype(np.int64).reshape(camera.height, camera.width)
         ok = np.isfinite(t) & (t <= MAX_DEPTH_M)
-        return np.where(ok, t, 0).astype(np.float32), np.where(np.isfinite(t), ids, -1
-                                                               ).astype(np.int32)
+        return np.where(ok, t, 0).astype(np.float32), np.where(np.isfinite(t), ids, -1).astype(
+            np.int32
+        )
 
 
 # --------------------------------------------------------------------------- probes
 
 CUBE_FACES = {  # face name -> (forward, down) in the world frame, OpenCV camera axes
-    "px": ((1, 0, 0), (0, -1, 0)), "nx": ((-1, 0, 0), (0, -1, 0)),
-    "py": ((0, 1, 0), (0, 0, 1)), "ny": ((0, -1, 0), (0, 0, -1)),
-    "pz": ((0, 0, 1), (0, -1, 0)), "nz": ((0, 0, -1), (0, -1, 0)),
+    "px": ((1, 0, 0), (0, -1, 0)),
+    "nx": ((-1, 0, 0), (0, -1, 0)),
+    "py": ((0, 1, 0), (0, 0, 1)),
+    "ny": ((0, -1, 0), (0, 0, -1)),
+    "pz": ((0, 0, 1), (0, -1, 0)),
+    "nz": ((0, 0, -1), (0, -1, 0)),
 }
 
 
@@ -196,13 +241,16 @@ def cube_texels(size: int) -> tuple[np.ndarray, np.ndarray]:
         r = cube_face_pose(face, (0, 0, 0))[:3, :3]
         dirs.append((rays / norm[..., None]) @ r.T)
     # solid angle of a texel of side 2/S on the plane z = 1: dA cos / r^2 = dA / r^3
-    solid = (2.0 / size) ** 2 / norm ** 3
+    solid = (2.0 / size) ** 2 / norm**3
     return np.stack(dirs), solid
 
 
-def render_probe(renderer: SceneRenderer, point, size: int, spp: int, seed: int
-                 ) -> np.ndarray:
+def render_probe(renderer: SceneRenderer, point, size: int, spp: int, seed: int) -> np.ndarray:
     """(6, S, S, 3) float32 radiance arriving at `point` (world), faces in CUBE_FACES order."""
     cam = Camera(size, size, size / 2, size / 2)
-    return np.stack([renderer.render(cam, cube_face_pose(face, point), spp, seed + k, "box")
-                     for k, face in enumerate(CUBE_FACES)])
+    return np.stack(
+        [
+            renderer.render(cam, cube_face_pose(face, point), spp, seed + k, "box")
+            for k, face in enumerate(CUBE_FACES)
+        ]
+    )

@@ -44,8 +44,7 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
-def to_8bit(radiance: np.ndarray, exposure: float, rng: np.random.Generator | None
-            ) -> np.ndarray:
+def to_8bit(radiance: np.ndarray, exposure: float, rng: np.random.Generator | None) -> np.ndarray:
     """(H, W, 3) uint8 sRGB; sensor noise added when `rng` is given."""
     s = srgb_encode(radiance.astype(np.float64) * exposure)
     if rng is not None:
@@ -60,8 +59,9 @@ def _boundary(depth: np.ndarray) -> np.ndarray:
     for axis in (0, 1):
         a = np.moveaxis(z, axis, 0)
         da, db = a[1:], a[:-1]
-        jump = (np.abs(da - db) > np.maximum(0.03, 0.03 * np.minimum(da, db))) | \
-            ((da > 0) != (db > 0))
+        jump = (np.abs(da - db) > np.maximum(0.03, 0.03 * np.minimum(da, db))) | (
+            (da > 0) != (db > 0)
+        )
         e = np.moveaxis(edge, axis, 0)
         e[1:] |= jump
         e[:-1] |= jump
@@ -79,8 +79,9 @@ def kinect_depth(depth_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     grown2 = cv2.dilate(edge, np.ones((5, 5), np.uint8))
     band = np.where(rng.random(z.shape) < 0.5, grown1, grown2).astype(bool)
     drops = rng.random(z.shape) < DROPOUT_FRACTION / 3
-    blobs = cv2.dilate(drops.astype(np.uint8) * (rng.random(z.shape) < 0.3),
-                       np.ones((3, 3), np.uint8)).astype(bool)
+    blobs = cv2.dilate(
+        drops.astype(np.uint8) * (rng.random(z.shape) < 0.3), np.ones((3, 3), np.uint8)
+    ).astype(bool)
     valid = (z > 0) & (noisy >= DEPTH_RANGE_M[0]) & (noisy <= DEPTH_RANGE_M[1])
     valid &= ~band & ~drops & ~blobs
     return np.where(valid, np.rint(noisy * DEPTH_SCALE), 0).astype(np.uint16)

@@ -65,8 +65,9 @@ class SequenceSpec:
     def check(self, map_folder: Path) -> None:
         """Raise ValueError naming the CLI flag for anything unusable."""
         if self.layout not in LAYOUTS:
-            raise LayoutError(f"--layout {self.layout!r} is not a layout; choose from "
-                              f"{', '.join(LAYOUTS)}")
+            raise LayoutError(
+                f"--layout {self.layout!r} is not a layout; choose from {', '.join(LAYOUTS)}"
+            )
         if not 1 <= self.frames <= 10000:
             raise ValueError(f"--frames must be in 1..10000, got {self.frames}")
         if self.width < 8 or self.height < 8 or self.width > 4096 or self.height > 4096:
@@ -74,8 +75,10 @@ class SequenceSpec:
         if not 1 <= self.spp <= 65536:
             raise ValueError(f"--spp must be in 1..65536, got {self.spp}")
         if self.virtual_material not in VIRTUAL_MATERIALS:
-            raise ValueError(f"--virtual-material {self.virtual_material!r}: choose from "
-                             f"{', '.join(VIRTUAL_MATERIALS)}")
+            raise ValueError(
+                f"--virtual-material {self.virtual_material!r}: choose from "
+                f"{', '.join(VIRTUAL_MATERIALS)}"
+            )
         if not self.lights or self.lights[0].from_frame != 0:
             raise ValueError("--map: the first map must light frame 0")
         bad = [f for f in self.ar_frames if not 0 <= f < self.frames]
@@ -105,8 +108,9 @@ def map_path(folder: Path, name: str) -> Path:
 
 def map_label(name: str) -> str:
     """The map's name as lighting_gt.json records it (file stem, e.g. venice_sunset_1k)."""
-    return Path(name).stem if Path(name).suffix else (name if name.endswith("_1k") else
-                                                      f"{name}_1k")
+    return (
+        Path(name).stem if Path(name).suffix else (name if name.endswith("_1k") else f"{name}_1k")
+    )
 
 
 @dataclass
@@ -117,8 +121,9 @@ class RenderStats:
     per_frame_s: list[float] = field(default_factory=list)
 
 
-def generate(spec: SequenceSpec, out_root: Path, map_folder: Path,
-             on_frame: Callable[[], None] | None = None) -> RenderStats:
+def generate(
+    spec: SequenceSpec, out_root: Path, map_folder: Path, on_frame: Callable[[], None] | None = None
+) -> RenderStats:
     """Render `spec` into out_root/spec.name (skipped when already complete)."""
     from arlight.synth import render  # Mitsuba: imported only when rendering
 
@@ -151,8 +156,9 @@ def generate(spec: SequenceSpec, out_root: Path, map_folder: Path,
     return stats
 
 
-def _render_frame(spec: SequenceSpec, layout: Layout, virtual, camera, i: int,
-                  map_folder: Path, render) -> dict[str, np.ndarray]:
+def _render_frame(
+    spec: SequenceSpec, layout: Layout, virtual, camera, i: int, map_folder: Path, render
+) -> dict[str, np.ndarray]:
     light = spec.light_at(i)
     shapes = layout.shapes_at(i)
     seed = spec.seed * 1000 + i
@@ -161,15 +167,17 @@ def _render_frame(spec: SequenceSpec, layout: Layout, virtual, camera, i: int,
     scene = render.SceneRenderer(shapes, path, light.rotation_deg, spec.max_depth)
     try:
         radiance = scene.render(camera, pose, spec.spp, seed)
-        probe = render.render_probe(scene, layout.probe_world, spec.probe_size, spec.probe_spp,
-                                    seed * 8)
+        probe = render.render_probe(
+            scene, layout.probe_world, spec.probe_size, spec.probe_spp, seed * 8
+        )
     finally:
         scene.close()
     depth, ids = render.GeometryCaster(shapes).cast(camera, pose)
     out = {"radiance": radiance, "depth": depth, "ids": ids, "probe": probe}
     if i in spec.ar_frames:
-        with_virtual = render.SceneRenderer(shapes + virtual, path, light.rotation_deg,
-                                            spec.max_depth)
+        with_virtual = render.SceneRenderer(
+            shapes + virtual, path, light.rotation_deg, spec.max_depth
+        )
         try:
             out["radiance_virtual"] = with_virtual.render(camera, pose, spec.spp, seed)
         finally:
@@ -180,6 +188,7 @@ def _render_frame(spec: SequenceSpec, layout: Layout, virtual, camera, i: int,
 
 
 # --------------------------------------------------------------------------- writing
+
 
 def _quaternion(rotation: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
@@ -210,49 +219,58 @@ def _probe_truth(cube: np.ndarray, point, world_from_cam: np.ndarray) -> dict:
     sh_upper = sh.project_samples(d[up], lum[up], w[up], 4)
     r_cw = np.asarray(world_from_cam, float)[:3, :3].T
     dom, dom_up = env.dominant(sh_lum), env.dominant(sh_upper)
-    return {"point_world": np.round(point, 6).tolist(),
-            "sh_lum_world": env.to_file_convention(sh_lum),
-            "sh_rgb_world": env.to_file_convention(sh_rgb),
-            "sh_lum_upper_world": env.to_file_convention(sh_upper),
-            "dominant_dir_world": np.round(dom, 6).tolist(),
-            "dominant_dir_camera": np.round(r_cw @ dom, 6).tolist(),
-            "dominant_dir_upper_world": np.round(dom_up, 6).tolist(),
-            "dominant_dir_upper_camera": np.round(r_cw @ dom_up, 6).tolist()}
+    return {
+        "point_world": np.round(point, 6).tolist(),
+        "sh_lum_world": env.to_file_convention(sh_lum),
+        "sh_rgb_world": env.to_file_convention(sh_rgb),
+        "sh_lum_upper_world": env.to_file_convention(sh_upper),
+        "dominant_dir_world": np.round(dom, 6).tolist(),
+        "dominant_dir_camera": np.round(r_cw @ dom, 6).tolist(),
+        "dominant_dir_upper_world": np.round(dom_up, 6).tolist(),
+        "dominant_dir_upper_camera": np.round(r_cw @ dom_up, 6).tolist(),
+    }
 
 
 CONVENTIONS = {
-    "world_frame": "Right-handed, metres. +Y is up (gravity along -Y); the ground plane is "
-                   "y = 0.",
+    "world_frame": "Right-handed, metres. +Y is up (gravity along -Y); the ground plane is y = 0.",
     "camera_frame": "OpenCV: x right, y down, z forward. groundtruth.txt stores the "
-                    "camera-to-world pose, quaternion qx qy qz qw (Hamilton, qw >= 0).",
+    "camera-to-world pose, quaternion qx qy qz qw (Hamilton, qw >= 0).",
     "direction_meaning": "Unit vectors from the scene towards where light arrives from.",
     "env_rotation": "The map's direction d shows column u = (atan2(d.x, -d.z) / 2 pi) mod 1, "
-                    "row v = acos(d.y) / pi; world direction = R_y(phi) d, phi = "
-                    "env_rotation_deg, R_y = [[cos, 0, sin], [0, 1, 0], [-sin, 0, cos]].",
+    "row v = acos(d.y) / pi; world direction = R_y(phi) d, phi = "
+    "env_rotation_deg, R_y = [[cos, 0, sin], [0, 1, 0], [-sin, 0, cos]].",
     "radiance_units": "Linear RGB radiance as stored in the map file; images are "
-                      "sRGB(clip(exposure_scale * radiance, 0, 1)) plus noise.",
+    "sRGB(clip(exposure_scale * radiance, 0, 1)) plus noise.",
     "sh_basis": "Real orthonormal SH, bands 0..3, index l(l+1)+m, Sloan's polynomials WITH "
-                "the Condon-Shortley phase (as ../shared/data/synthetic); negate indices 1, "
-                "3, 5, 7, 9, 11, 13, 15 for the basis without it.",
+    "the Condon-Shortley phase (as ../shared/data/synthetic); negate indices 1, "
+    "3, 5, 7, 9, 11, 13, 15 for the basis without it.",
     "sh_definition": "c_i = integral f(w) Y_i(w) dw over every texel of the map with exact "
-                     "texel solid angles; f = luminance 0.2126 R + 0.7152 G + 0.0722 B "
-                     "(sh_lum_*) or each linear channel (sh_rgb_world, rows R, G, B).",
+    "texel solid angles; f = luminance 0.2126 R + 0.7152 G + 0.0722 B "
+    "(sh_lum_*) or each linear channel (sh_rgb_world, rows R, G, B).",
     "upper": "*_upper_* fields: the radiance over world y > 0 only (the light that can reach "
-             "a scene on the ground plane).",
+    "a scene on the ground plane).",
     "dominant_dir": "normalize(integral L(w) w dw) = normalize(-c_1,1, -c_1,-1, c_1,0).",
     "probe": "probe: the radiance arriving at point_world (one virtual-sphere radius above the "
-             "virtual objects' anchor), path-traced into a cube map with the scene in it "
-             "(every surface, the moving object, walls), then projected to SH like the map; "
-             "where truth_reference is 'probe' (the distant-light assumption fails, e.g. a "
-             "closed room), judge estimates against the probe's upper fields.",
+    "virtual objects' anchor), path-traced into a cube map with the scene in it "
+    "(every surface, the moving object, walls), then projected to SH like the map; "
+    "where truth_reference is 'probe' (the distant-light assumption fails, e.g. a "
+    "closed room), judge estimates against the probe's upper fields.",
 }
 
 
-def _write(spec: SequenceSpec, layout: Layout, entries: list[dict], camera, work: Path,
-           final: Path, map_folder: Path) -> None:
+def _write(
+    spec: SequenceSpec,
+    layout: Layout,
+    entries: list[dict],
+    camera,
+    work: Path,
+    final: Path,
+    map_folder: Path,
+) -> None:
     frames = [dict(np.load(work / f"{i:06d}.npz")) for i in range(spec.frames)]
-    exposure = sensor.choose_exposure([f["radiance"] for f in frames],
-                                      [f["ids"] >= 0 for f in frames])
+    exposure = sensor.choose_exposure(
+        [f["radiance"] for f in frames], [f["ids"] >= 0 for f in frames]
+    )
     tmp = work.parent / (final.name + ".partial")  # inside .work: never seen as a sequence
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -274,77 +292,127 @@ def _write(spec: SequenceSpec, layout: Layout, entries: list[dict], camera, work
         _write_png(tmp / "depth_gt" / name, sensor.clean_depth_16bit(f["depth"]))
         pose = layout.poses[i]
         q = _quaternion(pose[:3, :3])
-        poses_txt.append(f"{ts:.6f} " + " ".join(f"{x:.7f}" for x in pose[:3, 3]) + " "
-                         + " ".join(f"{x:.7f}" for x in q))
+        poses_txt.append(
+            f"{ts:.6f} "
+            + " ".join(f"{x:.7f}" for x in pose[:3, 3])
+            + " "
+            + " ".join(f"{x:.7f}" for x in q)
+        )
         rgb_list.append(f"{ts:.6f} rgb/{name}")
         depth_list.append(f"{ts:.6f} depth/{name}")
         assoc.append(f"{ts:.6f} rgb/{name} {ts:.6f} depth/{name}")
         r_cw = pose[:3, :3].T
         dom, dom_up = env.dominant(truth.sh_lum_world), env.dominant(truth.sh_lum_upper_world)
         probe = _probe_truth(f["probe"], layout.probe_world, pose)
-        gt_frames.append({
-            "index": i, "timestamp": round(ts, 6), "rgb": f"rgb/{name}",
-            "env_map": map_label(light.map_name), "env_rotation_deg": light.rotation_deg,
-            "sh_lum_world": env.to_file_convention(truth.sh_lum_world),
-            "sh_lum_camera": env.to_file_convention(env.rotate_to_camera(truth.sh_lum_world,
-                                                                          pose)),
-            "sh_rgb_world": env.to_file_convention(truth.sh_rgb_world),
-            "dominant_dir_world": np.round(dom, 6).tolist(),
-            "dominant_dir_camera": np.round(r_cw @ dom, 6).tolist(),
-            "lighting_changed_at_this_frame": i > 0 and light.from_frame == i,
-            "dominant_dir_upper_world": np.round(dom_up, 6).tolist(),
-            "dominant_dir_upper_camera": np.round(r_cw @ dom_up, 6).tolist(),
-            "sh_lum_upper_world": env.to_file_convention(truth.sh_lum_upper_world),
-            "upper_vs_full_deg": round(env.angle_deg(dom, dom_up), 2),
-            "probe": probe,
-            "probe_vs_distant_upper_deg": round(env.angle_deg(
-                probe["dominant_dir_upper_world"], dom_up), 2)})
+        gt_frames.append(
+            {
+                "index": i,
+                "timestamp": round(ts, 6),
+                "rgb": f"rgb/{name}",
+                "env_map": map_label(light.map_name),
+                "env_rotation_deg": light.rotation_deg,
+                "sh_lum_world": env.to_file_convention(truth.sh_lum_world),
+                "sh_lum_camera": env.to_file_convention(
+                    env.rotate_to_camera(truth.sh_lum_world, pose)
+                ),
+                "sh_rgb_world": env.to_file_convention(truth.sh_rgb_world),
+                "dominant_dir_world": np.round(dom, 6).tolist(),
+                "dominant_dir_camera": np.round(r_cw @ dom, 6).tolist(),
+                "lighting_changed_at_this_frame": i > 0 and light.from_frame == i,
+                "dominant_dir_upper_world": np.round(dom_up, 6).tolist(),
+                "dominant_dir_upper_camera": np.round(r_cw @ dom_up, 6).tolist(),
+                "sh_lum_upper_world": env.to_file_convention(truth.sh_lum_upper_world),
+                "upper_vs_full_deg": round(env.angle_deg(dom, dom_up), 2),
+                "probe": probe,
+                "probe_vs_distant_upper_deg": round(
+                    env.angle_deg(probe["dominant_dir_upper_world"], dom_up), 2
+                ),
+            }
+        )
         if layout.moving:
             names = [s.name for s in layout.shapes_at(i)]
-            visible_moving.append("moving_ball" in names
-                                  and bool(np.any(f["ids"] == names.index("moving_ball"))))
+            visible_moving.append(
+                "moving_ball" in names and bool(np.any(f["ids"] == names.index("moving_ball")))
+            )
     header = "# timestamp filename\n"
-    (tmp / "rgb.txt").write_text("# color images\n# sequence " + spec.name + "\n" + header
-                                 + "\n".join(rgb_list) + "\n")
-    (tmp / "depth.txt").write_text("# depth images (uint16, metres * 5000)\n# sequence "
-                                   + spec.name + "\n" + header + "\n".join(depth_list) + "\n")
+    (tmp / "rgb.txt").write_text(
+        "# color images\n# sequence " + spec.name + "\n" + header + "\n".join(rgb_list) + "\n"
+    )
+    (tmp / "depth.txt").write_text(
+        "# depth images (uint16, metres * 5000)\n# sequence "
+        + spec.name
+        + "\n"
+        + header
+        + "\n".join(depth_list)
+        + "\n"
+    )
     (tmp / "associations.txt").write_text("\n".join(assoc) + "\n")
     (tmp / "groundtruth.txt").write_text(
         "# ground truth camera-to-world poses, OpenCV camera axes, world +Y up\n"
-        "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(poses_txt) + "\n")
-    (tmp / "camera.json").write_text(json.dumps({
-        "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
-        "width": camera.width, "height": camera.height, "depth_scale": sensor.DEPTH_SCALE,
-        "distortion": [0.0] * 5,
-        "pixel_centre_convention": "OpenCV: the centre of pixel (u, v) is at (u, v)",
-        "depth_valid_range_m": list(sensor.DEPTH_RANGE_M)}, indent=2) + "\n")
+        "# timestamp tx ty tz qx qy qz qw\n" + "\n".join(poses_txt) + "\n"
+    )
+    (tmp / "camera.json").write_text(
+        json.dumps(
+            {
+                "fx": camera.fx,
+                "fy": camera.fy,
+                "cx": camera.cx,
+                "cy": camera.cy,
+                "width": camera.width,
+                "height": camera.height,
+                "depth_scale": sensor.DEPTH_SCALE,
+                "distortion": [0.0] * 5,
+                "pixel_centre_convention": "OpenCV: the centre of pixel (u, v) is at (u, v)",
+                "depth_valid_range_m": list(sensor.DEPTH_RANGE_M),
+            },
+            indent=2,
+        )
+        + "\n"
+    )
     events: dict = {"lighting_change_frames": [s.from_frame for s in spec.lights[1:]]}
     if layout.moving:
         events["dynamic_object"] = {
             "shape": "sphere",
             "frames_visible": [i for i, v in enumerate(visible_moving) if v],
-            "frames_not_visible": [i for i, v in enumerate(visible_moving) if not v]}
+            "frames_not_visible": [i for i, v in enumerate(visible_moving) if not v],
+        }
     from arlight.synth.render import version
 
     doc = {
-        "sequence": spec.name, "set": "arlight synth", "category": layout.category,
-        "category_description": DESCRIPTION[spec.layout], "layout": spec.layout,
-        "num_frames": spec.frames, "conventions": CONVENTIONS,
+        "sequence": spec.name,
+        "set": "arlight synth",
+        "category": layout.category,
+        "category_description": DESCRIPTION[spec.layout],
+        "layout": spec.layout,
+        "num_frames": spec.frames,
+        "conventions": CONVENTIONS,
         "truth_reference": "distant" if layout.distant_light_holds else "probe",
         "distant_light_holds": layout.distant_light_holds,
         "exposure_scale": exposure,
-        "env_schedule": [{"from_frame": s.from_frame, "env_map": map_label(s.map_name),
-                          "env_rotation_deg": s.rotation_deg} for s in spec.lights],
+        "env_schedule": [
+            {
+                "from_frame": s.from_frame,
+                "env_map": map_label(s.map_name),
+                "env_rotation_deg": s.rotation_deg,
+            }
+            for s in spec.lights
+        ],
         "events": events,
-        "render": {"renderer": f"Mitsuba {version()} (scalar_rgb), path tracer",
-                   "max_depth": spec.max_depth, "spp": spec.spp,
-                   "reconstruction_filter": "gaussian", "scene_seed": spec.seed,
-                   "frame_seed": "scene_seed * 1000 + frame index",
-                   "probe_cube_size": spec.probe_size, "probe_spp": spec.probe_spp,
-                   "lighting": "environment map only (distant); scene Lambertian"},
+        "render": {
+            "renderer": f"Mitsuba {version()} (scalar_rgb), path tracer",
+            "max_depth": spec.max_depth,
+            "spp": spec.spp,
+            "reconstruction_filter": "gaussian",
+            "scene_seed": spec.seed,
+            "frame_seed": "scene_seed * 1000 + frame index",
+            "probe_cube_size": spec.probe_size,
+            "probe_spp": spec.probe_spp,
+            "lighting": "environment map only (distant); scene Lambertian",
+        },
         "spec": asdict(spec),
         "scene_objects": [s.describe() for s in layout.shapes],
-        "frames": gt_frames}
+        "frames": gt_frames,
+    }
     if spec.ar_frames:
         _write_ar(spec, layout, entries, frames, exposure, tmp, doc)
     (tmp / "lighting_gt.json").write_text(json.dumps(doc, indent=1) + "\n")
@@ -365,8 +433,15 @@ def _affected(real: np.ndarray, virtual: np.ndarray, mask_virtual: np.ndarray) -
     return m | mask_virtual
 
 
-def _write_ar(spec: SequenceSpec, layout: Layout, entries: list[dict], frames: list[dict],
-              exposure: float, tmp: Path, doc: dict) -> None:
+def _write_ar(
+    spec: SequenceSpec,
+    layout: Layout,
+    entries: list[dict],
+    frames: list[dict],
+    exposure: float,
+    tmp: Path,
+    doc: dict,
+) -> None:
     ar = tmp / "ar"
     ar.mkdir()
     for file, mesh in object_meshes().items():
@@ -385,34 +460,49 @@ def _write_ar(spec: SequenceSpec, layout: Layout, entries: list[dict], frames: l
         mask_v = f["mask_virtual"].astype(bool)
         affected = _affected(f["radiance"], f["radiance_virtual"], mask_v)
         _write_png(ar / "real" / name, sensor.to_8bit(f["radiance"], exposure, None))
-        _write_png(ar / "real_virtual" / name,
-                   sensor.to_8bit(f["radiance_virtual"], exposure, None))
+        _write_png(
+            ar / "real_virtual" / name, sensor.to_8bit(f["radiance_virtual"], exposure, None)
+        )
         _write_png(ar / "mask_virtual" / name, mask_v.astype(np.uint8) * 255)
         _write_png(ar / "mask_affected" / name, affected.astype(np.uint8) * 255)
         light = spec.light_at(i)
-        ar_frames.append({"index": i, "rgb": f"rgb/{name}", "real": f"ar/real/{name}",
-                          "real_virtual": f"ar/real_virtual/{name}",
-                          "mask_virtual": f"ar/mask_virtual/{name}",
-                          "mask_affected": f"ar/mask_affected/{name}",
-                          "env_map": map_label(light.map_name),
-                          "env_rotation_deg": light.rotation_deg,
-                          "virtual_pixels": int(mask_v.sum()),
-                          "affected_fraction": round(float(affected.mean()), 5)})
+        ar_frames.append(
+            {
+                "index": i,
+                "rgb": f"rgb/{name}",
+                "real": f"ar/real/{name}",
+                "real_virtual": f"ar/real_virtual/{name}",
+                "mask_virtual": f"ar/mask_virtual/{name}",
+                "mask_affected": f"ar/mask_affected/{name}",
+                "env_map": map_label(light.map_name),
+                "env_rotation_deg": light.rotation_deg,
+                "virtual_pixels": int(mask_v.sum()),
+                "affected_fraction": round(float(affected.mean()), 5),
+            }
+        )
     scene = {
-        "sequence": spec.name, "set": "arlight synth",
+        "sequence": spec.name,
+        "set": "arlight synth",
         "description": "Differential-rendering pairs: frames rendered without (ar/real) and "
-                       "with (ar/real_virtual) two virtual objects on the support surface, "
-                       "with the same per-frame seed, plus masks of the virtual objects and "
-                       "of every pixel they affect (as ../shared/data/synthetic).",
-        "conventions": {"world_from_object": "4x4 row-major, p_world = M [p_object, 1]; "
-                                             "object frame: metres, origin at the base "
-                                             "centre, +y up (the scale is in M)",
-                        "cam0_from_object": "the same pose in the OpenCV frame of frame 0"},
+        "with (ar/real_virtual) two virtual objects on the support surface, "
+        "with the same per-frame seed, plus masks of the virtual objects and "
+        "of every pixel they affect (as ../shared/data/synthetic).",
+        "conventions": {
+            "world_from_object": "4x4 row-major, p_world = M [p_object, 1]; "
+            "object frame: metres, origin at the base "
+            "centre, +y up (the scale is in M)",
+            "cam0_from_object": "the same pose in the OpenCV frame of frame 0",
+        },
         "world_from_cam0": np.round(cam0, 7).tolist(),
-        "ground_plane_cam0": {"normal": np.round(up_cam0, 7).tolist(),
-                              "d": round(float(cam0[1, 3] - layout.anchor_world[1]), 7)},
-        "objects": objects, "frames_rendered": list(spec.ar_frames),
-        "virtual_material": spec.virtual_material, "exposure_scale": exposure,
-        "frames": ar_frames}
+        "ground_plane_cam0": {
+            "normal": np.round(up_cam0, 7).tolist(),
+            "d": round(float(cam0[1, 3] - layout.anchor_world[1]), 7),
+        },
+        "objects": objects,
+        "frames_rendered": list(spec.ar_frames),
+        "virtual_material": spec.virtual_material,
+        "exposure_scale": exposure,
+        "frames": ar_frames,
+    }
     (ar / "virtual_scene.json").write_text(json.dumps(scene, indent=1) + "\n")
     doc["ar_frames"] = list(spec.ar_frames)

@@ -25,12 +25,11 @@ ARCH_SIZE_M = {"width": 0.4, "height": 0.3, "depth": 0.12, "post": 0.09}
 
 def sphere_material(kind: str) -> Material:
     if kind not in VIRTUAL_MATERIALS:
-        raise ValueError(f"--virtual-material {kind!r}: choose from "
-                         f"{', '.join(VIRTUAL_MATERIALS)}")
+        raise ValueError(f"--virtual-material {kind!r}: choose from {', '.join(VIRTUAL_MATERIALS)}")
     if kind == "mirror":
         return Material("grey", (0.9, 0.9, 0.9), mirror=True)
     if kind.startswith("glossy"):
-        return Material("grey", SPHERE_ALBEDO, roughness=float(kind[len("glossy"):]))
+        return Material("grey", SPHERE_ALBEDO, roughness=float(kind[len("glossy") :]))
     return Material("grey", SPHERE_ALBEDO)
 
 
@@ -45,13 +44,27 @@ def virtual_shapes(layout: Layout, material_kind: str) -> tuple[list[Shape], lis
     sphere_mat = sphere_material(material_kind)
     radius = VIRTUAL_SPHERE_RADIUS_M * s
     arch_params = {k: v * s for k, v in ARCH_SIZE_M.items()}
-    shapes = [Shape("virtual_sphere", "sphere", {"radius": radius},
-                    pose_matrix(0, base_sphere + UP * radius), sphere_mat),
-              Shape("virtual_arch", "arch", arch_params, pose_matrix(yaw, base_arch),
-                    Material("grey", ARCH_ALBEDO))]
+    shapes = [
+        Shape(
+            "virtual_sphere",
+            "sphere",
+            {"radius": radius},
+            pose_matrix(0, base_sphere + UP * radius),
+            sphere_mat,
+        ),
+        Shape(
+            "virtual_arch",
+            "arch",
+            arch_params,
+            pose_matrix(yaw, base_arch),
+            Material("grey", ARCH_ALBEDO),
+        ),
+    ]
     entries = []
-    for shape, base, mesh, y in ((shapes[0], base_sphere, "virtual_sphere.ply", 0.0),
-                                 (shapes[1], base_arch, "virtual_arch.ply", yaw)):
+    for shape, base, mesh, y in (
+        (shapes[0], base_sphere, "virtual_sphere.ply", 0.0),
+        (shapes[1], base_arch, "virtual_arch.ply", yaw),
+    ):
         world_from_object = pose_matrix(y, base) @ np.diag([s, s, s, 1.0])
         m = shape.material
         material: dict = {"albedo": list(m.albedo_rgb)}
@@ -59,13 +72,22 @@ def virtual_shapes(layout: Layout, material_kind: str) -> tuple[list[Shape], lis
             material["mirror"] = True
         elif m.roughness is not None:
             material.update(roughness=m.roughness, metalness=m.metalness)
-        entries.append({"name": shape.name, "mesh": mesh, "material": material,
-                        "world_from_object": np.round(world_from_object, 7).tolist()})
+        entries.append(
+            {
+                "name": shape.name,
+                "mesh": mesh,
+                "material": material,
+                "world_from_object": np.round(world_from_object, 7).tolist(),
+            }
+        )
     return shapes, entries
 
 
 def object_meshes() -> dict[str, TriangleMesh]:
     """The meshes in their object frames (metres, origin at the base centre, +y up), unscaled."""
-    return {"virtual_sphere.ply": translated(uv_sphere(VIRTUAL_SPHERE_RADIUS_M),
-                                             (0, VIRTUAL_SPHERE_RADIUS_M, 0)),
-            "virtual_arch.ply": arch(*ARCH_SIZE_M.values())}
+    return {
+        "virtual_sphere.ply": translated(
+            uv_sphere(VIRTUAL_SPHERE_RADIUS_M), (0, VIRTUAL_SPHERE_RADIUS_M, 0)
+        ),
+        "virtual_arch.ply": arch(*ARCH_SIZE_M.values()),
+    }

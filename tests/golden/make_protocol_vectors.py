@@ -93,26 +93,42 @@ def scene() -> SceneSpec:
         np.array([[0, 0, 0], [0.25, 0, 0], [0, 0.25, 0], [0, 0, 0.25]], np.float32),
         np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint32),
         np.array([[-0.5, -0.5, -0.5], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32),
-        world_from_object=np.array([[0, 0, 2, 0.5], [0, 2, 0, -0.25], [-2, 0, 0, 1.5],
-                                    [0, 0, 0, 1]], np.float64),
-        albedo=(0.75, 0.5, 0.25), roughness=0.5, metalness=0.0, mirror=False)
+        world_from_object=np.array(
+            [[0, 0, 2, 0.5], [0, 2, 0, -0.25], [-2, 0, 0, 1.5], [0, 0, 0, 1]], np.float64
+        ),
+        albedo=(0.75, 0.5, 0.25),
+        roughness=0.5,
+        metalness=0.0,
+        mirror=False,
+    )
     card = SceneObjectSpec(
-        "card", np.array([[0, 0, 0], [0.125, 0, 0], [0, 0.125, 0]], np.float32),
-        np.array([[0, 1, 2]], np.uint32), np.array([[0, 0, 1]] * 3, np.float32),
-        anchor=SceneAnchorSpec((4.5, 3.0), 30.0), albedo=(1.0, 1.0, 1.0), roughness=0.0,
-        metalness=1.0, mirror=True)
+        "card",
+        np.array([[0, 0, 0], [0.125, 0, 0], [0, 0.125, 0]], np.float32),
+        np.array([[0, 1, 2]], np.uint32),
+        np.array([[0, 0, 1]] * 3, np.float32),
+        anchor=SceneAnchorSpec((4.5, 3.0), 30.0),
+        albedo=(1.0, 1.0, 1.0),
+        roughness=0.0,
+        metalness=1.0,
+        mirror=True,
+    )
     return SceneSpec((tetra, card))
 
 
 def exports() -> dict:
     """One of each engine layout (SPEC.md, "result: engine layouts"): shapes, not physics."""
     c = [0.25 - 0.03125 * i for i in range(9)]
-    return {"arcore": [x * k for x in c for k in (1.0, 0.5, 0.25)],
-            "gltf": {"intensity": 1.0, "rotation": [0.0, 0.0, 0.0, 1.0],
-                     "irradianceCoefficients": [[x, x * 0.5, x * 0.25] for x in c]},
-            "unity": [c, [x * 0.5 for x in c], [x * 0.25 for x in c]],
-            "filament": "( 0.250000000000000,  0.125000000000000,  0.062500000000000); // L00\n",
-            "main_light": {"direction": [0.0, 1.0, 0.0], "intensity": [1.5, 1.25, 1.0]}}
+    return {
+        "arcore": [x * k for x in c for k in (1.0, 0.5, 0.25)],
+        "gltf": {
+            "intensity": 1.0,
+            "rotation": [0.0, 0.0, 0.0, 1.0],
+            "irradianceCoefficients": [[x, x * 0.5, x * 0.25] for x in c],
+        },
+        "unity": [c, [x * 0.5 for x in c], [x * 0.25 for x in c]],
+        "filament": "( 0.250000000000000,  0.125000000000000,  0.062500000000000); // L00\n",
+        "main_light": {"direction": [0.0, 1.0, 0.0], "intensity": [1.5, 1.25, 1.0]},
+    }
 
 
 def panorama_light() -> dict:
@@ -151,19 +167,48 @@ def vectors() -> dict[str, object]:
                 want_composite=True,
             ),
         ),
-        "hello_scene": Hello(PROTOCOL_VERSION, SessionConfig(
-            session="golden-scene", role="capture", calibration=cal, depth_scale=1000.0,
-            want_composite=True, scene=scene())),
-        "hello_panorama": Hello(PROTOCOL_VERSION, SessionConfig(
-            session="golden-pano", role="capture", calibration=cal, depth_scale=1000.0,
-            panorama=PanoramaConfig("paper", "panorama", (0.0, 0.0, -1.0, 0.0, 1.0, 0.0,
-                                                          1.0, 0.0, 0.0)))),
-        "hello_panorama_only": Hello(PROTOCOL_VERSION, SessionConfig(
-            session="golden-pano-only", role="capture", mode="lossless",
-            panorama=PanoramaConfig())),
-        "hello_exports": Hello(PROTOCOL_VERSION, SessionConfig(
-            session="golden-exports", role="capture", calibration=cal, depth_scale=1000.0,
-            exports=("arcore", "gltf", "unity", "filament", "main_light"))),
+        "hello_scene": Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(
+                session="golden-scene",
+                role="capture",
+                calibration=cal,
+                depth_scale=1000.0,
+                want_composite=True,
+                scene=scene(),
+            ),
+        ),
+        "hello_panorama": Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(
+                session="golden-pano",
+                role="capture",
+                calibration=cal,
+                depth_scale=1000.0,
+                panorama=PanoramaConfig(
+                    "paper", "panorama", (0.0, 0.0, -1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0)
+                ),
+            ),
+        ),
+        "hello_panorama_only": Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(
+                session="golden-pano-only",
+                role="capture",
+                mode="lossless",
+                panorama=PanoramaConfig(),
+            ),
+        ),
+        "hello_exports": Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(
+                session="golden-exports",
+                role="capture",
+                calibration=cal,
+                depth_scale=1000.0,
+                exports=("arcore", "gltf", "unity", "filament", "main_light"),
+            ),
+        ),
         "hello_display": Hello(PROTOCOL_VERSION, SessionConfig(session="golden-1", role="display")),
         "welcome": Welcome(PROTOCOL_VERSION, "golden-1", 8, 1.0, "arlight"),
         "frame_raw_raw": Frame(7, 1234.5, rgb, depth, pose(), None, "raw", "raw"),
@@ -184,8 +229,12 @@ def vectors() -> dict[str, object]:
             confidence={"samples": 1200, "condition": 12.5, "bands": 4, "unconstrained": []},
             pose=pose().tolist(),
             timings_ms={"reconstruct": 3.5, "light_estimation": 0.75},
-            diagnostics={"tracking": {"ok": True, "reason": ""}, "residuals": [0.5, 0.25],
-                         "bands_estimated": 3, "note": "golden"},
+            diagnostics={
+                "tracking": {"ok": True, "reason": ""},
+                "residuals": [0.5, 0.25],
+                "bands_estimated": 3,
+                "note": "golden",
+            },
             frames_received=8,
             frames_processed=7,
             frames_dropped=1,
@@ -198,66 +247,135 @@ def vectors() -> dict[str, object]:
         # panorama_from_world, operator nil: boost), as SPEC.md "result: the panorama light"
         # defines a panorama-only Result (made-up SH: panorama_light())
         "result_panorama": Result(
-            seq=12, timestamp=1236.0, sh=pano["sh"], sh_camera=pano["sh"], sh_rgb=pano["sh_rgb"],
+            seq=12,
+            timestamp=1236.0,
+            sh=pano["sh"],
+            sh_camera=pano["sh"],
+            sh_rgb=pano["sh_rgb"],
             dominant_direction_camera=pano["direction"],
-            dominant_direction_world=pano["direction"], intensity=pano["intensity"],
-            confidence=Confidence(samples=128, condition_number=1.0, bands_estimated=4,
-                                  value=1.0).to_dict(),
+            dominant_direction_world=pano["direction"],
+            intensity=pano["intensity"],
+            confidence=Confidence(
+                samples=128, condition_number=1.0, bands_estimated=4, value=1.0
+            ).to_dict(),
             pose=np.eye(4).tolist(),
-            timings_ms={"PanoramaInverseTone": 0.5, "PanoramaDownsample": 0.25,
-                        "PanoramaSH": 0.25, "PanoramaDiffuse": 0.125},
+            timings_ms={
+                "PanoramaInverseTone": 0.5,
+                "PanoramaDownsample": 0.25,
+                "PanoramaSH": 0.25,
+                "PanoramaDiffuse": 0.125,
+            },
             diagnostics={"light_source": "panorama", "panorama_operator": "boost"},
-            frames_received=1, frames_processed=1, frames_dropped=0, server_receive_time=6.0,
-            server_finish_time=6.25, panorama_sh=pano["sh"], panorama_sh_rgb=pano["sh_rgb"],
+            frames_received=1,
+            frames_processed=1,
+            frames_dropped=0,
+            server_receive_time=6.0,
+            server_finish_time=6.25,
+            panorama_sh=pano["sh"],
+            panorama_sh_rgb=pano["sh_rgb"],
             panorama_dominant_direction=pano["direction"],
         ),
         # no direction (SPEC.md "result: directions"): a first frame without usable depth
         "result_no_direction": Result(
-            seq=20, timestamp=1240.0, sh=[0.0] * 16, sh_camera=[0.0] * 16,
-            dominant_direction_camera=[0.0, 0.0, 0.0], dominant_direction_world=[0.0, 0.0, 0.0],
-            intensity=0.0, confidence=Confidence(reason="no valid depth").to_dict(),
-            pose=np.eye(4).tolist(), timings_ms={"LightEst": 0.0},
+            seq=20,
+            timestamp=1240.0,
+            sh=[0.0] * 16,
+            sh_camera=[0.0] * 16,
+            dominant_direction_camera=[0.0, 0.0, 0.0],
+            dominant_direction_world=[0.0, 0.0, 0.0],
+            intensity=0.0,
+            confidence=Confidence(reason="no valid depth").to_dict(),
+            pose=np.eye(4).tolist(),
+            timings_ms={"LightEst": 0.0},
             diagnostics={"tracking": {"ok": False, "reason": "no valid depth"}},
-            frames_received=1, frames_processed=1, frames_dropped=0, server_receive_time=8.0,
-            server_finish_time=8.25),
+            frames_received=1,
+            frames_processed=1,
+            frames_dropped=0,
+            server_receive_time=8.0,
+            server_finish_time=8.25,
+        ),
         "result_exports": Result(
-            seq=13, timestamp=1236.5, sh=sh, sh_camera=sh,
+            seq=13,
+            timestamp=1236.5,
+            sh=sh,
+            sh_camera=sh,
             dominant_direction_camera=[0.0, 1.0, 0.0],
-            dominant_direction_world=[0.0, 1.0, 0.0], intensity=1.0, confidence={"value": 0.5},
-            pose=np.eye(4).tolist(), timings_ms={}, frames_received=1, frames_processed=1,
-            frames_dropped=0, server_receive_time=7.0, server_finish_time=7.25,
-            exports=exports()),
+            dominant_direction_world=[0.0, 1.0, 0.0],
+            intensity=1.0,
+            confidence={"value": 0.5},
+            pose=np.eye(4).tolist(),
+            timings_ms={},
+            frames_received=1,
+            frames_processed=1,
+            frames_dropped=0,
+            server_receive_time=7.0,
+            server_finish_time=7.25,
+            exports=exports(),
+        ),
         "result_no_composite": Result(
-            seq=7, timestamp=1234.5, sh=sh, dominant_direction_camera=[0.0, 0.0, 1.0],
-            dominant_direction_world=[0.0, 0.0, 1.0], intensity=0.0,
-            confidence={"condition": float("inf")}, pose=np.eye(4).tolist(), timings_ms={},
-            frames_received=1, frames_processed=0, frames_dropped=1, server_receive_time=5.0,
+            seq=7,
+            timestamp=1234.5,
+            sh=sh,
+            dominant_direction_camera=[0.0, 0.0, 1.0],
+            dominant_direction_world=[0.0, 0.0, 1.0],
+            intensity=0.0,
+            confidence={"condition": float("inf")},
+            pose=np.eye(4).tolist(),
+            timings_ms={},
+            frames_received=1,
+            frames_processed=0,
+            frames_dropped=1,
+            server_receive_time=5.0,
             server_finish_time=5.0,
         ),
         "credit": Credit(4),
-        "error": Error("bad_field", "depth is 8 x 6, colour 4 x 3: they must agree",
-                       "frame.depth", 12),
-        "error_retryable": Error("bad_state", "more than 4 frames unacknowledged",
-                                 ErrorField.CREDITS, 13, retryable=True),
+        "error": Error(
+            "bad_field", "depth is 8 x 6, colour 4 x 3: they must agree", "frame.depth", 12
+        ),
+        "error_retryable": Error(
+            "bad_state", "more than 4 frames unacknowledged", ErrorField.CREDITS, 13, retryable=True
+        ),
         "heartbeat": Heartbeat(100.125),
         "bye": Bye("end of recording", ByeKind.END_OF_STREAM),
         "bye_shutdown": Bye("server shutting down", ByeKind.SHUTDOWN),
         # session tokens (issue 14): the optional keys config.token and Welcome token
-        "hello_display_token": Hello(PROTOCOL_VERSION, SessionConfig(
-            session="golden-1", role="display", token=GOLDEN_TOKEN)),
-        "hello_capture_token": Hello(PROTOCOL_VERSION, SessionConfig(
-            session="golden-1", role="capture", calibration=cal, depth_scale=1000.0,
-            token=GOLDEN_TOKEN)),
+        "hello_display_token": Hello(
+            PROTOCOL_VERSION, SessionConfig(session="golden-1", role="display", token=GOLDEN_TOKEN)
+        ),
+        "hello_capture_token": Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(
+                session="golden-1",
+                role="capture",
+                calibration=cal,
+                depth_scale=1000.0,
+                token=GOLDEN_TOKEN,
+            ),
+        ),
         # both optional keys at once: pins their order (exports, then token)
-        "hello_exports_token": Hello(PROTOCOL_VERSION, SessionConfig(
-            session="golden-1", role="capture", calibration=cal, depth_scale=1000.0,
-            exports=("webxr", "main_light"), token=GOLDEN_TOKEN)),
+        "hello_exports_token": Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(
+                session="golden-1",
+                role="capture",
+                calibration=cal,
+                depth_scale=1000.0,
+                exports=("webxr", "main_light"),
+                token=GOLDEN_TOKEN,
+            ),
+        ),
         "welcome_token": Welcome(PROTOCOL_VERSION, "golden-1", 8, 1.0, "arlight", GOLDEN_TOKEN),
-        "error_unauthorized": Error("unauthorized", "session golden-1 needs its token",
-                                    "hello.config.token"),
+        "error_unauthorized": Error(
+            "unauthorized", "session golden-1 needs its token", "hello.config.token"
+        ),
         # `arlight serve --ray` (issue 20): a lost pipeline, retryable
-        "error_pipeline_lost": Error("bad_state", "the session's pipeline was lost: send it "
-                                     "again", ErrorField.PIPELINE_LOST, 14, retryable=True),
+        "error_pipeline_lost": Error(
+            "bad_state",
+            "the session's pipeline was lost: send it again",
+            ErrorField.PIPELINE_LOST,
+            14,
+            retryable=True,
+        ),
     }
 
 
@@ -294,6 +412,7 @@ def _set(path: tuple, value: object):
             d = d[key]
         d[path[-1]] = value
         return header
+
     return edit
 
 
@@ -309,26 +428,54 @@ def refused() -> dict[str, tuple[list[bytes], str, str, str]]:
     code and field (SPEC.md section 9, "Refused vectors")."""
     v = vectors()
     return {
-        "hello_repeated_key": (edited(v["hello"], _repeat_session), "malformed", "header",
-                               "section 2: every key of every map exactly once"),
-        "hello_unknown_key": (edited(v["hello"], _set(("config", "capabilities"), ["x"])),
-                              "bad_field", "hello.config.capabilities",
-                              "section 2: a key the message does not define"),
-        "hello_exports_empty": (edited(v["hello_exports"], _set(("config", "exports"), [])),
-                                "bad_field", "hello.config.exports",
-                                "section 4: config.exports holds 1..6 names (none: nil or absent)"),
-        "heartbeat_v3": (edited(v["heartbeat"], _set(("v",), 3)), "bad_version", "v",
-                         "section 10: another version"),
-        "frame_seq_too_large": (edited(v["frame_raw_raw"], _set(("seq",), 2**63)), "bad_field",
-                                "frame.seq", "sections 3 and 4: seq is 0..2^63-1"),
-        "frame_truncated": ([bytes(p) for p in encode(v["frame_png_zstd"])][:-1], "malformed",
-                            "frame.buffers", "section 6: buffers disagreeing with the parts"),
-        "bye_unknown_kind": (edited(v["bye"], _set(("kind",), "goodbye")), "bad_field", "bye.kind",
-                             "section 4: kind is end_of_stream, shutdown or leaving"),
+        "hello_repeated_key": (
+            edited(v["hello"], _repeat_session),
+            "malformed",
+            "header",
+            "section 2: every key of every map exactly once",
+        ),
+        "hello_unknown_key": (
+            edited(v["hello"], _set(("config", "capabilities"), ["x"])),
+            "bad_field",
+            "hello.config.capabilities",
+            "section 2: a key the message does not define",
+        ),
+        "hello_exports_empty": (
+            edited(v["hello_exports"], _set(("config", "exports"), [])),
+            "bad_field",
+            "hello.config.exports",
+            "section 4: config.exports holds 1..6 names (none: nil or absent)",
+        ),
+        "heartbeat_v3": (
+            edited(v["heartbeat"], _set(("v",), 3)),
+            "bad_version",
+            "v",
+            "section 10: another version",
+        ),
+        "frame_seq_too_large": (
+            edited(v["frame_raw_raw"], _set(("seq",), 2**63)),
+            "bad_field",
+            "frame.seq",
+            "sections 3 and 4: seq is 0..2^63-1",
+        ),
+        "frame_truncated": (
+            [bytes(p) for p in encode(v["frame_png_zstd"])][:-1],
+            "malformed",
+            "frame.buffers",
+            "section 6: buffers disagreeing with the parts",
+        ),
+        "bye_unknown_kind": (
+            edited(v["bye"], _set(("kind",), "goodbye")),
+            "bad_field",
+            "bye.kind",
+            "section 4: kind is end_of_stream, shutdown or leaving",
+        ),
         "result_direction_not_unit": (
             edited(v["result"], _set(("dominant_direction_world",), [0.6, -0.8, 0.5])),
-            "bad_field", "result.dominant_direction_world",
-            "section 4: a direction is a unit vector or [0, 0, 0]"),
+            "bad_field",
+            "result.dominant_direction_world",
+            "section 4: a direction is a unit vector or [0, 0, 0]",
+        ),
     }
 
 
