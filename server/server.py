@@ -9,6 +9,13 @@ and to every display peer subscribed to the session. A worker turns the frame's 
 its encoded Result (server/results.py), reports through a queue and wakes the I/O thread
 through a socket pair it polls.
 
+This module holds the Server itself: its lifecycle, the I/O loop, the worker pool and the
+sending. The I/O thread's other concerns have modules of their own, functions of the Server:
+server/handlers.py (each message from a peer), server/admission.py (session tokens, the
+session a capture Hello resumes or creates), server/housekeeping.py (detaching peers, closing
+and expiring sessions), server/shutdown.py (the drain and the Byes); server/state.py holds
+the Peer and ServerStats records.
+
 Limits on everything that crosses the wire (each a ServerOptions field): the largest message
 (zmq MAXMSGSIZE drops a connection that sends more, the protocol decoder checks declared
 sizes), the largest image, the credit window, the per-peer send queue (SNDHWM: a display that
@@ -43,75 +50,44 @@ import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 
 import zmq
 
 from arlight.pipeline.runtime import concurrent_pipelines_safe
-from arlight.protocols import (
-    PROTOCOL_VERSION,
-    Bye,
-    ByeKind,
-    Credit,
-    Error,
-    ErrorField,
-    Heartbeat,
-    Hello,
-    ProtocolError,
-    SessionConfig,
-    Welcome,
-    decode,
-    encode,
-    error_from_exception,
-    new_token,
-    peek_header,
-)
-from arlight.protocols.fields import MAX_INT as MAX_SEQ  # a Frame's seq: 0..2^63-1
+from arlight.protocols import Error, ErrorField, Heartbeat, encode, new_token
 from arlight.server.budget import SessionBudget
-from arlight.server.frame_queue import Job, Offer
-from arlight.server.options import DEFAULT_BIND, ServerOptions  # noqa: F401 - DEFAULT_BIND too
-from arlight.server.results import ErrorLog, Reply, encode_error, error_reply, reply_to
-from arlight.server.security import (
-    CurveServer,
-    check_exposure,
-    tokens_equal,
-    unauthorized_error,
+from arlight.server.frame_queue import Job
+from arlight.server.handlers import handle_message
+from arlight.server.housekeeping import (
+    close_session,
+    detach_peer,
+    expire_peers,
+    expire_sessions,
+    log_rates,
 )
-from arlight.server.session import Session, SessionSetupError
+from arlight.server.options import DEFAULT_BIND, ServerOptions
+from arlight.server.results import ErrorLog, Reply, encode_error, error_reply, reply_to
+from arlight.server.security import CurveServer, check_exposure
+from arlight.server.session import Session
+from arlight.server.shutdown import begin_drain, drained, finish_shutdown
+from arlight.server.state import Peer, ServerStats
 from arlight.server.worker import ProcessStep, run_frame
+
+# importable from here as before the split (tests, the CLI, the benchmarks): run_frame is
+# looked up here by the worker threads, so a test may patch it here
+__all__ = [
+    "DEFAULT_BIND",
+    "MAX_MESSAGES_PER_POLL",
+    "Peer",
+    "Server",
+    "ServerOptions",
+    "ServerStats",
+    "run_frame",
+]
 
 log = logging.getLogger(__name__)
 
 MAX_MESSAGES_PER_POLL = 256  # fairness between reading the socket and sending results
-
-
-@dataclass
-class Peer:
-    """A connected client. role: "capture" or "display"; session: the session name."""
-
-    identity: bytes
-    role: str
-    session: str
-    client_name: str
-    last_seen: float  # time.monotonic() of its last message, seconds
-    results_dropped: int = 0  # Results not delivered because its queue was full
-    token: str | None = None  # a display's token, checked again when its session is created
-
-    @property
-    def label(self) -> str:
-        name = f" {self.client_name!r}" if self.client_name else ""
-        return f"{self.role} peer {self.identity.hex()}{name}"
-
-
-@dataclass
-class ServerStats:
-    messages: int = 0
-    errors_sent: int = 0
-    peers_expired: int = 0
-    sessions_expired: int = 0
-    sessions_closed: int = 0
-    display_results_dropped: int = 0  # Results not delivered to a display (its queue full)
-    error_codes: collections.Counter = field(default_factory=collections.Counter)
 
 
 class Server:
@@ -305,21 +281,21 @@ class Server:
                     self._send_heartbeats()
                     next_heartbeat = now + opts.heartbeat_interval_s
                 if now >= next_housekeeping:
-                    self._expire_peers(now)
-                    self._expire_sessions(now)
+                    expire_peers(self, now)
+                    expire_sessions(self, now)
                     self._error_log.flush(now)
                     next_housekeeping = now + min(opts.heartbeat_interval_s, 1.0)
                 if now >= next_log:
-                    self._log_rates(now, opts.log_interval_s)
+                    log_rates(self, now, opts.log_interval_s)
                     next_log = now + opts.log_interval_s
                 if self._stop_requested.is_set() and not self._draining:
-                    self._begin_drain(now)
-                if self._draining and (self._drained() or now >= self._drain_deadline):
-                    self._finish_shutdown()
+                    begin_drain(self, now)
+                if self._draining and (drained(self) or now >= self._drain_deadline):
+                    finish_shutdown(self)
                     return
         except Exception:  # noqa: BLE001 - a bug in the loop: log it, still close cleanly
             log.exception("server I/O loop failed; shutting down")
-            self._finish_shutdown()
+            finish_shutdown(self)
         finally:
             self._stopped.set()
 
@@ -343,7 +319,7 @@ class Server:
             parts = [frame.buffer for frame in message[1:]]
             self.stats.messages += 1
             try:
-                self._handle(identity, parts, now, receive_time_wall)
+                handle_message(self, identity, parts, now, receive_time_wall)
             except Exception as exc:  # noqa: BLE001 - bad input never crashes the server
                 log.exception("unexpected failure handling a message from %s", identity.hex())
                 self._send_error(
@@ -352,334 +328,6 @@ class Server:
                         code="internal", message=f"the server failed to handle this message ({exc})"
                     ),
                 )
-
-    def _handle(self, identity: bytes, parts: list, now: float, receive_time_wall: float) -> None:
-        """One message from a peer; now: time.monotonic(), receive_time_wall: time.time()."""
-        peer = self.peers.get(identity)
-        if peer is not None:
-            peer.last_seen = now
-        if not parts:
-            self._send_error(identity, Error(code="malformed", message="empty message"))
-            return
-        try:
-            header = peek_header(parts)
-        except ProtocolError as exc:
-            self._send_error(identity, error_from_exception(exc))
-            return
-        if header["type"] == "frame":  # routed undecoded: a worker decodes it, and a
-            # live frame replaced in the queue costs no decoding at all
-            self._on_frame(identity, peer, header, parts, now, receive_time_wall)
-            return
-        try:
-            message = decode(
-                parts,
-                max_message_bytes=self.options.max_message_bytes,
-                max_pixels=self.options.max_pixels,
-            )
-        except ProtocolError as exc:
-            self._send_error(identity, error_from_exception(exc))
-            return
-        if isinstance(message, Hello):
-            self._on_hello(identity, message, now)
-        elif isinstance(message, Heartbeat):
-            if peer is None:  # e.g. after a server restart: tell the client to say Hello again
-                self._send_error(
-                    identity,
-                    Error(
-                        code="bad_state",
-                        field=ErrorField.SESSION,
-                        retryable=True,
-                        message="unknown peer: send Hello first (the server may have restarted)",
-                    ),
-                )
-        elif isinstance(message, Bye):
-            self._on_bye(identity, peer, message)
-        elif isinstance(message, (Credit, Error)):
-            if isinstance(message, Error):
-                log.info(
-                    "client %s reported an error: %s %s",
-                    identity.hex(),
-                    message.code,
-                    message.message,
-                )
-        else:
-            self._send_error(
-                identity,
-                Error(
-                    code="bad_state",
-                    field=ErrorField.TYPE,
-                    message=f"a client may send Hello, Frame, Heartbeat, Credit or Bye, "
-                    f"not {type(message).__name__}",
-                ),
-            )
-
-    def _on_hello(self, identity: bytes, hello: Hello, now: float) -> None:
-        cfg = hello.config
-        name = cfg.session  # 1..64 characters of [A-Za-z0-9_.-]: decode() checked it
-        old = self.peers.get(identity)
-        if old is not None:
-            self._detach_peer(old, reason="said Hello again")
-        if cfg.role == "display":
-            if not self._display_admitted(identity, cfg):
-                return  # refused: the Error is sent
-            self.peers[identity] = Peer(
-                identity, "display", name, cfg.client_name, now, token=cfg.token
-            )
-            self.displays[name].add(identity)
-            log.info("session %s: display peer %s subscribed", name, identity.hex())
-            self._send_welcome(identity, name, credits=0)
-            return
-        if self._draining:
-            self._send_error(
-                identity,
-                Error(
-                    code="bad_state",
-                    field=ErrorField.SHUTDOWN,
-                    retryable=True,
-                    message="the server is shutting down",
-                ),
-            )
-            return
-        session = self._capture_session(identity, cfg)
-        if session is None:
-            return  # refused: the Error is sent
-        session.capture_peer = identity
-        session.ended = False
-        session.last_activity = now
-        self.peers[identity] = Peer(identity, "capture", name, cfg.client_name, now)
-        # the token goes only to a client that sent one (older clients refuse the key)
-        self._send_welcome(
-            identity,
-            name,
-            credits=self.options.credits,
-            token=session.token if cfg.token is not None else None,
-        )
-
-    def _send_welcome(
-        self, identity: bytes, session: str, credits: int, token: str | None = None
-    ) -> None:
-        self._send(
-            identity,
-            encode(
-                Welcome(
-                    PROTOCOL_VERSION,
-                    session,
-                    credits,
-                    self.options.heartbeat_interval_s,
-                    self.options.name,
-                    token,
-                )
-            ),
-        )
-
-    # ------------------------------------------------------------------ session tokens
-
-    def _may_enter(self, token: str | None, session: Session | None) -> bool:
-        """The token admits to `session` (None: any, checked again when it is created)."""
-        if not self.options.session_tokens or tokens_equal(token, self.admin_token):
-            return True
-        return tokens_equal(token, session.token) if session is not None else token is not None
-
-    def _refuse_unauthorized(self, identity: bytes, name: str, role: str) -> None:
-        self._send_error(identity, unauthorized_error(name, role))
-
-    def _display_admitted(self, identity: bytes, cfg: SessionConfig) -> bool:
-        """A display Hello's token: the session's, the admin token, or, for a session that
-        does not exist yet, any token (checked when the session is created)."""
-        if self._may_enter(cfg.token, self.sessions.get(cfg.session)):
-            return True
-        self._refuse_unauthorized(identity, cfg.session, "display")
-        return False
-
-    def _check_subscribers(self, session: Session) -> None:
-        """A new session: unsubscribe (with an Error) every display whose token does not
-        admit it, before any of its Results is sent."""
-        for identity in list(self.displays.get(session.name, ())):
-            peer = self.peers.get(identity)
-            if peer is not None and not self._may_enter(peer.token, session):
-                self._refuse_unauthorized(identity, session.name, "display")
-                self._detach_peer(peer, reason="wrong token")
-
-    def _capture_session(self, identity: bytes, cfg: SessionConfig) -> Session | None:
-        """The session a capture Hello resumes or creates (section 3 of SPEC.md, "Handshake");
-        None after sending the Error that refuses it."""
-        name = cfg.session
-        session = self.sessions.get(name)
-        if session is not None and not self._may_enter(cfg.token, session):
-            self._refuse_unauthorized(identity, name, "capture")
-            return None
-        if session is not None and not session.same_setup(cfg):
-            owner = self.peers.get(session.capture_peer) if session.capture_peer else None
-            if owner is not None:
-                self._send_error(
-                    identity,
-                    Error(
-                        code="bad_state",
-                        field="hello.config.session",
-                        message=f"session {name!r} is in use by another capture client with a "
-                        "different configuration; choose another session name (--session)",
-                    ),
-                )
-                return None
-            self._close_session(session, "replaced by a new configuration")
-            session = None
-        if session is not None:
-            previous = session.capture_peer
-            if previous is not None and previous != identity and previous in self.peers:
-                self._detach_peer(self.peers[previous], reason="replaced by a reconnect")
-            log.info(
-                "session %s: capture peer %s resumed it (last seq %d)",
-                name,
-                identity.hex(),
-                session.queue.highest_seq,
-            )
-            return session
-        if len(self.sessions) >= self.options.max_sessions:
-            self._send_error(
-                identity,
-                Error(
-                    code="too_large",
-                    field="hello.config.session",
-                    message=f"the server already holds {len(self.sessions)} sessions "
-                    f"(limit {self.options.max_sessions}, `arlight serve --max-sessions`); "
-                    "try again later",
-                ),
-            )
-            return None
-        try:
-            session = Session(
-                cfg,
-                credits=self.options.credits,
-                max_pixels=self.options.max_pixels,
-                max_message_bytes=self.options.max_message_bytes,
-                process=self._process,
-                budget=self.budget,
-                cancel=self._cancel,
-            )
-        except SessionSetupError as exc:
-            self._send_error(
-                identity, Error(code=exc.code, field=f"hello.config.{exc.field}", message=str(exc))
-            )
-            return None
-        # the client's own token, or one the server makes (never the admin token: the Welcome
-        # tells it, and whoever learns a session's token should learn no more than that)
-        session.token = (
-            cfg.token
-            if cfg.token and not tokens_equal(cfg.token, self.admin_token)
-            else new_token()
-        )
-        self.sessions[name] = session
-        self._check_subscribers(session)
-        size = (
-            "panorama only"
-            if session.camera is None
-            else f"{session.camera.width}x{session.camera.height}"
-        )
-        log.info(
-            "session %s: created (%s, %s, preset %s, %d virtual objects) by capture peer %s %s",
-            name,
-            cfg.mode,
-            size,
-            cfg.preset,
-            len(session.scene.objects) if session.scene else 0,
-            identity.hex(),
-            repr(cfg.client_name) if cfg.client_name else "",
-        )
-        return session
-
-    def _on_frame(
-        self,
-        identity: bytes,
-        peer: Peer | None,
-        header: dict,
-        parts: list,
-        now: float,
-        receive_time_wall: float,
-    ) -> None:
-        seq = header.get("seq")
-        if not isinstance(seq, int) or isinstance(seq, bool) or not 0 <= seq <= MAX_SEQ:
-            shown = repr(seq)[:64]
-            self._send_error(
-                identity,
-                Error(
-                    code="bad_field",
-                    field="frame.seq",
-                    message=f"seq must be an integer in 0..2^63-1, got {shown}",
-                ),
-            )
-            return
-        session = self.sessions.get(peer.session) if peer is not None else None
-        if (
-            peer is None
-            or peer.role != "capture"
-            or session is None
-            or session.capture_peer != identity
-        ):
-            self._send_error(
-                identity,
-                Error(
-                    code="bad_state",
-                    field=ErrorField.SESSION,
-                    seq=seq,
-                    retryable=True,
-                    message="no session for this peer: send Hello first (the server may have "
-                    "restarted or the session expired)",
-                ),
-            )
-            return
-        if self._draining:
-            self._send_error(
-                identity,
-                Error(
-                    code="bad_state",
-                    field=ErrorField.SHUTDOWN,
-                    seq=seq,
-                    retryable=True,
-                    message="the server is shutting down; frame not processed",
-                ),
-            )
-            return
-        frames = session.queue
-        offer = frames.offer(Job(seq, parts, receive_time_wall, now))
-        if offer is Offer.RESEND:  # its Result or final Error, again (the first may be lost)
-            self._send(identity, frames.reply(seq))
-        elif offer is Offer.EXPIRED:  # answer it, or a lossless client would wait forever
-            self._send_error(
-                identity,
-                Error(
-                    code="bad_state",
-                    field=ErrorField.DUPLICATE,
-                    seq=seq,
-                    retryable=False,
-                    message=f"frame {seq} is not above the highest seq this session accepted "
-                    f"({frames.highest_seq}) and its Result or Error is no longer kept "
-                    f"(only the last {frames.keeps} are); it is not processed again",
-                ),
-            )
-        elif offer is Offer.OVERFLOW:
-            self._send_error(
-                identity,
-                Error(
-                    code="bad_state",
-                    field=ErrorField.CREDITS,
-                    seq=seq,
-                    retryable=True,
-                    message=f"more than {self.options.credits} frames unacknowledged in lossless "
-                    "mode; wait for Results (credits) before sending more",
-                ),
-            )
-        self._schedule(session)
-
-    def _on_bye(self, identity: bytes, peer: Peer | None, bye: Bye) -> None:
-        if peer is None:
-            return
-        log.info("session %s: %s said Bye (%s)", peer.session, peer.label, bye.reason or "")
-        session = self.sessions.get(peer.session)
-        self._detach_peer(peer, reason="said Bye")
-        if peer.role == "capture" and session is not None and session.capture_peer is None:
-            session.ended = True
-            if session.idle:
-                self._close_session(session, "end of stream")
 
     # ------------------------------------------------------------------ work
 
@@ -781,7 +429,7 @@ class Server:
         if next_job is not None:
             self._submit(session, next_job)
         if session.ended and session.idle:
-            self._close_session(session, "end of stream")
+            close_session(self, session, "end of stream")
 
     def _pipeline_lost(self, session: Session, job: Job, queued: list[Job]) -> None:
         """The session's pipeline (a Ray actor) was lost with `job`: its `queued` frames,
@@ -822,7 +470,7 @@ class Server:
             if exc.errno == zmq.EHOSTUNREACH:  # disconnected: forget it
                 peer = self.peers.get(identity)
                 if peer is not None:
-                    self._detach_peer(peer, reason="disconnected")
+                    detach_peer(self, peer, reason="disconnected")
                 return False
             raise
 
@@ -836,150 +484,3 @@ class Server:
         parts = encode(Heartbeat(time.time()))
         for identity in list(self.peers):
             self._send(identity, parts)
-
-    # ------------------------------------------------------------------ housekeeping
-
-    def _detach_peer(self, peer: Peer, reason: str) -> None:
-        self.peers.pop(peer.identity, None)
-        if peer.role == "display":
-            subscribers = self.displays.get(peer.session)
-            if subscribers is not None:
-                subscribers.discard(peer.identity)
-                if not subscribers:
-                    del self.displays[peer.session]
-        else:
-            session = self.sessions.get(peer.session)
-            if session is not None and session.capture_peer == peer.identity:
-                session.capture_peer = None
-        if peer.results_dropped:
-            log.info(
-                "session %s: %s lost %d results to a full queue",
-                peer.session,
-                peer.label,
-                peer.results_dropped,
-            )
-        log.debug("session %s: %s detached (%s)", peer.session, peer.label, reason)
-
-    def _close_session(self, session: Session, reason: str) -> None:
-        """Forget a session (its Pipeline is freed); displays get Bye at the end of a stream."""
-        if self.sessions.get(session.name) is session:
-            del self.sessions[session.name]
-        self.stats.sessions_closed += 1
-        release = getattr(self._process, "release", None)  # `serve --ray`: the session's actor
-        if release is not None:
-            try:
-                release(session)
-            except Exception:  # noqa: BLE001 - the session is gone either way
-                log.exception("session %s: failed to release its pipeline", session.name)
-        c = session.counters()
-        log.info(
-            "session %s: closed (%s): %d received, %d processed, %d dropped, %d failed",
-            session.name,
-            reason,
-            c["frames_received"],
-            c["frames_processed"],
-            c["frames_dropped"],
-            c["frames_failed"],
-        )
-        if session.capture_peer is not None and session.capture_peer in self.peers:
-            self._detach_peer(self.peers[session.capture_peer], reason=reason)
-        if reason == "end of stream":
-            parts = encode(Bye(f"session {session.name} ended", ByeKind.END_OF_STREAM))
-            for identity in list(self.displays.get(session.name, ())):
-                self._send(identity, parts)
-
-    def _expire_peers(self, now: float) -> None:
-        limit = self.options.liveness * self.options.heartbeat_interval_s
-        for peer in list(self.peers.values()):
-            if now - peer.last_seen > limit:
-                self.stats.peers_expired += 1
-                log.warning(
-                    "session %s: %s silent for %.1f s: declared dead",
-                    peer.session,
-                    peer.label,
-                    now - peer.last_seen,
-                )
-                self._detach_peer(peer, reason="dead")
-
-    def _expire_sessions(self, now: float) -> None:
-        for session in list(self.sessions.values()):
-            if session.idle and now - session.last_activity > self.options.session_timeout_s:
-                self.stats.sessions_expired += 1
-                self._close_session(session, f"idle for {now - session.last_activity:.0f} s")
-
-    def _log_rates(self, now: float, interval_s: float) -> None:
-        for session in list(self.sessions.values()):
-            line = session.rate_line(now, interval_s, len(self.displays.get(session.name, ())))
-            if line is not None:
-                log.info("%s", line)
-
-    # ------------------------------------------------------------------ shutdown
-
-    def _begin_drain(self, now: float) -> None:
-        self._draining = True
-        self._drain_deadline = now + self.options.shutdown_grace_s
-        waiting = 0
-        for session in self.sessions.values():
-            frames = session.queue
-            if frames.lossless:
-                waiting += len(frames.pending) + (frames.in_flight is not None)
-            else:
-                frames.drop_pending()
-        log.info(
-            "shutting down: %d lossless frame(s) still to finish (grace %g s)",
-            waiting,
-            self.options.shutdown_grace_s,
-        )
-
-    def _drained(self) -> bool:
-        return all(
-            s.queue.in_flight is None and not (s.lossless and s.queue.pending)
-            for s in self.sessions.values()
-        )
-
-    def _finish_shutdown(self) -> None:
-        """Report unfinished lossless frames, say Bye to every peer, close the socket."""
-        router = self._socket
-        self._cancel.set()  # a frame still in a worker is abandoned at its next stage
-        try:
-            for session in list(self.sessions.values()):
-                in_flight = session.queue.in_flight
-                unfinished = [in_flight] if in_flight else []
-                unfinished += session.queue.drop_pending()
-                if session.capture_peer is not None:
-                    for job in unfinished:
-                        self._send_error(
-                            session.capture_peer,
-                            Error(
-                                code="bad_state",
-                                field=ErrorField.SHUTDOWN,
-                                seq=job.seq,
-                                retryable=True,
-                                message="the server shut down before processing this frame; "
-                                "send it again after reconnecting",
-                            ),
-                        )
-                if unfinished:
-                    log.warning(
-                        "session %s: %d frame(s) not processed at shutdown (reported "
-                        "to the client)",
-                        session.name,
-                        len(unfinished),
-                    )
-            bye = encode(Bye("server shutting down", ByeKind.SHUTDOWN))
-            for identity in list(self.peers):
-                self._send(identity, bye)
-            router.setsockopt(zmq.LINGER, 1000)  # let the Byes and last Results out
-        except Exception:  # noqa: BLE001
-            log.exception("error while shutting down")
-        finally:
-            router.close()
-            if self._executor is not None:
-                self._executor.shutdown(wait=False, cancel_futures=True)
-            self._stop_curve()
-            if self._ctx is not None:
-                self._ctx.term()
-            self._wake_r.close()
-            self._wake_w.close()
-            self.sessions.clear()
-            log.info("server stopped")
