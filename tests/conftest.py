@@ -49,6 +49,15 @@ def shared_data() -> Path:
     return need_data(DATA)
 
 
+@pytest.fixture
+def make_server():
+    """make(process=None, **option overrides) -> a started loopback Server; every server made
+    is stopped afterwards (streaming_support.server_factory). A module may define its own."""
+    from streaming_support import server_factory
+
+    yield from server_factory()
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """Open3D on one thread, for the whole run: its frame-to-model tracking sums in a
     thread-dependent order, so with several threads the same frames give poses that differ

@@ -10,6 +10,7 @@ import socket
 import threading
 import time
 
+import msgpack
 import numpy as np
 import pytest
 import zmq
@@ -18,7 +19,7 @@ from conftest import DATA, SMALL, need_data  # noqa: F401 - also the streaming t
 from arlight.checks import depth_metres
 from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
-from arlight.protocols import PROTOCOL_VERSION, Hello, SessionConfig, decode, encode
+from arlight.protocols import PROTOCOL_VERSION, Frame, Hello, SessionConfig, decode, encode
 from arlight.server.server import Server, ServerOptions
 from arlight.sources.source import Source, SourceFrame, calibration_of
 
@@ -329,3 +330,47 @@ class CuttableProxy:
         self._open.set()
         self.cut(hold=False)
         self.listener.close()
+
+
+# ------------------------------------------------------------------ raw messages (server tests)
+
+
+def frame_parts(
+    seq: int = 0,
+    width: int = 64,
+    height: int = 48,
+    value: int = 7,
+    color_codec: str = "raw",
+    depth_codec: str = "raw",
+) -> list[bytes]:
+    """The parts of a flat Frame message (colour `value`, depth 7500) as a RawPeer sends."""
+    frame = Frame(
+        seq,
+        1.0,
+        np.full((height, width, 3), value, np.uint8),
+        np.full((height, width), 7500, np.uint16),
+        None,
+        None,
+        color_codec,
+        depth_codec,
+    )
+    return [bytes(memoryview(p)) for p in encode(frame)]
+
+
+def edit_header(parts: list[bytes], edit) -> list[bytes]:
+    """`parts` with the header re-packed after edit(header) changed it in place."""
+    header = msgpack.unpackb(parts[0])
+    edit(header)
+    return [msgpack.packb(header, use_bin_type=True), *parts[1:]]
+
+
+def hello_parts(**config) -> list:
+    """The parts of a capture Hello (session "hostile", no calibration) with `config`'s keys."""
+    base = dict(session="hostile", role="capture", calibration=None)
+    base.update(config)
+    return encode(Hello(PROTOCOL_VERSION, SessionConfig(**base)))
+
+
+def calibrated(**config):
+    """`config` with the calibration of a 64x48 Kinect v1 camera."""
+    return dict(calibration=calibration_of(PinholeCamera.kinect_v1(64, 48)), **config)
