@@ -14,9 +14,15 @@ import os
 # reads it when numpy loads, which is after this module (a value set by the caller wins)
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import importlib.util
+import math
 from pathlib import Path
 
+import msgpack
+import numpy as np
 import pytest
+
+from arlight.protocols import PROTOCOL_VERSION, CameraCalibration, Frame, ProtocolError, Result
 
 # The shared data sets (sequences with ground truth, real recordings, HDR maps) live beside
 # the repository; a fresh clone has none, and the tests that read them skip, saying so.
@@ -56,6 +62,96 @@ def make_server():
     from streaming_support import server_factory
 
     yield from server_factory()
+
+
+# --------------------------------------------------------------------------- protocol helpers
+# The protocol's golden vectors and helpers of its tests (test_protocols*.py, test_spec_rules*.py)
+
+TESTS = Path(__file__).resolve().parent
+GOLDEN = TESTS / "golden" / f"protocol_v{PROTOCOL_VERSION}"
+
+
+def load_vector_script(name: str = "make_protocol_vectors"):
+    """tests/golden/make_protocol_vectors.py as a module named `name`: VEC.vectors() etc."""
+    spec = importlib.util.spec_from_file_location(
+        name, TESTS / "golden" / "make_protocol_vectors.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def smooth_rgb(h: int = 48, w: int = 64) -> np.ndarray:
+    y, x = np.mgrid[0:h, 0:w]
+    return np.stack(
+        [x * 255 // max(w - 1, 1), y * 255 // max(h - 1, 1), (x + y) * 127 // (w + h)], axis=-1
+    ).astype(np.uint8)
+
+
+def noisy_depth(h: int = 48, w: int = 64, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    d = rng.integers(400, 8000, (h, w)).astype(np.uint16)
+    d[rng.random((h, w)) < 0.3] = 0
+    d[0, 0] = 65535
+    return d
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return math.inf if mse == 0 else 10 * math.log10(255.0**2 / mse)
+
+
+def as_bytes(parts) -> list[bytes]:
+    return [bytes(memoryview(p).cast("B")) for p in parts]
+
+
+def calibration(w: int = 64, h: int = 48) -> CameraCalibration:
+    return CameraCalibration(w, h, 50.0, 50.0, w / 2, h / 2)
+
+
+def frame(**kw) -> Frame:
+    args = dict(seq=3, timestamp=12.5, color=smooth_rgb(), depth=noisy_depth(), pose=np.eye(4))
+    args.update(kw)
+    return Frame(**args)
+
+
+def result(**kw) -> Result:
+    args = dict(
+        seq=3,
+        timestamp=12.5,
+        sh=[0.1] * 9,
+        sh_rgb=None,
+        dominant_direction_camera=[0.0, 0.0, 1.0],
+        dominant_direction_world=[0.0, 1.0, 0.0],
+        intensity=1.5,
+        confidence={"samples": 10, "condition": math.inf},
+        pose=np.eye(4),
+        timings_ms={"render": 1.25},
+        frames_received=4,
+        frames_processed=3,
+        frames_dropped=1,
+        server_receive_time=1.0,
+        server_finish_time=1.5,
+    )
+    args.update(kw)
+    return Result(**args)
+
+
+def tamper(parts, fn) -> list[bytes]:
+    """Re-pack the header after fn(header) edited it in place; buffers unchanged."""
+    parts = as_bytes(parts)
+    header = msgpack.unpackb(parts[0], raw=False)
+    fn(header)
+    return [msgpack.packb(header, use_bin_type=True), *parts[1:]]
+
+
+def expect(code: str, fn, *args, field: str | None = None, **kw) -> ProtocolError:
+    with pytest.raises(ProtocolError) as info:
+        fn(*args, **kw)
+    assert info.value.code == code, info.value
+    if field is not None:
+        assert info.value.field == field, info.value
+    return info.value
 
 
 def pytest_configure(config: pytest.Config) -> None:
