@@ -14,6 +14,7 @@ import os
 # reads it when numpy loads, which is after this module (a value set by the caller wins)
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import functools
 import importlib.util
 import math
 from pathlib import Path
@@ -22,7 +23,14 @@ import msgpack
 import numpy as np
 import pytest
 
-from arlight.protocols import PROTOCOL_VERSION, CameraCalibration, Frame, ProtocolError, Result
+from arlight.protocols import (
+    PROTOCOL_VERSION,
+    CameraCalibration,
+    Frame,
+    ProtocolError,
+    Result,
+    read_container,
+)
 
 # The shared data sets (sequences with ground truth, real recordings, HDR maps) live beside
 # the repository; a fresh clone has none, and the tests that read them skip, saying so.
@@ -151,6 +159,54 @@ def expect(code: str, fn, *args, field: str | None = None, **kw) -> ProtocolErro
     assert info.value.code == code, info.value
     if field is not None:
         assert info.value.field == field, info.value
+    return info.value
+
+
+# --------------------------------------------------------------------------- SPEC.md
+# protocols/SPEC.md read as an outside implementer reads it (test_spec_rules*.py)
+
+
+@functools.cache
+def spec_text() -> str:
+    return (TESTS.parent / "protocols" / "SPEC.md").read_text(encoding="utf-8")
+
+
+def spec_section(heading: str) -> str:
+    """The text under the first heading that starts with `heading` (any level), up to the
+    next heading; fenced code is kept."""
+    lines = spec_text().splitlines()
+    fenced = False
+    starts = []
+    for i, line in enumerate(lines):
+        if line.startswith("```"):
+            fenced = not fenced
+        elif not fenced and line.startswith("#"):
+            starts.append(i)
+    for k, i in enumerate(starts):
+        if lines[i].lstrip("#").strip().startswith(heading):
+            end = starts[k + 1] if k + 1 < len(starts) else len(lines)
+            return "\n".join(lines[i + 1 : end])
+    raise AssertionError(f"SPEC.md has no heading {heading!r}")
+
+
+def golden_bytes(name: str) -> list[bytes]:
+    """The parts of golden vector `name`, as bytes."""
+    messages = read_container((GOLDEN / f"{name}.bin").read_bytes())
+    assert len(messages) == 1
+    return [bytes(p) for p in messages[0]]
+
+
+def refused_parts(name: str) -> list[bytes]:
+    messages = read_container((GOLDEN / "refused" / f"{name}.bin").read_bytes())
+    assert len(messages) == 1
+    return [bytes(p) for p in messages[0]]
+
+
+def expect_refusal(code: str, field: str | None, fn, *args):
+    """fn(*args) raises ProtocolError with exactly (code, field)."""
+    with pytest.raises(ProtocolError) as info:
+        fn(*args)
+    assert (info.value.code, info.value.field) == (code, field), str(info.value)
     return info.value
 
 
