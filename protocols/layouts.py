@@ -9,7 +9,7 @@ from .errors import ProtocolError
 from .fields import read_float, read_float_rows, read_floats, read_str, type_name
 
 # The names of arlight.pipeline.engine_export.EXPORTERS (the protocol does not import the
-# pipeline; tests/test_protocols.py checks the two lists agree).
+# pipeline; tests/test_protocols_fields.py checks the two lists agree).
 EXPORT_LAYOUTS = ("arcore", "webxr", "gltf", "unity", "filament", "main_light")
 MAX_FILAMENT_TEXT = 2**17  # characters: 1024 coefficients (Result.sh's limit) of ~70 each
 

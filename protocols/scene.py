@@ -21,7 +21,7 @@ from .images import ImageParts
 
 # Hello.config.scene (SPEC.md section 4, "hello: the virtual scene"): objects sent inline.
 # The limits are the pipeline's (arlight.pipeline.virtual_scene MAX_OBJECTS, MAX_TRIANGLES;
-# protocols does not import the pipeline, tests/test_protocols.py holds them equal). The
+# protocols does not import the pipeline, tests/test_protocols_scene.py holds them equal). The
 # bytes are bounded by the message limit (max_message_bytes), as every part is.
 SCENE_MAX_OBJECTS = 64
 SCENE_MAX_TRIANGLES = 2_000_000  # all objects together

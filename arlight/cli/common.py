@@ -14,8 +14,9 @@ PRESETS = ("full", "fast", "mobile")
 DEPTH_ENCODINGS = ("tum", "mm", "sun", "nyu")
 # `--ray ADDRESS` of batch and serve: local, auto, HOST:PORT or ray://HOST:PORT
 RAY_ADDRESS = re.compile(r"auto|local|(ray://)?[A-Za-z0-9_.\[\]:-]+:[0-9]{1,5}")
-# `--export` names (protocols.EXPORT_LAYOUTS = engine_export.EXPORTERS; tests/test_protocols.py
-# checks all three agree), written out so that building the help imports neither
+# `--export` names (protocols.EXPORT_LAYOUTS = engine_export.EXPORTERS;
+# tests/test_protocols_fields.py checks all three agree), written out so that building the
+# help imports neither
 LAYOUT_NAMES = "arcore, webxr, gltf, unity, filament, main_light"
 
 

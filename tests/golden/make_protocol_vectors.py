@@ -1,7 +1,7 @@
 """Regenerate the golden vectors of the wire protocol: tests/golden/protocol_v2/*.bin.
 
 Each file is a container (SPEC.md, "Container") holding one encoded message built by
-vectors() below from fixed, hand-made values (8 x 6 images). tests/test_protocols.py checks
+vectors() below from fixed, hand-made values (8 x 6 images). tests/test_protocols_golden.py checks
 that encode() still reproduces every file byte for byte (JPEG excepted: its bytes depend on
 the libjpeg build, so the JPEG vector is pinned by decoding the stored file) and that
 decode() of each stored file gives the message below.
