@@ -210,6 +210,19 @@ def expect_refusal(code: str, field: str | None, fn, *args):
     return info.value
 
 
+def run_cli(argv: list[str], capsys) -> tuple[int, str]:
+    """(exit code, stdout + stderr) of `arlight ARGV`, run in this process (argparse's
+    usage errors included)."""
+    from arlight.cli import main
+
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    captured = capsys.readouterr()
+    return code, captured.out + captured.err
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """Open3D on one thread, for the whole run: its frame-to-model tracking sums in a
     thread-dependent order, so with several threads the same frames give poses that differ

@@ -14,18 +14,9 @@ import cv2
 import numpy as np
 import open3d.core as o3c
 import pytest
+from conftest import run_cli
 
-from arlight.cli import EXIT_BAD_INPUT, main
-
-
-def run_cli(argv: list[str], capsys) -> tuple[int, str]:
-    """(exit code, stdout + stderr) of `arlight ARGV`."""
-    try:
-        code = main(argv)
-    except SystemExit as exc:  # argparse: usage errors
-        code = exc.code
-    captured = capsys.readouterr()
-    return code, captured.out + captured.err
+from arlight.cli import EXIT_BAD_INPUT
 
 
 @pytest.fixture(scope="module")

@@ -15,6 +15,7 @@ import time
 
 import pytest
 import zmq
+from conftest import run_cli
 from streaming_support import (
     CaptureClientThread,
     CuttableProxy,
@@ -25,7 +26,7 @@ from streaming_support import (
     server_options,
 )
 
-from arlight.cli import EXIT_BAD_INPUT, main
+from arlight.cli import EXIT_BAD_INPUT
 from arlight.client.capture import CaptureClient, StreamError, StreamOptions
 from arlight.client.display import DisplayClient, DisplayError, DisplayOptions
 from arlight.protocols import (
@@ -64,15 +65,6 @@ def secure_server(make_server, process=None, **overrides):
     return make_server(
         process=process or identity_step(), session_tokens=True, admin_token=ADMIN, **overrides
     )
-
-
-def run_cli(argv, capsys):
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code
-    captured = capsys.readouterr()
-    return code, captured.out + captured.err
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import DATA, needs_data
+from conftest import DATA, needs_data, run_cli
 
 from arlight.cli import EXIT_BAD_INPUT, main
 from arlight.pipeline import sh
@@ -29,15 +29,6 @@ mitsuba = pytest.importorskip("mitsuba", reason="the synth extra (Mitsuba 3) is 
 
 PATCH_DIR_MAP = np.array([0.6, 0.55, -0.58])  # the bright patch, the map's own frame
 ROTATION_DEG = 30.0
-
-
-def run_cli(argv: list[str], capsys) -> tuple[int, str]:
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code
-    captured = capsys.readouterr()
-    return code, captured.out + captured.err
 
 
 def write_patch_map(path: Path, height: int = 64) -> np.ndarray:
