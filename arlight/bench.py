@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from arlight import evaluation
-from arlight.checks import depth_metres
+from arlight.core.checks import depth_metres
 from arlight.pipeline.config import Config
 from arlight.pipeline.depth_filter import normals_from_depth
 from arlight.pipeline.pipeline import STAGES, Pipeline, smooth_depth_for_normals

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
+from arlight.core.frames import FrameInput, FrameResult
 from arlight.pipeline.engine_export import camera_exports
-from arlight.pipeline.frames import FrameInput, FrameResult
 from arlight.pipeline.light_estimation import LOW_CONFIDENCE
 from arlight.protocols import plain_diagnostics
 

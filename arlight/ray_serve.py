@@ -38,9 +38,9 @@ from arlight.batch import BatchUsageError, actor_resources, import_ray
 from arlight.server.session import PipelineLost
 
 if TYPE_CHECKING:
-    from arlight.pipeline.camera import PinholeCamera
+    from arlight.core.camera import PinholeCamera
+    from arlight.core.frames import FrameInput, FrameResult, RenderLight
     from arlight.pipeline.config import Config
-    from arlight.pipeline.frames import FrameInput, FrameResult, RenderLight
     from arlight.pipeline.virtual_scene import VirtualScene
     from arlight.server.session import Session
     from arlight.server.worker import Deadline

@@ -13,7 +13,7 @@ two-sided interpolated normals, albedo, object index; see pipeline/virtual_gbuff
 
 For every --triangles count a scene is built of a UV sphere (its subdivision chosen so that
 sphere + torus have about that many triangles) and a torus, standing 0.6-0.7 m in front of
-a Kinect-like PinholeCamera (pipeline/camera.py, scaled to each --sizes); every frame the
+a Kinect-like PinholeCamera (arlight/core/camera.py, scaled to each --sizes); every frame the
 camera pose moves a little (a few millimetres and tenths of a degree) so that nothing can be
 cached between frames. Per configuration it prints the median milliseconds per frame over
 --frames frames (after --warmup frames, not counted) of each renderer, moderngl's time split
@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline.virtual_gbuffer import NEAR_M, VirtualGBuffer, VirtualRaycaster
 from arlight.pipeline.virtual_scene import (
     Material,

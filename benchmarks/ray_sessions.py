@@ -100,7 +100,7 @@ class Echo:
 
 def ray_round_trip(ray, size: tuple[int, int], calls: int = 200) -> dict:
     source = open_source("synthetic", use_poses=True, max_frames=1, synthetic_size=size)
-    from arlight.pipeline.frames import FrameInput
+    from arlight.core.frames import FrameInput
 
     f = next(iter(source.frames()))
     frame = FrameInput(

@@ -49,7 +49,7 @@ WIDTH, HEIGHT = 640, 480
 
 def identity_step(frame, session, render_light, deadline):
     """Stands in for Pipeline.process: a constant result, no compute."""
-    from arlight.pipeline.frames import Confidence, FrameResult
+    from arlight.core.frames import Confidence, FrameResult
 
     sh = np.zeros(16)
     return FrameResult(

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from arlight.checks import check_image
+from arlight.core.checks import check_image
 
 # Rec. 709 / sRGB luma weights of R, G, B (the Y row of the sRGB -> XYZ matrix): linear
 # luminance from linear RGB, and the paper's grey levels from 8-bit values

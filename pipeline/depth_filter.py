@@ -63,8 +63,8 @@ import numpy as np
 from numba import prange
 from numba.extending import register_jitable
 
-from arlight.checks import CheckError, check_image
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import CheckError, check_image
 from arlight.pipeline.config import MAX_WINDOW, FilterParams
 
 __all__ = [

@@ -24,7 +24,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from arlight.checks import CheckError
+from arlight.core.checks import CheckError
 
 
 def check_equirect(image: np.ndarray, field: str) -> np.ndarray:

@@ -42,8 +42,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline import equirect, glossy
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.rendering import linear_to_srgb_u8
 from arlight.pipeline.virtual_gbuffer import VirtualRaycaster
 from arlight.pipeline.virtual_scene import (

@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from arlight.checks import check_image
+from arlight.core.checks import check_image
 from arlight.pipeline.color import srgb_to_linear
 
 PAPER_LUMA = np.array([0.3, 0.59, 0.11], dtype=np.float32)  # eq. 1

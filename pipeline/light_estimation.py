@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from arlight.core.frames import Confidence
 from arlight.pipeline import sh
 from arlight.pipeline.color import LUMA
 from arlight.pipeline.config import EstimationParams, TemporalParams
-from arlight.pipeline.frames import Confidence
 
 CLIP_LEVEL = 0.98  # linear value above which a channel is treated as clipped
 DARK_LEVEL = 0.004  # linear luminance below which a pixel carries only noise

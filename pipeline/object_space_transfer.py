@@ -50,8 +50,8 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline import sh
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import TransferParams
 from arlight.pipeline.horizon import SupportPlane
 from arlight.pipeline.radiance_transfer import (

@@ -23,14 +23,14 @@ from typing import cast
 import cv2
 import numpy as np
 
-from arlight.checks import CheckError, check_finite, check_image, check_rigid, depth_metres
-from arlight.contracts import TrackingDiagnostics
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import CheckError, check_finite, check_image, check_rigid, depth_metres
+from arlight.core.contracts import TrackingDiagnostics
+from arlight.core.frames import Confidence, Diagnostics, FrameInput, FrameResult, RenderLight
 from arlight.pipeline import sh
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.color import intensity_from_rgb, luminance, srgb_to_linear
 from arlight.pipeline.config import Config, RtMethod
 from arlight.pipeline.depth_filter import backend_for_device, filter_depth, normals_from_depth
-from arlight.pipeline.frames import Confidence, Diagnostics, FrameInput, FrameResult, RenderLight
 from arlight.pipeline.horizon import SupportPlane, support_plane
 from arlight.pipeline.light_estimation import (
     LightEstimate,
@@ -53,6 +53,7 @@ from arlight.pipeline.radiance_transfer import (
 )
 from arlight.pipeline.rendering import (
     DifferentialRenderer,
+    EnvironmentMap,
     RenderInputs,
     RenderOutput,
     luminance_light_rgb,
@@ -91,7 +92,7 @@ def _no_checkpoint(stage: str) -> None:
 
 
 def validate_frame(frame: FrameInput, camera: PinholeCamera) -> ValidFrame:
-    """The pipeline's one edge (arlight.checks); FrameError naming the field otherwise.
+    """The pipeline's one edge (arlight.core.checks); FrameError naming the field otherwise.
 
     Depth is converted to metres here, once (uint16 with frame.depth_scale, or float metres
     without); the pose must be rigid within the wire's tolerance (1e-3).
@@ -250,6 +251,13 @@ class Pipeline:
         check = checkpoint or _no_checkpoint
         if render_light is not None and not isinstance(render_light, RenderLight):
             render_light = RenderLight(*render_light)
+        if render_light is not None and not isinstance(
+            render_light.environment, (EnvironmentMap, type(None))
+        ):
+            got = type(render_light.environment).__name__
+            raise FrameError(
+                "render_light.environment", f"a rendering.EnvironmentMap or None, not {got}"
+            )
         timings: dict[str, float] = {}
         diagnostics: Diagnostics = {}
         with _stage(timings, "Input"):
@@ -408,7 +416,9 @@ class Pipeline:
             given = np.asarray(render_light.sh, np.float64)[:n]
             light[: len(given)] = given
             light_rgb = luminance_light_rgb(render_light.sh_rgb)
-        environment = None if render_light is None else render_light.environment
+        environment = cast(  # its type checked in process
+            "EnvironmentMap | None", None if render_light is None else render_light.environment
+        )
         inputs = RenderInputs(
             valid.color,
             color_linear,

@@ -32,9 +32,9 @@ import numba
 import numpy as np
 from numba.extending import register_jitable
 
-from arlight.checks import check_image
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import check_image
 from arlight.pipeline import sh
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import TransferParams
 from arlight.pipeline.horizon import SupportPlane
 from arlight.pipeline.transfer_oracle import (

@@ -15,7 +15,7 @@ import numpy as np
 from numba import prange
 from numba.extending import register_jitable
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
 
 # ------------------------------------------------------------------ ray-cast refinement
 # Open3D's ray caster finds the zero crossing of the TSDF sampled at the voxel corner below

@@ -21,9 +21,9 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-from arlight.checks import CheckError, check_image, check_rigid
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import CheckError, check_image, check_rigid
 from arlight.pipeline.aux_buffers import AuxBufferRenderer, OrthoBuffer
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import AuxBufferParams, Config, ReuseParams, VolumeParams
 from arlight.pipeline.still import StillCamera
 from arlight.pipeline.tracking import FrameToModelTracker, TrackingResult
@@ -156,7 +156,7 @@ class VolumeReconstruction:
         fused into V). depth_m: (H, W) float metres along the optical axis, 0 or NaN =
         missing. pose: (4, 4) rigid world_from_cam, or None to track frame-to-model against
         the previous frame's D_v. light_direction_world: finite non-zero vector towards the
-        dominant light, or None (no "light" buffer). Raises arlight.checks.CheckError
+        dominant light, or None (no "light" buffer). Raises arlight.core.checks.CheckError
         (a ValueError) naming the argument.
         """
         cam = self.camera

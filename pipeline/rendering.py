@@ -36,9 +36,9 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline import sh
 from arlight.pipeline.aux_buffers import OrthoBuffer
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.color import LUMA
 from arlight.pipeline.config import Config, DiffMode
 from arlight.pipeline.glossy import MipPyramid, specular

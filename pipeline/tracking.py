@@ -19,7 +19,7 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
 
 TRACKING_ITERATIONS = (6, 3, 1)  # Open3D's t.pipelines.slam defaults
 # fewer ICP inliers than this fraction of the valid input depth pixels: failure (a good

@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline import sh
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import TransferParams
 from arlight.pipeline.horizon import SupportPlane
 from arlight.pipeline.transfer_sampling import SamplingPattern, visibility_ramp

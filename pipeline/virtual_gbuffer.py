@@ -22,7 +22,7 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline.virtual_scene import VirtualScene
 
 NEAR_M = 0.01  # virtual surfaces closer to the camera than this are clipped

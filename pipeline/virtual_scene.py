@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from arlight.checks import CheckError, check_rigid
+from arlight.core.checks import CheckError, check_rigid
 
 MAX_TRIANGLES = 2_000_000  # in one scene, all objects together: above it, a clear error
 MAX_OBJECTS = 64

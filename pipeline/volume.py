@@ -33,7 +33,7 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline.config import VolumeParams
 from arlight.pipeline.ray_refine import refine_ray_cast
 

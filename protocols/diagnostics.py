@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any, cast
 
-from arlight.contracts import Diagnostics
+from arlight.core.contracts import Diagnostics
 
 from .errors import ProtocolError
 from .fields import KEY_RE, read_str, to_plain, type_name
@@ -28,7 +28,7 @@ def plain_diagnostics(diagnostics: Any, name: str = "result.diagnostics") -> Dia
 def read_diagnostics(v: Any, name: str) -> Diagnostics:
     """Check a diagnostics map (decode, and encode before sending); arrays become floats.
     The keys are whatever came (a client must not fail on keys it does not know), typed as
-    the ones arlight sends (arlight.contracts.Diagnostics)."""
+    the ones arlight sends (arlight.core.contracts.Diagnostics)."""
     budget = [DIAGNOSTICS_MAX_VALUES]
     return cast(Diagnostics, _diagnostics_map(v, name, 1, budget))
 

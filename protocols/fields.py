@@ -18,7 +18,7 @@ from typing import Any, Literal, overload
 
 import numpy as np
 
-from arlight.checks import RIGID_TOLERANCE, CheckError, check_rigid
+from arlight.core.checks import RIGID_TOLERANCE, CheckError, check_rigid
 
 from .errors import ProtocolError
 
@@ -241,7 +241,7 @@ def read_pose(v: Any, name: str) -> np.ndarray:
         raise ProtocolError("bad_field", "expected 4 rows of 4 numbers (a 4 x 4 matrix)", name)
     rows = [read_floats(r, f"{name}[{i}]", 4) for i, r in enumerate(v)]
     try:
-        return check_rigid(rows, name, RIGID_TOLERANCE)  # the one rule (arlight.checks)
+        return check_rigid(rows, name, RIGID_TOLERANCE)  # the one rule (arlight.core.checks)
     except CheckError as exc:
         raise ProtocolError("bad_field", exc.message, name) from None
 

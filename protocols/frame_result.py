@@ -11,7 +11,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from arlight.contracts import Confidence, Diagnostics
+from arlight.core.contracts import Confidence, Diagnostics
 
 from .codecs import (
     DEFAULT_COLOR_CODEC,
@@ -155,7 +155,7 @@ class Result:
     float, nil, arrays of numbers, maps of these; SPEC.md "diagnostics"), e.g. the pipeline's
     `{"tracking": {"ok": True, "reason": ""}}`; anything else is refused by encode().
 
-    `confidence`: a `Confidence` (arlight.contracts), the type the pipeline makes. A plain
+    `confidence`: a `Confidence` (arlight.core.contracts), the type the pipeline makes. A plain
     map is accepted too (the wire carries any map of plain values, SPEC.md "result"): it is
     read with `Confidence.from_dict` and kept as it came, so that it goes out unchanged
     (`confidence_map`); decode() builds every Result that way.

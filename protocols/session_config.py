@@ -11,7 +11,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from arlight.checks import RIGID_TOLERANCE, CheckError, check_rigid
+from arlight.core.checks import RIGID_TOLERANCE, CheckError, check_rigid
 
 from .codecs import MAX_IMAGE_SIDE
 from .errors import ProtocolError

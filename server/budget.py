@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline.config import Config, RtMethod
 from arlight.pipeline.pipeline import CANDIDATES_PER_SAMPLE
 from arlight.protocols import SessionConfig

@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from arlight.core.frames import Diagnostics, FrameResult
 from arlight.pipeline.engine_export import camera_exports
-from arlight.pipeline.frames import Diagnostics, FrameResult
 from arlight.pipeline.ibl import IblResult
 from arlight.protocols import (
     DEFAULT_JPEG_QUALITY,

@@ -26,9 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from arlight.checks import CheckError
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import CheckError
 from arlight.pipeline import sh as sh_lib
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.ibl import IblParams, IblResult, lighting_from_ldr
 from arlight.pipeline.inverse_tone import DEFAULT_OPERATOR, OPERATORS

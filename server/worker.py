@@ -24,10 +24,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from arlight.checks import CheckError, check_image
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import CheckError, check_image
+from arlight.core.frames import Confidence, Diagnostics, FrameInput, FrameResult, RenderLight
 from arlight.pipeline import sh as sh_lib
-from arlight.pipeline.camera import PinholeCamera
-from arlight.pipeline.frames import Confidence, Diagnostics, FrameInput, FrameResult, RenderLight
 from arlight.pipeline.glossy import mip_pyramid
 from arlight.pipeline.ibl import IblParams, IblResult
 from arlight.pipeline.pipeline import FrameError, Pipeline

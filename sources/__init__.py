@@ -14,7 +14,7 @@ Depth leaves every source as the sensor's integers: (H, W) uint16 with `depth_sc
 per metre (`FrameInput.depth_scale`; TUM 5000, millimetres 1000). Where the stored values are
 not linear integers (NYU raw disparity, 7-Scenes depth reprojected into the colour camera) the
 reader converts them into uint16 at a stated scale. Metres are computed once, by
-`arlight.checks.depth_metres`, where the pipeline takes the frame.
+`arlight.core.checks.depth_metres`, where the pipeline takes the frame.
 
 Depends on `arlight.pipeline` (FrameInput, PinholeCamera, splat) and `arlight.protocols`
 (recorded frames, calibration); never on the client or the server.

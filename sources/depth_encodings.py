@@ -2,7 +2,7 @@
 
 A stored depth image is uint16; what a value means depends on the data set (`DEPTH_ENCODINGS`).
 Decoding gives (H, W) uint16 units, 0 = missing, and their units per metre: the metres are
-``arlight.checks.depth_metres(units, units_per_metre)``, computed once where the pipeline
+``arlight.core.checks.depth_metres(units, units_per_metre)``, computed once where the pipeline
 takes the frame.
 
 - "tum", "mm": linear integers, kept as stored (65535, the sensors' "invalid", becomes 0);
@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from arlight.checks import check_image
+from arlight.core.checks import check_image
 from arlight.sources.errors import DatasetError, dataset_errors
 from arlight.sources.images import read_image
 

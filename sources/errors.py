@@ -1,11 +1,11 @@
-"""The error of recorded data that cannot be read, and the bridge from `arlight.checks`."""
+"""The error of recorded data that cannot be read, and the bridge from `arlight.core.checks`."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from arlight.checks import CheckError
+from arlight.core.checks import CheckError
 
 
 class DatasetError(ValueError):

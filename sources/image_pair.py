@@ -14,7 +14,7 @@ import logging
 import re
 from pathlib import Path
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
 from arlight.sources.depth_encodings import DEPTH_ENCODINGS, check_encoding
 from arlight.sources.errors import DatasetError
 from arlight.sources.images import IMAGE_EXTS, check_decodable, is_image

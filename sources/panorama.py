@@ -32,7 +32,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from arlight.checks import CheckError
+from arlight.core.checks import CheckError
 from arlight.pipeline.equirect import check_equirect
 from arlight.sources.errors import DatasetError
 

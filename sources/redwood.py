@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from arlight.checks import check_rigid
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import check_rigid
 from arlight.sources.errors import DatasetError, dataset_errors
 from arlight.sources.images import is_image
 from arlight.sources.rgbd_sequence import (

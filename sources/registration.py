@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from arlight.checks import depth_metres
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import depth_metres
 from arlight.pipeline.splat import splat_nearest
 from arlight.sources.depth_encodings import metres_to_units
 

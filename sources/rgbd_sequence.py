@@ -3,7 +3,7 @@
 Every frame leaves a reader as a `FrameInput`:
     color: (H, W, 3) uint8, RGB order (OpenCV's BGR converted here, at the edge);
     depth: (H, W) uint16, the sensor's units, 0 = missing, with
-    depth_scale: units per metre (metres = arlight.checks.depth_metres(depth, depth_scale));
+    depth_scale: units per metre (metres = arlight.core.checks.depth_metres(depth, depth_scale));
     timestamp: seconds (float);
     pose: (4, 4) float64 camera-to-world (world_from_cam) or None.
 """
@@ -18,8 +18,8 @@ from typing import overload
 
 import numpy as np
 
-from arlight.pipeline.camera import PinholeCamera
-from arlight.pipeline.frames import FrameInput
+from arlight.core.camera import PinholeCamera
+from arlight.core.frames import FrameInput
 from arlight.sources.depth_encodings import read_depth
 from arlight.sources.errors import DatasetError
 from arlight.sources.images import read_color

@@ -28,8 +28,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from arlight.checks import check_rigid
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import check_rigid
 from arlight.sources.errors import DatasetError, dataset_errors
 from arlight.sources.images import read_color, read_image
 from arlight.sources.registration import DepthRegistration

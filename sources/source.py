@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from arlight.checks import check_image
-from arlight.pipeline.frames import FrameInput
+from arlight.core.checks import check_image
+from arlight.core.frames import FrameInput
 from arlight.protocols import CameraCalibration, SessionConfig
 from arlight.sources.recording import Recording
 from arlight.sources.sequence import open_sequence

@@ -57,10 +57,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from arlight.core.camera import PinholeCamera
+from arlight.core.frames import FrameInput
 from arlight.pipeline import sh
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.color import LUMA as LUMINANCE_RGB
-from arlight.pipeline.frames import FrameInput
 
 SH_BANDS = 4
 FIRST_TIMESTAMP_S = 1000.0

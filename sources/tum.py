@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
 from arlight.sources.depth_encodings import UNITS_PER_METRE
 from arlight.sources.errors import DatasetError
 from arlight.sources.rgbd_sequence import (

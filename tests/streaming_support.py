@@ -16,9 +16,9 @@ import pytest
 import zmq
 from conftest import DATA, SMALL, need_data  # noqa: F401 - also the streaming tests' names
 
-from arlight.checks import depth_metres
-from arlight.pipeline.camera import PinholeCamera
-from arlight.pipeline.frames import Confidence, FrameInput, FrameResult
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import depth_metres
+from arlight.core.frames import Confidence, FrameInput, FrameResult
 from arlight.protocols import PROTOCOL_VERSION, Frame, Hello, SessionConfig, decode, encode
 from arlight.server.server import Server, ServerOptions
 from arlight.sources.source import Source, SourceFrame, calibration_of

@@ -13,8 +13,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# folder -> subpackage name, as pyproject's package-dir maps them
+# folder -> subpackage name, as pyproject's package-dir maps them (arlight/core is a folder
+# of arlight/ itself). A file belongs to the deepest folder that holds it.
 FOLDERS = {
+    "arlight/core": "core",
     "pipeline": "pipeline",
     "protocols": "protocols",
     "sources": "sources",
@@ -23,20 +25,18 @@ FOLDERS = {
     "arlight": "arlight",
 }
 
-# package -> the arlight packages it may import. The lowest layer is a module of arlight/
-# each: "checks" = arlight.checks (the edge checks), "contracts" = arlight.contracts (the
-# frame path's typed contracts); "version" = arlight.__version__
+# package -> the arlight packages it may import. "core" = arlight.core, the lowest layer
+# (the edge checks, the frame path's typed contracts, the camera, the frame types) that every
+# other package may import; "version" = arlight.__version__
 ALLOWED = {
-    "checks": set(),
-    "contracts": set(),
-    "pipeline": {"checks", "contracts"},
-    "protocols": {"checks", "contracts", "version"},
-    "sources": {"checks", "contracts", "pipeline", "protocols", "version"},
-    "server": {"checks", "contracts", "pipeline", "protocols", "version"},
-    "client": {"checks", "contracts", "pipeline", "protocols", "sources", "version"},
+    "core": set(),
+    "pipeline": {"core"},
+    "protocols": {"core", "version"},
+    "sources": {"core", "pipeline", "protocols", "version"},
+    "server": {"core", "pipeline", "protocols", "version"},
+    "client": {"core", "pipeline", "protocols", "sources", "version"},
     "arlight": {
-        "checks",
-        "contracts",
+        "core",
         "pipeline",
         "protocols",
         "sources",
@@ -46,14 +46,12 @@ ALLOWED = {
         "arlight",
     },
 }
-LOWEST = ("checks", "contracts")  # the modules of arlight/ that are layers of their own
 
 
 def _package_of(path: Path) -> str:
-    rel = path.relative_to(ROOT)
-    if rel.parts[0] == "arlight" and len(rel.parts) == 2 and rel.stem in LOWEST:
-        return rel.stem
-    return FOLDERS[rel.parts[0]]
+    rel = path.relative_to(ROOT).as_posix()
+    folder = max((f for f in FOLDERS if rel.startswith(f + "/")), key=len)
+    return FOLDERS[folder]
 
 
 def _imported_packages(path: Path) -> set[str]:
@@ -81,10 +79,12 @@ def _imported_packages(path: Path) -> set[str]:
 
 
 def _source_files():
+    found: set[Path] = set()
     for folder in FOLDERS:
         base = ROOT / folder
         if base.is_dir():
-            yield from sorted(base.rglob("*.py"))
+            found.update(base.rglob("*.py"))
+    yield from sorted(found)
 
 
 @pytest.mark.parametrize("path", list(_source_files()), ids=lambda p: str(p.relative_to(ROOT)))
@@ -110,12 +110,12 @@ def _top_modules(path: Path) -> set[str]:
 
 
 def test_checks_module_needs_nothing_but_numpy():
-    modules = _top_modules(ROOT / "arlight" / "checks.py")
+    modules = _top_modules(ROOT / "arlight" / "core" / "checks.py")
     assert modules <= {"__future__", "math", "typing", "numpy"}, modules
 
 
 def test_contracts_module_needs_nothing_but_the_standard_library():
-    modules = _top_modules(ROOT / "arlight" / "contracts.py")
+    modules = _top_modules(ROOT / "arlight" / "core" / "contracts.py")
     assert modules <= {"__future__", "collections", "dataclasses", "math", "typing"}, modules
 
 

@@ -22,7 +22,6 @@ from streaming_support import (
     server_factory,
 )
 
-from arlight.checks import depth_metres
 from arlight.cli import main
 from arlight.client.capture import (
     CaptureClient,
@@ -32,6 +31,7 @@ from arlight.client.capture import (
 )
 from arlight.client.display import DisplayClient, DisplayOptions
 from arlight.client.recording import record
+from arlight.core.checks import depth_metres
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Frame,

@@ -12,8 +12,8 @@ import pytest
 from conftest import DATA, needs_data
 from scipy.spatial.transform import Rotation
 
-from arlight.checks import depth_metres
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import depth_metres
 from arlight.sources.depth_encodings import (
     NYU_DEPTH_SCALE,
     decode_depth,

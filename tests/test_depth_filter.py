@@ -13,8 +13,8 @@ import textwrap
 import numpy as np
 import pytest
 
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline import depth_filter as df
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.color import intensity_from_rgb
 from arlight.pipeline.config import Config
 
@@ -444,7 +444,7 @@ class TestValidation:
 _CUDA_CHECK = textwrap.dedent("""
     import numpy as np
     from arlight.pipeline import depth_filter as df
-    from arlight.pipeline.camera import PinholeCamera
+    from arlight.core.camera import PinholeCamera
 
     rng = np.random.default_rng(3)
     h, w = {h}, {w}

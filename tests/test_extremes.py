@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from conftest import SMALL
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
+from arlight.core.frames import FrameInput
 from arlight.pipeline.config import Config
-from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.light_estimation import LOW_CONFIDENCE
 from arlight.pipeline.pipeline import FrameError, Pipeline
 from arlight.sources.synthetic import make_sequence

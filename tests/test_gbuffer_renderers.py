@@ -10,7 +10,7 @@ flipped image. Skipped where moderngl or an EGL context is not available.
 import numpy as np
 import pytest
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline.virtual_gbuffer import VirtualRaycaster
 from benchmarks.gbuffer_renderers import (
     GLGBufferRenderer,

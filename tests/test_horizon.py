@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 
+from arlight.core.camera import PinholeCamera
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import light_estimation as le
 from arlight.pipeline import sh
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import EstimationParams
 from arlight.pipeline.horizon import support_plane, support_plane_up
 

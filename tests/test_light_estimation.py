@@ -12,11 +12,11 @@ import math
 import numpy as np
 import pytest
 
+from arlight.core.frames import Confidence
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import color, sh
 from arlight.pipeline import light_estimation as le
 from arlight.pipeline.config import EstimationParams, TemporalParams
-from arlight.pipeline.frames import Confidence
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
 LIGHT_DIR = (0.3, -0.8, 0.5)

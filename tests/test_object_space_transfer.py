@@ -18,10 +18,10 @@ import open3d.core as o3c
 import pytest
 
 from arlight.cli import EXIT_BAD_INPUT, main
+from arlight.core.camera import PinholeCamera
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import object_space_transfer as ost
 from arlight.pipeline import sh
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import AuxBufferParams, Config, RtMethod, VolumeParams
 from arlight.pipeline.pipeline import Pipeline
 from arlight.pipeline.radiance_transfer import make_sampling_pattern

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from arlight.cli import main
+from arlight.core.frames import FrameInput
 from arlight.offline import FrameNotes, estimate_frames, has_usable_depth, open_recording
 from arlight.pipeline.config import Config
-from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.light_estimation import LOW_CONFIDENCE
 from arlight.pipeline.pipeline import Pipeline
 from arlight.sources.recording import RecordingError

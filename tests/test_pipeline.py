@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from conftest import SMALL
 
-from arlight.checks import CheckError
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import CheckError
+from arlight.core.frames import FrameInput
 from arlight.evaluation import angular_error_deg
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
-from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.pipeline import STAGES, FrameError, Pipeline
 from arlight.sources.synthetic import make_sequence
 

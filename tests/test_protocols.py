@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from conftest import DATA, expect, frame, needs_data, noisy_depth, psnr, result, smooth_rgb
 
-from arlight.contracts import Confidence
+from arlight.core.contracts import Confidence
 from arlight.protocols import (
     COLOR_CODECS,
     DEFAULT_DEPTH_CODEC,

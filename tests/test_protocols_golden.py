@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from conftest import GOLDEN, as_bytes, expect, frame, load_vector_script, psnr, result
 
-from arlight.contracts import Confidence
+from arlight.core.contracts import Confidence
 from arlight.protocols import (
     MESSAGE_TYPES,
     Frame,
@@ -140,7 +140,7 @@ class TestConfidenceContract:
     )
 
     def test_the_pipelines_type_round_trips(self):
-        from arlight.pipeline.frames import Confidence as PipelineConfidence
+        from arlight.core.frames import Confidence as PipelineConfidence
 
         assert PipelineConfidence is Confidence
         back = decode(encode(result(confidence=self.FULL)))

@@ -11,10 +11,10 @@ import math
 import numpy as np
 import pytest
 
+from arlight.core.camera import PinholeCamera
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import radiance_transfer as rt
 from arlight.pipeline import sh
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.horizon import SupportPlane
 

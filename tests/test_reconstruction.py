@@ -10,8 +10,8 @@ import pytest
 from scipy.ndimage import maximum_filter, minimum_filter
 from scipy.spatial import cKDTree
 
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline.aux_buffers import OrthoBuffer, aux_buffer_poses, render_orthographic
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.ray_refine import REFINE_MAX_STEP_VOXELS, refine_ray_cast
 from arlight.pipeline.reconstruction import SurfaceOutput, VolumeReconstruction

@@ -26,10 +26,10 @@ import numpy as np
 import pytest
 from conftest import SMALL
 
+from arlight.core.camera import PinholeCamera
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import rendering, sh
 from arlight.pipeline import virtual_scene as vs
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.color import luminance, srgb_to_linear
 from arlight.pipeline.config import Config
 from arlight.pipeline.pipeline import Pipeline

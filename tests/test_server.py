@@ -27,8 +27,8 @@ from streaming_support import (
 from streaming_support import frame_parts as _frame_parts
 
 from arlight.client.capture import CaptureClient, StreamOptions, stream
+from arlight.core.frames import FrameInput
 from arlight.pipeline.config import Config
-from arlight.pipeline.frames import FrameInput
 from arlight.pipeline.pipeline import FrameError, Pipeline
 from arlight.protocols import PROTOCOL_VERSION, Error, Frame, Hello, Result, Welcome, decode, encode
 from arlight.sources.source import open_source, sequence_source
@@ -421,7 +421,7 @@ class TestLossless:
 
 
 def server_camera(source):
-    from arlight.pipeline.camera import PinholeCamera
+    from arlight.core.camera import PinholeCamera
 
     c = source.calibration
     return PinholeCamera(c.width, c.height, c.fx, c.fy, c.cx, c.cy)

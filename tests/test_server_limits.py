@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from streaming_support import RawPeer, identity_step, server_factory, wait_for
 
-from arlight.pipeline.camera import PinholeCamera
+from arlight.core.camera import PinholeCamera
 from arlight.pipeline.config import Config
 from arlight.pipeline.pipeline import Pipeline
 from arlight.protocols import (

@@ -5,10 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from arlight.checks import depth_metres
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import depth_metres
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import sh
-from arlight.pipeline.camera import PinholeCamera
 from arlight.sources import synthetic
 
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from arlight.checks import CheckError
+from arlight.core.camera import PinholeCamera
+from arlight.core.checks import CheckError
 from arlight.pipeline import virtual_scene
-from arlight.pipeline.camera import PinholeCamera
 from arlight.pipeline.virtual_scene import (
     MAX_OBJECTS,
     PRIMITIVES,

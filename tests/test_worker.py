@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from streaming_support import identity_step
 
-from arlight.pipeline.frames import FrameResult, RenderLight
+from arlight.core.frames import FrameResult, RenderLight
 from arlight.protocols import (
     CameraCalibration,
     ErrorField,

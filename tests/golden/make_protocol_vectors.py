@@ -26,7 +26,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
-from arlight.contracts import Confidence
+from arlight.core.contracts import Confidence
 from arlight.pipeline.sh import intensity_along
 from arlight.protocols import (
     PROTOCOL_VERSION,

@@ -1,19 +1,16 @@
 """Per-frame input and output of the pipeline (docs/architecture.md, "Data flow").
 
-Confidence and Diagnostics are the frame path's shared contracts (arlight.contracts: the
+Confidence and Diagnostics are the frame path's shared contracts (arlight.core.contracts: the
 protocol and the clients read the same types); they are re-exported here."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
-from arlight.contracts import Confidence, Diagnostics
-
-if TYPE_CHECKING:
-    from arlight.pipeline.rendering import EnvironmentMap
+from arlight.core.contracts import Confidence, Diagnostics
 
 __all__ = ["Confidence", "Diagnostics", "FrameInput", "FrameResult", "RenderLight"]
 
@@ -45,12 +42,13 @@ class RenderLight(NamedTuple):
 
     sh: (n,) radiance SH, WORLD frame, the light's own units (no albedo scaling); sh_rgb:
     (3, n) per linear RGB channel, or None; environment: a `rendering.EnvironmentMap` (the
-    panorama's HDR map) that mirror and glossy objects reflect, or None.
+    panorama's HDR map) that mirror and glossy objects reflect, or None. Typed `object` here:
+    the lowest layer imports no pipeline module; `Pipeline.process` checks its type.
     """
 
     sh: np.ndarray
     sh_rgb: np.ndarray | None = None
-    environment: EnvironmentMap | None = None
+    environment: object | None = None
 
 
 @dataclass

@@ -8,7 +8,7 @@ same way by the pipeline, the server, the protocol and the clients.
   of plain values that travels as it is; no control flow reads it (the pipeline's decisions
   read typed values, and record them here).
 
-The lowest layer beside `arlight.checks`: the standard library only, so that every package
+The lowest layer beside `arlight.core.checks`: the standard library only, so that every package
 (pipeline, protocols, server, client) may depend down on it (tests/test_architecture.py).
 """
 
