@@ -240,6 +240,47 @@ class TestBadInput:
         )
         assert code == EXIT_BAD_INPUT and "--layout" in text
 
+    def test_negative_seed(self, tmp_path, capsys):
+        write_patch_map(tmp_path / "p.hdr", 8)
+        code, text = run_cli(
+            [
+                "synth",
+                "--map",
+                str(tmp_path / "p.hdr"),
+                "--seed",
+                "-3",
+                "--out",
+                str(tmp_path / "s"),
+            ],
+            capsys,
+        )
+        assert code == EXIT_BAD_INPUT and "--seed" in text and "Traceback" not in text
+
+    def test_more_rotations_than_maps(self, tmp_path, capsys):
+        code, text = run_cli(
+            [
+                "synth",
+                "--map",
+                "x.hdr",
+                "--rotation",
+                "1",
+                "--rotation",
+                "2",
+                "--out",
+                str(tmp_path / "s"),
+            ],
+            capsys,
+        )
+        assert code == EXIT_BAD_INPUT and "--rotation" in text
+
+    @pytest.mark.parametrize("doc", ['{"sequences": [{"name": "x"}]}', "[1]", "{not json"])
+    def test_broken_corpus_definition(self, tmp_path, capsys, doc):
+        (tmp_path / "c.json").write_text(doc)
+        code, text = run_cli(
+            ["synth", "--corpus", str(tmp_path / "c.json"), "--out", str(tmp_path / "out")], capsys
+        )
+        assert code == EXIT_BAD_INPUT and "--corpus" in text and "Traceback" not in text
+
     def test_extra_not_installed(self, tmp_path, capsys, monkeypatch):
         write_patch_map(tmp_path / "p.hdr", 8)
         monkeypatch.setitem(sys.modules, "mitsuba", None)  # import mitsuba -> ImportError

@@ -167,6 +167,10 @@ def _one(args: argparse.Namespace) -> int:
         raise ValueError("give --out DIR, the sequence folder to write")
     if len(args.map) > 2:
         raise ValueError("--map: at most two maps (a light change)")
+    if len(args.rotation) > len(args.map):
+        raise ValueError(
+            f"--rotation given {len(args.rotation)} times for {len(args.map)} --map: one per map"
+        )
     rotations = list(args.rotation) + [0.0] * (len(args.map) - len(args.rotation))
     change = args.change_at if args.change_at is not None else args.frames // 2
     if len(args.map) == 2 and not 0 < change < args.frames:

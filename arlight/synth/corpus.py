@@ -142,9 +142,10 @@ def load_definition(path: str | Path | None = None) -> dict:
         text = p.read_text()
     try:
         doc = json.loads(text)
-        doc["sequences"]
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise ValueError(f"--corpus {path}: not a corpus definition ({exc})") from None
+        specs(doc)  # every entry readable, before hours of rendering
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
+        what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise ValueError(f"--corpus {path}: not a corpus definition ({what})") from None
     return doc
 
 

@@ -74,6 +74,8 @@ class SequenceSpec:
             raise ValueError(f"--size {self.width}x{self.height}: each side must be 8..4096")
         if not 1 <= self.spp <= 65536:
             raise ValueError(f"--spp must be in 1..65536, got {self.spp}")
+        if self.seed < 0:
+            raise ValueError(f"--seed must be >= 0, got {self.seed}")
         if self.virtual_material not in VIRTUAL_MATERIALS:
             raise ValueError(
                 f"--virtual-material {self.virtual_material!r}: choose from "
