@@ -18,6 +18,7 @@ import pytest
 from conftest import DATA, needs_data, run_cli
 
 from arlight.cli import EXIT_BAD_INPUT, main
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline import sh
 from arlight.synth import environment as env
 from arlight.synth import meshes
@@ -79,10 +80,10 @@ class TestTruth:
         want = env.rotation_y(ROTATION_DEG) @ (PATCH_DIR_MAP / np.linalg.norm(PATCH_DIR_MAP))
         for frame in gt["frames"]:
             got = np.asarray(frame["dominant_dir_upper_world"])
-            assert env.angle_deg(got, want) < 1.0
+            assert angular_error_deg(got, want) < 1.0
             # the same direction through the pipeline's own SH code (file basis -> ours)
             ours = sh.toggle_condon_shortley(np.asarray(frame["sh_lum_upper_world"]))
-            assert env.angle_deg(sh.dominant_direction(ours), want) < 1.0
+            assert angular_error_deg(sh.dominant_direction(ours), want) < 1.0
 
     def test_camera_frame_is_the_pose_applied(self, tiny):
         gt = json.loads((tiny / "lighting_gt.json").read_text())
@@ -96,7 +97,7 @@ class TestTruth:
         for frame, row in zip(gt["frames"], rows, strict=True):
             r_wc = Rotation.from_quat([float(x) for x in row[4:8]]).as_matrix()
             world = np.asarray(frame["dominant_dir_upper_world"])
-            assert env.angle_deg(r_wc.T @ world, frame["dominant_dir_upper_camera"]) < 1e-3
+            assert angular_error_deg(r_wc.T @ world, frame["dominant_dir_upper_camera"]) < 1e-3
 
     def test_mitsuba_sees_the_patch_where_the_truth_puts_it(self, tiny):
         """The probe is path-traced by Mitsuba's emitter; its upper-hemisphere light must
@@ -104,7 +105,7 @@ class TestTruth:
         gt = json.loads((tiny / "lighting_gt.json").read_text())
         for frame in gt["frames"]:
             assert (
-                env.angle_deg(
+                angular_error_deg(
                     frame["probe"]["dominant_dir_upper_world"], frame["dominant_dir_upper_world"]
                 )
                 < 5.0
@@ -130,9 +131,9 @@ class TestTruth:
                 r_wc = Rotation.from_quat([float(x) for x in rows[frame["index"]][4:8]]).as_matrix()
                 upper = env.dominant(truth.sh_lum_upper_world)
                 whole = env.dominant(truth.sh_lum_world)
-                assert env.angle_deg(upper, frame["dominant_dir_upper_world"]) < 1.0
-                assert env.angle_deg(whole, frame["dominant_dir_world"]) < 1.0
-                assert env.angle_deg(r_wc.T @ upper, frame["dominant_dir_upper_camera"]) < 1.0
+                assert angular_error_deg(upper, frame["dominant_dir_upper_world"]) < 1.0
+                assert angular_error_deg(whole, frame["dominant_dir_world"]) < 1.0
+                assert angular_error_deg(r_wc.T @ upper, frame["dominant_dir_upper_camera"]) < 1.0
                 np.testing.assert_allclose(
                     env.to_file_convention(truth.sh_lum_world),
                     frame["sh_lum_world"],

@@ -127,9 +127,3 @@ def dominant(coeffs: np.ndarray) -> np.ndarray:
 def to_file_convention(coeffs: np.ndarray) -> list:
     """arlight's basis -> Sloan's with the Condon-Shortley phase (lighting_gt.json), rounded."""
     return np.round(sh.toggle_condon_shortley(np.asarray(coeffs, float)), 7).tolist()
-
-
-def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    c = a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
-    return math.degrees(math.acos(float(np.clip(c, -1.0, 1.0))))

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from arlight.sources.synthetic import look_at
 from arlight.synth import meshes
 from arlight.synth.materials import Material, ground_material, random_material
 
@@ -150,22 +151,6 @@ def pose_matrix(yaw_deg: float, position) -> np.ndarray:
     m[:3, :3] = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
     m[:3, 3] = position
     return m
-
-
-def look_at(eye, target) -> np.ndarray:
-    """world_from_cam (4, 4), OpenCV axes: z towards target, x right, y down."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    forward = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(forward, UP)
-    right /= np.linalg.norm(right)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = (
-        right,
-        np.cross(forward, right),
-        forward,
-        eye,
-    )
-    return pose
 
 
 def _orbit(

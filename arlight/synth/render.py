@@ -11,6 +11,7 @@ is Mitsuba's film centre. Images are (H, W, 3) float32 linear radiance in the ma
 
 from __future__ import annotations
 
+import functools
 import math
 import tempfile
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ import numpy as np
 
 from arlight.synth.layouts import Shape
 from arlight.synth.materials import Material
+from arlight.synth.meshes import write_ply
 
 VARIANT = "scalar_rgb"  # the shared set's; the LLVM variants need a matching system libLLVM
 FLIP = np.diag([-1.0, -1.0, 1.0, 1.0])  # OpenCV camera axes -> Mitsuba's (x left, y up)
@@ -126,8 +128,6 @@ class SceneRenderer:
         }
         for k, shape in enumerate(shapes):
             ply = Path(self._tmp.name) / f"{k:03d}.ply"
-            from arlight.synth.meshes import write_ply
-
             write_ply(shape.mesh(), ply)
             self._objects[f"s{k:03d}_{shape.name}"] = {
                 "type": "ply",
@@ -230,6 +230,7 @@ def cube_face_pose(face: str, point) -> np.ndarray:
     return pose
 
 
+@functools.lru_cache(maxsize=4)
 def cube_texels(size: int) -> tuple[np.ndarray, np.ndarray]:
     """Per face (6, S, S, 3) unit world directions of texel centres (faces in CUBE_FACES
     order) and (S, S) texel solid angles (steradians; the six faces tile the sphere)."""
@@ -242,7 +243,10 @@ def cube_texels(size: int) -> tuple[np.ndarray, np.ndarray]:
         dirs.append((rays / norm[..., None]) @ r.T)
     # solid angle of a texel of side 2/S on the plane z = 1: dA cos / r^2 = dA / r^3
     solid = (2.0 / size) ** 2 / norm**3
-    return np.stack(dirs), solid
+    out = np.stack(dirs), solid
+    for a in out:
+        a.flags.writeable = False  # shared by every caller (cached)
+    return out
 
 
 def render_probe(renderer: SceneRenderer, point, size: int, spp: int, seed: int) -> np.ndarray:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -20,10 +21,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from arlight.evaluation import angular_error_deg
 from arlight.pipeline import sh
 from arlight.pipeline.color import LUMA
 from arlight.synth import environment as env
-from arlight.synth import sensor
+from arlight.synth import render, sensor
 from arlight.synth.layouts import DESCRIPTION, LAYOUTS, Layout, LayoutError, build_layout
 from arlight.synth.meshes import write_ply
 from arlight.synth.virtual_objects import VIRTUAL_MATERIALS, object_meshes, virtual_shapes
@@ -127,8 +129,6 @@ def generate(
     spec: SequenceSpec, out_root: Path, map_folder: Path, on_frame: Callable[[], None] | None = None
 ) -> RenderStats:
     """Render `spec` into out_root/spec.name (skipped when already complete)."""
-    from arlight.synth import render  # Mitsuba: imported only when rendering
-
     final = out_root / spec.name
     stats = RenderStats()
     if (final / "lighting_gt.json").is_file():
@@ -140,51 +140,76 @@ def generate(
     work.mkdir(parents=True, exist_ok=True)
     camera = render.Camera(spec.width, spec.height, spec.fx, spec.fx)
     virtual, entries = virtual_shapes(layout, spec.virtual_material)
-    for i in range(spec.frames):
-        file = work / f"{i:06d}.npz"
-        if not file.is_file():
-            t0 = time.perf_counter()
-            arrays = _render_frame(spec, layout, virtual, camera, i, map_folder, render)
-            np.savez(str(work / f"{i:06d}.tmp.npz"), **arrays)  # type: ignore[arg-type]  # numpy's stub types **kwds as the allow_pickle flag
-            (work / f"{i:06d}.tmp.npz").rename(file)
-            stats.per_frame_s.append(time.perf_counter() - t0)
-            stats.frames_rendered += 1
-            stats.renders += 1 + (i in spec.ar_frames)
-        if on_frame is not None:
-            on_frame()
+    scenes = _Scenes(map_folder, spec.max_depth)
+    try:
+        for i in range(spec.frames):
+            file = work / f"{i:06d}.npz"
+            if not file.is_file():
+                t0 = time.perf_counter()
+                arrays = _render_frame(spec, layout, virtual, camera, i, scenes)
+                np.savez(str(work / f"{i:06d}.tmp.npz"), **arrays)  # type: ignore[arg-type]  # numpy's stub types **kwds as the allow_pickle flag
+                (work / f"{i:06d}.tmp.npz").rename(file)
+                stats.per_frame_s.append(time.perf_counter() - t0)
+                stats.frames_rendered += 1
+                stats.renders += 1 + (i in spec.ar_frames)
+            if on_frame is not None:
+                on_frame()
+    finally:
+        scenes.close()
     stats.seconds = float(sum(stats.per_frame_s))
     _write(spec, layout, entries, camera, work, final, map_folder)
     shutil.rmtree(work, ignore_errors=True)
     return stats
 
 
+class _Scenes:
+    """A sequence's scene states (the shapes of a frame, with or without the virtual
+    objects, under one map), each loaded into Mitsuba and Open3D once and reused by every
+    frame that shows it; the last few are kept (a moving object makes a state per frame)."""
+
+    KEEP = 4
+
+    def __init__(self, map_folder: Path, max_depth: int):
+        self._maps, self._max_depth = map_folder, max_depth
+        self._built: OrderedDict[tuple, tuple] = OrderedDict()
+
+    def get(self, shapes: list, light: LightState, key: tuple) -> tuple:
+        """(SceneRenderer, GeometryCaster) of `shapes` lit by `light`; `key` names the state."""
+        key = (light.map_name, light.rotation_deg, *key)
+        if key not in self._built:
+            path = map_path(self._maps, light.map_name)
+            renderer = render.SceneRenderer(shapes, path, light.rotation_deg, self._max_depth)
+            self._built[key] = (renderer, render.GeometryCaster(shapes))
+            while len(self._built) > self.KEEP:
+                self._built.popitem(last=False)[1][0].close()
+        self._built.move_to_end(key)
+        return self._built[key]
+
+    def close(self) -> None:
+        for renderer, _ in self._built.values():
+            renderer.close()
+        self._built.clear()
+
+
 def _render_frame(
-    spec: SequenceSpec, layout: Layout, virtual, camera, i: int, map_folder: Path, render
+    spec: SequenceSpec, layout: Layout, virtual, camera, i: int, scenes: _Scenes
 ) -> dict[str, np.ndarray]:
     light = spec.light_at(i)
     shapes = layout.shapes_at(i)
     seed = spec.seed * 1000 + i
-    path = map_path(map_folder, light.map_name)
     pose = layout.poses[i]
-    scene = render.SceneRenderer(shapes, path, light.rotation_deg, spec.max_depth)
-    try:
-        radiance = scene.render(camera, pose, spec.spp, seed)
-        probe = render.render_probe(
-            scene, layout.probe_world, spec.probe_size, spec.probe_spp, seed * 8
-        )
-    finally:
-        scene.close()
-    depth, ids = render.GeometryCaster(shapes).cast(camera, pose)
+    moving = id(layout.moving[i]) if layout.moving and layout.moving[i] is not None else None
+    scene, caster = scenes.get(shapes, light, (moving, False))
+    radiance = scene.render(camera, pose, spec.spp, seed)
+    probe = render.render_probe(
+        scene, layout.probe_world, spec.probe_size, spec.probe_spp, seed * 8
+    )
+    depth, ids = caster.cast(camera, pose)
     out = {"radiance": radiance, "depth": depth, "ids": ids, "probe": probe}
     if i in spec.ar_frames:
-        with_virtual = render.SceneRenderer(
-            shapes + virtual, path, light.rotation_deg, spec.max_depth
-        )
-        try:
-            out["radiance_virtual"] = with_virtual.render(camera, pose, spec.spp, seed)
-        finally:
-            with_virtual.close()
-        _, ids_v = render.GeometryCaster(shapes + virtual).cast(camera, pose)
+        with_virtual, caster_v = scenes.get(shapes + virtual, light, (moving, True))
+        out["radiance_virtual"] = with_virtual.render(camera, pose, spec.spp, seed)
+        _, ids_v = caster_v.cast(camera, pose)
         out["mask_virtual"] = ids_v >= len(shapes)
     return out
 
@@ -208,9 +233,7 @@ def _write_png(path: Path, image: np.ndarray) -> None:
 
 
 def _probe_truth(cube: np.ndarray, point, world_from_cam: np.ndarray) -> dict:
-    from arlight.synth.render import cube_texels
-
-    dirs, solid = cube_texels(cube.shape[1])
+    dirs, solid = render.cube_texels(cube.shape[1])
     d = dirs.reshape(-1, 3)
     w = np.broadcast_to(solid, cube.shape[:3]).reshape(-1)
     rgb = cube.reshape(-1, 3).astype(np.float64)
@@ -324,10 +347,10 @@ def _write(
                 "dominant_dir_upper_world": np.round(dom_up, 6).tolist(),
                 "dominant_dir_upper_camera": np.round(r_cw @ dom_up, 6).tolist(),
                 "sh_lum_upper_world": env.to_file_convention(truth.sh_lum_upper_world),
-                "upper_vs_full_deg": round(env.angle_deg(dom, dom_up), 2),
+                "upper_vs_full_deg": round(angular_error_deg(dom, dom_up), 2),
                 "probe": probe,
                 "probe_vs_distant_upper_deg": round(
-                    env.angle_deg(probe["dominant_dir_upper_world"], dom_up), 2
+                    angular_error_deg(probe["dominant_dir_upper_world"], dom_up), 2
                 ),
             }
         )
@@ -378,8 +401,6 @@ def _write(
             "frames_visible": [i for i, v in enumerate(visible_moving) if v],
             "frames_not_visible": [i for i, v in enumerate(visible_moving) if not v],
         }
-    from arlight.synth.render import version
-
     doc = {
         "sequence": spec.name,
         "set": "arlight synth",
@@ -401,7 +422,7 @@ def _write(
         ],
         "events": events,
         "render": {
-            "renderer": f"Mitsuba {version()} (scalar_rgb), path tracer",
+            "renderer": f"Mitsuba {render.version()} (scalar_rgb), path tracer",
             "max_depth": spec.max_depth,
             "spp": spec.spp,
             "reconstruction_filter": "gaussian",
