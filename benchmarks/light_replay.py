@@ -92,26 +92,11 @@ def record(data: list[str], preset: str, out: Path, frames: int | None, override
 
 
 def _kept_rows(t, color_linear, bounce, segments, params, seed) -> np.ndarray:
-    """The rows estimate_light's own _usable_samples keeps (same rules, same seed)."""
+    """The rows estimate_light's own _usable_samples keeps (its rules, its seed)."""
     rgb = np.asarray(color_linear).reshape(-1, 3)
     s = light_estimation._usable_samples(t, rgb, bounce, segments, params.light_max_samples, seed)
-    # recover the row indices: _usable_samples returns the rows, not their indices
-    lum_all = rgb @ light_estimation.LUMA.astype(rgb.dtype, copy=False)
-    with np.errstate(invalid="ignore"):
-        usable = (
-            np.isfinite(lum_all)
-            & np.isfinite(t).all(axis=1)
-            & ~(rgb.max(axis=1) >= light_estimation.CLIP_LEVEL)
-            & (lum_all > light_estimation.DARK_LEVEL)
-            & (t[:, 0] > 1e-6)
-        )
-    keep = np.flatnonzero(usable)
-    if len(keep) > params.light_max_samples:
-        keep = np.sort(
-            np.random.default_rng(seed).choice(keep, params.light_max_samples, replace=False)
-        )
-    assert len(keep) == len(s.lum)
-    return keep
+    assert s.rows is not None
+    return s.rows
 
 
 def _save(path: Path, seq, captured: list[dict], poses: list) -> None:

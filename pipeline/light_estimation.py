@@ -291,6 +291,7 @@ class _Samples:
     labels: np.ndarray | None  # (M,) segment index 0..G-1
     left_out: str  # why the others were not used, e.g. "10 clipped, 3 too dark"
     clipped_fraction: float = 0.0  # of the pixels with transfer: bright emitters, highlights
+    rows: np.ndarray | None = None  # (M,) indices of these pixels among the inputs' rows
 
 
 def _usable_samples(
@@ -331,7 +332,7 @@ def _usable_samples(
     with_transfer = int((~no_transfer).sum())
     clipped_fraction = float((clipped & ~no_transfer).sum()) / max(with_transfer, 1)
     return _Samples(
-        t[keep].astype(np.float64), rgb @ LUMA, rgb, b, labels, left_out, clipped_fraction
+        t[keep].astype(np.float64), rgb @ LUMA, rgb, b, labels, left_out, clipped_fraction, keep
     )
 
 

@@ -1,5 +1,5 @@
 """The replies to a frame: its Result, from the pipeline's FrameResult (`result_message`, the
-one conversion, used by the server and by `offline_record`), or its Error (`encode_error`);
+one conversion), or its Error (`encode_error`);
 `reply_to` turns a worker step's outcome (server/worker.py) into the encoded `Reply` a worker
 hands to the server's I/O thread."""
 
@@ -22,7 +22,6 @@ from arlight.protocols import (
     Result,
     encode,
     plain_diagnostics,
-    result_record,
 )
 from arlight.protocols.fields import MAX_INT as MAX_SEQ
 from arlight.server.frame_queue import Job
@@ -99,24 +98,6 @@ def result_message(
         if panorama is None
         else [float(x) for x in panorama.dominant_direction],
         exports=layouts,
-    )
-
-
-def offline_record(
-    result: FrameResult, index: int, start_wall: float, exports: tuple[str, ...] = ()
-) -> dict:
-    """The JSON record of frame `index` processed without a server (`arlight estimate`,
-    `arlight batch`): what `arlight stream --out` writes of the server's Result for it.
-    start_wall: time.time() when the frame's processing began, seconds."""
-    return result_record(
-        result_message(
-            result,
-            seq=index,
-            counters=(index + 1, index + 1, 0),
-            receive_time_wall=start_wall,
-            finish_time_wall=time.time(),
-            exports=exports,
-        )
     )
 
 

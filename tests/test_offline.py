@@ -82,15 +82,25 @@ class TestFrameRecord:
     @pytest.mark.parametrize(("rgb", "exports"), [(False, ()), (True, ("arcore", "unity"))])
     def test_equals_the_servers_record_byte_for_byte(self, rgb, exports):
         """The record built without the server is the one the server's Result gave
-        (server/results.py offline_record, what `arlight estimate --out` wrote before)."""
-        from arlight.server.results import offline_record
+        (the server's Result of it, as `arlight stream --out` writes it)."""
+        from arlight.protocols import result_record
+        from arlight.server.results import result_message
 
         seq = make_sequence(num_frames=2, width=96, height=72)
         pipeline = Pipeline(Config.from_preset("fast", estimate_rgb=rgb), seq.camera)
         done = list(estimate_frames(pipeline, seq.frames, exports))
         assert [d.index for d in done] == [0, 1]
         for d in done:
-            want = offline_record(d.result, d.index, 0.0, exports)
+            want = result_record(
+                result_message(
+                    d.result,
+                    seq=d.index,
+                    counters=(d.index + 1, d.index + 1, 0),
+                    receive_time_wall=0.0,
+                    finish_time_wall=0.0,
+                    exports=exports,
+                )
+            )
             assert json.dumps(d.record) == json.dumps(want)
             assert ("exports" in d.record) == bool(exports)
             assert (d.record["sh_rgb"] is not None) == rgb
