@@ -62,12 +62,17 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     maps = {}
     for f in files:
-        mean, second = map_moments(env.load_map(f))
+        try:
+            radiance = env.load_map(f)
+        except env.MapError as exc:
+            print(str(exc).replace("--map", "map"), file=sys.stderr)
+            return 2
+        mean, second = map_moments(radiance)
         maps[f.stem] = {
             "mean": np.round(mean, 7).tolist(),
             "second_moment": np.round(second, 7).tolist(),
         }
-        first = sh.dominant_direction(received_light_sh(env.load_map(f)))
+        first = sh.dominant_direction(received_light_sh(radiance))
         print(
             f"{f.stem}: light {math.degrees(math.asin(first[1])):.0f} deg above the "
             f"horizon, band 1 / band 0 {np.linalg.norm(mean[1:4]):.2f} (over headings)",
