@@ -14,10 +14,13 @@ if ! "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 10))'; then
   echo "arlight: Python >= 3.10 is required, found $("$PYTHON" --version)" >&2; exit 1
 fi
 
-# Open3D's wheel loads libusb-1.0, libGL/libEGL and libgomp at import time.
+# Open3D's wheel loads libusb-1.0, libGL/libEGL and libgomp at import time. The cache is read
+# once into a variable: `ldconfig -p | grep -q` under pipefail fails with 141 when grep exits
+# at its first match while ldconfig still writes (SIGPIPE), and a present library looked missing.
 need=()
+cache=$(ldconfig -p 2>/dev/null || true)
 for lib in libusb-1.0.so.0 libGL.so.1 libEGL.so.1 libgomp.so.1; do
-  ldconfig -p 2>/dev/null | grep -q "$lib" || need+=("$lib")
+  grep -qF "$lib" <<<"$cache" || need+=("$lib")
 done
 if [ ${#need[@]} -gt 0 ] || ! "$PYTHON" -c 'import venv, ensurepip' 2>/dev/null; then
   pkgs="libusb-1.0-0 libgl1 libegl1 libgomp1 python3-venv"
