@@ -55,7 +55,9 @@ def frame_record(result: FrameResult, index: int, exports: Sequence[str] = ()) -
     }
     if exports:
         light = result.sh if result.sh_rgb is None else result.sh_rgb
-        record["exports"] = camera_exports(light, result.pose, tuple(exports))
+        record["exports"] = camera_exports(
+            light, result.pose, tuple(exports), result.dominant_direction_world
+        )
     return record
 
 

@@ -295,7 +295,9 @@ class DisplayClient:
             light = result.sh_rgb if result.sh_rgb is not None else result.sh
             record["exports"] = {
                 **(result.exports or {}),
-                **camera_exports(light, result.pose, self.options.exports),
+                **camera_exports(
+                    light, result.pose, self.options.exports, result.dominant_direction_world
+                ),
             }
         now_m = got.receive_time_mono
         s.results += 1

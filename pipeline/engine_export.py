@@ -94,6 +94,19 @@ def _engine_sh(
     return sh.rotate(c, r)
 
 
+def _engine_direction(
+    direction_world: npt.ArrayLike, engine_from_world: np.ndarray | None
+) -> np.ndarray:
+    """Unit (3,) direction in the engine's axes; zeros for a zero direction (no light)."""
+    d = np.asarray(direction_world, dtype=np.float64)
+    if d.shape != (3,) or not np.all(np.isfinite(d)):
+        raise ExportError(f"direction_world must be 3 finite floats, got shape {d.shape}")
+    if engine_from_world is not None:
+        d = np.asarray(engine_from_world, dtype=np.float64) @ d
+    n = float(np.linalg.norm(d))
+    return d / n if n > 1e-12 else np.zeros(3)
+
+
 def _floats(a: np.ndarray) -> list[float]:
     return [float(v) for v in np.asarray(a).reshape(-1)]
 
@@ -224,7 +237,9 @@ def to_filament_text(sh_world: np.ndarray, engine_from_world: np.ndarray | None 
 
 
 def main_light(
-    sh_world: np.ndarray, engine_from_world: np.ndarray | None = None
+    sh_world: np.ndarray,
+    engine_from_world: np.ndarray | None = None,
+    direction_world: npt.ArrayLike | None = None,
 ) -> dict[str, list[float]]:
     """The main directional light for ARCore ``getEnvironmentalHdrMainLightDirection`` /
     ``...MainLightIntensity`` and WebXR ``XRLightEstimate.primaryLightDirection`` /
@@ -235,16 +250,21 @@ def main_light(
     shining straight down from above"; ARCore's ``LightEstimate`` reference (the same default,
     world space); hello_ar passes both to its shader as the light's direction and colour.
 
-    - direction: unit vector TOWARDS the light in the engine's frame (``sh.dominant_direction``
-      of the luminance, after the frame change); (0, 1, 0) when band 1 vanishes, as the
-      engines' own default;
+    - direction: unit vector TOWARDS the light in the engine's frame: ``direction_world``
+      (the Result's ``dominant_direction_world``, the light above the horizon of the surface
+      the scene stands on: one notion of "the light" across outputs) after the frame change;
+      without it ``sh.dominant_direction`` of the luminance (whole sphere); (0, 1, 0) when it
+      vanishes, as the engines' own default;
     - intensity: linear RGB, the integrated radiance of the delta light along it that best
       fits each channel (``sh.intensity_along``, Sloan's extraction): the irradiance on a
       surface facing the light, in this project's units (no engine calibration);
     - layout: {"direction": [x, y, z], "intensity": [r, g, b]}.
     """
     c = _engine_sh(sh_world, engine_from_world)
-    direction = sh.dominant_direction(LUMA @ c)
+    if direction_world is None:
+        direction = sh.dominant_direction(LUMA @ c)
+    else:
+        direction = _engine_direction(direction_world, engine_from_world)
     if not np.any(direction):
         return {"direction": [0.0, 1.0, 0.0], "intensity": [0.0, 0.0, 0.0]}
     return {
@@ -266,15 +286,24 @@ EXPORTERS = {
 
 
 def camera_exports(
-    sh_world: npt.ArrayLike, world_from_cam: npt.ArrayLike, names: list[str] | tuple[str, ...]
+    sh_world: npt.ArrayLike,
+    world_from_cam: npt.ArrayLike,
+    names: list[str] | tuple[str, ...],
+    direction_world: npt.ArrayLike | None = None,
 ) -> dict:
     """The light of one frame in each named layout (EXPORTERS), in the CAMERA frame with the
     engine's axes (OpenGL's x right, y up, z back: sh.GL_FROM_CV; Unity's left-handed
     UNITY_FROM_CV): an app turns it into its own world with its camera pose.
-    sh_world: (n,) luminance or (3, n) RGB world-frame radiance SH; world_from_cam (4, 4)."""
+    sh_world: (n,) luminance or (3, n) RGB world-frame radiance SH; world_from_cam (4, 4);
+    direction_world: the Result's dominant_direction_world (unit, world), the main light's
+    direction (None: the SH's own, whole sphere)."""
     cam_from_world = np.asarray(world_from_cam, np.float64)[:3, :3].T
     out = {}
     for name in names:
         axes = UNITY_FROM_CV if name == "unity" else sh.GL_FROM_CV
-        out[name] = EXPORTERS[name](np.asarray(sh_world, np.float64), axes @ cam_from_world)
+        light = np.asarray(sh_world, np.float64)
+        if name == "main_light":
+            out[name] = main_light(light, axes @ cam_from_world, direction_world)
+        else:
+            out[name] = EXPORTERS[name](light, axes @ cam_from_world)
     return out

@@ -68,7 +68,11 @@ def result_message(
     """
     received, processed, dropped = counters
     light = result.sh if result.sh_rgb is None else result.sh_rgb
-    layouts = camera_exports(light, result.pose, exports) if exports else None
+    layouts = (
+        camera_exports(light, result.pose, exports, result.dominant_direction_world)
+        if exports
+        else None
+    )
     return Result(
         seq=seq,
         timestamp=float(result.timestamp),
