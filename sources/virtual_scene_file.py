@@ -13,8 +13,10 @@ Every error is a `SceneError` naming the file and the object and saying what to 
 from __future__ import annotations
 
 import json
+import struct
 import sys
-from pathlib import Path
+import urllib.parse
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any
 
 import numpy as np
@@ -61,8 +63,9 @@ def load_virtual_scene(path: str | Path, frame: str = "world") -> VirtualScene:
 
     frame: "world" poses objects by `world_from_object` (the sequence's ground-truth world,
     for runs with given poses); "cam0" by `cam0_from_object` (the first camera's OpenCV frame,
-    for tracked runs). Mesh paths are relative to the file. Meshes are in metres, object
-    frame (origin at the base centre, +y up).
+    for tracked runs). Mesh paths are relative to the file and stay inside its folder (so do
+    the files a mesh names: glTF buffers and images, OBJ materials and textures). Meshes are
+    in metres, object frame (origin at the base centre, +y up).
     """
     path = Path(path)
     if frame not in FRAMES:
@@ -157,7 +160,7 @@ def _load_object(
     if "mesh" in entry:
         if not isinstance(entry["mesh"], str):
             raise SceneError(f'{where}: "mesh" must be a file path (relative to the scene file)')
-        mesh = _read_mesh(folder / entry["mesh"], budget, where)
+        mesh = _read_mesh(_inside(folder, entry["mesh"], where, "mesh"), budget, where)
     else:
         mesh = _primitive(entry["primitive"], where)
     if len(mesh.triangles) > budget:
@@ -182,6 +185,7 @@ def _read_mesh(file: Path, budget: int, where: str) -> o3d.geometry.TriangleMesh
         raise SceneError(
             f"{where}: mesh file {file} not found (mesh paths are relative to the scene file)"
         )
+    _check_references(file, where)
     try:
         counts = _ply_counts(file) if file.suffix.lower() == ".ply" else None
     except OSError as exc:
@@ -206,6 +210,91 @@ def _read_mesh(file: Path, budget: int, where: str) -> o3d.geometry.TriangleMesh
             f"{triangles} could be read; re-export it"
         )
     return mesh
+
+
+def _inside(folder: Path, name: str, where: str, what: str) -> Path:
+    """`folder / name`, refused (SceneError) unless it stays inside `folder` once links are
+    followed: a scene file, or a mesh it names, may read no file outside the scene file's
+    folder (an absolute path, ``..``, or a link out of it would send that file's bytes to the
+    server as vertex data)."""
+    relative = PurePosixPath(name.replace("\\", "/"))
+    if not name or relative.is_absolute() or PureWindowsPath(name).drive or ".." in relative.parts:
+        raise SceneError(
+            f"{where}: {what} {name[:200]!r} must be a relative path inside the scene "
+            f"file's folder ({folder}), without '..'; copy the file there"
+        )
+    file = folder / relative
+    try:
+        inside = file.resolve().is_relative_to(folder.resolve())
+    except (OSError, RuntimeError):  # a link loop
+        inside = False
+    if not inside:
+        raise SceneError(
+            f"{where}: {what} {name[:200]!r} leads outside the scene file's folder "
+            f"({folder}) through a link; copy the file there"
+        )
+    return file
+
+
+def _check_references(file: Path, where: str) -> None:
+    """The files a mesh names in turn (a glTF's buffer and image ``uri``s, an OBJ's
+    ``mtllib`` and a material's texture maps) must stay inside the mesh's folder too
+    (`_inside`); embedded ``data:`` URIs are fine."""
+    suffix = file.suffix.lower()
+    try:
+        if suffix in (".gltf", ".glb"):
+            for uri in _gltf_uris(file):
+                if not uri.startswith("data:"):
+                    _inside(file.parent, urllib.parse.unquote(uri), where, f"{file.name} uri")
+        elif suffix == ".obj":
+            for library in _obj_names(file, ("mtllib",)):
+                mtl = _inside(file.parent, library, where, f"{file.name} mtllib")
+                if mtl.is_file():
+                    for texture in _obj_names(mtl, MTL_MAPS):
+                        _inside(file.parent, texture, where, f"{mtl.name} texture")
+    except OSError as exc:
+        raise SceneError(f"{where}: mesh {file} cannot be read ({exc})") from None
+
+
+MTL_MAPS = ("map_Ka", "map_Kd", "map_Ks", "map_Ns", "map_d", "map_bump", "bump", "disp", "norm")
+MTL_MAPS += ("map_Pr", "map_Pm", "map_Ps", "map_Ke", "refl", "decal")
+
+
+def _gltf_uris(file: Path) -> list[str]:
+    """Every ``uri`` of a glTF's buffers and images (the JSON chunk of a .glb); [] when the
+    file is not readable as one (Open3D then refuses it)."""
+    data = file.read_bytes()
+    if file.suffix.lower() == ".glb":
+        if len(data) < 20 or data[:4] != b"glTF":
+            return []
+        (length,) = struct.unpack_from("<I", data, 12)
+        data = data[20 : 20 + length]
+    try:
+        doc = json.loads(data)
+    except (ValueError, UnicodeDecodeError):
+        return []
+    uris = []
+    for key in ("buffers", "images"):
+        items = doc.get(key) if isinstance(doc, dict) else None
+        for item in items if isinstance(items, list) else ():
+            uri = item.get("uri") if isinstance(item, dict) else None
+            if isinstance(uri, str):
+                uris.append(uri)
+            elif uri is not None:
+                uris.append(repr(uri))  # not a string: refused as a path
+    return uris
+
+
+def _obj_names(file: Path, keywords: tuple[str, ...]) -> list[str]:
+    """The file names after `keywords` in an OBJ or MTL file (the last word of the line:
+    texture options come before the name)."""
+    names = []
+    with open(file, encoding="utf-8", errors="replace") as f:
+        for line in f:
+            words = line.split()
+            if len(words) >= 2 and words[0] in keywords:
+                names.append(words[-1] if words[0] != "mtllib" else " ".join(words[1:]))
+    return names
 
 
 def _ply_counts(file: Path) -> tuple[int, int] | None:
