@@ -29,6 +29,7 @@ from arlight.protocols.fields import MAX_INT as MAX_SEQ  # a Frame's seq: 0..2^6
 from arlight.server.admission import capture_session, display_admitted
 from arlight.server.frame_queue import Job, Offer
 from arlight.server.housekeeping import close_session, detach_peer
+from arlight.server.logtext import printable
 from arlight.server.state import Peer
 
 if TYPE_CHECKING:
@@ -81,13 +82,8 @@ def handle_message(
     elif isinstance(message, Bye):
         on_bye(server, identity, peer, message)
     elif isinstance(message, (Credit, Error)):
-        if isinstance(message, Error):
-            log.info(
-                "client %s reported an error: %s %s",
-                identity.hex(),
-                message.code,
-                message.message,
-            )
+        if isinstance(message, Error):  # the peer's text, escaped and rate-limited
+            server._error_log.reported(identity, message, now)
     else:
         server._send_error(
             identity,
@@ -249,7 +245,7 @@ def on_frame(
 def on_bye(server: Server, identity: bytes, peer: Peer | None, bye: Bye) -> None:
     if peer is None:
         return
-    log.info("session %s: %s said Bye (%s)", peer.session, peer.label, bye.reason or "")
+    log.info("session %s: %s said Bye (%s)", peer.session, peer.label, printable(bye.reason))
     session = server.sessions.get(peer.session)
     detach_peer(server, peer, reason="said Bye")
     if peer.role == "capture" and session is not None and session.capture_peer is None:

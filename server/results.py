@@ -25,6 +25,7 @@ from arlight.protocols import (
 )
 from arlight.protocols.fields import MAX_INT as MAX_SEQ
 from arlight.server.frame_queue import Job
+from arlight.server.logtext import printable
 from arlight.server.worker import FrameOutcome, Rejected
 
 if TYPE_CHECKING:
@@ -180,12 +181,13 @@ def error_reply(session: Session, job: Job, error: Error) -> Reply:
     return Reply(session, job, encode_error(error), time.monotonic(), error)
 
 
-ERROR_LOG_LINES_PER_S = 20  # log lines about Errors sent to peers (a flood is summarised)
+ERROR_LOG_LINES_PER_S = 20  # log lines about Errors, to and from peers (a flood is summarised)
 
 
 class ErrorLog:
-    """The log lines about Errors sent to peers: at most `lines_per_s` a second; then one line
-    says how many the second left out (a hostile flood does not flood the log). Times:
+    """The log lines about Errors sent to peers and reported by them: at most `lines_per_s` a
+    second together; then one line says how many the second left out (a hostile flood does
+    not flood the log). A peer's text is escaped onto one line (server/logtext.py). Times:
     time.monotonic(), seconds."""
 
     def __init__(self, lines_per_s: int = ERROR_LOG_LINES_PER_S):
@@ -196,23 +198,40 @@ class ErrorLog:
 
     def sent(self, identity: bytes, error: Error, now: float) -> None:
         """Log an Error sent to peer `identity`, unless this second has had its lines."""
+        if self._allow(now):
+            log.info(
+                "error to %s: %s%s: %s",
+                identity.hex(),
+                error.code,
+                f" ({printable(error.field, 128)})" if error.field else "",
+                printable(error.message, 512),
+            )
+
+    def reported(self, identity: bytes, error: Error, now: float) -> None:
+        """Log an Error a client reported (its code, field and text are the peer's own),
+        unless this second has had its lines."""
+        if self._allow(now):
+            log.info(
+                "client %s reported an error: %s%s: %s",
+                identity.hex(),
+                printable(error.code, 64),
+                f" ({printable(error.field, 128)})" if error.field else "",
+                printable(error.message),
+            )
+
+    def _allow(self, now: float) -> bool:
+        """Whether this second may have one more line (else it is counted as left out)."""
         self.flush(now)
         self._count += 1
         if self._count > self.lines_per_s:
             self._suppressed += 1
-            return
-        log.info(
-            "error to %s: %s%s: %s",
-            identity.hex(),
-            error.code,
-            f" ({error.field})" if error.field else "",
-            error.message[:512],
-        )
+            return False
+        return True
 
     def flush(self, now: float) -> None:
         """A new second: log how many lines the last one left out, count afresh."""
         second = int(now)
         if second != self._second:
             if self._suppressed:
-                log.info("%d more error(s) to peers not logged", self._suppressed)
+                log.info("%d more error line(s) not logged (to or from peers)", self._suppressed)
             self._second, self._count, self._suppressed = second, 0, 0

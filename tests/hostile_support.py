@@ -1,0 +1,85 @@
+"""The legitimate session beside an attack (issue 39): a lossless stream over a real loopback
+socket that records when each Result arrives, so a test asserts its largest gap between
+Results (the latency an attacker could add), not only that its frames were answered."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import zmq
+from streaming_support import RawPeer, frame_parts
+
+from arlight.protocols import Error, Heartbeat, Result, Welcome, decode, encode
+
+
+class LegitStream:
+    """A capture client streaming 64x48 lossless frames with `window` unacknowledged, from a
+    thread, until `stop()`; `gaps_s()`: the seconds between its start, each Result and its
+    stop. Heartbeats go out every 0.1 s, so a quiet moment is never taken for a dead peer."""
+
+    def __init__(self, address: str, session: str = "legit", window: int = 2, **hello):
+        self.peer = RawPeer(address)
+        welcome = self.peer.hello(session, mode="lossless", **hello)
+        if not isinstance(welcome, Welcome):
+            raise AssertionError(f"the legitimate session was refused: {welcome}")
+        self.window = window
+        self.result_times: list[float] = []
+        self.errors: list[Error] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self.start_mono = self.stop_mono = 0.0
+
+    def __enter__(self) -> LegitStream:
+        self.start_mono = time.monotonic()
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def stop(self) -> None:
+        if not self._stop.is_set():
+            self.stop_mono = time.monotonic()
+            self._stop.set()
+            self._thread.join(10)
+            self.peer.close()
+
+    def _run(self) -> None:
+        sock = self.peer.socket
+        seq = in_flight = 0
+        next_beat = 0.0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if now >= next_beat:
+                sock.send_multipart(encode(Heartbeat(time.time())), zmq.NOBLOCK)
+                next_beat = now + 0.1
+            while in_flight < self.window:
+                sock.send_multipart(frame_parts(seq, value=seq % 200), zmq.NOBLOCK)
+                seq += 1
+                in_flight += 1
+            if not sock.poll(50):
+                continue
+            message = decode(sock.recv_multipart())
+            if isinstance(message, Result):
+                self.result_times.append(time.monotonic())
+                in_flight -= 1
+            elif isinstance(message, Error) and message.seq is not None:
+                self.errors.append(message)
+                in_flight -= 1
+
+    def gaps_s(self) -> list[float]:
+        """Seconds between the start, each Result and the stop (stop() first)."""
+        marks = [self.start_mono, *self.result_times, self.stop_mono or time.monotonic()]
+        return [b - a for a, b in zip(marks[:-1], marks[1:], strict=True)]
+
+    def largest_gap_s(self) -> float:
+        return max(self.gaps_s())
+
+    def assert_served(self, limit_s: float = 3.0) -> None:
+        """The stream got Results all along: no gap of `limit_s` seconds or more, no Error."""
+        self.stop()
+        assert not self.errors, self.errors[:3]
+        assert len(self.result_times) >= 2, "the legitimate session got no Results"
+        gap = self.largest_gap_s()
+        assert gap < limit_s, f"the legitimate session waited {gap:.1f} s for a Result"
