@@ -298,7 +298,7 @@ def camera_exports(
     direction_world: the Result's dominant_direction_world (unit, world), the main light's
     direction (None: the SH's own, whole sphere)."""
     cam_from_world = np.asarray(world_from_cam, np.float64)[:3, :3].T
-    out = {}
+    out: dict[str, object] = {}
     for name in names:
         axes = UNITY_FROM_CV if name == "unity" else sh.GL_FROM_CV
         light = np.asarray(sh_world, np.float64)

@@ -13,7 +13,6 @@ Depth goes out as the source gives it: the sensor's uint16 with the source's dep
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +24,7 @@ from arlight.core.frames import FrameInput
 from arlight.protocols import CameraCalibration, SessionConfig
 from arlight.sources.recording import Recording
 from arlight.sources.sequence import open_sequence
-from arlight.sources.synthetic import make_sequence
+from arlight.sources.synthetic import LazyFrames
 
 
 @dataclass
@@ -161,11 +160,8 @@ def open_source(
         return open_camera(camera, max_frames=max_frames)
     if spec == "synthetic":
         n = max_frames or synthetic_frames
-        seq = make_sequence(num_frames=n, width=synthetic_size[0], height=synthetic_size[1])
-        frames = (
-            seq.frames if use_poses else [dataclasses.replace(f, pose=None) for f in seq.frames]
-        )
-        return sequence_source("synthetic", seq.camera, frames, [])
+        frames = LazyFrames(n, synthetic_size[0], synthetic_size[1], use_poses=use_poses)
+        return sequence_source("synthetic", frames.camera, frames, [])  # rendered as sent
     if spec.lower().endswith(".mcap"):
         return open_recording_source(spec, max_frames=max_frames)
     sequence = open_sequence(

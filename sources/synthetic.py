@@ -51,9 +51,12 @@ deterministic from ``seed``.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import overload
 
 import numpy as np
 
@@ -699,6 +702,68 @@ def _check_arguments(
         )
 
 
+@dataclass(frozen=True)
+class _Setup:
+    """What every frame of one sequence shares: camera, the two lights, exposure, poses."""
+
+    camera: PinholeCamera
+    lights: tuple[Lighting, Lighting]
+    exposure: float
+    poses: list[np.ndarray]
+    name: str
+
+
+def _setup(num_frames: int, width: int, height: int, seed: int, held: bool) -> _Setup:
+    scene_rng = np.random.default_rng([seed, 0])
+    azimuth = float(scene_rng.uniform(0.0, 2.0 * math.pi))
+    elevation = float(scene_rng.uniform(*SUN_ELEVATION_RANGE_RAD))
+    lights = (
+        make_lighting(azimuth, elevation),
+        make_lighting(azimuth + LIGHT_CHANGE_AZIMUTH_RAD, elevation),
+    )
+    start = azimuth + ORBIT_START_FROM_SUN_RAD
+    poses = (
+        held_poses(num_frames, start, np.random.default_rng([seed, 2]))
+        if held
+        else orbit_poses(num_frames, start)
+    )
+    return _Setup(
+        camera=PinholeCamera.kinect_v1(width, height),
+        lights=lights,
+        exposure=exposure_for(lights[0]),  # same elevation after a change: same ground
+        poses=poses,
+        name=f"arlight_synthetic{'_held' if held else ''}_seed{seed}",
+    )
+
+
+def _render_frames(
+    setup: _Setup, seed: int, sensor_noise: bool, light_change_frame: int | None
+) -> Iterator[tuple[FrameInput, Lighting, np.ndarray]]:
+    """(frame, its light, its clean depth in metres) per pose, rendered one at a time in
+    order (the sensor noise draws from one generator, so the order is part of the output)."""
+    noise_rng = np.random.default_rng([seed, 1])
+    camera = setup.camera
+    rays_cam = np.ascontiguousarray(camera.ray_directions().reshape(-1, 3).T)
+    for i, pose in enumerate(setup.poses):
+        changed = light_change_frame is not None and i >= light_change_frame
+        light = setup.lights[int(changed)]
+        radiance, depth = render_frame(camera, pose, light, rays_cam=rays_cam)
+        rng = noise_rng if sensor_noise else None
+        color = encode_color(radiance, setup.exposure, rng)
+        if sensor_noise:
+            sensor_depth, depth_scale = kinect_depth(depth, noise_rng), DEPTH_SCALE
+        else:
+            sensor_depth, depth_scale = depth, None
+        frame = FrameInput(
+            color=color,
+            depth=sensor_depth,
+            depth_scale=depth_scale,
+            pose=pose,
+            timestamp=FIRST_TIMESTAMP_S + i / FRAME_RATE_HZ,
+        )
+        yield frame, light, depth
+
+
 def make_sequence(
     num_frames: int = 12,
     width: int = 640,
@@ -714,59 +779,86 @@ def make_sequence(
     seed picks the sun (azimuth in [0, 2 pi), elevation 30-50 degrees; the orbit starts
     70 degrees round from the sun's azimuth) and the sensor noise. From
     `light_change_frame` on, the sun is 110 degrees further round in azimuth.
+    Every frame is rendered before it returns: a stream uses :class:`LazyFrames`.
     """
     _check_arguments(num_frames, width, height, light_change_frame)
-    scene_rng = np.random.default_rng([seed, 0])
-    noise_rng = np.random.default_rng([seed, 1])
-    azimuth = float(scene_rng.uniform(0.0, 2.0 * math.pi))
-    elevation = float(scene_rng.uniform(*SUN_ELEVATION_RANGE_RAD))
-    lights = [
-        make_lighting(azimuth, elevation),
-        make_lighting(azimuth + LIGHT_CHANGE_AZIMUTH_RAD, elevation),
-    ]
-    exposure = exposure_for(lights[0])  # same elevation after a change: same ground brightness
-
-    camera = PinholeCamera.kinect_v1(width, height)
-    rays_cam = np.ascontiguousarray(camera.ray_directions().reshape(-1, 3).T)
+    setup = _setup(num_frames, width, height, seed, held)
     seq = SyntheticSequence(
-        name=f"arlight_synthetic{'_held' if held else ''}_seed{seed}",
-        camera=camera,
+        name=setup.name,
+        camera=setup.camera,
         frames=[],
         sh_world=[],
         dominant_direction_world=[],
         dominant_direction_camera=[],
-        exposure=exposure,
+        exposure=setup.exposure,
         sun_direction_world=[],
         light_change_frame=light_change_frame,
     )
-    start = azimuth + ORBIT_START_FROM_SUN_RAD
-    poses = (
-        held_poses(num_frames, start, np.random.default_rng([seed, 2]))
-        if held
-        else orbit_poses(num_frames, start)
-    )
-    for i, pose in enumerate(poses):
-        changed = light_change_frame is not None and i >= light_change_frame
-        light = lights[int(changed)]
-        radiance, depth = render_frame(camera, pose, light, rays_cam=rays_cam)
-        rng = noise_rng if sensor_noise else None
-        color = encode_color(radiance, exposure, rng)
-        if sensor_noise:
-            sensor_depth, depth_scale = kinect_depth(depth, noise_rng), DEPTH_SCALE
-        else:
-            sensor_depth, depth_scale = depth, None
-        seq.frames.append(
-            FrameInput(
-                color=color,
-                depth=sensor_depth,
-                depth_scale=depth_scale,
-                pose=pose,
-                timestamp=FIRST_TIMESTAMP_S + i / FRAME_RATE_HZ,
-            )
-        )
+    rendered = _render_frames(setup, seed, sensor_noise, light_change_frame)
+    for pose, (frame, light, depth) in zip(setup.poses, rendered, strict=True):
+        seq.frames.append(frame)
         _append_ground_truth(seq, light, pose)
         seq.depth_gt.append(depth)
     return seq
+
+
+LAZY_CACHE_BYTES = 256 * 2**20  # frames kept once rendered (a --loop re-renders past this)
+
+
+class LazyFrames(Sequence[FrameInput]):
+    """The frames of ``make_sequence(num_frames, width, height, seed)`` (sensor noise on),
+    rendered when first asked for, in order, so a stream of 100000 frames sends its first
+    at once: ``len`` is known up front, ``frames[i]`` renders up to i. The first frames, up
+    to LAZY_CACHE_BYTES, are kept; asking again for a frame past them renders the sequence
+    anew from the start (same bytes: deterministic). use_poses False: pose None."""
+
+    def __init__(
+        self, num_frames: int, width: int, height: int, seed: int = 0, use_poses: bool = True
+    ):
+        _check_arguments(num_frames, width, height, None)
+        self._setup = _setup(num_frames, width, height, seed, held=False)
+        self._seed, self._use_poses, self._n = seed, use_poses, num_frames
+        self._cache: list[FrameInput] = []
+        self._cache_max = max(1, LAZY_CACHE_BYTES // (width * height * 5))  # RGB + uint16
+        self._it: Iterator[tuple[FrameInput, Lighting, np.ndarray]] | None = None
+        self._next = 0  # the index the iterator yields next
+        self._last: tuple[int, FrameInput] | None = None
+
+    @property
+    def camera(self) -> PinholeCamera:
+        return self._setup.camera
+
+    def __len__(self) -> int:
+        return self._n
+
+    @overload
+    def __getitem__(self, i: int) -> FrameInput: ...
+    @overload
+    def __getitem__(self, i: slice) -> list[FrameInput]: ...
+    def __getitem__(self, i: int | slice) -> FrameInput | list[FrameInput]:
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(self._n))]
+        if i < 0:
+            i += self._n
+        if not 0 <= i < self._n:
+            raise IndexError(f"frame {i} of {self._n}")
+        if i < len(self._cache):
+            return self._cache[i]
+        if self._last is not None and self._last[0] == i:
+            return self._last[1]
+        if self._it is None or self._next > i:
+            self._it = _render_frames(self._setup, self._seed, True, None)
+            self._next = 0
+        while True:
+            frame = next(self._it)[0]
+            if not self._use_poses:
+                frame = dataclasses.replace(frame, pose=None)
+            index, self._next = self._next, self._next + 1
+            if index == len(self._cache) and index < self._cache_max:
+                self._cache.append(frame)
+            if index == i:
+                self._last = (i, frame)
+                return frame
 
 
 def _append_ground_truth(seq: SyntheticSequence, light: Lighting, pose: np.ndarray) -> None:

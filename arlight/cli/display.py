@@ -23,6 +23,7 @@ from arlight.cli.common import (
     positive_float,
     positive_int,
 )
+from arlight.cli.stop_signals import finalised_on_sigterm
 
 
 def add_parser(sub) -> None:
@@ -105,6 +106,7 @@ def add_parser(sub) -> None:
     disp.set_defaults(func=run)
 
 
+@finalised_on_sigterm
 def run(args: argparse.Namespace) -> int:
     from arlight.client.display import DisplayClient, DisplayError, DisplayOptions, print_line
 

@@ -29,6 +29,7 @@ from arlight.cli.common import (
     positive_float,
     positive_int,
 )
+from arlight.cli.stop_signals import finalised_on_sigterm
 
 # the server's default budgets (`arlight serve --frame-deadline / --session-memory-mb`)
 DEFAULT_FRAME_DEADLINE_S = 60.0
@@ -138,6 +139,7 @@ def add_parser(sub) -> None:
     est.set_defaults(func=run)
 
 
+@finalised_on_sigterm
 def run(args: argparse.Namespace) -> int:
     from arlight.offline import FrameNotes, estimate_frames, has_usable_depth
     from arlight.pipeline.pipeline import Pipeline
@@ -190,6 +192,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"arlight estimate: [{i + 1}/{n}] {note}", file=sys.stderr, flush=True)
             if out:
                 out.write(json.dumps(record) + "\n")
+                out.flush()  # each Result on disk as it comes (a stopped run keeps them)
             if environments is not None:
                 _write_environment(environments, i, result, args.env_size, args.cubemap)
             if composites is not None:

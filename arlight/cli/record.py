@@ -8,6 +8,7 @@ import time
 
 from arlight.cli.client_options import add_source_options, open_stream_source, stream_options
 from arlight.cli.common import BadInput, count
+from arlight.cli.stop_signals import finalised_on_sigterm
 
 
 def add_parser(sub) -> None:
@@ -23,6 +24,7 @@ def add_parser(sub) -> None:
     rec.set_defaults(func=run)
 
 
+@finalised_on_sigterm
 def run(args: argparse.Namespace) -> int:
     from arlight.client.recording import record
 

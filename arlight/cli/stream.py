@@ -28,6 +28,7 @@ from arlight.cli.common import (
     engine_layouts,
     rotation_3x3,
 )
+from arlight.cli.stop_signals import finalised_on_sigterm
 from arlight.pipeline.inverse_tone import OPERATORS
 from arlight.protocols import received_record
 from arlight.protocols.records import pipeline_ms
@@ -116,6 +117,7 @@ def add_parser(sub) -> None:
     stream.set_defaults(func=run)
 
 
+@finalised_on_sigterm
 def run(args: argparse.Namespace) -> int:
     from arlight.client.capture import CaptureClient, StreamError
     from arlight.client.foxglove_sinks import Recorders
@@ -181,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
             live.write_result(result, record, time.time_ns())
         if out:
             out.write(json.dumps(record) + "\n")
+            out.flush()  # a line per Result as it arrives: a killed or hours-long stream keeps them
 
     sinks = recorder if live is None else Recorders(recorder, live)
     client = CaptureClient(source, options, on_result=on_result, recorder=sinks)
