@@ -67,6 +67,7 @@ from arlight.server.housekeeping import (
 )
 from arlight.server.options import DEFAULT_BIND, ServerOptions
 from arlight.server.results import ErrorLog, Reply, encode_error, error_reply, reply_to
+from arlight.server.routing import seed_routing_ids
 from arlight.server.security import CurveServer, check_exposure
 from arlight.server.session import Session
 from arlight.server.shutdown import begin_drain, drained, finish_shutdown
@@ -143,6 +144,7 @@ class Server:
         if curve is not None:  # ZAP handler first: it must see the first handshake
             curve.start(self._ctx)
             self._curve = curve
+        seed_routing_ids()  # the ROUTER's first automatic routing id: not guessable
         router = self._ctx.socket(zmq.ROUTER)
         if curve is not None:
             curve.apply(router)

@@ -83,3 +83,42 @@ class LegitStream:
         assert len(self.result_times) >= 2, "the legitimate session got no Results"
         gap = self.largest_gap_s()
         assert gap < limit_s, f"the legitimate session waited {gap:.1f} s for a Result"
+
+
+class ServerProcess:
+    """tests/hostile_server.py in a child process: `address`, `alive()`, `close()` (which
+    returns its exit code)."""
+
+    def __init__(self, **options):
+        import json
+        import subprocess
+        import sys
+        from pathlib import Path
+
+        script = Path(__file__).resolve().parent / "hostile_server.py"
+        self.process = subprocess.Popen(
+            [sys.executable, str(script), json.dumps(options)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        assert self.process.stdout is not None
+        port = self.process.stdout.readline().strip()
+        if not port.isdigit():
+            self.process.kill()
+            raise AssertionError(f"the server process did not start (printed {port!r})")
+        self.address = f"tcp://127.0.0.1:{port}"
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def close(self) -> int:
+        if self.alive():
+            assert self.process.stdin is not None
+            self.process.stdin.close()
+            try:
+                return self.process.wait(30)
+            except Exception:
+                self.process.kill()
+                raise
+        return self.process.wait()

@@ -1,0 +1,48 @@
+"""Routing ids (issue 39, item 1): libzmq's automatic routing ids were predictable (unseeded
+rand(): 00 6b8b4567, 00 6b8b4568, ...) and a peer may choose its own; 65 DEALERs holding the
+next ids made the next ordinary connection abort the server (libzmq's assertion, exit 134).
+The server seeds rand() from the OS before it makes its ROUTER (server/routing.py). The
+server runs in a child process here, so an abort fails the test instead of ending pytest."""
+
+from __future__ import annotations
+
+import time
+
+import zmq
+from hostile_support import LegitStream, ServerProcess
+
+# the ids an unseeded glibc rand() gives libzmq's first ROUTER of a process, and the start
+# seen with CURVE (issue 39): an attacker occupies the next 64 of each
+PREDICTED_STARTS = (0x6B8B4567, 0xE43C9869)
+
+
+def _occupy(address: str, start: int, count: int) -> list[zmq.Socket]:
+    ctx = zmq.Context.instance()
+    sockets = []
+    for i in range(count):
+        s = ctx.socket(zmq.DEALER)
+        s.setsockopt(zmq.LINGER, 0)
+        s.setsockopt(zmq.ROUTING_ID, b"\x00" + ((start + i) % 2**32).to_bytes(4, "big"))
+        s.connect(address)
+        s.send(b"\x80")  # any bytes: the connection is made and the id taken
+        sockets.append(s)
+    return sockets
+
+
+def test_peers_occupying_the_next_routing_ids_cannot_abort_the_server():
+    server = ServerProcess()
+    attackers: list[zmq.Socket] = []
+    try:
+        for start in PREDICTED_STARTS:
+            attackers += _occupy(server.address, start, 65)
+        time.sleep(1.0)  # every attacker connected
+        assert server.alive()
+        with LegitStream(server.address) as legit:
+            time.sleep(2.0)
+        legit.assert_served()
+        assert server.alive(), f"the server process died (exit {server.process.returncode})"
+    finally:
+        for s in attackers:
+            s.close(linger=0)
+        code = server.close()
+    assert code == 0
