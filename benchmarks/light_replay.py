@@ -62,6 +62,7 @@ def record(data: list[str], preset: str, out: Path, frames: int | None, override
                 "up": None if up is None else np.asarray(up, float),
                 "below_horizon_unseen": bool(below_horizon_unseen),
                 "seed": int(seed),
+                "rows": keep,
             }
         )
         return real(
@@ -84,11 +85,32 @@ def record(data: list[str], preset: str, out: Path, frames: int | None, override
             poses = []
             for frame in seq.frames:
                 poses.append(pipe.process(frame).pose)
+                _capture_geometry(pipe, captured[-1], poses[-1])
             _save(out / f"{seq.name}.npz", seq, captured, poses)
             print(f"recorded {seq.name}: {len(captured)} frames", file=sys.stderr, flush=True)
     finally:
         pipeline_module.estimate_light = real
     (out / "config.json").write_text(json.dumps({"preset": preset, "overrides": overrides}))
+
+
+def _capture_geometry(pipe, captured: dict, pose: np.ndarray) -> None:
+    """The fitted rows' world points and normals, and the volume's mesh (world), for the
+    cues that test geometry (compact sources: shadows cast at any distance)."""
+    geometry, transfer = pipe._last_transfer
+    keep = captured["rows"]
+    v, u = transfer.pixel_v[keep], transfer.pixel_u[keep]
+    rot, origin = pose[:3, :3], pose[:3, 3]
+    captured["points"] = (geometry.points[v, u].astype(np.float64) @ rot.T + origin).astype(
+        np.float32
+    )
+    captured["normals"] = (geometry.normals[v, u].astype(np.float64) @ rot.T).astype(np.float32)
+    vertices, triangles = (
+        pipe._volume.triangle_mesh()
+        if pipe._volume is not None
+        else (np.zeros((0, 3)), np.zeros((0, 3)))
+    )
+    captured["mesh_vertices"] = np.asarray(vertices, np.float32)
+    captured["mesh_triangles"] = np.asarray(triangles, np.int32)
 
 
 def _kept_rows(t, color_linear, bounce, segments, params, seed) -> np.ndarray:
@@ -103,8 +125,17 @@ def _save(path: Path, seq, captured: list[dict], poses: list) -> None:
     arrays: dict[str, np.ndarray] = {}
     meta = []
     for i, c in enumerate(captured):
-        for key in ("transfer", "color", "segments", "bounce"):
-            if c[key] is not None:
+        for key in (
+            "transfer",
+            "color",
+            "segments",
+            "bounce",
+            "points",
+            "normals",
+            "mesh_vertices",
+            "mesh_triangles",
+        ):
+            if c.get(key) is not None:
                 arrays[f"{i}_{key}"] = c[key]
         truth = seq.truth[i]
         meta.append(
@@ -119,10 +150,43 @@ def _save(path: Path, seq, captured: list[dict], poses: list) -> None:
             }
         )
     arrays["meta"] = np.array(json.dumps(meta))
-    np.savez(path, **arrays)
+    np.savez_compressed(path, **arrays)
 
 
-def replay(cache: Path, overrides: dict, hold_out_maps: bool) -> dict:
+def _with_compact_source(data, i: int, est, up, compact: dict) -> tuple[np.ndarray, dict]:
+    """The estimate's SH with a compact source fitted beside it (pipeline.compact_light),
+    against the frame's recorded mesh; (total SH, what was found)."""
+    from arlight.pipeline.compact_light import ShadowTester, fit_compact_source
+    from arlight.pipeline.object_space_transfer import OcclusionScene, SurfaceMesh
+
+    f = est.fit
+    if f is None or f"{i}_points" not in data:
+        return est.sh, {}
+    scene = OcclusionScene(
+        SurfaceMesh(data[f"{i}_mesh_vertices"], data[f"{i}_mesh_triangles"], in_world=True)
+    )
+    rows = f.rows
+    tester = ShadowTester(
+        scene,
+        np.eye(4),
+        data[f"{i}_points"][rows].astype(np.float64),
+        data[f"{i}_normals"][rows].astype(np.float64),
+    )
+    fit = fit_compact_source(
+        f.design, f.albedo, f.weights, f.lum, None, f.penalty, f.bands, tester, up, **compact
+    )
+    total = np.zeros_like(est.sh)
+    n = f.bands * f.bands
+    total[:n] = fit.ambient
+    for source in fit.sources:
+        total[:n] += source.sh(f.bands)
+    info = {"reason": fit.reason, "rays": tester.rays}
+    if fit.sources:
+        info.update(direction=fit.sources[0].direction, share=fit.sources[0].share)
+    return total, info
+
+
+def replay(cache: Path, overrides: dict, hold_out_maps: bool, compact: dict | None = None) -> dict:
     """Per-frame errors (raw and filtered) of the fit with `overrides`; figures by map."""
     base = json.loads((cache / "config.json").read_text())
     config = Config.from_preset(base["preset"], **{**base["overrides"], **overrides})
@@ -149,7 +213,11 @@ def replay(cache: Path, overrides: dict, hold_out_maps: bool) -> dict:
             )
             if up is not None:
                 up_seen = up
-            filtered = filt.update(est.sh, est.confidence.value)
+            light = est.sh
+            info: dict = {}
+            if compact is not None:
+                light, info = _with_compact_source(data, i, est, up, compact)
+            filtered = filt.update(light, est.confidence.value)
             r = np.asarray(m["pose"])[:3, :3]
             truth = np.asarray(m["truth_upper_camera"])
 
@@ -158,7 +226,14 @@ def replay(cache: Path, overrides: dict, hold_out_maps: bool) -> dict:
                     "sequence": file.stem,
                     "map": m["env_map"],
                     "layout": m["layout"],
-                    "raw": _error(est.sh, up_seen, r, truth),
+                    "raw": _error(light, up_seen, r, truth),
+                    "sh_only": _error(est.sh, up_seen, r, truth),
+                    "source_deg": (
+                        evaluation.angular_error_deg(r.T @ info["direction"], truth)
+                        if "direction" in info
+                        else None
+                    ),
+                    "compact": info.get("reason", ""),
                     "filtered": _error(filtered, up_seen, r, truth),
                     "confidence": est.confidence.value,
                 }
@@ -178,8 +253,8 @@ def _error(
 
 
 def summarise(rows: list[dict]) -> dict:
-    out = {}
-    for kind in ("raw", "filtered"):
+    out: dict = {"rows": rows}
+    for kind in ("raw", "filtered", "sh_only"):
         by_map: dict[str, list[float]] = {}
         for r in rows:
             by_map.setdefault(r["map"], []).append(r[kind])
@@ -205,6 +280,13 @@ def _override(text: str) -> tuple[str, object]:
     return key, Config.parse_flat_value(key, value)
 
 
+def _override_compact(text: str) -> tuple[str, float] | None:
+    if text in ("", "on"):
+        return None
+    key, value = text.split("=", 1)
+    return key, (int(value) if value.isdigit() else float(value))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="verb", required=True)
@@ -219,12 +301,19 @@ def main(argv: list[str] | None = None) -> int:
     rep.add_argument("--set", action="append", type=_override, default=[])
     rep.add_argument("--hold-out-maps", action="store_true")
     rep.add_argument("--json")
+    rep.add_argument(
+        "--compact",
+        action="append",
+        type=_override_compact,
+        help="fit a compact source beside the SH (pipeline.compact_light): KEY=VALUE options",
+    )
     args = parser.parse_args(argv)
     if args.verb == "record":
         record(args.data, args.preset, Path(args.out), args.frames, dict(args.set))
         return 0
-    report = replay(Path(args.cache), dict(args.set), args.hold_out_maps)
-    for kind in ("raw", "filtered"):
+    compact = None if args.compact is None else dict(kv for kv in args.compact if kv)
+    report = replay(Path(args.cache), dict(args.set), args.hold_out_maps, compact)
+    for kind in ("raw", "filtered", "sh_only"):
         r = report[kind]
         print(
             f"{kind:9s} median over maps {r['median_over_maps']:5.1f}  p90 frames "
@@ -233,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{report['frames']} frames)"
         )
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=1))
+        Path(args.json).write_text(json.dumps(report, indent=1, default=str))
     return 0
 
 

@@ -47,6 +47,26 @@ class LightEstimate:
     residual_rel: float = float("nan")
     bounce_scale: float = 0.0  # beta of the one-bounce term (0 when not modelled)
     horizon_prior_used: bool = False  # the fit was redone with the below-horizon prior
+    fit: FitState | None = None  # what the fit ended with (for cues fitted beside it)
+
+
+@dataclass(frozen=True)
+class FitState:
+    """The final fit's linear system, for terms fitted beside the SH (compact_light).
+
+    rows: (M,) indices of the fitted pixels among the inputs' rows; design: (M, n) their
+    columns [T | B] (n = bands^2 [+ 1 with the bounce]); albedo, weights: (M,) per-pixel
+    albedo and robust weights; lum: (M,) linear luminance; rgb: (M, 3); penalty: (n, n)
+    the regulariser, relative to the mean diagonal of the normal matrix."""
+
+    rows: np.ndarray
+    design: np.ndarray
+    albedo: np.ndarray
+    weights: np.ndarray
+    lum: np.ndarray
+    rgb: np.ndarray
+    penalty: np.ndarray
+    bands: int
 
 
 def _band_penalty(bands: int) -> np.ndarray:
@@ -119,6 +139,21 @@ def _design(transfer: np.ndarray, bands: int, bounce: np.ndarray | None) -> np.n
     return t if bounce is None else np.column_stack([t, bounce])
 
 
+def penalty_matrix(
+    bands: int, regularization: float, prior: np.ndarray | None, with_bounce: bool
+) -> np.ndarray:
+    """The fit's regulariser on [l | beta], relative to the mean diagonal of the normal
+    matrix: the band penalty, the prior, and `regularization` on beta."""
+    n = bands * bands
+    penalty = np.diag(regularization * _band_penalty(bands) ** 2)
+    if prior is not None:
+        penalty = penalty + prior[:n, :n]
+    if with_bounce:
+        penalty = np.pad(penalty, ((0, 1), (0, 1)))
+        penalty[n, n] = regularization
+    return penalty
+
+
 def _solve_weighted(
     design: np.ndarray,
     gram_weights: np.ndarray,
@@ -135,12 +170,9 @@ def _solve_weighted(
     n = bands * bands
     gram = design.T @ (design * gram_weights[:, None])
     rhs = design.T @ rhs_weights
-    penalty = np.diag(regularization * _band_penalty(bands) ** 2)
-    if prior is not None:
-        penalty = penalty + prior[:n, :n]
+    full = penalty_matrix(bands, regularization, prior, with_bounce)
+    penalty = full[:n, :n]
     if with_bounce:
-        full = np.pad(penalty, ((0, 1), (0, 1)))
-        full[n, n] = regularization
         scale = float(np.mean(np.diag(gram))) or 1.0
         x = np.linalg.solve(gram + scale * full, rhs)
         if x[-1] >= 0.0:
@@ -248,6 +280,16 @@ def estimate_light(
         residual,
         fit.beta,
         prior is not None,
+        FitState(
+            samples.rows if samples.rows is not None else np.arange(len(lum)),
+            _design(t, bands, b),
+            fit.albedo,
+            fit.weights,
+            lum,
+            rgb,
+            penalty_matrix(bands, params.regularization, prior, b is not None),
+            bands,
+        ),
     )
 
 

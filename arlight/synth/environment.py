@@ -127,3 +127,42 @@ def dominant(coeffs: np.ndarray) -> np.ndarray:
 def to_file_convention(coeffs: np.ndarray) -> list:
     """arlight's basis -> Sloan's with the Condon-Shortley phase (lighting_gt.json), rounded."""
     return np.round(sh.toggle_condon_shortley(np.asarray(coeffs, float)), 7).tolist()
+
+
+@dataclass(frozen=True)
+class CompactRegion:
+    """The brightest compact region of a map (world frame): direction (3,) unit, the
+    luminance-weighted mean of its texels; solid_angle_sr; share: its part of the irradiance
+    on a surface facing it from the upper hemisphere (world y > 0)."""
+
+    direction: np.ndarray
+    solid_angle_sr: float
+    share: float
+
+
+# a compact source: texels within this angle of the brightest one, at least this fraction of
+# its luminance (the sun's disc and glare, a lamp; docs/synth.md)
+REGION_RADIUS_DEG = 8.0
+REGION_LEVEL = 0.1
+
+
+def brightest_compact_region(radiance: np.ndarray, rotation_deg: float) -> CompactRegion:
+    """The compact region around the brightest texel above the horizon of an (H, W, 3) map
+    rotated by `rotation_deg` about world +Y (the truth a compact light source is judged by)."""
+    h, w = radiance.shape[:2]
+    dirs, solid = texel_directions(h, w)
+    world = dirs.reshape(-1, 3) @ rotation_y(rotation_deg).T
+    weights = np.repeat(solid, w)
+    lum = radiance.reshape(-1, 3).astype(np.float64) @ np.asarray(LUMA, float)
+    upper = world[:, 1] > 0
+    lum_upper = np.where(upper, lum, 0.0)
+    peak = int(np.argmax(lum_upper))
+    near = world @ world[peak] > math.cos(math.radians(REGION_RADIUS_DEG))
+    region = near & upper & (lum >= REGION_LEVEL * lum[peak])
+    power = lum[region] * weights[region]
+    direction = (world[region] * power[:, None]).sum(axis=0)
+    direction /= np.linalg.norm(direction)
+    cos = np.maximum(world @ direction, 0.0)
+    total = float(np.sum(lum_upper * weights * cos))
+    share = float(np.sum(power * cos[region])) / max(total, 1e-30)
+    return CompactRegion(direction, float(weights[region].sum()), share)

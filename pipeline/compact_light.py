@@ -1,0 +1,310 @@
+"""Compact light sources (a sun, a lamp) beside the SH, found from the shadows the real
+scene casts at any distance.
+
+Four bands of SH cannot hold a sun: its diffuse shading they hold well (a clamped cosine
+is almost all in bands 0-2), its hard shadow not at all. The shadow is also the one part
+of a sun's effect that says where it is: a surface point x with normal n sees a distant
+source in direction w (world frame, unit, towards the source) only when the ray from x
+towards w leaves the scene, V(x, w) = 1. The model of the light estimate (section 5.2 of
+seeds/000, light_estimation.py) becomes
+
+    I(x) = a_g(x) (T(x) l + beta B(x) + k V(x, w) max(0, n . w))
+
+with k >= 0 the source's luminance integrated over its solid angle (the irradiance it
+brings to a surface facing it, in the fit's luminance units, times pi over the albedo
+scale: the same units as T l). The SH l then holds the rest of the light ("ambient").
+
+For each candidate w on the upper hemisphere of the support plane the visibility of a
+seeded subset of the fitted pixels is tested by rays against the reconstruction (the
+volume's mesh, world frame; else the current depth image's mesh), k and l are solved in
+closed form (one Schur complement on the SH fit's normal matrix, its albedo and robust
+weights held), and the direction that explains most of the residual wins; it is refined
+on finer grids. A source is kept only when it explains at least `compact_min_gain` of the
+SH fit's weighted residual and enough lit and shadowed pixels face it: an overcast scene
+gets none, and `CompactFit.reason` says why.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from arlight.pipeline import sh
+
+# rays start this far above the surface (metres, along its normal) and count hits from
+# this distance on: the reconstruction's mesh and the filtered depth differ by ~1 cm
+RAY_OFFSET_M = 0.02
+RAY_TNEAR_M = 0.01
+RAY_TFAR_M = 100.0
+MIN_FACING = 0.1  # n . w below this: the pixel says nothing of the source's shadow
+MIN_ELEVATION_DEG = 3.0  # candidates below this elevation above the support plane: none
+REFINE_STEPS_DEG = (4.0, 2.0, 1.0)
+
+
+@dataclass(frozen=True)
+class CompactSource:
+    """A distant light of small angular size (world frame).
+
+    direction: (3,) unit, towards the source; intensity: its luminance integrated over
+    its solid angle (the irradiance on a surface facing it, the SH's units); rgb: (3,)
+    the same per linear RGB channel (or None); angular_radius_deg: assumed, not measured;
+    share: of the irradiance a surface facing the source receives, the source's part;
+    gain: the share of the SH fit's weighted residual the source explains."""
+
+    direction: np.ndarray
+    intensity: float
+    rgb: np.ndarray | None
+    angular_radius_deg: float
+    share: float
+    gain: float
+
+    def sh(self, bands: int) -> np.ndarray:
+        """The source's luminance as SH (its projection, a delta of weight `intensity`)."""
+        return sh.directional_light(self.direction, self.intensity, bands)
+
+
+@dataclass(frozen=True)
+class CompactFit:
+    """sources: the kept sources (at most one today); ambient: (C,) the SH fitted beside
+    them (equal to the SH-only fit when none is kept); reason: why none or why this one;
+    tested: candidate directions tested; rays: visibility rays cast."""
+
+    sources: tuple[CompactSource, ...]
+    ambient: np.ndarray
+    ambient_rgb: np.ndarray | None
+    reason: str
+    tested: int = 0
+    rays: int = 0
+
+
+def candidate_directions(up: np.ndarray | None, count: int) -> np.ndarray:
+    """(K, 3) unit directions spread evenly over the hemisphere above `up` (the whole
+    sphere without one), at least MIN_ELEVATION_DEG above its horizon."""
+    dirs = sh.fibonacci_sphere(2 * count if up is not None else count)
+    if up is None:
+        return dirs
+    return dirs[dirs @ up > math.sin(math.radians(MIN_ELEVATION_DEG))]
+
+
+def _neighbours(direction: np.ndarray, step_deg: float) -> np.ndarray:
+    """(9, 3): `direction` and 8 directions `step_deg` away around it."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(direction[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(direction, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(direction, e1)
+    step = math.radians(step_deg)
+    out = [direction]
+    for k in range(8):
+        phi = k * math.pi / 4
+        d = math.cos(step) * direction + math.sin(step) * (math.cos(phi) * e1 + math.sin(phi) * e2)
+        out.append(d / np.linalg.norm(d))
+    return np.array(out)
+
+
+class ShadowTester:
+    """Visibility of distant directions from surface points, by rays against a mesh.
+
+    scene: an object_space_transfer.OcclusionScene; world_from_scene: (4, 4) maps the
+    scene's frame to the world (identity for the volume's mesh, the camera pose for a
+    depth image's mesh); points, normals: (M, 3) world frame."""
+
+    def __init__(
+        self, scene, world_from_scene: np.ndarray, points: np.ndarray, normals: np.ndarray
+    ):
+        self._scene = scene
+        rot, origin = world_from_scene[:3, :3], world_from_scene[:3, 3]
+        self._rot_t = rot  # world -> scene: x_s = R^T (x_w - o)
+        origins = points + RAY_OFFSET_M * normals
+        self._origins = ((origins - origin) @ rot).astype(np.float32)
+        self._normals = normals
+        self.rays = 0
+
+    def shading(self, directions: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        """(M', K) V(x, w) max(0, n . w) for the rows (all when None) and directions
+        (K, 3) world."""
+        origins = self._origins if rows is None else self._origins[rows]
+        normals = self._normals if rows is None else self._normals[rows]
+        cos = np.maximum(normals @ directions.T, 0.0)
+        out = np.zeros_like(cos)
+        dirs_scene = (directions @ self._rot_t).astype(np.float32)
+        for j in range(len(directions)):
+            facing = np.flatnonzero(cos[:, j] > 0.0)
+            if not len(facing):
+                continue
+            rays = np.empty((len(facing), 6), np.float32)
+            rays[:, :3] = origins[facing]
+            rays[:, 3:] = dirs_scene[j]
+            blocked = self._scene.blocked(rays, RAY_TNEAR_M, RAY_TFAR_M)
+            self.rays += len(facing)
+            out[facing, j] = np.where(blocked, 0.0, cos[facing, j])
+        return out
+
+
+@dataclass
+class _System:
+    """The SH fit's weighted normal equations with its albedo and weights held:
+    A = a * [T | B], G = A^T W A + penalty, r = A^T W I."""
+
+    design: np.ndarray  # (M, n) a * [T | B]
+    w: np.ndarray  # (M,) robust weights
+    target: np.ndarray  # (M,) or (M, 3)
+    g_inv: np.ndarray  # (n, n)
+    r: np.ndarray  # (n,) or (n, 3)
+    sse: float  # weighted residual of the SH-only solution (luminance)
+
+
+def _system(design: np.ndarray, w: np.ndarray, target: np.ndarray, penalty: np.ndarray) -> _System:
+    gram = design.T @ (design * w[:, None])
+    scale = float(np.mean(np.diag(gram))) or 1.0
+    g = gram + scale * penalty
+    g_inv = np.linalg.inv(g)
+    r = design.T @ (w[:, None] * target if target.ndim == 2 else w * target)
+    x = g_inv @ r
+    lum = target if target.ndim == 1 else target[:, 0]
+    xl = x if x.ndim == 1 else x[:, 0]
+    sse = float(np.sum(w * (design @ xl - lum) ** 2))
+    return _System(design, w, target, g_inv, r, sse)
+
+
+def _scores(system: _System, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(gain, k) per column (M, K) of the model I = A x + k s, k the source column: the
+    weighted residual the column takes off (relative to the SH-only fit's) and its k."""
+    ws = system.w[:, None] * columns
+    gs = system.design.T @ ws  # (n, K)
+    h = np.sum(columns * ws, axis=0)
+    target = system.target if system.target.ndim == 1 else system.target[:, 0]
+    r = system.r if system.r.ndim == 1 else system.r[:, 0]
+    q = ws.T @ target
+    g_inv_r = system.g_inv @ r
+    num = q - gs.T @ g_inv_r
+    den = h - np.einsum("ik,ij,jk->k", gs, system.g_inv, gs)
+    den = np.maximum(den, 1e-12 * np.maximum(h, 1e-30))
+    k = num / den
+    gain = np.where(k > 0.0, num * num / den, 0.0) / max(system.sse, 1e-30)
+    return gain, k
+
+
+def _solve_with(system: _System, column: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, k) of I = A x + k s for one column s (M,): x (n,) or (n, 3), k scalar or (3,)."""
+    ws = system.w * column
+    gs = system.design.T @ ws
+    h = float(column @ ws)
+    target = system.target
+    q = ws @ target
+    g_inv_r = system.g_inv @ system.r
+    g_inv_gs = system.g_inv @ gs
+    den = max(h - float(gs @ g_inv_gs), 1e-12 * max(h, 1e-30))
+    k = (q - gs @ g_inv_r) / den
+    k = np.maximum(k, 0.0)
+    x = g_inv_r - (np.outer(g_inv_gs, k) if np.ndim(k) else g_inv_gs * k)
+    return x, k
+
+
+def fit_compact_source(
+    design: np.ndarray,
+    albedo: np.ndarray,
+    weights: np.ndarray,
+    lum: np.ndarray,
+    rgb: np.ndarray | None,
+    penalty: np.ndarray,
+    bands: int,
+    tester: ShadowTester,
+    up: np.ndarray | None,
+    *,
+    candidates: int = 256,
+    search_samples: int = 4000,
+    min_gain: float = 0.05,
+    min_pixels: int = 50,
+    angular_radius_deg: float = 0.27,
+    seed: int = 0,
+) -> CompactFit:
+    """The SH fit's light split into an ambient SH and at most one compact source.
+
+    design: (M, n) the SH fit's columns [T | B] (n = bands^2 [+ 1]); albedo, weights: (M,)
+    its per-pixel albedo and robust weights; lum: (M,) linear luminance; rgb: (M, 3) or
+    None; penalty: (n, n) its regulariser (relative to the mean diagonal); tester: the
+    visibility of the same M pixels (world frame). Returns the SH-only solution as ambient
+    (and no source) where no direction explains `min_gain` of the residual."""
+    n_sh = bands * bands
+    a_design = design * albedo[:, None]
+    system = _system(a_design, weights, lum, penalty)
+    base = system.g_inv @ system.r
+    none_rgb = None
+    if rgb is not None:
+        rgb_system = _system(a_design, weights, rgb, penalty)
+        none_rgb = (rgb_system.g_inv @ rgb_system.r)[:n_sh].T
+    rng = np.random.default_rng(seed)
+    m = len(lum)
+    rows = np.sort(rng.choice(m, min(m, search_samples), replace=False))
+    sub = _System(
+        system.design[rows], system.w[rows], lum[rows], system.g_inv, system.r, system.sse
+    )
+    # the subset's own normal equations (the full set's would mix two sets of pixels)
+    sub = _system(sub.design, sub.w, sub.target, penalty)
+
+    def score(dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(shadow gain, k): what the source's shadow explains beyond its unshadowed
+        shading (max(0, n . w) without V, which the SH's high bands and the clamp
+        could otherwise pass off as evidence of a source where no shadow says so)."""
+        cols = tester.shading(dirs, rows) * albedo[rows, None]
+        unshadowed = np.maximum(tester._normals[rows] @ dirs.T, 0.0) * albedo[rows, None]
+        gain, k = _scores(sub, cols)
+        return gain - _scores(sub, unshadowed)[0], k
+
+    dirs = candidate_directions(up, candidates)
+    tested = len(dirs)
+    if not tested:
+        return CompactFit((), base[:n_sh], none_rgb, "no candidate direction", 0, tester.rays)
+    gain, _ = score(dirs)
+    best = dirs[int(np.argmax(gain))]
+    for step in REFINE_STEPS_DEG:
+        around = _neighbours(best, step)
+        if up is not None:
+            around = around[around @ up > math.sin(math.radians(MIN_ELEVATION_DEG))]
+        g, _ = score(around)
+        tested += len(around)
+        best = around[int(np.argmax(g))]
+    column = tester.shading(best[None])[:, 0]
+    facing = albedo > 0  # every row; below: the rows that face the source
+    lit = int(np.sum(facing & (column > MIN_FACING)))
+    cos = tester._normals @ best
+    shadowed = int(np.sum((cos > MIN_FACING) & (column == 0.0)))
+    x, k = _solve_with(system, column * albedo)
+    unshadowed = np.maximum(cos, 0.0) * albedo
+    full_gain = float(
+        _scores(system, (column * albedo)[:, None])[0][0]
+        - _scores(system, unshadowed[:, None])[0][0]
+    )
+    elevation = (
+        math.degrees(math.asin(float(np.clip(best @ up, -1, 1))))
+        if up is not None
+        else float("nan")
+    )
+    where = f"elevation {elevation:.0f} deg" if up is not None else "no support plane"
+    if full_gain < min_gain or lit < min_pixels or shadowed < min_pixels or float(k) <= 0.0:
+        why = (
+            f"none: the best direction ({where}) explains {full_gain:.1%} of the residual "
+            f"(needs {min_gain:.0%}), {lit} pixels lit and {shadowed} in its shadow "
+            f"(needs {min_pixels} each)"
+        )
+        return CompactFit((), base[:n_sh], none_rgb, why, tested, tester.rays)
+    ambient = x[:n_sh]
+    k_rgb = None
+    ambient_rgb = None
+    if rgb is not None:
+        x_rgb, k_rgb = _solve_with(rgb_system, column * albedo)
+        ambient_rgb = x_rgb[:n_sh].T
+        k_rgb = np.asarray(k_rgb, np.float64)
+    # irradiance on a surface facing the source: the source's k, the ambient's E(best)
+    ambient_irradiance = max(
+        float(sh.evaluate(sh.irradiance_from_radiance(ambient), best[None])[0]), 0.0
+    )
+    share = float(k) / max(float(k) + ambient_irradiance, 1e-30)
+    source = CompactSource(best, float(k), k_rgb, angular_radius_deg, share, full_gain)
+    why = (
+        f"1 compact source ({where}): it explains {full_gain:.1%} of the residual, "
+        f"{lit} pixels lit and {shadowed} in its shadow"
+    )
+    return CompactFit((source,), ambient, ambient_rgb, why, tested, tester.rays)
