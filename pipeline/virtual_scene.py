@@ -55,10 +55,21 @@ class Material:
 class Anchor:
     """Place the object on the support plane where the ray through `pixel` (u, v) meets it,
     or at the view's centre when pixel is None, in the first frame that shows a plane.
-    yaw_deg: rotation about the plane's up direction (degrees)."""
+    yaw_deg: rotation about the plane's up direction (degrees). fraction: instead of a
+    pixel, the point (u / width, v / height) of whatever image size the session has (a
+    built-in scene serves every size); used when pixel is None."""
 
     pixel: tuple[float, float] | None = None
     yaw_deg: float = 0.0
+    fraction: tuple[float, float] | None = None
+
+    def pixel_in(self, camera) -> tuple[float, float]:
+        """(u, v) in pixels of `camera`'s image (width, height, cx, cy)."""
+        if self.pixel is not None:
+            return self.pixel
+        if self.fraction is not None:
+            return self.fraction[0] * camera.width, self.fraction[1] * camera.height
+        return camera.cx, camera.cy
 
 
 @dataclass(frozen=True)
@@ -289,7 +300,7 @@ def resolve_anchors(
         if obj.anchor is None:
             out.append(obj)
             continue
-        u, v = obj.anchor.pixel if obj.anchor.pixel is not None else (camera.cx, camera.cy)
+        u, v = obj.anchor.pixel_in(camera)
         ray = np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
         denom = float(up_cam @ ray)
         t = -offset_m / denom if abs(denom) > 1e-9 else -1.0
@@ -313,23 +324,26 @@ def _scale(obj: VirtualObject) -> float:
     return float(np.cbrt(np.linalg.det(obj.world_from_object[:3, :3])))
 
 
-def demo_scene(image_size: tuple[int, int] = (640, 480)) -> VirtualScene:
+def demo_scene(image_size: tuple[int, int] | None = None) -> VirtualScene:
     """The demo's objects: a grey sphere and an upright orange torus (non-convex), anchored
-    on the support plane left and right of the view's centre, a little below it, for an
-    image of image_size (width, height) pixels."""
-    w, h = image_size
+    on the support plane left and right of the view's centre, a little below it: at the
+    same fractions of any image (None, what a server's session uses: 160x120 to 1280x720
+    alike), or at those pixels of an image of image_size (width, height)."""
+    at = [(0.39, 0.69), (0.625, 0.69)]  # (u / width, v / height) of the sphere and torus
+
+    def anchor(i: int, yaw_deg: float = 0.0) -> Anchor:
+        if image_size is None:
+            return Anchor(None, yaw_deg, fraction=at[i])
+        return Anchor((at[i][0] * image_size[0], at[i][1] * image_size[1]), yaw_deg)
+
     sphere = object_from_open3d(
-        "sphere",
-        sphere_mesh(0.12),
-        np.eye(4),
-        Material((0.6, 0.6, 0.6)),
-        Anchor((0.39 * w, 0.69 * h)),
+        "sphere", sphere_mesh(0.12), np.eye(4), Material((0.6, 0.6, 0.6)), anchor(0)
     )
     torus = object_from_open3d(
         "torus",
         torus_mesh(0.1, 0.035),
         np.eye(4),
         Material((0.8, 0.3, 0.08)),
-        Anchor((0.625 * w, 0.69 * h), yaw_deg=30.0),
+        anchor(1, yaw_deg=30.0),
     )
     return VirtualScene((sphere, torus))

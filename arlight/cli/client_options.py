@@ -280,7 +280,10 @@ def stream_options(args: argparse.Namespace, source):
         timestamps=args.timestamps,
         max_frames=args.max_frames if getattr(args, "loop", False) else None,
         reconnect_timeout_s=getattr(args, "reconnect_timeout", 30.0),
-        scene=load_scene(args),
+        # the demo by name: the server's built-in one, anchored at fractions of the image
+        # (any size); a scene file travels whole
+        scene=None if getattr(args, "scene", None) == "demo" else load_scene(args),
+        virtual_scene="demo" if getattr(args, "scene", None) == "demo" else None,
         panorama=panorama_config(args),
         exports=tuple(getattr(args, "export", None) or (recorded.exports if recorded else ())),
         token=token_of(args),
