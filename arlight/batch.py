@@ -31,6 +31,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -291,6 +292,35 @@ def import_ray():
     return ray
 
 
+# Ray (2.x) makes its node's address the machine's reachable one, and its GCS, raylet, object
+# manager, runtime-env agent and workers listen on every interface, unless it takes this
+# node for a single machine ("cluster mode" off: what it does on macOS and Windows): then
+# its node address is 127.0.0.1 and every one of them listens on loopback only
+# (issue 39, item 8; tests/test_security_ray.py checks the listening sockets).
+LOOPBACK_RAY_ENV = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+
+
+def init_local_ray(ray: Any, **options: Any) -> None:
+    """Start a new Ray of this machine only: no dashboard, and every server it starts
+    listening on 127.0.0.1 (`LOOPBACK_RAY_ENV`). options: more ray.init keywords
+    (num_cpus, ...). The driver's setting is restored afterwards; Ray's own processes keep
+    it (they inherit the environment when they start)."""
+    constants = ray._private.ray_constants  # read when ray is imported: set it here too
+    saved_env = {key: os.environ.get(key) for key in LOOPBACK_RAY_ENV}
+    saved_cluster = constants.ENABLE_RAY_CLUSTER
+    os.environ.update(LOOPBACK_RAY_ENV)
+    constants.ENABLE_RAY_CLUSTER = False
+    try:
+        ray.init(address="local", include_dashboard=False, log_to_driver=False, **options)
+    finally:
+        constants.ENABLE_RAY_CLUSTER = saved_cluster
+        for key, value in saved_env.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
 def actor_resources(preset: str, device: str | None, cluster: dict) -> dict:
     """{"num_cpus": n, "num_gpus": g} of one actor (module docstring), and "slots": how many
     actors the cluster's resources (ray.cluster_resources()) run at once.
@@ -400,9 +430,11 @@ def run_batch(
             todo.append(index)
     started_ray = False
     if todo and not ray.is_initialized():
-        local = {} if address else {"include_dashboard": False}  # a cluster keeps its own
         try:
-            ray.init(address=address, log_to_driver=False, **local)
+            if address:  # a cluster keeps its own settings
+                ray.init(address=address, log_to_driver=False)
+            else:
+                init_local_ray(ray)
         except Exception as exc:  # noqa: BLE001 - Ray raises many types for "cannot connect"
             where = f"--ray {address}" if address else "a local Ray"
             raise BatchUsageError(

@@ -34,7 +34,7 @@ import threading
 import weakref
 from typing import TYPE_CHECKING, Any, NoReturn
 
-from arlight.batch import BatchUsageError, actor_resources, import_ray
+from arlight.batch import BatchUsageError, actor_resources, import_ray, init_local_ray
 from arlight.server.session import PipelineLost
 
 if TYPE_CHECKING:
@@ -94,7 +94,7 @@ def connect(address: str | None) -> tuple[Any, bool]:
         _check_reachable(address)
     try:
         if local:  # "local": always a new Ray of this machine, never a `ray start` one
-            ray.init(address="local", include_dashboard=False, log_to_driver=False)
+            init_local_ray(ray)  # its servers on loopback only
         else:
             ray.init(address=address, log_to_driver=False)
     except Exception as exc:  # noqa: BLE001 - Ray raises many types for "cannot connect"

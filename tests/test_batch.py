@@ -24,6 +24,7 @@ from arlight.batch import (
     actor_resources,
     collect_inputs,
     import_ray,
+    init_local_ray,
     run_batch,
 )
 from arlight.cli import EXIT_BAD_INPUT, main
@@ -127,7 +128,7 @@ def _leaves(value: list):
 
 @pytest.fixture(scope="module")
 def local_ray():
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    init_local_ray(ray, num_cpus=2)  # its servers on loopback only (issue 39)
     yield
     ray.shutdown()
 

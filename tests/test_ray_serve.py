@@ -23,6 +23,7 @@ import pytest
 from conftest import SMALL
 from streaming_support import CaptureClientThread, server_options, wait_for
 
+from arlight.batch import init_local_ray
 from arlight.cli import EXIT_BAD_INPUT, main
 from arlight.client.capture import CaptureClient, StreamOptions
 from arlight.protocols import ErrorField
@@ -37,7 +38,7 @@ SIZE = (64, 48)
 
 @pytest.fixture(scope="module")
 def local_ray():
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    init_local_ray(ray, num_cpus=2)  # its servers on loopback only (issue 39)
     yield
     ray.shutdown()
 
