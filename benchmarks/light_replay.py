@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import sys
 from pathlib import Path
@@ -182,11 +183,37 @@ def _with_compact_source(data, i: int, est, up, compact: dict) -> tuple[np.ndarr
         total[:n] += source.sh(f.bands)
     info = {"reason": fit.reason, "rays": tester.rays}
     if fit.sources:
-        info.update(direction=fit.sources[0].direction, share=fit.sources[0].share)
+        info.update(
+            direction=fit.sources[0].direction,
+            share=fit.sources[0].share,
+            gain=fit.sources[0].gain,
+        )
     return total, info
 
 
-def replay(cache: Path, overrides: dict, hold_out_maps: bool, compact: dict | None = None) -> dict:
+@functools.lru_cache(maxsize=4)
+def _compact_region(maps_dir: str, env_map: str, rotation_deg: float):
+    from arlight.synth.environment import brightest_compact_region, load_map
+
+    return brightest_compact_region(load_map(Path(maps_dir) / f"{env_map}.hdr"), rotation_deg)
+
+
+def _frame_rotations(truth_dir: Path | None, sequence: str) -> list[float] | None:
+    """The map rotation of each frame (lighting_gt.json of the sequence in truth_dir)."""
+    if truth_dir is None or not (truth_dir / sequence / "lighting_gt.json").is_file():
+        return None
+    data = json.loads((truth_dir / sequence / "lighting_gt.json").read_text())
+    return [float(f.get("env_rotation_deg", 0.0)) for f in data["frames"]]
+
+
+def replay(
+    cache: Path,
+    overrides: dict,
+    hold_out_maps: bool,
+    compact: dict | None = None,
+    truth_dir: Path | None = None,
+    maps_dir: str = "../shared/data/hdri",
+) -> dict:
     """Per-frame errors (raw and filtered) of the fit with `overrides`; figures by map."""
     base = json.loads((cache / "config.json").read_text())
     config = Config.from_preset(base["preset"], **{**base["overrides"], **overrides})
@@ -196,6 +223,7 @@ def replay(cache: Path, overrides: dict, hold_out_maps: bool, compact: dict | No
         meta = json.loads(str(data["meta"]))
         filt = TemporalFilter(config.temporal)
         up_seen = None
+        rotations = _frame_rotations(truth_dir, file.stem)
         for i, m in enumerate(meta):
             params = config.estimation
             if hold_out_maps and m["env_map"]:
@@ -234,11 +262,32 @@ def replay(cache: Path, overrides: dict, hold_out_maps: bool, compact: dict | No
                         else None
                     ),
                     "compact": info.get("reason", ""),
+                    "source_or_sh": (
+                        evaluation.angular_error_deg(r.T @ info["direction"], truth)
+                        if "direction" in info
+                        else _error(est.sh, up_seen, r, truth)
+                    ),
+                    "share": info.get("share"),
+                    "gain": info.get("gain"),
+                    **_compact_truth(m, rotations, i, maps_dir, info),
                     "filtered": _error(filtered, up_seen, r, truth),
                     "confidence": est.confidence.value,
                 }
             )
     return summarise(rows)
+
+
+def _compact_truth(m: dict, rotations, i: int, maps_dir: str, info: dict) -> dict:
+    """The truth's brightest compact region (share, and the found source's error to it)."""
+    if rotations is None or not m["env_map"]:
+        return {}
+    region = _compact_region(maps_dir, m["env_map"], rotations[i])
+    out = {"truth_share": region.share}
+    if "direction" in info:
+        out["source_to_region_deg"] = evaluation.angular_error_deg(
+            info["direction"], region.direction
+        )
+    return out
 
 
 def _error(
@@ -254,7 +303,9 @@ def _error(
 
 def summarise(rows: list[dict]) -> dict:
     out: dict = {"rows": rows}
-    for kind in ("raw", "filtered", "sh_only"):
+    for kind in ("raw", "filtered", "sh_only", "source_or_sh"):
+        if kind not in rows[0]:
+            continue
         by_map: dict[str, list[float]] = {}
         for r in rows:
             by_map.setdefault(r["map"], []).append(r[kind])
@@ -301,6 +352,7 @@ def main(argv: list[str] | None = None) -> int:
     rep.add_argument("--set", action="append", type=_override, default=[])
     rep.add_argument("--hold-out-maps", action="store_true")
     rep.add_argument("--json")
+    rep.add_argument("--truth-dir", type=Path, help="the sequences' folder (lighting_gt.json)")
     rep.add_argument(
         "--compact",
         action="append",
@@ -312,8 +364,10 @@ def main(argv: list[str] | None = None) -> int:
         record(args.data, args.preset, Path(args.out), args.frames, dict(args.set))
         return 0
     compact = None if args.compact is None else dict(kv for kv in args.compact if kv)
-    report = replay(Path(args.cache), dict(args.set), args.hold_out_maps, compact)
-    for kind in ("raw", "filtered", "sh_only"):
+    report = replay(Path(args.cache), dict(args.set), args.hold_out_maps, compact, args.truth_dir)
+    for kind in ("raw", "filtered", "sh_only", "source_or_sh"):
+        if kind not in report:
+            continue
         r = report[kind]
         print(
             f"{kind:9s} median over maps {r['median_over_maps']:5.1f}  p90 frames "

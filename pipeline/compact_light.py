@@ -308,3 +308,52 @@ def fit_compact_source(
         f"{lit} pixels lit and {shadowed} in its shadow"
     )
     return CompactFit((source,), ambient, ambient_rgb, why, tested, tester.rays)
+
+
+class CompactLightStage:
+    """Per session: compact sources beside each frame's SH fit, against the volume's mesh
+    (rebuilt as object_space_transfer's scene is: every `update_interval` fused frames),
+    else the current depth image's mesh."""
+
+    def __init__(self, update_interval: int):
+        from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer
+
+        self._scenes = ObjectSpaceTransfer(update_interval)
+
+    def fit(
+        self,
+        fit_state,
+        points_cam: np.ndarray,
+        normals_cam: np.ndarray,
+        pixel_v: np.ndarray,
+        pixel_u: np.ndarray,
+        pose: np.ndarray,
+        up_world: np.ndarray | None,
+        volume,
+        options: dict,
+        seed: int = 0,
+    ) -> tuple[CompactFit, int]:
+        """(the fit, rays cast) for an estimate's FitState; points_cam, normals_cam: (H, W, 3)
+        the frame's filtered geometry (camera frame); pixel_v, pixel_u: the fitted samples'
+        pixels (FitState.rows index them); pose: world_from_cam (4, 4)."""
+        scene = self._scenes.scene(points_cam, volume)
+        v, u = pixel_v[fit_state.rows], pixel_u[fit_state.rows]
+        rot, origin = pose[:3, :3], pose[:3, 3]
+        points = points_cam[v, u].astype(np.float64) @ rot.T + origin
+        normals = normals_cam[v, u].astype(np.float64) @ rot.T
+        world_from_scene = np.eye(4) if scene.in_world else pose
+        tester = ShadowTester(scene, world_from_scene, points, normals)
+        fit = fit_compact_source(
+            fit_state.design,
+            fit_state.albedo,
+            fit_state.weights,
+            fit_state.lum,
+            fit_state.rgb,
+            fit_state.penalty,
+            fit_state.bands,
+            tester,
+            up_world,
+            seed=seed,
+            **options,
+        )
+        return fit, tester.rays
