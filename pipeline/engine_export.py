@@ -107,6 +107,14 @@ def _engine_direction(
     return d / n if n > 1e-12 else np.zeros(3)
 
 
+def engine_sh(
+    sh_world: np.ndarray, engine_from_world: np.ndarray | None, keep_bands: bool = False
+) -> np.ndarray:
+    """(3, n) radiance SH in the engine's axes, our basis (no CS phase); bands 0..2 unless
+    `keep_bands`. ExportError for a bad light or frame change (what the exporters check)."""
+    return _engine_sh(sh_world, engine_from_world, keep_bands)
+
+
 def _floats(a: np.ndarray) -> list[float]:
     return [float(v) for v in np.asarray(a).reshape(-1)]
 
@@ -152,7 +160,8 @@ def to_webxr(sh_world: np.ndarray, engine_from_world: np.ndarray | None = None) 
 
 
 def to_gltf_ibl(sh_world: np.ndarray, engine_from_world: np.ndarray | None = None) -> dict:
-    """One light of glTF ``EXT_lights_image_based`` (without the specular cubemap).
+    """One light of glTF ``EXT_lights_image_based`` without its specular images (the Result's
+    layout; the complete, loadable light with them is pipeline/gltf_asset.py's .glb).
 
     Sources: the extension's README (KhronosGroup/glTF, extensions/2.0/Vendor/
     EXT_lights_image_based: "spherical harmonic coefficients for irradiance up to l=2 ...

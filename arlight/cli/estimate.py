@@ -106,6 +106,14 @@ def add_parser(sub) -> None:
         "DIR/NNNNNN.exr (OpenEXR half float, world frame, +y up)",
     )
     est.add_argument(
+        "--gltf",
+        metavar="DIR",
+        help="write the estimated light per frame as a glTF asset DIR/NNNNNN.glb: "
+        "EXT_lights_image_based (irradiance SH and GGX-prefiltered specular cube, from the "
+        "reflection probe when the frame made one, else from the SH) on a white sphere; "
+        "camera frame, OpenGL axes",
+    )
+    est.add_argument(
         "--env-size",
         type=even_int_at_least_2,
         default=256,
@@ -159,6 +167,7 @@ def run(args: argparse.Namespace) -> int:
     pipeline = Pipeline(config, camera, scene)
     composites = output_folder(args.composite_out, "--composite-out")
     environments = output_folder(args.env_exr, "--env-exr")
+    gltf_dir = output_folder(args.gltf, "--gltf")
     if args.cubemap and environments is None:
         raise BadInput("--cubemap writes faces beside the --env-exr maps: give --env-exr DIR")
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
@@ -195,6 +204,8 @@ def run(args: argparse.Namespace) -> int:
                 out.flush()  # each Result on disk as it comes (a stopped run keeps them)
             if environments is not None:
                 _write_environment(environments, i, result, args.env_size, args.cubemap)
+            if gltf_dir is not None:
+                _write_gltf(gltf_dir / f"{i:06d}.glb", result, pipeline.last_probe)
             if composites is not None:
                 image = result.composite if result.composite is not None else done.frame.color
                 cv2.imwrite(str(composites / f"{i:06d}.png"), image[..., ::-1])
@@ -213,6 +224,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {count(n, 'result')} to {args.out}", file=sys.stderr)
     if composites is not None:
         print(f"wrote {count(n, 'composite')} to {composites}/", file=sys.stderr)
+    if gltf_dir is not None:
+        print(f"wrote {count(n, 'glTF light')} to {gltf_dir}/ (.glb)", file=sys.stderr)
     if environments is not None:
         print(
             f"wrote {count(n, 'environment map')} to {environments}/ (OpenEXR, half float"
@@ -290,3 +303,19 @@ def _write_environment(folder: Path, index: int, result, width: int, cubemap: bo
     if cubemap:
         for face, image in cubemap_from_sh(light, max(1, width // 4)).items():
             write_exr(folder / f"{index:06d}_{face}.exr", image)
+
+
+def _write_gltf(path: Path, result, probe) -> None:
+    """The frame's light as a .glb (pipeline/gltf_asset.py) in the camera frame with OpenGL
+    axes, as the Result's engine layouts; the probe's cube when the frame made one."""
+    from arlight.pipeline import sh
+    from arlight.pipeline.gltf_asset import write_glb
+
+    light = result.sh_rgb if result.sh_rgb is not None else result.sh
+    engine_from_world = sh.GL_FROM_CV @ np.asarray(result.pose, np.float64)[:3, :3].T
+    write_glb(
+        path,
+        light,
+        engine_from_world,
+        probe=None if probe is None else probe.mips,
+    )

@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# The npm packages of the optional node tests (tests/test_gltf_asset.py: Babylon.js's glTF
+# loader reads arlight's .glb), installed outside the repository, in
+# ${ARLIGHT_NODE_PREFIX:-$HOME/.cache/arlight-node}/node_modules, where the tests look
+# (or set ARLIGHT_NODE_MODULES). Without node/npm, or offline, the tests skip and say so.
+set -euo pipefail
+prefix="${ARLIGHT_NODE_PREFIX:-$HOME/.cache/arlight-node}"
+if ! command -v npm >/dev/null; then
+  echo "node_test_deps: npm not installed (apt-get install nodejs npm); the node tests skip" >&2
+  exit 0
+fi
+mkdir -p "$prefix"
+npm install --prefix "$prefix" --no-audit --no-fund @babylonjs/core@9 @babylonjs/loaders@9
