@@ -395,8 +395,26 @@ class RenderParams:
     # out 0.480-0.483, per sequence 0.36-0.58)
     render_real_albedo: float = 0.48
     tone_key: float = 0.18  # render_mode "paper": Reinhard's key value a
+    # the reflection probe (pipeline/probe.py, docs/results/probe.md): mirror and glossy
+    # objects (mirror, metalness > 0 or roughness < 1) reflect a cube map of the room at the
+    # objects' centre (false: they are shaded Lambertian, as before the probe)
+    probe: bool = True
+    probe_room: bool = True  # directions see the fused room (false: the distant light alone)
+    probe_size: int = 64  # texels a face, a power of two in 32..256
+    probe_cells: int = 120  # the room grid: cells per side ...
+    probe_cell_m: float = 0.04  # ... of this size (metres): 4.8 m across, 28 MB
 
     def __post_init__(self) -> None:
+        _check_bool(self, "probe")
+        _check_bool(self, "probe_room")
+        _check_int(self, "probe_size", 32, 256)
+        if self.probe_size & (self.probe_size - 1):
+            raise ValueError(
+                f"probe_size must be a power of two (32, 64, 128 or 256) "
+                f"{_hint('probe_size', 'N')}, got {self.probe_size}"
+            )
+        _check_int(self, "probe_cells", 16, 400)
+        _check_float(self, "probe_cell_m", 0.005, 1.0)
         _check_enum(self, "render_mode", DiffMode)
         _check_int(self, "render_subsample", 1)
         _check_int(self, "render_blur_radius_px", 0)

@@ -40,6 +40,14 @@ from arlight.pipeline.light_estimation import (
     with_view_and_steadiness,
 )
 from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer
+from arlight.pipeline.probe import (
+    DistantLight,
+    ProbeResult,
+    ProbeSettings,
+    ProbeStage,
+    objects_centre,
+)
+from arlight.pipeline.probe_shading import is_reflective
 from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
     TransferSamples,
@@ -65,7 +73,16 @@ from arlight.pipeline.virtual_scene import VirtualScene, resolve_anchors
 
 log = logging.getLogger(__name__)
 
-STAGES = ("Input", "Reconstruct", "Surface", "DynGeo", "RadTransfer", "LightEst", "Rendering")
+STAGES = (
+    "Input",
+    "Reconstruct",
+    "Surface",
+    "DynGeo",
+    "RadTransfer",
+    "LightEst",
+    "Probe",  # the reflection probe (pipeline/probe.py): 0 where nothing asks for one
+    "Rendering",
+)
 # RadTransfer computes (or interpolates) the transfer at most at this many pixels per sample
 # LightEst may use (light_max_samples): a margin for the clipped, dark and transfer-less ones
 # it then leaves out (typically under 10 %)
@@ -217,6 +234,13 @@ class Pipeline:
         # last frame that made them serve again (pipeline.still)
         self._still = StillCamera(config.reuse, with_depth=True)
         self._last_transfer: tuple[_Geometry, TransferSamples] | None = None
+        # the reflection probe (pipeline/probe.py): made each frame for mirror and glossy
+        # objects, or for every frame once probe_wanted is set (`arlight estimate
+        # --probe-out`); probe_point: where (world, metres; None: the objects' centre)
+        self.probe_wanted = False
+        self.probe_point: np.ndarray | None = None
+        self.last_probe: ProbeResult | None = None
+        self._probe: ProbeStage | None = None
 
     @functools.cached_property
     def _quadrature_table(self) -> np.ndarray:
@@ -310,13 +334,26 @@ class Pipeline:
             if np.any(direction_world):
                 self._light_world = direction_world
         composite = None
+        check("Probe")
+        with _stage(timings, "Probe"):
+            probe = self._make_probe(
+                valid, color_linear, geometry, pose, coeffs, estimate, render_light, diagnostics
+            )
         if self.scene is None:
             timings["Rendering"] = 0.0
         else:
             check("Rendering")
             with _stage(timings, "Rendering"):
                 composite = self._render(
-                    valid, color_linear, geometry, pose, aux_buffers, coeffs, estimate, render_light
+                    valid,
+                    color_linear,
+                    geometry,
+                    pose,
+                    aux_buffers,
+                    coeffs,
+                    estimate,
+                    render_light,
+                    probe,
                 )
         self.frames_processed += 1
         diagnostics.update(
@@ -397,6 +434,7 @@ class Pipeline:
         coeffs: np.ndarray,
         estimate: LightEstimate,
         render_light: RenderLight | None = None,
+        probe: ProbeResult | None = None,
     ) -> np.ndarray | None:
         """Rendering: the composite (H, W, 3) uint8 of the placed virtual objects, or None
         (the input) while none is placed. The estimate knows albedo x light only (its mean
@@ -405,17 +443,8 @@ class Pipeline:
             self._place_anchored(geometry, pose)
             if self._renderer is None:
                 return None
-        if render_light is None:
-            light = np.asarray(coeffs, np.float64) * (
-                math.pi / self.config.render.render_real_albedo
-            )
-            light_rgb = luminance_light_rgb(estimate.sh_rgb)
-        else:  # an outside light (the panorama's), as many coefficients as the estimate
-            n = len(coeffs)
-            light = np.zeros(n)
-            given = np.asarray(render_light.sh, np.float64)[:n]
-            light[: len(given)] = given
-            light_rgb = luminance_light_rgb(render_light.sh_rgb)
+        # the estimate, or an outside light (the panorama's), as many coefficients as it
+        light, light_rgb = self._render_light(coeffs, estimate, render_light)
         environment = cast(  # its type checked in process
             "EnvironmentMap | None", None if render_light is None else render_light.environment
         )
@@ -430,10 +459,79 @@ class Pipeline:
             light,
             light_rgb,
             environment,
+            probe,
         )
         output = self._renderer.render(inputs)
         self.last_render = (inputs, output)
         return output.composite
+
+    def _render_light(
+        self, coeffs: np.ndarray, estimate: LightEstimate, render_light: RenderLight | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(world luminance SH in linear image units, (3,) colour) that lights the objects."""
+        if render_light is None:
+            light = np.asarray(coeffs, np.float64) * (
+                math.pi / self.config.render.render_real_albedo
+            )
+            return light, luminance_light_rgb(estimate.sh_rgb)
+        n = len(coeffs)
+        light = np.zeros(n)
+        given = np.asarray(render_light.sh, np.float64)[:n]
+        light[: len(given)] = given
+        return light, luminance_light_rgb(render_light.sh_rgb)
+
+    def _make_probe(
+        self,
+        valid: ValidFrame,
+        color_linear: np.ndarray,
+        geometry: _Geometry,
+        pose: np.ndarray,
+        coeffs: np.ndarray,
+        estimate: LightEstimate,
+        render_light: RenderLight | None,
+        diagnostics: Diagnostics,
+    ) -> ProbeResult | None:
+        """Probe: the frame's reflection probe, where one is wanted (mirror or glossy objects
+        placed, or probe_wanted), else None; its notes to diagnostics["probe"]."""
+        r = self.config.render
+        self.last_probe = None
+        if not r.probe:
+            return None
+        if self.scene is not None and self._renderer is None:
+            self._place_anchored(geometry, pose)
+        renderer, scene = self._renderer, self.scene
+        placed = renderer is not None and scene is not None
+        reflective = (
+            renderer is not None
+            and scene is not None
+            and any(is_reflective(o.material) for o in scene.objects)
+        )
+        if not (reflective or self.probe_wanted):
+            return None
+        if self.probe_point is not None:
+            point = self.probe_point
+        elif renderer is not None and placed:
+            point = objects_centre(renderer.raycaster.bounding_spheres())
+        else:
+            return None  # asked for, but no point yet (anchored objects not placed)
+        if self._probe is None:
+            self._probe = ProbeStage(
+                ProbeSettings(
+                    r.probe_size,
+                    r.probe_room,
+                    r.probe_cells,
+                    r.probe_cell_m,
+                    memory=self._volume is not None,
+                ),
+                self.camera,
+            )
+        notes = self._probe.fuse(point, geometry.depth_m, color_linear, pose)
+        light, light_rgb = self._render_light(coeffs, estimate, render_light)
+        environment = None if render_light is None else render_light.environment
+        probe = self._probe.probe(point, pose, DistantLight(light, light_rgb, environment), notes)
+        diagnostics["probe"] = probe.diagnostics
+        self.last_probe = probe
+        return probe
 
     def _place_anchored(self, geometry: _Geometry, pose: np.ndarray) -> None:
         """Resolve anchored objects on this frame's support plane; build the renderer once

@@ -43,6 +43,8 @@ from arlight.pipeline.color import LUMA
 from arlight.pipeline.config import Config, DiffMode
 from arlight.pipeline.glossy import MipPyramid, specular
 from arlight.pipeline.horizon import SupportPlane
+from arlight.pipeline.probe import ProbeResult
+from arlight.pipeline.probe_shading import Glossiness, glossiness_of, shade
 from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
     make_sampling_pattern,
@@ -72,7 +74,8 @@ class RenderInputs:
     rt_horizon is on, as in RadTransfer); light_sh: (C,) world-frame SH (see module doc);
     light_rgb: (3,) per-channel factor of the light (ones: white); environment: optional
     HDR map whose reflections objects with `mirror` or `metalness` > 0 show (without it every
-    object is diffuse).
+    object is diffuse); probe: the frame's reflection probe (`probe.ProbeStage`), whose room
+    mirror and glossy objects reflect when there is no environment (`probe_shading`).
     """
 
     color: np.ndarray
@@ -85,6 +88,7 @@ class RenderInputs:
     light_sh: np.ndarray
     light_rgb: np.ndarray = dataclasses.field(default_factory=lambda: np.ones(3))
     environment: EnvironmentMap | None = None
+    probe: ProbeResult | None = None
 
 
 @dataclass(frozen=True)
@@ -139,6 +143,7 @@ class DifferentialRenderer:
         self.raycaster = VirtualRaycaster(scene)
         # per object, made when an environment map first lights them
         self._shadings: list[Shading] | None = None
+        self._looks: list[Glossiness] | None = None  # per object, for the probe's shading
 
     def render(self, frame: RenderInputs) -> RenderOutput:
         """The composite of one frame (see the module docstring)."""
@@ -254,6 +259,8 @@ class DifferentialRenderer:
         e_v[~ok_c[k:]] = 0.0
         if frame.environment is None:
             virtual_rgb = g.albedo[vv_all, uu_all] / math.pi * e_v
+            if frame.probe is not None:
+                self._probe_reflecting(frame.probe, g, vv_all, uu_all, e_v, pose, virtual_rgb)
         else:
             virtual_rgb = self._reflecting(frame.environment, g, vv_all, uu_all, e_v, pose)
         changed = (ratio_full != 1.0) | np.any(delta_full != 0, axis=2)
@@ -302,6 +309,38 @@ class DifferentialRenderer:
         mirrored = rays - 2.0 * np.sum(rays * normals, axis=1, keepdims=True) * normals
         seen = specular(env.pyramid, mirrored @ np.asarray(env.map_from_world).T, modes, exponents)
         return diffuse / math.pi * irradiance_rgb + spec_rgb * seen
+
+    def _probe_reflecting(
+        self,
+        probe: ProbeResult,
+        g: VirtualGBuffer,
+        vs: np.ndarray,
+        us: np.ndarray,
+        irradiance_rgb: np.ndarray,
+        pose: np.ndarray,
+        virtual_rgb: np.ndarray,
+    ) -> None:
+        """virtual_rgb (K, 3) of the pixels of mirror and glossy objects replaced, in place,
+        by their shading from the probe (`probe_shading.shade`)."""
+        if self._looks is None:
+            self._looks = [glossiness_of(o.material) for o in self.scene.objects]
+        looks = self._looks
+        index = g.object_index[vs, us]
+        sel = np.flatnonzero(np.array([looks[i].kind != 0 for i in index], bool))
+        if not len(sel):
+            return
+        vs, us, index = vs[sel], us[sel], index[sel]
+        cam = self.camera
+        z = g.depth_m[vs, us].astype(np.float64)
+        rays = np.stack([(us - cam.cx) / cam.fx, (vs - cam.cy) / cam.fy, np.ones(len(us))], 1)
+        points = (rays * z[:, None]) @ pose[:3, :3].T + pose[:3, 3]
+        view = rays @ pose[:3, :3].T
+        view /= np.linalg.norm(view, axis=1, keepdims=True)
+        normals = g.normals_cam[vs, us].astype(np.float64) @ pose[:3, :3].T
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        virtual_rgb[sel] = shade(
+            probe, looks, index, points, normals, view, irradiance_rgb[sel], self.raycaster
+        )
 
     def _near_objects(self, points_cam: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """Grid pixels whose point is within rt_radius_m of a virtual object's bounding

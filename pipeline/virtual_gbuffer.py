@@ -179,6 +179,26 @@ class VirtualRaycaster:
         t = self._cast(origins, directions)["t_hit"].numpy()
         return np.where(np.isfinite(t), t, 0.0).astype(np.float32).reshape(resolution, resolution)
 
+    def first_hits(
+        self, origins_world: np.ndarray, directions_world: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The first virtual surface along each ray (world frame): (distance (K,) metres, inf
+        = none; object index (K,) int32, -1 = none; unit world normals (K, 3), interpolated,
+        as stored: not turned towards the ray)."""
+        n = len(directions_world)
+        if n == 0:
+            return np.zeros(0), np.zeros(0, np.int32), np.zeros((0, 3))
+        d = np.asarray(directions_world, np.float64)
+        d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        hits = self._cast(np.asarray(origins_world, np.float64), d)
+        t = hits["t_hit"].numpy().astype(np.float64)
+        index, normals = self._hit_normals(hits, n)
+        return np.where(index >= 0, t, np.inf), index, normals
+
+    def bounding_spheres(self) -> list[tuple[np.ndarray, float]]:
+        """Per object: (centre (3,) world, radius) metres of its bounding sphere."""
+        return list(self._spheres)
+
     def distance_to_spheres(self, points_world: np.ndarray) -> np.ndarray:
         """(K,) distance (metres) from each world point to the nearest object's bounding
         sphere (negative inside): a cheap lower bound of `distance_to_objects`."""

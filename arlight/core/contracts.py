@@ -139,3 +139,4 @@ class Diagnostics(TypedDict, total=False):
     confidence_reason: str  # Confidence.reason as reported
     light_source: str  # the server, a session with a panorama: "rgbd" or "panorama"
     panorama_operator: str  # the server: the inverse tone mapping operator used
+    probe: dict[str, Any]  # the reflection probe's notes (pipeline/probe.py), when one is made
