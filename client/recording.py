@@ -197,6 +197,52 @@ class Recorder:
         self.close()
 
 
+class ProcessedRecorder:
+    """A Recorder that keeps only the frames the server processed (`stream --record
+    --record-processed`): each frame sent waits (at most `hold` of them, the oldest let go
+    first) until its Result comes, then is written with it; a frame whose Result never
+    comes (live mode: the server took a newer one) is never written. The recording replays
+    like any other (its frames' seq numbers have gaps). Same interface as Recorder."""
+
+    def __init__(self, recorder: Recorder, hold: int = 256):
+        self.recorder = recorder
+        self.hold = hold
+        self._waiting: dict[int, tuple[list, int | None]] = {}  # seq -> (parts, log_ns)
+        self.skipped = 0  # frames sent and never processed
+
+    @property
+    def frames(self) -> int:
+        return self.recorder.frames
+
+    @property
+    def path(self) -> Path:
+        return self.recorder.path
+
+    def write_hello(self, parts, log_time_ns: int) -> None:
+        self.recorder.write_hello(parts, log_time_ns)
+
+    def write_frame(self, parts, log_time_ns: int | None = None) -> None:
+        seq = int(peek_header(parts)["seq"])
+        self._waiting[seq] = ([bytes(memoryview(p)) for p in parts], log_time_ns)
+        while len(self._waiting) > self.hold:
+            del self._waiting[next(iter(self._waiting))]
+            self.skipped += 1
+
+    def write_result(self, result, record: dict, parts=None, log_time_ns=None) -> None:
+        for seq in [s for s in self._waiting if s < result.seq]:  # dropped by the server
+            del self._waiting[seq]
+            self.skipped += 1
+        frame = self._waiting.pop(result.seq, None)
+        if frame is not None:
+            self.recorder.write_frame(*frame)
+        self.recorder.write_result(result, record, parts, log_time_ns)
+
+    def close(self) -> None:
+        self.skipped += len(self._waiting)
+        self._waiting.clear()
+        self.recorder.close()
+
+
 def record(source, path: str | Path, options, on_frame=None) -> tuple[int, str]:
     """Write `source` to an MCAP file as `arlight stream` would send it (no server needed).
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
@@ -75,6 +76,13 @@ def add_parser(sub) -> None:
     stream.add_argument(
         "--record", metavar="FILE.mcap", help="also record the stream as sent to an MCAP file"
     )
+    stream.add_argument(
+        "--record-processed",
+        action="store_true",
+        help="with --record: record only the frames the server processed, each beside its "
+        "Result (live mode sends more frames than the server takes; default: every frame "
+        "sent)",
+    )
     add_foxglove_options(
         stream, "the camera (colour, depth, calibration, pose) and the Results that come back"
     )
@@ -117,6 +125,16 @@ def add_parser(sub) -> None:
     stream.set_defaults(func=run)
 
 
+def recording_size(path: str, elapsed_s: float) -> str:
+    """ ", X MiB (Y MiB per minute)" of a finished recording, or "" when unreadable."""
+    try:
+        mib = os.path.getsize(path) / 2**20
+    except OSError:
+        return ""
+    per_minute = f" ({mib / elapsed_s * 60.0:.1f} MiB per minute)" if elapsed_s > 0 else ""
+    return f", {mib:.1f} MiB{per_minute}"
+
+
 @finalised_on_sigterm
 def run(args: argparse.Namespace) -> int:
     from arlight.client.capture import CaptureClient, StreamError
@@ -126,6 +144,8 @@ def run(args: argparse.Namespace) -> int:
     # the flags' own checks first: a camera opened (its pipeline started) before a usage
     # error would only be released by its frames
     token_of(args), client_keys(args)
+    if args.record_processed and not args.record:
+        raise BadInput("--record-processed chooses what --record writes: give --record FILE")
     foxglove = foxglove_address(args)
     source = open_stream_source(args)
     options = stream_options(args, source)
@@ -145,9 +165,10 @@ def run(args: argparse.Namespace) -> int:
         )
     recorder = None
     if args.record:
-        from arlight.client.recording import Recorder
+        from arlight.client.recording import ProcessedRecorder, Recorder
 
-        recorder = Recorder(args.record, source=args.source, depth_scale=source.depth_scale)
+        whole = Recorder(args.record, source=args.source, depth_scale=source.depth_scale)
+        recorder = ProcessedRecorder(whole) if args.record_processed else whole
     to_stdout = args.out == "-"  # the JSON lines on stdout, the per-frame lines on stderr
     out = sys.stdout if to_stdout else open(args.out, "w") if args.out else None  # noqa: SIM115
     total = "loop" if options.loop else str(source.num_frames or "live")
@@ -248,7 +269,11 @@ def run(args: argparse.Namespace) -> int:
     if notes.summary():
         print(f"arlight stream: {notes.summary()}", file=sys.stderr)
     if recorder is not None:
-        print(f"recorded {count(recorder.frames, 'frame')} to {args.record}", file=sys.stderr)
+        print(
+            f"recorded {count(recorder.frames, 'frame')} to {args.record}"
+            + recording_size(args.record, summary.elapsed_s),
+            file=sys.stderr,
+        )
     if summary.errors:
         first = summary.errors[0]
         print(
