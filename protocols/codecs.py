@@ -121,9 +121,23 @@ def check_image_meta(
     return fmt, width, height
 
 
+# The headers are read in Python before the C decoders run, so their cost must not grow
+# with the payload (issue 39, item 2: 60 MiB of empty JPEG APP segments, walked one by one,
+# held the GIL 8 s a frame). A PNG may hold PNG_MAX_ANCILLARY chunks other than IDAT
+# (libpng warns on each broken one, on stderr) and one chunk per PNG_BYTES_PER_CHUNK bytes
+# in all (encoders write IDAT chunks of 8 KiB or more); a JPEG's SOF must come within
+# JPEG_MAX_SEGMENTS segments (cameras write about 10-20 before it: APPn with EXIF and ICC,
+# DQT, DHT), after at most JPEG_MAX_FILL fill bytes each, found at C speed.
+PNG_MAX_ANCILLARY = 64
+PNG_BYTES_PER_CHUNK = 1024
+JPEG_MAX_SEGMENTS = 256
+JPEG_MAX_FILL = 4096
+
+
 def png_header(data: memoryview) -> tuple[int, int, int, int]:
     """(width, height, bit depth, colour type) from the IHDR chunk, after walking the chunk
-    structure (IHDR first, lengths in bounds, IEND last). Raises ProtocolError."""
+    structure (IHDR first, lengths in bounds, IEND last, at most 64 + len / 1024 chunks of
+    which PNG_MAX_ANCILLARY not IDAT). Raises ProtocolError."""
     n = len(data)
     if n < 8 + 25 + 12 or bytes(data[:8]) != _PNG_SIGNATURE:
         raise ProtocolError("decode_failed", "not a PNG (bad signature or too short)")
@@ -132,32 +146,43 @@ def png_header(data: memoryview) -> tuple[int, int, int, int]:
         raise ProtocolError("decode_failed", "PNG does not start with a 13-byte IHDR chunk")
     width, height, bit_depth, colour_type = struct.unpack_from(">IIBB", data, 16)
     pos = 8
-    while True:  # every chunk: 4 length + 4 type + data + 4 CRC
+    ancillary = 0
+    for _ in range(64 + n // PNG_BYTES_PER_CHUNK):  # every chunk: 4 length + 4 type + data + 4 CRC
         if pos + 12 > n:
             raise ProtocolError("decode_failed", "PNG is truncated (no IEND chunk)")
-        (length,) = struct.unpack_from(">I", data, pos)
+        length, ctype = struct.unpack_from(">I4s", data, pos)
         end = pos + 12 + length
         if length > 0x7FFFFFFF or end > n:
             raise ProtocolError("decode_failed", "PNG chunk runs past the end of the payload")
-        if bytes(data[pos + 4 : pos + 8]) == b"IEND":
+        if ctype == b"IEND":
             if end != n:
                 raise ProtocolError("decode_failed", "bytes after the PNG IEND chunk")
-            break
+            return width, height, bit_depth, colour_type
+        if ctype != b"IDAT":
+            ancillary += 1
+            if ancillary > PNG_MAX_ANCILLARY:
+                raise ProtocolError(
+                    "decode_failed", f"PNG has over {PNG_MAX_ANCILLARY} chunks other than IDAT"
+                )
         pos = end
-    return width, height, bit_depth, colour_type
+    raise ProtocolError("decode_failed", f"PNG has over one chunk per {PNG_BYTES_PER_CHUNK} bytes")
 
 
 def jpeg_header(data: memoryview) -> tuple[int, int, int, int]:
-    """(width, height, components, precision) from the first SOF marker. Raises ProtocolError."""
+    """(width, height, components, precision) from the first SOF marker, which must come
+    within JPEG_MAX_SEGMENTS segments. Raises ProtocolError."""
     n = len(data)
     if n < 4 or data[0] != 0xFF or data[1] != 0xD8:
         raise ProtocolError("decode_failed", "not a JPEG (no SOI marker)")
     pos = 2
-    while True:
+    for _ in range(JPEG_MAX_SEGMENTS):
         if pos + 4 > n or data[pos] != 0xFF:
             raise ProtocolError("decode_failed", "JPEG has no frame header (SOF) before its data")
-        while pos < n and data[pos] == 0xFF:  # fill bytes
-            pos += 1
+        window = bytes(data[pos : pos + JPEG_MAX_FILL + 1])  # fill bytes, then the marker
+        fill = len(window) - len(window.lstrip(b"\xff"))
+        if fill > JPEG_MAX_FILL:
+            raise ProtocolError("decode_failed", f"JPEG has over {JPEG_MAX_FILL} fill bytes")
+        pos += fill
         if pos >= n:
             raise ProtocolError("decode_failed", "JPEG is truncated")
         marker = data[pos]
@@ -177,6 +202,10 @@ def jpeg_header(data: memoryview) -> tuple[int, int, int, int]:
             precision, height, width, components = struct.unpack_from(">BHHB", data, pos + 2)
             return width, height, components, precision
         pos += length
+    raise ProtocolError(
+        "decode_failed",
+        f"JPEG has no frame header (SOF) within its first {JPEG_MAX_SEGMENTS} segments",
+    )
 
 
 def _check_declared(got_w: int, got_h: int, width: int, height: int, what: str, field: str):

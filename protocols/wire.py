@@ -109,6 +109,20 @@ def _views(parts: Any) -> list[memoryview]:
     return [as_bytes_view(p) for p in parts]
 
 
+# A header's containers (maps and arrays, at every depth) and the longest one. msgpack builds
+# every container as a Python object: a 1 MiB header of 2^20 empty arrays cost 0.4-0.8 s to
+# parse (the garbage collector's passes over the objects made), on the server's I/O thread
+# (issue 39, item 2). The largest legitimate header (a Result with 1024 RGB SH coefficients,
+# full diagnostics and every engine layout; a Hello with 64 scene objects) has a few hundred.
+MAX_HEADER_CONTAINERS = 16384
+MAX_HEADER_ARRAY = 4096  # elements of one array (Result.sh: 1024; diagnostics arrays: 1024)
+MAX_HEADER_MAP = 1024  # entries of one map
+
+
+class _TooManyContainers(Exception):
+    """More than MAX_HEADER_CONTAINERS maps and arrays in one header (raised while parsing)."""
+
+
 class _RepeatedKey(Exception):
     """A msgpack map that names one key twice (raised inside msgpack's unpacker)."""
 
@@ -117,18 +131,34 @@ class _RepeatedKey(Exception):
         self.key = key
 
 
-def _unique_keys(pairs: list[tuple[Any, Any]]) -> dict:
-    """msgpack's object_pairs_hook: each map as a dict, refusing a key it names twice (SPEC.md
-    section 2: a reader keeping the first value and one keeping the last would see different
-    messages)."""
-    out = dict(pairs)
-    if len(out) != len(pairs):
-        seen: set = set()
-        for key, _ in pairs:
-            if key in seen:
-                raise _RepeatedKey(key)
-            seen.add(key)
-    return out
+class _Counted:
+    """msgpack's hooks for one header: each map as a dict refusing a key it names twice
+    (SPEC.md section 2: a reader keeping the first value and one keeping the last would see
+    different messages), and every map and array counted, parsing stopped past
+    MAX_HEADER_CONTAINERS."""
+
+    def __init__(self) -> None:
+        self.left = MAX_HEADER_CONTAINERS
+
+    def _count(self) -> None:
+        self.left -= 1
+        if self.left < 0:
+            raise _TooManyContainers
+
+    def map(self, pairs: list[tuple[Any, Any]]) -> dict:
+        self._count()
+        out = dict(pairs)
+        if len(out) != len(pairs):
+            seen: set = set()
+            for key, _ in pairs:
+                if key in seen:
+                    raise _RepeatedKey(key)
+                seen.add(key)
+        return out
+
+    def array(self, items: list) -> list:
+        self._count()
+        return items
 
 
 def _header(view: memoryview) -> dict:
@@ -136,10 +166,24 @@ def _header(view: memoryview) -> dict:
         raise ProtocolError(
             "too_large", f"header of {len(view)} bytes exceeds {MAX_HEADER_BYTES}", "header"
         )
+    hooks = _Counted()
     try:
         header = msgpack.unpackb(
-            view, raw=False, strict_map_key=True, use_list=True, object_pairs_hook=_unique_keys
+            view,
+            raw=False,
+            strict_map_key=True,
+            use_list=True,
+            object_pairs_hook=hooks.map,
+            list_hook=hooks.array,
+            max_array_len=MAX_HEADER_ARRAY,
+            max_map_len=MAX_HEADER_MAP,
         )
+    except _TooManyContainers:
+        raise ProtocolError(
+            "too_large",
+            f"header holds more than {MAX_HEADER_CONTAINERS} maps and arrays",
+            "header",
+        ) from None
     except _RepeatedKey as exc:
         raise ProtocolError(
             "malformed",
@@ -148,6 +192,13 @@ def _header(view: memoryview) -> dict:
             "header",
         ) from None
     except Exception as exc:  # msgpack raises many types for bad input
+        if isinstance(exc, ValueError) and "exceeds max_" in str(exc):
+            raise ProtocolError(
+                "too_large",
+                f"header holds an array over {MAX_HEADER_ARRAY} elements or a map over "
+                f"{MAX_HEADER_MAP} entries ({str(exc)[:100]})",
+                "header",
+            ) from None
         raise ProtocolError(
             "malformed", f"header is not msgpack: {type(exc).__name__}: {str(exc)[:200]}", "header"
         ) from None
@@ -188,24 +239,28 @@ def decode(
     *,
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
     max_pixels: int = DEFAULT_MAX_PIXELS,
+    header: dict | None = None,
 ) -> Message:
-    """Decode a multipart message; raises ProtocolError (never anything else) naming the field."""
+    """Decode a multipart message; raises ProtocolError (never anything else) naming the field.
+    header: what peek_header(parts) returned (its checks done), so the header is parsed once;
+    the decoded message may share its lists."""
     try:
-        return _decode(parts, max_message_bytes, max_pixels)
+        return _decode(parts, max_message_bytes, max_pixels, header)
     except ProtocolError:
         raise
     except Exception as exc:  # a bug or an input we did not foresee: still a ProtocolError
         raise ProtocolError("malformed", f"{type(exc).__name__}: {str(exc)[:200]}") from exc
 
 
-def _decode(parts: Any, max_message_bytes: int, max_pixels: int) -> Message:
+def _decode(parts: Any, max_message_bytes: int, max_pixels: int, header: dict | None) -> Message:
     views = _views(parts)
     total = sum(len(p) for p in views)
     if total > max_message_bytes:
         raise ProtocolError(
             "too_large", f"message of {total} bytes exceeds max_message_bytes {max_message_bytes}"
         )
-    header = _header(views[0])
+    if header is None:
+        header = _header(views[0])
     name = header["type"]
     bufs = views[1:]
     declared = header.get("buffers", [])

@@ -62,6 +62,7 @@ def handle_message(
             parts,
             max_message_bytes=server.options.max_message_bytes,
             max_pixels=server.options.max_pixels,
+            header=header,  # parsed once
         )
     except ProtocolError as exc:
         server._send_error(identity, error_from_exception(exc))

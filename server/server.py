@@ -89,6 +89,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 MAX_MESSAGES_PER_POLL = 256  # fairness between reading the socket and sending results
+MAX_READ_S_PER_POLL = 0.05  # and a time bound: a flood of messages (each refused at a bounded
+# cost) never holds back the finished Results for long (issue 39, item 2)
 
 
 class Server:
@@ -310,7 +312,10 @@ class Server:
 
     def _drain_router(self) -> None:
         router = self._socket
+        until = time.monotonic() + MAX_READ_S_PER_POLL
         for _ in range(MAX_MESSAGES_PER_POLL):
+            if time.monotonic() > until:
+                return  # the completions go out, then the socket is read again
             try:
                 message = router.recv_multipart(zmq.NOBLOCK, copy=False)
             except zmq.Again:
