@@ -199,16 +199,20 @@ class Recorder:
 
 class ProcessedRecorder:
     """A Recorder that keeps only the frames the server processed (`stream --record
-    --record-processed`): each frame sent waits (at most `hold` of them, the oldest let go
-    first) until its Result comes, then is written with it; a frame whose Result never
-    comes (live mode: the server took a newer one) is never written. The recording replays
-    like any other (its frames' seq numbers have gaps). Same interface as Recorder."""
+    --record-processed`): each frame sent waits until its Result comes, then is written with
+    it; a frame the server passed over (live mode: it took a newer one) goes when a Result
+    of a later frame comes, and is never written. The frames waiting are capped at
+    `hold_bytes` (the oldest let go first; a live server answers seconds late, so at 30 fps
+    hundreds wait). The recording replays like any other (its seq numbers have gaps).
+    Same interface as Recorder."""
 
-    def __init__(self, recorder: Recorder, hold: int = 256):
+    # sizes per minute, whole against processed: docs/results/recordings.md
+    def __init__(self, recorder: Recorder, hold_bytes: int = 512 * 2**20):
         self.recorder = recorder
-        self.hold = hold
+        self.hold_bytes = hold_bytes
         self._waiting: dict[int, tuple[list, int | None]] = {}  # seq -> (parts, log_ns)
-        self.skipped = 0  # frames sent and never processed
+        self._waiting_bytes = 0
+        self.skipped = 0  # frames sent and never written
 
     @property
     def frames(self) -> int:
@@ -221,25 +225,32 @@ class ProcessedRecorder:
     def write_hello(self, parts, log_time_ns: int) -> None:
         self.recorder.write_hello(parts, log_time_ns)
 
+    def _let_go(self, seq: int) -> tuple[list, int | None]:
+        frame = self._waiting.pop(seq)
+        self._waiting_bytes -= sum(len(p) for p in frame[0])
+        return frame
+
     def write_frame(self, parts, log_time_ns: int | None = None) -> None:
         seq = int(peek_header(parts)["seq"])
-        self._waiting[seq] = ([bytes(memoryview(p)) for p in parts], log_time_ns)
-        while len(self._waiting) > self.hold:
-            del self._waiting[next(iter(self._waiting))]
+        kept = [bytes(memoryview(p)) for p in parts]
+        self._waiting[seq] = (kept, log_time_ns)
+        self._waiting_bytes += sum(len(p) for p in kept)
+        while self._waiting_bytes > self.hold_bytes and len(self._waiting) > 1:
+            self._let_go(next(iter(self._waiting)))
             self.skipped += 1
 
     def write_result(self, result, record: dict, parts=None, log_time_ns=None) -> None:
-        for seq in [s for s in self._waiting if s < result.seq]:  # dropped by the server
-            del self._waiting[seq]
+        for seq in [s for s in self._waiting if s < result.seq]:  # passed over by the server
+            self._let_go(seq)
             self.skipped += 1
-        frame = self._waiting.pop(result.seq, None)
-        if frame is not None:
-            self.recorder.write_frame(*frame)
+        if result.seq in self._waiting:
+            self.recorder.write_frame(*self._let_go(result.seq))
         self.recorder.write_result(result, record, parts, log_time_ns)
 
     def close(self) -> None:
         self.skipped += len(self._waiting)
         self._waiting.clear()
+        self._waiting_bytes = 0
         self.recorder.close()
 
 

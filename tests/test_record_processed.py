@@ -73,3 +73,34 @@ def test_live_records_only_what_the_server_processed(make_server, tmp_path, caps
 def test_record_processed_needs_record(capsys):
     code, text = run_cli(["stream", "synthetic", "--record-processed"], capsys)
     assert code == 2 and "--record" in text and "Traceback" not in text, text
+
+
+def test_frames_wait_for_late_results(tmp_path):
+    """A live server answers seconds late: at 30 fps hundreds of frames wait for their
+    Result; each answered one is written however many came after it (the first version
+    held 256 frames and lost half of a 320x240 session's processed frames)."""
+    from conftest import result
+    from streaming_support import frame_parts
+
+    from arlight.client.recording import ProcessedRecorder, Recorder
+    from arlight.protocols import received_record
+
+    path = tmp_path / "late.mcap"
+    rec = ProcessedRecorder(Recorder(path, frames=True))
+    for seq in range(600):
+        rec.write_frame(frame_parts(seq), 10**9 + seq)
+    for seq in (10, 300, 590):
+        r = result(seq=seq)
+        rec.write_result(r, received_record(r, 1.0))
+    rec.close()
+    seqs, results = _recorded(path)
+    assert seqs == [10, 300, 590] and results == 3
+    assert rec.skipped == 597
+
+    small = ProcessedRecorder(Recorder(tmp_path / "small.mcap"), hold_bytes=1)
+    for seq in range(3):
+        small.write_frame(frame_parts(seq), 10**9 + seq)
+    r = result(seq=2)
+    small.write_result(r, received_record(r, 1.0))  # the newest frame always waits
+    small.close()
+    assert _recorded(tmp_path / "small.mcap")[0] == [2]
