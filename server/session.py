@@ -19,6 +19,7 @@ server_receive_time and server_finish_time).
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -78,6 +79,36 @@ def pipeline_config(config: SessionConfig) -> Config:
     return pipeline
 
 
+# The focal lengths a session may declare, in multiples of the image's side along the same
+# axis: 0.1 is a 157-degree field of view, 100 a 0.6-degree one. The cost model prices a
+# frame by its pixels; far outside these, the same pixels unproject to a volume that grows
+# as 1 / f^2 (fx = fy = 0.05 at 64 x 48, priced at 46 MiB, took 1.2 GB and 20 s a frame) or
+# to non-finite points (issue 39, item 2). The principal point may lie up to one image side
+# outside the image.
+FOCAL_RANGE = (0.1, 100.0)
+
+
+def check_intrinsics(width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> None:
+    """SessionSetupError (bad_field, hello.config.calibration.KEY) for intrinsics outside
+    the range a camera has: fx / width and fy / height in FOCAL_RANGE, cx in [-w, 2w] and cy
+    in [-h, 2h] (pixels)."""
+    lo, hi = FOCAL_RANGE
+    for key, f, side in (("fx", fx, width), ("fy", fy, height)):
+        if not (math.isfinite(f) and lo * side <= f <= hi * side):
+            raise SessionSetupError(
+                f"calibration.{key}",
+                f"{key} = {f:g} pixels is outside {lo:g} to {hi:g} times the image's "
+                f"{'width' if key == 'fx' else 'height'} ({lo * side:g}..{hi * side:g} for "
+                f"{width} x {height}): not a camera's focal length; check the calibration",
+            )
+    for key, c, side in (("cx", cx, width), ("cy", cy, height)):
+        if not (math.isfinite(c) and -side <= c <= 2 * side):
+            raise SessionSetupError(
+                f"calibration.{key}",
+                f"{key} = {c:g} pixels is more than one image side ({side}) outside the image",
+            )
+
+
 def camera_from_config(config: SessionConfig, max_pixels: int) -> PinholeCamera:
     """The pinhole camera of a capture session's calibration; SessionSetupError if unusable."""
     cal = config.calibration
@@ -90,6 +121,7 @@ def camera_from_config(config: SessionConfig, max_pixels: int) -> PinholeCamera:
             f"the server's limit of {max_pixels}",
             code="too_large",
         )
+    check_intrinsics(cal.width, cal.height, cal.fx, cal.fy, cal.cx, cal.cy)
     if any(float(d) != 0.0 for d in (cal.D or ())):
         raise SessionSetupError(
             "calibration.D",

@@ -6,15 +6,26 @@ sockets on loopback."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import msgpack
 import numpy as np
+import pytest
 from hostile_support import LegitStream
 from streaming_support import RawPeer, edit_header, frame_parts, identity_step, wait_for
 
-from arlight.protocols import PROTOCOL_VERSION, Error, decode
+from arlight.core.camera import PinholeCamera
+from arlight.protocols import (
+    PROTOCOL_VERSION,
+    CameraCalibration,
+    Error,
+    Hello,
+    SessionConfig,
+    decode,
+)
 from arlight.protocols.codecs import encode_color
+from arlight.sources.source import calibration_of
 
 
 def _errors(peer: RawPeer, count: int, timeout_s: float = 60.0) -> list[Error]:
@@ -96,3 +107,41 @@ def test_legitimate_images_still_decode(make_server):
     got = [peer.receive(30) for _ in range(3)]
     assert [type(m).__name__ for m in got] == ["Result"] * 3
     wait_for(lambda: server.snapshot()["sessions"]["plain"]["frames_processed"] == 3, 10)
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("fx", 0.05), ("fy", 0.05), ("fx", 1e-300), ("fx", 1e300), ("fy", 6400.5 * 48), ("cx", 1e9)],
+)
+def test_intrinsics_no_camera_has_are_refused_at_hello(make_server, key, value):
+    """fx = fy = 0.05 at 64 x 48 was priced at 46 MiB and took 1.2 GB a frame; 1e300 was
+    welcomed, then every frame failed with `internal` and a logged traceback."""
+    server = make_server(identity_step())
+    good = calibration_of(PinholeCamera.kinect_v1(64, 48))
+    bad = dataclasses.replace(good, **{key: value})
+    peer = RawPeer(server.connect_address)
+    peer.send_message(
+        Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(session="odd", role="capture", calibration=bad, depth_scale=5000.0),
+        )
+    )
+    reply = peer.receive(10)
+    peer.close()
+    assert isinstance(reply, Error), reply
+    assert (reply.code, reply.field) == ("bad_field", f"hello.config.calibration.{key}")
+    assert "odd" not in server.sessions
+
+
+def test_a_wide_but_real_lens_is_welcome(make_server):
+    server = make_server(identity_step())
+    wide = CameraCalibration(64, 48, 0.1 * 64, 0.1 * 48, -64.0, 96.0)  # the range's edges
+    peer = RawPeer(server.connect_address)
+    peer.send_message(
+        Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(session="wide", role="capture", calibration=wide, depth_scale=5000.0),
+        )
+    )
+    assert type(peer.receive(10)).__name__ == "Welcome"
+    peer.close()
