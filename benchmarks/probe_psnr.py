@@ -5,7 +5,9 @@ runs over its frames with the true poses and `ar/virtual_scene.json`; at each fr
 pair it renders the composite four ways and scores PSNR (dB, 8-bit) inside the pixels of the
 virtual sphere (the truth's mask_virtual where our buffer shows the sphere: the object whose
 material is mirror / glossy / diffuse; the arch is always diffuse):
-  probe:    the reflection probe of the room (this issue),
+  probe:    the reflection probe of the room (this issue), the light's dominant part drawn
+            as a small disc where a direction leaves the room,
+  probe_nosun: the same probe, leaving directions seeing the SH as it is,
   sh_probe: a probe of the distant light alone (the SH: baseline (a)),
   diffuse:  the diffuse renderer (every object Lambertian: baseline (b)),
 each with the estimated light and with the true light (lighting_gt.json, exposure applied;
@@ -36,7 +38,7 @@ from arlight.sources.sequence import open_sequence
 from arlight.sources.virtual_scene_file import load_virtual_scene
 from benchmarks.ar_truth import psnr, side_by_side, truth_light
 
-VARIANTS = ("probe", "sh_probe", "diffuse")
+VARIANTS = ("probe", "probe_nosun", "sh_probe", "diffuse")
 LIGHTS = ("est", "gt")
 
 
@@ -81,6 +83,10 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
             "gt": DistantLight(l_gt, rgb_gt),
         }
         sh_stage = ProbeStage(ProbeSettings(config.render.probe_size, room=False), pipeline.camera)
+        nosun = None
+        if stage is not None:
+            nosun = ProbeStage(dataclasses.replace(stage.settings, sun=False), pipeline.camera)
+            nosun.grid = stage.grid
         images = {}
         for light in LIGHTS:
             base = dataclasses.replace(
@@ -96,6 +102,11 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
             images[f"probe_{light}"] = renderer.render(
                 dataclasses.replace(base, probe=room)
             ).composite
+            if nosun is not None and probe is not None:
+                plain = nosun.probe(probe.point_world, inputs.world_from_cam, distant[light])
+                images[f"probe_nosun_{light}"] = renderer.render(
+                    dataclasses.replace(base, probe=plain)
+                ).composite
             images[f"sh_probe_{light}"] = renderer.render(
                 dataclasses.replace(base, probe=only_sh)
             ).composite
@@ -118,8 +129,9 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
             "process_ms": process_ms,
             "probe_diagnostics": result.diagnostics.get("probe"),
         }
-        for key, image in images.items():
-            row[f"{key}_psnr"] = psnr(image, real_virtual, mask)
+        for key in (f"{v}_{light}" for light in LIGHTS for v in VARIANTS):
+            image = images.get(key)
+            row[f"{key}_psnr"] = float("nan") if image is None else psnr(image, real_virtual, mask)
         rows.append(row)
         print(
             f"  {folder.name} ({material}) frame {index}: sphere PSNR "

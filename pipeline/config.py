@@ -400,6 +400,7 @@ class RenderParams:
     # objects' centre (false: they are shaded Lambertian, as before the probe)
     probe: bool = True
     probe_room: bool = True  # directions see the fused room (false: the distant light alone)
+    probe_sun: bool = True  # the light's dominant part drawn as a 2-degree disc (probe.py)
     probe_size: int = 64  # texels a face, a power of two in 32..256
     probe_cells: int = 120  # the room grid: cells per side ...
     probe_cell_m: float = 0.04  # ... of this size (metres): 4.8 m across, 28 MB
@@ -407,6 +408,7 @@ class RenderParams:
     def __post_init__(self) -> None:
         _check_bool(self, "probe")
         _check_bool(self, "probe_room")
+        _check_bool(self, "probe_sun")
         _check_int(self, "probe_size", 32, 256)
         if self.probe_size & (self.probe_size - 1):
             raise ValueError(

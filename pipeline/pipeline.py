@@ -522,6 +522,7 @@ class Pipeline:
                     r.probe_cells,
                     r.probe_cell_m,
                     memory=self._volume is not None,
+                    sun=r.probe_sun,
                 ),
                 self.camera,
             )

@@ -27,6 +27,7 @@ under `FrameResult.diagnostics["probe"]`):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -44,13 +45,15 @@ INSIDE = "inside_geometry"
 class ProbeSettings:
     """size: texels a face (32..256, a power of two); room: directions see the room grid
     (False: the distant light alone, the SH-only baseline); cells, cell_m: the grid;
-    memory: fuse every frame (False: the current frame only)."""
+    memory: fuse every frame (False: the current frame only); sun: the SH light's dominant
+    part drawn as a small disc (`split_dominant`) instead of smeared over the sky."""
 
     size: int = 64
     room: bool = True
     cells: int = 120
     cell_m: float = 0.04
     memory: bool = True
+    sun: bool = True
 
     def __post_init__(self) -> None:
         self.size = probe_cube.check_size(self.size)
@@ -66,15 +69,19 @@ class DistantLight:
     rgb: np.ndarray = field(default_factory=lambda: np.ones(3))
     environment: Any = None
 
-    def radiance(self, directions: np.ndarray) -> np.ndarray:
-        """(K, 3) float32 radiance along world directions (K, 3)."""
+    def radiance(self, directions: np.ndarray, basis: np.ndarray | None = None) -> np.ndarray:
+        """(K, 3) float32 radiance along world directions (K, 3); basis: optionally their SH
+        basis (K, C) already evaluated (`sh.sh_basis`)."""
         d = np.asarray(directions, np.float64).reshape(-1, 3)
         if self.environment is not None:
             from arlight.pipeline.glossy import mirror
 
             local = d @ np.asarray(self.environment.map_from_world, np.float64).T
             return np.asarray(mirror(self.environment.pyramid, local), np.float32)
-        lum = np.maximum(sh.evaluate(np.asarray(self.sh, np.float64), d), 0.0)
+        coeffs = np.asarray(self.sh, np.float64)
+        if basis is None or basis.shape[1] != len(coeffs):
+            basis = sh.sh_basis(d, sh.bands_of(len(coeffs)))
+        lum = np.maximum(basis @ coeffs, 0.0)
         return (lum[:, None] * np.asarray(self.rgb, np.float64)[None, :]).astype(np.float32)
 
 
@@ -101,6 +108,7 @@ class ProbeStage:
         self.camera = camera
         self.grid: RoomGrid | None = None
         self._dirs = probe_cube.texel_directions(settings.size).reshape(-1, 3)
+        self._basis: np.ndarray | None = None  # the SH basis at the texels, made on first use
 
     def _grid_for(self, point: np.ndarray) -> tuple[RoomGrid, bool]:
         s = self.settings
@@ -151,7 +159,21 @@ class ProbeStage:
         if grid is not None and grid.occupied(point):
             diagnostics["fallback"] = INSIDE
             grid = None
-        radiance = distant.radiance(self._dirs)
+        bands = sh.bands_of(len(distant.sh))
+        if self._basis is None or self._basis.shape[1] != bands * bands:
+            self._basis = sh.sh_basis(self._dirs, bands)
+        sun = None
+        if s.sun and s.room and distant.environment is None:
+            direction, intensity, residual = split_dominant(distant.sh)
+            if intensity > 0.0:
+                sun = direction, intensity
+                distant = DistantLight(residual, distant.rgb)
+        radiance = distant.radiance(self._dirs, self._basis)
+        if sun is not None:
+            radiance += sun_disc(self._dirs, s.size, *sun)[:, None] * np.asarray(
+                distant.rgb, np.float32
+            )
+            diagnostics["sun_world"] = [round(float(x), 4) for x in sun[0]]
         hit_fraction = 0.0
         if grid is not None:
             t, rgb = grid.march(point, self._dirs)
@@ -161,6 +183,44 @@ class ProbeStage:
         diagnostics["hit_fraction"] = round(hit_fraction, 4)
         mips = probe_cube.prefilter(radiance.reshape(6, s.size, s.size, 3))
         return ProbeResult(point, mips, grid, distant, hit_fraction, diagnostics)
+
+
+SUN_RADIUS_RAD = math.radians(2.0)  # the disc the dominant light is drawn as
+SUN_SHARE_MAX = 0.8  # of the light's band 0 the disc may take (an ambient part is left)
+
+
+def split_dominant(coeffs: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """A band-limited light as a delta plus the rest (Sloan, "Stupid SH tricks", 2008):
+    (unit direction of the delta (`sh.dominant_direction`), its integrated radiance (the
+    least-squares fit of the delta's bands >= 1 to the light's, capped so that the rest
+    keeps 1 - SUN_SHARE_MAX of band 0), the rest's coefficients). A mirror then shows a
+    small bright source and a darker sky, as the path-traced truth does, where the SH
+    itself spreads the source's energy over a quarter of the sky; the sum is the same light
+    (the diffuse shading does not change)."""
+    c = np.asarray(coeffs, np.float64)
+    direction = sh.dominant_direction(c)
+    if len(c) < 4 or not np.any(direction):
+        return np.zeros(3), 0.0, c.copy()
+    y = sh.directional_light(direction, 1.0, sh.bands_of(len(c)))
+    fit = float(c[1:] @ y[1:]) / float(y[1:] @ y[1:])
+    cap = SUN_SHARE_MAX * max(float(c[0]), 0.0) / float(y[0])
+    intensity = float(np.clip(fit, 0.0, cap))
+    return direction, intensity, c - intensity * y
+
+
+def sun_disc(
+    directions: np.ndarray, size: int, direction: np.ndarray, intensity: float
+) -> np.ndarray:
+    """(K,) radiance of a disc of SUN_RADIUS_RAD about `direction` over the cube's texel
+    directions, of integrated radiance `intensity` over the texels' exact solid angles."""
+    cos = directions @ np.asarray(direction, np.float64)
+    inside = cos >= math.cos(SUN_RADIUS_RAD)
+    omega = probe_cube.texel_solid_angles(size).reshape(-1)
+    if not np.any(inside):  # smaller than a texel: the nearest one
+        inside = cos >= cos.max()
+    out = np.zeros(len(directions), np.float32)
+    out[inside] = intensity / float(omega[inside].sum())
+    return out
 
 
 def objects_centre(spheres: list[tuple[np.ndarray, float]]) -> np.ndarray:

@@ -26,6 +26,7 @@ Per-texel logic is written once as ``register_jitable`` functions driven by
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -65,7 +66,26 @@ def level_roughness(levels: int) -> np.ndarray:
 
 def texel_directions(size: int) -> np.ndarray:
     """(6, size, size, 3) unit directions of every texel centre (CUBE_FACES order)."""
+    return _texel_directions(int(size)).copy()
+
+
+@functools.cache
+def _texel_directions(size: int) -> np.ndarray:
     return np.stack([cube_face_directions(f, size) for f in CUBE_FACES]).astype(np.float64)
+
+
+@functools.cache
+def texel_solid_angles(size: int) -> np.ndarray:
+    """(6, size, size) exact solid angle (sr) of every texel (they sum to 4 pi)."""
+    edges = np.linspace(-1.0, 1.0, size + 1)
+    a, b = np.meshgrid(edges, edges)  # corners: a along a row, b down the rows
+
+    def corner(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.arctan2(x * y, np.sqrt(x * x + y * y + 1.0))
+
+    c = corner(a, b)
+    face = c[1:, 1:] - c[:-1, 1:] - c[1:, :-1] + c[:-1, :-1]
+    return np.broadcast_to(np.abs(face), (6, size, size))
 
 
 @dataclass
@@ -300,17 +320,19 @@ def _prefilter_kernel(data, offsets, sizes, dirs, lobe, halfs, lods, out):
             out[i, 2] = b / wsum
 
 
-def prefilter(radiance: np.ndarray) -> CubeMips:
-    """The GGX-prefiltered mips (see the module text) of a (6, n, n, 3) radiance cube."""
-    n = check_size(radiance.shape[1], "cube face size")
+@functools.cache
+def _prefilter_plan(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """What `prefilter` of an n-texel cube reads, made once per size: every level's texel
+    directions one after another, each texel's level - 1, per level the lobe's half-vectors
+    and each sample's source level, and the levels' sizes."""
     levels = num_levels(n)
     rough = level_roughness(levels)
-    source = box_chain(radiance)
     texel_solid = 4.0 * math.pi / (6.0 * n * n)
-    dirs, lobe, halfs, lods = [], [], [], []
+    dirs, lobe, halfs, lods, sizes = [], [], [], [], []
     for k in range(1, levels):
-        d = texel_directions(n >> k).reshape(-1, 3)
+        d = _texel_directions(n >> k).reshape(-1, 3)
         dirs.append(d)
+        sizes.append(n >> k)
         lobe.append(np.full(len(d), k - 1, np.int64))
         h, pdf = ggx_lobe_samples(float(rough[k] ** 2))
         halfs.append(h)
@@ -318,25 +340,24 @@ def prefilter(radiance: np.ndarray) -> CubeMips:
         # solid angle 1 / (count pdf), plus one (Karis' bias against aliasing)
         omega = 1.0 / (len(pdf) * np.maximum(pdf, 1e-12))
         lods.append(0.5 * np.log2(np.maximum(omega / texel_solid, 1.0)) + 1.0)
-    all_dirs = np.concatenate(dirs)
+    return np.concatenate(dirs), np.concatenate(lobe), np.stack(halfs), np.stack(lods), sizes
+
+
+def prefilter(radiance: np.ndarray) -> CubeMips:
+    """The GGX-prefiltered mips (see the module text) of a (6, n, n, 3) radiance cube."""
+    n = check_size(radiance.shape[1], "cube face size")
+    rough = level_roughness(num_levels(n))
+    source = box_chain(radiance)
+    all_dirs, lobe, halfs, lods, sizes = _prefilter_plan(n)
     out = np.zeros((len(all_dirs), 3), np.float32)
     # one launch for every level (a launch per level cost more than the small levels' work)
-    _prefilter_kernel(
-        source.data,
-        source.offsets,
-        source.sizes,
-        all_dirs,
-        np.concatenate(lobe),
-        np.stack(halfs),
-        np.stack(lods),
-        out,
-    )
+    _prefilter_kernel(source.data, source.offsets, source.sizes, all_dirs, lobe, halfs, lods, out)
     out_levels = [source.levels[0]]
     start = 0
-    for d in dirs:
-        size = math.isqrt(len(d) // 6)
-        out_levels.append(out[start : start + len(d)].reshape(6, size, size, 3))
-        start += len(d)
+    for size in sizes:
+        count = 6 * size * size
+        out_levels.append(out[start : start + count].reshape(6, size, size, 3))
+        start += count
     return CubeMips(out_levels, rough)
 
 

@@ -15,14 +15,16 @@ gone in the next frame), then each point adds its colour to its cell. So the gri
 current frame's geometry in view at once and what earlier frames saw elsewhere.
 
 `march` follows rays through the grid cell by cell (Amanatides and Woo's traversal: no cell
-skipped) and returns the first surface cell's distance and colour, or a miss when the ray
-leaves the grid. Frames: world (the poses'), metres; colours in linear image units.
+skipped; blocks of BLOCK^3 cells without surface crossed in one step) and returns the first
+surface cell's distance and colour, or a miss when the ray leaves the grid. Frames: world
+(the poses'), metres; colours in linear image units.
 """
 
 from __future__ import annotations
 
 import math
 
+import cv2
 import numba
 import numpy as np
 from numba.extending import register_jitable
@@ -30,6 +32,7 @@ from numba.extending import register_jitable
 from arlight.core.camera import PinholeCamera
 
 WEIGHT_CAP = 8.0  # observations a cell's mean colour remembers at most
+BLOCK = 8  # cells a side of the blocks that `march` crosses in one step when empty
 
 
 @numba.njit(cache=True)
@@ -69,23 +72,6 @@ def _fuse_points(depth, colour, stride, world_from_cam, fx, fy, cx, cy, origin, 
 
 
 @numba.njit(parallel=True, cache=True)
-def _near_depth(depth, out):
-    """out: the smallest valid depth among each pixel's 3x3 neighbours (0 = none valid)."""
-    h, w = depth.shape
-    for v in numba.prange(h):
-        for u in range(w):
-            best = np.inf
-            for dv in range(-1, 2):
-                for du in range(-1, 2):
-                    y, x = v + dv, u + du
-                    if 0 <= y < h and 0 <= x < w:
-                        z = depth[y, x]
-                        if z > 0.0 and z < best:
-                            best = z
-            out[v, u] = best if best < np.inf else 0.0
-
-
-@numba.njit(parallel=True, cache=True)
 def _carve(weight, origin, cell, cam_from_world, fx, fy, cx, cy, depth_min, margin):
     """Empty the cells whose centre lies in front of what the camera sees (depth_min: the
     minimum of each pixel's 3x3 neighbours, 0 = unknown). Returns nothing; weight in place."""
@@ -117,11 +103,48 @@ def _carve(weight, origin, cell, cam_from_world, fx, fy, cx, cy, depth_min, marg
 
 
 @register_jitable
-def _march_one(px, py, pz, dx, dy, dz, dims, weight):
-    """Amanatides-Woo traversal from p (cell units) along unit d: (t of the first surface
-    cell's entry in cell units or -1, its indices)."""
-    # enter the grid: the slab interval
-    t0, t1 = 0.0, np.inf
+def _fine(px, py, pz, dx, dy, dz, t_start, lo_x, lo_y, lo_z, hi_x, hi_y, hi_z, weight):
+    """Cell-by-cell traversal (Amanatides and Woo) from t_start (cell units) along unit d
+    inside the cells [lo, hi) of one block: (t of the first surface cell's entry or -1, its
+    indices)."""
+    qx, qy, qz = px + t_start * dx, py + t_start * dy, pz + t_start * dz
+    ix = min(max(int(math.floor(qx)), lo_x), hi_x - 1)
+    iy = min(max(int(math.floor(qy)), lo_y), hi_y - 1)
+    iz = min(max(int(math.floor(qz)), lo_z), hi_z - 1)
+    sx, tx, ex = _axis(ix, qx, dx, t_start)
+    sy, ty, ey = _axis(iy, qy, dy, t_start)
+    sz, tz, ez = _axis(iz, qz, dz, t_start)
+    t = t_start
+    while True:
+        if weight[ix, iy, iz] > 0.0:
+            return t, ix, iy, iz
+        if tx <= ty and tx <= tz:
+            t = tx
+            ix += sx
+            tx += ex
+            if ix < lo_x or ix >= hi_x:
+                break
+        elif ty <= tz:
+            t = ty
+            iy += sy
+            ty += ey
+            if iy < lo_y or iy >= hi_y:
+                break
+        else:
+            t = tz
+            iz += sz
+            tz += ez
+            if iz < lo_z or iz >= hi_z:
+                break
+    return -1.0, 0, 0, 0
+
+
+@register_jitable
+def _march_one(px, py, pz, dx, dy, dz, dims, weight, blocks, block):
+    """Two-level traversal from p (cell units) along unit d: blocks of block^3 cells that
+    hold no surface are crossed in one step, the others cell by cell (`_fine`). Returns (t
+    of the first surface cell's entry in cell units or -1, its indices)."""
+    t0, t1 = 0.0, np.inf  # the slab interval of the grid
     for p, d in ((px, dx), (py, dy), (pz, dz)):
         if d != 0.0:
             a = -p / d
@@ -132,36 +155,76 @@ def _march_one(px, py, pz, dx, dy, dz, dims, weight):
             t1 = -1.0
     if t0 >= t1:
         return -1.0, 0, 0, 0
-    qx, qy, qz = px + t0 * dx, py + t0 * dy, pz + t0 * dz
-    ix = min(max(int(math.floor(qx)), 0), dims - 1)
-    iy = min(max(int(math.floor(qy)), 0), dims - 1)
-    iz = min(max(int(math.floor(qz)), 0), dims - 1)
-    sx, tx, ex = _axis(ix, qx, dx, t0)
-    sy, ty, ey = _axis(iy, qy, dy, t0)
-    sz, tz, ez = _axis(iz, qz, dz, t0)
-    t = t0
+    nb = blocks.shape[0]
+    tb = t0 / block  # t in block units
+    qx, qy, qz = px / block + tb * dx, py / block + tb * dy, pz / block + tb * dz
+    bx = min(max(int(math.floor(qx)), 0), nb - 1)
+    by = min(max(int(math.floor(qy)), 0), nb - 1)
+    bz = min(max(int(math.floor(qz)), 0), nb - 1)
+    sx, tx, ex = _axis(bx, qx, dx, tb)
+    sy, ty, ey = _axis(by, qy, dy, tb)
+    sz, tz, ez = _axis(bz, qz, dz, tb)
     while True:
-        if weight[ix, iy, iz] > 0.0:
-            return t, ix, iy, iz
+        if blocks[bx, by, bz]:
+            t, ix, iy, iz = _fine(
+                px,
+                py,
+                pz,
+                dx,
+                dy,
+                dz,
+                tb * block,
+                bx * block,
+                by * block,
+                bz * block,
+                min((bx + 1) * block, dims),
+                min((by + 1) * block, dims),
+                min((bz + 1) * block, dims),
+                weight,
+            )
+            if t >= 0.0:
+                return t, ix, iy, iz
         if tx <= ty and tx <= tz:
-            t = tx
-            ix += sx
+            tb = tx
+            bx += sx
             tx += ex
-            if ix < 0 or ix >= dims:
+            if bx < 0 or bx >= nb:
                 break
         elif ty <= tz:
-            t = ty
-            iy += sy
+            tb = ty
+            by += sy
             ty += ey
-            if iy < 0 or iy >= dims:
+            if by < 0 or by >= nb:
                 break
         else:
-            t = tz
-            iz += sz
+            tb = tz
+            bz += sz
             tz += ez
-            if iz < 0 or iz >= dims:
+            if bz < 0 or bz >= nb:
                 break
     return -1.0, 0, 0, 0
+
+
+@numba.njit(parallel=True, cache=True)
+def _block_occupancy(weight, block, out):
+    """out[b]: whether any cell of block b (block^3 cells) is surface."""
+    dims = weight.shape[0]
+    nb = out.shape[0]
+    for bx in numba.prange(nb):
+        for by in range(nb):
+            for bz in range(nb):
+                found = False
+                for ix in range(bx * block, min((bx + 1) * block, dims)):
+                    for iy in range(by * block, min((by + 1) * block, dims)):
+                        for iz in range(bz * block, min((bz + 1) * block, dims)):
+                            if weight[ix, iy, iz] > 0.0:
+                                found = True
+                                break
+                        if found:
+                            break
+                    if found:
+                        break
+                out[bx, by, bz] = found
 
 
 @register_jitable
@@ -175,7 +238,9 @@ def _axis(i, q, d, t0):
 
 
 @numba.njit(parallel=True, cache=True)
-def _march_kernel(origins, directions, origin, cell, weight, colour_grid, t_out, rgb_out):
+def _march_kernel(
+    origins, directions, origin, cell, weight, blocks, block, colour_grid, t_out, rgb_out
+):
     """First surface cell along each ray (t_out: distance, metres; inf = none)."""
     dims = weight.shape[0]
     for i in numba.prange(origins.shape[0]):
@@ -193,6 +258,8 @@ def _march_kernel(origins, directions, origin, cell, weight, colour_grid, t_out,
             dz / norm,
             dims,
             weight,
+            blocks,
+            block,
         )
         if t >= 0.0:
             t_out[i] = t * cell
@@ -235,8 +302,10 @@ class RoomGrid:
         """Carve, then fuse one frame (depth (H, W) metres, 0 = none; colour (H, W, 3) linear).
         Returns the number of points fused."""
         depth = np.ascontiguousarray(np.nan_to_num(depth_m, nan=0.0, posinf=0.0), np.float32)
-        near = np.zeros(depth.shape, np.float32)
-        _near_depth(depth, near)
+        # the nearest depth about each pixel (3x3; 0 = unknown stays out of the minimum)
+        far = np.where(depth > 0, depth, np.float32(np.inf))
+        near = cv2.erode(far, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+        near = np.where(np.isfinite(near), near, 0.0).astype(np.float32)
         _carve(
             self.weight,
             self.origin,
@@ -281,7 +350,12 @@ class RoomGrid:
         t = np.full(len(d), np.inf)
         rgb = np.zeros((len(d), 3), np.float32)
         if len(d):
-            _march_kernel(o, d, self.origin, self.cell_m, self.weight, self.colour, t, rgb)
+            nb = -(-self.cells // BLOCK)
+            blocks = np.zeros((nb, nb, nb), np.bool_)
+            _block_occupancy(self.weight, BLOCK, blocks)
+            _march_kernel(
+                o, d, self.origin, self.cell_m, self.weight, blocks, BLOCK, self.colour, t, rgb
+            )
         return t, rgb
 
 

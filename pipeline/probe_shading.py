@@ -3,10 +3,12 @@
 Materials (`virtual_scene.Material`, glTF's metallic-roughness reading, as the synth's
 Mitsuba `principled` truth): `mirror` is a perfect conductor of reflectance `albedo`;
 otherwise an object with `metalness` > 0 or `roughness` < 1 is glossy: F0 = 0.04 (1 - m) +
-albedo m, a GGX lobe of perceptual roughness r (alpha = r^2), and a Lambertian part
-(1 - m) albedo shaded exactly as the diffuse renderer shades it (SSDO transfer and the
-estimated light, `rendering`). Objects with roughness 1 and metalness 0 (the default) are
-left to the diffuse renderer: nothing changes for them.
+albedo m, a GGX lobe of perceptual roughness r (alpha = r^2), and a diffuse part (1 - m)
+albedo lit exactly as the diffuse renderer lights it (SSDO transfer and the estimated light,
+`rendering`), weighted by the principled BSDF's diffuse Fresnel factors
+(`principled_diffuse_weight`: 0.976 facing the camera, 0.49 at its silhouette). Objects with
+roughness 1 and metalness 0 (the default) are left to the diffuse renderer: nothing changes
+for them.
 
 Per pixel, with view direction v (camera to surface, world), normal n and mirror direction
 r = v - 2 (v.n) n:
@@ -16,8 +18,8 @@ r = v - 2 (v.n) n:
 - self-occlusion: r is also cast against the virtual objects; where one is met before the
   room, the reflection is that surface's Lambertian radiance under the distant light
   (albedo / pi times the SH irradiance at its normal: no shadow, no second bounce);
-- radiance: mirror: albedo L(r, level 0); glossy: (1 - m) albedo / pi E + L(r, level of r)
-  (F0 A + B) (split sum, `probe_cube.env_brdf`).
+- radiance: mirror: albedo L(r, level 0); glossy: (1 - m) albedo / pi E w + L(r, level of
+  r) (F0 A + B) (split sum, `probe_cube.env_brdf`; w the diffuse weight above).
 The occlusion test follows the mirror direction only, also for a glossy lobe.
 """
 
@@ -116,8 +118,16 @@ def shade(
         f0,
         probe_cube.env_brdf(f0, rough, np.abs(cos_nv[:, 0])),
     )
-    out = diffuse / math.pi * irradiance_rgb + spec * seen
-    return out
+    weight = np.where(kinds == 2, principled_diffuse_weight(np.abs(cos_nv[:, 0])), 1.0)
+    return diffuse / math.pi * irradiance_rgb * weight[:, None] + spec * seen
+
+
+def principled_diffuse_weight(n_dot_v: np.ndarray) -> np.ndarray:
+    """The Disney / principled diffuse lobe's Fresnel factors (Burley 2012, as Mitsuba's
+    `principled`): (1 - 0.5 F(v)) times the mean over cosine-weighted incoming directions
+    of (1 - 0.5 F(l)), 1 - 1/42, with F(x) = (1 - cos x)^5; the retro-reflection term
+    (rough surfaces at grazing angles) is left out."""
+    return (1.0 - 0.5 * (1.0 - np.clip(n_dot_v, 0.0, 1.0)) ** 5) * (1.0 - 1.0 / 42.0)
 
 
 def _lambertian(
@@ -135,4 +145,11 @@ def _lambertian(
     return albedo / math.pi * e[:, None] * np.asarray(probe.distant.rgb, np.float64)
 
 
-__all__ = ["DIELECTRIC_F0", "Glossiness", "glossiness_of", "is_reflective", "shade"]
+__all__ = [
+    "DIELECTRIC_F0",
+    "Glossiness",
+    "glossiness_of",
+    "is_reflective",
+    "principled_diffuse_weight",
+    "shade",
+]

@@ -285,9 +285,10 @@ class TestShading:
         grey = 0.9 * 0.5 * GREY_RADIANCE  # albedo 0.9 x box albedo / pi x pi x radiance
         np.testing.assert_allclose(got[0], grey, rtol=0.02)
 
-    def test_the_diffuse_part_of_a_glossy_object_is_the_diffuse_renderers(self):
-        """In a black room under no light, a glossy dielectric shows exactly its Lambertian
-        part: albedo / pi x the irradiance the diffuse renderer gives it."""
+    def test_the_diffuse_part_of_a_glossy_object_is_lit_as_the_diffuse_renderer_lights_it(self):
+        """In a black room under no light, a glossy dielectric shows exactly its diffuse
+        part: albedo / pi x the irradiance the diffuse renderer gives it, times the
+        principled BSDF's diffuse Fresnel weight at this view (a 45-degree pixel)."""
         stage = ProbeStage(ProbeSettings(size=32), CAMERA)
         pose = looking_along(AXES[0], -0.5 * AXES[0])
         stage.fuse(np.zeros(3), *wall_frame(1.5, colour=(0.0, 0.0, 0.0)), pose)
@@ -296,7 +297,8 @@ class TestShading:
         normal, view = mirror_pixel_towards_plus_x()
         e = np.array([[0.7, 0.8, 0.9]])
         got = shade(probe, looks, np.zeros(1, int), np.zeros((1, 3)), normal, view, e, None)
-        np.testing.assert_allclose(got[0], 0.45 / math.pi * e[0], rtol=1e-9)
+        weight = (1.0 - 0.5 * (1.0 - math.sqrt(0.5)) ** 5) * (1.0 - 1.0 / 42.0)
+        np.testing.assert_allclose(got[0], 0.45 / math.pi * e[0] * weight, rtol=1e-9)
 
     def test_materials(self):
         assert glossiness_of(Material()).kind == 0  # the default: diffuse, left alone
