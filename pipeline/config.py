@@ -306,6 +306,12 @@ class EstimationParams:
     segment_split_ground: bool = True  # the support plane's pixels never share a segment
     segment_scale: int = 2  # the segmentation runs at 1/segment_scale resolution
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
+    # compact sources (a sun, a lamp) fitted beside the SH from the shadows the reconstruction
+    # casts (pipeline/compact_light.py): at most this many (0 = off; 1 today)
+    compact_sources: int = 0
+    compact_min_gain: float = 0.03  # of the SH fit's weighted residual its shadow must explain
+    compact_candidates: int = 256  # directions tested over the upper hemisphere
+    compact_search_samples: int = 4000  # fitted pixels whose shadows are tested per direction
 
     def __post_init__(self) -> None:
         _check_float(self, "regularization", 0.0)
@@ -335,6 +341,10 @@ class EstimationParams:
         _check_bool(self, "segment_split_ground")
         _check_int(self, "segment_scale", 1, 16)
         _check_bool(self, "estimate_rgb")
+        _check_int(self, "compact_sources", 0, 1)
+        _check_float(self, "compact_min_gain", 0.0)
+        _check_int(self, "compact_candidates", 8, 4096)
+        _check_int(self, "compact_search_samples", 100)
 
 
 @dataclass(frozen=True)

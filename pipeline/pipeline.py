@@ -29,6 +29,7 @@ from arlight.core.contracts import TrackingDiagnostics
 from arlight.core.frames import Confidence, Diagnostics, FrameInput, FrameResult, RenderLight
 from arlight.pipeline import sh
 from arlight.pipeline.color import intensity_from_rgb, luminance, srgb_to_linear
+from arlight.pipeline.compact_light import CompactFit, CompactLightStage
 from arlight.pipeline.config import Config, RtMethod
 from arlight.pipeline.depth_filter import backend_for_device, filter_depth, normals_from_depth
 from arlight.pipeline.horizon import SupportPlane, support_plane
@@ -234,6 +235,9 @@ class Pipeline:
         # last frame that made them serve again (pipeline.still)
         self._still = StillCamera(config.reuse, with_depth=True)
         self._last_transfer: tuple[_Geometry, TransferSamples] | None = None
+        # compact sources beside the SH (compact_sources > 0): made on first use
+        self._compact_stage: CompactLightStage | None = None
+        self.last_compact: CompactFit | None = None
         # the reflection probe (pipeline/probe.py): made each frame for mirror and glossy
         # objects, or for every frame once probe_wanted is set (`arlight estimate
         # --probe-out`); probe_point: where (world, metres; None: the objects' centre)
@@ -322,6 +326,9 @@ class Pipeline:
                 below_horizon_unseen=self.config.transfer.rt_horizon,
                 checkpoint=lambda: check("LightEst"),
             )
+            self.last_compact = self._compact_sources(
+                estimate, geometry, transfer, pose, up_world, diagnostics
+            )
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:
                 self._up_world = up_world
@@ -374,6 +381,55 @@ class Pipeline:
             timings_ms=timings,
             diagnostics=diagnostics,
         )
+
+    def _compact_sources(
+        self,
+        estimate: LightEstimate,
+        geometry: _Geometry,
+        transfer: TransferSamples,
+        pose: np.ndarray,
+        up_world: np.ndarray | None,
+        diagnostics: Diagnostics,
+    ) -> CompactFit | None:
+        """Compact sources beside the SH (compact_sources > 0): found from the shadows the
+        reconstruction casts (pipeline/compact_light.py); what was found, and why, to
+        diagnostics["compact"]."""
+        p = self.config.estimation
+        if p.compact_sources <= 0 or estimate.fit is None:
+            return None
+        if self._compact_stage is None:
+            self._compact_stage = CompactLightStage(self.config.aux.aux_update_interval)
+        fit, rays = self._compact_stage.fit(
+            estimate.fit,
+            geometry.points,
+            geometry.normals,
+            transfer.pixel_v,
+            transfer.pixel_u,
+            pose,
+            up_world if up_world is not None else self._up_world,
+            self._volume,
+            {
+                "candidates": p.compact_candidates,
+                "search_samples": p.compact_search_samples,
+                "min_gain": p.compact_min_gain,
+            },
+            seed=self.config.seed,
+        )
+        diagnostics["compact"] = {
+            "reason": fit.reason,
+            "rays": int(rays),
+            "sources": [
+                {
+                    "direction_world": [float(x) for x in s.direction],
+                    "intensity": float(s.intensity),
+                    "share": float(s.share),
+                    "gain": float(s.gain),
+                    "angular_radius_deg": float(s.angular_radius_deg),
+                }
+                for s in fit.sources
+            ],
+        }
+        return fit
 
     def _reported_confidence(
         self,
