@@ -10,4 +10,4 @@ if ! command -v npm >/dev/null; then
   exit 0
 fi
 mkdir -p "$prefix"
-npm install --prefix "$prefix" --no-audit --no-fund @babylonjs/core@9 @babylonjs/loaders@9
+npm install --prefix "$prefix" --no-audit --no-fund @babylonjs/core@9 @babylonjs/loaders@9 three@0.187
