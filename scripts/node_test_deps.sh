@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The npm packages of the optional node tests (tests/test_gltf_asset.py: Babylon.js's glTF
-# loader reads arlight's .glb), installed outside the repository, in
+# loader reads arlight's .glb; tests/test_engine_export_node.py: three.js evaluates the
+# webxr and main_light layouts), installed outside the repository, in
 # ${ARLIGHT_NODE_PREFIX:-$HOME/.cache/arlight-node}/node_modules, where the tests look
 # (or set ARLIGHT_NODE_MODULES). Without node/npm, or offline, the tests skip and say so.
 set -euo pipefail
