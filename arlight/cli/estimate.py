@@ -114,6 +114,20 @@ def add_parser(sub) -> None:
         "camera frame, OpenGL axes",
     )
     est.add_argument(
+        "--probe-out",
+        metavar="DIR",
+        help="write each frame's reflection probe (pipeline/probe.py) as OpenEXR cube maps "
+        "DIR/NNNNNN_<face>_m<level>.exr, every GGX-prefiltered mip level (linear HDR, half "
+        "float, world axes, OpenGL face order and orientation) and DIR/NNNNNN.json (point, "
+        "roughness per level, diagnostics); at --probe-at or the --scene objects' centre",
+    )
+    est.add_argument(
+        "--probe-at",
+        metavar="X,Y,Z",
+        help="the reflection probe's point, world frame, metres (default: the centre of "
+        "the --scene objects)",
+    )
+    est.add_argument(
         "--env-size",
         type=even_int_at_least_2,
         default=256,
@@ -168,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
     composites = output_folder(args.composite_out, "--composite-out")
     environments = output_folder(args.env_exr, "--env-exr")
     gltf_dir = output_folder(args.gltf, "--gltf")
+    probes = _probe_output(args, pipeline, scene)
     if args.cubemap and environments is None:
         raise BadInput("--cubemap writes faces beside the --env-exr maps: give --env-exr DIR")
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
@@ -206,6 +221,8 @@ def run(args: argparse.Namespace) -> int:
                 _write_environment(environments, i, result, args.env_size, args.cubemap)
             if gltf_dir is not None:
                 _write_gltf(gltf_dir / f"{i:06d}.glb", result, pipeline.last_probe)
+            if probes is not None and pipeline.last_probe is not None:
+                write_probe(probes / f"{i:06d}", pipeline.last_probe)
             if composites is not None:
                 image = result.composite if result.composite is not None else done.frame.color
                 cv2.imwrite(str(composites / f"{i:06d}.png"), image[..., ::-1])
@@ -226,6 +243,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {count(n, 'composite')} to {composites}/", file=sys.stderr)
     if gltf_dir is not None:
         print(f"wrote {count(n, 'glTF light')} to {gltf_dir}/ (.glb)", file=sys.stderr)
+    if probes is not None:
+        made = len(list(probes.glob("*.json")))
+        missing = "" if made == n else "; frames before the objects were placed have none"
+        print(
+            f"wrote {count(made, 'reflection probe')} to {probes}/ (OpenEXR cube maps and "
+            f"their mips){missing}",
+            file=sys.stderr,
+        )
     if environments is not None:
         print(
             f"wrote {count(n, 'environment map')} to {environments}/ (OpenEXR, half float"
@@ -303,6 +328,51 @@ def _write_environment(folder: Path, index: int, result, width: int, cubemap: bo
     if cubemap:
         for face, image in cubemap_from_sh(light, max(1, width // 4)).items():
             write_exr(folder / f"{index:06d}_{face}.exr", image)
+
+
+def _probe_output(args: argparse.Namespace, pipeline, scene) -> Path | None:
+    """--probe-at set on the pipeline and --probe-out's folder (None without it); BadInput
+    naming the flag for a bad point, or a probe with nowhere to be."""
+    from arlight.pipeline.probe import parse_point
+
+    if args.probe_at is not None:
+        try:
+            pipeline.probe_point = parse_point(args.probe_at, "--probe-at")
+        except ValueError as exc:
+            raise BadInput(str(exc)) from None
+    folder = output_folder(args.probe_out, "--probe-out")
+    if folder is None:
+        return None
+    if not pipeline.config.render.probe:
+        raise BadInput("--probe-out needs the probe: drop --set probe=false")
+    if args.probe_at is None and not scene:
+        raise BadInput("--probe-out needs a point: give --probe-at X,Y,Z or a --scene")
+    pipeline.probe_wanted = True
+    return folder
+
+
+def write_probe(stem: Path, probe) -> None:
+    """STEM_<face>_m<level>.exr for every face and mip level of a ProbeResult, and
+    STEM.json: the point (world, metres), each level's size and perceptual roughness (GGX,
+    alpha = roughness^2), the faces' order and convention, the probe's diagnostics."""
+    from arlight.pipeline.environment_map import CUBE_FACES
+    from arlight.sources.exr import write_exr
+
+    for level, faces in enumerate(probe.mips.levels):
+        for face, image in zip(CUBE_FACES, faces, strict=True):
+            write_exr(f"{stem}_{face}_m{level}.exr", image)
+    info = {
+        "point_world": [float(x) for x in probe.point_world],
+        "faces": list(CUBE_FACES),
+        "convention": "OpenGL cube map (table 8.19), world axes of the session, linear "
+        "radiance in the camera's linear image units",
+        "levels": [
+            {"size": int(n), "roughness": float(r)}
+            for n, r in zip(probe.mips.sizes, probe.mips.roughness, strict=True)
+        ],
+        "diagnostics": probe.diagnostics,
+    }
+    Path(f"{stem}.json").write_text(json.dumps(info, indent=1))
 
 
 def _write_gltf(path: Path, result, probe) -> None:
