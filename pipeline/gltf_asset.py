@@ -36,7 +36,6 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from arlight import __version__
 from arlight.pipeline import probe_cube, sh
 from arlight.pipeline.engine_export import engine_sh, main_light, to_gltf_ibl
 from arlight.pipeline.environment_map import CUBE_FACES, cube_face_directions
@@ -166,7 +165,7 @@ def light_asset(
     pos_view = buf.add(positions.tobytes(), _ARRAY_BUFFER)
     idx_view = buf.add(indices.tobytes(), _ELEMENT_ARRAY_BUFFER)
     gltf: dict = {
-        "asset": {"version": "2.0", "generator": f"arlight {__version__}"},
+        "asset": {"version": "2.0", "generator": "arlight"},
         "extensionsUsed": ["EXT_lights_image_based"],
         "extensions": {
             "EXT_lights_image_based": {
