@@ -32,15 +32,18 @@ import numpy as np
 
 from arlight.pipeline import sh
 from arlight.pipeline.color import LUMA
+from arlight.pipeline.compact_light import CompactLightStage
 from arlight.pipeline.config import Config, DiffMode
 from arlight.pipeline.pipeline import Pipeline
 from arlight.pipeline.rendering import DifferentialRenderer
 from arlight.pipeline.runtime import configure_process
+from arlight.pipeline.sun_shadows import SourceLight
 from arlight.sources.sequence import open_sequence
 from arlight.sources.virtual_scene_file import load_virtual_scene
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
-VARIANTS = ("input", "estimated", "gt_light", "paste")
+MAPS = DATA.parent / "hdri"
+VARIANTS = ("input", "estimated", "gt_light", "gt_sun", "paste")
 
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
@@ -72,6 +75,34 @@ def truth_light(frame_truth: dict, exposure: float) -> tuple[np.ndarray, np.ndar
     rgb = frame_truth["sh_rgb_world"]
     dc = np.maximum(np.asarray(json.loads(rgb) if isinstance(rgb, str) else rgb)[:, 0], 0.0)
     return l_gt, dc / max(float(LUMA @ dc), 1e-12)
+
+
+def truth_sun(
+    frame_truth: dict, exposure: float, l_gt: np.ndarray, maps_dir: Path
+) -> tuple[np.ndarray, list[SourceLight]]:
+    """The true light as the renderer's ambient SH plus the map's brightest compact region
+    as a source (arlight.synth.environment.brightest_compact_region): (ambient, [source])."""
+    from arlight.synth.environment import brightest_compact_region, load_map
+
+    name = frame_truth["env_map"]
+    region = brightest_compact_region(
+        _load_map(maps_dir / f"{name}.hdr", load_map), float(frame_truth["env_rotation_deg"])
+    )
+    power = region.power * exposure
+    bands = math.isqrt(len(l_gt))
+    ambient = l_gt - sh.directional_light(region.direction, power, bands)
+    radius = math.degrees(math.acos(max(-1.0, 1.0 - region.solid_angle_sr / (2 * math.pi))))
+    return ambient, [SourceLight(region.direction, power, np.ones(3), radius)]
+
+
+_MAPS: dict[Path, np.ndarray] = {}
+
+
+def _load_map(path: Path, load) -> np.ndarray:
+    if path not in _MAPS:
+        _MAPS.clear()
+        _MAPS[path] = load(path)
+    return _MAPS[path]
 
 
 def side_by_side(images: list[np.ndarray], names: list[str]) -> np.ndarray:
@@ -110,10 +141,27 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
             dataclasses.replace(inputs, light_sh=l_gt, light_rgb=rgb_gt)
         ).composite
         gt_ms = 1e3 * (time.perf_counter() - t0)
+        with_sun = with_gt
+        if "env_map" in truth["frames"][index] and MAPS.is_dir():
+            ambient, sources = truth_sun(
+                truth["frames"][index], truth["exposure_scale"], l_gt, MAPS
+            )
+            stage = pipeline._compact_stage or CompactLightStage(config.aux.aux_update_interval)
+            occluder = stage.occluder(seq.camera.unproject(inputs.depth_m), pipeline._volume)
+            with_sun = pipeline._renderer.render(
+                dataclasses.replace(
+                    inputs,
+                    light_sh=ambient,
+                    light_rgb=rgb_gt,
+                    sources=sources,
+                    real_occluder=occluder,
+                )
+            ).composite
         images = {
             "input": inputs.color,
             "estimated": output.composite,
             "gt_light": with_gt,
+            "gt_sun": with_sun,
             "paste": paste.render(inputs).composite,
         }
         name = f"{index:06d}.png"
@@ -146,11 +194,12 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
             cv2.imwrite(
                 str(out / f"{folder.name}_{preset}_{name}"),
                 side_by_side(
-                    [inputs.color, output.composite, with_gt, real_virtual, diff],
+                    [inputs.color, output.composite, with_gt, with_sun, real_virtual, diff],
                     [
                         "input",
                         "ours (estimated light)",
-                        "ours (true light)",
+                        "ours (true SH)",
+                        "ours (true SH + sun)",
                         "path-traced truth",
                         "4x |ours - truth|",
                     ],

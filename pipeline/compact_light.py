@@ -320,6 +320,10 @@ class CompactLightStage:
 
         self._scenes = ObjectSpaceTransfer(update_interval)
 
+    def occluder(self, points_cam: np.ndarray, volume):
+        """The reconstruction as an OcclusionScene (cached: see the class docstring)."""
+        return self._scenes.scene(points_cam, volume)
+
     def fit(
         self,
         fit_state,
@@ -336,7 +340,7 @@ class CompactLightStage:
         """(the fit, rays cast) for an estimate's FitState; points_cam, normals_cam: (H, W, 3)
         the frame's filtered geometry (camera frame); pixel_v, pixel_u: the fitted samples'
         pixels (FitState.rows index them); pose: world_from_cam (4, 4)."""
-        scene = self._scenes.scene(points_cam, volume)
+        scene = self.occluder(points_cam, volume)
         v, u = pixel_v[fit_state.rows], pixel_u[fit_state.rows]
         rot, origin = pose[:3, :3], pose[:3, 3]
         points = points_cam[v, u].astype(np.float64) @ rot.T + origin

@@ -312,6 +312,7 @@ class EstimationParams:
     compact_min_gain: float = 0.03  # of the SH fit's weighted residual its shadow must explain
     compact_candidates: int = 256  # directions tested over the upper hemisphere
     compact_search_samples: int = 4000  # fitted pixels whose shadows are tested per direction
+    compact_render: bool = True  # draw them with hard shadows both ways (pipeline/sun_shadows.py)
 
     def __post_init__(self) -> None:
         _check_float(self, "regularization", 0.0)
@@ -345,6 +346,7 @@ class EstimationParams:
         _check_float(self, "compact_min_gain", 0.0)
         _check_int(self, "compact_candidates", 8, 4096)
         _check_int(self, "compact_search_samples", 100)
+        _check_bool(self, "compact_render")
 
 
 @dataclass(frozen=True)

@@ -70,6 +70,7 @@ from arlight.pipeline.rendering import (
 from arlight.pipeline.runtime import require_device
 from arlight.pipeline.segmentation import material_segments
 from arlight.pipeline.still import StillCamera
+from arlight.pipeline.sun_shadows import SourceLight
 from arlight.pipeline.virtual_scene import VirtualScene, resolve_anchors
 
 log = logging.getLogger(__name__)
@@ -517,9 +518,32 @@ class Pipeline:
             environment,
             probe,
         )
+        if render_light is None:
+            self._with_compact_sources(inputs, geometry)
         output = self._renderer.render(inputs)
         self.last_render = (inputs, output)
         return output.composite
+
+    def _with_compact_sources(self, inputs: RenderInputs, geometry: _Geometry) -> None:
+        """The frame's compact sources drawn with their shadows (compact_render): taken out
+        of inputs.light_sh (which held their light in its SH) and given as sources, with the
+        reconstruction that shadows them."""
+        fit = self.last_compact
+        if fit is None or not fit.sources or not self.config.estimation.compact_render:
+            return
+        assert self._compact_stage is not None  # it made `fit`
+        scale = math.pi / self.config.render.render_real_albedo
+        n = len(inputs.light_sh)
+        bands = math.isqrt(n)
+        ambient = np.array(inputs.light_sh, np.float64)
+        for s in fit.sources:
+            ambient -= scale * s.sh(bands)[:n]
+            # its colour: the light's (inputs.light_rgb), as the SH's
+            inputs.sources.append(
+                SourceLight(s.direction, scale * s.intensity, np.ones(3), s.angular_radius_deg)
+            )
+        inputs.light_sh = ambient
+        inputs.real_occluder = self._compact_stage.occluder(geometry.points, self._volume)
 
     def _render_light(
         self, coeffs: np.ndarray, estimate: LightEstimate, render_light: RenderLight | None

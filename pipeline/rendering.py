@@ -51,6 +51,7 @@ from arlight.pipeline.radiance_transfer import (
     transfer_at_pixels,
     unoccluded_quadrature_error,
 )
+from arlight.pipeline.sun_shadows import CompactSourceShading, RealOccluder, SourceLight
 from arlight.pipeline.virtual_gbuffer import VirtualGBuffer, VirtualRaycaster
 from arlight.pipeline.virtual_scene import VirtualScene
 
@@ -89,6 +90,10 @@ class RenderInputs:
     light_rgb: np.ndarray = dataclasses.field(default_factory=lambda: np.ones(3))
     environment: EnvironmentMap | None = None
     probe: ProbeResult | None = None
+    # compact sources drawn with their hard shadows both ways (sun_shadows), light_sh then
+    # being the rest of the light; the reconstruction that shadows them (OcclusionScene)
+    sources: list[SourceLight] = dataclasses.field(default_factory=list)
+    real_occluder: RealOccluder | None = None
 
 
 @dataclass(frozen=True)
@@ -141,12 +146,38 @@ class DifferentialRenderer:
         )
         self.pattern = make_sampling_pattern(self.transfer_params, config.seed + 1)
         self.raycaster = VirtualRaycaster(scene)
+        self._compact = CompactSourceShading(
+            [(o.world_vertices(), o.triangles) for o in scene.objects]
+        )
         # per object, made when an environment map first lights them
         self._shadings: list[Shading] | None = None
         self._looks: list[Glossiness] | None = None  # per object, for the probe's shading
 
     def render(self, frame: RenderInputs) -> RenderOutput:
-        """The composite of one frame (see the module docstring)."""
+        """The composite of one frame (see the module docstring), with the compact
+        sources' hard shadows (frame.sources) drawn on it."""
+        out = self._render_sh(frame)
+        if not frame.sources or self.config.render.render_mode is DiffMode.PASTE:
+            return out
+        g = out.gbuffer
+        changed = self._compact.apply(
+            out.composite,
+            out.virtual_mask,
+            g.normals_cam,
+            g.albedo,
+            self.camera.unproject(np.where(out.virtual_mask, g.depth_m, 0.0).astype(np.float32)),
+            self.camera.unproject(frame.depth_m),
+            frame.normals_cam,
+            frame.world_from_cam,
+            frame.light_sh,
+            frame.light_rgb,
+            frame.sources,
+            frame.real_occluder,
+        )
+        return RenderOutput(out.composite, out.virtual_mask, out.region | changed, g)
+
+    def _render_sh(self, frame: RenderInputs) -> RenderOutput:
+        """The composite lit by frame.light_sh (see the module docstring)."""
         cam, pose = self.camera, frame.world_from_cam
         r = self.config.render
         g = self.raycaster.camera_gbuffer(cam, pose)

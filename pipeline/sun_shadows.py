@@ -16,6 +16,8 @@ rest of the light (the ambient SH's irradiance).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import open3d as o3d
@@ -101,3 +103,147 @@ def real_surface_factor(
     before = e + s * visible_real
     after = e + s * visible_real * visible_virtual
     return np.where(before > 1e-12, after / np.maximum(before, 1e-12), 1.0)
+
+
+@dataclass(frozen=True)
+class SourceLight:
+    """A compact source as the renderer draws it: direction (3,) unit, world frame, towards
+    it; irradiance: on a surface facing it, linear image units (the renderer's light_sh
+    scale); rgb: (3,) its colour relative to the renderer's light_rgb (ones: the same);
+    angular_radius_deg."""
+
+    direction: np.ndarray
+    irradiance: float
+    rgb: np.ndarray
+    angular_radius_deg: float
+
+
+class RealOccluder(Protocol):
+    """The reconstruction as an occluder (object_space_transfer.OcclusionScene)."""
+
+    in_world: bool
+
+    def blocked(self, rays: np.ndarray, tnear: float, tfar: float) -> np.ndarray: ...
+
+
+def real_visibility(
+    occluder: RealOccluder | None,
+    points_world: np.ndarray,
+    normals_world: np.ndarray,
+    direction: np.ndarray,
+    world_from_cam: np.ndarray,
+) -> np.ndarray:
+    """(N,) 1 where the ray towards `direction` leaves the reconstruction, 0 where it is
+    blocked (one ray at the source's centre: the real penumbra is in the image already);
+    all 1 without an occluder."""
+    n = len(points_world)
+    if occluder is None or n == 0:
+        return np.ones(n)
+    origins = points_world + 2.0 * RAY_OFFSET_M * normals_world
+    d = np.asarray(direction, np.float64)
+    if not occluder.in_world:  # a depth image's mesh: camera frame
+        rot, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
+        origins, d = (origins - t) @ rot, d @ rot
+    rays = np.empty((n, 6), np.float32)
+    rays[:, :3] = origins
+    rays[:, 3:] = d
+    return (~occluder.blocked(rays, 2.0 * RAY_OFFSET_M, 100.0)).astype(np.float64)
+
+
+class CompactSourceShading:
+    """A virtual scene's shadows from compact sources, both ways, on a composite.
+
+    Virtual pixels gain albedo / pi * S V_virtual V_real (S = irradiance max(0, n . w));
+    real pixels facing the source are scaled by `real_surface_factor` where a virtual
+    object blocks it. Rays: every real pixel facing the source at the disc's centre, then
+    `samples` over the disc for those near a blocked one (the penumbra)."""
+
+    def __init__(self, meshes: list[tuple[np.ndarray, np.ndarray]], samples: int = 8):
+        self.virtual = MeshOccluder(meshes)
+        self.samples = samples
+
+    def apply(
+        self,
+        composite: np.ndarray,
+        virtual: np.ndarray,
+        virtual_normals_cam: np.ndarray,
+        virtual_albedo: np.ndarray,
+        virtual_points_cam: np.ndarray,
+        real_points_cam: np.ndarray,
+        real_normals_cam: np.ndarray,
+        world_from_cam: np.ndarray,
+        ambient_sh: np.ndarray,
+        light_rgb: np.ndarray,
+        sources: list[SourceLight],
+        real_occluder: RealOccluder | None,
+    ) -> np.ndarray:
+        """Shade `composite` ((H, W, 3) uint8 sRGB, in place); returns the (H, W) bool mask
+        of the pixels changed. Points and normals: camera frame (zeros: none)."""
+        from arlight.pipeline import sh
+        from arlight.pipeline.color import srgb_to_linear
+        from arlight.pipeline.rendering import linear_to_srgb_u8
+
+        changed = np.zeros(virtual.shape, bool)
+        rot, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
+        real = ~virtual & (real_points_cam[..., 2] > 0) & np.any(real_normals_cam != 0, axis=2)
+        for source in sources:
+            d = np.asarray(source.direction, np.float64)
+            colour = np.asarray(source.rgb, np.float64) * np.asarray(light_rgb, np.float64)
+            # virtual pixels: the source's light past their own and the real scene's shadow
+            vv, vu = np.nonzero(virtual)
+            if len(vv):
+                p = virtual_points_cam[vv, vu].astype(np.float64) @ rot.T + t
+                n = virtual_normals_cam[vv, vu].astype(np.float64) @ rot.T
+                cos = np.maximum(n @ d, 0.0)
+                seen = self.virtual.visibility(p, n, d, source.angular_radius_deg, self.samples)
+                seen *= real_visibility(real_occluder, p, n, d, world_from_cam)
+                add = (source.irradiance * cos * seen)[:, None] * colour
+                albedo = virtual_albedo[vv, vu].astype(np.float64)
+                linear = srgb_to_linear(composite[vv, vu]).astype(np.float64)
+                composite[vv, vu] = linear_to_srgb_u8(linear + albedo / math.pi * add)
+                changed[vv, vu] = True
+            # real pixels facing the source: the virtual objects' shadow
+            if self.virtual.empty:
+                continue
+            rv, ru = np.nonzero(real)
+            p = real_points_cam[rv, ru].astype(np.float64) @ rot.T + t
+            n = real_normals_cam[rv, ru].astype(np.float64) @ rot.T
+            cos = n @ d
+            facing = cos > 0.0
+            rv, ru, p, n, cos = rv[facing], ru[facing], p[facing], n[facing], cos[facing]
+            seen = self.virtual.visibility(p, n, d, 0.0, 1)
+            near = _near_blocked(seen < 1.0, rv, ru, virtual.shape)
+            if np.any(near):
+                seen[near] = self.virtual.visibility(
+                    p[near], n[near], d, source.angular_radius_deg, self.samples
+                )
+            shadowed = seen < 1.0
+            if not np.any(shadowed):
+                continue
+            rv, ru, p, n, cos, seen = (
+                rv[shadowed],
+                ru[shadowed],
+                p[shadowed],
+                n[shadowed],
+                cos[shadowed],
+                seen[shadowed],
+            )
+            ambient = np.maximum(sh.evaluate(sh.irradiance_from_radiance(ambient_sh), n), 0.0)
+            real_seen = real_visibility(real_occluder, p, n, d, world_from_cam)
+            factor = real_surface_factor(ambient, source.irradiance * cos, seen, real_seen)
+            linear = srgb_to_linear(composite[rv, ru]).astype(np.float64)
+            composite[rv, ru] = linear_to_srgb_u8(linear * factor[:, None])
+            changed[rv, ru] |= factor != 1.0
+        return changed
+
+
+def _near_blocked(
+    blocked: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, ...]
+) -> np.ndarray:
+    """(N,) the pixels (rows, cols) within 2 pixels of one whose centre ray is blocked."""
+    import cv2
+
+    mask = np.zeros(shape[:2], np.uint8)
+    mask[rows[blocked], cols[blocked]] = 1
+    grown = cv2.dilate(mask, np.ones((5, 5), np.uint8)).astype(bool)
+    return grown[rows, cols]

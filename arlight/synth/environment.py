@@ -133,11 +133,14 @@ def to_file_convention(coeffs: np.ndarray) -> list:
 class CompactRegion:
     """The brightest compact region of a map (world frame): direction (3,) unit, the
     luminance-weighted mean of its texels; solid_angle_sr; share: its part of the irradiance
-    on a surface facing it from the upper hemisphere (world y > 0)."""
+    on a surface facing it from the upper hemisphere (world y > 0); power: its luminance
+    integrated over its solid angle (the map's units; the irradiance it brings to a surface
+    facing it)."""
 
     direction: np.ndarray
     solid_angle_sr: float
     share: float
+    power: float = 0.0
 
 
 # a compact source: texels within this angle of the brightest one, at least this fraction of
@@ -165,4 +168,4 @@ def brightest_compact_region(radiance: np.ndarray, rotation_deg: float) -> Compa
     cos = np.maximum(world @ direction, 0.0)
     total = float(np.sum(lum_upper * weights * cos))
     share = float(np.sum(power * cos[region])) / max(total, 1e-30)
-    return CompactRegion(direction, float(weights[region].sum()), share)
+    return CompactRegion(direction, float(weights[region].sum()), share, float(power.sum()))
