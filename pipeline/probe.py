@@ -131,6 +131,7 @@ class ProbeStage:
         grid, regridded = self._grid_for(point)
         if not self.settings.memory:
             grid.weight[...] = 0.0
+            grid.invalidate()
         fused = grid.update(depth_m, colour_linear, world_from_cam, self.camera)
         return {"regridded": regridded, "points_fused": fused}
 

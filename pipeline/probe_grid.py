@@ -280,6 +280,7 @@ class RoomGrid:
         self.origin = self.centre - 0.5 * self.cells * self.cell_m
         self.colour = np.zeros((self.cells,) * 3 + (3,), np.float32)
         self.weight = np.zeros((self.cells,) * 3, np.float32)
+        self._blocks: np.ndarray | None = None  # `_block_map`
 
     def half_extent_m(self) -> float:
         return 0.5 * self.cells * self.cell_m
@@ -301,6 +302,7 @@ class RoomGrid:
     ) -> int:
         """Carve, then fuse one frame (depth (H, W) metres, 0 = none; colour (H, W, 3) linear).
         Returns the number of points fused."""
+        self._blocks = None
         depth = np.ascontiguousarray(np.nan_to_num(depth_m, nan=0.0, posinf=0.0), np.float32)
         # the nearest depth about each pixel (3x3; 0 = unknown stays out of the minimum)
         far = np.where(depth > 0, depth, np.float32(np.inf))
@@ -335,6 +337,19 @@ class RoomGrid:
             )
         )
 
+    def _block_map(self) -> np.ndarray:
+        """Which blocks hold surface: made on the first march after an `update` (or after
+        `weight` was edited and `invalidate` called)."""
+        if self._blocks is None:
+            nb = -(-self.cells // BLOCK)
+            self._blocks = np.zeros((nb, nb, nb), np.bool_)
+            _block_occupancy(self.weight, BLOCK, self._blocks)
+        return self._blocks
+
+    def invalidate(self) -> None:
+        """Forget the block map (after editing `weight` by hand)."""
+        self._blocks = None
+
     def occupied(self, point_world: np.ndarray) -> bool:
         """Whether the cell holding a point is surface (False outside the grid)."""
         i = np.floor((np.asarray(point_world, np.float64) - self.origin) / self.cell_m).astype(int)
@@ -350,9 +365,7 @@ class RoomGrid:
         t = np.full(len(d), np.inf)
         rgb = np.zeros((len(d), 3), np.float32)
         if len(d):
-            nb = -(-self.cells // BLOCK)
-            blocks = np.zeros((nb, nb, nb), np.bool_)
-            _block_occupancy(self.weight, BLOCK, blocks)
+            blocks = self._block_map()
             _march_kernel(
                 o, d, self.origin, self.cell_m, self.weight, blocks, BLOCK, self.colour, t, rgb
             )

@@ -156,6 +156,7 @@ class TestRoomGrid:
         rng = np.random.default_rng(3)
         grid = RoomGrid(np.zeros(3), cells=24, cell_m=0.1)
         grid.weight[rng.random(grid.weight.shape) < 0.01] = 1.0
+        grid.invalidate()
         origins = rng.uniform(-1.0, 1.0, (300, 3))
         dirs = rng.normal(size=(300, 3))
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
