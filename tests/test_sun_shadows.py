@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -97,3 +98,61 @@ def test_real_surface_factor() -> None:
 def test_empty_occluder_sees_everything() -> None:
     points, normals = _ground(extent=0.1, step=0.05)
     assert np.all(MeshOccluder([]).visibility(points, normals, _sun(30, 0), 0.27) == 1.0)
+
+
+# ------------------------------------------------------------------ in the composite
+def _pole_scene(height: float, half_width: float):
+    import open3d as o3d
+    from test_rendering import SPHERE_ALBEDO
+
+    from arlight.pipeline.virtual_scene import Material, VirtualScene, object_from_open3d
+
+    box = o3d.geometry.TriangleMesh.create_box(2 * half_width, height, 2 * half_width)
+    box.translate((-half_width, 0.0, -half_width))
+    box.compute_vertex_normals()
+    pole = object_from_open3d("pole", box, np.eye(4), Material((SPHERE_ALBEDO,) * 3))
+    return VirtualScene((pole,))
+
+
+@pytest.mark.parametrize("azimuth", [30.0, 150.0])
+def test_virtual_pole_shadow_in_the_composite(azimuth: float) -> None:
+    """A 0.4 m virtual pole on the real ground under a known sun (a compact source): the
+    ground it darkens lies away from the sun within 2 degrees and reaches h / tan(elevation)
+    within 5 %; the same light as SH alone (the SSDO differential) casts no such shadow."""
+    from test_rendering import UP, darkened, frame_inputs, ground_view
+
+    from arlight.pipeline import sh
+    from arlight.pipeline.config import Config
+    from arlight.pipeline.rendering import DifferentialRenderer
+    from arlight.pipeline.sun_shadows import SourceLight
+
+    height, half_width, elevation = 0.4, 0.01, 35.0
+    view = ground_view(320, 240, distance_m=1.6, tilt_deg=70.0)
+    sun = _sun(elevation, azimuth)
+    ambient = np.zeros(16)
+    ambient[0] = 0.1 / sh.sh_basis(UP, 1)[0]
+    total = ambient + sh.directional_light(sun, 2.0, 4)
+    renderer = DifferentialRenderer(_pole_scene(height, half_width), view.camera, Config())
+    inputs = frame_inputs(view, total)  # the real ground as lit by ambient + sun
+    with_source = dataclasses.replace(
+        inputs, light_sh=ambient, sources=[SourceLight(sun, 2.0, np.ones(3), 0.27)]
+    )
+    out = renderer.render(with_source)
+    dark = darkened(with_source, out, 0.3)
+    vv, uu = np.nonzero(dark)
+    # rays_world have camera z = 1: a pixel's point is its ray times its depth
+    points = view.world_from_cam[:3, 3] + view.rays_world[vv, uu] * view.depth_m[vv, uu, None]
+    away = -np.array([sun[0], sun[2]]) / np.hypot(sun[0], sun[2])
+    flat = points[:, [0, 2]]
+    along = flat @ away
+    tip = flat[np.argmax(along)]
+    assert math.degrees(math.acos(np.clip(tip @ away / np.linalg.norm(tip), -1, 1))) < 2.0
+    expected = height / math.tan(math.radians(elevation)) + half_width
+    assert abs(along.max() - expected) / expected < 0.05
+    # the SH alone (4 bands of the same light): nothing darkened at the shadow's far half
+    sh_only = renderer.render(inputs)
+    far = darkened(inputs, sh_only, 0.3)
+    vv, uu = np.nonzero(far)
+    if len(vv):
+        p = view.world_from_cam[:3, 3] + view.rays_world[vv, uu] * view.depth_m[vv, uu, None]
+        assert (p[:, [0, 2]] @ away).max() < 0.5 * expected
