@@ -21,6 +21,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from arlight.core.camera import PinholeCamera
 from arlight.pipeline.config import Config, RtMethod
 from arlight.pipeline.pipeline import CANDIDATES_PER_SAMPLE
@@ -45,6 +47,53 @@ SAMPLE_BYTES_PER_COEFFICIENT = 8 * 6  # float64 design matrix and its weighted c
 # a panorama's light (pipeline/ibl.py lighting_from_ldr: 36 bytes per pixel at its peak,
 # measured with tracemalloc at 1024..4096 wide) plus the decoded image
 PANORAMA_BYTES_PER_PIXEL = 40
+
+
+# The virtual scene's geometry (issue 39, item 2): Open3D's ray casting (Embree) builds a BVH
+# of the scene's triangles, then each ray tests the triangles of the leaves it passes. A
+# leaf cannot be split where triangles share a place: 2 M triangles all at [0, 0, 0] cost
+# 35-47 s a frame at 160 x 120 (priced by the object count at 0.002 s). Measured on the
+# development machine (docs/reliability.md): 2 M small scattered triangles, BVH built and
+# 160 x 120 rays cast in 2.0 s (1 us a triangle); 80 000 triangles sharing one centroid,
+# 19 200 rays, 19 s (13 ns a ray-triangle test).
+RENDER_S_PER_TRIANGLE = 1e-6
+RENDER_S_PER_TEST = 13e-9
+CELLS_PER_SIDE = 4096  # the grid `densest_cell` counts centroids in, along an object's extent
+HASH_BINS = 2**22
+
+
+def densest_cell(vertices: np.ndarray, triangles: np.ndarray) -> int:
+    """The most triangles whose centroids fall in one cell of a grid of CELLS_PER_SIDE cells
+    along the object's largest extent (its vertices' bounding box, object frame): about the
+    triangles one ray may have to test where they crowd. vertices: (N, 3), triangles: (M, 3)
+    indices into them (checked)."""
+    if len(triangles) == 0:
+        return 0
+    v = np.asarray(vertices, dtype=np.float32)
+    t = np.asarray(triangles)
+    centroids = v[t[:, 0]] + v[t[:, 1]] + v[t[:, 2]]  # x 3: the grid scales with them
+    lo = centroids.min(axis=0)
+    extent = 3.0 * float(np.max(v.max(axis=0) - v.min(axis=0)))
+    cell = max(extent / CELLS_PER_SIDE, 1e-12)
+    q = np.minimum(((centroids - lo) / cell).astype(np.int64), CELLS_PER_SIDE)
+    keys = (q[:, 0] * (CELLS_PER_SIDE + 1) + q[:, 1]) * (CELLS_PER_SIDE + 1) + q[:, 2]
+    # counted in 2^22 bins (a hash of the cell: cells sharing a bin add up, so the figure
+    # errs high, by a few at 2 M triangles), no sort
+    return int(np.bincount(keys % HASH_BINS, minlength=1).max())
+
+
+@dataclass(frozen=True)
+class SceneLoad:
+    """What a session's virtual scene asks of the ray caster: its triangles, and the sum over
+    its objects of their densest cell (`densest_cell`: they may overlap where placed)."""
+
+    triangles: int = 0
+    crowded: int = 0
+
+    @classmethod
+    def of(cls, objects: list[tuple[np.ndarray, np.ndarray]]) -> SceneLoad:
+        """objects: (vertices, triangles) of each object."""
+        return cls(sum(len(t) for _, t in objects), sum(densest_cell(v, t) for v, t in objects))
 
 
 class BudgetError(ValueError):
@@ -87,17 +136,20 @@ class SessionBudget:
         pipeline: Config,
         camera: PinholeCamera | None,
         objects: int = 0,
+        scene: SceneLoad | None = None,
     ) -> SessionCost:
         """The session's cost; SessionSetupError (code over_budget) naming the setting that
         costs most when it is over either budget."""
         from arlight.server.session import SessionSetupError
 
         try:
-            return check_cost(pipeline, camera, objects, self)
+            return check_cost(pipeline, camera, objects, self, scene)
         except BudgetError as exc:
             keys = set(config.overrides or {})
             field = (
-                "calibration"
+                "scene"
+                if exc.setting == "scene"
+                else "calibration"
                 if exc.setting == "calibration" or camera is None
                 else f"overrides.{exc.setting}"
                 if exc.setting in keys
@@ -223,31 +275,50 @@ def _setting(factor: str, c: Config) -> str:
 
 
 def check_cost(
-    c: Config, camera: PinholeCamera | None, objects: int, budget: SessionBudget
+    c: Config,
+    camera: PinholeCamera | None,
+    objects: int,
+    budget: SessionBudget,
+    scene: SceneLoad | None = None,
 ) -> SessionCost:
     """The modelled cost of a session; BudgetError naming the costliest setting when a
-    frame would take longer than the deadline or the session need more than its memory."""
+    frame would take longer than the deadline or the session need more than its memory.
+    scene: the virtual scene's geometry (its BVH and crowded triangles add to Rendering)."""
     pixels = 0.0 if camera is None else float(camera.width * camera.height)
     stage_s: dict[str, float] = {}
     blame: dict[str, str] = {}
     for stage, factors in _factors(c, pixels, objects).items():
         stage_s[stage] = REFERENCE_STAGE_MS[stage] / 1e3 * math.prod(factors.values())
         blame[stage] = max(factors, key=lambda k: factors[k])
+    if scene is not None and objects and scene.triangles:
+        rays = pixels / c.render.render_subsample**2
+        geometry_s = (
+            scene.triangles * RENDER_S_PER_TRIANGLE + rays * scene.crowded * RENDER_S_PER_TEST
+        )
+        if geometry_s > stage_s["Rendering"]:
+            blame["Rendering"] = "scene"
+        stage_s["Rendering"] += geometry_s
     if camera is None:  # panorama-only: no RGB-D pipeline
         stage_s = dict.fromkeys(stage_s, 0.0)
     total = sum(stage_s.values())
     if total > budget.frame_deadline_s:
         stage = max(stage_s, key=lambda k: stage_s[k])
-        setting = _setting(blame[stage], c)
-        value = "" if setting == "calibration" else f"={c.flat().get(setting)!r}"
+        setting = "scene" if blame[stage] == "scene" else _setting(blame[stage], c)
+        value = "" if setting in ("calibration", "scene") else f"={c.flat().get(setting)!r}"
         size = "" if camera is None else f" at {camera.width} x {camera.height}"
+        advice = (
+            f"lower {setting} or choose a cheaper preset"
+            if setting != "scene" or scene is None
+            else f"the scene's {scene.triangles} triangles crowd up to {scene.crowded} in "
+            "one place: simplify the meshes, remove degenerate or duplicated triangles"
+        )
         raise BudgetError(
             setting,
             (
                 f"{setting}{value}: a frame{size} would take about {total:.0f} s "
                 f"({stage} {stage_s[stage]:.0f} s, by the server's cost model), over the "
                 f"per-frame deadline of {budget.frame_deadline_s:g} s (`arlight serve "
-                f"--frame-deadline`); lower {setting} or choose a cheaper preset"
+                f"--frame-deadline`); {advice}"
             ),
         )
     v = c.volume

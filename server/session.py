@@ -44,7 +44,7 @@ from arlight.pipeline.virtual_scene import (
     demo_scene,
 )
 from arlight.protocols import PanoramaConfig, SceneObjectSpec, SessionConfig
-from arlight.server.budget import SessionBudget, SessionCost
+from arlight.server.budget import SceneLoad, SessionBudget, SessionCost
 from arlight.server.frame_queue import FrameQueue, Job
 from arlight.server.worker import (  # PipelineLost: arlight/ray_serve.py imports it from here
     OverBudget,
@@ -276,10 +276,15 @@ class SessionSetup:
         camera = None if config.calibration is None else camera_from_config(config, max_pixels)
         panorama_light = panorama_light_from_config(config)
         scene = scene_from_config(config)
+        load = (
+            None
+            if scene is None or budget is None
+            else SceneLoad.of([(o.vertices, o.triangles) for o in scene.objects])
+        )
         cost = (
             None
             if budget is None
-            else budget.check(config, pipeline, camera, len(scene.objects) if scene else 0)
+            else budget.check(config, pipeline, camera, len(scene.objects) if scene else 0, load)
         )
         if not (np.isfinite(config.depth_scale) and config.depth_scale > 0):
             raise SessionSetupError(

@@ -145,3 +145,56 @@ def test_a_wide_but_real_lens_is_welcome(make_server):
     )
     assert type(peer.receive(10)).__name__ == "Welcome"
     peer.close()
+
+
+def _scene_hello(session: str, vertices, triangles, width: int = 160, height: int = 120):
+    from arlight.protocols import SceneObjectSpec, SceneSpec
+
+    normals = np.tile(np.array([[0.0, 0.0, -1.0]], np.float32), (len(vertices), 1))
+    spec = SceneObjectSpec(
+        "crowd",
+        np.asarray(vertices, np.float32),
+        np.asarray(triangles, np.uint32),
+        normals,
+        world_from_object=np.eye(4),
+    )
+    return Hello(
+        PROTOCOL_VERSION,
+        SessionConfig(
+            session=session,
+            role="capture",
+            calibration=calibration_of(PinholeCamera.kinect_v1(width, height)),
+            depth_scale=5000.0,
+            scene=SceneSpec((spec,)),
+        ),
+    )
+
+
+def test_a_scene_of_crowded_triangles_is_priced_and_refused(make_server):
+    """2 M triangles all at [0, 0, 0]: 35-47 s a frame at 160 x 120 when the cost model
+    priced the scene by its object count (0.002 s)."""
+    server = make_server(identity_step())
+    attacker = RawPeer(server.connect_address)
+    crowd = _scene_hello("crowd", np.zeros((3, 3)), np.zeros((2_000_000, 3), np.int64))
+    with LegitStream(server.connect_address) as legit:
+        attacker.send_message(crowd)
+        reply = attacker.receive(60)
+        time.sleep(0.5)
+    legit.assert_served()
+    attacker.close()
+    assert isinstance(reply, Error), reply
+    assert (reply.code, reply.field) == ("over_budget", "hello.config.scene")
+    assert "crowd up to 2000000 in one place" in reply.message
+
+
+def test_a_plain_scene_is_welcome(make_server):
+    import open3d as o3d
+
+    server = make_server(identity_step())
+    box = o3d.geometry.TriangleMesh.create_sphere(0.2, resolution=200)  # 80 k triangles
+    peer = RawPeer(server.connect_address)
+    peer.send_message(
+        _scene_hello("plain", np.asarray(box.vertices) + [0, 0, 1.5], np.asarray(box.triangles))
+    )
+    assert type(peer.receive(30)).__name__ == "Welcome"
+    peer.close()
