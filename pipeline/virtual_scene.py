@@ -325,7 +325,8 @@ def _scale(obj: VirtualObject) -> float:
 
 
 def demo_scene(image_size: tuple[int, int] | None = None) -> VirtualScene:
-    """The demo's objects: a grey sphere and an upright orange torus (non-convex), anchored
+    """The demo's objects: a chrome sphere (a mirror: it reflects the room through the
+    reflection probe, pipeline/probe.py) and an upright orange torus (non-convex), anchored
     on the support plane left and right of the view's centre, a little below it: at the
     same fractions of any image (None, what a server's session uses: 160x120 to 1280x720
     alike), or at those pixels of an image of image_size (width, height)."""
@@ -337,7 +338,7 @@ def demo_scene(image_size: tuple[int, int] | None = None) -> VirtualScene:
         return Anchor((at[i][0] * image_size[0], at[i][1] * image_size[1]), yaw_deg)
 
     sphere = object_from_open3d(
-        "sphere", sphere_mesh(0.12), np.eye(4), Material((0.6, 0.6, 0.6)), anchor(0)
+        "sphere", sphere_mesh(0.12), np.eye(4), Material((0.9, 0.9, 0.9), mirror=True), anchor(0)
     )
     torus = object_from_open3d(
         "torus",
