@@ -21,8 +21,14 @@ a ``KHR_lights_punctual`` directional light.
   linear radiance v is stored as rgb = (v D)^(1/2.2), alpha = D, D = min(1, floor(255 /
   max(v)) / 255) >= 1/255 (Babylon ``helperFunctions`` ``toRGBD``/``fromRGBD``:
   v = rgb^2.2 / alpha), so values up to 255 fit; units: the SH's radiance units;
-- frame: the engine's (right-handed, +y up): ``engine_from_world`` as in engine_export,
-  ``rotation`` the identity.
+- frame: the asset's geometry (the sphere, the main light's node) in glTF's axes
+  (right-handed, +y up, +z the front): ``engine_from_world`` as in engine_export; the
+  light's coefficients and cube faces in those axes mirrored in x (FILE_FROM_GLTF), the
+  frame Babylon.js, the extension's reference loader, reads them in for its default
+  (left-handed) scene, whose glTF root node turns the asset by (x, y, z) -> (-x, y, z) and
+  leaves the environment as it is; in a right-handed Babylon scene
+  (``useRightHandedSystem``) the light shows turned 180 degrees about +y (decision 0040,
+  measured in tests/test_gltf_render.py); ``rotation`` the identity.
 """
 
 from __future__ import annotations
@@ -40,6 +46,8 @@ from arlight.pipeline import probe_cube, sh
 from arlight.pipeline.engine_export import engine_sh, main_light, to_gltf_ibl
 from arlight.pipeline.environment_map import CUBE_FACES, cube_face_directions
 
+# the light's axes in the file from glTF's: x mirrored (docs/decisions/0040-gltf-light-axes.md)
+FILE_FROM_GLTF = np.diag([-1.0, 1.0, 1.0])
 SPECULAR_SIZE = 64  # texels a face of mip 0 when made from the SH (mips 64, 32, 16, 8, 4)
 RGBD_MAX = 255.0  # the largest radiance RGBD packs (Babylon's rgbdMaxRange)
 SPHERE_SEGMENTS = (48, 24)  # longitude, latitude
@@ -147,9 +155,11 @@ def light_asset(
     with_main_light: also a KHR_lights_punctual directional light along direction_world
     (the Result's dominant direction; engine_export.main_light), which lights the sphere a
     second time on top of the image-based light (for engines' shadows)."""
-    c = engine_sh(np.asarray(sh_world, np.float64), engine_from_world, keep_bands=True)
-    ibl = to_gltf_ibl(c)  # already in the engine's axes
-    mips = specular_mips(c, probe, engine_from_world)
+    gltf_from_world = np.eye(3) if engine_from_world is None else engine_from_world
+    file_from_world = FILE_FROM_GLTF @ np.asarray(gltf_from_world, np.float64)
+    c = engine_sh(np.asarray(sh_world, np.float64), file_from_world, keep_bands=True)
+    ibl = to_gltf_ibl(c)  # already in the file's axes
+    mips = specular_mips(c, probe, file_from_world)
     buf = _Bin()
     images, spec = [], []
     for level in mips.levels:

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The npm packages of the optional node tests (tests/test_gltf_asset.py: Babylon.js's glTF
-# loader reads arlight's .glb; tests/test_engine_export_node.py: three.js evaluates the
-# webxr and main_light layouts), installed outside the repository, in
+# loader reads arlight's .glb; tests/test_gltf_render.py: Babylon's browser build renders it
+# in headless Chromium; tests/test_engine_export_node.py: three.js evaluates the webxr and
+# main_light layouts), installed outside the repository (about 350 MB), in
 # ${ARLIGHT_NODE_PREFIX:-$HOME/.cache/arlight-node}/node_modules, where the tests look
 # (or set ARLIGHT_NODE_MODULES). Without node/npm, or offline, the tests skip and say so.
 set -euo pipefail
@@ -11,4 +12,5 @@ if ! command -v npm >/dev/null; then
   exit 0
 fi
 mkdir -p "$prefix"
-npm install --prefix "$prefix" --no-audit --no-fund @babylonjs/core@9 @babylonjs/loaders@9 three@0.187
+npm install --prefix "$prefix" --no-audit --no-fund @babylonjs/core@9 @babylonjs/loaders@9 \
+  babylonjs@9 babylonjs-loaders@9 three@0.187

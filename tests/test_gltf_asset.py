@@ -106,9 +106,9 @@ class TestAsset:
         for view in gltf["bufferViews"]:
             assert view["byteOffset"] % 4 == 0
             assert view["byteOffset"] + view["byteLength"] <= len(binary)
-        np.testing.assert_allclose(
+        np.testing.assert_allclose(  # the Result's layout in the file's axes
             light["irradianceCoefficients"],
-            ee.to_gltf_ibl(_light_rgb())["irradianceCoefficients"],
+            ee.to_gltf_ibl(_light_rgb(), ga.FILE_FROM_GLTF)["irradianceCoefficients"],
         )
 
     def test_the_old_light_fails_the_schema(self):
@@ -124,7 +124,8 @@ class TestAsset:
         light = check_ibl_schema(gltf, binary)
         for face, index in zip(CUBE_FACES, light["specularImages"][0], strict=True):
             got = ga.rgbd_decode(_image(gltf, binary, index))
-            want = np.maximum(sh.sh_basis(cube_face_directions(face, 64), 4) @ c.T, 0.0)
+            d_gltf = cube_face_directions(face, 64) @ ga.FILE_FROM_GLTF  # file -> glTF axes
+            want = np.maximum(sh.sh_basis(d_gltf, 4) @ c.T, 0.0)
             # RGBD keeps 8 bits of (v D)^(1/2.2): about 1 % of the texel's peak channel
             np.testing.assert_allclose(got, want, rtol=0.03, atol=0.02 * want.max())
 
@@ -137,30 +138,36 @@ class TestAsset:
         values = np.concatenate(
             [ga.rgbd_decode(_image(gltf, binary, i)).reshape(-1, 3) for i in last]
         )
-        brightest = dirs[int(np.argmax(values[:, 1]))]
-        assert brightest @ LIGHT_GL > np.cos(np.radians(30.0))  # 4-texel faces: coarse
+        brightest = dirs[int(np.argmax(values[:, 1]))]  # the file's axes
+        assert brightest @ (ga.FILE_FROM_GLTF @ LIGHT_GL) > np.cos(np.radians(30.0))  # coarse
 
     def test_rgbd_round_trip(self):
         v = np.array([[0.0, 0.0, 0.0], [0.01, 0.5, 1.0], [3.0, 20.0, 200.0]])
         back = ga.rgbd_decode(ga.rgbd_encode(v))
         np.testing.assert_allclose(back, v, rtol=0.03, atol=2e-3)
 
-    def test_from_a_probe_resampled_into_the_engine_axes(self):
-        """A probe's cube (world axes) lands in the engine's axes: a probe bright along
-        world +x, turned by GL_FROM_CV (x stays), and world +y (down in OpenCV) -> -y."""
+    @pytest.mark.parametrize(
+        "axis, bright_face, dark_face",
+        [(1, 3, 2), (0, 1, 0)],  # world +y (OpenCV down) -> glTF -y -> file -Y face;
+        # world +x -> glTF +x -> file -X face (FILE_FROM_GLTF mirrors x)
+    )
+    def test_from_a_probe_resampled_into_the_file_axes(self, axis, bright_face, dark_face):
+        """A probe's cube (world axes) lands in the file's axes, level by level."""
         size = 32
         levels = []
         for k in range(probe_cube.num_levels(size)):
-            n = size >> k
-            d = probe_cube.texel_directions(n)
-            levels.append((np.maximum(d[..., 1:2], 0.0) * np.ones(3)).astype(np.float32))
+            d = probe_cube.texel_directions(size >> k)
+            levels.append(
+                (np.maximum(d[..., axis : axis + 1], 0.0) * np.ones(3)).astype(np.float32)
+            )
         probe = probe_cube.CubeMips(levels, probe_cube.level_roughness(len(levels)))
         gltf, binary = ga.light_asset(_light_rgb(), sh.GL_FROM_CV, probe=probe)
         light = check_ibl_schema(gltf, binary)
         assert light["specularImageSize"] == size
-        ny = ga.rgbd_decode(_image(gltf, binary, light["specularImages"][0][3]))  # -Y face
-        py = ga.rgbd_decode(_image(gltf, binary, light["specularImages"][0][2]))
-        assert ny.mean() > 0.5 and py.max() < 0.05
+        faces = light["specularImages"][0]
+        bright = ga.rgbd_decode(_image(gltf, binary, faces[bright_face]))
+        dark = ga.rgbd_decode(_image(gltf, binary, faces[dark_face]))
+        assert bright.mean() > 0.5 and dark.max() < 0.05
 
     def test_main_light_node_points_along_the_results_direction(self):
         d_world = np.array([0.0, -0.6, 0.8])  # OpenCV world: up and ahead
@@ -280,7 +287,8 @@ def test_babylon_loads_it(tmp_path):
     assert got["seen"]["mips"] == probe_cube.num_levels(ga.SPECULAR_SIZE)
     assert got["seen"]["faces"] == [6] * got["seen"]["mips"]
     # Babylon's pre-scaled harmonics evaluate E(n) / pi directly (its shader's
-    # computeEnvironmentIrradiance): brightest towards the light, in glTF's axes
+    # computeEnvironmentIrradiance) in its default scene's world, where the glTF root node
+    # put the asset at (-x, y, z): brightest towards the light there
     h = np.asarray(got["harmonics"])  # (9, 3), Babylon's basis with the CS phase
     normals = sh.fibonacci_sphere(4000)
     x, y, z = normals.T
@@ -288,7 +296,7 @@ def test_babylon_loads_it(tmp_path):
         [np.ones_like(x), y, z, x, x * y, y * z, 3 * z * z - 1, x * z, x * x - y * y], 1
     )
     e = basis @ h[:, 1]
-    assert normals[int(np.argmax(e))] @ LIGHT_GL > np.cos(np.radians(5.0))
+    assert normals[int(np.argmax(e))] @ (ga.FILE_FROM_GLTF @ LIGHT_GL) > np.cos(np.radians(5))
 
 
 def test_estimate_writes_a_glb_per_frame(tmp_path, capsys):
