@@ -55,8 +55,8 @@ def _wait_for(what, proc: subprocess.Popen, timeout_s: float = WAIT_S) -> None:
         time.sleep(0.1)
 
 
-def _terminate(proc: subprocess.Popen) -> tuple[int, str]:
-    proc.send_signal(signal.SIGTERM)
+def _terminate(proc: subprocess.Popen, signum: int = signal.SIGTERM) -> tuple[int, str]:
+    proc.send_signal(signum)
     try:
         out, err = proc.communicate(timeout=30)
     except subprocess.TimeoutExpired:
@@ -92,9 +92,10 @@ def server(make_server):
     return make_server(process=identity_step(0.02))
 
 
-def test_stream_out_and_record_survive_sigterm(server, tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["TERM", "INT"])
+def test_stream_out_and_record_survive_sigterm(server, tmp_path, signum):
     """A 100000-frame synthetic stream starts at once (frames rendered as sent), its Results
-    are on disk while it runs, and SIGTERM leaves a complete MCAP."""
+    are on disk while it runs, and SIGTERM (or Ctrl-C's SIGINT) leaves a complete MCAP."""
     out, rec = tmp_path / "results.jsonl", tmp_path / "stream.mcap"
     proc = _start(
         [
@@ -116,7 +117,7 @@ def test_stream_out_and_record_survive_sigterm(server, tmp_path):
         tmp_path,
     )
     _wait_for(lambda: len(_lines(out)) >= 5, proc)  # 100000 frames render in ~1 h
-    code, text = _terminate(proc)
+    code, text = _terminate(proc, signum)
     assert code == 130, text
     results = _jsonl(out)
     counts = _read_mcap(rec)
