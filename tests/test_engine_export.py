@@ -350,3 +350,45 @@ class TestOneLight:
             ee.main_light(np.eye(1, 9)[0], None, [1.0, 0.0])
         dark = ee.main_light(np.eye(1, 9)[0], None, [0.0, 0.0, 0.0])
         assert dark["direction"] == [0.0, 1.0, 0.0]
+
+
+def test_a_sessions_main_light_is_its_results_direction(make_server):
+    """Over loopback: a session asking for `main_light` gets the direction its Result reports
+    (the server passes dominant_direction_world to the layouts), not the whole sphere's."""
+    from streaming_support import flat_source, run_with_timeout
+
+    from arlight.client.capture import StreamOptions, stream
+    from arlight.core.frames import Confidence, FrameResult
+
+    one = TestOneLight()
+    light = one._light(0.6)  # world = camera (pose identity)
+    reported = sh.above_horizon_direction(light, one.UP_CV)
+
+    def step(frame, session, render_light, deadline) -> FrameResult:
+        return FrameResult(
+            timestamp=frame.timestamp,
+            sh=light,
+            sh_camera=light,
+            dominant_direction_world=reported,
+            dominant_direction_camera=reported,
+            intensity=1.0,
+            confidence=Confidence(),
+            pose=np.eye(4),
+            timings_ms={"Step": 0.0},
+        )
+
+    server = make_server(process=step)
+    options = StreamOptions(
+        server=server.connect_address,
+        session="one-light",
+        mode="lossless",
+        rate="max",
+        exports=("main_light",),
+    )
+    got = []
+    summary = run_with_timeout(
+        lambda: stream(flat_source(1), options, on_result=lambda r, _: got.append(r))
+    )
+    assert summary.errors == [] and len(got) == 1
+    direction = np.asarray(got[0].exports["main_light"]["direction"])
+    assert angular_error_deg(direction, sh.GL_FROM_CV @ reported) < 0.01
