@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from node_support import node_modules_or_skip
 
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import sh
@@ -49,13 +50,7 @@ def _three_or_skip() -> tuple[str, Path]:
     node = shutil.which("node")
     if node is None:
         pytest.skip("node is not installed (apt-get install nodejs): three.js conformance")
-    default = Path.home() / ".cache" / "arlight-node" / "node_modules"
-    modules = Path(os.environ.get("ARLIGHT_NODE_MODULES", default)).resolve()
-    if not (modules / "three" / "package.json").exists():
-        pytest.skip(
-            f"three not in {modules} (scripts/node_test_deps.sh installs it, or set "
-            "ARLIGHT_NODE_MODULES): three.js conformance"
-        )
+    modules = node_modules_or_skip("three.js conformance", "three/package.json")
     return node, modules
 
 

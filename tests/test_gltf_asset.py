@@ -23,6 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from node_support import node_modules_or_skip
 
 from arlight.pipeline import engine_export as ee
 from arlight.pipeline import gltf_asset as ga
@@ -242,20 +243,13 @@ globalThis.XMLHttpRequest = globalThis.XMLHttpRequest || undefined;
 
 
 def _babylon_or_skip() -> tuple[str, Path]:
-    """node and a node_modules holding @babylonjs/core and @babylonjs/loaders
-    ($ARLIGHT_NODE_MODULES, else where scripts/node_test_deps.sh puts them), or pytest.skip
-    saying what is missing."""
+    """node and the node_modules holding @babylonjs/core and @babylonjs/loaders, or skip."""
     node = shutil.which("node")
     if node is None:
         pytest.skip("node is not installed (apt-get install nodejs): Babylon.js loader test")
-    default = Path.home() / ".cache" / "arlight-node" / "node_modules"
-    modules = Path(os.environ.get("ARLIGHT_NODE_MODULES", default)).resolve()
-    for package in ("@babylonjs/core", "@babylonjs/loaders"):
-        if not (modules / package / "package.json").exists():
-            pytest.skip(
-                f"{package} not in {modules} (scripts/node_test_deps.sh installs it, or set "
-                "ARLIGHT_NODE_MODULES): Babylon.js loader test"
-            )
+    modules = node_modules_or_skip(
+        "Babylon.js loader test", "@babylonjs/core/package.json", "@babylonjs/loaders/package.json"
+    )
     return node, modules
 
 

@@ -12,7 +12,6 @@ import functools
 import http.server
 import json
 import math
-import os
 import shutil
 import subprocess
 import threading
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from browser_support import chromium_or_skip
+from node_support import node_modules_or_skip
 
 from arlight.pipeline import gltf_asset as ga
 from arlight.pipeline import sh
@@ -60,18 +60,6 @@ try {
 """
 
 
-def _babylon_browser_or_skip() -> Path:
-    default = Path.home() / ".cache" / "arlight-node" / "node_modules"
-    modules = Path(os.environ.get("ARLIGHT_NODE_MODULES", default)).resolve()
-    for f in ("babylonjs/babylon.js", "babylonjs-loaders/babylonjs.loaders.min.js"):
-        if not (modules / f).exists():
-            pytest.skip(
-                f"{f} not in {modules} (scripts/node_test_deps.sh installs it, or set "
-                "ARLIGHT_NODE_MODULES): Babylon.js render test"
-            )
-    return modules
-
-
 def _serve(folder: Path) -> tuple[http.server.ThreadingHTTPServer, str]:
     class Quiet(http.server.SimpleHTTPRequestHandler):
         def log_message(self, format: str, *args) -> None:  # noqa: A002 - the base's name
@@ -85,7 +73,11 @@ def _serve(folder: Path) -> tuple[http.server.ThreadingHTTPServer, str]:
 
 def _render(tmp_path: Path, glb: bytes, right_handed: bool = False) -> dict:
     executable = chromium_or_skip()
-    modules = _babylon_browser_or_skip()
+    modules = node_modules_or_skip(
+        "Babylon.js render test",
+        "babylonjs/babylon.js",
+        "babylonjs-loaders/babylonjs.loaders.min.js",
+    )
     site = tmp_path / "site"
     site.mkdir()
     shutil.copy(modules / "babylonjs" / "babylon.js", site)
