@@ -43,6 +43,7 @@ def close_session(server: Server, session: Session, reason: str) -> None:
     """Forget a session (its Pipeline is freed); displays get Bye at the end of a stream."""
     if server.sessions.get(session.name) is session:
         del server.sessions[session.name]
+    server.scheduler.remove(session)
     server.stats.sessions_closed += 1
     release = getattr(server._process, "release", None)  # `serve --ray`: the session's actor
     if release is not None:

@@ -133,6 +133,7 @@ class Reply:
     parts: list
     finish_time_mono: float  # time.monotonic(), seconds
     error: Error | None = None
+    worker_s: float = 0.0  # seconds the frame held its worker (the scheduler's share)
 
 
 def reply_to(session: Session, job: Job, outcome: FrameOutcome) -> Reply:

@@ -50,6 +50,7 @@ import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from typing import cast
 
 import zmq
 
@@ -68,6 +69,7 @@ from arlight.server.housekeeping import (
 from arlight.server.options import DEFAULT_BIND, ServerOptions
 from arlight.server.results import ErrorLog, Reply, encode_error, error_reply, reply_to
 from arlight.server.routing import seed_routing_ids
+from arlight.server.scheduler import Scheduler
 from arlight.server.security import CurveServer, check_exposure
 from arlight.server.session import Session
 from arlight.server.shutdown import begin_drain, drained, finish_shutdown
@@ -129,6 +131,7 @@ class Server:
         self._busy = 0  # jobs in worker threads (under _busy_lock)
         self._busy_lock = threading.Condition()
         self._error_log = ErrorLog()  # Errors sent to peers: a flood is summarised
+        self.scheduler = Scheduler(self.options.workers)  # made again at start()
         self.budget = SessionBudget(
             self.options.frame_deadline_s, self.options.session_memory_bytes
         )
@@ -172,6 +175,7 @@ class Server:
         # sessions on different actors never queue behind each other here
         threads = max(opts.workers, opts.max_sessions) if self._remote else opts.workers
         self._executor = ThreadPoolExecutor(threads, thread_name_prefix="arlight-worker")
+        self.scheduler = Scheduler(threads, reserve_light=not self._remote)
         self._thread = threading.Thread(target=self._run, name="arlight-server-io", daemon=True)
         self._thread.start()
         log.info(
@@ -339,8 +343,24 @@ class Server:
     # ------------------------------------------------------------------ work
 
     def _schedule(self, session: Session) -> None:
-        job = session.queue.next_job()
-        if job is not None:
+        """`session` may have a frame for a worker: queue its turn, start what may start."""
+        frames = session.queue
+        if frames.in_flight is None and frames.pending:
+            cost = session.setup.cost
+            self.scheduler.add(session, cost.frame_s if cost is not None else 0.0)
+            self.scheduler.wait(session)
+        self._dispatch()
+
+    def _dispatch(self) -> None:
+        """Give each free worker the frame of the session whose turn it is
+        (server/scheduler.py: fair shares, one worker kept for light sessions)."""
+        now = time.monotonic()
+        while (key := self.scheduler.next(now)) is not None:
+            session = cast(Session, key)  # the scheduler's keys are the sessions
+            job = session.queue.next_job()
+            if job is None:  # its frames went meanwhile (a shutdown dropped them)
+                self.scheduler.finished(session, 0.0, now)
+                continue
             self._submit(session, job)
 
     def _submit(self, session: Session, job: Job) -> None:
@@ -356,6 +376,7 @@ class Server:
         freed."""
         with self._busy_lock:
             self._busy += 1
+        start = time.monotonic()
         outcome = None
         try:
             if self.options.workers > 1 and not self._remote and not concurrent_pipelines_safe():
@@ -379,6 +400,7 @@ class Server:
             if outcome is None:  # error_reply itself failed: the bare minimum, still answered
                 error = Error("internal", "the server failed to process this frame", None, job.seq)
                 outcome = Reply(session, job, encode(error), time.monotonic(), error)
+            outcome.worker_s = time.monotonic() - start
             self._completions.put(outcome)
             self._wake()
             with self._busy_lock:
@@ -411,14 +433,15 @@ class Server:
         if current and self._draining and not session.lossless:
             frames.drop_pending()
         final = error is None or not error.retryable  # kept for a resent duplicate
-        next_job = frames.finish(
+        frames.finish(
             job,
             outcome.parts,
             final=final,
             processed=error is None,
             finish_time_mono=outcome.finish_time_mono,
-            start_next=current,
+            start_next=False,  # the scheduler gives the next turn
         )
+        self.scheduler.finished(session, outcome.worker_s, time.monotonic())
         if session.capture_peer is not None:
             self._send(session.capture_peer, outcome.parts)
         if error is None:
@@ -430,11 +453,11 @@ class Server:
             self.stats.errors_sent += 1
             self.stats.error_codes[error.code] += 1
         if not current:
+            self._dispatch()
             return
         if error is not None and error.field == ErrorField.PIPELINE_LOST:
             self._pipeline_lost(session, job, lost)
-        if next_job is not None:
-            self._submit(session, next_job)
+        self._schedule(session)  # its next frame's turn, and any other session's
         if session.ended and session.idle:
             close_session(self, session, "end of stream")
 
