@@ -23,6 +23,7 @@ import msgpack
 from arlight import __version__
 from arlight.client.capture import CaptureClient, encoded_frames
 from arlight.client.foxglove_sinks import FoxgloveStream, McapSink
+from arlight.client.stop_signals import uninterrupted
 from arlight.protocols import PROTOCOL_VERSION, encode, peek_header
 from arlight.sources.recording import (
     FRAME_TOPIC,
@@ -113,8 +114,12 @@ class Recorder:
     def write_hello(self, parts, log_time_ns: int) -> None:
         if self._hello is None:
             raise ValueError("this Recorder records Results only (frames=False)")
+        with uninterrupted():
+            self._write_hello(parts, log_time_ns, self._hello)
+
+    def _write_hello(self, parts, log_time_ns: int, hello: int) -> None:
         self._writer.add_message(
-            self._hello,
+            hello,
             log_time=log_time_ns,
             data=_pack_parts(parts),
             publish_time=log_time_ns,
@@ -127,11 +132,15 @@ class Recorder:
         """One Frame as sent; log_time_ns None = the frame's own timestamp."""
         if self._frame is None or self._info is None:
             raise ValueError("this Recorder records Results only (frames=False)")
+        with uninterrupted():
+            self._write_frame(parts, log_time_ns, self._frame, self._info)
+
+    def _write_frame(self, parts, log_time_ns: int | None, frame: int, info_channel: int) -> None:
         header = peek_header(parts)
         stamp_ns = int(round(float(header["timestamp"]) * 1e9))
         log_ns = stamp_ns if log_time_ns is None else int(log_time_ns)
         self._writer.add_message(
-            self._frame,
+            frame,
             log_time=log_ns,
             data=_pack_parts(parts),
             publish_time=stamp_ns,
@@ -149,7 +158,7 @@ class Recorder:
             "has_pose": header.get("pose") is not None,
         }
         self._writer.add_message(
-            self._info,
+            info_channel,
             log_time=log_ns,
             data=json.dumps(info).encode(),
             publish_time=stamp_ns,
@@ -165,6 +174,10 @@ class Recorder:
         """One Result as received: its message parts (when given) on /arlight/result, and
         the Foxglove channels of it. record: protocols.received_record of it; log_time_ns
         None = the receive time."""
+        with uninterrupted():
+            self._write_result(result, record, parts, log_time_ns)
+
+    def _write_result(self, result, record: dict, parts, log_time_ns: int | None) -> None:
         log_ns = (
             int(round(record["receive_time"] * 1e9)) if log_time_ns is None else int(log_time_ns)
         )
@@ -185,10 +198,12 @@ class Recorder:
             self._foxglove.write_result(result, record, log_ns, parts=parts)
 
     def close(self) -> None:
+        """Write the summary and footer (a stop signal meanwhile waits for them)."""
         if not self._closed:
             self._closed = True
-            self._writer.finish()
-            self._file.close()
+            with uninterrupted():
+                self._writer.finish()
+                self._file.close()
 
     def __enter__(self) -> Recorder:
         return self

@@ -231,3 +231,21 @@ def test_estimate_out_survives_sigterm(tmp_path):
     assert 3 <= len(records) < 400
     pngs = sorted(composites.glob("*.png"))
     assert len(pngs) >= len(records) - 1 and all(cv2.imread(str(p)) is not None for p in pngs)
+
+
+def test_a_stop_signal_waits_for_the_record_being_written():
+    """A signal inside `uninterrupted()` (a Recorder writing one MCAP record) takes effect at
+    the block's end, so the summary written on the way out follows whole records."""
+    from arlight.cli.stop_signals import terminate_as_interrupt
+    from arlight.client.stop_signals import uninterrupted
+
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    steps = []
+    with pytest.raises(KeyboardInterrupt, match="SIGTERM"), terminate_as_interrupt():
+        with uninterrupted():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)  # the handler has run by now
+            steps.append("record finished")
+        steps.append("after the record")  # never reached
+    assert steps == ["record finished"]
+    assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before

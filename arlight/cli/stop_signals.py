@@ -2,10 +2,11 @@
 
 Python's default for SIGTERM ends the process at once, so an MCAP without its summary, a
 display's 0-byte recording or an unflushed results file was all a stopped client left
-(issue 34). Inside :func:`terminate_as_interrupt` SIGTERM raises KeyboardInterrupt in the
-main thread instead, the path Ctrl-C takes: each command's ``finally`` and ``with`` blocks
-close their writers (MCAP summary and footer, JSON lines, PNG folders, mp4), and the CLI
-exits 130 ("interrupted"). A second SIGTERM while they finish is ignored.
+(issue 34). Inside :func:`terminate_as_interrupt` SIGTERM and SIGINT raise
+KeyboardInterrupt in the main thread (client/stop_signals.py: never inside a record being
+written), the path Ctrl-C takes: each command's ``finally`` and ``with`` blocks close their
+writers (MCAP summary and footer, JSON lines, PNG folders, mp4), and the CLI exits 130
+("interrupted"). A second SIGTERM while they finish is ignored.
 """
 
 from __future__ import annotations
@@ -15,27 +16,24 @@ import functools
 import signal
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from types import FrameType
 
-
-def _interrupt(signum: int, _frame: FrameType | None) -> None:
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # once: the writers finish undisturbed
-    raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+from arlight.client.stop_signals import interrupt
 
 
 @contextmanager
 def terminate_as_interrupt() -> Iterator[None]:
-    """SIGTERM raises KeyboardInterrupt inside the block (main thread only; elsewhere a
-    no-op, as signal handlers can only be set there)."""
+    """SIGTERM and SIGINT raise KeyboardInterrupt inside the block, between records (main
+    thread only; elsewhere a no-op, as signal handlers can only be set there)."""
     try:
-        previous = signal.signal(signal.SIGTERM, _interrupt)
+        previous = {s: signal.signal(s, interrupt) for s in (signal.SIGTERM, signal.SIGINT)}
     except ValueError:  # not the main thread (a library call from a worker)
         yield
         return
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def finalised_on_sigterm(run: Callable[[argparse.Namespace], int]) -> Callable[..., int]:
