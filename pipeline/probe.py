@@ -53,7 +53,7 @@ class ProbeSettings:
     cells: int = 120
     cell_m: float = 0.04
     memory: bool = True
-    sun: bool = True
+    sun: bool = False
 
     def __post_init__(self) -> None:
         self.size = probe_cube.check_size(self.size)

@@ -18,10 +18,12 @@ from arlight.pipeline.config import Config
 from arlight.pipeline.pipeline import Pipeline
 from arlight.pipeline.probe import (
     INSIDE,
+    SUN_SHARE_MAX,
     DistantLight,
     ProbeSettings,
     ProbeStage,
     parse_point,
+    split_dominant,
 )
 from arlight.pipeline.probe_grid import RoomGrid
 from arlight.pipeline.probe_shading import Glossiness, glossiness_of, shade
@@ -215,6 +217,47 @@ class TestProbeDirections:
         probe = stage.probe(np.zeros(3), pose, grey_light())
         np.testing.assert_allclose(probe.mips.levels[0], GREY_RADIANCE, rtol=1e-3)
         assert probe.grid is None and probe.hit_fraction == 0.0
+
+
+class TestSunDisc:
+    def test_a_delta_plus_ambient_splits_back_into_its_parts(self):
+        towards = np.array([0.3, 0.8, -0.52])
+        towards /= np.linalg.norm(towards)
+        coeffs = sh.directional_light(towards, 2.0, 4)
+        coeffs[0] += 1.0  # ambient
+        direction, intensity, rest = split_dominant(coeffs)
+        assert np.degrees(np.arccos(np.clip(direction @ towards, -1, 1))) < 0.5
+        assert intensity == pytest.approx(2.0, rel=1e-6)
+        np.testing.assert_allclose(rest[1:], 0.0, atol=1e-9)  # what is left is the ambient
+        assert rest[0] == pytest.approx(1.0)
+
+    def test_the_disc_takes_at_most_its_share_of_band_0(self):
+        coeffs = sh.directional_light(np.array([0.0, 1.0, 0.0]), 2.0, 4)  # a bare delta
+        _, intensity, rest = split_dominant(coeffs)
+        y0 = sh.sh_basis(np.array([0.0, 1.0, 0.0]), 1)[0]
+        assert intensity == pytest.approx(SUN_SHARE_MAX * coeffs[0] / y0)
+        assert rest[0] == pytest.approx((1.0 - SUN_SHARE_MAX) * coeffs[0])
+
+    def test_the_probe_draws_the_disc_where_the_light_is_and_keeps_its_energy(self):
+        towards = np.array([0.0, 1.0, 0.0])
+        coeffs = sh.directional_light(towards, 2.0, 4)
+        coeffs[0] += 1.0
+        stage = ProbeStage(ProbeSettings(size=64, sun=True), CAMERA)
+        pose = looking_along(AXES[0], -0.5 * AXES[0])
+        stage.fuse(np.zeros(3), *wall_frame(1.5), pose)
+        probe = stage.probe(np.zeros(3), pose, DistantLight(coeffs))
+        top = probe_cube.sample(probe.mips, towards[None], 0.0)[0, 0]
+        side = probe_cube.sample(probe.mips, np.array([[0.0, 0.0, -1.0]]), 0.0)[0, 0]
+        assert top > 100.0 * side > 0.0
+        omega = probe_cube.texel_solid_angles(64)
+        texels = probe.mips.levels[0][..., 0]
+        plain = np.maximum(sh.sh_basis(probe_cube.texel_directions(64), 4) @ coeffs, 0.0)
+        # over the directions that miss the wall, the disc and the rest hold the SH's energy
+        sky = probe_cube.texel_directions(64)[..., 0] < 0.5
+        assert np.sum((texels * omega)[sky]) == pytest.approx(
+            np.sum((plain * omega)[sky]), rel=0.05
+        )
+        assert probe.diagnostics["sun_world"] == [0.0, 1.0, 0.0]
 
 
 class TestProbeBadInput:
