@@ -51,9 +51,12 @@ def check_subscribers(server: Server, session: Session) -> None:
             detach_peer(server, peer, reason="wrong token")
 
 
-def capture_session(server: Server, identity: bytes, cfg: SessionConfig) -> Session | None:
+def capture_session(
+    server: Server, identity: bytes, cfg: SessionConfig, client: str = ""
+) -> Session | None:
     """The session a capture Hello resumes or creates (section 3 of SPEC.md, "Handshake");
-    None after sending the Error that refuses it."""
+    None after sending the Error that refuses it. client: who asks (server/clients.py), at
+    most `max_sessions_per_client` sessions each."""
     name = cfg.session
     session = server.sessions.get(name)
     if session is not None and not may_enter(server, cfg.token, session):
@@ -85,6 +88,20 @@ def capture_session(server: Server, identity: bytes, cfg: SessionConfig) -> Sess
             session.queue.highest_seq,
         )
         return session
+    limit = server.options.max_sessions_per_client
+    held = sum(1 for s in server.sessions.values() if s.client == client)
+    if held >= limit:
+        server._send_error(
+            identity,
+            Error(
+                code="too_large",
+                field="hello.config.session",
+                message=f"this client already holds {held} sessions (limit {limit} per "
+                "client, `arlight serve --max-sessions-per-client`); end one (Bye) or let "
+                "it expire",
+            ),
+        )
+        return None
     if len(server.sessions) >= server.options.max_sessions:
         server._send_error(
             identity,
@@ -117,6 +134,7 @@ def capture_session(server: Server, identity: bytes, cfg: SessionConfig) -> Sess
     session.token = (
         cfg.token if cfg.token and not tokens_equal(cfg.token, server.admin_token) else new_token()
     )
+    session.client = client
     server.sessions[name] = session
     check_subscribers(server, session)
     size = (

@@ -39,9 +39,15 @@ log = logging.getLogger("arlight.server.server")  # the server's logger: its lin
 
 
 def handle_message(
-    server: Server, identity: bytes, parts: list, now: float, receive_time_wall: float
+    server: Server,
+    identity: bytes,
+    parts: list,
+    now: float,
+    receive_time_wall: float,
+    client: str = "",
 ) -> None:
-    """One message from a peer; now: time.monotonic(), receive_time_wall: time.time()."""
+    """One message from a peer; now: time.monotonic(), receive_time_wall: time.time();
+    client: who sent it (server/clients.py: its CURVE key or address)."""
     peer = server.peers.get(identity)
     if peer is not None:
         peer.last_seen = now
@@ -68,7 +74,20 @@ def handle_message(
         server._send_error(identity, error_from_exception(exc))
         return
     if isinstance(message, Hello):
-        on_hello(server, identity, message, now)
+        if not server.hellos.allow(client, now):
+            server._send_error(
+                identity,
+                Error(
+                    code="too_large",
+                    field="hello",
+                    retryable=False,
+                    message=f"more than {server.options.hellos_per_client_s:g} Hellos a second "
+                    "from this client (`arlight serve --hellos-per-client`); wait and say "
+                    "Hello again",
+                ),
+            )
+            return
+        on_hello(server, identity, message, now, client)
     elif isinstance(message, Heartbeat):
         if peer is None:  # e.g. after a server restart: tell the client to say Hello again
             server._send_error(
@@ -97,7 +116,7 @@ def handle_message(
         )
 
 
-def on_hello(server: Server, identity: bytes, hello: Hello, now: float) -> None:
+def on_hello(server: Server, identity: bytes, hello: Hello, now: float, client: str = "") -> None:
     cfg = hello.config
     name = cfg.session  # 1..64 characters of [A-Za-z0-9_.-]: decode() checked it
     old = server.peers.get(identity)
@@ -124,12 +143,13 @@ def on_hello(server: Server, identity: bytes, hello: Hello, now: float) -> None:
             ),
         )
         return
-    session = capture_session(server, identity, cfg)
+    session = capture_session(server, identity, cfg, client)
     if session is None:
         return  # refused: the Error is sent
     session.capture_peer = identity
     session.ended = False
-    session.last_activity = now
+    # a Hello does not keep a session alive (only frames do): Hellos every minute held 32
+    # sessions without a frame (issue 39, item 3)
     server.peers[identity] = Peer(identity, "capture", name, cfg.client_name, now)
     # the token goes only to a client that sent one (older clients refuse the key)
     send_welcome(

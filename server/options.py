@@ -20,6 +20,8 @@ SERVE_FLAGS = {
     "session_timeout_s": "--session-timeout",
     "log_interval_s": "--log-interval",
     "max_sessions": "--max-sessions",
+    "max_sessions_per_client": "--max-sessions-per-client",
+    "hellos_per_client_s": "--hellos-per-client",
     "max_message_bytes": "--max-message-mb",
     "shutdown_grace_s": "--shutdown-grace",
     "keys_dir": "--keys",
@@ -41,6 +43,10 @@ class ServerOptions:
     session_timeout_s: float = 60.0  # a session with no frames for this long expires
     log_interval_s: float = 5.0  # per-session frame rate and latency log lines
     max_sessions: int = 32
+    # per client (a CURVE key, or a network address: server/clients.py): sessions its Hellos
+    # created and still open, and Hellos a second (after a burst of 20)
+    max_sessions_per_client: int = 8
+    hellos_per_client_s: float = 5.0
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     max_pixels: int = DEFAULT_MAX_PIXELS
     send_hwm: int = 32  # messages queued per peer before sends to it are dropped
@@ -69,6 +75,8 @@ class ServerOptions:
             "session_timeout_s": self.session_timeout_s > 0,
             "log_interval_s": self.log_interval_s > 0,
             "max_sessions": self.max_sessions >= 1,
+            "max_sessions_per_client": self.max_sessions_per_client >= 1,
+            "hellos_per_client_s": self.hellos_per_client_s > 0,
             "send_hwm": self.send_hwm >= 1,
             "receive_hwm": self.receive_hwm >= 1,
             "max_message_bytes": self.max_message_bytes >= 1024,

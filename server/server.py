@@ -57,6 +57,7 @@ import zmq
 from arlight.pipeline.runtime import concurrent_pipelines_safe
 from arlight.protocols import Error, ErrorField, Heartbeat, encode, new_token
 from arlight.server.budget import SessionBudget
+from arlight.server.clients import HelloLimiter, client_of
 from arlight.server.frame_queue import Job
 from arlight.server.handlers import handle_message
 from arlight.server.housekeeping import (
@@ -132,6 +133,7 @@ class Server:
         self._busy_lock = threading.Condition()
         self._error_log = ErrorLog()  # Errors sent to peers: a flood is summarised
         self.scheduler = Scheduler(self.options.workers)  # made again at start()
+        self.hellos = HelloLimiter(self.options.hellos_per_client_s)
         self.budget = SessionBudget(
             self.options.frame_deadline_s, self.options.session_memory_bytes
         )
@@ -275,8 +277,7 @@ class Server:
                 now = time.monotonic()
                 wait_s = max(0.0, min(next_heartbeat, next_housekeeping, next_log) - now)
                 events = dict(poller.poll(int(wait_s * 1000) + 1))
-                if events.get(router):
-                    self._drain_router()
+                read_all = not events.get(router) or self._drain_router()
                 if events.get(self._wake_r.fileno()):
                     try:
                         while self._wake_r.recv(4096):
@@ -289,8 +290,10 @@ class Server:
                     self._send_heartbeats()
                     next_heartbeat = now + opts.heartbeat_interval_s
                 if now >= next_housekeeping:
-                    expire_peers(self, now)
+                    if read_all:  # a peer's messages still unread are no silence
+                        expire_peers(self, now)
                     expire_sessions(self, now)
+                    self.hellos.forget_idle(now)
                     self._error_log.flush(now)
                     next_housekeeping = now + min(opts.heartbeat_interval_s, 1.0)
                 if now >= next_log:
@@ -314,23 +317,26 @@ class Server:
             raise RuntimeError("server not started")
         return self._router
 
-    def _drain_router(self) -> None:
+    def _drain_router(self) -> bool:
+        """Read and handle what the socket holds, within MAX_MESSAGES_PER_POLL and
+        MAX_READ_S_PER_POLL; True when it is empty (every message so far read)."""
         router = self._socket
         until = time.monotonic() + MAX_READ_S_PER_POLL
         for _ in range(MAX_MESSAGES_PER_POLL):
             if time.monotonic() > until:
-                return  # the completions go out, then the socket is read again
+                return False  # the completions go out, then the socket is read again
             try:
                 message = router.recv_multipart(zmq.NOBLOCK, copy=False)
             except zmq.Again:
-                return
+                return True
             now = time.monotonic()
             receive_time_wall = time.time()
             identity = message[0].bytes
             parts = [frame.buffer for frame in message[1:]]
             self.stats.messages += 1
+            client = client_of(message[-1], identity)  # its key or address (server/clients.py)
             try:
-                handle_message(self, identity, parts, now, receive_time_wall)
+                handle_message(self, identity, parts, now, receive_time_wall, client)
             except Exception as exc:  # noqa: BLE001 - bad input never crashes the server
                 log.exception("unexpected failure handling a message from %s", identity.hex())
                 self._send_error(
@@ -339,6 +345,7 @@ class Server:
                         code="internal", message=f"the server failed to handle this message ({exc})"
                     ),
                 )
+        return False
 
     # ------------------------------------------------------------------ work
 

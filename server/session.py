@@ -351,6 +351,7 @@ class Session:
         self.compute = SessionCompute(self.setup, process, owner=self, cancel=cancel)
         self.capture_peer: bytes | None = None
         self.token: str | None = None  # admits displays and capture Hellos (server.py sets it)
+        self.client = ""  # who created it (server/clients.py): counted per client
         self.ended = False  # the capture client said Bye: close once the queue is empty
         self.display_drops = 0  # Results not delivered to a display (its queue full)
 

@@ -71,3 +71,79 @@ def test_heavy_sessions_leave_a_worker_for_a_light_one(make_server):
     assert sum(done) >= 2  # the heavy sessions still progress, on the other worker
     for peer in heavy:
         peer.close()
+
+
+def test_one_connection_cannot_take_every_session(make_server):
+    """32 capture Hellos of distinct names from one connection filled --max-sessions."""
+    server = make_server(identity_step(), heartbeat_interval_s=5.0)
+    squatter = RawPeer(server.connect_address)
+    replies = [squatter.hello(f"squat{i}") for i in range(32)]
+    welcomed = [r for r in replies if isinstance(r, Welcome)]
+    refused = [r for r in replies if not isinstance(r, Welcome)]
+    assert len(welcomed) == server.options.max_sessions_per_client == 8
+    # past 8: the per-client limit; past 20 Hellos at once: the Hello rate too
+    kinds = {(r.code, r.field) for r in refused}
+    assert ("too_large", "hello.config.session") in kinds
+    assert kinds <= {("too_large", "hello.config.session"), ("too_large", "hello")}
+    with LegitStream(server.connect_address) as legit:
+        time.sleep(1.0)
+    legit.assert_served()
+    squatter.close()
+
+
+def test_hellos_do_not_keep_a_session_without_frames(make_server):
+    """A Hello every < 60 s held a session that never received a frame."""
+    server = make_server(identity_step(), heartbeat_interval_s=5.0, session_timeout_s=1.0)
+    peer = RawPeer(server.connect_address)
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:
+        assert isinstance(peer.hello("held"), Welcome)
+        time.sleep(0.3)
+    assert server.stats.sessions_expired >= 1
+    peer.close()
+
+
+def test_hellos_are_rate_limited_per_client(make_server):
+    server = make_server(identity_step(), heartbeat_interval_s=5.0, hellos_per_client_s=2.0)
+    peer = RawPeer(server.connect_address)
+    replies = [peer.hello("same", role="display") for _ in range(40)]
+    refused = [r for r in replies if not isinstance(r, Welcome)]
+    assert 40 - len(refused) <= 20 + 2 * 10  # the burst, and the rate over the exchange
+    assert refused and all((r.code, r.field) == ("too_large", "hello") for r in refused)
+    assert "--hellos-per-client" in refused[0].message
+    time.sleep(1.0)  # the bucket refills
+    assert isinstance(peer.hello("same", role="display"), Welcome)
+    peer.close()
+
+
+def test_a_key_is_one_client_across_its_connections(make_server, tmp_path):
+    """Under CURVE the limit follows the key: new connections do not reset it."""
+    import zmq.auth
+
+    from arlight.server.security import generate_keys
+
+    generate_keys(str(tmp_path))
+    server_public, _ = zmq.auth.load_certificate(str(tmp_path / "server.key"))
+    public, secret = zmq.auth.load_certificate(str(tmp_path / "client.key_secret"))
+    server = make_server(
+        identity_step(),
+        heartbeat_interval_s=5.0,
+        keys_dir=str(tmp_path),
+        max_sessions_per_client=3,
+    )
+    replies = []
+    peers = []
+    for i in range(5):
+        peer = RawPeer.__new__(RawPeer)
+        peer.ctx = zmq.Context.instance()
+        peer.socket = peer.ctx.socket(zmq.DEALER)
+        peer.socket.setsockopt(zmq.LINGER, 0)
+        peer.socket.curve_serverkey = server_public
+        peer.socket.curve_publickey = public
+        peer.socket.curve_secretkey = secret
+        peer.socket.connect(server.connect_address)
+        replies.append(peer.hello(f"keyed{i}"))
+        peers.append(peer)
+    assert [isinstance(r, Welcome) for r in replies] == [True] * 3 + [False] * 2
+    for peer in peers:
+        peer.close()

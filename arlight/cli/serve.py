@@ -107,6 +107,22 @@ def add_parser(sub) -> None:
         help=f"most concurrent sessions (default {defaults.max_sessions})",
     )
     serve.add_argument(
+        "--max-sessions-per-client",
+        type=positive_int,
+        default=defaults.max_sessions_per_client,
+        metavar="N",
+        help="most sessions one client (a CURVE key, or an address) may hold "
+        f"(default {defaults.max_sessions_per_client})",
+    )
+    serve.add_argument(
+        "--hellos-per-client",
+        type=positive_float,
+        default=defaults.hellos_per_client_s,
+        metavar="R",
+        help="Hellos a second one client may send after a burst of 20 "
+        f"(default {defaults.hellos_per_client_s:g})",
+    )
+    serve.add_argument(
         "--max-message-mb",
         type=positive_float,
         metavar="MB",
@@ -180,6 +196,8 @@ def run(args: argparse.Namespace) -> int:
         session_timeout_s=args.session_timeout,
         log_interval_s=args.log_interval,
         max_sessions=args.max_sessions,
+        max_sessions_per_client=args.max_sessions_per_client,
+        hellos_per_client_s=args.hellos_per_client,
         max_message_bytes=int(args.max_message_mb * 2**20)
         if args.max_message_mb
         else DEFAULT_MAX_MESSAGE_BYTES,

@@ -1,0 +1,81 @@
+"""Per-client limits (issue 39, item 3): a client is the key that CURVE authenticated it with
+(ZAP's User-Id), or without keys its network address; every connection it opens counts as
+the same client. Before, one connection filled `--max-sessions` with 32 capture Hellos of
+distinct names in 0.5 s and held them by saying Hello again every minute.
+
+- a client holds at most `max_sessions_per_client` sessions (the ones its Hellos created,
+  until they close or expire);
+- a client's Hellos are rate-limited: a bucket of `HELLO_BURST` refilled at
+  `hellos_per_client_s` a second.
+
+Local peers (loopback, ipc) without keys share one address, so each of their connections is a
+client of its own: a local program that opens many connections is held only by
+`--max-sessions`; give local clients keys (`arlight keys`) to count them by key. Times:
+time.monotonic().
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from dataclasses import dataclass
+
+import zmq
+
+HELLO_BURST = 20  # Hellos a client may send at once before the rate applies
+FORGET_AFTER_S = 300.0  # a client's bucket is dropped once full and this old
+
+
+def client_of(frame: zmq.Frame, identity: bytes) -> str:
+    """The client a received message came from: "key:Z85" under CURVE, else "addr:IP" for a
+    remote address, else (loopback, ipc, inproc: every local program shares the address)
+    "conn:HEX", the connection itself."""
+    for prop, prefix in (("User-Id", "key:"), ("Peer-Address", "addr:")):
+        try:
+            value = frame.get(prop)
+        except (zmq.ZMQError, AttributeError, TypeError):
+            continue
+        if value and not (prefix == "addr:" and _local(str(value))):
+            return prefix + str(value)
+    return "conn:" + identity.hex()
+
+
+def _local(address: str) -> bool:
+    try:
+        ip = ipaddress.ip_address(address.strip("[]"))
+    except ValueError:
+        return True  # not an IP address: not a remote peer's
+    mapped = getattr(ip, "ipv4_mapped", None)
+    return (mapped or ip).is_loopback
+
+
+@dataclass
+class Bucket:
+    tokens: float
+    stamp: float
+
+
+class HelloLimiter:
+    """Token buckets of Hellos per client."""
+
+    def __init__(self, rate_per_s: float, burst: int = HELLO_BURST):
+        self.rate_per_s = rate_per_s
+        self.burst = burst
+        self._buckets: dict[str, Bucket] = {}
+
+    def allow(self, client: str, now: float) -> bool:
+        """One Hello from `client` now: False when its bucket is empty (refused)."""
+        bucket = self._buckets.get(client)
+        if bucket is None:
+            bucket = self._buckets[client] = Bucket(float(self.burst), now)
+        bucket.tokens = min(self.burst, bucket.tokens + (now - bucket.stamp) * self.rate_per_s)
+        bucket.stamp = now
+        if bucket.tokens < 1.0:
+            return False
+        bucket.tokens -= 1.0
+        return True
+
+    def forget_idle(self, now: float) -> None:
+        """Drop the buckets of clients silent long enough to be full again (housekeeping)."""
+        for client, bucket in list(self._buckets.items()):
+            if now - bucket.stamp > FORGET_AFTER_S:
+                del self._buckets[client]
