@@ -64,6 +64,7 @@ def held_out(rows: list[dict], policy: str) -> tuple[dict[str, float], list[floa
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("replay", help="a light_replay --json report made with --compact")
+    parser.add_argument("--table", action="store_true", help="also print the per-map table")
     args = parser.parse_args(argv)
     rows = json.loads(open(args.replay).read())["rows"]
     sh_only = _per_map(rows, np.asarray([r["sh_only"] for r in rows]))
@@ -79,6 +80,13 @@ def main(argv: list[str] | None = None) -> int:
             f"p90 frames {np.percentile(frames, 90):.1f}, worst map {max(per_map.values()):.1f}; "
             f"thresholds chosen {sorted(set(chosen.values()))}"
         )
+    if args.table:
+        per_map, _, chosen = held_out(rows, "source")
+        print("\n| map | frames | SH only | held-out source policy | threshold |")
+        print("|---|---|---|---|---|")
+        for m in sorted(per_map, key=lambda k: sh_only[k]):
+            n = sum(r["map"] == m for r in rows)
+            print(f"| {m} | {n} | {sh_only[m]:.1f} | {per_map[m]:.1f} | {chosen[m]} |")
     return 0
 
 

@@ -119,6 +119,28 @@ class ReusedStages(TypedDict):
     RadTransfer: bool
 
 
+class CompactSourceDiagnostics(TypedDict):
+    """One compact source beside the SH (pipeline/compact_light.py): direction (world, unit,
+    towards it), intensity (its luminance over its solid angle, the SH's units), share (of
+    the irradiance on a surface facing it), gain (of the SH fit's residual its shadow
+    explains), angular_radius_deg (assumed)."""
+
+    direction_world: list[float]
+    intensity: float
+    share: float
+    gain: float
+    angular_radius_deg: float
+
+
+class CompactDiagnostics(TypedDict):
+    """Diagnostics["compact"]: the sources kept (at most one), why (or why none), and the
+    visibility rays cast to find them."""
+
+    reason: str
+    rays: int
+    sources: list[CompactSourceDiagnostics]
+
+
 class Diagnostics(TypedDict, total=False):
     """What the pipeline and the server report about one frame besides the estimate.
 
@@ -137,6 +159,7 @@ class Diagnostics(TypedDict, total=False):
     bands_requested: int
     bands_estimated: int
     confidence_reason: str  # Confidence.reason as reported
+    compact: CompactDiagnostics  # compact sources beside the SH (compact_sources > 0)
     light_source: str  # the server, a session with a panorama: "rgbd" or "panorama"
     panorama_operator: str  # the server: the inverse tone mapping operator used
     probe: dict[str, Any]  # the reflection probe's notes (pipeline/probe.py), when one is made

@@ -1,0 +1,114 @@
+"""Compact light sources found from the shadows the scene casts (pipeline.compact_light)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from arlight.evaluation import angular_error_deg
+from arlight.pipeline import sh
+from arlight.pipeline.compact_light import ShadowTester, candidate_directions, fit_compact_source
+from arlight.pipeline.light_estimation import penalty_matrix
+from arlight.pipeline.object_space_transfer import OcclusionScene, SurfaceMesh
+
+UP = np.array([0.0, 1.0, 0.0])
+
+
+def _box(centre, half):
+    c, h = np.asarray(centre, float), np.asarray(half, float)
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * h + c
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    tris = [t for a, b, cc, d in quads for t in ((a, b, cc), (a, cc, d))]
+    return corners.astype(np.float32), np.array(tris, np.int32)
+
+
+def _scene():
+    """Ground points around two boxes (the casters), their world normals, and the boxes'
+    mesh as the reconstruction."""
+    boxes = [_box((0.0, 0.15, 0.0), (0.1, 0.15, 0.1)), _box((0.5, 0.1, -0.3), (0.08, 0.1, 0.08))]
+    vertices = np.concatenate([boxes[0][0], boxes[1][0]])
+    triangles = np.concatenate([boxes[0][1], boxes[1][1] + len(boxes[0][0])])
+    rng = np.random.default_rng(1)
+    xz = rng.uniform(-1.0, 1.0, (6000, 2))
+    inside = (np.abs(xz[:, 0]) < 0.11) & (np.abs(xz[:, 1]) < 0.11)
+    xz = xz[~inside]
+    points = np.column_stack([xz[:, 0], np.zeros(len(xz)), xz[:, 1]])
+    normals = np.tile(UP, (len(points), 1))
+    return points, normals, OcclusionScene(SurfaceMesh(vertices, triangles, in_world=True))
+
+
+def _observe(points, normals, scene, sun, sun_power, ambient):
+    """Luminance of a white Lambertian ground: ambient SH irradiance plus the sun's, shadowed."""
+    tester = ShadowTester(scene, np.eye(4), points, normals)
+    sun_term = tester.shading(sun[None])[:, 0] * sun_power if sun_power else 0.0
+    irr = sh.evaluate(sh.irradiance_from_radiance(ambient), normals)
+    return irr + sun_term
+
+
+def _fit(points, normals, scene, lum):
+    bands = 3
+    per_coeff = np.repeat(sh.lambert_band_factors(bands), [2 * l + 1 for l in range(bands)])
+    design = sh.sh_basis(normals, bands) * per_coeff  # unoccluded transfer
+    tester = ShadowTester(scene, np.eye(4), points, normals)
+    ones = np.ones(len(lum))
+    return fit_compact_source(
+        design,
+        ones,
+        ones,
+        lum,
+        None,
+        penalty_matrix(bands, 4e-3, None, False),
+        bands,
+        tester,
+        UP,
+        search_samples=3000,
+    )
+
+
+def _sun(elevation_deg, azimuth_deg):
+    e, a = math.radians(elevation_deg), math.radians(azimuth_deg)
+    return np.array([math.cos(e) * math.cos(a), math.sin(e), math.cos(e) * math.sin(a)])
+
+
+def _ambient():
+    a = np.zeros(9)
+    a[0] = 0.3 / sh.sh_basis(UP, 1)[0]
+    return a
+
+
+@pytest.mark.parametrize("elevation, azimuth", [(35.0, 20.0), (55.0, -120.0), (20.0, 200.0)])
+def test_a_sun_is_found_where_the_shadows_say(elevation, azimuth):
+    points, normals, scene = _scene()
+    sun = _sun(elevation, azimuth)
+    lum = _observe(points, normals, scene, sun, 2.0, _ambient())
+    fit = _fit(points, normals, scene, lum)
+    assert len(fit.sources) == 1, fit.reason
+    source = fit.sources[0]
+    assert angular_error_deg(source.direction, sun) < 3.0
+    assert source.intensity == pytest.approx(2.0, rel=0.15)
+    assert source.share > 0.6
+    assert "1 compact source" in fit.reason
+
+
+def test_no_source_under_an_overcast_sky():
+    """Ambient light only: no direction's shadow explains anything; the reason says so."""
+    points, normals, scene = _scene()
+    ambient = _ambient()
+    ambient[2] = 0.1  # a sky brighter above than at the horizon (band 1 along y)
+    lum = _observe(points, normals, scene, UP, 0.0, ambient)
+    lum = lum * np.random.default_rng(2).normal(1.0, 0.02, len(lum))  # sensor noise
+    fit = _fit(points, normals, scene, lum)
+    assert fit.sources == ()
+    assert fit.reason.startswith("none")
+
+
+def test_candidates_cover_the_upper_hemisphere_only():
+    dirs = candidate_directions(UP, 256)
+    assert len(dirs) > 200 and np.all(dirs @ UP > 0.0)
+    # every direction above 10 degrees has a candidate within 9 degrees
+    probe = sh.fibonacci_sphere(2000)
+    probe = probe[probe @ UP > math.sin(math.radians(10))]
+    nearest = np.degrees(np.arccos(np.clip((probe @ dirs.T).max(axis=1), -1, 1)))
+    assert nearest.max() < 9.0
