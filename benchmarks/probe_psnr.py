@@ -5,9 +5,10 @@ runs over its frames with the true poses and `ar/virtual_scene.json`; at each fr
 pair it renders the composite four ways and scores PSNR (dB, 8-bit) inside the pixels of the
 virtual sphere (the truth's mask_virtual where our buffer shows the sphere: the object whose
 material is mirror / glossy / diffuse; the arch is always diffuse):
-  probe:    the reflection probe of the room (this issue), the light's dominant part drawn
-            as a small disc where a direction leaves the room,
-  probe_nosun: the same probe, leaving directions seeing the SH as it is,
+  probe:    the reflection probe of the room (this issue), as configured (by default the
+            directions that leave the room see the SH as it is),
+  probe_sun: the same probe with the SH's dominant part drawn as a 2-degree disc
+            (probe_sun=true),
   sh_probe: a probe of the distant light alone (the SH: baseline (a)),
   diffuse:  the diffuse renderer (every object Lambertian: baseline (b)),
 each with the estimated light and with the true light (lighting_gt.json, exposure applied;
@@ -38,7 +39,7 @@ from arlight.sources.sequence import open_sequence
 from arlight.sources.virtual_scene_file import load_virtual_scene
 from benchmarks.ar_truth import psnr, side_by_side, truth_light
 
-VARIANTS = ("probe", "probe_nosun", "sh_probe", "diffuse")
+VARIANTS = ("probe", "probe_sun", "sh_probe", "diffuse")
 LIGHTS = ("est", "gt")
 
 
@@ -83,10 +84,10 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
             "gt": DistantLight(l_gt, rgb_gt),
         }
         sh_stage = ProbeStage(ProbeSettings(config.render.probe_size, room=False), pipeline.camera)
-        nosun = None
+        with_sun = None
         if stage is not None:
-            nosun = ProbeStage(dataclasses.replace(stage.settings, sun=False), pipeline.camera)
-            nosun.grid = stage.grid
+            with_sun = ProbeStage(dataclasses.replace(stage.settings, sun=True), pipeline.camera)
+            with_sun.grid = stage.grid
         images = {}
         for light in LIGHTS:
             base = dataclasses.replace(
@@ -102,10 +103,10 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
             images[f"probe_{light}"] = renderer.render(
                 dataclasses.replace(base, probe=room)
             ).composite
-            if nosun is not None and probe is not None:
-                plain = nosun.probe(probe.point_world, inputs.world_from_cam, distant[light])
-                images[f"probe_nosun_{light}"] = renderer.render(
-                    dataclasses.replace(base, probe=plain)
+            if with_sun is not None and probe is not None:
+                sunny = with_sun.probe(probe.point_world, inputs.world_from_cam, distant[light])
+                images[f"probe_sun_{light}"] = renderer.render(
+                    dataclasses.replace(base, probe=sunny)
                 ).composite
             images[f"sh_probe_{light}"] = renderer.render(
                 dataclasses.replace(base, probe=only_sh)

@@ -18,7 +18,7 @@ give a smooth result. The view-dependent other half is `env_brdf` (Karis' analyt
 mobile). Why split-sum rather than seed 001's 36-sample rings about each pixel's mirror
 direction: the mips are what engines load (glTF EXT_lights_image_based specular images,
 Filament's and three.js' prefiltered cube maps), so the texture we export is the one we
-render with, and a pixel costs one trilinear lookup instead of 36 (decision 0035).
+render with, and a pixel costs one trilinear lookup instead of 36 (decision 0034).
 
 Per-texel logic is written once as ``register_jitable`` functions driven by
 ``@njit(parallel=True)`` loops; `sample_numpy` is the plain NumPy oracle of `sample`.
