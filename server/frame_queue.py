@@ -10,12 +10,13 @@ Delivery modes (docs/architecture.md; drops are counted, never silent):
 - live: the queue holds the newest frame only; an older pending frame is replaced and
   counted in `frames_dropped`, which every Result reports.
 - lossless: every frame is processed exactly once, in order. The client keeps at most
-  `credits` frames unacknowledged (the queue tolerates LOSSLESS_QUEUE_SLACK more before it
-  refuses one); a frame whose seq was already accepted is a duplicate (a client resending
-  after a reconnect): it is not processed again. Its final reply, the Result or the final
-  Error, is kept for the last `credits + OUTCOME_CACHE_EXTRA` frames and sent again; a
-  duplicate still queued or in a worker is answered when it finishes; an older one gets a
-  final `bad_state` Error (field "duplicate"), so every frame the client sends gets an answer
+  `credits` frames unacknowledged (the queue tolerates LOSSLESS_QUEUE_SLACK more, and
+  `max_queued_bytes` of them, before it refuses one); a frame whose seq was already
+  accepted is a duplicate (a client resending after a reconnect): it is not processed
+  again. Its final reply, the Result or the final Error, is kept for the last
+  `credits + OUTCOME_CACHE_EXTRA` frames and sent again; a duplicate still queued or in a
+  worker is answered when it finishes; an older one gets a final `bad_state` Error (field
+  "duplicate"), so every frame the client sends gets an answer
   and a lossless stream never waits forever.
 
 Threads: the queue itself is the I/O thread's; the counters are also written by workers
@@ -58,6 +59,11 @@ class Job:
     receive_time_wall: float  # time.time(), seconds: the Result's server_receive_time
     receive_time_mono: float  # time.monotonic(), seconds: latency and liveness
 
+    @property
+    def size(self) -> int:
+        """The frame's bytes, all parts."""
+        return sum(len(p) for p in self.parts)
+
 
 @dataclass(frozen=True)
 class Counters:
@@ -76,11 +82,19 @@ class FrameQueue:
     have unacknowledged); now: time.monotonic() when the session began (`last_activity`).
     """
 
-    def __init__(self, *, lossless: bool, credits: int, now: float = 0.0):
+    def __init__(
+        self,
+        *,
+        lossless: bool,
+        credits: int,
+        now: float = 0.0,
+        max_queued_bytes: float = float("inf"),
+    ):
         if credits < 1:
             raise ValueError(f"credits must be >= 1, got {credits}")
         self.lossless = lossless
         self.credits = credits
+        self.max_queued_bytes = max_queued_bytes  # lossless: of the pending frames
         self.pending: collections.deque[Job] = collections.deque()
         self.in_flight: Job | None = None
         self.highest_seq = -1  # highest seq accepted (lossless duplicate detection)
@@ -116,8 +130,11 @@ class FrameQueue:
                 return Offer.DUPLICATE if waiting else Offer.EXPIRED
             # once a frame is refused, later ones are refused too until it comes again: a
             # client that retries in order then keeps its frames in order
-            if len(self.pending) >= self.credits + LOSSLESS_QUEUE_SLACK or (
-                self.refused_from is not None and seq > self.refused_from
+            queued = sum(j.size for j in self.pending)
+            if (
+                len(self.pending) >= self.credits + LOSSLESS_QUEUE_SLACK
+                or (self.pending and queued + job.size > self.max_queued_bytes)
+                or (self.refused_from is not None and seq > self.refused_from)
             ):
                 self.refused_from = seq if self.refused_from is None else self.refused_from
                 return Offer.OVERFLOW

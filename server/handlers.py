@@ -256,7 +256,8 @@ def on_frame(
                 field=ErrorField.CREDITS,
                 seq=seq,
                 retryable=True,
-                message=f"more than {server.options.credits} frames unacknowledged in lossless "
+                message=f"more than {server.options.credits} frames (or "
+                f"{frames.max_queued_bytes / 2**20:.1f} MiB) unacknowledged in lossless "
                 "mode; wait for Results (credits) before sending more",
             ),
         )

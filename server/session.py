@@ -54,6 +54,9 @@ from arlight.server.worker import (  # PipelineLost: arlight/ray_serve.py import
     volume_budget_error,
 )
 
+FRAME_HEADER_BYTES = 64 * 2**10  # a Frame's msgpack header, at most (a few hundred bytes)
+QUEUED_FRAMES = 8  # frames of a session's calibration its queue's bytes allow for
+
 
 class SessionSetupError(ValueError):
     """A Hello whose config cannot make a session; `field` names the offending field."""
@@ -308,6 +311,19 @@ class SessionSetup:
         """The over_budget error of a volume of `blocks` blocks, None within the budget."""
         return volume_budget_error(blocks, self.budget, self.cost)
 
+    @property
+    def queue_bytes(self) -> int:
+        """The most bytes of lossless frames this session keeps queued (issue 39, item 5):
+        a full credit window of frames of its calibration's size (colour and depth raw or
+        compressed, x 2: a codec may grow noise, and FRAME_HEADER_BYTES of header each),
+        plus one frame as large as a message may be (one with a big panorama). Before, a
+        session queued credits + 2 frames of max_message_bytes each whatever its
+        calibration (4 small sessions: RSS 451 MB -> 2.49 GB). A frame past it is refused
+        as one past the credit window is (retryable: sent again after a Result)."""
+        pixels = 0 if self.camera is None else self.camera.width * self.camera.height
+        frame = FRAME_HEADER_BYTES + 2 * 5 * pixels
+        return QUEUED_FRAMES * frame + self.max_message_bytes
+
 
 class Session:
     """One session: `setup`, `queue` (its frames, credits and counters), `compute` (its
@@ -347,7 +363,12 @@ class Session:
         self.budget = setup.budget
         self.lossless = config.mode == "lossless"
         self.created_mono = time.monotonic()
-        self.queue = FrameQueue(lossless=self.lossless, credits=credits, now=self.created_mono)
+        self.queue = FrameQueue(
+            lossless=self.lossless,
+            credits=credits,
+            now=self.created_mono,
+            max_queued_bytes=setup.queue_bytes,
+        )
         self.compute = SessionCompute(self.setup, process, owner=self, cancel=cancel)
         self.capture_peer: bytes | None = None
         self.token: str | None = None  # admits displays and capture Hellos (server.py sets it)

@@ -147,3 +147,36 @@ def test_a_key_is_one_client_across_its_connections(make_server, tmp_path):
     assert [isinstance(r, Welcome) for r in replies] == [True] * 3 + [False] * 2
     for peer in peers:
         peer.close()
+
+
+def test_queued_lossless_frames_are_held_to_the_calibrations_bytes(make_server):
+    """A 64 x 48 lossless session queued credits + 2 frames of max_message_bytes whatever
+    its calibration (4 small sessions: RSS 451 MB -> 2.49 GB); now its queue holds a credit
+    window of 64 x 48 frames and one large frame, and the rest is refused retryable."""
+    from streaming_support import edit_header
+
+    server = make_server(heavy_or_light_step(), heartbeat_interval_s=5.0)
+    attacker = RawPeer(server.connect_address)
+    assert isinstance(attacker.hello("heavy-bloat"), Welcome)
+    junk = b"\x00" * (35 * 2**20)  # declared a 64 x 48 raw colour image
+
+    def bloated(seq: int) -> list[bytes]:
+        parts = edit_header(frame_parts(seq), lambda h: h["buffers"].__setitem__(0, len(junk)))
+        return [parts[0], junk, parts[2]]
+
+    with LegitStream(server.connect_address) as legit:
+        attacker.send(frame_parts(0))  # in a worker for HEAVY_S: the others queue
+        for seq in range(1, 5):
+            attacker.send(bloated(seq))
+        replies = [attacker.receive(10) for _ in range(3)]
+        snapshot = server.snapshot()["sessions"]["heavy-bloat"]
+        time.sleep(0.5)
+    legit.assert_served()
+    attacker.close()
+    assert snapshot["frames_received"] == 2 and snapshot["pending"] == 1
+    assert [(r.code, r.field, r.retryable, r.seq) for r in replies] == [
+        ("bad_state", "credits", True, 2),
+        ("bad_state", "credits", True, 3),
+        ("bad_state", "credits", True, 4),
+    ]
+    assert "MiB) unacknowledged" in replies[0].message
