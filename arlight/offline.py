@@ -26,6 +26,7 @@ from arlight.core.frames import FrameInput, FrameResult
 from arlight.pipeline.engine_export import camera_exports
 from arlight.pipeline.light_estimation import LOW_CONFIDENCE
 from arlight.protocols import plain_diagnostics
+from arlight.protocols.frame_result import compact_sources_to_wire
 
 _NUMBER = re.compile(r"\d+(\.\d+)?(e[+-]?\d+)?")
 
@@ -48,6 +49,11 @@ def frame_record(result: FrameResult, index: int, exports: Sequence[str] = ()) -
         "dominant_direction_camera": [float(x) for x in result.dominant_direction_camera],
         "dominant_direction_world": [float(x) for x in result.dominant_direction_world],
         "intensity": float(result.intensity),
+        **(
+            {}
+            if not result.compact_sources
+            else {"compact_sources": compact_sources_to_wire(result.compact_sources)}
+        ),
         "confidence": result.confidence.to_dict(),
         "pose": np.asarray(result.pose, dtype=float).tolist(),
         "timings_ms": {k: round(float(v), 3) for k, v in result.timings_ms.items()},
@@ -55,8 +61,9 @@ def frame_record(result: FrameResult, index: int, exports: Sequence[str] = ()) -
     }
     if exports:
         light = result.sh if result.sh_rgb is None else result.sh_rgb
+        source = result.compact_sources[0] if result.compact_sources else None  # main light
         record["exports"] = camera_exports(
-            light, result.pose, tuple(exports), result.dominant_direction_world
+            light, result.pose, tuple(exports), result.dominant_direction_world, source
         )
     return record
 

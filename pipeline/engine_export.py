@@ -33,6 +33,8 @@ Each exporter's docstring names its source and what the engine's shader computes
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -59,6 +61,38 @@ BASIS_CONSTANTS = np.array(
 
 class ExportError(ValueError):
     """Light or frame that an exporter refuses: what was expected and what came."""
+
+
+class SourceLike(Protocol):
+    """A compact source the main light can be (a `core.frames.CompactLight`, a MainSource)."""
+
+    @property
+    def direction_world(self) -> npt.ArrayLike: ...
+    @property
+    def intensity(self) -> float: ...
+    @property
+    def rgb(self) -> npt.ArrayLike | None: ...
+
+
+class MainSource(NamedTuple):
+    """A compact source as a Result carries it (main_source_from_wire): direction_world (3,)
+    unit towards it, world frame; intensity: its integrated radiance (the irradiance on a
+    surface facing it, the SH's units); rgb: the same per linear R, G, B, or None."""
+
+    direction_world: npt.ArrayLike
+    intensity: float
+    rgb: npt.ArrayLike | None = None
+
+
+def main_source_from_wire(
+    compact_sources: Sequence[Mapping[str, Any]] | None,
+) -> MainSource | None:
+    """The first of a Result's `compact_sources` (the one its dominant direction names) as a
+    MainSource; None when the Result has none."""
+    if not compact_sources:
+        return None
+    first = compact_sources[0]
+    return MainSource(first["direction_world"], float(first["intensity"]), first["rgb"])
 
 
 def _engine_sh(
@@ -249,6 +283,7 @@ def main_light(
     sh_world: np.ndarray,
     engine_from_world: np.ndarray | None = None,
     direction_world: npt.ArrayLike | None = None,
+    source: SourceLike | None = None,
 ) -> dict[str, list[float]]:
     """The main directional light for ARCore ``getEnvironmentalHdrMainLightDirection`` /
     ``...MainLightIntensity`` and WebXR ``XRLightEstimate.primaryLightDirection`` /
@@ -267,9 +302,17 @@ def main_light(
     - intensity: linear RGB, the integrated radiance of the delta light along it that best
       fits each channel (``sh.intensity_along``, Sloan's extraction): the irradiance on a
       surface facing the light, in this project's units (no engine calibration);
+    - with a compact ``source`` (the Result's first ``compact_sources`` entry): its direction
+      (equal to the Result's dominant direction) and its intensity, the same quantity (the
+      irradiance on a surface facing it): its ``rgb``, else its luminance ``intensity``
+      times the colour of the SH's extraction along it (scaled to luminance 1);
     - layout: {"direction": [x, y, z], "intensity": [r, g, b]}.
     """
     c = _engine_sh(sh_world, engine_from_world)
+    if source is not None:
+        direction = _engine_direction(source.direction_world, engine_from_world)
+        if np.any(direction):
+            return {"direction": _floats(direction), "intensity": _source_rgb(source, c, direction)}
     if direction_world is None:
         direction = sh.dominant_direction(LUMA @ c)
     else:
@@ -280,6 +323,23 @@ def main_light(
         "direction": _floats(direction),
         "intensity": [sh.intensity_along(c[ch], direction) for ch in range(3)],
     }
+
+
+def _source_rgb(source: SourceLike, c: np.ndarray, direction: np.ndarray) -> list[float]:
+    """A compact source's linear RGB intensity (>= 0): its own rgb, else its luminance
+    times the chromaticity of the SH `c` (3, n) along unit `direction` (engine frame)."""
+    if source.rgb is not None:
+        rgb = np.asarray(source.rgb, dtype=np.float64)
+        if rgb.shape != (3,) or not np.all(np.isfinite(rgb)):
+            raise ExportError(f"source rgb must be 3 finite floats, got shape {rgb.shape}")
+        return _floats(np.maximum(rgb, 0.0))
+    k = float(source.intensity)
+    if not math.isfinite(k):
+        raise ExportError(f"source intensity must be finite, got {k}")
+    along = np.array([sh.intensity_along(c[ch], direction) for ch in range(3)])
+    lum = float(LUMA @ along)
+    colour = along / lum if lum > 1e-12 else np.ones(3)
+    return _floats(max(k, 0.0) * colour)
 
 
 # the layouts by name (`--export`, the protocol's EXPORT_LAYOUTS); main_light: ARCore's main
@@ -299,20 +359,23 @@ def camera_exports(
     world_from_cam: npt.ArrayLike,
     names: list[str] | tuple[str, ...],
     direction_world: npt.ArrayLike | None = None,
+    source: SourceLike | None = None,
 ) -> dict:
     """The light of one frame in each named layout (EXPORTERS), in the CAMERA frame with the
     engine's axes (OpenGL's x right, y up, z back: sh.GL_FROM_CV; Unity's left-handed
     UNITY_FROM_CV): an app turns it into its own world with its camera pose.
     sh_world: (n,) luminance or (3, n) RGB world-frame radiance SH; world_from_cam (4, 4);
     direction_world: the Result's dominant_direction_world (unit, world), the main light's
-    direction (None: the SH's own, whole sphere)."""
+    direction (None: the SH's own, whole sphere); source: the frame's first compact source
+    (FrameResult.compact_sources[0], or main_source_from_wire of a Result's), which the main
+    light then is (direction and intensity; None: none was kept)."""
     cam_from_world = np.asarray(world_from_cam, np.float64)[:3, :3].T
     out: dict[str, object] = {}
     for name in names:
         axes = UNITY_FROM_CV if name == "unity" else sh.GL_FROM_CV
         light = np.asarray(sh_world, np.float64)
         if name == "main_light":
-            out[name] = main_light(light, axes @ cam_from_world, direction_world)
+            out[name] = main_light(light, axes @ cam_from_world, direction_world, source)
         else:
             out[name] = EXPORTERS[name](light, axes @ cam_from_world)
     return out

@@ -26,7 +26,14 @@ import numpy as np
 from arlight.core.camera import PinholeCamera
 from arlight.core.checks import CheckError, check_finite, check_image, check_rigid, depth_metres
 from arlight.core.contracts import TrackingDiagnostics
-from arlight.core.frames import Confidence, Diagnostics, FrameInput, FrameResult, RenderLight
+from arlight.core.frames import (
+    Confidence,
+    Diagnostics,
+    FrameInput,
+    FrameResult,
+    RenderLight,
+    compact_lights,
+)
 from arlight.pipeline import sh
 from arlight.pipeline.color import intensity_from_rgb, luminance, srgb_to_linear
 from arlight.pipeline.compact_light import CompactFit, CompactLightStage, CompactSource
@@ -386,6 +393,9 @@ class Pipeline:
             composite=composite,
             timings_ms=timings,
             diagnostics=diagnostics,
+            compact_sources=compact_lights(
+                () if self.last_compact is None else self.last_compact.sources, rotation
+            ),
         )
 
     def _compact_sources(

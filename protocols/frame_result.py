@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 
 from arlight.core.contracts import Confidence, Diagnostics
+from arlight.core.frames import CompactLight
 
 from .codecs import (
     DEFAULT_COLOR_CODEC,
@@ -31,6 +32,7 @@ from .fields import (
     read_plain_map,
     read_pose,
     to_plain,
+    type_name,
 )
 from .images import ImageParts, add_image
 from .layouts import read_exports
@@ -39,6 +41,18 @@ from .layouts import read_exports
 # norm within this of 1 (the reference server rotates it by the frame's pose, rigid within
 # 1e-3), or exactly [0, 0, 0]: no direction
 DIRECTION_NORM_TOLERANCE = 0.01
+
+# Result.compact_sources (SPEC.md section 4, "result: compact sources"): 1..4 maps with these
+# keys, in this order; absent = none
+MAX_COMPACT_SOURCES = 4
+COMPACT_SOURCE_KEYS = (
+    "direction_world",
+    "direction_camera",
+    "intensity",
+    "rgb",
+    "angular_radius_deg",
+    "share",
+)
 
 
 @dataclass
@@ -170,6 +184,9 @@ class Result:
     dominant_direction_camera: list[float]  # unit vector towards the light
     dominant_direction_world: list[float]
     intensity: float
+    # the compact sources kept beside the SH (optional key: absent = none): 1..4 maps with
+    # COMPACT_SOURCE_KEYS (read_compact_sources; `compact_sources_to_wire` of CompactLights)
+    compact_sources: list[dict[str, Any]] | None = None
     confidence: Confidence
     pose: list[list[float]]  # 4 x 4 camera-to-world
     timings_ms: dict[str, float]
@@ -227,6 +244,12 @@ class Result:
                 self.dominant_direction_world, "result.dominant_direction_world"
             ),
             "intensity": to_plain(self.intensity),
+        }
+        if self.compact_sources is not None:  # optional key: absent when none was kept
+            out["compact_sources"] = read_compact_sources(
+                to_plain(self.compact_sources), "result.compact_sources"
+            )
+        out |= {
             "confidence": to_plain(self.confidence_map),
             "pose": pose_to_wire(self.pose, "result.pose"),
             "timings_ms": to_plain(self.timings_ms),
@@ -306,6 +329,9 @@ class Result:
                 h.raw("dominant_direction_world"), h.f("dominant_direction_world")
             ),
             intensity=h.float("intensity"),
+            compact_sources=read_compact_sources(h.raw("compact_sources"), h.f("compact_sources"))
+            if "compact_sources" in h.d  # optional key: absent = no compact source
+            else None,
             confidence=read_plain_map(h.raw("confidence"), h.f("confidence"), 0, 64),
             pose=read_pose(h.raw("pose"), h.f("pose")).tolist(),
         )
@@ -387,3 +413,65 @@ def read_direction(v: Any, name: str) -> list[float]:
             name,
         )
     return d
+
+
+def read_compact_sources(v: Any, name: str) -> list[dict[str, Any]]:
+    """Result.compact_sources (SPEC.md section 4, "result: compact sources"): an array of
+    1..MAX_COMPACT_SOURCES maps, each with exactly COMPACT_SOURCE_KEYS: two unit directions,
+    intensity >= 0, rgb 3 numbers >= 0 or nil, angular_radius_deg 0..90, share 0..1 (all
+    finite). Returns the maps in that key order; bad_field naming e.g.
+    `result.compact_sources[0].share` otherwise."""
+    if type(v) is not list or not 1 <= len(v) <= MAX_COMPACT_SOURCES:
+        got = f"{len(v)} entries" if type(v) is list else type_name(v)
+        raise ProtocolError(
+            "bad_field",
+            f"expected an array of 1..{MAX_COMPACT_SOURCES} maps (none: omit the key), got {got}",
+            name,
+        )
+    out = []
+    for i, x in enumerate(v):
+        h = FieldReader(x, f"{name}[{i}]")
+        source: dict[str, Any] = {
+            "direction_world": _read_unit(h.raw("direction_world"), h.f("direction_world")),
+            "direction_camera": _read_unit(h.raw("direction_camera"), h.f("direction_camera")),
+            "intensity": h.float("intensity", 0.0),
+        }
+        rgb = h.raw("rgb", nullable=True)
+        if rgb is not None:
+            rgb = read_floats(rgb, h.f("rgb"), 3)
+            for j, c in enumerate(rgb):
+                read_float(c, f"{h.f('rgb')}[{j}]", 0.0)
+        source["rgb"] = rgb
+        source["angular_radius_deg"] = h.float("angular_radius_deg", 0.0, 90.0)
+        source["share"] = h.float("share", 0.0, 1.0)
+        h.done()
+        out.append(source)
+    return out
+
+
+def _read_unit(v: Any, name: str) -> list[float]:
+    """A compact source's direction: a unit vector (read_direction's tolerance), never
+    [0, 0, 0] (a source always has a direction)."""
+    d = read_direction(v, name)
+    if not any(d):
+        raise ProtocolError("bad_field", "[0, 0, 0]: a compact source has a direction", name)
+    return d
+
+
+def compact_sources_to_wire(lights: Sequence[CompactLight]) -> list[dict[str, Any]] | None:
+    """The pipeline's CompactLights (FrameResult.compact_sources) as Result.compact_sources
+    takes them: plain maps in COMPACT_SOURCE_KEYS order, None when there is none (the
+    optional key is then omitted). At most MAX_COMPACT_SOURCES (encode refuses more)."""
+    if not lights:
+        return None
+    return [
+        {
+            "direction_world": [float(x) for x in s.direction_world],
+            "direction_camera": [float(x) for x in s.direction_camera],
+            "intensity": float(s.intensity),
+            "rgb": None if s.rgb is None else [float(x) for x in s.rgb],
+            "angular_radius_deg": float(s.angular_radius_deg),
+            "share": float(s.share),
+        }
+        for s in lights
+    ]

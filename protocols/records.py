@@ -25,6 +25,8 @@ def result_record(result: Result) -> dict:
         "dominant_direction_camera": result.dominant_direction_camera,
         "dominant_direction_world": result.dominant_direction_world,
         "intensity": result.intensity,
+        # compact sources kept beside the SH (SPEC.md "result: compact sources"): when any
+        **({} if result.compact_sources is None else {"compact_sources": result.compact_sources}),
         "confidence": result.confidence_map,  # as the wire carried it
         "pose": result.pose,
         "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},

@@ -24,6 +24,7 @@ from arlight.protocols import (
     plain_diagnostics,
 )
 from arlight.protocols.fields import MAX_INT as MAX_SEQ
+from arlight.protocols.frame_result import compact_sources_to_wire
 from arlight.server.frame_queue import Job
 from arlight.server.logtext import printable
 from arlight.server.worker import FrameOutcome, Rejected
@@ -69,8 +70,9 @@ def result_message(
     """
     received, processed, dropped = counters
     light = result.sh if result.sh_rgb is None else result.sh_rgb
+    source = result.compact_sources[0] if result.compact_sources else None  # main light
     layouts = (
-        camera_exports(light, result.pose, exports, result.dominant_direction_world)
+        camera_exports(light, result.pose, exports, result.dominant_direction_world, source)
         if exports
         else None
     )
@@ -83,6 +85,7 @@ def result_message(
         dominant_direction_camera=[float(x) for x in result.dominant_direction_camera],
         dominant_direction_world=[float(x) for x in result.dominant_direction_world],
         intensity=float(result.intensity),
+        compact_sources=compact_sources_to_wire(result.compact_sources),
         confidence=result.confidence,
         pose=np.asarray(result.pose, dtype=float).tolist(),
         timings_ms={

@@ -5,14 +5,23 @@ protocol and the clients read the same types); they are re-exported here."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
 from arlight.core.contracts import Confidence, Diagnostics
 
-__all__ = ["Confidence", "Diagnostics", "FrameInput", "FrameResult", "RenderLight"]
+__all__ = [
+    "CompactLight",
+    "Confidence",
+    "Diagnostics",
+    "FrameInput",
+    "FrameResult",
+    "RenderLight",
+    "compact_lights",
+]
 
 
 @dataclass
@@ -51,6 +60,65 @@ class RenderLight(NamedTuple):
     environment: object | None = None
 
 
+@dataclass(frozen=True)
+class CompactLight:
+    """A compact distant light (a sun, a lamp) found beside the SH in one frame.
+
+    direction_world / direction_camera: (3,) unit vectors towards the source (world frame;
+    camera frame = R^T world with R the pose's rotation). intensity: its luminance integrated
+    over its solid angle (the irradiance on a surface facing it; the units of FrameResult.sh,
+    whose projection of it is intensity * Y(direction_world)). rgb: (3,) the same per linear
+    R, G, B (each >= 0), or None. angular_radius_deg: degrees, assumed (not measured).
+    share: 0..1, the source's part of the irradiance on a surface facing it.
+    """
+
+    direction_world: np.ndarray
+    direction_camera: np.ndarray
+    intensity: float
+    rgb: np.ndarray | None
+    angular_radius_deg: float
+    share: float
+
+
+class _FittedSource(Protocol):
+    """What compact_lights reads of a pipeline.compact_light.CompactSource."""
+
+    @property
+    def direction(self) -> np.ndarray: ...
+    @property
+    def intensity(self) -> float: ...
+    @property
+    def rgb(self) -> np.ndarray | None: ...
+    @property
+    def angular_radius_deg(self) -> float: ...
+    @property
+    def share(self) -> float: ...
+
+
+def compact_lights(
+    sources: Sequence[_FittedSource], world_from_cam_rotation: np.ndarray
+) -> tuple[CompactLight, ...]:
+    """The frame's fitted compact sources (world frame) as CompactLights, in the camera frame
+    too: direction_camera = R^T direction_world, R (3, 3) camera-to-world rotation. A
+    channel of rgb fitted below 0 is reported as 0 (its light cannot be negative)."""
+    r = np.asarray(world_from_cam_rotation, dtype=np.float64)
+    out = []
+    for s in sources:
+        d = np.asarray(s.direction, dtype=np.float64).copy()
+        rgb = None if s.rgb is None else np.maximum(np.asarray(s.rgb, np.float64), 0.0)
+        out.append(
+            CompactLight(
+                direction_world=d,
+                direction_camera=r.T @ d,
+                intensity=max(float(s.intensity), 0.0),
+                rgb=rgb,
+                angular_radius_deg=float(s.angular_radius_deg),
+                share=float(s.share),
+            )
+        )
+    return tuple(out)
+
+
 @dataclass
 class FrameResult:
     """Lighting estimated from one frame.
@@ -62,6 +130,9 @@ class FrameResult:
     dominant_direction_world / _camera: unit vectors towards the light (zeros if none).
     intensity: radiance of the dominant light lobe (arbitrary units, camera exposure).
     pose: (4, 4) camera-to-world used for this frame.
+    compact_sources: the compact sources kept beside the SH this frame (at most 4; the
+        first is the one the dominant direction names); () when none. `sh` still holds the
+        whole light: the sources say where its compact part is.
     """
 
     timestamp: float
@@ -76,3 +147,4 @@ class FrameResult:
     composite: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     diagnostics: Diagnostics = field(default_factory=Diagnostics)
+    compact_sources: tuple[CompactLight, ...] = ()
