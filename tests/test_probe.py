@@ -260,6 +260,27 @@ class TestSunDisc:
         assert probe.diagnostics["sun_world"] == [0.0, 1.0, 0.0]
 
 
+class TestPanorama:
+    def test_misses_see_a_streamed_panoramas_map_instead_of_the_sh(self):
+        """A session lit by its panorama: directions that leave the room read the HDR map
+        (its own frame turned by map_from_world), not the SH."""
+        from arlight.pipeline.glossy import mip_pyramid
+        from arlight.pipeline.rendering import EnvironmentMap
+
+        hdr = np.full((32, 64, 3), 0.1, np.float32)
+        hdr[:16] = (2.0, 1.0, 0.5)  # the upper half of the map bright and warm
+        turn = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # map up = world down
+        env = EnvironmentMap(mip_pyramid(hdr), turn)
+        pose = looking_along(AXES[0], -0.5 * AXES[0])
+        stage = ProbeStage(ProbeSettings(size=32), CAMERA)
+        stage.fuse(np.zeros(3), *wall_frame(1.5), pose)
+        probe = stage.probe(np.zeros(3), pose, DistantLight(np.zeros(16), environment=env))
+        down = probe_cube.sample(probe.mips, np.array([[0.0, -1.0, 0.0]]), 0.0)[0]
+        up = probe_cube.sample(probe.mips, np.array([[0.0, 1.0, 0.0]]), 0.0)[0]
+        np.testing.assert_allclose(down, [2.0, 1.0, 0.5], rtol=1e-3)
+        np.testing.assert_allclose(up, 0.1, rtol=1e-3)
+
+
 class TestProbeBadInput:
     def test_a_point_inside_real_geometry_falls_back_to_the_distant_light(self):
         stage, _ = wall_probe(0, 1)
@@ -302,6 +323,25 @@ class TestShading:
             probe, looks, np.zeros(1, int), np.zeros((1, 3)), normal, view, np.ones((1, 3)), None
         )
         np.testing.assert_allclose(got[0], 0.9 * RED, rtol=1e-3)
+
+    def test_a_pixel_off_the_probe_point_sees_the_wall_along_its_own_ray(self):
+        """Parallax: a wall at x = 1 red above y = 0.15 and blue below; a mirror pixel 0.3 m
+        above the probe point reflecting +x meets the wall at y = 0.3 (red), where the probe
+        centre's own +x direction sees blue."""
+        pose = looking_along(AXES[0], -0.5 * AXES[0])
+        depth, colour = wall_frame(1.5)
+        rows = np.arange(CAMERA.height)
+        y_world = (rows - CAMERA.cy) / CAMERA.fy * 1.5  # this camera's image y is world +y
+        colour[y_world < 0.15] = (0.05, 0.05, 0.8)
+        stage = ProbeStage(ProbeSettings(size=64), CAMERA)
+        stage.fuse(np.zeros(3), depth, colour, pose)
+        probe = stage.probe(np.zeros(3), pose, grey_light())
+        assert probe_cube.sample(probe.mips, AXES[:1], 0.0)[0, 2] > 0.5  # the centre: blue
+        normal, view = mirror_pixel_towards_plus_x()
+        looks = [glossiness_of(Material((1.0, 1.0, 1.0), mirror=True))]
+        point = np.array([[0.0, 0.3, 0.0]])
+        got = shade(probe, looks, np.zeros(1, int), point, normal, view, np.ones((1, 3)), None)
+        np.testing.assert_allclose(got[0], RED, atol=0.05)
 
     def test_the_object_itself_occludes_its_reflection(self):
         """A virtual box on +x, between the mirror pixel and the wall: the reflection is the
