@@ -33,22 +33,26 @@ def refuse_unauthorized(server: Server, identity: bytes, name: str, role: str) -
 
 
 def display_admitted(server: Server, identity: bytes, cfg: SessionConfig) -> bool:
-    """A display Hello's token: the session's, the admin token, or, for a session that
-    does not exist yet, any token (checked when the session is created)."""
-    if may_enter(server, cfg.token, server.sessions.get(cfg.session)):
+    """A display Hello: refused (unauthorized) without a token; with one it is subscribed to
+    the name whether a session of that name exists or not, and whether the token admits it
+    or not, so the answer tells a peer without the token nothing about the name (issue 39,
+    item 3); it receives the Results of a session of that name its token admits
+    (`watchers`)."""
+    if not server.options.session_tokens or cfg.token is not None:
         return True
     refuse_unauthorized(server, identity, cfg.session, "display")
     return False
 
 
-def check_subscribers(server: Server, session: Session) -> None:
-    """A new session: unsubscribe (with an Error) every display whose token does not
-    admit it, before any of its Results is sent."""
+def watchers(server: Server, session: Session) -> list[bytes]:
+    """The displays subscribed to `session`'s name whose token admits it: the peers its
+    Results (and its end-of-stream Bye) go to. The others wait, told nothing."""
+    out = []
     for identity in list(server.displays.get(session.name, ())):
         peer = server.peers.get(identity)
-        if peer is not None and not may_enter(server, peer.token, session):
-            refuse_unauthorized(server, identity, session.name, "display")
-            detach_peer(server, peer, reason="wrong token")
+        if peer is not None and may_enter(server, peer.token, session):
+            out.append(identity)
+    return out
 
 
 def capture_session(
@@ -136,7 +140,6 @@ def capture_session(
     )
     session.client = client
     server.sessions[name] = session
-    check_subscribers(server, session)
     size = (
         "panorama only"
         if session.camera is None

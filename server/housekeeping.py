@@ -65,7 +65,9 @@ def close_session(server: Server, session: Session, reason: str) -> None:
         detach_peer(server, server.peers[session.capture_peer], reason=reason)
     if reason == "end of stream":
         parts = encode(Bye(f"session {session.name} ended", ByeKind.END_OF_STREAM))
-        for identity in list(server.displays.get(session.name, ())):
+        from arlight.server.admission import watchers  # admission imports this module
+
+        for identity in watchers(server, session):
             server._send(identity, parts)
 
 

@@ -56,6 +56,7 @@ import zmq
 
 from arlight.pipeline.runtime import concurrent_pipelines_safe
 from arlight.protocols import Error, ErrorField, Heartbeat, encode, new_token
+from arlight.server.admission import watchers
 from arlight.server.budget import SessionBudget
 from arlight.server.clients import HelloLimiter, client_of
 from arlight.server.frame_queue import Job
@@ -452,7 +453,7 @@ class Server:
         if session.capture_peer is not None:
             self._send(session.capture_peer, outcome.parts)
         if error is None:
-            for identity in list(self.displays.get(session.name, ())):
+            for identity in watchers(self, session):
                 if not self._send(identity, outcome.parts):
                     session.display_drops += 1
                     self.stats.display_results_dropped += 1

@@ -31,6 +31,7 @@ from arlight.client.capture import CaptureClient, StreamError, StreamOptions
 from arlight.client.display import DisplayClient, DisplayError, DisplayOptions
 from arlight.protocols import (
     PROTOCOL_VERSION,
+    Bye,
     Error,
     Hello,
     ProtocolError,
@@ -373,19 +374,16 @@ class TestTokens:
         capture = RawPeer(server.connect_address)
         welcome = capture.hello("desk", token=TOKEN)
         assert isinstance(welcome, Welcome) and welcome.token == TOKEN
-        # the early subscriber with another token: unsubscribed when the session was made
-        first = early_wrong.receive()
-        assert isinstance(first, Error) and first.code == "unauthorized"
-        # the session exists now: a wrong token is refused at once
-        reply = wrong.hello("desk", role="display", token=OTHER)
-        assert isinstance(reply, Error) and reply.code == "unauthorized"
+        # the session exists now: a wrong token is answered as for a name that does not
+        # exist (issue 39: a display Hello reveals nothing about the name), and gets nothing
+        assert isinstance(wrong.hello("desk", role="display", token=OTHER), Welcome)
         for seq in range(3):
             capture.send(frame_parts(seq))
             assert isinstance(capture.receive(), Result)
         assert [right.receive().seq for _ in range(3)] == [0, 1, 2]
         for peer in (wrong, missing, early_wrong):
             assert_no_result(peer)
-        assert server.snapshot()["displays"] == {"desk": 1}
+        assert server.snapshot()["displays"] == {"desk": 3}  # two of them wait, told nothing
 
     def test_admin_token_admits_to_any_session(self, make_server):
         server = secure_server(make_server, heartbeat_interval_s=5.0)
@@ -413,8 +411,11 @@ class TestTokens:
         CaptureClient(flat_source(1), stream_opts(server.connect_address, "a", token=TOKEN)).run()
         assert display.receive().seq == 0  # session a's only Result
         assert_no_result(display)
-        reply = RawPeer(server.connect_address).hello("b", role="display", token=TOKEN)
-        assert isinstance(reply, Error) and reply.code == "unauthorized"
+        stranger = RawPeer(server.connect_address)
+        assert isinstance(stranger.hello("b", role="display", token=TOKEN), Welcome)
+        other.send(frame_parts(1))
+        assert isinstance(other.receive(), Result)
+        assert_no_result(stranger)  # b's token is OTHER: nothing of b reaches it
 
     def test_capture_needs_the_token_to_take_over_a_session(self, make_server):
         server = secure_server(make_server, heartbeat_interval_s=5.0)
@@ -596,3 +597,26 @@ class TestTokenWireFormat:
         assert code == EXIT_BAD_INPUT and "--client-key" in text
         code, text = run_cli(["serve", "--keys", "/no/such/dir"], capsys)
         assert code == EXIT_BAD_INPUT and "--keys" in text and "Traceback" not in text
+
+
+def test_a_display_hello_reveals_nothing_about_a_session_name(make_server):
+    """Welcome for a session that exists (wrong token) and for one that does not: the same
+    answer (issue 39, item 3); neither display gets that session's Results or its Bye."""
+    server = secure_server(make_server, heartbeat_interval_s=5.0)
+    capture = RawPeer(server.connect_address)
+    assert isinstance(capture.hello("private", token=TOKEN), Welcome)
+    known, unknown = RawPeer(server.connect_address), RawPeer(server.connect_address)
+    a = known.hello("private", role="display", token=OTHER)
+    b = unknown.hello("no-such-session", role="display", token=OTHER)
+    assert isinstance(a, Welcome) and isinstance(b, Welcome)
+    assert (a.credits, a.token, a.heartbeat_interval_s) == (b.credits, b.token, 5.0)
+    capture.send(frame_parts(0))
+    assert isinstance(capture.receive(), Result)
+    capture.send_message(Bye("done"))
+    deadline = time.monotonic() + 1.0
+    while time.monotonic() < deadline:
+        if known.socket.poll(50):
+            message = decode(known.socket.recv_multipart())
+            assert type(message).__name__ == "Heartbeat", message
+    for peer in (capture, known, unknown):
+        peer.close()
