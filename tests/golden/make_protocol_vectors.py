@@ -146,11 +146,31 @@ def panorama_light() -> dict:
     return {"sh": lum, "sh_rgb": rgb, "direction": direction, "intensity": intensity}
 
 
+def compact_source() -> dict:
+    """One compact source (SPEC.md section 4, "result: compact sources") seen from pose():
+    a sun 53 degrees up the world's -y towards +z; direction_camera = R^T direction_world,
+    written out (R a turn of 0.5 rad about y); intensity the Rec. 709 luminance of rgb
+    (rounded to 9 decimals, as panorama_light())."""
+    c, s = math.cos(0.5), math.sin(0.5)
+    x, y, z = 0.0, -0.8, 0.6
+    rgb = [3.5, 2.875, 2.25]
+    return {
+        "direction_world": [x, y, z],
+        "direction_camera": [c * x - s * z, y, s * x + c * z],
+        "intensity": round(0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2], 9),
+        "rgb": rgb,
+        "angular_radius_deg": 0.27,
+        "share": 0.625,
+    }
+
+
 def vectors() -> dict[str, object]:
     cal = CameraCalibration(8, 6, 5.25, 5.5, 3.5, 2.5, "plumb_bob", (0.1, -0.05, 0.0, 0.0, 0.01))
     rgb, depth = color_8x6(), depth_8x6()
     sh = [0.5 - 0.03125 * i for i in range(16)]
     pano = panorama_light()
+    sun = compact_source()
+    sun_gl = [sun["direction_camera"][0], -sun["direction_camera"][1], -sun["direction_camera"][2]]
     return {
         "hello": Hello(
             PROTOCOL_VERSION,
@@ -311,6 +331,28 @@ def vectors() -> dict[str, object]:
             server_receive_time=7.0,
             server_finish_time=7.25,
             exports=exports(),
+        ),
+        # one compact source (issue 32): the dominant directions are its own, and the
+        # main_light layout is it (its direction in OpenGL camera axes, its rgb)
+        "result_compact": Result(
+            seq=14,
+            timestamp=1237.0,
+            sh=sh,
+            sh_camera=sh,
+            dominant_direction_camera=sun["direction_camera"],
+            dominant_direction_world=sun["direction_world"],
+            intensity=1.5,
+            compact_sources=[sun],
+            confidence={"value": 0.75},
+            pose=pose().tolist(),
+            timings_ms={"LightEst": 12.5},
+            diagnostics={"compact": {"reason": "1 compact source", "rays": 4096}},
+            frames_received=2,
+            frames_processed=2,
+            frames_dropped=0,
+            server_receive_time=9.0,
+            server_finish_time=9.25,
+            exports={"main_light": {"direction": sun_gl, "intensity": sun["rgb"]}},
         ),
         "result_no_composite": Result(
             seq=7,
