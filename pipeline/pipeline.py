@@ -434,16 +434,10 @@ class Pipeline:
         diagnostics["compact"] = {
             "reason": fit.reason,
             "rays": int(rays),
-            "sources": [
-                {
-                    "direction_world": [float(x) for x in s.direction],
-                    "intensity": float(s.intensity),
-                    "share": float(s.share),
-                    "gain": float(s.gain),
-                    "angular_radius_deg": float(s.angular_radius_deg),
-                }
-                for s in fit.sources
-            ],
+            # the sources themselves: FrameResult.compact_sources (diagnostics carry no
+            # arrays of maps on the wire, SPEC.md "diagnostics")
+            "kept": len(fit.sources),
+            "gain": [float(s.gain) for s in fit.sources],
         }
         return fit
 

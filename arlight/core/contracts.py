@@ -119,26 +119,16 @@ class ReusedStages(TypedDict):
     RadTransfer: bool
 
 
-class CompactSourceDiagnostics(TypedDict):
-    """One compact source beside the SH (pipeline/compact_light.py): direction (world, unit,
-    towards it), intensity (its luminance over its solid angle, the SH's units), share (of
-    the irradiance on a surface facing it), gain (of the SH fit's residual its shadow
-    explains), angular_radius_deg (assumed)."""
-
-    direction_world: list[float]
-    intensity: float
-    share: float
-    gain: float
-    angular_radius_deg: float
-
-
 class CompactDiagnostics(TypedDict):
-    """Diagnostics["compact"]: the sources kept (at most one), why (or why none), and the
-    visibility rays cast to find them."""
+    """Diagnostics["compact"]: why a source was kept (or none), the visibility rays cast to
+    find them, how many were kept (at most one) and each one's gain (the share of the SH
+    fit's residual its shadow explains); the sources themselves are
+    FrameResult.compact_sources (the Result's `compact_sources`)."""
 
     reason: str
     rays: int
-    sources: list[CompactSourceDiagnostics]
+    kept: int
+    gain: list[float]
 
 
 class Diagnostics(TypedDict, total=False):

@@ -346,7 +346,9 @@ def vectors() -> dict[str, object]:
             confidence={"value": 0.75},
             pose=pose().tolist(),
             timings_ms={"LightEst": 12.5},
-            diagnostics={"compact": {"reason": "1 compact source", "rays": 4096}},
+            diagnostics={
+                "compact": {"reason": "1 compact source", "rays": 4096, "kept": 1, "gain": [0.125]}
+            },
             frames_received=2,
             frames_processed=2,
             frames_dropped=0,
