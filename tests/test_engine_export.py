@@ -392,3 +392,102 @@ def test_a_sessions_main_light_is_its_results_direction(make_server):
     assert summary.errors == [] and len(got) == 1
     direction = np.asarray(got[0].exports["main_light"]["direction"])
     assert angular_error_deg(direction, sh.GL_FROM_CV @ reported) < 0.01
+
+
+class TestCompactSourceMainLight:
+    """With a compact source (issue 32, item 4) the main light of ARCore and WebXR is the
+    source: its direction (the Result's dominant direction) and its intensity, while the
+    SH layouts stay the whole light."""
+
+    one = TestOneLight()
+    RGB = np.array([3.2, 3.0, 2.6])
+
+    def _source(self, rotation: np.ndarray, rgb: np.ndarray | None):
+        from arlight.core.frames import CompactLight
+
+        d = rotation @ self.one.SUN_CV
+        return CompactLight(d, rotation.T @ d, 3.0, rgb, 0.27, 0.7)
+
+    @pytest.mark.parametrize("frame", FRAMES)
+    @pytest.mark.parametrize("layout", ["arcore", "webxr"])
+    def test_main_light_points_at_the_source(self, frame, layout):
+        from arlight.pipeline.engine_export import camera_exports
+
+        rotation = FRAMES[frame]
+        world_from_cam = np.eye(4)
+        world_from_cam[:3, :3] = rotation
+        light_world = sh.rotate(np.stack(3 * [self.one._light(0.6)]), rotation)
+        source = self._source(rotation, self.RGB)
+        names = [layout, "main_light"]
+        got = camera_exports(light_world, world_from_cam, names, source.direction_world, source)
+        want = sh.GL_FROM_CV @ rotation.T @ source.direction_world
+        assert angular_error_deg(np.asarray(got["main_light"]["direction"]), want) < 1.0
+        np.testing.assert_allclose(got["main_light"]["intensity"], self.RGB)
+        # the SH layout is the whole light, as without a source
+        plain = camera_exports(light_world, world_from_cam, names, source.direction_world)
+        assert got[layout] == plain[layout]
+        # and the SH's own extraction along it is not the source's intensity (the sky and
+        # the glow add to it): the source is what the main light reports
+        assert not np.allclose(plain["main_light"]["intensity"], self.RGB, rtol=0.05)
+
+    def test_luminance_only_source_takes_the_lights_colour(self):
+        light = np.stack([self.one._light(0.0) * k for k in (1.2, 1.0, 0.5)])
+        source = self._source(np.eye(3), None)
+        got = ee.main_light(light, sh.GL_FROM_CV, None, source)
+        rgb = np.asarray(got["intensity"])
+        assert float(np.array([0.2126, 0.7152, 0.0722]) @ rgb) == pytest.approx(3.0)
+        np.testing.assert_allclose(rgb / rgb[1], [1.2, 1.0, 0.5], rtol=1e-9)
+        want = sh.GL_FROM_CV @ self.one.SUN_CV
+        assert angular_error_deg(np.asarray(got["direction"]), want) < 1e-6
+
+    def test_bad_source(self):
+        source = self._source(np.eye(3), np.array([1.0, np.nan, 1.0]))
+        with pytest.raises(ee.ExportError, match="rgb"):
+            ee.main_light(np.eye(1, 9)[0], None, None, source)
+
+
+def test_a_sessions_main_light_is_its_compact_source(make_server):
+    """Over loopback: a session asking for `main_light` whose frames keep a compact source
+    gets the source (direction within 1 degree, its rgb) and the source in the Result."""
+    from streaming_support import flat_source, run_with_timeout
+
+    from arlight.client.capture import StreamOptions, stream
+    from arlight.core.frames import Confidence, FrameResult
+
+    one = TestCompactSourceMainLight()
+    light = one.one._light(0.6)  # world = camera (pose identity)
+    source = one._source(np.eye(3), one.RGB)
+
+    def step(frame, session, render_light, deadline) -> FrameResult:
+        return FrameResult(
+            timestamp=frame.timestamp,
+            sh=light,
+            sh_camera=light,
+            dominant_direction_world=source.direction_world,
+            dominant_direction_camera=source.direction_camera,
+            intensity=1.0,
+            confidence=Confidence(),
+            pose=np.eye(4),
+            timings_ms={"Step": 0.0},
+            compact_sources=(source,),
+        )
+
+    server = make_server(process=step)
+    options = StreamOptions(
+        server=server.connect_address,
+        session="compact-light",
+        mode="lossless",
+        rate="max",
+        exports=("webxr", "main_light"),
+    )
+    got = []
+    summary = run_with_timeout(
+        lambda: stream(flat_source(1), options, on_result=lambda r, _: got.append(r))
+    )
+    assert summary.errors == [] and len(got) == 1
+    (wire,) = got[0].compact_sources
+    np.testing.assert_allclose(wire["direction_world"], source.direction_world)
+    main = got[0].exports["main_light"]
+    want = sh.GL_FROM_CV @ source.direction_world
+    assert angular_error_deg(np.asarray(main["direction"]), want) < 1.0
+    np.testing.assert_allclose(main["intensity"], one.RGB)
