@@ -290,13 +290,18 @@ class DisplayClient:
         self._last_seq = result.seq
         record = received_record(result, got.receive_time_wall)  # with the session's exports
         if self.options.exports:  # and the layouts this display asked for, computed here
-            from arlight.pipeline.engine_export import camera_exports
+            from arlight.pipeline.engine_export import camera_exports, main_source_from_wire
 
             light = result.sh_rgb if result.sh_rgb is not None else result.sh
+            source = main_source_from_wire(result.compact_sources)  # the main light, if any
             record["exports"] = {
                 **(result.exports or {}),
                 **camera_exports(
-                    light, result.pose, self.options.exports, result.dominant_direction_world
+                    light,
+                    result.pose,
+                    self.options.exports,
+                    result.dominant_direction_world,
+                    source,
                 ),
             }
         now_m = got.receive_time_mono

@@ -284,3 +284,62 @@ class TestMainLight:
                 encode(_message(FrameResult(**{**vars(got), "compact_sources": ()}), (layout,)))
             )
             assert msg.exports[layout] == plain.exports[layout]
+
+
+def test_a_display_computes_the_main_light_from_the_source(make_server, tmp_path):
+    """`arlight display --export main_light` computes the layout from each Result it
+    receives: with a compact source, the source (as the server's own layout)."""
+    import json
+    import threading
+
+    from streaming_support import flat_source, run_with_timeout
+
+    from arlight.client.capture import CaptureClient, StreamOptions
+    from arlight.client.display import DisplayClient, DisplayOptions
+    from arlight.core.frames import Confidence
+
+    light = sh.directional_light(np.array([0.0, 0.0, 1.0]), 1.0, 4)
+    light[0] += 0.5
+    d = np.array([0.0, -0.8, 0.6])  # 37 degrees from the SH's own direction
+    (source,) = compact_lights(
+        (CompactSource(d, 2.0, np.array([2.2, 2.0, 1.5]), 0.27, 0.6, 0.1),), np.eye(3)
+    )
+
+    def step(frame, session, render_light, deadline) -> FrameResult:
+        return FrameResult(
+            timestamp=frame.timestamp,
+            sh=light,
+            sh_camera=light,
+            dominant_direction_world=d,
+            dominant_direction_camera=d,
+            intensity=1.0,
+            confidence=Confidence(),
+            pose=np.eye(4),
+            timings_ms={"Step": 0.0},
+            compact_sources=(source,),
+        )
+
+    server = make_server(process=step)
+    out = tmp_path / "out"
+    display = DisplayClient(
+        DisplayOptions(
+            server=server.connect_address,
+            session="compact",
+            out_dir=str(out),
+            exports=("main_light",),
+            idle_exit_s=30.0,
+        )
+    )
+    thread = threading.Thread(target=display.run, daemon=True)
+    thread.start()
+    assert display.subscribed.wait(10)
+    options = StreamOptions(
+        server=server.connect_address, session="compact", mode="lossless", rate="max"
+    )
+    assert run_with_timeout(lambda: CaptureClient(flat_source(1), options).run()).results == 1
+    thread.join(30)
+    (line,) = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
+    assert line["compact_sources"][0]["rgb"] == [2.2, 2.0, 1.5]
+    main = line["exports"]["main_light"]
+    assert _angle_deg(main["direction"], GL_FROM_CV @ d) < 1.0
+    assert main["intensity"] == [2.2, 2.0, 1.5]
