@@ -309,7 +309,7 @@ def main_light(
     - layout: {"direction": [x, y, z], "intensity": [r, g, b]}.
     """
     c = _engine_sh(sh_world, engine_from_world)
-    if source is not None:
+    if source is not None:  # 2.8 deg from the sun, not 35: docs/results/compact-exports.md
         direction = _engine_direction(source.direction_world, engine_from_world)
         if np.any(direction):
             return {"direction": _floats(direction), "intensity": _source_rgb(source, c, direction)}
