@@ -181,7 +181,7 @@ def _with_compact_source(data, i: int, est, up, compact: dict) -> tuple[np.ndarr
     total[:n] = fit.ambient
     for source in fit.sources:
         total[:n] += source.sh(f.bands)
-    info = {"reason": fit.reason, "rays": tester.rays}
+    info = {"reason": fit.reason, "rays": tester.rays, "contrast": fit.contrast}
     if fit.sources:
         info.update(
             direction=fit.sources[0].direction,
@@ -269,6 +269,7 @@ def replay(
                     ),
                     "share": info.get("share"),
                     "gain": info.get("gain"),
+                    "contrast": info.get("contrast"),
                     **_compact_truth(m, rotations, i, maps_dir, info),
                     "filtered": _error(filtered, up_seen, r, truth),
                     "confidence": est.confidence.value,

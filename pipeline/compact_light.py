@@ -69,7 +69,8 @@ class CompactSource:
 class CompactFit:
     """sources: the kept sources (at most one today); ambient: (C,) the SH fitted beside
     them (equal to the SH-only fit when none is kept); reason: why none or why this one;
-    tested: candidate directions tested; rays: visibility rays cast."""
+    tested: candidate directions tested; rays: visibility rays cast; contrast: of the best
+    direction's gain against its mirror's (module docstring), whether kept or not."""
 
     sources: tuple[CompactSource, ...]
     ambient: np.ndarray
@@ -77,6 +78,7 @@ class CompactFit:
     reason: str
     tested: int = 0
     rays: int = 0
+    contrast: float = float("nan")
 
 
 def candidate_directions(up: np.ndarray | None, count: int) -> np.ndarray:
@@ -217,6 +219,7 @@ def fit_compact_source(
     candidates: int = 256,
     search_samples: int = 4000,
     min_gain: float = 0.05,
+    min_contrast: float = 0.0,
     min_pixels: int = 50,
     angular_radius_deg: float = 0.27,
     seed: int = 0,
@@ -278,19 +281,38 @@ def fit_compact_source(
         _scores(system, (column * albedo)[:, None])[0][0]
         - _scores(system, unshadowed[:, None])[0][0]
     )
+    contrast = 1.0
+    if up is not None and full_gain > 0.0:
+        # the same elevation on the opposite azimuth: a sun's shadows fall on one side of
+        # what casts them; darkening all round (contact shadows of a soft light, what the
+        # SH's transfer misses) explains about as much from either side
+        mirror = 2.0 * float(best @ up) * up - best
+        mirror_column = tester.shading(mirror[None])[:, 0] * albedo
+        mirror_gain = float(
+            _scores(system, mirror_column[:, None])[0][0]
+            - _scores(system, (np.maximum(tester._normals @ mirror, 0.0) * albedo)[:, None])[0][0]
+        )
+        contrast = 1.0 - max(mirror_gain, 0.0) / full_gain
     elevation = (
         math.degrees(math.asin(float(np.clip(best @ up, -1, 1))))
         if up is not None
         else float("nan")
     )
     where = f"elevation {elevation:.0f} deg" if up is not None else "no support plane"
-    if full_gain < min_gain or lit < min_pixels or shadowed < min_pixels or float(k) <= 0.0:
+    if (
+        full_gain < min_gain
+        or contrast < min_contrast
+        or lit < min_pixels
+        or shadowed < min_pixels
+        or float(k) <= 0.0
+    ):
         why = (
             f"none: the best direction ({where}) explains {full_gain:.1%} of the residual "
-            f"(needs {min_gain:.0%}), {lit} pixels lit and {shadowed} in its shadow "
+            f"(needs {min_gain:.0%}), {contrast:.0%} more than its mirror (needs "
+            f"{min_contrast:.0%}), {lit} pixels lit and {shadowed} in its shadow "
             f"(needs {min_pixels} each)"
         )
-        return CompactFit((), base[:n_sh], none_rgb, why, tested, tester.rays)
+        return CompactFit((), base[:n_sh], none_rgb, why, tested, tester.rays, contrast)
     ambient = x[:n_sh]
     k_rgb = None
     ambient_rgb = None
@@ -308,7 +330,7 @@ def fit_compact_source(
         f"1 compact source ({where}): it explains {full_gain:.1%} of the residual, "
         f"{lit} pixels lit and {shadowed} in its shadow"
     )
-    return CompactFit((source,), ambient, ambient_rgb, why, tested, tester.rays)
+    return CompactFit((source,), ambient, ambient_rgb, why, tested, tester.rays, contrast)
 
 
 class CompactLightStage:
