@@ -14,8 +14,8 @@ Runs `arlight serve` as a child process (the real pipeline, at a small image siz
   started again on the same port; the clients reconnect and send their unacknowledged
   frames again;
 - a hostile peer floods the server (`--flood-rate` messages per second: garbage, truncated
-  and bit-flipped frames, frames from no session, seq out of range, and Hellos over the
-  budgets, which must be refused);
+  and bit-flipped frames, frames from no session, seq out of range, headers of many
+  containers (issue 39), and Hellos over the budgets, which must be refused);
 - `--stuck-displays` display peers subscribe to the sessions, keep themselves alive with
   heartbeats and never read (their queues fill; the sessions must not notice);
 - one reading display per session (client/display.py, `--follow`) counts every Result the
@@ -27,7 +27,8 @@ Runs `arlight serve` as a child process (the real pipeline, at a small image siz
 Then it stops the server with SIGTERM and reports, per session and in all: frames sent (taken
 from the source), Results received, lost (sent, never answered by a Result), final Errors,
 duplicated and out-of-order Results (as the capture application sees them), Results naming
-the wrong frame, reconnects; and the server's RSS at start, after warm-up (the first
+the wrong frame, reconnects, the largest gap between a session's Results (outside the kill
+and the reconnect after it); and the server's RSS at start, after warm-up (the first
 `--warmup` fraction of each server life), its peak after warm-up and at the end, with the
 post-warm-up slope. It exits 1 if any frame is lost, failed, duplicated, out of order or
 mixed, or if a budget-busting Hello was welcomed. Figures, not a test.
@@ -165,8 +166,10 @@ class SessionTally:
     last_seq: int = -1
     final_errors: list = field(default_factory=list)
     reconnects: int = 0
+    result_times: list = field(default_factory=list)  # monotonic s of each Result
 
     def on_result(self, result, _wall) -> None:
+        self.result_times.append(time.monotonic())
         if result.seq in self.received:
             self.duplicates += 1
         if result.seq < self.last_seq:
@@ -244,7 +247,10 @@ class Flood(threading.Thread):
         ]
 
     def junk(self, rng: random.Random) -> list[bytes]:
-        kind = rng.randrange(6)
+        kind = rng.randrange(7)
+        if kind == 6:  # issue 39: a header of many containers (the I/O thread parses it)
+            nested = [[[]] * 500] * rng.randrange(50, 500)
+            return [msgpack.packb({"v": PROTOCOL_VERSION, "type": "hello", "x": nested})]
         head = bytearray(self.frame[0])
         if kind == 0:
             return [rng.randbytes(rng.randrange(1, 200))]
@@ -492,8 +498,22 @@ def main(argv: list[str] | None = None) -> int:
     term_s = server.terminate()
     server.close()
 
+    kill_mono = None if killed_at is None else t_start + killed_at
+
+    def largest_gaps(times: list[float]) -> tuple[float | None, float | None]:
+        """(largest gap between Results, the largest not spanning the kill and the 30 s
+        after it: the server's restart and the clients' reconnect), seconds."""
+        if len(times) < 2:
+            return None, None
+        pairs = list(zip(times[:-1], times[1:], strict=True))
+        calm = [
+            b - a for a, b in pairs if kill_mono is None or b < kill_mono or a > kill_mono + 30.0
+        ]
+        return round(max(b - a for a, b in pairs), 2), round(max(calm), 2) if calm else None
+
     per_session = []
     for tally, (_, _, box), (_, seen) in zip(tallies, clients, watchers, strict=True):
+        gap, calm_gap = largest_gaps(tally.result_times)
         summary = box.get("summary")
         sent = tally.generated
         lost = sent - len(tally.received) - len(tally.final_errors)
@@ -508,6 +528,8 @@ def main(argv: list[str] | None = None) -> int:
                 "out_of_order": tally.out_of_order,
                 "mixed": tally.mixed,
                 "reconnects": summary.reconnects if summary else None,
+                "largest_gap_s": gap,
+                "largest_gap_outside_kill_s": calm_gap,
                 "display_results": sum(seen.values()),
                 "display_processed_twice": sum(n > 1 for n in seen.values()),
                 "client_error": box.get("error"),
@@ -551,6 +573,12 @@ def main(argv: list[str] | None = None) -> int:
         f"{totals['duplicated']}, out of order {totals['out_of_order']}, mixed "
         f"{totals['mixed']}; {report['frames_per_s']} Results/s; SIGTERM exit in "
         f"{term_s:.1f} s",
+        flush=True,
+    )
+    gaps = [s["largest_gap_outside_kill_s"] for s in per_session if s["largest_gap_outside_kill_s"]]
+    print(
+        f"soak: largest gap between a session's Results (outside the kill): "
+        f"{max(gaps) if gaps else None} s; per session {gaps}",
         flush=True,
     )
     print(
