@@ -123,11 +123,12 @@ def check_image_meta(
 
 # The headers are read in Python before the C decoders run, so their cost must not grow
 # with the payload (issue 39, item 2: 60 MiB of empty JPEG APP segments, walked one by one,
-# held the GIL 8 s a frame). A PNG may hold PNG_MAX_ANCILLARY chunks other than IDAT
-# (libpng warns on each broken one, on stderr) and one chunk per PNG_BYTES_PER_CHUNK bytes
-# in all (encoders write IDAT chunks of 8 KiB or more); a JPEG's SOF must come within
-# JPEG_MAX_SEGMENTS segments (cameras write about 10-20 before it: APPn with EXIF and ICC,
-# DQT, DHT), after at most JPEG_MAX_FILL fill bytes each, found at C speed.
+# held the GIL 8 s a frame; figures: docs/reliability.md). A PNG may hold
+# PNG_MAX_ANCILLARY chunks other than IDAT (libpng warns on each broken one, on stderr) and
+# one chunk per PNG_BYTES_PER_CHUNK bytes in all (encoders write IDAT chunks of 8 KiB or
+# more); a JPEG's SOF must come within JPEG_MAX_SEGMENTS segments (cameras write about
+# 10-20 before it: APPn with EXIF and ICC, DQT, DHT), after at most JPEG_MAX_FILL fill
+# bytes each, found at C speed.
 PNG_MAX_ANCILLARY = 64
 PNG_BYTES_PER_CHUNK = 1024
 JPEG_MAX_SEGMENTS = 256

@@ -112,8 +112,8 @@ def _views(parts: Any) -> list[memoryview]:
 # A header's containers (maps and arrays, at every depth) and the longest one. msgpack builds
 # every container as a Python object: a 1 MiB header of 2^20 empty arrays cost 0.4-0.8 s to
 # parse (the garbage collector's passes over the objects made), on the server's I/O thread
-# (issue 39, item 2). The largest legitimate header (a Result with 1024 RGB SH coefficients,
-# full diagnostics and every engine layout; a Hello with 64 scene objects) has a few hundred.
+# (issue 39, item 2; figures: docs/reliability.md). A legitimate header holds far fewer: a
+# Result's diagnostics at most 4096 values in all, a Hello's scene 64 objects.
 MAX_HEADER_CONTAINERS = 16384
 MAX_HEADER_ARRAY = 4096  # elements of one array (Result.sh: 1024; diagnostics arrays: 1024)
 MAX_HEADER_MAP = 1024  # entries of one map
