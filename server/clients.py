@@ -6,7 +6,8 @@ distinct names in 0.5 s and held them by saying Hello again every minute.
 - a client holds at most `max_sessions_per_client` sessions (the ones its Hellos created,
   until they close or expire);
 - a client's Hellos are rate-limited: a bucket of `HELLO_BURST` refilled at
-  `hellos_per_client_s` a second.
+  `hellos_per_client_s` a second; a Hello takes one token, and one more per
+  HELLO_TRIANGLES_PER_TOKEN triangles of its virtual scene.
 
 Local peers (loopback, ipc) without keys share one address, so each of their connections is a
 client of its own: a local program that opens many connections is held only by
@@ -48,6 +49,18 @@ def _local(address: str) -> bool:
     return (mapped or ip).is_loopback
 
 
+# A Hello with a virtual scene costs the I/O thread time with its triangles (checks, the cost
+# model's crowding count: 2 M triangles, 0.9 s on the development machine, docs/reliability.md);
+# it takes one token more per HELLO_TRIANGLES_PER_TOKEN triangles, so a client's large scenes
+# keep the I/O thread busy at most about 40 % of the time.
+HELLO_TRIANGLES_PER_TOKEN = 200_000
+
+
+def hello_cost(triangles: int) -> float:
+    """The tokens a Hello whose scene holds `triangles` triangles takes."""
+    return 1.0 + triangles / HELLO_TRIANGLES_PER_TOKEN
+
+
 @dataclass
 class Bucket:
     tokens: float
@@ -62,16 +75,17 @@ class HelloLimiter:
         self.burst = burst
         self._buckets: dict[str, Bucket] = {}
 
-    def allow(self, client: str, now: float) -> bool:
-        """One Hello from `client` now: False when its bucket is empty (refused)."""
+    def allow(self, client: str, now: float, cost: float = 1.0) -> bool:
+        """A Hello from `client` now, costing `cost` tokens (`hello_cost`): False when its
+        bucket holds fewer (refused)."""
         bucket = self._buckets.get(client)
         if bucket is None:
             bucket = self._buckets[client] = Bucket(float(self.burst), now)
         bucket.tokens = min(self.burst, bucket.tokens + (now - bucket.stamp) * self.rate_per_s)
         bucket.stamp = now
-        if bucket.tokens < 1.0:
+        if bucket.tokens < cost:
             return False
-        bucket.tokens -= 1.0
+        bucket.tokens -= cost
         return True
 
     def forget_idle(self, now: float) -> None:

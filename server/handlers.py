@@ -27,6 +27,7 @@ from arlight.protocols import (
 )
 from arlight.protocols.fields import MAX_INT as MAX_SEQ  # a Frame's seq: 0..2^63-1
 from arlight.server.admission import capture_session, display_admitted
+from arlight.server.clients import HELLO_TRIANGLES_PER_TOKEN, hello_cost
 from arlight.server.frame_queue import Job, Offer
 from arlight.server.housekeeping import close_session, detach_peer
 from arlight.server.logtext import printable
@@ -74,7 +75,9 @@ def handle_message(
         server._send_error(identity, error_from_exception(exc))
         return
     if isinstance(message, Hello):
-        if not server.hellos.allow(client, now):
+        scene = message.config.scene
+        triangles = 0 if scene is None else sum(len(o.triangles) for o in scene.objects)
+        if not server.hellos.allow(client, now, hello_cost(triangles)):
             server._send_error(
                 identity,
                 Error(
@@ -82,7 +85,8 @@ def handle_message(
                     field="hello",
                     retryable=False,
                     message=f"more than {server.options.hellos_per_client_s:g} Hellos a second "
-                    "from this client (`arlight serve --hellos-per-client`); wait and say "
+                    "from this client (`arlight serve --hellos-per-client`; a scene's every "
+                    f"{HELLO_TRIANGLES_PER_TOKEN} triangles count as one more); wait and say "
                     "Hello again",
                 ),
             )

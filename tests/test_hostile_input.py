@@ -23,6 +23,7 @@ from arlight.protocols import (
     Hello,
     SessionConfig,
     decode,
+    encode,
 )
 from arlight.protocols.codecs import encode_color
 from arlight.sources.source import calibration_of
@@ -198,3 +199,27 @@ def test_a_plain_scene_is_welcome(make_server):
     )
     assert type(peer.receive(30)).__name__ == "Welcome"
     peer.close()
+
+
+def test_hellos_with_large_scenes_cannot_hold_the_io_thread(make_server):
+    """A 2 M-triangle scene costs the I/O thread about 0.9 s to check at Hello: a client's
+    burst of them stalled every session; each now takes 11 of its 20 Hello tokens."""
+    server = make_server(identity_step(), heartbeat_interval_s=5.0)
+    rng = np.random.default_rng(0)
+    vertices = rng.uniform(-0.5, 0.5, (1_000_000, 3)) + [0, 0, 2]
+    base = rng.integers(0, len(vertices) - 3, 1_990_000)
+    triangles = np.stack([base, base + 1, base + 2], axis=1)
+    hellos = [encode(_scene_hello(f"big{i}", vertices, triangles)) for i in range(6)]
+    attacker = RawPeer(server.connect_address)
+    with LegitStream(server.connect_address) as legit:
+        time.sleep(0.3)
+        for parts in hellos:
+            attacker.send(parts)
+        replies = [attacker.receive(60) for _ in hellos]
+        time.sleep(0.5)
+    legit.assert_served()
+    attacker.close()
+    welcomed = [r for r in replies if type(r).__name__ == "Welcome"]
+    refused = [r for r in replies if isinstance(r, Error)]
+    assert 1 <= len(welcomed) <= 2
+    assert refused and all((r.code, r.field) == ("too_large", "hello") for r in refused)
