@@ -256,8 +256,10 @@ def _check_references(file: Path, where: str) -> None:
         raise SceneError(f"{where}: mesh {file} cannot be read ({exc})") from None
 
 
-MTL_MAPS = ("map_Ka", "map_Kd", "map_Ks", "map_Ns", "map_d", "map_bump", "bump", "disp", "norm")
-MTL_MAPS += ("map_Pr", "map_Pm", "map_Ps", "map_Ke", "refl", "decal")
+MTL_MAPS: tuple[str, ...] = (  # the MTL keywords that name a texture file
+    *("map_Ka", "map_Kd", "map_Ks", "map_Ns", "map_d", "map_bump", "bump", "disp", "norm"),
+    *("map_Pr", "map_Pm", "map_Ps", "map_Ke", "refl", "decal"),
+)
 
 
 def _gltf_uris(file: Path) -> list[str]:
