@@ -6,10 +6,12 @@ pair it renders the composite four ways and scores PSNR (dB, 8-bit) inside the p
 virtual sphere (the truth's mask_virtual where our buffer shows the sphere: the object whose
 material is mirror / glossy / diffuse; the arch is always diffuse):
   probe:    the reflection probe of the room (this issue), as configured (by default the
-            directions that leave the room see the SH as it is),
+            directions that leave the room see the SH, Hanning-windowed),
   probe_sun: the same probe with the SH's dominant part drawn as a 2-degree disc
             (probe_sun=true),
-  sh_probe: a probe of the distant light alone (the SH: baseline (a)),
+  probe_nowindow: the same probe with the SH of the misses as it is, not Hanning-windowed
+            (probe_sh_window=false),
+  sh_probe: a probe of the distant light alone (the plain SH, not windowed: baseline (a)),
   diffuse:  the diffuse renderer (every object Lambertian: baseline (b)),
 each with the estimated light and with the true light (lighting_gt.json, exposure applied;
 the probe's misses then see the true SH too). Writes report.json, report.md and, per
@@ -39,7 +41,7 @@ from arlight.sources.sequence import open_sequence
 from arlight.sources.virtual_scene_file import load_virtual_scene
 from benchmarks.ar_truth import psnr, side_by_side, truth_light
 
-VARIANTS = ("probe", "probe_sun", "sh_probe", "diffuse")
+VARIANTS = ("probe", "probe_sun", "probe_nowindow", "sh_probe", "diffuse")
 LIGHTS = ("est", "gt")
 
 
@@ -83,11 +85,15 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
             "est": DistantLight(inputs.light_sh, inputs.light_rgb),
             "gt": DistantLight(l_gt, rgb_gt),
         }
-        sh_stage = ProbeStage(ProbeSettings(config.render.probe_size, room=False), pipeline.camera)
-        with_sun = None
+        sh_stage = ProbeStage(
+            ProbeSettings(config.render.probe_size, room=False, window=False), pipeline.camera
+        )
+        with_sun = plain = None
         if stage is not None:
             with_sun = ProbeStage(dataclasses.replace(stage.settings, sun=True), pipeline.camera)
             with_sun.grid = stage.grid
+            plain = ProbeStage(dataclasses.replace(stage.settings, window=False), pipeline.camera)
+            plain.grid = stage.grid
         images = {}
         for light in LIGHTS:
             base = dataclasses.replace(
@@ -103,6 +109,11 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
             images[f"probe_{light}"] = renderer.render(
                 dataclasses.replace(base, probe=room)
             ).composite
+            if plain is not None and probe is not None:
+                raw = plain.probe(probe.point_world, inputs.world_from_cam, distant[light])
+                images[f"probe_nowindow_{light}"] = renderer.render(
+                    dataclasses.replace(base, probe=raw)
+                ).composite
             if with_sun is not None and probe is not None:
                 sunny = with_sun.probe(probe.point_world, inputs.world_from_cam, distant[light])
                 images[f"probe_sun_{light}"] = renderer.render(

@@ -620,6 +620,7 @@ class Pipeline:
                     r.probe_cell_m,
                     memory=self._volume is not None,
                     sun=r.probe_sun,
+                    window=r.probe_sh_window,
                 ),
                 self.camera,
             )

@@ -46,7 +46,8 @@ class ProbeSettings:
     """size: texels a face (32..256, a power of two); room: directions see the room grid
     (False: the distant light alone, the SH-only baseline); cells, cell_m: the grid;
     memory: fuse every frame (False: the current frame only); sun: the SH light's dominant
-    part drawn as a small disc (`split_dominant`) instead of smeared over the sky."""
+    part drawn as a small disc (`split_dominant`) instead of smeared over the sky; window:
+    the SH of the misses Hanning-windowed (`hanning`) against its ringing."""
 
     size: int = 64
     room: bool = True
@@ -54,6 +55,7 @@ class ProbeSettings:
     cell_m: float = 0.04
     memory: bool = True
     sun: bool = False
+    window: bool = True
 
     def __post_init__(self) -> None:
         self.size = probe_cube.check_size(self.size)
@@ -169,6 +171,8 @@ class ProbeStage:
             if intensity > 0.0:
                 sun = direction, intensity
                 distant = DistantLight(residual, distant.rgb)
+        if s.window and distant.environment is None:
+            distant = DistantLight(hanning(distant.sh), distant.rgb)
         radiance = distant.radiance(self._dirs, self._basis)
         if sun is not None:
             radiance += sun_disc(self._dirs, s.size, *sun)[:, None] * np.asarray(
@@ -207,6 +211,16 @@ def split_dominant(coeffs: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     cap = SUN_SHARE_MAX * max(float(c[0]), 0.0) / float(y[0])
     intensity = float(np.clip(fit, 0.0, cap))
     return direction, intensity, c - intensity * y
+
+
+def hanning(coeffs: np.ndarray) -> np.ndarray:
+    """The SH with band l scaled by (1 + cos(pi l / L)) / 2, L the bands (Sloan, "Stupid SH
+    tricks"): band 0 kept, the top band nearly gone, so the clamped negative lobes of a
+    band-limited light (black holes in a mirror) shrink, at the cost of sharpness."""
+    c = np.asarray(coeffs, np.float64)
+    bands = sh.bands_of(len(c))
+    l_of = np.concatenate([np.full(2 * band + 1, band) for band in range(bands)])
+    return c * (1.0 + np.cos(math.pi * l_of / bands)) / 2.0
 
 
 def sun_disc(

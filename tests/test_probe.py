@@ -22,6 +22,7 @@ from arlight.pipeline.probe import (
     DistantLight,
     ProbeSettings,
     ProbeStage,
+    hanning,
     parse_point,
     split_dominant,
 )
@@ -258,6 +259,18 @@ class TestSunDisc:
             np.sum((plain * omega)[sky]), rel=0.05
         )
         assert probe.diagnostics["sun_world"] == [0.0, 1.0, 0.0]
+
+
+class TestWindow:
+    def test_hanning_keeps_band_0_and_shrinks_the_clamped_lobes(self):
+        coeffs = sh.directional_light(np.array([0.0, 1.0, 0.0]), 2.0, 4)
+        smooth = hanning(coeffs)
+        assert smooth[0] == coeffs[0]
+        np.testing.assert_allclose(smooth[1:4], coeffs[1:4] * (1 + math.cos(math.pi / 4)) / 2)
+        dirs = probe_cube.texel_directions(32).reshape(-1, 3)
+        raw = sh.sh_basis(dirs, 4) @ coeffs
+        windowed = sh.sh_basis(dirs, 4) @ smooth
+        assert windowed.min() > raw.min()  # less negative: fewer black holes once clamped
 
 
 class TestPanorama:
