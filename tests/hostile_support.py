@@ -18,8 +18,15 @@ class LegitStream:
     thread, until `stop()`; `gaps_s()`: the seconds between its start, each Result and its
     stop. Heartbeats go out every 0.1 s, so a quiet moment is never taken for a dead peer."""
 
-    def __init__(self, address: str, session: str = "legit", window: int = 2, **hello):
-        self.peer = RawPeer(address)
+    def __init__(
+        self,
+        address: str,
+        session: str = "legit",
+        window: int = 2,
+        peer: RawPeer | None = None,
+        **hello,
+    ):
+        self.peer = RawPeer(address) if peer is None else peer
         welcome = self.peer.hello(session, mode="lossless", **hello)
         if not isinstance(welcome, Welcome):
             raise AssertionError(f"the legitimate session was refused: {welcome}")
@@ -122,3 +129,25 @@ class ServerProcess:
                 self.process.kill()
                 raise
         return self.process.wait()
+
+
+def curve_peer(
+    address: str, keys_dir: str, name: str = "client", routing_id: bytes | None = None
+) -> RawPeer:
+    """A RawPeer speaking CURVE with the keys `arlight keys generate DIR` made (and the
+    routing id it chose, if any)."""
+    import zmq.auth
+
+    server_public, _ = zmq.auth.load_certificate(f"{keys_dir}/server.key")
+    public, secret = zmq.auth.load_certificate(f"{keys_dir}/{name}.key_secret")
+    peer = RawPeer.__new__(RawPeer)
+    peer.ctx = zmq.Context.instance()
+    peer.socket = peer.ctx.socket(zmq.DEALER)
+    peer.socket.setsockopt(zmq.LINGER, 0)
+    peer.socket.curve_serverkey = server_public
+    peer.socket.curve_publickey = public
+    peer.socket.curve_secretkey = secret
+    if routing_id is not None:
+        peer.socket.setsockopt(zmq.ROUTING_ID, routing_id)
+    peer.socket.connect(address)
+    return peer

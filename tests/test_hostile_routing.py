@@ -9,21 +9,25 @@ from __future__ import annotations
 import time
 
 import zmq
-from hostile_support import LegitStream, ServerProcess
+from hostile_support import LegitStream, ServerProcess, curve_peer
 
 # the ids an unseeded glibc rand() gives libzmq's first ROUTER of a process, and the start
 # seen with CURVE (issue 39): an attacker occupies the next 64 of each
 PREDICTED_STARTS = (0x6B8B4567, 0xE43C9869)
 
 
-def _occupy(address: str, start: int, count: int) -> list[zmq.Socket]:
+def _occupy(address: str, start: int, count: int, keys_dir: str | None = None) -> list:
     ctx = zmq.Context.instance()
     sockets = []
     for i in range(count):
-        s = ctx.socket(zmq.DEALER)
-        s.setsockopt(zmq.LINGER, 0)
-        s.setsockopt(zmq.ROUTING_ID, b"\x00" + ((start + i) % 2**32).to_bytes(4, "big"))
-        s.connect(address)
+        routing_id = b"\x00" + ((start + i) % 2**32).to_bytes(4, "big")
+        if keys_dir is not None:  # an authorised key, as the issue's CURVE attacker had
+            s = curve_peer(address, keys_dir, routing_id=routing_id).socket
+        else:
+            s = ctx.socket(zmq.DEALER)
+            s.setsockopt(zmq.LINGER, 0)
+            s.setsockopt(zmq.ROUTING_ID, routing_id)
+            s.connect(address)
         s.send(b"\x80")  # any bytes: the connection is made and the id taken
         sockets.append(s)
     return sockets
@@ -38,6 +42,28 @@ def test_peers_occupying_the_next_routing_ids_cannot_abort_the_server():
         time.sleep(1.0)  # every attacker connected
         assert server.alive()
         with LegitStream(server.address) as legit:
+            time.sleep(2.0)
+        legit.assert_served()
+        assert server.alive(), f"the server process died (exit {server.process.returncode})"
+    finally:
+        for s in attackers:
+            s.close(linger=0)
+        code = server.close()
+    assert code == 0
+
+
+def test_with_curve_an_authorised_key_cannot_abort_the_server(tmp_path):
+    from arlight.server.security import generate_keys
+
+    generate_keys(str(tmp_path))
+    server = ServerProcess(keys_dir=str(tmp_path))
+    attackers: list[zmq.Socket] = []
+    try:
+        for start in PREDICTED_STARTS:
+            attackers += _occupy(server.address, start, 65, str(tmp_path))
+        time.sleep(1.0)
+        peer = curve_peer(server.address, str(tmp_path))
+        with LegitStream(server.address, peer=peer) as legit:
             time.sleep(2.0)
         legit.assert_served()
         assert server.alive(), f"the server process died (exit {server.process.returncode})"
