@@ -10,6 +10,7 @@ import time
 
 import zmq
 from hostile_support import LegitStream, ServerProcess, curve_peer
+from streaming_support import RawPeer
 
 # the ids an unseeded glibc rand() gives libzmq's first ROUTER of a process, and the start
 # seen with CURVE (issue 39): an attacker occupies the next 64 of each
@@ -72,3 +73,37 @@ def test_with_curve_an_authorised_key_cannot_abort_the_server(tmp_path):
             s.close(linger=0)
         code = server.close()
     assert code == 0
+
+
+def _sigterm_exit_s(watchdog_s: float | None) -> tuple[float, int]:
+    """(seconds from SIGTERM to exit, exit code) of a server whose worker holds the
+    interpreter lock in one C call for about a minute."""
+    import signal
+
+    from streaming_support import frame_parts
+
+    options = {"heartbeat_interval_s": 5.0}
+    if watchdog_s is not None:
+        options["watchdog_s"] = watchdog_s
+    server = ServerProcess(**options)
+    try:
+        peer = RawPeer(server.address)
+        assert type(peer.hello("gil-stage")).__name__ == "Welcome"
+        peer.send(frame_parts(0))
+        time.sleep(1.0)  # the worker is inside the call
+        start = time.monotonic()
+        server.process.send_signal(signal.SIGTERM)
+        code = server.process.wait(120)
+        peer.close()
+        return time.monotonic() - start, code
+    finally:
+        if server.alive():
+            server.process.kill()
+
+
+def test_sigterm_during_a_stage_holding_the_interpreter_exits_in_time():
+    """Issue 39: SIGTERM during Open3D ray casting exited after 38 s, not within
+    --shutdown-grace + 2 s; the watchdog (server/watchdog.py) kills it at its limit."""
+    exit_s, code = _sigterm_exit_s(watchdog_s=3.0)
+    assert exit_s < 3.0 + 2.0, f"exited {exit_s:.1f} s after SIGTERM"
+    assert code == -9  # killed: the stage could not be interrupted

@@ -21,6 +21,7 @@ from arlight.cli.common import (
 from arlight.protocols import DEFAULT_MAX_MESSAGE_BYTES
 from arlight.server.security import read_token_file
 from arlight.server.server import DEFAULT_BIND, Server, ServerOptions
+from arlight.server.watchdog import start_exit_watchdog
 
 WORKER_EXIT_WAIT_S = 2.0  # after the grace, for a worker to reach its next stage boundary
 
@@ -244,6 +245,8 @@ def _serve(args: argparse.Namespace, server, admin_token: str | None) -> int:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
+    # a worker holding the interpreter in a stage cannot delay the exit past this
+    start_exit_watchdog(args.shutdown_grace + WORKER_EXIT_WAIT_S + 1.0)
     keys = (
         f"; clients need --server-key {Path(args.keys) / 'server.key'} --client-key "
         f"{Path(args.keys) / 'NAME.key_secret'}"
