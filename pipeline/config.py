@@ -307,9 +307,11 @@ class EstimationParams:
     segment_scale: int = 2  # the segmentation runs at 1/segment_scale resolution
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
     # compact sources (a sun, a lamp) fitted beside the SH from the shadows the reconstruction
-    # casts (pipeline/compact_light.py): at most this many (0 = off; 1 today)
+    # casts (pipeline/compact_light.py): at most this many (0 = off; 1 today). Off by default:
+    # right under a sun, wrong under some soft skies (docs/decisions/0035-compact-sources.md)
     compact_sources: int = 0
-    compact_min_gain: float = 0.03  # of the SH fit's weighted residual its shadow must explain
+    compact_min_gain: float = 0.03  # of the SH fit's residual its shadow must explain (0035)
+    compact_min_contrast: float = 0.0  # its gain over its mirrored direction's (0 = off)
     compact_candidates: int = 256  # directions tested over the upper hemisphere
     compact_search_samples: int = 4000  # fitted pixels whose shadows are tested per direction
     compact_render: bool = True  # draw them with hard shadows both ways (pipeline/sun_shadows.py)
@@ -344,6 +346,7 @@ class EstimationParams:
         _check_bool(self, "estimate_rgb")
         _check_int(self, "compact_sources", 0, 1)
         _check_float(self, "compact_min_gain", 0.0)
+        _check_float(self, "compact_min_contrast", 0.0, 1.0)
         _check_int(self, "compact_candidates", 8, 4096)
         _check_int(self, "compact_search_samples", 100)
         _check_bool(self, "compact_render")

@@ -428,6 +428,7 @@ class Pipeline:
                 "candidates": p.compact_candidates,
                 "search_samples": p.compact_search_samples,
                 "min_gain": p.compact_min_gain,
+                "min_contrast": p.compact_min_contrast,
             },
             seed=self.config.seed,
         )
@@ -536,8 +537,8 @@ class Pipeline:
     def _kept_source(self) -> CompactSource | None:
         """This frame's compact source, when one was kept: the direction reported is then
         its direction (the shadows the scene casts point there), not the SH's first
-        moment (docs/decisions/0035-compact-sources.md: median over held-out maps
-        24.5 -> 19.4 degrees on the corpus)."""
+        moment (far closer under a sun, not yet under soft light: opt-in,
+        docs/decisions/0035-compact-sources.md)."""
         fit = self.last_compact
         return fit.sources[0] if fit is not None and fit.sources else None
 
