@@ -181,7 +181,12 @@ def _with_compact_source(data, i: int, est, up, compact: dict) -> tuple[np.ndarr
     total[:n] = fit.ambient
     for source in fit.sources:
         total[:n] += source.sh(f.bands)
-    info = {"reason": fit.reason, "rays": tester.rays, "contrast": fit.contrast}
+    info = {
+        "reason": fit.reason,
+        "rays": tester.rays,
+        "contrast": fit.contrast,
+        "radius": fit.radius_deg,
+    }
     if fit.sources:
         info.update(
             direction=fit.sources[0].direction,
@@ -270,6 +275,7 @@ def replay(
                     "share": info.get("share"),
                     "gain": info.get("gain"),
                     "contrast": info.get("contrast"),
+                    "radius": info.get("radius"),
                     **_compact_truth(m, rotations, i, maps_dir, info),
                     "filtered": _error(filtered, up_seen, r, truth),
                     "confidence": est.confidence.value,

@@ -79,6 +79,7 @@ class CompactFit:
     tested: int = 0
     rays: int = 0
     contrast: float = float("nan")
+    radius_deg: float = float("nan")  # the angular radius whose soft shadow explains most
 
 
 def candidate_directions(up: np.ndarray | None, count: int) -> np.ndarray:
@@ -103,6 +104,28 @@ def _neighbours(direction: np.ndarray, step_deg: float) -> np.ndarray:
         d = math.cos(step) * direction + math.sin(step) * (math.cos(phi) * e1 + math.sin(phi) * e2)
         out.append(d / np.linalg.norm(d))
     return np.array(out)
+
+
+# angular radii (degrees) whose soft shadows the best direction is tried with: a sun, a lamp
+# nearby, a window, a bright patch of sky
+RADII_DEG = (0.5, 5.0, 15.0, 30.0)
+DISC_SAMPLES = 8
+
+
+def _best_radius(tester, sub, rows: np.ndarray, albedo: np.ndarray, direction: np.ndarray) -> float:
+    """The angular radius (RADII_DEG) of a disc of light around `direction` whose (soft)
+    shadow explains most beyond its unshadowed shading, on the search rows: a true compact
+    source's hard shadow wins at a small radius, a soft light's contact darkening at a
+    large one."""
+    from arlight.pipeline.sun_shadows import disc_directions
+
+    gains = []
+    for radius in RADII_DEG:
+        dirs = disc_directions(direction, radius, DISC_SAMPLES)
+        shaded = tester.shading(dirs, rows).mean(axis=1) * albedo[rows]
+        bare = np.maximum(tester._normals[rows] @ dirs.T, 0.0).mean(axis=1) * albedo[rows]
+        gains.append(_scores(sub, shaded[:, None])[0][0] - _scores(sub, bare[:, None])[0][0])
+    return float(RADII_DEG[int(np.argmax(gains))])
 
 
 class ShadowTester:
@@ -220,6 +243,7 @@ def fit_compact_source(
     search_samples: int = 4000,
     min_gain: float = 0.05,
     min_contrast: float = 0.0,
+    max_radius_deg: float = math.inf,
     min_pixels: int = 50,
     angular_radius_deg: float = 0.27,
     seed: int = 0,
@@ -270,6 +294,7 @@ def fit_compact_source(
         g, _ = score(around)
         tested += len(around)
         best = around[int(np.argmax(g))]
+    radius = _best_radius(tester, sub, rows, albedo, best)
     column = tester.shading(best[None])[:, 0]
     facing = albedo > 0  # every row; below: the rows that face the source
     lit = int(np.sum(facing & (column > MIN_FACING)))
@@ -302,6 +327,7 @@ def fit_compact_source(
     if (
         full_gain < min_gain
         or contrast < min_contrast
+        or radius > max_radius_deg
         or lit < min_pixels
         or shadowed < min_pixels
         or float(k) <= 0.0
@@ -309,10 +335,11 @@ def fit_compact_source(
         why = (
             f"none: the best direction ({where}) explains {full_gain:.1%} of the residual "
             f"(needs {min_gain:.0%}), {contrast:.0%} more than its mirror (needs "
-            f"{min_contrast:.0%}), {lit} pixels lit and {shadowed} in its shadow "
+            f"{min_contrast:.0%}), its shadows those of a {radius:g}-degree disc (at most "
+            f"{max_radius_deg:g}), {lit} pixels lit and {shadowed} in its shadow "
             f"(needs {min_pixels} each)"
         )
-        return CompactFit((), base[:n_sh], none_rgb, why, tested, tester.rays, contrast)
+        return CompactFit((), base[:n_sh], none_rgb, why, tested, tester.rays, contrast, radius)
     ambient = x[:n_sh]
     k_rgb = None
     ambient_rgb = None
@@ -330,7 +357,7 @@ def fit_compact_source(
         f"1 compact source ({where}): it explains {full_gain:.1%} of the residual, "
         f"{lit} pixels lit and {shadowed} in its shadow"
     )
-    return CompactFit((source,), ambient, ambient_rgb, why, tested, tester.rays, contrast)
+    return CompactFit((source,), ambient, ambient_rgb, why, tested, tester.rays, contrast, radius)
 
 
 class CompactLightStage:
