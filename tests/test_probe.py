@@ -220,6 +220,20 @@ class TestProbeDirections:
         assert probe.grid is None and probe.hit_fraction == 0.0
 
 
+class TestRegrid:
+    def test_a_point_that_moves_off_the_grid_gets_a_new_grid_about_it(self):
+        pose = looking_along(AXES[0], -0.5 * AXES[0])
+        stage = ProbeStage(ProbeSettings(size=32, cells=40, cell_m=0.05), CAMERA)
+        notes = stage.fuse(np.zeros(3), *wall_frame(1.5), pose)
+        assert notes["regridded"] is False
+        near = np.array([0.4, 0.0, 0.0])  # within a quarter of the 2 m grid: kept
+        assert stage.fuse(near, *wall_frame(1.5), pose)["regridded"] is False
+        far = np.array([0.0, 0.0, 3.0])
+        notes = stage.fuse(far, *wall_frame(1.5), pose)
+        assert notes["regridded"] is True
+        assert stage.grid is not None and np.allclose(stage.grid.centre, far)
+
+
 class TestSunDisc:
     def test_a_delta_plus_ambient_splits_back_into_its_parts(self):
         towards = np.array([0.3, 0.8, -0.52])
