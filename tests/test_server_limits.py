@@ -343,7 +343,13 @@ class TestDeadline:
         )
         stages: list[str] = []
         pipeline.process(seq.frames[0], checkpoint=stages.append)
-        assert list(dict.fromkeys(stages)) == ["Reconstruct", "DynGeo", "RadTransfer", "LightEst"]
+        assert list(dict.fromkeys(stages)) == [
+            "Reconstruct",
+            "DynGeo",
+            "RadTransfer",
+            "LightEst",
+            "Probe",
+        ]
         # and before each robust iteration of the light estimate
         assert stages.count("LightEst") >= 1 + pipeline.config.estimation.robust_iterations
 
