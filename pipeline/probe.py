@@ -8,8 +8,9 @@ surface's colour, the camera's linear image units, which are the units the light
 in (the renderer shades a Lambertian albedo rho with rho / pi times the estimate's
 irradiance, and the estimate is fitted so that this reproduces the real pixels): no further
 scale is needed for the two to agree. A direction that leaves the grid sees the distant
-light: the estimate's SH (clamped at 0) times its colour, or the streamed panorama's HDR map
-when there is one. The mips are GGX-prefiltered (`probe_cube.prefilter`).
+light: the estimate's SH, Hanning-windowed against its ringing (`hanning`, probe_sh_window)
+and clamped at 0, times its colour, or the streamed panorama's HDR map when there is one.
+The mips are GGX-prefiltered (`probe_cube.prefilter`).
 
 Bad input and fallbacks (each recorded in `ProbeResult.diagnostics`, which the pipeline puts
 under `FrameResult.diagnostics["probe"]`):
@@ -91,8 +92,9 @@ class DistantLight:
 class ProbeResult:
     """One frame's probe. point_world: (3,) metres; mips: the prefiltered cube (linear image
     units, world axes); grid: the room it was made from (for parallax-corrected lookups);
-    distant: the light of the misses; hit_fraction: share of level-0 texels that met the room;
-    diagnostics: JSON-ready notes (see the module text)."""
+    distant: the distant light as given (the misses see it windowed, `hanning`, and with
+    probe_sun its dominant part as a disc); hit_fraction: share of level-0 texels that met
+    the room; diagnostics: JSON-ready notes (see the module text)."""
 
     point_world: np.ndarray
     mips: CubeMips
@@ -147,6 +149,7 @@ class ProbeStage:
         """The cube map at point_world (after `fuse` of this frame)."""
         point = np.asarray(point_world, np.float64)
         s = self.settings
+        light = distant  # as given: what the objects' own surfaces are lit by
         cam_from_world = np.linalg.inv(world_from_cam)
         z_cam = float(cam_from_world[2, :3] @ point + cam_from_world[2, 3])
         diagnostics: dict[str, Any] = {
@@ -187,7 +190,7 @@ class ProbeStage:
             hit_fraction = float(hit.mean())
         diagnostics["hit_fraction"] = round(hit_fraction, 4)
         mips = probe_cube.prefilter(radiance.reshape(6, s.size, s.size, 3))
-        return ProbeResult(point, mips, grid, distant, hit_fraction, diagnostics)
+        return ProbeResult(point, mips, grid, light, hit_fraction, diagnostics)
 
 
 SUN_RADIUS_RAD = math.radians(2.0)  # the disc the dominant light is drawn as

@@ -273,6 +273,8 @@ class TestSunDisc:
             np.sum((plain * omega)[sky]), rel=0.05
         )
         assert probe.diagnostics["sun_world"] == [0.0, 1.0, 0.0]
+        # the objects' own surfaces are lit by the light as given, not its remainder
+        assert np.array_equal(probe.distant.sh, coeffs)
 
 
 class TestWindow:
