@@ -10,6 +10,7 @@ at no cost, when there is none).
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import functools
 import logging
 import math
@@ -528,10 +529,9 @@ class Pipeline:
             environment,
             probe,
         )
-        if render_light is None:
-            self._with_compact_sources(inputs, geometry)
-        output = self._renderer.render(inputs)
-        self.last_render = (inputs, output)
+        drawn = self._with_compact_sources(inputs, geometry) if render_light is None else inputs
+        output = self._renderer.render(drawn)
+        self.last_render = (inputs, output)  # the frame's light as the SH holds it
         return output.composite
 
     def _kept_source(self) -> CompactSource | None:
@@ -542,26 +542,29 @@ class Pipeline:
         fit = self.last_compact
         return fit.sources[0] if fit is not None and fit.sources else None
 
-    def _with_compact_sources(self, inputs: RenderInputs, geometry: _Geometry) -> None:
-        """The frame's compact sources drawn with their shadows (compact_render): the
-        light fitted beside them as inputs.light_sh and the sources as sources, with the
-        reconstruction that shadows them."""
+    def _with_compact_sources(self, inputs: RenderInputs, geometry: _Geometry) -> RenderInputs:
+        """The inputs that draw the frame's compact sources with their shadows
+        (compact_render): the light fitted beside them as light_sh, the sources, and the
+        reconstruction that shadows them; `inputs` itself where there is none."""
         fit = self.last_compact
         if fit is None or not fit.sources or not self.config.estimation.compact_render:
-            return
+            return inputs
         assert self._compact_stage is not None  # it made `fit`
         scale = math.pi / self.config.render.render_real_albedo
         # the light fitted beside the sources (this frame's: the filter holds the SH's)
         ambient = np.zeros(len(inputs.light_sh))
         m = min(len(ambient), len(fit.ambient))
         ambient[:m] = scale * fit.ambient[:m]
-        for s in fit.sources:
-            # its colour: the light's (inputs.light_rgb), as the SH's
-            inputs.sources.append(
-                SourceLight(s.direction, scale * s.intensity, np.ones(3), s.angular_radius_deg)
-            )
-        inputs.light_sh = ambient
-        inputs.real_occluder = self._compact_stage.occluder(geometry.points, self._volume)
+        sources = [  # their colour: the light's (inputs.light_rgb), as the SH's
+            SourceLight(s.direction, scale * s.intensity, np.ones(3), s.angular_radius_deg)
+            for s in fit.sources
+        ]
+        return dataclasses.replace(
+            inputs,
+            light_sh=ambient,
+            sources=sources,
+            real_occluder=self._compact_stage.occluder(geometry.points, self._volume),
+        )
 
     def _render_light(
         self, coeffs: np.ndarray, estimate: LightEstimate, render_light: RenderLight | None
