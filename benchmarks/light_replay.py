@@ -105,6 +105,8 @@ def _capture_geometry(pipe, captured: dict, pose: np.ndarray) -> None:
         np.float32
     )
     captured["normals"] = (geometry.normals[v, u].astype(np.float64) @ rot.T).astype(np.float32)
+    # the frame's depth as the pipeline's depth mesh takes it (camera frame, every 2nd pixel)
+    captured["depth_points"] = np.ascontiguousarray(geometry.points[::2, ::2], np.float32)
     vertices, triangles = (
         pipe._volume.triangle_mesh()
         if pipe._volume is not None
@@ -133,6 +135,7 @@ def _save(path: Path, seq, captured: list[dict], poses: list) -> None:
             "bounce",
             "points",
             "normals",
+            "depth_points",
             "mesh_vertices",
             "mesh_triangles",
         ):
@@ -154,7 +157,9 @@ def _save(path: Path, seq, captured: list[dict], poses: list) -> None:
     np.savez_compressed(path, **arrays)
 
 
-def _with_compact_source(data, i: int, est, up, compact: dict) -> tuple[np.ndarray, dict]:
+def _with_compact_source(
+    data, i: int, est, up, compact: dict, pose: np.ndarray
+) -> tuple[np.ndarray, dict]:
     """The estimate's SH with a compact source fitted beside it (pipeline.compact_light),
     against the frame's recorded mesh; (total SH, what was found)."""
     from arlight.pipeline.compact_light import ShadowTester, fit_compact_source
@@ -167,14 +172,19 @@ def _with_compact_source(data, i: int, est, up, compact: dict) -> tuple[np.ndarr
         SurfaceMesh(data[f"{i}_mesh_vertices"], data[f"{i}_mesh_triangles"], in_world=True)
     )
     rows = f.rows
+    options = dict(compact)
+    scenes = [(scene, np.eye(4))]
+    if options.pop("depth_mesh", 0) and f"{i}_depth_points" in data:
+        from arlight.pipeline.object_space_transfer import depth_mesh
+
+        scenes.append((OcclusionScene(depth_mesh(data[f"{i}_depth_points"])), pose))
     tester = ShadowTester(
-        scene,
-        np.eye(4),
+        scenes,
         data[f"{i}_points"][rows].astype(np.float64),
         data[f"{i}_normals"][rows].astype(np.float64),
     )
     fit = fit_compact_source(
-        f.design, f.albedo, f.weights, f.lum, None, f.penalty, f.bands, tester, up, **compact
+        f.design, f.albedo, f.weights, f.lum, None, f.penalty, f.bands, tester, up, **options
     )
     total = np.zeros_like(est.sh)
     n = f.bands * f.bands
@@ -249,7 +259,7 @@ def replay(
             light = est.sh
             info: dict = {}
             if compact is not None:
-                light, info = _with_compact_source(data, i, est, up, compact)
+                light, info = _with_compact_source(data, i, est, up, compact, np.asarray(m["pose"]))
             filtered = filt.update(light, est.confidence.value)
             r = np.asarray(m["pose"])[:3, :3]
             truth = np.asarray(m["truth_upper_camera"])

@@ -123,47 +123,48 @@ def _best_radius(tester, sub, rows: np.ndarray, albedo: np.ndarray, direction: n
     for radius in RADII_DEG:
         dirs = disc_directions(direction, radius, DISC_SAMPLES)
         shaded = tester.shading(dirs, rows).mean(axis=1) * albedo[rows]
-        bare = np.maximum(tester._normals[rows] @ dirs.T, 0.0).mean(axis=1) * albedo[rows]
+        bare = np.maximum(tester.normals[rows] @ dirs.T, 0.0).mean(axis=1) * albedo[rows]
         gains.append(_scores(sub, shaded[:, None])[0][0] - _scores(sub, bare[:, None])[0][0])
     return float(RADII_DEG[int(np.argmax(gains))])
 
 
 class ShadowTester:
-    """Visibility of distant directions from surface points, by rays against a mesh.
+    """Visibility of distant directions from surface points, by rays against meshes.
 
+    scenes: (scene, world_from_scene) pairs, a ray being blocked when any scene blocks it;
     scene: an object_space_transfer.OcclusionScene; world_from_scene: (4, 4) maps the
     scene's frame to the world (identity for the volume's mesh, the camera pose for a
     depth image's mesh); points, normals: (M, 3) world frame."""
 
-    def __init__(
-        self, scene, world_from_scene: np.ndarray, points: np.ndarray, normals: np.ndarray
-    ):
-        self._scene = scene
-        rot, origin = world_from_scene[:3, :3], world_from_scene[:3, 3]
-        self._rot_t = rot  # world -> scene: x_s = R^T (x_w - o)
+    def __init__(self, scenes, points: np.ndarray, normals: np.ndarray):
+        self._scenes = []
         origins = points + RAY_OFFSET_M * normals
-        self._origins = ((origins - origin) @ rot).astype(np.float32)
-        self._normals = normals
+        for scene, world_from_scene in scenes:
+            rot, origin = world_from_scene[:3, :3], world_from_scene[:3, 3]
+            # world -> scene: x_s = R^T (x_w - o)
+            self._scenes.append((scene, rot, ((origins - origin) @ rot).astype(np.float32)))
+        self.normals = normals
         self.rays = 0
 
     def shading(self, directions: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         """(M', K) V(x, w) max(0, n . w) for the rows (all when None) and directions
         (K, 3) world."""
-        origins = self._origins if rows is None else self._origins[rows]
-        normals = self._normals if rows is None else self._normals[rows]
+        normals = self.normals if rows is None else self.normals[rows]
         cos = np.maximum(normals @ directions.T, 0.0)
         out = np.zeros_like(cos)
-        dirs_scene = (directions @ self._rot_t).astype(np.float32)
         # one batch of every (pixel, direction) pair that faces the source: Embree's cost
         # per call outweighs a few thousand rays
         pix, j = np.nonzero(cos > 0.0)
         if not len(pix):
             return out
-        rays = np.empty((len(pix), 6), np.float32)
-        rays[:, :3] = origins[pix]
-        rays[:, 3:] = dirs_scene[j]
-        blocked = self._scene.blocked(rays, RAY_TNEAR_M, RAY_TFAR_M)
-        self.rays += len(pix)
+        blocked = np.zeros(len(pix), bool)
+        for scene, rot, all_origins in self._scenes:
+            origins = all_origins if rows is None else all_origins[rows]
+            rays = np.empty((len(pix), 6), np.float32)
+            rays[:, :3] = origins[pix]
+            rays[:, 3:] = (directions @ rot).astype(np.float32)[j]
+            blocked |= scene.blocked(rays, RAY_TNEAR_M, RAY_TFAR_M)
+            self.rays += len(pix)
         out[pix, j] = np.where(blocked, 0.0, cos[pix, j])
         return out
 
@@ -277,7 +278,7 @@ def fit_compact_source(
         shading (max(0, n . w) without V, which the SH's high bands and the clamp
         could otherwise pass off as evidence of a source where no shadow says so)."""
         cols = tester.shading(dirs, rows) * albedo[rows, None]
-        unshadowed = np.maximum(tester._normals[rows] @ dirs.T, 0.0) * albedo[rows, None]
+        unshadowed = np.maximum(tester.normals[rows] @ dirs.T, 0.0) * albedo[rows, None]
         gain, k = _scores(sub, cols)
         return gain - _scores(sub, unshadowed)[0], k
 
@@ -298,7 +299,7 @@ def fit_compact_source(
     column = tester.shading(best[None])[:, 0]
     facing = albedo > 0  # every row; below: the rows that face the source
     lit = int(np.sum(facing & (column > MIN_FACING)))
-    cos = tester._normals @ best
+    cos = tester.normals @ best
     shadowed = int(np.sum((cos > MIN_FACING) & (column == 0.0)))
     x, k = _solve_with(system, column * albedo)
     unshadowed = np.maximum(cos, 0.0) * albedo
@@ -315,7 +316,7 @@ def fit_compact_source(
         mirror_column = tester.shading(mirror[None])[:, 0] * albedo
         mirror_gain = float(
             _scores(system, mirror_column[:, None])[0][0]
-            - _scores(system, (np.maximum(tester._normals @ mirror, 0.0) * albedo)[:, None])[0][0]
+            - _scores(system, (np.maximum(tester.normals @ mirror, 0.0) * albedo)[:, None])[0][0]
         )
         contrast = 1.0 - max(mirror_gain, 0.0) / full_gain
     elevation = (
@@ -360,6 +361,25 @@ def fit_compact_source(
     return CompactFit((source,), ambient, ambient_rgb, why, tested, tester.rays, contrast, radius)
 
 
+DEPTH_MESH_STRIDE = 2  # the current frame's depth mesh at every 2nd pixel (a quarter)
+
+
+def occluders(
+    volume_scene, points_cam: np.ndarray, pose: np.ndarray, with_depth: bool
+) -> list[tuple[object, np.ndarray]]:
+    """(scene, world_from_scene) pairs the shadows are tested against: the reconstruction
+    (`volume_scene`: the volume's mesh, world frame, or a depth mesh, camera frame) and,
+    with_depth, the current frame's depth mesh too (moving things the volume has not
+    fused, or has smeared)."""
+    from arlight.pipeline.object_space_transfer import OcclusionScene, depth_mesh
+
+    out = [(volume_scene, np.eye(4) if volume_scene.in_world else pose)]
+    if with_depth and volume_scene.in_world:
+        step = DEPTH_MESH_STRIDE
+        out.append((OcclusionScene(depth_mesh(points_cam[::step, ::step])), pose))
+    return out
+
+
 class CompactLightStage:
     """Per session: compact sources beside each frame's SH fit, against the volume's mesh
     (rebuilt as object_space_transfer's scene is: every `update_interval` fused frames),
@@ -386,17 +406,18 @@ class CompactLightStage:
         volume,
         options: dict,
         seed: int = 0,
+        with_depth: bool = False,
     ) -> tuple[CompactFit, int]:
         """(the fit, rays cast) for an estimate's FitState; points_cam, normals_cam: (H, W, 3)
         the frame's filtered geometry (camera frame); pixel_v, pixel_u: the fitted samples'
-        pixels (FitState.rows index them); pose: world_from_cam (4, 4)."""
-        scene = self.occluder(points_cam, volume)
+        pixels (FitState.rows index them); pose: world_from_cam (4, 4); with_depth: test
+        against the current frame's depth mesh as well (`occluders`)."""
+        scenes = occluders(self.occluder(points_cam, volume), points_cam, pose, with_depth)
         v, u = pixel_v[fit_state.rows], pixel_u[fit_state.rows]
         rot, origin = pose[:3, :3], pose[:3, 3]
         points = points_cam[v, u].astype(np.float64) @ rot.T + origin
         normals = normals_cam[v, u].astype(np.float64) @ rot.T
-        world_from_scene = np.eye(4) if scene.in_world else pose
-        tester = ShadowTester(scene, world_from_scene, points, normals)
+        tester = ShadowTester(scenes, points, normals)
         fit = fit_compact_source(
             fit_state.design,
             fit_state.albedo,

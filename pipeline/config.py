@@ -315,6 +315,8 @@ class EstimationParams:
     compact_candidates: int = 256  # directions tested over the upper hemisphere
     compact_search_samples: int = 4000  # fitted pixels whose shadows are tested per direction
     compact_render: bool = True  # draw them with hard shadows both ways (pipeline/sun_shadows.py)
+    # test their shadows against the current frame's depth mesh as well as the volume's
+    compact_depth_mesh: bool = False
 
     def __post_init__(self) -> None:
         _check_float(self, "regularization", 0.0)
@@ -350,6 +352,7 @@ class EstimationParams:
         _check_int(self, "compact_candidates", 8, 4096)
         _check_int(self, "compact_search_samples", 100)
         _check_bool(self, "compact_render")
+        _check_bool(self, "compact_depth_mesh")
 
 
 @dataclass(frozen=True)

@@ -432,6 +432,7 @@ class Pipeline:
                 "min_contrast": p.compact_min_contrast,
             },
             seed=self.config.seed,
+            with_depth=p.compact_depth_mesh,
         )
         diagnostics["compact"] = {
             "reason": fit.reason,

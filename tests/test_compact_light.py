@@ -41,7 +41,7 @@ def _scene():
 
 def _observe(points, normals, scene, sun, sun_power, ambient):
     """Luminance of a white Lambertian ground: ambient SH irradiance plus the sun's, shadowed."""
-    tester = ShadowTester(scene, np.eye(4), points, normals)
+    tester = ShadowTester([(scene, np.eye(4))], points, normals)
     sun_term = tester.shading(sun[None])[:, 0] * sun_power if sun_power else 0.0
     irr = sh.evaluate(sh.irradiance_from_radiance(ambient), normals)
     return irr + sun_term
@@ -51,7 +51,7 @@ def _fit(points, normals, scene, lum):
     bands = 3
     per_coeff = np.repeat(sh.lambert_band_factors(bands), [2 * l + 1 for l in range(bands)])
     design = sh.sh_basis(normals, bands) * per_coeff  # unoccluded transfer
-    tester = ShadowTester(scene, np.eye(4), points, normals)
+    tester = ShadowTester([(scene, np.eye(4))], points, normals)
     ones = np.ones(len(lum))
     return fit_compact_source(
         design,
