@@ -112,3 +112,23 @@ def test_candidates_cover_the_upper_hemisphere_only():
     probe = probe[probe @ UP > math.sin(math.radians(10))]
     nearest = np.degrees(np.arccos(np.clip((probe @ dirs.T).max(axis=1), -1, 1)))
     assert nearest.max() < 9.0
+
+
+def test_shadows_from_either_mesh():
+    """Two meshes (the volume's and the current frame's): a ray is blocked where either
+    blocks it, so a mover the volume has not fused still casts its shadow."""
+    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    normals = np.tile(UP, (3, 1))
+    first = OcclusionScene(SurfaceMesh(*_box((0.0, 0.5, 0.0), (0.1, 0.1, 0.1)), in_world=True))
+    second = OcclusionScene(SurfaceMesh(*_box((1.0, 0.5, 0.0), (0.1, 0.1, 0.1)), in_world=True))
+    up = UP[None]
+    alone = ShadowTester([(first, np.eye(4))], points, normals).shading(up)[:, 0]
+    both = ShadowTester([(first, np.eye(4)), (second, np.eye(4))], points, normals)
+    assert np.allclose(alone, [0.0, 1.0, 1.0])
+    assert np.allclose(both.shading(up)[:, 0], [0.0, 0.0, 1.0])
+    # a mesh in another frame: the second box seen from a camera 3 m along +x
+    pose = np.eye(4)
+    pose[:3, 3] = [3.0, 0.0, 0.0]
+    moved = OcclusionScene(SurfaceMesh(*_box((-2.0, 0.5, 0.0), (0.1, 0.1, 0.1)), in_world=False))
+    tester = ShadowTester([(first, np.eye(4)), (moved, pose)], points, normals)
+    assert np.allclose(tester.shading(up)[:, 0], [0.0, 0.0, 1.0])
