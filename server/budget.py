@@ -194,6 +194,18 @@ def _factors(c: Config, pixels: float, objects: int) -> dict[str, dict[str, floa
     ref_coefficients = ref.transfer.sh_bands**2
     fit_samples = min(pixels, e.light_max_samples)
     ref_fit = min(REFERENCE_PIXELS, ref.estimation.light_max_samples)
+    # compact sources (pipeline/compact_light.py): rays for candidates x search pixels plus
+    # the normal equations over every fitted pixel; 158 ms at 256 x 4000 and 50 000 pixels
+    # against LightEst's 80 ms idle (docs/decisions/0035-compact-sources.md): 2x the stage
+    compact = (
+        2.0
+        * (
+            0.7 * e.compact_candidates / 256 * min(e.compact_search_samples, fit_samples) / 4000
+            + 0.3 * fit_samples / ref_fit
+        )
+        if e.compact_sources > 0
+        else 0.0
+    )
     render = 0.0 if objects == 0 else 1.0
     blur = max(1, r.render_blur_radius_px + r.render_denoise_px)
     ref_blur = ref.render.render_blur_radius_px + ref.render.render_denoise_px
@@ -225,6 +237,7 @@ def _factors(c: Config, pixels: float, objects: int) -> dict[str, dict[str, floa
             / ref_fit
             * (coefficients / ref_coefficients) ** 2
             + 0.5 * px / (e.segment_scale / ref.estimation.segment_scale) ** 2
+            + compact
         },
         "Rendering": {
             "calibration": render * px / r.render_subsample**2 * max(1.0, objects / 2),
@@ -250,6 +263,9 @@ _FACTOR_KEYS = {
         "sh_bands",
         "estimate_rgb",
         "segment_scale",
+        "compact_candidates",
+        "compact_search_samples",
+        "compact_sources",
     ),
     "rt_steps": ("rt_steps", "rt_method"),
     "render_steps": ("render_steps", "render_blur_radius_px", "render_denoise_px"),

@@ -39,7 +39,7 @@ from arlight.protocols import (
 from arlight.server.budget import SessionBudget
 from arlight.server.frame_queue import Job
 from arlight.server.results import encode_error
-from arlight.server.session import Session
+from arlight.server.session import Session, SessionSetupError
 from arlight.server.worker import Rejected, run_frame
 from arlight.sources.source import calibration_of
 from arlight.sources.synthetic import make_sequence
@@ -682,3 +682,27 @@ class TestFuzz:
         assert snapshot["frames_processed"] == state["seq"] and snapshot["frames_failed"] == 0
         assert server._thread.is_alive()
         assert no_tracebacks(caplog), [r.getMessage() for r in caplog.records if r.exc_info]
+
+
+class TestCompactSourcePrice:
+    """The compact source's search (issue 32) is priced: a session cannot ask for an
+    unbounded number of visibility rays on the budget of a plain fit."""
+
+    def test_the_search_costs_light_est_time_and_an_unbounded_one_is_refused(self):
+        budget = SessionBudget()
+        camera = PinholeCamera.kinect_v1(640, 480)
+        config = SessionConfig(session="s", role="capture", calibration=calibration_of(camera))
+        plain = budget.check(config, Config.from_preset("full"), camera, objects=0)
+        compact = budget.check(
+            config, Config.from_preset("full", compact_sources=1), camera, objects=0
+        )
+        assert compact.stage_s["LightEst"] > 2.0 * plain.stage_s["LightEst"]
+        assert compact.frame_s < budget.frame_deadline_s / 10  # the default fits easily
+        huge = Config.from_preset(
+            "full", compact_sources=1, compact_candidates=4096, compact_search_samples=50_000
+        )
+        with pytest.raises(SessionSetupError) as refused:
+            SessionBudget(frame_deadline_s=5.0).check(config, huge, camera, objects=0)
+        assert refused.value.code == "over_budget"
+        assert "compact_candidates" in str(refused.value)
+        assert "--frame-deadline" in str(refused.value)
