@@ -47,6 +47,7 @@ SAMPLE_BYTES_PER_COEFFICIENT = 8 * 6  # float64 design matrix and its weighted c
 # a panorama's light (pipeline/ibl.py lighting_from_ldr: 36 bytes per pixel at its peak,
 # measured with tracemalloc at 1024..4096 wide) plus the decoded image
 PANORAMA_BYTES_PER_PIXEL = 40
+PROBE_BYTES_PER_CELL = 16  # the probe's room grid: colour (3) and weight, float32
 
 
 # The virtual scene's geometry (issue 39, item 2): Open3D's ray casting (Embree) builds a BVH
@@ -349,6 +350,13 @@ def check_cost(
             min(pixels, CANDIDATES_PER_SAMPLE * c.estimation.light_max_samples)
             * c.transfer.sh_bands**2
             * SAMPLE_BYTES_PER_COEFFICIENT
+        ),
+        # the reflection probe's room grid (pipeline/probe_grid.py: linear RGB and a weight,
+        # float32, per cell), held while virtual objects may reflect (priced for any object)
+        "probe_cells": (
+            c.render.probe_cells**3 * PROBE_BYTES_PER_CELL
+            if c.render.probe and c.render.probe_room and objects and camera
+            else 0.0
         ),
     }
     need = sum(memory.values())

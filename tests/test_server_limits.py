@@ -706,3 +706,23 @@ class TestCompactSourcePrice:
         assert refused.value.code == "over_budget"
         assert "compact_candidates" in str(refused.value)
         assert "--frame-deadline" in str(refused.value)
+
+    def test_the_probe_grid_is_in_the_session_memory(self):
+        """probe_cells = 400 is a 1 GiB grid: refused over the default memory budget,
+        naming the key (issue 33's probe, issue 39's rule: every held byte is priced)."""
+        budget = SessionBudget()
+        camera = PinholeCamera.kinect_v1(640, 480)
+        config = SessionConfig(session="s", role="capture", calibration=calibration_of(camera))
+        default = budget.check(config, Config.from_preset("full"), camera, objects=2)
+        assert 20 * 2**20 < default.memory_bytes["probe_cells"] < 40 * 2**20
+        assert (
+            budget.check(config, Config.from_preset("full"), camera, objects=0).memory_bytes[
+                "probe_cells"
+            ]
+            == 0.0
+        )
+        with pytest.raises(SessionSetupError) as refused:
+            budget.check(config, Config.from_preset("full", probe_cells=400), camera, objects=2)
+        assert refused.value.code == "over_budget"
+        assert "probe_cells=400" in str(refused.value)
+        assert "--session-memory-mb" in str(refused.value)
