@@ -87,6 +87,13 @@ LIGHTING_SCHEMA = {
             "description": "capture timestamp -> display receive",
         },
         "frames_dropped": {"type": "integer"},
+        "compact_sources": {
+            "type": "array",
+            "description": "present when a compact source (a sun, a lamp) was kept: "
+            "direction_world, direction_camera, intensity, rgb, angular_radius_deg, share "
+            "(protocols/SPEC.md, result: compact sources)",
+            "items": {"type": "object"},
+        },
     },
 }
 
@@ -309,6 +316,12 @@ def lighting_message(record: Mapping) -> dict:
             "timestamp": {"sec": int(sec), "nsec": nsec},
             "frame": record["frame"],
             **{k: record.get(k) for k in keys},
+            # only where one was kept (absent, not null, as in the Result)
+            **(
+                {"compact_sources": record["compact_sources"]}
+                if record.get("compact_sources")
+                else {}
+            ),
         }
     )
 

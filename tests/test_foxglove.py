@@ -125,6 +125,19 @@ class TestMapping:
         assert message["timestamp"] == {"sec": 12, "nsec": 500000000}
         assert message["sh"] == [1.0, None] and message["frame"] == 3
 
+    def test_lighting_message_carries_a_kept_compact_source(self):
+        source = {
+            "direction_world": [0.0, 0.8, 0.6],
+            "direction_camera": [0.0, -0.8, 0.6],
+            "intensity": 2.0,
+            "rgb": None,
+            "angular_radius_deg": 0.27,
+            "share": 0.7,
+        }
+        record = {"timestamp": 1.0, "frame": 0, "compact_sources": [source]}
+        assert fx.lighting_message(record)["compact_sources"] == [source]
+        assert "compact_sources" not in fx.lighting_message({"timestamp": 1.0, "frame": 0})
+
     def test_light_scene_arrow_points_towards_the_light(self):
         update = decoded(fx.light_scene([0.0, -1.0, 0.0], 0.7, 5.0))
         (entity,) = update.entities
