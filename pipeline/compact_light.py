@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from arlight.pipeline import sh
+from arlight.pipeline.sun_shadows import disc_directions, perpendicular_basis
 
 # rays start this far above the surface (metres, along its normal) and count hits from
 # this distance on: the reconstruction's mesh and the filtered depth differ by ~1 cm
@@ -93,10 +94,7 @@ def candidate_directions(up: np.ndarray | None, count: int) -> np.ndarray:
 
 def _neighbours(direction: np.ndarray, step_deg: float) -> np.ndarray:
     """(9, 3): `direction` and 8 directions `step_deg` away around it."""
-    helper = np.array([1.0, 0.0, 0.0]) if abs(direction[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(direction, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(direction, e1)
+    e1, e2 = perpendicular_basis(direction)
     step = math.radians(step_deg)
     out = [direction]
     for k in range(8):
@@ -117,14 +115,14 @@ def _best_radius(tester, sub, rows: np.ndarray, albedo: np.ndarray, direction: n
     shadow explains most beyond its unshadowed shading, on the search rows: a true compact
     source's hard shadow wins at a small radius, a soft light's contact darkening at a
     large one."""
-    from arlight.pipeline.sun_shadows import disc_directions
-
     gains = []
     for radius in RADII_DEG:
         dirs = disc_directions(direction, radius, DISC_SAMPLES)
-        shaded = tester.shading(dirs, rows).mean(axis=1) * albedo[rows]
-        bare = np.maximum(tester.normals[rows] @ dirs.T, 0.0).mean(axis=1) * albedo[rows]
-        gains.append(_scores(sub, shaded[:, None])[0][0] - _scores(sub, bare[:, None])[0][0])
+        shaded = tester.shading(dirs, rows).mean(axis=1, keepdims=True)
+        bare = np.maximum(tester.normals[rows] @ dirs.T, 0.0).mean(axis=1, keepdims=True)
+        gains.append(
+            _shadow_gain(sub, shaded * albedo[rows, None], bare * albedo[rows, None])[0][0]
+        )
     return float(RADII_DEG[int(np.argmax(gains))])
 
 
@@ -213,6 +211,17 @@ def _scores(system: _System, columns: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return gain, k
 
 
+def _shadow_gain(
+    system: _System, shaded: np.ndarray, bare: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(gain, k) per column: what a source's shading with its shadow (`shaded`, (M, K))
+    explains beyond the same shading without it (`bare`: max(0, n . w), which the SH's
+    high bands and the clamp could otherwise pass off as evidence of a source where no
+    shadow says so); k of the shadowed column."""
+    gain, k = _scores(system, shaded)
+    return gain - _scores(system, bare)[0], k
+
+
 def _solve_with(system: _System, column: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(x, k) of I = A x + k s for one column s (M,): x (n,) or (n, 3), k scalar or (3,)."""
     ws = system.w * column
@@ -267,20 +276,14 @@ def fit_compact_source(
     rng = np.random.default_rng(seed)
     m = len(lum)
     rows = np.sort(rng.choice(m, min(m, search_samples), replace=False))
-    sub = _System(
-        system.design[rows], system.w[rows], lum[rows], system.g_inv, system.r, system.sse
-    )
     # the subset's own normal equations (the full set's would mix two sets of pixels)
-    sub = _system(sub.design, sub.w, sub.target, penalty)
+    sub = _system(system.design[rows], system.w[rows], lum[rows], penalty)
 
     def score(dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(shadow gain, k): what the source's shadow explains beyond its unshadowed
-        shading (max(0, n . w) without V, which the SH's high bands and the clamp
-        could otherwise pass off as evidence of a source where no shadow says so)."""
-        cols = tester.shading(dirs, rows) * albedo[rows, None]
-        unshadowed = np.maximum(tester.normals[rows] @ dirs.T, 0.0) * albedo[rows, None]
-        gain, k = _scores(sub, cols)
-        return gain - _scores(sub, unshadowed)[0], k
+        """(shadow gain, k) of each direction on the search rows (`_shadow_gain`)."""
+        a = albedo[rows, None]
+        bare = np.maximum(tester.normals[rows] @ dirs.T, 0.0)
+        return _shadow_gain(sub, tester.shading(dirs, rows) * a, bare * a)
 
     dirs = candidate_directions(up, candidates)
     tested = len(dirs)
@@ -297,15 +300,14 @@ def fit_compact_source(
         best = around[int(np.argmax(g))]
     radius = _best_radius(tester, sub, rows, albedo, best)
     column = tester.shading(best[None])[:, 0]
-    facing = albedo > 0  # every row; below: the rows that face the source
-    lit = int(np.sum(facing & (column > MIN_FACING)))
+    lit = int(np.sum(column > MIN_FACING))
     cos = tester.normals @ best
     shadowed = int(np.sum((cos > MIN_FACING) & (column == 0.0)))
     x, k = _solve_with(system, column * albedo)
-    unshadowed = np.maximum(cos, 0.0) * albedo
     full_gain = float(
-        _scores(system, (column * albedo)[:, None])[0][0]
-        - _scores(system, unshadowed[:, None])[0][0]
+        _shadow_gain(system, (column * albedo)[:, None], (np.maximum(cos, 0.0) * albedo)[:, None])[
+            0
+        ][0]
     )
     contrast = 1.0
     if up is not None and full_gain > 0.0:
@@ -313,10 +315,13 @@ def fit_compact_source(
         # what casts them; darkening all round (contact shadows of a soft light, what the
         # SH's transfer misses) explains about as much from either side
         mirror = 2.0 * float(best @ up) * up - best
-        mirror_column = tester.shading(mirror[None])[:, 0] * albedo
+        a = albedo[:, None]
         mirror_gain = float(
-            _scores(system, mirror_column[:, None])[0][0]
-            - _scores(system, (np.maximum(tester.normals @ mirror, 0.0) * albedo)[:, None])[0][0]
+            _shadow_gain(
+                system,
+                tester.shading(mirror[None]) * a,
+                np.maximum(tester.normals @ mirror[:, None], 0.0) * a,
+            )[0][0]
         )
         contrast = 1.0 - max(mirror_gain, 0.0) / full_gain
     elevation = (

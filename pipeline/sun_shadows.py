@@ -23,8 +23,19 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
+from arlight.pipeline import sh
+from arlight.pipeline.color import srgb_to_linear
+
 RAY_OFFSET_M = 0.01  # rays start this far along the normal (metres)
 RAY_TNEAR_M = 0.002
+
+
+def perpendicular_basis(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (3,) that with the unit `direction` make a right-handed basis."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(direction[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(direction, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(direction, e1)
 
 
 def disc_directions(direction: np.ndarray, angular_radius_deg: float, samples: int) -> np.ndarray:
@@ -34,10 +45,7 @@ def disc_directions(direction: np.ndarray, angular_radius_deg: float, samples: i
     d = d / np.linalg.norm(d)
     if samples <= 1 or angular_radius_deg <= 0.0:
         return d[None]
-    helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(d, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(d, e1)
+    e1, e2 = perpendicular_basis(d)
     i = np.arange(samples) + 0.5
     radius = math.tan(math.radians(angular_radius_deg)) * np.sqrt(i / samples)
     phi = i * math.pi * (3.0 - math.sqrt(5.0))
@@ -179,9 +187,7 @@ class CompactSourceShading:
     ) -> np.ndarray:
         """Shade `composite` ((H, W, 3) uint8 sRGB, in place); returns the (H, W) bool mask
         of the pixels changed. Points and normals: camera frame (zeros: none)."""
-        from arlight.pipeline import sh
-        from arlight.pipeline.color import srgb_to_linear
-        from arlight.pipeline.rendering import linear_to_srgb_u8
+        from arlight.pipeline.rendering import linear_to_srgb_u8  # (it imports this module)
 
         changed = np.zeros(virtual.shape, bool)
         rot, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
