@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
 import sys
@@ -82,11 +83,11 @@ def truth_sun(
 ) -> tuple[np.ndarray, list[SourceLight]]:
     """The true light as the renderer's ambient SH plus the map's brightest compact region
     as a source (arlight.synth.environment.brightest_compact_region): (ambient, [source])."""
-    from arlight.synth.environment import brightest_compact_region, load_map
+    from arlight.synth.environment import brightest_compact_region
 
     name = frame_truth["env_map"]
     region = brightest_compact_region(
-        _load_map(maps_dir / f"{name}.hdr", load_map), float(frame_truth["env_rotation_deg"])
+        _load_map(maps_dir / f"{name}.hdr"), float(frame_truth["env_rotation_deg"])
     )
     power = region.power * exposure
     bands = math.isqrt(len(l_gt))
@@ -95,14 +96,11 @@ def truth_sun(
     return ambient, [SourceLight(region.direction, power, np.ones(3), radius)]
 
 
-_MAPS: dict[Path, np.ndarray] = {}
+@functools.lru_cache(maxsize=1)  # a sequence's frames share their map
+def _load_map(path: Path) -> np.ndarray:
+    from arlight.synth.environment import load_map
 
-
-def _load_map(path: Path, load) -> np.ndarray:
-    if path not in _MAPS:
-        _MAPS.clear()
-        _MAPS[path] = load(path)
-    return _MAPS[path]
+    return load_map(path)
 
 
 def side_by_side(images: list[np.ndarray], names: list[str]) -> np.ndarray:

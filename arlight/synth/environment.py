@@ -100,12 +100,17 @@ class EnvironmentTruth:
     sh_lum_upper_world: np.ndarray
 
 
+def world_texels(shape: tuple[int, ...], rotation_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Unit world directions (H*W, 3) of a map's texels rotated by `rotation_deg` about +Y,
+    and each texel's solid angle (H*W,) in steradians."""
+    h, w = shape[:2]
+    dirs, solid = texel_directions(h, w)
+    return dirs.reshape(-1, 3) @ rotation_y(rotation_deg).T, np.repeat(solid, w)
+
+
 def environment_truth(radiance: np.ndarray, rotation_deg: float) -> EnvironmentTruth:
     """The truth of an (H, W, 3) map rotated by `rotation_deg` about world +Y."""
-    h, w = radiance.shape[:2]
-    dirs, solid = texel_directions(h, w)
-    world = dirs.reshape(-1, 3) @ rotation_y(rotation_deg).T
-    weights = np.repeat(solid, w)
+    world, weights = world_texels(radiance.shape, rotation_deg)
     basis = sh.sh_basis(world, SH_BANDS) * weights[:, None]  # (N, 16)
     rgb = radiance.reshape(-1, 3).astype(np.float64)
     sh_rgb = rgb.T @ basis
@@ -152,10 +157,7 @@ REGION_LEVEL = 0.1
 def brightest_compact_region(radiance: np.ndarray, rotation_deg: float) -> CompactRegion:
     """The compact region around the brightest texel above the horizon of an (H, W, 3) map
     rotated by `rotation_deg` about world +Y (the truth a compact light source is judged by)."""
-    h, w = radiance.shape[:2]
-    dirs, solid = texel_directions(h, w)
-    world = dirs.reshape(-1, 3) @ rotation_y(rotation_deg).T
-    weights = np.repeat(solid, w)
+    world, weights = world_texels(radiance.shape, rotation_deg)
     lum = radiance.reshape(-1, 3).astype(np.float64) @ np.asarray(LUMA, float)
     upper = world[:, 1] > 0
     lum_upper = np.where(upper, lum, 0.0)
