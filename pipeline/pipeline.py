@@ -746,6 +746,23 @@ class Pipeline:
         budget = int(CANDIDATES_PER_SAMPLE * self.config.estimation.light_max_samples)
         seed = self.config.seed
         has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
+
+        def at_pixels(us: np.ndarray, vs: np.ndarray) -> tuple:
+            """transfer_at_pixels of this frame (SSDO; `aux` is set below before a call)."""
+            return transfer_at_pixels(
+                geometry.points,
+                geometry.normals,
+                self.camera,
+                pose,
+                self.pattern,
+                aux,
+                p,
+                us,
+                vs,
+                None if lum is None else lum[..., None],
+                plane,
+            )
+
         if self._raycaster is not None:  # rt_method raycast
             grid = self._raycaster.compute(
                 geometry.points,
@@ -762,19 +779,7 @@ class Pipeline:
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
             if p.rt_subsample == 1:
                 vs, us = random_pixels(has_geometry, budget, seed)
-                t, b, ok = transfer_at_pixels(
-                    geometry.points,
-                    geometry.normals,
-                    self.camera,
-                    pose,
-                    self.pattern,
-                    aux,
-                    p,
-                    us,
-                    vs,
-                    None if lum is None else lum[..., None],
-                    plane,
-                )
+                t, b, ok = at_pixels(us, vs)
                 return TransferSamples(
                     vs[ok],
                     us[ok],
@@ -798,19 +803,7 @@ class Pipeline:
         )
         if not len(vs) or p.rt_method is RtMethod.RAYCAST:
             return samples
-        t, b, ok = transfer_at_pixels(  # edges: their own transfer, not the grid's
-            geometry.points,
-            geometry.normals,
-            self.camera,
-            pose,
-            self.pattern,
-            aux,
-            p,
-            us,
-            vs,
-            None if lum is None else lum[..., None],
-            plane,
-        )
+        t, b, ok = at_pixels(us, vs)  # edges: their own transfer, not the grid's
         return TransferSamples(
             np.concatenate([samples.pixel_v, vs[ok]]),
             np.concatenate([samples.pixel_u, us[ok]]),
