@@ -31,8 +31,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=3)
     args = parser.parse_args(argv)
     params = Config.from_preset("full").estimation
-    data = np.load(args.recording)
-    meta = json.loads(str(data["meta"]))
+    try:
+        data = np.load(args.recording)
+        meta = json.loads(str(data["meta"]))
+    except (OSError, ValueError, KeyError) as exc:
+        parser.error(f"{args.recording}: not a light_replay recording ({exc})")
     frames = []
     for i, m in enumerate(meta[: args.frames]):
         est = light_estimation.estimate_light(

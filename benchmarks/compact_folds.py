@@ -66,7 +66,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("replay", help="a light_replay --json report made with --compact")
     parser.add_argument("--table", action="store_true", help="also print the per-map table")
     args = parser.parse_args(argv)
-    rows = json.loads(open(args.replay).read())["rows"]
+    try:
+        rows = json.loads(open(args.replay).read())["rows"]
+    except (OSError, ValueError, KeyError) as exc:
+        parser.error(f"REPLAY {args.replay}: not a light_replay --json report ({exc})")
     sh_only = _per_map(rows, np.asarray([r["sh_only"] for r in rows]))
     print(
         f"SH only: median over maps {np.median(list(sh_only.values())):.1f}, p90 frames "

@@ -348,11 +348,28 @@ def _override(text: str) -> tuple[str, object]:
     return key, Config.parse_flat_value(key, value)
 
 
+COMPACT_KEYS = (
+    "candidates",
+    "search_samples",
+    "min_gain",
+    "min_contrast",
+    "max_radius_deg",
+    "min_pixels",
+    "depth_mesh",
+)
+
+
 def _override_compact(text: str) -> tuple[str, float] | None:
+    """--compact on, or KEY=VALUE with KEY one of COMPACT_KEYS (argparse: exit 2 else)."""
     if text in ("", "on"):
         return None
-    key, value = text.split("=", 1)
-    return key, (int(value) if value.isdigit() else float(value))
+    key, _, value = text.partition("=")
+    if key not in COMPACT_KEYS:
+        raise argparse.ArgumentTypeError(f"{key!r}: not one of {', '.join(COMPACT_KEYS)}")
+    try:
+        return key, (int(value) if value.isdigit() else float(value))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{key}: a number, got {value!r}") from None
 
 
 def main(argv: list[str] | None = None) -> int:
