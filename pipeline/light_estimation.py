@@ -282,7 +282,7 @@ def estimate_light(
         prior is not None,
         FitState(
             samples.rows if samples.rows is not None else np.arange(len(lum)),
-            _design(t, bands, b),
+            fit.design,
             fit.albedo,
             fit.weights,
             lum,
@@ -429,6 +429,7 @@ class _Fit:
     albedo: np.ndarray  # per sample, sample-weighted mean 1
     weights: np.ndarray  # robust weights per sample
     shading: np.ndarray  # T l + beta B per sample
+    design: np.ndarray  # the columns [T | B] the fit solved with (reused, not rebuilt)
 
 
 def _alternate(
@@ -478,7 +479,7 @@ def _alternate(
         a = np.abs(rel) / (1.345 * sigma)
         weights = np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))  # Huber
         coeffs, beta = solve()
-    return _Fit(coeffs, beta, albedo, weights, shading())
+    return _Fit(coeffs, beta, albedo, weights, shading(), design)
 
 
 def _segment_albedo(
