@@ -390,10 +390,12 @@ class CompactLightStage:
     (rebuilt as object_space_transfer's scene is: every `update_interval` fused frames),
     else the current depth image's mesh."""
 
-    def __init__(self, update_interval: int):
+    def __init__(self, update_interval: int, scenes=None):
+        """scenes: an ObjectSpaceTransfer whose cached scene to share (the session's
+        rt_method raycast one), else one of this stage's own."""
         from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer
 
-        self._scenes = ObjectSpaceTransfer(update_interval)
+        self._scenes = scenes if scenes is not None else ObjectSpaceTransfer(update_interval)
 
     def occluder(self, points_cam: np.ndarray, volume):
         """The reconstruction as an OcclusionScene (cached: see the class docstring)."""

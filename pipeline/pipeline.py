@@ -415,7 +415,10 @@ class Pipeline:
         if p.compact_sources <= 0 or estimate.fit is None:
             return None
         if self._compact_stage is None:
-            self._compact_stage = CompactLightStage(self.config.aux.aux_update_interval)
+            # with rt_method raycast, the transfer's scene of the volume serves here too
+            self._compact_stage = CompactLightStage(
+                self.config.aux.aux_update_interval, self._raycaster
+            )
         fit, rays = self._compact_stage.fit(
             estimate.fit,
             geometry.points,
