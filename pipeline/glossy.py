@@ -266,26 +266,6 @@ def _glossy_pixel(rx, ry, rz, exponent, theta_r, data, offsets, heights, num_lev
 
 
 @numba.njit(parallel=True, cache=True)
-def _glossy_cpu(directions, exponents, radii, data, offsets, heights, out):
-    num_levels = len(heights)
-    for i in numba.prange(directions.shape[0]):
-        r, g, b = _glossy_pixel(
-            directions[i, 0],
-            directions[i, 1],
-            directions[i, 2],
-            exponents[i],
-            radii[i],
-            data,
-            offsets,
-            heights,
-            num_levels,
-        )
-        out[i, 0] = r
-        out[i, 1] = g
-        out[i, 2] = b
-
-
-@numba.njit(parallel=True, cache=True)
 def _specular_cpu(directions, modes, exponents, radii, data, offsets, heights, out):
     """Per pixel: mode 1 = mirror (one lookup at level 0), 2 = glossy, 0 = none (zeros)."""
     num_levels = len(heights)
@@ -348,8 +328,9 @@ def glossy(pyramid: MipPyramid, directions: np.ndarray, roughness: float) -> np.
     d = _unit_rows(directions)
     n = phong_exponent(roughness)
     out = np.zeros((len(d), 3), np.float32)
-    _glossy_cpu(
+    _specular_cpu(  # every row glossy (mode 2)
         d,
+        np.full(len(d), 2, np.int64),
         np.full(len(d), n),
         np.full(len(d), lobe_radius_rad(n)),
         pyramid.data,
