@@ -36,6 +36,7 @@ from .fields import (
 )
 from .images import ImageParts, add_image
 from .layouts import read_exports
+from .probe import ProbeCube
 
 # a light direction on the wire (SPEC.md section 4, "result: directions"): a unit vector, its
 # norm within this of 1 (the reference server rotates it by the frame's pose, rigid within
@@ -207,6 +208,9 @@ class Result:
     # the light in the engine layouts the session's Hello asked for (optional key: absent
     # when it asked for none): layout name -> numbers, CAMERA frame with the engine's axes
     exports: dict | None = None
+    # the frame's reflection probe, when the session's Hello asked for one (optional key:
+    # absent otherwise, and for a frame that made none): SPEC.md "result: the reflection probe"
+    probe: ProbeCube | None = None
 
     def __post_init__(self) -> None:
         self._confidence_map: tuple[Confidence, dict] | None = None
@@ -281,6 +285,8 @@ class Result:
             )
         if self.exports is not None:  # optional key: absent when the session asked for none
             out["exports"] = read_exports(to_plain(self.exports), "result.exports")
+        if self.probe is not None:  # optional key: absent when the frame carries none
+            out["probe"] = self.probe._pack(parts, "result.probe")
         out["composite"] = None
         if self.composite is not None:
             out["composite"] = add_image(
@@ -354,9 +360,14 @@ class Result:
         fields.update(_read_panorama_light(h))
         if "exports" in h.d:  # optional key: absent = the session asked for no layout
             fields["exports"] = read_exports(h.raw("exports"), h.f("exports"))
+        probe = None
+        if "probe" in h.d:  # optional key: absent = no probe this frame
+            probe = ProbeCube._unpack(h.map("probe"), images)
         dc = images.descriptor(h, "composite", depth=False, nullable=True)
         h.done()
         images.done(h.name)
+        if probe is not None:
+            fields["probe"] = probe.cube()
         if dc is not None:
             fields.update(
                 composite=images.decode(dc),

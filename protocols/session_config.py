@@ -29,6 +29,7 @@ from .fields import (
 )
 from .images import ImageParts
 from .layouts import read_export_names
+from .probe import ProbeRequest
 from .scene import SceneSpec
 
 
@@ -139,6 +140,9 @@ class SessionConfig:
     # engine layouts (EXPORT_LAYOUTS) every Result of the session carries (optional key,
     # capture Hellos only); () = none
     exports: tuple[str, ...] = ()
+    # a reflection probe in every Result (optional key, capture Hellos only; SPEC.md "hello:
+    # the reflection probe"); None = none
+    probe: ProbeRequest | None = None
     # the session token (optional key, SPEC.md "session tokens"): a display's proof that it
     # may watch the session; a capture client's token for a new session or proof for resuming
     token: str | None = None
@@ -163,6 +167,9 @@ class SessionConfig:
         if self.exports:  # optional key: absent when the session asks for no layout
             out["exports"] = list(read_export_names(list(self.exports), "hello.config.exports"))
             _exports_role(self.role, "hello.config.exports")
+        if self.probe is not None:  # optional key: absent when the session asks for none
+            out["probe"] = self.probe._pack("hello.config.probe")
+            _probe_role(self.role, "hello.config.probe")
         if self.token is not None:  # optional key: absent when the client has no token
             out["token"] = read_token(self.token, "hello.config.token")
         return out
@@ -207,6 +214,12 @@ class SessionConfig:
             exports = read_export_names(c.raw("exports", nullable=True), c.f("exports"))
             if exports:
                 _exports_role(role, c.f("exports"))
+        probe = None
+        if "probe" in c.d:  # optional key: absent = nil = none
+            pm = c.map("probe", nullable=True)
+            probe = None if pm is None else ProbeRequest._unpack(pm)
+            if probe is not None:
+                _probe_role(role, c.f("probe"))
         token = None
         if "token" in c.d:  # optional key (SPEC.md section 2): absent = nil
             raw = c.raw("token", nullable=True)
@@ -226,6 +239,7 @@ class SessionConfig:
             scene,
             panorama,
             exports,
+            probe,
             token,
         )
 
@@ -238,6 +252,17 @@ def _exports_role(role: str, name: str) -> None:
             "only a capture Hello chooses the session's engine "
             "layouts (a display receives them in every Result, or computes "
             "its own: arlight display --export)",
+            name,
+        )
+
+
+def _probe_role(role: str, name: str) -> None:
+    """The probe is the session's: the capture client's Hello asks for it."""
+    if role != "capture":
+        raise ProtocolError(
+            "bad_field",
+            "only a capture Hello asks for the session's reflection probe (a display "
+            "receives it in every Result)",
             name,
         )
 

@@ -39,7 +39,12 @@ REFERENCE_STAGE_MS = {
     "RadTransfer": 330.0,
     "LightEst": 135.0,
     "Rendering": 400.0,
+    # the reflection probe at 64 texels a face, with a mirror sphere (docs/results/probe.md,
+    # "Cost": fuse 12 + probe 24 ms under load); scaled by (size / 64)^2 but its grid's part
+    "Probe": 40.0,
 }
+PROBE_REFERENCE_SIZE = 64
+PROBE_FIXED_SHARE = 0.3  # the grid's fusion, whatever the size (docs/results/probe.md, "Cost")
 BYTES_PER_PIXEL = 450  # a frame's buffers while it is processed (a 2048^2 frame: 1.9 GB)
 BYTES_PER_VOXEL = 8  # tsdf + weight, float32 (pipeline/volume.py)
 AUX_BYTES_PER_PIXEL = 6 * 32  # six orthographic buffers: depth, normals, colour
@@ -48,6 +53,9 @@ SAMPLE_BYTES_PER_COEFFICIENT = 8 * 6  # float64 design matrix and its weighted c
 # measured with tracemalloc at 1024..4096 wide) plus the decoded image
 PANORAMA_BYTES_PER_PIXEL = 40
 PROBE_BYTES_PER_CELL = 16  # the probe's room grid: colour (3) and weight, float32
+# the probe's cube: float32 RGB texels of every level (4/3 of level 0) and, when a Hello asks
+# for it, its RGB9E5 copy for the Result (4 bytes a texel, before zstd)
+PROBE_BYTES_PER_TEXEL = 12 * 4 / 3 + 4 * 4 / 3
 
 
 # The virtual scene's geometry (issue 39, item 2): Open3D's ray casting (Embree) builds a BVH
@@ -144,12 +152,14 @@ class SessionBudget:
         from arlight.server.session import SessionSetupError
 
         try:
-            return check_cost(pipeline, camera, objects, self, scene)
+            return check_cost(pipeline, camera, objects, self, scene, config.probe is not None)
         except BudgetError as exc:
             keys = set(config.overrides or {})
             field = (
                 "scene"
                 if exc.setting == "scene"
+                else "probe.size"
+                if exc.setting == "probe_size" and config.probe is not None
                 else "calibration"
                 if exc.setting == "calibration" or camera is None
                 else f"overrides.{exc.setting}"
@@ -159,9 +169,17 @@ class SessionBudget:
             raise SessionSetupError(field, str(exc), code="over_budget") from None
 
 
-def _factors(c: Config, pixels: float, objects: int) -> dict[str, dict[str, float]]:
+def probe_made(c: Config, objects: int, probe: bool) -> bool:
+    """Whether a session makes a reflection probe each frame (priced for any object: the
+    model does not read materials) or a Hello asked for one."""
+    return c.render.probe and (objects > 0 or probe)
+
+
+def _factors(
+    c: Config, pixels: float, objects: int, probe: bool = False
+) -> dict[str, dict[str, float]]:
     """Per stage: setting -> its ratio of work to the reference (the product scales the
-    stage's reference time)."""
+    stage's reference time). probe: the Hello asked for a reflection probe."""
     v, f, t, e, r, a = c.volume, c.filter, c.transfer, c.estimation, c.render, c.aux
     ref = Config()
     px = pixels / REFERENCE_PIXELS
@@ -245,6 +263,14 @@ def _factors(c: Config, pixels: float, objects: int) -> dict[str, dict[str, floa
             "rt_directions": t.rt_directions / ref.transfer.rt_directions,
             "render_steps": 0.5 * r.render_steps / ref.render.render_steps + 0.5 * blur / ref_blur,
         },
+        "Probe": {
+            "probe_size": (
+                PROBE_FIXED_SHARE
+                + (1.0 - PROBE_FIXED_SHARE) * (r.probe_size / PROBE_REFERENCE_SIZE) ** 2
+                if probe_made(c, objects, probe)
+                else 0.0
+            )
+        },
     }
 
 
@@ -297,14 +323,16 @@ def check_cost(
     objects: int,
     budget: SessionBudget,
     scene: SceneLoad | None = None,
+    probe: bool = False,
 ) -> SessionCost:
     """The modelled cost of a session; BudgetError naming the costliest setting when a
     frame would take longer than the deadline or the session need more than its memory.
-    scene: the virtual scene's geometry (its BVH and crowded triangles add to Rendering)."""
+    scene: the virtual scene's geometry (its BVH and crowded triangles add to Rendering);
+    probe: the Hello asked for a reflection probe in every Result (`config.probe`)."""
     pixels = 0.0 if camera is None else float(camera.width * camera.height)
     stage_s: dict[str, float] = {}
     blame: dict[str, str] = {}
-    for stage, factors in _factors(c, pixels, objects).items():
+    for stage, factors in _factors(c, pixels, objects, probe).items():
         stage_s[stage] = REFERENCE_STAGE_MS[stage] / 1e3 * math.prod(factors.values())
         blame[stage] = max(factors, key=lambda k: factors[k])
     if scene is not None and objects and scene.triangles:
@@ -355,7 +383,13 @@ def check_cost(
         # float32, per cell), held while virtual objects may reflect (priced for any object)
         "probe_cells": (
             c.render.probe_cells**3 * PROBE_BYTES_PER_CELL
-            if c.render.probe and c.render.probe_room and objects and camera
+            if probe_made(c, objects, probe) and c.render.probe_room and camera
+            else 0.0
+        ),
+        # the probe's cube (and its copy for the wire), while the session makes one
+        "probe_size": (
+            6 * c.render.probe_size**2 * PROBE_BYTES_PER_TEXEL
+            if probe_made(c, objects, probe) and camera
             else 0.0
         ),
     }

@@ -16,6 +16,7 @@ import numpy as np
 from arlight.core.frames import Diagnostics, FrameResult
 from arlight.pipeline.engine_export import camera_exports
 from arlight.pipeline.ibl import IblResult
+from arlight.pipeline.probe import ProbeResult
 from arlight.protocols import (
     DEFAULT_JPEG_QUALITY,
     Error,
@@ -25,6 +26,7 @@ from arlight.protocols import (
 )
 from arlight.protocols.fields import MAX_INT as MAX_SEQ
 from arlight.protocols.frame_result import compact_sources_to_wire
+from arlight.protocols.probe import ProbeCube
 from arlight.server.frame_queue import Job
 from arlight.server.logtext import printable
 from arlight.server.worker import FrameOutcome, Rejected
@@ -49,6 +51,8 @@ def result_message(
     exports: tuple[str, ...] = (),
     extra_timings_ms: Mapping[str, float] | None = None,
     extra_diagnostics: Diagnostics | None = None,
+    probe: ProbeResult | None = None,
+    probe_mips: bool = False,
 ) -> Result:
     """The Result of frame `seq`. counters: the session's (frames_received,
     frames_processed, frames_dropped); receive/finish times: wall clock, seconds;
@@ -64,6 +68,10 @@ def result_message(
 
     extra_timings_ms, extra_diagnostics: what the server adds beside the pipeline's own
     (the panorama path's stages and light source), after them; `result` is not changed.
+
+    probe: the frame's reflection probe (the Hello's `config.probe`), sent as the Result's
+    `probe` with every mip level when probe_mips, else level 0 only (`probe_to_wire`); None:
+    the key is omitted.
 
     Raises ProtocolError (bad_field, naming `result.diagnostics.KEY`) when the pipeline's
     diagnostics hold a value the protocol does not carry.
@@ -106,6 +114,18 @@ def result_message(
         if panorama is None
         else [float(x) for x in panorama.dominant_direction],
         exports=layouts,
+        probe=None if probe is None else probe_to_wire(probe, probe_mips),
+    )
+
+
+def probe_to_wire(probe: ProbeResult, mips: bool) -> ProbeCube:
+    """A pipeline ProbeResult as Result.probe carries it: its point (world, metres), level 0
+    (the radiance) or every GGX-prefiltered level, and each level's perceptual roughness."""
+    count = len(probe.mips.levels) if mips else 1
+    return ProbeCube(
+        point_world=[float(x) for x in probe.point_world],
+        levels=list(probe.mips.levels[:count]),
+        roughness=[float(r) for r in probe.mips.roughness[:count]],
     )
 
 
@@ -161,6 +181,8 @@ def reply_to(session: Session, job: Job, outcome: FrameOutcome) -> Reply:
             exports=session.config.exports,
             extra_timings_ms=None if used is None else used.timings_ms,
             extra_diagnostics=None if used is None else used.diagnostics,
+            probe=outcome.probe,
+            probe_mips=session.config.probe is not None and session.config.probe.mips,
         )
         return Reply(session, job, encode(message), time.monotonic())
     except Exception as exc:  # noqa: BLE001 - e.g. a non-finite estimate

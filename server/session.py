@@ -70,6 +70,9 @@ class SessionSetupError(ValueError):
 def pipeline_config(config: SessionConfig) -> Config:
     """The pipeline Config a session asks for (preset + overrides); SessionSetupError if bad."""
     overrides = dict(config.overrides or {})
+    size = probe_size(config)
+    if size is not None:
+        overrides["probe_size"] = size
     try:
         pipeline = Config.from_preset(config.preset, **overrides)
     except (TypeError, ValueError) as exc:
@@ -80,6 +83,50 @@ def pipeline_config(config: SessionConfig) -> Config:
     except ValueError as exc:
         raise SessionSetupError("overrides", str(exc)) from None
     return pipeline
+
+
+def probe_size(config: SessionConfig) -> int | None:
+    """The probe size a Hello's `config.probe` asks for (None: no probe), checked against
+    its overrides: the probe must not be switched off (`probe=false`), and a `probe_size`
+    override must agree (SessionSetupError naming `probe` or `probe.size`)."""
+    if config.probe is None:
+        return None
+    overrides = config.overrides or {}
+    if overrides.get("probe") is False:
+        raise SessionSetupError(
+            "probe",
+            "the Hello asks for a reflection probe and its overrides switch the probe off "
+            "(probe=false): drop one of the two",
+        )
+    given = overrides.get("probe_size")
+    if given is not None and given != config.probe.size:
+        raise SessionSetupError(
+            "probe.size",
+            f"{config.probe.size} texels a face, but overrides.probe_size is {given!r}: "
+            "give the size once, in config.probe",
+        )
+    return config.probe.size
+
+
+def check_probe(
+    config: SessionConfig, camera: PinholeCamera | None, scene: VirtualScene | None
+) -> None:
+    """A probe needs a camera (not a panorama-only session) and a point: the Hello's
+    `point_world`, or a virtual scene whose objects' centre it is (SessionSetupError)."""
+    if config.probe is None:
+        return
+    if camera is None:
+        raise SessionSetupError(
+            "probe",
+            "a panorama-only session (no calibration) has no room to make a reflection probe "
+            "of; send RGB-D frames with a calibration, or drop config.probe",
+        )
+    if config.probe.point_world is None and not scene:
+        raise SessionSetupError(
+            "probe.point_world",
+            "nil means the centre of the virtual scene's objects, and the session has no "
+            "scene: give the point (world frame, metres) or a scene",
+        )
 
 
 # The focal lengths a session may declare, in multiples of the image's side along the same
@@ -279,6 +326,7 @@ class SessionSetup:
         camera = None if config.calibration is None else camera_from_config(config, max_pixels)
         panorama_light = panorama_light_from_config(config)
         scene = scene_from_config(config)
+        check_probe(config, camera, scene)
         load = (
             None
             if scene is None or budget is None

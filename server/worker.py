@@ -31,6 +31,7 @@ from arlight.pipeline import sh as sh_lib
 from arlight.pipeline.glossy import mip_pyramid
 from arlight.pipeline.ibl import IblParams, IblResult
 from arlight.pipeline.pipeline import FrameError, Pipeline
+from arlight.pipeline.probe import ProbeResult
 from arlight.pipeline.rendering import EnvironmentMap
 from arlight.protocols import (
     DEFAULT_JPEG_QUALITY,
@@ -141,6 +142,7 @@ class Processed:
     composite_codec: str = "jpeg"
     jpeg_quality: int = DEFAULT_JPEG_QUALITY
     panorama: PanoramaUse | None = None
+    probe: ProbeResult | None = None  # the frame's probe, when the Hello asked for one
 
 
 @dataclass(frozen=True)
@@ -191,7 +193,22 @@ class SessionCompute:
             self._pipeline = Pipeline(
                 self.setup.pipeline_config, self.setup.camera, scene=self.setup.scene
             )
+            request = self.setup.config.probe
+            if request is not None:  # Hello config.probe: a probe every frame, at its point
+                self._pipeline.probe_wanted = True
+                if request.point_world is not None:
+                    self._pipeline.probe_point = np.asarray(request.point_world, np.float64)
         return self._pipeline
+
+    def last_probe(self) -> ProbeResult | None:
+        """The probe the session's Pipeline made of its last frame, when the Hello asked for
+        one (None otherwise, before the objects it is centred on are placed, and with a
+        ProcessStep, which makes none)."""
+        if self.setup.config.probe is None or self.step is not None or self._pipeline is None:
+            return None
+        probe = self._pipeline.last_probe
+        self._pipeline.last_probe = None  # read once: a frame that makes none sends none
+        return probe
 
     @property
     def pipeline_built(self) -> bool:
@@ -298,7 +315,7 @@ def _process(job: Job, compute: SessionCompute, deadline: Deadline) -> Processed
         world = lights.to_world(panorama)
         if lights.light_source == "panorama":
             render_light = RenderLight(world[0], world[1], compute.environment(panorama))
-    composite = None
+    composite = probe = None
     if frame.color is None and world is not None:  # panorama-only: no RGB-D pipeline
         result = panorama_only_result(frame, world)
     else:
@@ -312,6 +329,7 @@ def _process(job: Job, compute: SessionCompute, deadline: Deadline) -> Processed
         result = compute.process(frame_input, render_light, deadline)
         if setup.config.want_composite:
             composite = compute.composite(frame_input, result)
+        probe = compute.last_probe()  # before a volume over budget drops the pipeline
     compute.check_volume_budget()
     used = (
         None
@@ -322,7 +340,7 @@ def _process(job: Job, compute: SessionCompute, deadline: Deadline) -> Processed
             lights.params.operator,
         )
     )
-    return Processed(result, composite, frame.color_codec, frame.jpeg_quality, used)
+    return Processed(result, composite, frame.color_codec, frame.jpeg_quality, used, probe)
 
 
 def check_declared_sizes(parts: list, setup: SessionSetup) -> None:

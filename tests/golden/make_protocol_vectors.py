@@ -49,6 +49,7 @@ from arlight.protocols import (
     encode,
     write_container,
 )
+from arlight.protocols.probe import ProbeCube, ProbeRequest
 
 OUT = Path(__file__).resolve().parent / f"protocol_v{PROTOCOL_VERSION}"
 JPEG_VECTORS = ("frame_jpeg_zstd",)  # pinned by decoding, not by re-encoding
@@ -162,6 +163,20 @@ def compact_source() -> dict:
         "angular_radius_deg": 0.27,
         "share": 0.625,
     }
+
+
+def probe_cube() -> ProbeCube:
+    """A reflection probe (SPEC.md section 4, "result: the reflection probe") of 32 texels a
+    face and two levels whose texels say where they are: at column i, row j of face f of an
+    n-texel level, R = (i + 1) / n, G = (j + 1) / n, B = f / 8 (exact in RGB9E5)."""
+    levels = []
+    for n in (32, 16):
+        j, i = np.mgrid[0:n, 0:n]
+        faces = [
+            np.stack([(i + 1) / n, (j + 1) / n, np.full((n, n), f / 8)], axis=-1) for f in range(6)
+        ]
+        levels.append(np.stack(faces).astype(np.float32))
+    return ProbeCube([0.25, -0.5, 1.5], levels, [0.0, 1.0 / 3.0])
 
 
 def vectors() -> dict[str, object]:
@@ -407,6 +422,36 @@ def vectors() -> dict[str, object]:
                 exports=("webxr", "main_light"),
                 token=GOLDEN_TOKEN,
             ),
+        ),
+        # the reflection probe (issue 33): Hello config.probe, and a Result carrying one
+        "hello_probe": Hello(
+            PROTOCOL_VERSION,
+            SessionConfig(
+                session="golden-1",
+                role="capture",
+                calibration=cal,
+                depth_scale=1000.0,
+                probe=ProbeRequest(64, (0.25, -0.5, 1.5), True),
+            ),
+        ),
+        "result_probe": Result(
+            seq=15,
+            timestamp=1237.5,
+            sh=sh,
+            sh_camera=sh,
+            dominant_direction_camera=[0.0, 1.0, 0.0],
+            dominant_direction_world=[0.0, 1.0, 0.0],
+            intensity=1.0,
+            confidence={"value": 0.5},
+            pose=np.eye(4).tolist(),
+            timings_ms={"Probe": 20.5},
+            diagnostics={"probe": {"size": 32, "levels": 4, "hit_fraction": 0.375}},
+            frames_received=3,
+            frames_processed=3,
+            frames_dropped=0,
+            server_receive_time=10.0,
+            server_finish_time=10.25,
+            probe=probe_cube(),
         ),
         "welcome_token": Welcome(PROTOCOL_VERSION, "golden-1", 8, 1.0, "arlight", GOLDEN_TOKEN),
         "error_unauthorized": Error(
