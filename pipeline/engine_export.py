@@ -342,6 +342,74 @@ def _source_rgb(source: SourceLike, c: np.ndarray, direction: np.ndarray) -> lis
     return _floats(max(k, 0.0) * colour)
 
 
+# --------------------------------------------------------------- the reflection probe's cube
+
+# How each engine's cube textures are read (issue 33, item 3): the frame its sampler looks
+# the OpenGL face table (4.6, table 8.19: faces +X, -X, +Y, -Y, +Z, -Z, rows from the top)
+# up in, from the engine's own axes. Filament samples `samplerCubemap`s with the world
+# direction as it is (filament/src/materials/skybox.mat: texture(skybox, eyeDirection);
+# the IBL's prefiltered cube likewise), ARCore's environmental HDR cube map is OpenGL's, so
+# both read the table in their own (right-handed, +y up) axes; three.js samples a
+# `CubeTexture` at (flipEnvMap x, y, z) with flipEnvMap = -1 (the RenderMan cube maps,
+# left-handed: WebGLBackground / envmap_fragment; not for render targets), which
+# `PMREMGenerator.fromCubemap` reads the same way: its faces are the table in mirrored axes.
+# Checked against each engine's lookup in tests/test_probe_engines.py (three.js rendered).
+CUBE_LOOKUP_FROM_ENGINE = {
+    "filament": np.eye(3),
+    "arcore": np.eye(3),
+    "threejs": np.diag([-1.0, 1.0, 1.0]),
+}
+
+
+class CubeLike(Protocol):
+    """A cube map with mip levels (`probe_cube.CubeMips`, or a Result's `ProbeCube`)."""
+
+    @property
+    def levels(self) -> list[np.ndarray]: ...
+    @property
+    def roughness(self) -> Any: ...
+
+
+def probe_faces(
+    probe: CubeLike, engine_from_world: np.ndarray | None, engine: str
+) -> list[np.ndarray]:
+    """The reflection probe's cube map as `engine` loads it (CUBE_LOOKUP_FROM_ENGINE):
+    per level, (6, n, n, 3) float32 faces in the order +X, -X, +Y, -Y, +Z, -Z (three.js:
+    `CubeTexture` images px, nx, py, ny, pz, nz; Filament: `Texture::setImage` with face
+    offsets in that order; first row the top), linear radiance (the probe's units), each
+    texel the probe's radiance along the world direction it stands for in the engine's
+    axes. probe: levels of (6, n, n, 3) in WORLD axes (the pipeline's CubeMips or a Result's
+    probe); engine_from_world: 3x3 orthogonal (e.g. sh.GL_FROM_CV @ R^T for the camera
+    frame with OpenGL's axes, as the other layouts; None: the world is the engine's frame).
+    An axis-aligned frame change moves texels exactly; any other is sampled bilinearly at
+    each level (probe_cube.sample)."""
+    from . import probe_cube
+
+    if engine not in CUBE_LOOKUP_FROM_ENGINE:
+        raise ExportError(
+            f"no cube map convention for {engine!r}; choose one of "
+            f"{', '.join(CUBE_LOOKUP_FROM_ENGINE)}"
+        )
+    r = np.eye(3) if engine_from_world is None else np.asarray(engine_from_world, np.float64)
+    if r.shape != (3, 3) or not np.allclose(r @ r.T, np.eye(3), atol=1e-6):
+        raise ExportError(f"engine_from_world must be an orthogonal 3x3, got {r.tolist()}")
+    lookup_from_world = CUBE_LOOKUP_FROM_ENGINE[engine] @ r
+    levels = [np.asarray(lv, np.float32) for lv in probe.levels]
+    for k, lv in enumerate(levels):
+        n = levels[0].shape[1] >> k
+        if lv.shape != (6, n, n, 3):
+            raise ExportError(f"probe level {k} must have shape (6, {n}, {n}, 3), got {lv.shape}")
+    cube = probe_cube.CubeMips(levels, np.zeros(len(levels)))
+    out = []
+    for k, lv in enumerate(levels):
+        n = lv.shape[1]
+        # the world direction of each of the engine's texels: lookup -> world is the transpose
+        world = probe_cube.texel_directions(n).reshape(-1, 3) @ lookup_from_world
+        texels = probe_cube.sample(cube, world, float(k))
+        out.append(np.asarray(texels, np.float32).reshape(6, n, n, 3))
+    return out
+
+
 # the layouts by name (`--export`, the protocol's EXPORT_LAYOUTS); main_light: ARCore's main
 # light / WebXR's primary light, beside the SH of "arcore" or "webxr"
 EXPORTERS = {
