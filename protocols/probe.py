@@ -125,20 +125,22 @@ class ProbeRequest:
 def rgb9e5_encode(radiance: np.ndarray) -> np.ndarray:
     """(..., 3) linear RGB -> (...,) little-endian uint32 RGB9E5 (EXT_texture_shared_exponent:
     each channel clamped to 0..RGB9E5_MAX, NaN to 0, the exponent of the largest, mantissas
-    rounded to nearest)."""
-    v = np.nan_to_num(np.asarray(radiance, np.float64), nan=0.0, posinf=RGB9E5_MAX)
-    v = np.clip(v, 0.0, RGB9E5_MAX)
-    peak = v.max(axis=-1)
-    _, e2 = np.frexp(peak)  # peak = m 2^e2, m in [0.5, 1): floor(log2(peak)) = e2 - 1
-    exp = np.where(peak > 0.0, np.maximum(e2 - 1, -16), -16) + 16  # max(-B-1, floor) + 1 + B
-    scale = np.ldexp(1.0, exp - 24)  # 2^(exp - B - N)
-    top = np.floor(peak / scale + 0.5)
-    exp = np.where(top >= 512, exp + 1, exp)
-    scale = np.ldexp(1.0, exp - 24)
-    q = np.floor(v / scale[..., None] + 0.5).astype(np.uint32)
-    q = np.minimum(q, 511)
-    packed = q[..., 0] | (q[..., 1] << 9) | (q[..., 2] << 18) | (exp.astype(np.uint32) << 27)
-    return packed.astype("<u4")
+    rounded to nearest). float32 arithmetic: exact for the powers of two involved."""
+    shape = np.shape(radiance)[:-1]
+    v = np.array(radiance, np.float32, copy=True).reshape(-1, 3)
+    v[~(v >= 0.0)] = 0.0  # negative and NaN
+    np.minimum(v, np.float32(RGB9E5_MAX), out=v)
+    peak = v.max(axis=1)
+    # floor(log2(peak)) from the float32's exponent bits; max(-B - 1, .) + 1 + B
+    exp = np.maximum((peak.view(np.uint32) >> 23).astype(np.int32) - 127, -16) + 16
+    inv = ((151 - exp) << 23).astype(np.uint32).view(np.float32)  # 2^(24 - exp) = 1 / step
+    bump = np.floor(peak * inv + np.float32(0.5)) >= 512  # the largest mantissa rounds up
+    exp += bump
+    inv = np.where(bump, inv * np.float32(0.5), inv)
+    q = np.floor(v * inv[:, None] + np.float32(0.5)).astype(np.uint32)
+    np.minimum(q, 511, out=q)
+    packed = q[:, 0] | (q[:, 1] << 9) | (q[:, 2] << 18) | (exp.astype(np.uint32) << 27)
+    return packed.astype("<u4").reshape(shape)
 
 
 def rgb9e5_decode(packed: np.ndarray) -> np.ndarray:
