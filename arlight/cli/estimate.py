@@ -122,6 +122,16 @@ def add_parser(sub) -> None:
         "roughness per level, diagnostics); at --probe-at or the --scene objects' centre",
     )
     est.add_argument(
+        "--probe-layout",
+        choices=("world", "filament", "threejs"),
+        default="world",
+        help="the --probe-out faces' frame and convention: 'world' (default) the session's "
+        "world axes, OpenGL's cube-map orientation; 'filament' (also ARCore, OpenGL) and "
+        "'threejs' (CubeTexture / PMREMGenerator, which read cube maps mirrored in x) the "
+        "frame's camera frame with OpenGL's axes, as --export and --gltf "
+        "(pipeline/engine_export.py probe_faces)",
+    )
+    est.add_argument(
         "--probe-at",
         metavar="X,Y,Z",
         help="the reflection probe's point, world frame, metres (default: the centre of "
@@ -222,7 +232,9 @@ def run(args: argparse.Namespace) -> int:
             if gltf_dir is not None:
                 _write_gltf(gltf_dir / f"{i:06d}.glb", result, pipeline.last_probe)
             if probes is not None and pipeline.last_probe is not None:
-                write_probe(probes / f"{i:06d}", pipeline.last_probe)
+                write_probe(
+                    probes / f"{i:06d}", pipeline.last_probe, args.probe_layout, result.pose
+                )
             if composites is not None:
                 image = result.composite if result.composite is not None else done.frame.color
                 cv2.imwrite(str(composites / f"{i:06d}.png"), image[..., ::-1])
@@ -342,6 +354,8 @@ def _probe_output(args: argparse.Namespace, pipeline, scene) -> Path | None:
             raise BadInput(str(exc)) from None
     folder = output_folder(args.probe_out, "--probe-out")
     if folder is None:
+        if args.probe_layout != "world":
+            raise BadInput("--probe-layout says how --probe-out writes: give --probe-out DIR")
         return None
     if not pipeline.config.render.probe:
         raise BadInput("--probe-out needs the probe: drop --set probe=false")
@@ -351,21 +365,40 @@ def _probe_output(args: argparse.Namespace, pipeline, scene) -> Path | None:
     return folder
 
 
-def write_probe(stem: Path, probe) -> None:
+def write_probe(stem: Path, probe, layout: str = "world", pose: np.ndarray | None = None) -> None:
     """STEM_<face>_m<level>.exr for every face and mip level of a ProbeResult, and
     STEM.json: the point (world, metres), each level's size and perceptual roughness (GGX,
-    alpha = roughness^2), the faces' order and convention, the probe's diagnostics."""
+    alpha = roughness^2), the faces' order, frame and convention, the probe's diagnostics.
+    layout: "world" (the probe's own faces: world axes, OpenGL's cube-map table), or an
+    engine of engine_export.probe_faces ("filament", "threejs") in the camera frame of
+    `pose` (4 x 4 camera-to-world) with OpenGL's axes."""
+    from arlight.pipeline import sh
+    from arlight.pipeline.engine_export import probe_faces
     from arlight.pipeline.environment_map import CUBE_FACES
     from arlight.sources.exr import write_exr
 
-    for level, faces in enumerate(probe.mips.levels):
+    if layout == "world":
+        levels = probe.mips.levels
+        convention = (
+            "OpenGL cube map (table 8.19), world axes of the session, linear radiance in the "
+            "camera's linear image units"
+        )
+    else:
+        engine_from_world = sh.GL_FROM_CV @ np.asarray(pose, np.float64)[:3, :3].T
+        levels = probe_faces(probe.mips, engine_from_world, layout)
+        convention = (
+            f"{layout}: the faces as {layout} loads them (pipeline/engine_export.py "
+            "probe_faces), this frame's camera frame with OpenGL's axes (x right, y up, z "
+            "back), linear radiance in the camera's linear image units"
+        )
+    for level, faces in enumerate(levels):
         for face, image in zip(CUBE_FACES, faces, strict=True):
             write_exr(f"{stem}_{face}_m{level}.exr", image)
     info = {
         "point_world": [float(x) for x in probe.point_world],
         "faces": list(CUBE_FACES),
-        "convention": "OpenGL cube map (table 8.19), world axes of the session, linear "
-        "radiance in the camera's linear image units",
+        "layout": layout,
+        "convention": convention,
         "levels": [
             {"size": int(n), "roughness": float(r)}
             for n, r in zip(probe.mips.sizes, probe.mips.roughness, strict=True)
