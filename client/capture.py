@@ -69,6 +69,7 @@ from arlight.protocols import (
     peek_header,
 )
 from arlight.protocols.curve import ClientKeys
+from arlight.protocols.probe import ProbeRequest
 from arlight.sources.source import Source
 
 if TYPE_CHECKING:  # hints only: virtual_scene loads Open3D, which streaming does not need
@@ -244,6 +245,8 @@ class StreamOptions:
     panorama: PanoramaConfig | None = None
     # engine layouts (protocols.EXPORT_LAYOUTS) every Result of the session carries
     exports: tuple[str, ...] = ()
+    # a reflection probe in every Result (the Hello's config.probe; protocols/probe.py)
+    probe: ProbeRequest | None = None
     timestamps: str | None = None
     max_frames: int | None = None  # stop after this many frames (with --loop: in total)
     heartbeat_interval_s: float = 1.0  # until the server's Welcome says otherwise
@@ -354,6 +357,7 @@ class CaptureClient:
             if opts.panorama is not None or self.source.calibration is not None
             else PanoramaConfig(),
             exports=tuple(opts.exports),
+            probe=opts.probe,
         )
         if base is not None:  # a recording: its calibration and depth scale always hold
             config = dataclasses.replace(

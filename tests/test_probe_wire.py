@@ -380,3 +380,48 @@ class TestSession:
         assert isinstance(error, Error) and (error.code, error.field) == ("bad_field", field)
         assert not error.retryable
         peer.close()
+
+
+def test_the_clients_ask_for_and_decode_the_probe(make_server, tmp_path):
+    """The Python clients over loopback: a CaptureClient whose StreamOptions ask for a probe
+    gets it in each Result (decoded: a ProbeCube of float32 levels), and a display watching
+    the session decodes the same Results (an older display would refuse them)."""
+    import json
+    import threading
+
+    from streaming_support import flat_source, run_with_timeout
+
+    from arlight.client.capture import StreamOptions, stream
+    from arlight.client.display import DisplayClient, DisplayOptions
+
+    server = make_server(heartbeat_interval_s=20.0)
+    out = tmp_path / "display"
+    display = DisplayClient(
+        DisplayOptions(server=server.connect_address, session="probed", out_dir=str(out))
+    )
+    thread = threading.Thread(target=display.run, daemon=True)
+    thread.start()
+    assert display.subscribed.wait(10)
+    got: list[Result] = []
+    options = StreamOptions(
+        server=server.connect_address,
+        session="probed",
+        mode="lossless",
+        rate="max",
+        preset="fast",
+        overrides=SMALL,
+        probe=ProbeRequest(32, (0.0, 0.0, 1.0), mips=False),
+    )
+    summary = run_with_timeout(
+        lambda: stream(flat_source(2), options, on_result=lambda r, _: got.append(r)), 120
+    )
+    assert summary.errors == [] and len(got) == 2
+    for result in got:
+        assert isinstance(result.probe, ProbeCube)
+        assert [lv.shape for lv in result.probe.levels] == [(6, 32, 32, 3)]
+        assert result.probe.levels[0].dtype == np.float32 and result.probe.roughness == [0.0]
+        assert np.all(result.probe.levels[0] >= 0.0)
+    thread.join(30)
+    lines = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
+    assert [line["frame"] for line in lines] == [0, 1]
+    assert all(line["diagnostics"]["probe"]["size"] == 32 for line in lines)
