@@ -401,6 +401,14 @@ class Session:
         setup = SessionSetup.from_config(
             config, max_pixels=max_pixels, max_message_bytes=max_message_bytes, budget=budget
         )
+        if config.probe is not None and process is not None:
+            # the probe is read from the server's own Pipeline (SessionCompute.last_probe)
+            raise SessionSetupError(
+                "probe",
+                "this server computes through a step of its own (arlight serve --ray), "
+                "which makes no reflection probe: drop config.probe or use a server "
+                "without --ray",
+            )
         self.setup = setup
         # what the Hello set up, read-only (also a ProcessStep's view of the session)
         self.name = setup.name

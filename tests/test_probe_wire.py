@@ -425,3 +425,19 @@ def test_the_clients_ask_for_and_decode_the_probe(make_server, tmp_path):
     lines = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
     assert [line["frame"] for line in lines] == [0, 1]
     assert all(line["diagnostics"]["probe"]["size"] == 32 for line in lines)
+
+
+def test_a_server_with_a_compute_step_refuses_a_probe(make_server):
+    """`arlight serve --ray` computes through a ProcessStep, which makes no probe: the Hello
+    is refused naming the key, not answered with Results that silently lack it."""
+    from streaming_support import identity_step
+
+    server = make_server(process=identity_step())
+    peer = RawPeer(server.connect_address)
+    error = peer.hello("stepped", probe=ProbeRequest(32, (0.0, 0.0, 1.0)))
+    assert isinstance(error, Error) and (error.code, error.field) == (
+        "bad_field",
+        "hello.config.probe",
+    )
+    assert "--ray" in error.message
+    peer.close()
