@@ -441,3 +441,25 @@ def test_a_server_with_a_compute_step_refuses_a_probe(make_server):
     )
     assert "--ray" in error.message
     peer.close()
+
+
+def _first_table_keys(heading: str) -> list[str]:
+    """The backquoted names in the first column of the first table under `heading`."""
+    import re
+
+    table = spec_section(heading).split("|---|", 1)[1].split("\n\n", 1)[0]
+    rows = [line for line in table.splitlines() if line.startswith("| `")]
+    return [name for row in rows for name in re.findall(r"`([^`]+)`", row.split("|")[1])]
+
+
+def test_the_golden_maps_are_in_the_spec_tables_order():
+    import msgpack
+
+    (hello,) = read_container((GOLDEN / "hello_probe.bin").read_bytes())
+    (result,) = read_container((GOLDEN / "result_probe.bin").read_bytes())
+    hello_map = msgpack.unpackb(bytes(hello[0]))["config"]["probe"]
+    result_header = msgpack.unpackb(bytes(result[0]))
+    assert list(hello_map) == _first_table_keys("hello: the reflection probe")
+    keys = _first_table_keys("result: the reflection probe")
+    assert list(result_header["probe"]) == keys
+    assert list(result_header)[-3:] == ["probe", "composite", "buffers"]
