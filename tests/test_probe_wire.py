@@ -463,3 +463,32 @@ def test_the_golden_maps_are_in_the_spec_tables_order():
     keys = _first_table_keys("result: the reflection probe")
     assert list(result_header["probe"]) == keys
     assert list(result_header)[-3:] == ["probe", "composite", "buffers"]
+
+
+# a flipped pose float overflows in the pose check (arlight/core/checks.py), which refuses it
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+def test_flipped_and_cut_probes_raise_protocol_errors_only():
+    """Every byte of result_probe.bin's header flipped, and its texel part cut or flipped:
+    decode returns a message or raises ProtocolError, never anything else."""
+    (parts,) = read_container((GOLDEN / "result_probe.bin").read_bytes())
+    header, payload = bytes(parts[0]), bytes(parts[1])
+    rng = np.random.default_rng(3)
+    cases = [
+        [header[:i] + bytes([header[i] ^ 0xFF]) + header[i + 1 :], payload]
+        for i in range(len(header))
+    ]
+    for _ in range(200):
+        i = int(rng.integers(len(payload)))
+        cases.append(
+            [
+                header,
+                payload[:i] + bytes([payload[i] ^ (1 << int(rng.integers(8)))]) + payload[i + 1 :],
+            ]
+        )
+    for cut in (0, 1, 10, len(payload) // 2, len(payload) - 1):
+        cases.append([header, payload[:cut]])
+    for case in cases:
+        try:
+            decode(case)
+        except ProtocolError:
+            pass
