@@ -89,7 +89,8 @@ def probe_size(config: SessionConfig) -> int | None:
     """The probe size a Hello's `config.probe` asks for (None: no probe), checked against
     its overrides: the probe must not be switched off (`probe=false`), and a `probe_size`
     override must agree (SessionSetupError naming `probe` or `probe.size`)."""
-    if config.probe is None:
+    request = getattr(config, "probe", None)  # (callers may pass a config-like namespace)
+    if request is None:
         return None
     overrides = config.overrides or {}
     if overrides.get("probe") is False:
@@ -99,13 +100,13 @@ def probe_size(config: SessionConfig) -> int | None:
             "(probe=false): drop one of the two",
         )
     given = overrides.get("probe_size")
-    if given is not None and given != config.probe.size:
+    if given is not None and given != request.size:
         raise SessionSetupError(
             "probe.size",
-            f"{config.probe.size} texels a face, but overrides.probe_size is {given!r}: "
+            f"{request.size} texels a face, but overrides.probe_size is {given!r}: "
             "give the size once, in config.probe",
         )
-    return config.probe.size
+    return int(request.size)
 
 
 def check_probe(
