@@ -95,12 +95,15 @@ class MipPyramid:
     heights (L,) int64.
     """
 
-    def __init__(self, levels: list[np.ndarray]):
+    def __init__(self, levels: list[np.ndarray], data: np.ndarray | None = None):
+        """levels: the maps, finest first; data: their packed rows when the caller has them
+        already (``levels`` then views into it), else packed here (a copy)."""
         self.levels = levels
         self.heights = np.array([lv.shape[0] for lv in levels], np.int64)
-        sizes = np.array([lv.shape[0] * lv.shape[1] for lv in levels], np.int64)
-        self.offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        self.data = np.concatenate([lv.reshape(-1, 3) for lv in levels]).astype(np.float32)
+        self.offsets = _level_offsets(self.heights)
+        if data is None:
+            data = np.concatenate([lv.reshape(-1, 3) for lv in levels]).astype(np.float32)
+        self.data = data
 
     @property
     def num_levels(self) -> int:
@@ -121,20 +124,75 @@ def downsample_2x2(level: np.ndarray) -> np.ndarray:
     return 0.5 * (rows[:, :, 0] + rows[:, :, 1])
 
 
+def _level_offsets(heights: np.ndarray) -> np.ndarray:
+    """(L,) int64: the first packed row of each level of heights H_k (widths 2 H_k)."""
+    sizes = 2 * heights * heights
+    return np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+
+
+@numba.njit(cache=True)
+def _copy_radiance(values, out):
+    """out[k] = values[k] (flat) as float32, non-finite or negative values as 0."""
+    for k in range(values.shape[0]):
+        v = np.float32(values[k])
+        out[k] = v if (v > 0.0 and v < np.inf) else np.float32(0.0)  # NaN compares False
+
+
+@numba.njit(parallel=True, cache=True)
+def _downsample_packed(data, src, dst, height, weights):
+    """Level of `height` / 2 rows at packed row `dst` from the level of `height` rows at
+    `src`: each 2 x 2 block, its rows weighted by weights (height / 2, 2) float32, the
+    columns averaged (float32 throughout, the arithmetic of ``downsample_2x2``)."""
+    w = 2 * height
+    half = np.float32(0.5)
+    for i in numba.prange(height // 2):
+        w0 = weights[i, 0]
+        w1 = weights[i, 1]
+        top = src + 2 * i * w
+        bottom = top + w
+        out = dst + i * (w // 2)
+        for j in range(w // 2):
+            for c in range(3):
+                a = data[top + 2 * j, c] * w0 + data[bottom + 2 * j, c] * w1
+                b = data[top + 2 * j + 1, c] * w0 + data[bottom + 2 * j + 1, c] * w1
+                data[out + j, c] = half * (a + b)
+
+
+@functools.lru_cache(maxsize=32)
+def _pair_weights(height: int) -> np.ndarray:
+    """(height / 2, 2) float32: the two rows' shares of each block row (``downsample_2x2``)."""
+    omega = equirect.row_solid_angles(height, 2 * height).astype(np.float64)
+    pair = omega.reshape(height // 2, 2)
+    out = (pair / pair.sum(axis=1, keepdims=True)).astype(np.float32)
+    out.setflags(write=False)
+    return out
+
+
 def mip_pyramid(hdr: np.ndarray) -> MipPyramid:
     """The area-correct mip pyramid of an (H, W, 3) linear HDR equirectangular map (level 0 =
-    the map as float32; non-finite or negative radiance taken as 0)."""
+    the map as float32; non-finite or negative radiance taken as 0).
+
+    Built in place in the packed array (Numba, one pass per level): the same values as
+    ``downsample_2x2`` level by level."""
     image = equirect.check_equirect(hdr, "hdr")
     if image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"hdr: expected an (H, W, 3) RGB map, got shape {image.shape}")
-    level = np.ascontiguousarray(image, dtype=np.float32)
-    if not np.all(np.isfinite(level)) or level.min() < 0.0:
-        level = np.maximum(np.nan_to_num(level, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
-    levels = [level]
-    while level.shape[0] >= 2 and level.shape[0] % 2 == 0:
-        level = downsample_2x2(level)
-        levels.append(level)
-    return MipPyramid(levels)
+    heights = [image.shape[0]]
+    while heights[-1] >= 2 and heights[-1] % 2 == 0:
+        heights.append(heights[-1] // 2)
+    h_arr = np.array(heights, np.int64)
+    offsets = _level_offsets(h_arr)
+    data = np.empty((int(2 * (h_arr * h_arr).sum()), 3), np.float32)
+    src = image if image.dtype in (np.float32, np.float64) else image.astype(np.float32)
+    _copy_radiance(
+        np.ascontiguousarray(src).reshape(-1), data[: heights[0] * 2 * heights[0]].reshape(-1)
+    )
+    for k in range(len(heights) - 1):
+        _downsample_packed(data, offsets[k], offsets[k + 1], heights[k], _pair_weights(heights[k]))
+    levels = [
+        data[o : o + 2 * h * h].reshape(h, 2 * h, 3) for o, h in zip(offsets, heights, strict=True)
+    ]
+    return MipPyramid(levels, data)
 
 
 # --------------------------------------------------------------------------- per-sample logic
@@ -430,12 +488,17 @@ def mirror(pyramid: MipPyramid, directions: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- oracles
 
 
-def _pattern(directions: np.ndarray, exponent: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The ring pattern: sample directions (K, 36, 3), weights (36,) summing to 1, levels
-    (36,) (fractional, not yet clamped), as the kernel makes them."""
+def _pattern(
+    directions: np.ndarray, exponent: float, frame: str = "switch"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ring pattern: sample directions (K, 36, 3), weights (36,) summing to 1, angular
+    spacings (36,) (radians, giving the levels), as the kernel makes them. frame "switch":
+    t = normalize(a x r) with a = y, or x where |r.y| >= 0.9 (this module's kernel); "y":
+    a = y always (``glossy_prefilter``'s maps)."""
     d = _unit_rows(directions)
     theta_r = lobe_radius_rad(exponent)
-    axis = np.where(np.abs(d[:, 1:2]) < 0.9, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
+    limit = 0.9 if frame == "switch" else math.inf
+    axis = np.where(np.abs(d[:, 1:2]) < limit, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
     t = np.cross(axis, d)
     t /= np.linalg.norm(t, axis=1, keepdims=True)
     b = np.cross(d, t)
@@ -454,12 +517,14 @@ def _pattern(directions: np.ndarray, exponent: float) -> tuple[np.ndarray, np.nd
 
 
 def glossy_pattern_numpy(
-    pyramid: MipPyramid, directions: np.ndarray, roughness: float
+    pyramid: MipPyramid, directions: np.ndarray, roughness: float, frame: str = "switch"
 ) -> np.ndarray:
     """The kernel's pattern in plain NumPy with ``equirect.sample_bilinear`` per level (the
-    oracle of :func:`glossy`; slow)."""
+    oracle of :func:`glossy`, and with frame "y" of ``glossy_prefilter``'s maps; slow)."""
+    if frame not in ("switch", "y"):
+        raise ValueError(f"frame must be 'switch' or 'y', got {frame!r}")
     n = phong_exponent(roughness)
-    dirs, w, spacing = _pattern(directions, n)
+    dirs, w, spacing = _pattern(directions, n, frame)
     row_rad = math.pi / pyramid.levels[0].shape[0]
     level = np.where(spacing > row_rad, np.log2(np.maximum(spacing, row_rad) / row_rad), 0.0)
     level = np.clip(level, 0.0, pyramid.num_levels - 1)

@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 
 from arlight.core.camera import PinholeCamera
-from arlight.pipeline import equirect, glossy
+from arlight.pipeline import equirect, glossy, glossy_prefilter
 from arlight.pipeline.rendering import linear_to_srgb_u8
 from arlight.pipeline.virtual_gbuffer import VirtualRaycaster
 from arlight.pipeline.virtual_scene import (
@@ -185,18 +185,59 @@ class ViewBuffers:
     exponents: np.ndarray
     uv: np.ndarray
     gbuffer_ms: float
+    _remap: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
+
+    def remap_maps(self, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """(x, y) (H, W) float32 source pixel coordinates of every pixel's ray in a panorama
+        of `height` rows (2 height columns; pixel centres at integers, rows clamped to the
+        map), made once per panorama size."""
+        if height not in self._remap:
+            x = self.uv[..., 0] * np.float32(2 * height) - np.float32(0.5)
+            y = np.clip(self.uv[..., 1] * np.float32(height) - np.float32(0.5), 0, height - 1)
+            self._remap[height] = (x.astype(np.float32), y.astype(np.float32))
+        return self._remap[height]
 
 
-@dataclass
 class FrameLight:
     """One frame's lighting for the renderer: the LDR panorama (for the background; None for
-    HDR input), the HDR map's pyramid, the diffuse (irradiance) map."""
+    HDR input), the HDR map, its diffuse (irradiance) map, and what the glossy and mirror
+    lookups need, made on first use (a scene of diffuse objects needs neither): the mip
+    pyramid and the prefiltered glossy maps (``glossy_prefilter``). Not thread-safe."""
 
-    ldr: np.ndarray | None
-    pyramid: glossy.MipPyramid
-    diffuse_map: np.ndarray
-    exposure: float = 1.0
-    pyramid_ms: float = 0.0
+    def __init__(
+        self,
+        hdr: np.ndarray,
+        diffuse_map: np.ndarray,
+        ldr: np.ndarray | None = None,
+        exposure: float = 1.0,
+    ):
+        self.hdr = hdr
+        self.ldr = ldr
+        self.diffuse_map = np.asarray(diffuse_map, np.float32)
+        self.exposure = exposure
+        self.pyramid_ms = 0.0
+        self._pyramid: glossy.MipPyramid | None = None
+        self._maps: glossy_prefilter.PrefilteredMaps | None = None
+
+    @property
+    def pyramid(self) -> glossy.MipPyramid:
+        """The HDR map's mip pyramid (``glossy.mip_pyramid``), made once."""
+        if self._pyramid is None:
+            t0 = time.perf_counter()
+            self._pyramid = glossy.mip_pyramid(self.hdr)
+            self.pyramid_ms = (time.perf_counter() - t0) * 1e3
+        return self._pyramid
+
+    @property
+    def prefiltered(self) -> glossy_prefilter.PrefilteredMaps:
+        """The prefiltered glossy maps of the pyramid, each made on first use."""
+        if self._maps is None:
+            self._maps = glossy_prefilter.PrefilteredMaps(self.pyramid)
+        return self._maps
+
+    @property
+    def prefilter_ms(self) -> float:
+        return 0.0 if self._maps is None else self._maps.prefilter_ms
 
 
 @dataclass
@@ -213,16 +254,9 @@ class RenderOutput:
 def frame_light(
     hdr: np.ndarray, diffuse_map: np.ndarray, ldr: np.ndarray | None = None, exposure: float = 1.0
 ) -> FrameLight:
-    """The per-frame part: the mip pyramid of the HDR map (H, W, 3) linear."""
-    t0 = time.perf_counter()
-    pyramid = glossy.mip_pyramid(hdr)
-    return FrameLight(
-        ldr,
-        pyramid,
-        np.asarray(diffuse_map, np.float32),
-        exposure,
-        (time.perf_counter() - t0) * 1e3,
-    )
+    """The per-frame lighting of an HDR map (H, W, 3) linear; its pyramid is made when a
+    mirror or glossy object first needs it."""
+    return FrameLight(hdr, diffuse_map, ldr, exposure)
 
 
 class IblRenderer:
@@ -290,14 +324,12 @@ class IblRenderer:
         """One view of one frame: background, then the objects' shading."""
         t0 = time.perf_counter()
         cam = view.camera
-        background = _background(view.uv, light)
+        background = _background(view, light)
         t1 = time.perf_counter()
         radiance = np.zeros((cam.height * cam.width, 3), np.float32)
         if len(view.pixels):
             irradiance = glossy.lookup(light.diffuse_map, view.normals)
-            spec = glossy.specular(
-                light.pyramid, view.mirror_dirs, view.modes, view.exponents, self.backend
-            )
+            spec = self._reflection(view, light)
             radiance[view.pixels] = (
                 view.diffuse_rgb * irradiance * (1.0 / math.pi) + view.specular_rgb * spec
             )
@@ -319,20 +351,32 @@ class IblRenderer:
             },
         )
 
+    def _reflection(self, view: ViewBuffers, light: FrameLight) -> np.ndarray:
+        """(K, 3) float32 mirror / glossy radiance of the view's object pixels: no pyramid
+        where no pixel reflects; on the CPU the glossy lobes through the prefiltered maps
+        (``glossy_prefilter.specular``), on "cuda" every lobe per pixel."""
+        if not np.any(view.modes != MODE_NONE):
+            return np.zeros((len(view.pixels), 3), np.float32)
+        if self.backend == "cuda":
+            return glossy.specular(
+                light.pyramid, view.mirror_dirs, view.modes, view.exponents, self.backend
+            )
+        return glossy_prefilter.specular(
+            light.prefiltered, view.mirror_dirs, view.modes, view.exponents
+        )
 
-def _background(uv: np.ndarray, light: FrameLight) -> np.ndarray:
+
+def _background(view: ViewBuffers, light: FrameLight) -> np.ndarray:
     """(H, W, 3) uint8: the panorama resampled at every pixel's (u, v) (bilinear, u wrapped,
     rows clamped at the poles)."""
     if light.ldr is not None:
         src = np.ascontiguousarray(light.ldr, dtype=np.uint8)
     else:
-        src = linear_to_srgb_u8(light.pyramid.levels[0] * light.exposure)
-    h, w = src.shape[:2]
-    padded = cv2.copyMakeBorder(src, 0, 0, 1, 1, cv2.BORDER_WRAP)
-    padded = cv2.copyMakeBorder(padded, 1, 1, 0, 0, cv2.BORDER_REPLICATE)
-    x = uv[..., 0] * w + 0.5  # - 0.5 to the pixel centre, + 1 for the padding
-    y = uv[..., 1] * h + 0.5
-    return cv2.remap(padded, x, y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        hdr = np.asarray(light.hdr, np.float32)
+        src = linear_to_srgb_u8(np.nan_to_num(hdr, nan=0.0, posinf=0.0) * light.exposure)
+    x, y = view.remap_maps(src.shape[0])
+    # x wraps at the seam (BORDER_WRAP); y is clamped in the map, so no row wraps
+    return cv2.remap(src, x, y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
 
 
 def side_by_side(left: np.ndarray, right: np.ndarray) -> np.ndarray:
