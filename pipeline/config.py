@@ -70,6 +70,8 @@ class SegmentFeatures(_StrEnum):
 
 
 PRESETS = tuple(p.value for p in Preset if p is not Preset.CUSTOM)
+REFERENCE_WIDTH = 640  # image width (pixels) at which the pixel windows are given
+MIN_WORK_WIDTH = 64  # the narrowest work image (work_width) the pipeline is tested at
 MAX_WINDOW = 64  # depth-filter windows (a CUDA thread's median scratch: 64 * 64 floats)
 
 
@@ -220,6 +222,27 @@ class FilterParams:
             _check_bool(self, key)
         _check_int(self, "normal_window", 1)
 
+    def at_width(self, width: int) -> FilterParams:
+        """These windows for an image `width` pixels wide: they are given in pixels of a
+        REFERENCE_WIDTH image (the paper's 640x480) and keep their footprint on the scene at
+        other sizes (rounded, at least 1; the sample counts stay). At 320x240 the unscaled
+        windows cost 15 degrees on the built-in scene
+        (docs/decisions/0041-work-resolution.md)."""
+        if width == REFERENCE_WIDTH:
+            return self
+        scale = width / REFERENCE_WIDTH
+
+        def scaled(window: int) -> int:
+            return int(min(MAX_WINDOW, max(1, round(window * scale))))
+
+        return dataclasses.replace(
+            self,
+            merge_window=scaled(self.merge_window),
+            smooth_window=scaled(self.smooth_window),
+            denoise_window=scaled(self.denoise_window),
+            normal_window=max(1, round(self.normal_window * scale)),
+        )
+
 
 @dataclass(frozen=True)
 class TransferParams:
@@ -236,7 +259,9 @@ class TransferParams:
     rt_thickness_m: float = 0.3  # a sample further than this behind a surface is not occluded
     rt_steps: int = 1  # samples along each direction (1 = the paper's single SSDO sample)
     rt_visibility_ramp: VisibilityRamp = VisibilityRamp.PAPER
-    rt_subsample: int = 1  # image-space sub-sampling (fast: 4)
+    # image-space sub-sampling (fast: 4), in pixels of the input image (a frame analysed at
+    # half its size, work_width, steps half as many of its own pixels)
+    rt_subsample: int = 1
     rt_upsample: bool = True  # sub-sampled transfer interpolated back to every pixel
     # sub-sampled and up-sampled: pixels the grid cannot interpolate (an invalid grid point
     # beside them, or grid transfers differing by more than this, relative) get their own
@@ -304,7 +329,7 @@ class EstimationParams:
     segment_features: SegmentFeatures = SegmentFeatures.INVARIANT
     segment_illuminant_weight: float = 4.0  # "invariant": weight of the sun/sky colour axis
     segment_split_ground: bool = True  # the support plane's pixels never share a segment
-    segment_scale: int = 2  # the segmentation runs at 1/segment_scale resolution
+    segment_scale: int = 2  # the segmentation runs at 1/segment_scale of the input's size
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
     # compact sources (a sun, a lamp) fitted beside the SH from the shadows the reconstruction
     # casts (pipeline/compact_light.py): at most this many (0 = off; 1 today). Off by default:
@@ -467,7 +492,9 @@ STAGE_TYPES: dict[str, type] = {
 
 # ------------------------------------------------------------------ flat keys
 def _flat_table() -> dict[str, tuple[str | None, str]]:
-    table: dict[str, tuple[str | None, str]] = {"device": (None, "device"), "seed": (None, "seed")}
+    table: dict[str, tuple[str | None, str]] = {
+        key: (None, key) for key in ("device", "seed", "work_width")
+    }
     for stage, cls in STAGE_TYPES.items():
         for f in dataclasses.fields(cls):
             table[f.name] = (stage, f.name)
@@ -523,7 +550,8 @@ _SPEED_FIRST = {"light_max_samples": 30000}
 
 def _preset_overrides(preset: Preset) -> dict[str, Any]:
     if preset is Preset.FAST:
-        return {"rt_subsample": 4, "render_subsample": 4, **_SPEED_FIRST}
+        # analysed at 320 pixels wide (docs/decisions/0041-work-resolution.md)
+        return {"rt_subsample": 4, "render_subsample": 4, "work_width": 320, **_SPEED_FIRST}
     if preset is Preset.MOBILE:
         # and, speed first, segments at quarter resolution on at most 10000 pixels (all
         # frames: median 20.1 -> 19.1 and 20.1, p90 32.8 -> 34.1 and 33.2)
@@ -554,6 +582,10 @@ class Config:
     preset: Preset = Preset.FULL
     device: str = "CPU:0"  # Open3D device for the volume ("CPU:0" or "CUDA:0")
     seed: int = 0  # seeds every random choice: same frames -> same results
+    # the frame is analysed (Reconstruct .. LightEst, the probe) reduced by the largest
+    # whole factor that keeps it at least work_width pixels wide (0: at its own size); the
+    # composite is drawn at the input's (pipeline/work_resolution.py; fast: 320)
+    work_width: int = 0
     volume: VolumeParams = field(default_factory=VolumeParams)
     aux: AuxBufferParams = field(default_factory=AuxBufferParams)
     filter: FilterParams = field(default_factory=FilterParams)
@@ -576,6 +608,12 @@ class Config:
                 f"--set device=CPU:0), got {self.device!r}"
             )
         _check_int(self, "seed", 0)
+        _check_int(self, "work_width", 0)
+        if 0 < self.work_width < MIN_WORK_WIDTH:
+            raise ValueError(
+                f"work_width must be 0 (the input's size) or at least {MIN_WORK_WIDTH} "
+                f"pixels {_hint('work_width', 'N')}, got {self.work_width}"
+            )
         for stage, cls in STAGE_TYPES.items():
             if not isinstance(getattr(self, stage), cls):
                 raise TypeError(

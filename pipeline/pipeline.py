@@ -80,6 +80,7 @@ from arlight.pipeline.segmentation import material_segments
 from arlight.pipeline.still import StillCamera
 from arlight.pipeline.sun_shadows import SourceLight
 from arlight.pipeline.virtual_scene import VirtualScene, resolve_anchors
+from arlight.pipeline.work_resolution import enlarge_geometry, reduce_frame, work_scale
 
 log = logging.getLogger(__name__)
 
@@ -209,6 +210,13 @@ class Pipeline:
         require_device(config.device)  # a clear error, not Open3D's, when there is no GPU
         self.config = config
         self.camera = camera
+        # the frame as analysed (work_width): its camera, and the image-space sub-samplings
+        # (given in input pixels) in its own pixels
+        self.work_scale = work_scale(camera.width, config.work_width)
+        self.work_camera = camera.reduced(self.work_scale)
+        self._transfer_params = dataclasses.replace(
+            config.transfer, rt_subsample=max(1, config.transfer.rt_subsample // self.work_scale)
+        )
         self.requested_scene = scene  # as given; `scene` holds the objects as placed
         self.scene = scene if scene else None
         # the renderer of the placed objects; anchored ones wait for a support plane
@@ -229,7 +237,7 @@ class Pipeline:
                 config.transfer.visibility and config.transfer.rt_method is RtMethod.SSDO
             ) or self.scene is not None
             self._volume = VolumeReconstruction.from_config(
-                config if aux_read else config.replace(aux_buffers=False), camera
+                config if aux_read else config.replace(aux_buffers=False), self.work_camera
             )
         self._pose = np.eye(4)
         self._light_world: np.ndarray | None = None
@@ -298,9 +306,12 @@ class Pipeline:
         timings: dict[str, float] = {}
         diagnostics: Diagnostics = {}
         with _stage(timings, "Input"):
-            valid = validate_frame(frame, self.camera)
+            full = validate_frame(frame, self.camera)
+            full_linear = srgb_to_linear(full.color)
+            work = reduce_frame(full.color, full_linear, full.depth_m, self.work_scale)
+            valid = ValidFrame(work.color, work.depth_m, full.pose)  # at the work resolution
             intensity = intensity_from_rgb(valid.color)
-            color_linear = srgb_to_linear(valid.color)
+            color_linear = work.color_linear
         check("Reconstruct")
         pose, depth_volume, aux_buffers, tracked = self._reconstruct(valid, timings, diagnostics)
         check("DynGeo")
@@ -358,7 +369,7 @@ class Pipeline:
         check("Probe")
         with _stage(timings, "Probe"):
             probe = self._make_probe(
-                valid, color_linear, geometry, pose, coeffs, estimate, render_light, diagnostics
+                color_linear, geometry, pose, coeffs, estimate, render_light, diagnostics
             )
         if self.scene is None:
             timings["Rendering"] = 0.0
@@ -366,8 +377,8 @@ class Pipeline:
             check("Rendering")
             with _stage(timings, "Rendering"):
                 composite = self._render(
-                    valid,
-                    color_linear,
+                    full,
+                    full_linear,
                     geometry,
                     pose,
                     aux_buffers,
@@ -520,11 +531,14 @@ class Pipeline:
         environment = cast(  # its type checked in process
             "EnvironmentMap | None", None if render_light is None else render_light.environment
         )
+        depth_m, normals = enlarge_geometry(
+            geometry.depth_m, geometry.normals, self.work_scale, valid.depth_m.shape
+        )
         inputs = RenderInputs(
             valid.color,
             color_linear,
-            geometry.depth_m,
-            geometry.normals,
+            depth_m,
+            normals,
             pose,
             list(aux_buffers),
             geometry.plane,
@@ -587,7 +601,6 @@ class Pipeline:
 
     def _make_probe(
         self,
-        valid: ValidFrame,
         color_linear: np.ndarray,
         geometry: _Geometry,
         pose: np.ndarray,
@@ -630,7 +643,7 @@ class Pipeline:
                     sun=r.probe_sun,
                     window=r.probe_sh_window,
                 ),
-                self.camera,
+                self.work_camera,
             )
         notes = self._probe.fuse(point, geometry.depth_m, color_linear, pose)
         light, light_rgb = self._render_light(coeffs, estimate, render_light)
@@ -706,13 +719,14 @@ class Pipeline:
     ) -> _Geometry:
         """DynGeo: the filter chain (eq. 1-5), normals, points and the support plane."""
         c = self.config
+        windows = c.filter.at_width(self.work_camera.width)
         depth_filtered, _ = filter_depth(
-            depth_m, depth_volume, intensity, c.filter, backend=backend_for_device(c.device)
+            depth_m, depth_volume, intensity, windows, backend=backend_for_device(c.device)
         )
         normals = normals_from_depth(
-            smooth_depth_for_normals(depth_filtered, c.filter.normal_window), self.camera
+            smooth_depth_for_normals(depth_filtered, windows.normal_window), self.work_camera
         )
-        points = self.camera.unproject(depth_filtered)
+        points = self.work_camera.unproject(depth_filtered)
         plane = None
         if (
             c.transfer.rt_horizon
@@ -729,7 +743,7 @@ class Pipeline:
         (rt_exact_unoccluded; not with rt_horizon, where below the horizon is the ground's,
         the bounce term's, not the light's)."""
         samples = self._sampled_transfer(geometry, color_linear, pose, aux_buffers)
-        p = self.config.transfer
+        p = self._transfer_params
         if not p.rt_exact_unoccluded or p.rt_horizon:
             return samples
         return with_exact_unoccluded(samples, geometry.normals, pose, self._quadrature_table)
@@ -743,7 +757,7 @@ class Pipeline:
         reads. At every pixel (rt_subsample 1) the transfer is computed at those pixels
         only; sub-sampled (OursFast) it is computed on the grid and interpolated to them
         (rt_upsample; without it the grid points themselves are the samples)."""
-        p = self.config.transfer
+        p = self._transfer_params
         lum = luminance(color_linear) if p.rt_bounce else None
         plane = geometry.plane if p.rt_horizon else None
         budget = int(CANDIDATES_PER_SAMPLE * self.config.estimation.light_max_samples)
@@ -755,7 +769,7 @@ class Pipeline:
             return transfer_at_pixels(
                 geometry.points,
                 geometry.normals,
-                self.camera,
+                self.work_camera,
                 pose,
                 self.pattern,
                 aux,
@@ -770,7 +784,7 @@ class Pipeline:
             grid = self._raycaster.compute(
                 geometry.points,
                 geometry.normals,
-                self.camera,
+                self.work_camera,
                 pose,
                 self.pattern,
                 p,
@@ -792,7 +806,7 @@ class Pipeline:
             grid = compute_transfer(
                 geometry.points,
                 geometry.normals,
-                self.camera,
+                self.work_camera,
                 pose,
                 self.pattern,
                 aux,
@@ -822,7 +836,7 @@ class Pipeline:
         segments = material_segments(
             color_linear,
             geometry.depth_m,
-            scale=p.segment_scale,
+            scale=max(1, p.segment_scale // self.work_scale),  # given in input pixels
             features=p.segment_features.value,
             illuminant_weight=p.segment_illuminant_weight,
         )

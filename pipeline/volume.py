@@ -320,15 +320,7 @@ class TsdfVolume:
         h, w = cam.height, cam.width
         if self.num_blocks == 0:
             return np.zeros((h, w), np.float32), np.zeros((h, w, 3), np.float32)
-        if subsample > 1:
-            cam = PinholeCamera(
-                -(-w // subsample),
-                -(-h // subsample),
-                cam.fx / subsample,
-                cam.fy / subsample,
-                (cam.cx + 0.5) / subsample - 0.5,
-                (cam.cy + 0.5) / subsample - 0.5,
-            )
+        cam = cam.reduced(subsample)
         depth, normals = self._cast(cam, world_from_cam)
         if subsample > 1:
             depth = upsample_depth(depth, subsample, (h, w))

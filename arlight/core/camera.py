@@ -63,6 +63,20 @@ class PinholeCamera:
             (self.cy + 0.5) * factor - 0.5,
         )
 
+    def reduced(self, scale: int) -> PinholeCamera:
+        """The camera whose pixel (i, j) covers pixels scale i .. scale i + scale - 1 (rows)
+        and scale j .. (columns) of this one (sizes rounded up; `self` when scale is 1)."""
+        if scale == 1:
+            return self
+        return PinholeCamera(
+            -(-self.width // scale),
+            -(-self.height // scale),
+            self.fx / scale,
+            self.fy / scale,
+            (self.cx + 0.5) / scale - 0.5,
+            (self.cy + 0.5) / scale - 0.5,
+        )
+
     def unproject(self, depth_m: np.ndarray) -> np.ndarray:
         """Camera-frame points (H, W, 3) float32, metres, from depth (H, W) metres (z along axis).
 
