@@ -29,6 +29,7 @@ from arlight.cli.common import (
     positive_float,
     positive_int,
 )
+from arlight.cli.probe_files import PROBE_LAYOUT_HELP, PROBE_LAYOUTS, write_probe_files
 from arlight.cli.stop_signals import finalised_on_sigterm
 
 # the server's default budgets (`arlight serve --frame-deadline / --session-memory-mb`)
@@ -123,13 +124,9 @@ def add_parser(sub) -> None:
     )
     est.add_argument(
         "--probe-layout",
-        choices=("world", "filament", "threejs"),
+        choices=PROBE_LAYOUTS,
         default="world",
-        help="the --probe-out faces' frame and convention: 'world' (default) the session's "
-        "world axes, OpenGL's cube-map orientation; 'filament' (also ARCore, OpenGL) and "
-        "'threejs' (CubeTexture / PMREMGenerator, which read cube maps mirrored in x) the "
-        "frame's camera frame with OpenGL's axes, as --export and --gltf "
-        "(pipeline/engine_export.py probe_faces)",
+        help=PROBE_LAYOUT_HELP,
     )
     est.add_argument(
         "--probe-at",
@@ -366,46 +363,10 @@ def _probe_output(args: argparse.Namespace, pipeline, scene) -> Path | None:
 
 
 def write_probe(stem: Path, probe, layout: str = "world", pose: np.ndarray | None = None) -> None:
-    """STEM_<face>_m<level>.exr for every face and mip level of a ProbeResult, and
-    STEM.json: the point (world, metres), each level's size and perceptual roughness (GGX,
-    alpha = roughness^2), the faces' order, frame and convention, the probe's diagnostics.
-    layout: "world" (the probe's own faces: world axes, OpenGL's cube-map table), or an
-    engine of engine_export.probe_faces ("filament", "threejs") in the camera frame of
-    `pose` (4 x 4 camera-to-world) with OpenGL's axes."""
-    from arlight.pipeline import sh
-    from arlight.pipeline.engine_export import probe_faces
-    from arlight.pipeline.environment_map import CUBE_FACES
-    from arlight.sources.exr import write_exr
-
-    if layout == "world":
-        levels = probe.mips.levels
-        convention = (
-            "OpenGL cube map (table 8.19), world axes of the session, linear radiance in the "
-            "camera's linear image units"
-        )
-    else:
-        engine_from_world = sh.GL_FROM_CV @ np.asarray(pose, np.float64)[:3, :3].T
-        levels = probe_faces(probe.mips, engine_from_world, layout)
-        convention = (
-            f"{layout}: the faces as {layout} loads them (pipeline/engine_export.py "
-            "probe_faces), this frame's camera frame with OpenGL's axes (x right, y up, z "
-            "back), linear radiance in the camera's linear image units"
-        )
-    for level, faces in enumerate(levels):
-        for face, image in zip(CUBE_FACES, faces, strict=True):
-            write_exr(f"{stem}_{face}_m{level}.exr", image)
-    info = {
-        "point_world": [float(x) for x in probe.point_world],
-        "faces": list(CUBE_FACES),
-        "layout": layout,
-        "convention": convention,
-        "levels": [
-            {"size": int(n), "roughness": float(r)}
-            for n, r in zip(probe.mips.sizes, probe.mips.roughness, strict=True)
-        ],
-        "diagnostics": probe.diagnostics,
-    }
-    Path(f"{stem}.json").write_text(json.dumps(info, indent=1))
+    """The pipeline's ProbeResult as --probe-out writes it (probe_files.write_probe_files):
+    STEM_<face>_m<level>.exr and STEM.json; layout "world" or an engine's, in the camera
+    frame of `pose` (4 x 4 camera-to-world)."""
+    write_probe_files(stem, probe.mips, probe.point_world, layout, pose, probe.diagnostics)
 
 
 def _write_gltf(path: Path, result, probe) -> None:
