@@ -22,6 +22,7 @@ import math
 from functools import lru_cache
 
 import cv2
+import numba
 import numpy as np
 
 from arlight.core.checks import CheckError
@@ -111,6 +112,11 @@ def downsample(image: np.ndarray, width: int, height: int) -> np.ndarray:
     dtype = np.float64 if a.dtype == np.float64 else np.float32
     if (height, width) == (h, w):
         return a.astype(dtype, copy=True)
+    if h % height == 0 and a.ndim == 3 and a.shape[2] == 3 and a.dtype in (np.float32, np.float64):
+        # whole blocks (INTER_AREA's exact case): one pass, sums in float64
+        out = np.empty((height, width, a.shape[2]), dtype)
+        _block_mean(a, row_solid_angles(h, w), h // height, out)
+        return out
     omega = row_solid_angles(h, w).astype(dtype)
     weights = np.broadcast_to(omega[:, None], (h, w))
     weighted = a.astype(dtype) * (omega[:, None, None] if a.ndim == 3 else omega[:, None])
@@ -119,6 +125,32 @@ def downsample(image: np.ndarray, width: int, height: int) -> np.ndarray:
     if a.ndim == 3 and num.ndim == 2:  # OpenCV drops a single channel
         num = num[..., None]
     return (num / (den[..., None] if a.ndim == 3 else den)).astype(dtype)
+
+
+# reassociation only (vectorised sums; NaN and inf keep their IEEE meaning)
+@numba.njit(parallel=True, cache=True, fastmath={"reassoc", "contract"})
+def _block_mean(image, omega, k, out):
+    """out[i, j] = the solid-angle-weighted mean of image's k x k block (i, j) of an
+    (H, W, 3) map (omega: the rows' solid angles; sums in float64, rows read in order)."""
+    for i in numba.prange(out.shape[0]):
+        acc = np.zeros((out.shape[1], 3))
+        weight = 0.0
+        for r in range(i * k, (i + 1) * k):
+            weight += omega[r] * k
+            for j in range(out.shape[1]):
+                s0 = 0.0
+                s1 = 0.0
+                s2 = 0.0
+                for q in range(j * k, (j + 1) * k):
+                    s0 += image[r, q, 0]
+                    s1 += image[r, q, 1]
+                    s2 += image[r, q, 2]
+                acc[j, 0] += omega[r] * s0
+                acc[j, 1] += omega[r] * s1
+                acc[j, 2] += omega[r] * s2
+        for j in range(out.shape[1]):
+            for c in range(3):
+                out[i, j, c] = acc[j, c] / weight
 
 
 def sample_bilinear(image: np.ndarray, directions: np.ndarray) -> np.ndarray:

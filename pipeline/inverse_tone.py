@@ -46,6 +46,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from arlight.core.checks import check_image
@@ -103,10 +104,43 @@ def boost_saturated(
     full: int = SATURATION_FULL_U8,
 ) -> np.ndarray:
     """The `boost` operator with its parameters open (for sweeps and tests): linear RGB
-    times 1 + (boost - 1) w, w = `saturation_weight`."""
+    times 1 + (boost - 1) w, w = `saturation_weight`.
+
+    One pass per pixel through two 256-entry tables (the linear value of a level; the factor
+    of the smallest channel's level): the same float32 values as the arrays' arithmetic
+    (:func:`boost_saturated_numpy`, the oracle)."""
+    image = np.ascontiguousarray(ldr, dtype=np.uint8)
+    levels = np.arange(256, dtype=np.uint8)
+    linear = srgb_to_linear(levels)
+    factor = 1.0 + np.float32(boost - 1.0) * saturation_weight(
+        np.repeat(levels[:, None], 3, axis=1), start, full
+    )
+    out = np.empty(image.shape, np.float32)
+    _boost_kernel(image.reshape(-1, 3), linear, factor, out.reshape(-1, 3))
+    return out
+
+
+def boost_saturated_numpy(
+    ldr: np.ndarray,
+    boost: float = SATURATION_BOOST,
+    start: int = SATURATION_START_U8,
+    full: int = SATURATION_FULL_U8,
+) -> np.ndarray:
+    """:func:`boost_saturated` with NumPy arrays (the oracle of its kernel)."""
     out = srgb_to_linear(ldr)
     factor = 1.0 + np.float32(boost - 1.0) * saturation_weight(ldr, start, full)
     return out * factor[..., None]
+
+
+@numba.njit(parallel=True, cache=True)
+def _boost_kernel(pixels, linear, factor, out):
+    """out[k, c] = linear[pixels[k, c]] * factor[min over c of pixels[k, c]] (float32)."""
+    for k in numba.prange(pixels.shape[0]):
+        r, g, b = pixels[k, 0], pixels[k, 1], pixels[k, 2]
+        f = factor[min(r, min(g, b))]
+        out[k, 0] = linear[r] * f
+        out[k, 1] = linear[g] * f
+        out[k, 2] = linear[b] * f
 
 
 def _boost(ldr: np.ndarray) -> np.ndarray:

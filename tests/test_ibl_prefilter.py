@@ -213,3 +213,41 @@ class TestBackground:
         )
         assert np.abs(got - want).max() <= 1.5  # OpenCV's 1/32-pixel weights, rounding
         assert (view.uv[..., 0] < 0.02).any() and (view.uv[..., 0] > 0.98).any()  # the seam
+
+
+class TestMapPathKernels:
+    @pytest.mark.parametrize("start, full, boost", [(235, 252, 5.0), (240, 240, 3.0)])
+    def test_boost_kernel_bit_for_bit_the_numpy_oracle(self, start, full, boost):
+        from arlight.pipeline import inverse_tone
+
+        rng = np.random.default_rng(4)
+        ldr = rng.integers(0, 256, (64, 128, 3), dtype=np.uint8)
+        ldr[:8] = rng.integers(230, 256, (8, 128, 3), dtype=np.uint8)  # clipped cores
+        got = inverse_tone.boost_saturated(ldr, boost, start, full)
+        want = inverse_tone.boost_saturated_numpy(ldr, boost, start, full)
+        assert got.dtype == np.float32
+        np.testing.assert_array_equal(got, want)
+        # a strided view (every other column) gives the same as its copy
+        np.testing.assert_array_equal(
+            inverse_tone.boost_saturated(ldr[:, ::2]),
+            inverse_tone.boost_saturated_numpy(ldr[:, ::2]),
+        )
+
+    def test_whole_block_downsample_as_area_resampling(self):
+        import cv2
+
+        rng = np.random.default_rng(5)
+        image = (rng.random((256, 512, 3)) ** 3 * 10).astype(np.float32)
+        omega = equirect.row_solid_angles(256, 512).astype(np.float32)
+        for w, h in ((128, 64), (32, 16), (512, 256)):
+            got = equirect.downsample(image, w, h)
+            # the oracle: OpenCV's INTER_AREA of the solid-angle-weighted map / of the weights
+            num = cv2.resize(image * omega[:, None, None], (w, h), interpolation=cv2.INTER_AREA)
+            den = cv2.resize(
+                np.ascontiguousarray(np.broadcast_to(omega[:, None], (256, 512))),
+                (w, h),
+                interpolation=cv2.INTER_AREA,
+            )
+            np.testing.assert_allclose(got, num / den[..., None], rtol=2e-5)
+        image[3, 4, 1] = np.nan  # NaN still propagates (no fast-math on NaN)
+        assert np.isnan(equirect.downsample(image, 128, 64)).sum() == 1
