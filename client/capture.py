@@ -206,6 +206,8 @@ HELLO_FIELD_FLAGS = {
     "hello.config.panorama": "--light-source / --panorama-from-world",
     "hello.config.token": "--token",
     "hello.config.exports": "--export",
+    "hello.config.probe": "--probe",
+    "hello.config.probe.point_world": "--probe-at (or --scene)",
 }
 
 

@@ -30,6 +30,7 @@ from arlight.protocols import (
     PanoramaConfig,
 )
 from arlight.protocols.curve import ClientKeys
+from arlight.protocols.probe import PROBE_SIZE_MAX, PROBE_SIZE_MIN, ProbeRequest
 from arlight.server.security import is_loopback, read_token_file
 
 
@@ -137,6 +138,107 @@ def add_source_options(p: argparse.ArgumentParser) -> None:
         "(default in lossless mode); recordings keep theirs",
     )
     add_scene_options(p)
+
+
+PROBE_POINT_MAX_M = 1.0e4  # |coordinate| the protocol takes (protocols/probe.py)
+
+
+def probe_size(text: str) -> int:
+    """--probe SIZE: texels a face, a power of two in 32..256."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if not PROBE_SIZE_MIN <= value <= PROBE_SIZE_MAX or value & (value - 1):
+        raise argparse.ArgumentTypeError(
+            f"expected texels a face, a power of two in {PROBE_SIZE_MIN}..{PROBE_SIZE_MAX} "
+            f"(32, 64, 128, 256), got {text!r}"
+        )
+    return value
+
+
+def probe_point(text: str) -> tuple[float, float, float]:
+    """--probe-at X,Y,Z: metres, world frame, each finite and within +-1e4."""
+    try:
+        x, y, z = (float(p) for p in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected X,Y,Z in metres (world frame), got {text!r}"
+        ) from None
+    if not all(abs(v) <= PROBE_POINT_MAX_M for v in (x, y, z)):  # NaN fails too
+        raise argparse.ArgumentTypeError(
+            f"expected finite X,Y,Z within +-{PROBE_POINT_MAX_M:g} m, got {text!r}"
+        )
+    return (x, y, z)
+
+
+def add_probe_options(p: argparse.ArgumentParser) -> None:
+    """--probe, --probe-at, --probe-mips, --probe-out, --probe-layout (arlight stream)."""
+    from arlight.cli.probe_files import PROBE_LAYOUT_HELP, PROBE_LAYOUTS
+
+    p.add_argument(
+        "--probe",
+        type=probe_size,
+        metavar="SIZE",
+        help="ask the server for a reflection probe in every Result (a cube map of the "
+        "light arriving at one point: the room's surfaces and the distant light), SIZE "
+        "texels a face, a power of two in 32..256; at --probe-at or the --scene objects' "
+        "centre",
+    )
+    p.add_argument(
+        "--probe-at",
+        type=probe_point,
+        metavar="X,Y,Z",
+        help="with --probe: the probe's point, world frame, metres (default: the centre of "
+        "the --scene objects)",
+    )
+    p.add_argument(
+        "--probe-mips",
+        action="store_true",
+        help="with --probe: every GGX-prefiltered mip level down to 4 texels a face "
+        "(default: level 0 only, the radiance itself)",
+    )
+    p.add_argument(
+        "--probe-out",
+        metavar="DIR",
+        help="with --probe: write each Result's probe as OpenEXR cube maps "
+        "DIR/NNNNNN_<face>_m<level>.exr (NNNNNN the frame's seq; linear HDR, half float) "
+        "and DIR/NNNNNN.json (point, roughness per level, diagnostics), as `arlight "
+        "estimate --probe-out`",
+    )
+    p.add_argument(
+        "--probe-layout",
+        choices=PROBE_LAYOUTS,
+        default="world",
+        help=PROBE_LAYOUT_HELP,
+    )
+
+
+def probe_request(args: argparse.Namespace, recorded, has_scene: bool) -> ProbeRequest | None:
+    """The Hello's config.probe from --probe, --probe-at and --probe-mips (else what a
+    recording asked for), or None; BadInput naming the flag for a probe option without a
+    probe and for a probe with no point (no --probe-at and no --scene)."""
+    size = getattr(args, "probe", None)
+    at = getattr(args, "probe_at", None)
+    mips = getattr(args, "probe_mips", False)
+    out = getattr(args, "probe_out", None)
+    if getattr(args, "probe_layout", "world") != "world" and not out:
+        raise BadInput("--probe-layout says how --probe-out writes: give --probe-out DIR")
+    if size is not None:
+        request: ProbeRequest | None = ProbeRequest(size, at, mips)
+    else:
+        request = None if recorded is None else recorded.probe
+        given = [flag for flag, v in (("--probe-at", at), ("--probe-mips", mips)) if v]
+        if given:
+            raise BadInput(f"{given[0]} shapes the probe --probe SIZE asks for: give --probe")
+        if out and request is None:
+            raise BadInput("--probe-out writes the probe --probe SIZE asks for: give --probe")
+    if request is not None and request.point_world is None and not has_scene:
+        raise BadInput(
+            "--probe needs a point: give --probe-at X,Y,Z (world, metres) or a --scene "
+            "(the probe then sits at its objects' centre)"
+        )
+    return request
 
 
 def add_key_options(p: argparse.ArgumentParser) -> None:
@@ -264,6 +366,10 @@ def stream_options(args: argparse.Namespace, source):
     for key, value in args.set or []:
         overrides[key] = value
     composite = args.composite or bool(recorded and recorded.want_composite)
+    # the demo by name: the server's built-in one, anchored at fractions of the image
+    # (any size); a scene file travels whole
+    virtual_scene = "demo" if getattr(args, "scene", None) == "demo" else None
+    scene = None if virtual_scene else load_scene(args)
     return StreamOptions(
         server=check_address(getattr(args, "server", None) or "tcp://127.0.0.1:5555", "--server"),
         session=args.session or (recorded.session if recorded else None),
@@ -280,12 +386,11 @@ def stream_options(args: argparse.Namespace, source):
         timestamps=args.timestamps,
         max_frames=args.max_frames if getattr(args, "loop", False) else None,
         reconnect_timeout_s=getattr(args, "reconnect_timeout", 30.0),
-        # the demo by name: the server's built-in one, anchored at fractions of the image
-        # (any size); a scene file travels whole
-        scene=None if getattr(args, "scene", None) == "demo" else load_scene(args),
-        virtual_scene="demo" if getattr(args, "scene", None) == "demo" else None,
+        scene=scene,
+        virtual_scene=virtual_scene,
         panorama=panorama_config(args),
         exports=tuple(getattr(args, "export", None) or (recorded.exports if recorded else ())),
+        probe=probe_request(args, recorded, bool(virtual_scene or scene)),
         token=token_of(args),
         keys=client_keys(args),
     )

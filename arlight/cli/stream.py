@@ -13,11 +13,13 @@ import numpy as np
 from arlight.cli.client_options import (
     add_foxglove_options,
     add_key_options,
+    add_probe_options,
     add_reconnect_timeout,
     add_source_options,
     client_keys,
     foxglove_address,
     open_stream_source,
+    probe_request,
     stream_options,
     token_of,
 )
@@ -27,8 +29,10 @@ from arlight.cli.common import (
     BadInput,
     count,
     engine_layouts,
+    output_folder,
     rotation_3x3,
 )
+from arlight.cli.probe_files import probe_record, write_probe_files
 from arlight.cli.stop_signals import finalised_on_sigterm
 from arlight.pipeline.inverse_tone import OPERATORS
 from arlight.protocols import received_record
@@ -83,6 +87,7 @@ def add_parser(sub) -> None:
         "Result (live mode sends more frames than the server takes; default: every frame "
         "sent)",
     )
+    add_probe_options(stream)
     add_foxglove_options(
         stream, "the camera (colour, depth, calibration, pose) and the Results that come back"
     )
@@ -146,9 +151,12 @@ def run(args: argparse.Namespace) -> int:
     token_of(args), client_keys(args)
     if args.record_processed and not args.record:
         raise BadInput("--record-processed chooses what --record writes: give --record FILE")
+    if not args.source.lower().endswith(".mcap"):  # a recording's own probe: once read
+        probe_request(args, None, bool(args.scene))
     foxglove = foxglove_address(args)
     source = open_stream_source(args)
     options = stream_options(args, source)
+    probes = output_folder(args.probe_out, "--probe-out") if options.probe else None
     live = None
     if foxglove is not None:
         from arlight.client.foxglove_sinks import FoxgloveStream, LiveSink
@@ -173,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
     out = sys.stdout if to_stdout else open(args.out, "w") if args.out else None  # noqa: SIM115
     total = "loop" if options.loop else str(source.num_frames or "live")
     notes = FrameNotes()
+    written: list[int] = []  # the seq of each probe written to --probe-out
 
     def on_result(result, receive_time_wall: float) -> None:
         d = result.dominant_direction_camera
@@ -196,8 +205,22 @@ def run(args: argparse.Namespace) -> int:
         note = notes.note(conf, result.confidence.reason)
         if note:
             print(f"arlight stream: [{result.seq + 1}/{total}] {note}", file=sys.stderr, flush=True)
+        stem = None
+        if probes is not None and result.probe is not None:
+            stem = probes / f"{result.seq:06d}"
+            write_probe_files(
+                stem,
+                result.probe,
+                result.probe.point_world,
+                args.probe_layout,
+                result.pose,
+                result.diagnostics.get("probe"),
+            )
+            written.append(result.seq)
         if out or recorder is not None or live is not None:
             record = received_record(result, receive_time_wall)  # with the server's exports
+            if options.probe is not None:  # what came, where it went; never the texels
+                record["probe"] = probe_record(result.probe, stem, args.probe_layout)
         if recorder is not None:  # the Foxglove channels of the Result beside the frames
             recorder.write_result(result, record)
         if live is not None:
@@ -272,6 +295,18 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"recorded {count(recorder.frames, 'frame')} to {args.record}"
             + recording_size(args.record, summary.elapsed_s),
+            file=sys.stderr,
+        )
+    if probes is not None:
+        missing = (
+            ""
+            if len(written) == summary.results
+            else f" ({summary.results - len(written)} Result(s) without one: before the "
+            "objects were placed)"
+        )
+        print(
+            f"wrote {count(len(written), 'reflection probe')} to {probes}/ (OpenEXR cube "
+            f"maps, layout {args.probe_layout}){missing}",
             file=sys.stderr,
         )
     if summary.errors:
