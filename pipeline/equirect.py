@@ -128,11 +128,11 @@ def downsample(image: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 # reassociation only (vectorised sums; NaN and inf keep their IEEE meaning)
-@numba.njit(parallel=True, cache=True, fastmath={"reassoc", "contract"})
+@numba.njit(cache=True, fastmath={"reassoc", "contract"})
 def _block_mean(image, omega, k, out):
     """out[i, j] = the solid-angle-weighted mean of image's k x k block (i, j) of an
     (H, W, 3) map (omega: the rows' solid angles; sums in float64, rows read in order)."""
-    for i in numba.prange(out.shape[0]):
+    for i in range(out.shape[0]):
         acc = np.zeros((out.shape[1], 3))
         weight = 0.0
         for r in range(i * k, (i + 1) * k):

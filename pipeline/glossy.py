@@ -138,14 +138,14 @@ def _copy_radiance(values, out):
         out[k] = v if (v > 0.0 and v < np.inf) else np.float32(0.0)  # NaN compares False
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True)
 def _downsample_packed(data, src, dst, height, weights):
     """Level of `height` / 2 rows at packed row `dst` from the level of `height` rows at
     `src`: each 2 x 2 block, its rows weighted by weights (height / 2, 2) float32, the
     columns averaged (float32 throughout, the arithmetic of ``downsample_2x2``)."""
     w = 2 * height
     half = np.float32(0.5)
-    for i in numba.prange(height // 2):
+    for i in range(height // 2):
         w0 = weights[i, 0]
         w1 = weights[i, 1]
         top = src + 2 * i * w

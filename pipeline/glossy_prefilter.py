@@ -180,10 +180,10 @@ def prefiltered_map(pyramid: glossy.MipPyramid, exponent: float) -> np.ndarray:
     return out
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True)
 def _lookup_rows_cpu(directions, rows, data, height, out):
     """out[rows[i]] = the bilinear lookup of the map at directions[rows[i]]."""
-    for q in numba.prange(rows.shape[0]):
+    for q in range(rows.shape[0]):
         i = rows[q]
         u, v = _uv(directions[i, 0], directions[i, 1], directions[i, 2])
         r, g, b = _bilinear(data, 0, height, u, v)

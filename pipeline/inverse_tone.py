@@ -132,10 +132,10 @@ def boost_saturated_numpy(
     return out * factor[..., None]
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True)
 def _boost_kernel(pixels, linear, factor, out):
     """out[k, c] = linear[pixels[k, c]] * factor[min over c of pixels[k, c]] (float32)."""
-    for k in numba.prange(pixels.shape[0]):
+    for k in range(pixels.shape[0]):
         r, g, b = pixels[k, 0], pixels[k, 1], pixels[k, 2]
         f = factor[min(r, min(g, b))]
         out[k, 0] = linear[r] * f
