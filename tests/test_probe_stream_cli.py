@@ -181,6 +181,17 @@ def test_the_servers_refusal_is_one_line_naming_the_flag(
     assert f"bad_field ({field}, see {flag})" in errors[0], errors
 
 
+def test_a_panorama_only_source_has_no_room_for_a_probe(tmp_path, capsys):
+    import cv2
+
+    image = tmp_path / "pano.png"
+    cv2.imwrite(str(image), np.full((32, 64, 3), 128, np.uint8))
+    argv = ["stream", str(image), *NOWHERE, "--probe", "32", "--probe-at", "0,0,1"]
+    code, text = run_cli(argv, capsys)
+    assert code == 2 and "Traceback" not in text, text
+    assert "--probe: SOURCE" in text and "panorama only" in text, text
+
+
 def _args(**given) -> argparse.Namespace:
     base = dict(probe=None, probe_at=None, probe_mips=False, probe_out=None, probe_layout="world")
     return argparse.Namespace(**{**base, **given})

@@ -156,6 +156,11 @@ def run(args: argparse.Namespace) -> int:
     foxglove = foxglove_address(args)
     source = open_stream_source(args)
     options = stream_options(args, source)
+    if options.probe is not None and source.calibration is None:
+        raise BadInput(
+            f"--probe: SOURCE {args.source} is a panorama only, with no depth to make a "
+            "probe of the room from; stream RGB-D frames (--panorama FILE pairs one in)"
+        )
     probes = output_folder(args.probe_out, "--probe-out") if options.probe else None
     live = None
     if foxglove is not None:
