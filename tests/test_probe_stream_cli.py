@@ -115,6 +115,31 @@ def test_a_red_wall_on_plus_x_lands_in_the_written_faces(
     assert len(list(probes.glob("000001_*_m3.exr"))) == 6  # every level, every face
 
 
+def test_a_scene_places_the_probe_at_its_objects_centre(make_server, tmp_path, capsys):
+    """No --probe-at: the Hello's point is nil and the server puts the probe at the centre
+    of the --scene objects (a small sphere at world (0.75, 0.05, 0), between the camera and
+    the red wall), which sees the wall in its +X face."""
+    server = make_server(heartbeat_interval_s=20.0)
+    recording, probes, out = tmp_path / "wall.mcap", tmp_path / "probes", tmp_path / "r.jsonl"
+    _red_wall_recording(recording)
+    scene = tmp_path / "scene.json"
+    ball = {
+        "name": "ball",
+        "primitive": {"shape": "sphere", "radius_m": 0.05},
+        "world_from_object": [[1, 0, 0, 0.75], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+    }
+    scene.write_text(json.dumps({"objects": [ball]}))
+    argv = ["stream", str(recording), "--server", server.connect_address, "--rate", "max"]
+    argv += ["--scene", str(scene), "--scene-frame", "world", "--probe", "32"]
+    code, text = run_cli(argv + ["--probe-out", str(probes), "--out", str(out)], capsys)
+    assert code == 0, text
+    last = [json.loads(x) for x in out.read_text().splitlines()][-1]
+    # the sphere stands on its object origin (+y up in its frame): centre 0.05 along world y
+    assert last["probe"]["point_world"] == pytest.approx([0.75, 0.05, 0.0], abs=1e-6)
+    share = _red_share(probes, f"{last['frame']:06d}")
+    assert share["px"] > 0.5 and share["nx"] == 0.0, share
+
+
 def test_without_probe_out_the_lines_still_say_a_probe_came(make_server, tmp_path, capsys):
     server = make_server(heartbeat_interval_s=20.0)
     recording, out = tmp_path / "wall.mcap", tmp_path / "r.jsonl"
