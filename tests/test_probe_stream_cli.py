@@ -77,6 +77,7 @@ def test_a_red_wall_on_plus_x_lands_in_the_written_faces(
     code, text = run_cli(argv, capsys)
     assert code == 0, text
     assert f"wrote 2 reflection probes to {probes}/" in text, text
+    assert "probe 32 texels at (0.75, 0, 0) with mips" in text, text
     lines = [json.loads(x) for x in out.read_text().splitlines()]
     assert [line["frame"] for line in lines] == [0, 1]
     for line in lines:

@@ -140,6 +140,18 @@ def recording_size(path: str, elapsed_s: float) -> str:
     return f", {mib:.1f} MiB{per_minute}"
 
 
+def probe_summary(request) -> str:
+    """ ", probe 64 texels at (x, y, z) [with mips]" of the Hello's ProbeRequest, or ""."""
+    if request is None:
+        return ""
+    at = (
+        "the scene objects' centre"
+        if request.point_world is None
+        else "(" + ", ".join(f"{x:g}" for x in request.point_world) + ")"
+    )
+    return f", probe {request.size} texels at {at}{' with mips' if request.mips else ''}"
+
+
 @finalised_on_sigterm
 def run(args: argparse.Namespace) -> int:
     from arlight.client.capture import CaptureClient, StreamError
@@ -247,6 +259,7 @@ def run(args: argparse.Namespace) -> int:
         f"{size}) -> {options.server}, "
         f"session {client.session!r}, {options.mode}, rate {options.rate}, colour "
         f"{options.color_codec}, depth {options.depth_codec}"
+        + probe_summary(options.probe)
         + ("" if source.recorded_config is None else " (recorded frames, sent as recorded)"),
         file=sys.stderr,
         flush=True,
