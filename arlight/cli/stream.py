@@ -223,6 +223,8 @@ def run(args: argparse.Namespace) -> int:
         if note:
             print(f"arlight stream: [{result.seq + 1}/{total}] {note}", file=sys.stderr, flush=True)
         stem = None
+        # ms a frame by size, levels, layout: docs/guides/engine-exports.md ("What
+        # --probe-out costs")
         if probes is not None and result.probe is not None:
             stem = probes / f"{result.seq:06d}"
             write_probe_files(
