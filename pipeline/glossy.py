@@ -168,12 +168,22 @@ def _pair_weights(height: int) -> np.ndarray:
     return out
 
 
-def mip_pyramid(hdr: np.ndarray) -> MipPyramid:
+def packed_rows(height: int) -> int:
+    """Rows (texels) of the packed pyramid of an (height, 2 height) map."""
+    heights = [int(height)]
+    while heights[-1] >= 2 and heights[-1] % 2 == 0:
+        heights.append(heights[-1] // 2)
+    return sum(2 * h * h for h in heights)
+
+
+def mip_pyramid(hdr: np.ndarray, buffer: np.ndarray | None = None) -> MipPyramid:
     """The area-correct mip pyramid of an (H, W, 3) linear HDR equirectangular map (level 0 =
     the map as float32; non-finite or negative radiance taken as 0).
 
     Built in place in the packed array (Numba, one pass per level): the same values as
-    ``downsample_2x2`` level by level."""
+    ``downsample_2x2`` level by level. buffer: a C-contiguous (N, 3) float32 array with N >=
+    ``packed_rows(H)`` to build in instead of a new one (a caller that renders frame after
+    frame and drops each pyramid before the next: no fresh pages to fault in per frame)."""
     image = equirect.check_equirect(hdr, "hdr")
     if image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"hdr: expected an (H, W, 3) RGB map, got shape {image.shape}")
@@ -182,7 +192,16 @@ def mip_pyramid(hdr: np.ndarray) -> MipPyramid:
         heights.append(heights[-1] // 2)
     h_arr = np.array(heights, np.int64)
     offsets = _level_offsets(h_arr)
-    data = np.empty((int(2 * (h_arr * h_arr).sum()), 3), np.float32)
+    rows = int(2 * (h_arr * h_arr).sum())
+    usable = (
+        buffer is not None
+        and buffer.dtype == np.float32
+        and buffer.ndim == 2
+        and buffer.shape[0] >= rows
+        and buffer.shape[1] == 3
+        and buffer.flags.c_contiguous
+    )
+    data = buffer[:rows] if usable and buffer is not None else np.empty((rows, 3), np.float32)
     src = image if image.dtype in (np.float32, np.float64) else image.astype(np.float32)
     _copy_radiance(
         np.ascontiguousarray(src).reshape(-1), data[: heights[0] * 2 * heights[0]].reshape(-1)

@@ -116,6 +116,30 @@ def _accumulate_level(acc, data, offset, level_h, u0, v, weight, out_w):
     w1 = weight * fy
     step = level_w / out_w
     x_start = (u0 + 0.5 / out_w) * level_w - 0.5
+    if level_w % out_w == 0:  # a level at least as fine as the map: one fx for the row
+        istep = level_w // out_w
+        x0f = math.floor(x_start)
+        fx = x_start - x0f
+        x0 = int(x0f) % level_w
+        a = w0 * (1.0 - fx)
+        b = w0 * fx
+        e = w1 * (1.0 - fx)
+        f = w1 * fx
+        for c in range(out_w):
+            x1 = x0 + 1
+            if x1 == level_w:
+                x1 = 0
+            for ch in range(3):
+                acc[c, ch] += (
+                    a * data[row0 + x0, ch]
+                    + b * data[row0 + x1, ch]
+                    + e * data[row1 + x0, ch]
+                    + f * data[row1 + x1, ch]
+                )
+            x0 += istep
+            if x0 >= level_w:
+                x0 -= level_w
+        return
     for c in range(out_w):
         x = x_start + c * step
         x0f = math.floor(x)

@@ -210,8 +210,12 @@ class FrameLight:
         diffuse_map: np.ndarray,
         ldr: np.ndarray | None = None,
         exposure: float = 1.0,
+        pyramid_buffer: np.ndarray | None = None,
     ):
+        """pyramid_buffer: where to build the pyramid (``glossy.mip_pyramid``'s buffer; the
+        caller's, reused frame after frame), or None for a new array."""
         self.hdr = hdr
+        self._buffer = pyramid_buffer
         self.ldr = ldr
         self.diffuse_map = np.asarray(diffuse_map, np.float32)
         self.exposure = exposure
@@ -224,7 +228,7 @@ class FrameLight:
         """The HDR map's mip pyramid (``glossy.mip_pyramid``), made once."""
         if self._pyramid is None:
             t0 = time.perf_counter()
-            self._pyramid = glossy.mip_pyramid(self.hdr)
+            self._pyramid = glossy.mip_pyramid(self.hdr, self._buffer)
             self.pyramid_ms = (time.perf_counter() - t0) * 1e3
         return self._pyramid
 
@@ -252,11 +256,15 @@ class RenderOutput:
 
 
 def frame_light(
-    hdr: np.ndarray, diffuse_map: np.ndarray, ldr: np.ndarray | None = None, exposure: float = 1.0
+    hdr: np.ndarray,
+    diffuse_map: np.ndarray,
+    ldr: np.ndarray | None = None,
+    exposure: float = 1.0,
+    pyramid_buffer: np.ndarray | None = None,
 ) -> FrameLight:
     """The per-frame lighting of an HDR map (H, W, 3) linear; its pyramid is made when a
-    mirror or glossy object first needs it."""
-    return FrameLight(hdr, diffuse_map, ldr, exposure)
+    mirror or glossy object first needs it (in `pyramid_buffer` where given)."""
+    return FrameLight(hdr, diffuse_map, ldr, exposure, pyramid_buffer)
 
 
 class IblRenderer:

@@ -251,3 +251,16 @@ class TestMapPathKernels:
             np.testing.assert_allclose(got, num / den[..., None], rtol=2e-5)
         image[3, 4, 1] = np.nan  # NaN still propagates (no fast-math on NaN)
         assert np.isnan(equirect.downsample(image, 128, 64)).sum() == 1
+
+
+class TestPyramidBuffer:
+    def test_built_in_the_callers_buffer_frame_after_frame(self):
+        buffer = np.empty((glossy.packed_rows(64), 3), np.float32)
+        for seed in (1, 2):
+            hdr = np.random.default_rng(seed).random((64, 128, 3)).astype(np.float32)
+            pyr = glossy.mip_pyramid(hdr, buffer)
+            assert np.shares_memory(pyr.data, buffer)
+            fresh = glossy.mip_pyramid(hdr)
+            np.testing.assert_array_equal(pyr.data, fresh.data)
+        small = np.empty((10, 3), np.float32)  # too small: a new array instead
+        assert not np.shares_memory(glossy.mip_pyramid(hdr, small).data, small)
