@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -234,8 +235,6 @@ class TestMapPathKernels:
         )
 
     def test_whole_block_downsample_as_area_resampling(self):
-        import cv2
-
         rng = np.random.default_rng(5)
         image = (rng.random((256, 512, 3)) ** 3 * 10).astype(np.float32)
         omega = equirect.row_solid_angles(256, 512).astype(np.float32)
@@ -264,3 +263,27 @@ class TestPyramidBuffer:
             np.testing.assert_array_equal(pyr.data, fresh.data)
         small = np.empty((10, 3), np.float32)  # too small: a new array instead
         assert not np.shares_memory(glossy.mip_pyramid(hdr, small).data, small)
+
+
+class TestCliWriter:
+    def test_renders_written_by_the_writer_thread_in_order(self, tmp_path, capsys):
+        from arlight.cli import main
+
+        out = tmp_path / "r"
+        argv = ["ibl", "--max-frames", "3", "--out", str(tmp_path / "o.jsonl")]
+        assert main([*argv, "--render", str(out), "--render-size", "96x54"]) == 0
+        images = [cv2.imread(str(out / f"{i:06d}.png")) for i in range(3)]
+        assert all(im is not None and im.shape == (54, 96, 3) for im in images)
+        assert not np.array_equal(images[0], images[1])  # the sky turns between frames
+
+    def test_a_failed_write_exits_2_naming_render(self, tmp_path, capsys):
+        from arlight.cli import EXIT_BAD_INPUT, main
+
+        out = tmp_path / "r"
+        (out / "000001.png").mkdir(parents=True)  # a folder where frame 1's PNG goes
+        argv = ["ibl", "--max-frames", "3", "--out", str(tmp_path / "o.jsonl")]
+        code = main([*argv, "--render", str(out), "--render-size", "96x54"])
+        err = capsys.readouterr().err
+        assert code == EXIT_BAD_INPUT
+        assert "--render" in err and "cannot write" in err and "000001.png" in err
+        assert "Traceback" not in err

@@ -6,7 +6,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import queue
 import sys
+import threading
 import time
 
 import cv2
@@ -210,17 +212,20 @@ def run(args: argparse.Namespace) -> int:
                     frame.hdr, max(1, frame.hdr.shape[0] // 2)
                 ).items():
                     write_exr(exr_dir / f"{frame.index:06d}_{face}.exr", image)
-        if renderer is not None and render_dir is not None:  # both or neither (--render)
-            target = render_dir / f"{frame.index:06d}.png"
-            if not cv2.imwrite(str(target), renderer.render(frame)[..., ::-1]):
-                raise OSError(f"--render {args.render}: cannot write {target}")
+        if renderer is not None and writer is not None:  # both or neither (--render)
+            writer.put(render_dir / f"{frame.index:06d}.png", renderer.render(frame))
         process_ms.append(frame.process_ms)
         bar.update(1)
 
+    writer = _PngWriter(f"--render {args.render}") if render_dir is not None else None
     t0 = time.perf_counter()
     try:
         n = run_ibl(source, params, on_frame)
+        if writer is not None:
+            writer.close()  # the last frames written; a failed write raises here
     finally:
+        if writer is not None:
+            writer.close()
         bar.close()
         source.close()
         if out is not sys.stdout:
@@ -261,6 +266,45 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return 0
+
+
+class _PngWriter:
+    """Writes the renders as PNG on its own thread (at most 2 waiting): the encoding of
+    frame i overlaps the processing of frame i + 1 (OpenCV releases the GIL). A failed
+    write raises OSError naming `flag` at the next put or at close."""
+
+    def __init__(self, flag: str):
+        self._flag = flag
+        self._queue: queue.Queue = queue.Queue(maxsize=2)
+        self._error: OSError | None = None
+        self._thread: threading.Thread | None = threading.Thread(
+            target=self._run, name="png-writer", daemon=True
+        )
+        self._thread.start()
+
+    def put(self, path, rgb: np.ndarray) -> None:
+        """Queue (H, W, 3) uint8 RGB for `path` (waits while 2 are queued)."""
+        self._raise()
+        self._queue.put((path, rgb))
+
+    def close(self) -> None:
+        """Write what is queued and stop the thread (again: nothing); raise a failed write."""
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
+        self._raise()
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+    def _run(self) -> None:
+        while (item := self._queue.get()) is not None:
+            path, rgb = item
+            if self._error is None and not cv2.imwrite(str(path), rgb[..., ::-1]):
+                self._error = OSError(f"{self._flag}: cannot write {path}")
 
 
 def _renderer(args: argparse.Namespace):
