@@ -38,10 +38,12 @@ poles, as ``equirect.sample_bilinear``), linear between them. Mirror reflection 
 bilinear lookup at level 0.
 
 The per-sample logic is written once as ``register_jitable`` functions, driven by an
-``@njit(parallel=True, cache=True)`` loop over pixels; :func:`glossy_pattern_numpy` is the same
-pattern in plain NumPy (the oracle of the kernel, used in tests), and
-:func:`glossy_brute_force` the full-resolution quadrature of the same Phong lobe (the reference
-for the approximation's error, ``benchmarks/ibl_render.py`` and the tests).
+``@njit(parallel=True, cache=True)`` loop over pixels (``pipeline/glossy_prefilter.py``
+drives the same pattern over the texels of a small map per frame, the renderer's fast
+path); :func:`glossy_pattern_numpy` is the same pattern in plain NumPy (the oracle of the
+kernel, used in tests), and :func:`glossy_brute_force` the full-resolution quadrature of the
+same Phong lobe (the reference for the approximation's error, ``benchmarks/ibl_render.py``
+and the tests).
 """
 
 from __future__ import annotations

@@ -14,7 +14,10 @@ forward) at `world_from_cam`; by default at the origin looking along a chosen di
       L = diffuse_rgb * E(n) / pi + specular_rgb * S(r)
   with E the irradiance of the frame's diffuse map (``pipeline/ibl.py``, bilinear lookup by
   the normal) and S the mirror (one level-0 lookup) or glossy (``pipeline/glossy.py``) lookup
-  of the HDR map's mip pyramid; composited as sRGB(clip(exposure L)).
+  of the HDR map's mip pyramid; composited as sRGB(clip(exposure L)). On the CPU the glossy
+  lobes of each roughness are evaluated once per frame on a small map and looked up per
+  pixel (``pipeline/glossy_prefilter.py``) where that costs less than per pixel; the pyramid
+  is made only when a mirror or glossy object is in view.
 
 Material fields -> shading (:func:`shading_of`):
 - specular weight s = 1 when `mirror`, else `metalness`;
