@@ -212,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
                     frame.hdr, max(1, frame.hdr.shape[0] // 2)
                 ).items():
                     write_exr(exr_dir / f"{frame.index:06d}_{face}.exr", image)
-        if renderer is not None and writer is not None:  # both or neither (--render)
+        if renderer is not None and writer is not None and render_dir is not None:
             writer.put(render_dir / f"{frame.index:06d}.png", renderer.render(frame))
         process_ms.append(frame.process_ms)
         bar.update(1)
