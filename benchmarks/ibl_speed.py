@@ -92,6 +92,10 @@ def worker(args: argparse.Namespace) -> dict:
     ldr = _frames(args.hdr, args.pano_width, args.frames)
     frames = list(process_frames(((i / 30.0, f) for i, f in enumerate(ldr)), IblParams(), False))
     out: dict = {"map_ms": float(np.median([f.process_ms for f in frames[WARMUP:]]))}
+    for stage in frames[0].result.timings_ms:
+        out[f"map_ms/{stage}"] = float(
+            np.median([f.result.timings_ms[stage] for f in frames[WARMUP:]])
+        )
     images = {}
     for label in SCENES:
         setup = RenderSetup(
@@ -106,6 +110,9 @@ def worker(args: argparse.Namespace) -> dict:
             if i == 0:
                 images[label] = rgb
         out[f"render_ms/{label}"] = float(np.median(times[WARMUP:]))
+        for part in ("Pyramid", "Prefilter"):  # the parts of the render its timings name
+            parts = [t.get(part, 0.0) for t in renderer.timings_ms[WARMUP:]]
+            out[f"render_ms/{label}/{part}"] = float(np.median(parts))
     np.savez_compressed(args.images, **{k.replace(" ", "_"): v for k, v in images.items()})
     if args.video_file:
         out.update(_cli_fps(args.video_file, args.scene_file))
@@ -247,13 +254,11 @@ def driver(args: argparse.Namespace) -> dict:
     }
     report["runs"] = runs
     if args.baseline:
+        pairs = list(zip(runs["baseline"], runs["current"], strict=True))
         report["ratio_baseline_over_current"] = {
-            k: float(
-                np.median(
-                    [b[k] / c[k] for b, c in zip(runs["baseline"], runs["current"], strict=True)]
-                )
-            )
+            k: float(np.median([b[k] / c[k] for b, c in pairs]))
             for k in runs["current"][0]
+            if k in runs["baseline"][0] and all(c[k] > 0 for _, c in pairs)
         }
     report.update(
         {
@@ -273,12 +278,15 @@ def driver(args: argparse.Namespace) -> dict:
 def print_report(report: dict) -> None:
     names = list(report["figures"])
     keys = list(report["figures"][names[-1]])
+    keys += [k for k in report["figures"][names[0]] if k not in keys]
     head = " | ".join(names) + (" | baseline / current" if len(names) > 1 else "")
     print(f"\nms per frame (median over {report['rounds']} rounds of each run's median):\n")
     print(f"| figure | {head} |")
     print("|---" * (len(names) + 1 + (len(names) > 1)) + "|")
     for k in keys:
-        cells = " | ".join(f"{report['figures'][n][k]:.1f}" for n in names)
+        cells = " | ".join(
+            f"{report['figures'][n][k]:.1f}" if k in report["figures"][n] else "-" for n in names
+        )
         ratio = report.get("ratio_baseline_over_current", {}).get(k)
         extra = f" | {ratio:.1f}x" if ratio is not None else ""
         print(f"| {k} | {cells}{extra} |")

@@ -224,6 +224,7 @@ class FrameLight:
         self.exposure = exposure
         self.pyramid_ms = 0.0
         self._pyramid: glossy.MipPyramid | None = None
+        self._level0: np.ndarray | None = None
         self._maps: glossy_prefilter.PrefilteredMaps | None = None
 
     @property
@@ -234,6 +235,19 @@ class FrameLight:
             self._pyramid = glossy.mip_pyramid(self.hdr, self._buffer)
             self.pyramid_ms = (time.perf_counter() - t0) * 1e3
         return self._pyramid
+
+    @property
+    def level0(self) -> np.ndarray:
+        """(H, W, 3) float32 C-contiguous: the pyramid's level 0 (the map, non-finite or
+        negative radiance as 0), without building the other levels where none is built."""
+        if self._pyramid is not None:
+            return self._pyramid.levels[0]
+        if self._level0 is None:
+            a = np.ascontiguousarray(self.hdr, dtype=np.float32)
+            if not np.all(np.isfinite(a)) or a.min() < 0.0:
+                a = np.maximum(np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+            self._level0 = a
+        return self._level0
 
     @property
     def prefiltered(self) -> glossy_prefilter.PrefilteredMaps:
@@ -368,6 +382,12 @@ class IblRenderer:
         (``glossy_prefilter.specular``), on "cuda" every lobe per pixel."""
         if not np.any(view.modes != MODE_NONE):
             return np.zeros((len(view.pixels), 3), np.float32)
+        if self.backend == "cpu" and not np.any(view.modes == MODE_GLOSSY):
+            # mirrors only: one lookup in level 0, the map itself; no pyramid to build
+            out = np.zeros((len(view.pixels), 3), np.float32)
+            rows = np.flatnonzero(view.modes == MODE_MIRROR)
+            glossy_prefilter.lookup_rows(light.level0, view.mirror_dirs, rows, out)
+            return out
         if self.backend == "cuda":
             return glossy.specular(
                 light.pyramid, view.mirror_dirs, view.modes, view.exponents, self.backend

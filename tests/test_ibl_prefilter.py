@@ -186,6 +186,22 @@ class TestRenderAgainstThePerPixelPath:
         renderer.render(view, light)
         assert light._pyramid is None and light.pyramid_ms == 0.0
 
+    def test_mirror_scene_reads_level_0_without_a_pyramid(self):
+        hdr = synthetic_sky(256)
+        hdr[3, 4] = np.nan  # taken as 0, as the pyramid's level 0 takes it
+        renderer = ibl_render.IblRenderer(_scene(Material((0.9, 0.9, 0.9), mirror=True)))
+        view = renderer.prepare_view(
+            ibl_render.view_camera((160, 90), 75.0), ibl_render.look_along([0.0, 0.0, 1.0])
+        )
+        light = ibl_render.frame_light(hdr, diffuse_map_brute_force(synthetic_sky(256), (32, 16)))
+        out = renderer.render(view, light)
+        assert light._pyramid is None
+        pyr = glossy.mip_pyramid(hdr)
+        want = glossy.specular(pyr, view.mirror_dirs, view.modes, view.exponents)
+        np.testing.assert_array_equal(
+            out.radiance.reshape(-1, 3)[view.pixels], (view.specular_rgb * want).astype(np.float32)
+        )
+
 
 class TestBackground:
     def test_bilinear_wrapped_and_clamped_as_the_numpy_oracle(self):
