@@ -258,7 +258,7 @@ def driver(args: argparse.Namespace) -> dict:
         report["ratio_baseline_over_current"] = {
             k: float(np.median([b[k] / c[k] for b, c in pairs]))
             for k in runs["current"][0]
-            if k in runs["baseline"][0] and all(c[k] > 0 for _, c in pairs)
+            if k in runs["baseline"][0] and all(b[k] > 0 and c[k] > 0 for b, c in pairs)
         }
     report.update(
         {
