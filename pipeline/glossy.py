@@ -140,6 +140,7 @@ def _copy_radiance(values, out):
         out[k] = v if (v > 0.0 and v < np.inf) else np.float32(0.0)  # NaN compares False
 
 
+# serial (a few ms; 2 threads lose under load): docs/results/ibl.md, "The 360 path ..."
 @numba.njit(cache=True)
 def _downsample_packed(data, src, dst, height, weights):
     """Level of `height` / 2 rows at packed row `dst` from the level of `height` rows at

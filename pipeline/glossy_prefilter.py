@@ -34,7 +34,7 @@ from arlight.pipeline.glossy import _RING_COS, _RING_SIN, _bilinear, _uv
 # roughness 0.05-0.5): docs/results/ibl.md, "The 360 path at video rate"
 TEXELS_PER_RADIUS = 3.0
 # a texel's 36 lookups (row by row, no trigonometry) cost about this fraction of a pixel's
-# (1.0 against 3.4 us; docs/results/ibl.md, "The 360 path at video rate")
+# (0.75 against 3.4 us, with margin; docs/results/ibl.md, "The 360 path at video rate")
 TEXEL_COST = 0.3
 
 
@@ -204,6 +204,7 @@ def prefiltered_map(pyramid: glossy.MipPyramid, exponent: float) -> np.ndarray:
     return out
 
 
+# serial, as the other few-millisecond kernels: docs/results/ibl.md, "The 360 path ..."
 @numba.njit(cache=True)
 def _lookup_rows_cpu(directions, rows, data, height, out):
     """out[rows[i]] = the bilinear lookup of the map at directions[rows[i]]."""

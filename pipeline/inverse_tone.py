@@ -132,6 +132,7 @@ def boost_saturated_numpy(
     return out * factor[..., None]
 
 
+# serial (a few ms; 2 threads lose under load): docs/results/ibl.md, "The 360 path ..."
 @numba.njit(cache=True)
 def _boost_kernel(pixels, linear, factor, out):
     """out[k, c] = linear[pixels[k, c]] * factor[min over c of pixels[k, c]] (float32)."""
