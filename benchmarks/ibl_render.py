@@ -179,7 +179,11 @@ def speed(hdr_map: np.ndarray, pano_width: int, repeats: int, backend: str) -> l
                     r.render(x, light)
 
             frame_ms, iqr = timed(frame, repeats)
-            render_ms = frame_ms - pyramid_ms if any(views[0].modes) else frame_ms
+            # the pyramid is built only for glossy objects (mirrors read the map itself)
+            glossy_in_view = any(ibl_render.MODE_GLOSSY in v.modes for v in views)
+            render_ms = frame_ms - pyramid_ms if glossy_in_view else frame_ms
+            if not glossy_in_view:
+                pyramid_ms = 0.0
             paper = PAPER_MONO_MS if mode == "mono" else PAPER_STEREO_MS
             rows.append(
                 {
