@@ -34,8 +34,8 @@ from arlight.pipeline.glossy import _RING_COS, _RING_SIN, _bilinear, _uv
 # roughness 0.05-0.5): docs/results/ibl.md, "The 360 path at video rate"
 TEXELS_PER_RADIUS = 3.0
 # a texel's 36 lookups (row by row, no trigonometry) cost about this fraction of a pixel's
-# (0.75 against 3.4 us, with margin; docs/results/ibl.md, "The 360 path at video rate")
-TEXEL_COST = 0.3
+# (0.38 against 3.4 us, with margin; docs/results/ibl.md, "The 360 path at video rate")
+TEXEL_COST = 0.15
 
 
 def prefilter_height(pyramid: glossy.MipPyramid, exponent: float) -> int:
@@ -101,7 +101,9 @@ def _row_samples(i, height, exponent, theta_r, row_rad):
 @register_jitable
 def _accumulate_level(acc, data, offset, level_h, u0, v, weight, out_w):
     """acc[c] += weight * the bilinear lookup of one level at (u0 + (c + 0.5) / out_w, v)
-    for every column c (u wraps, rows clamp): one sample of one row of the map."""
+    for every column c (u wraps, rows clamp): one sample of one row of the map. The level's
+    width and out_w divide one another (both are pyramid levels' widths): fx takes one value
+    per row, or one per phase of a coarser level's texel."""
     level_w = 2 * level_h
     y = v * level_h - 0.5
     y0f = math.floor(y)
@@ -140,25 +142,29 @@ def _accumulate_level(acc, data, offset, level_h, u0, v, weight, out_w):
             if x0 >= level_w:
                 x0 -= level_w
         return
-    for c in range(out_w):
-        x = x_start + c * step
-        x0f = math.floor(x)
-        fx = x - x0f
+    m = out_w // level_w  # a coarser level: m columns per texel of it, m phases of fx
+    for ph in range(m):
+        xs = x_start + ph * step
+        x0f = math.floor(xs)
+        fx = xs - x0f
         x0 = int(x0f) % level_w
-        x1 = x0 + 1
-        if x1 == level_w:
-            x1 = 0
         a = w0 * (1.0 - fx)
         b = w0 * fx
         e = w1 * (1.0 - fx)
         f = w1 * fx
-        for ch in range(3):
-            acc[c, ch] += (
-                a * data[row0 + x0, ch]
-                + b * data[row0 + x1, ch]
-                + e * data[row1 + x0, ch]
-                + f * data[row1 + x1, ch]
-            )
+        for q in range(level_w):
+            c = q * m + ph
+            x1 = x0 + 1
+            if x1 == level_w:
+                x1 = 0
+            for ch in range(3):
+                acc[c, ch] += (
+                    a * data[row0 + x0, ch]
+                    + b * data[row0 + x1, ch]
+                    + e * data[row1 + x0, ch]
+                    + f * data[row1 + x1, ch]
+                )
+            x0 = x1
 
 
 @numba.njit(parallel=True, cache=True, fastmath=True)

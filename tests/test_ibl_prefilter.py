@@ -76,6 +76,16 @@ class TestPrefilteredMap:
             got[:, ::step].reshape(-1, 3), want, rtol=1e-4, atol=1e-5 * scale
         )
 
+    def test_a_panorama_whose_height_is_not_a_power_of_two(self):
+        pyr = glossy.mip_pyramid(synthetic_sky(960))  # levels 480, 240, 120, 60, 30, 15
+        for rho in (0.1, 0.3):
+            got = glossy_prefilter.prefiltered_map(pyr, glossy.phong_exponent(rho))
+            h = got.shape[0]
+            centres = equirect.pixel_directions(h, 2 * h)[:, :: 1 + (2 * h * h) // 30000]
+            want = glossy.glossy_pattern_numpy(pyr, centres.reshape(-1, 3), rho, frame="y")
+            sub = got[:, :: 1 + (2 * h * h) // 30000].reshape(-1, 3)
+            np.testing.assert_allclose(sub, want, rtol=1e-4, atol=1e-5 * float(want.max()))
+
     def test_away_from_the_poles_the_same_as_the_per_pixel_kernel(self, sky_pyramid):
         # where |r.y| < 0.9 both use the frame about +y: the texels are the kernel's values
         n = glossy.phong_exponent(0.3)
