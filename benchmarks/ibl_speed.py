@@ -19,9 +19,9 @@ trees are compared (PSNR over the whole 8-bit image, largest absolute difference
 
 With --video the whole command is timed too, in the worker's process: `arlight ibl VIDEO
 --render DIR --scene glossy.json` (5 spheres of roughness 0.2 where the demo's objects are)
-on an mp4v video of the same frames (decode thread, processing, render, PNG writing); ms
-per frame = (wall time of all frames - wall time of the first 2) / (frames - 2), so the
-start-up (scene, G-buffer, first compilations) is left out.
+on an mp4v video of the same frames 3 times over (decode thread, processing, render, PNG
+writing); ms per frame = (wall time of all N frames - wall time of the first N / 6) /
+(N - N / 6), so the start-up (scene, G-buffer, first compilations) is left out.
 
     .venv/bin/python benchmarks/ibl_speed.py [--baseline REF] [--rounds 3] [--frames 12] \\
         [--pano-width 2048] [--video] [--out ibl_speed.json]
@@ -52,6 +52,7 @@ DEFAULT_HDR = ROOT.parent / "shared" / "data" / "hdri" / "venice_sunset_1k.hdr"
 SUBPACKAGES = ("pipeline", "server", "client", "protocols", "sources")
 SCENES = ("diffuse", "glossy 0.2", "mirror", "mixed (demo)")
 WARMUP = 2
+VIDEO_TURNS = 3  # the --video clip: the frames 3 times over
 
 
 # --------------------------------------------------------------------------- the worker
@@ -124,8 +125,9 @@ def _cli_fps(video: Path, scene_file: Path) -> dict:
     from arlight.cli import main
 
     total = int(cv2.VideoCapture(str(video)).get(cv2.CAP_PROP_FRAME_COUNT))
+    first = total // 6  # the start-up and these frames, timed apart
     walls = {}
-    for n in (WARMUP, total):
+    for n in (first, total):
         with tempfile.TemporaryDirectory() as tmp:
             argv = ["ibl", str(video), "--render", tmp, "--scene", str(scene_file)]
             argv += ["--out", os.devnull, "--max-frames", str(n)]
@@ -134,7 +136,7 @@ def _cli_fps(video: Path, scene_file: Path) -> dict:
             walls[n] = time.perf_counter() - t0
             if code != 0:
                 raise SystemExit(f"arlight ibl exited {code}")
-    return {"cli_ms_per_frame": 1e3 * (walls[total] - walls[WARMUP]) / (total - WARMUP)}
+    return {"cli_ms_per_frame": 1e3 * (walls[total] - walls[first]) / (total - first)}
 
 
 # --------------------------------------------------------------------------- the driver
@@ -186,7 +188,7 @@ def _write_inputs(args: argparse.Namespace, tmp: Path) -> None:
     args.video_file = tmp / "turning.mp4"
     h, w = frames[0].shape[:2]
     writer = cv2.VideoWriter(str(args.video_file), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (w, h))
-    for f in frames:
+    for f in frames * VIDEO_TURNS:
         writer.write(cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
     writer.release()
     objects = [
