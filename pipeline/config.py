@@ -550,13 +550,14 @@ _SPEED_FIRST = {"light_max_samples": 30000}
 
 def _preset_overrides(preset: Preset) -> dict[str, Any]:
     if preset is Preset.FAST:
-        # analysed at 320 pixels wide, segments at 160x120 (held out by map, pooled over the
-        # shared set and the corpus: docs/decisions/0041-work-resolution.md)
+        # analysed at 320 pixels wide, segments at 160x120, a 128^3 volume (each held out by
+        # map over the shared set and the corpus: docs/decisions/0041-work-resolution.md)
         return {
             "rt_subsample": 4,
             "render_subsample": 4,
             "work_width": 320,
             "segment_scale": 4,
+            "volume_resolution": 128,
             **_SPEED_FIRST,
         }
     if preset is Preset.MOBILE:

@@ -83,10 +83,11 @@ class TestPipelineReuse:
         assert all(r["Surface"] and r["RadTransfer"] for r in reused[1:])
         fresh, _ = _errors_and_reuse(config.replace(still_reuse_frames=0), held)
         # the same estimates as without reuse, frame by frame (within the sensor noise the
-        # reused geometry leaves out), before and after the sun moved by 110 degrees of
-        # azimuth at frame 4 (an estimate that stayed behind would be ~100 degrees off; at
-        # 160 x 120 both are 31-37 degrees off the truth)
-        np.testing.assert_allclose(errors, fresh, atol=2.0)
+        # reused geometry leaves out: its normals are smoothed over 4 pixels at 160 x 120),
+        # before and after the sun moved by 110 degrees of azimuth at frame 4 (an estimate
+        # that stayed behind would be ~100 degrees off; both are 14-16 degrees off the truth
+        # but for frame 4's 49)
+        np.testing.assert_allclose(errors, fresh, atol=3.0)
         assert max(errors[5:]) < 45.0
 
     def test_an_orbiting_camera_never_reuses(self):
