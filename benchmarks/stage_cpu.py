@@ -6,21 +6,29 @@ as often when frames overlap. The pipeline's `checkpoint` hook (called before ea
 marks the stage boundaries; the process's CPU time between them is that stage's, on every
 thread (Numba's, Open3D's, OpenCV's and the side thread's).
 
-    .venv/bin/python benchmarks/stage_cpu.py [--presets fast full] [--frames 12] [--size 640x480]
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/stage_cpu.py [--presets fast full]
+        [--frames 12] [--size 640x480]
+
+(one BLAS thread, as the `arlight` command sets before NumPy loads: arlight/cli/__init__.py)
 """
 
 from __future__ import annotations
 
-import argparse
 import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before NumPy: as the arlight command
+
+import argparse  # noqa: E402
 import sys
 import time
 
 import numpy as np
 
+from arlight.bench import BUILT_IN, open_data
 from arlight.pipeline.config import Config
 from arlight.pipeline.pipeline import Pipeline
-from arlight.sources.synthetic import make_sequence, parse_size
+from arlight.pipeline.runtime import configure_process
+from arlight.sources.synthetic import parse_size
 
 # the segments between the checkpoints, in the order the pipeline passes them
 SEGMENTS = ("Input", "Reconstruct+Surface", "DynGeo", "RadTransfer", "LightEst", "Probe")
@@ -53,7 +61,7 @@ class StageClock:
 
 
 def measure(preset: str, frames: int, warmup: int, size: tuple[int, int]) -> None:
-    scene = make_sequence(num_frames=frames + warmup, width=size[0], height=size[1])
+    scene = open_data([BUILT_IN], frames, warmup, size)[0]  # as `arlight bench` sees it
     pipeline = Pipeline(Config.from_preset(preset), scene.camera)
     wall, cpu = [], []
     for i, frame in enumerate(scene.frames):
@@ -86,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--size", default="640x480", help="WxH of the built-in scene")
     args = parser.parse_args(argv)
+    configure_process()  # the threading the CLI and the server use
     try:
         size = parse_size(args.size)
         configs = [Config.from_preset(p) for p in args.presets]
