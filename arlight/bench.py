@@ -16,7 +16,9 @@ report (report.json, report.md, trade.png) is written by arlight.report.
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -77,6 +79,9 @@ class ConfigResult:
     value: Any
     stage_ms: dict[str, list[float]] = field(default_factory=lambda: {s: [] for s in STAGES})
     total_ms: list[float] = field(default_factory=list)
+    # milliseconds between consecutive results (what a frame costs when frames overlap)
+    period_ms: list[float] = field(default_factory=list)
+    overlapped: bool = False
     per_sequence: dict[str, dict[str, list[float]]] = field(default_factory=dict)
     # what the scene required of the model: per frame the SH bands solved for and which
     # stage outputs a still camera reused; per sequence the volume's blocks at its end
@@ -202,16 +207,22 @@ def observed_normals_world(frame, camera, rng: np.random.Generator) -> np.ndarra
 
 
 def run_config(
-    bench: BenchConfig, sequences: list[BenchSequence], warmup: int, on_frame=None, scene=None
+    bench: BenchConfig,
+    sequences: list[BenchSequence],
+    warmup: int,
+    on_frame=None,
+    scene=None,
+    overlap: bool = False,
 ) -> ConfigResult:
     """Process every sequence's frames with one configuration; time and score each frame.
-    scene: a VirtualScene rendered into every frame (the Rendering stage), or None."""
+    scene: a VirtualScene rendered into every frame (the Rendering stage), or None;
+    overlap: through Pipeline.process_overlapped (the time between results is the cost)."""
     overrides = {
         k: v
         for k, v in bench.config.flat().items()
         if v != Config.from_preset(_preset_name(bench.config)).flat().get(k)
     }
-    result = ConfigResult(bench.name, overrides, bench.sweep, bench.value)
+    result = ConfigResult(bench.name, overrides, bench.sweep, bench.value, overlapped=overlap)
     rng = np.random.default_rng(0)
     for seq in sequences:
         pipeline = Pipeline(bench.config, seq.camera, scene)
@@ -223,8 +234,12 @@ def run_config(
             "confidence": [],
         }
         maps: list[str | None] = []
-        for i, frame in enumerate(seq.frames):
-            out = pipeline.process(frame)
+        process = pipeline.process_overlapped if overlap else partial(map, pipeline.process)
+        outputs = process(seq.frames)
+        last = time.perf_counter()
+        for i, (frame, out) in enumerate(zip(seq.frames, outputs, strict=True)):
+            now = time.perf_counter()
+            period, last = (now - last) * 1e3, now
             result.bands_estimated.append(int(out.confidence.bands_estimated))
             for stage, flags in result.reused.items():
                 flags.append(bool(out.diagnostics.get("reused", {}).get(stage, False)))
@@ -232,6 +247,7 @@ def run_config(
                 for stage in STAGES:
                     result.stage_ms[stage].append(out.timings_ms.get(stage, 0.0))
                 result.total_ms.append(sum(out.timings_ms.values()))
+                result.period_ms.append(period)
             if seq.truth is not None and i < len(seq.truth):
                 _score(scores, out, seq.truth[i], frame, seq.camera, rng)
                 maps.append(seq.truth[i].env_map)
@@ -284,12 +300,14 @@ def run_benchmark(
     size: tuple[int, int] = (640, 480),
     scene=None,
     folds: bool = False,
+    overlap: bool = False,
 ) -> dict:
     """Every configuration over every DATA sequence; the report's figures (a plain dict).
 
     size: image size of the built-in scene (pixels) where no size sweep sets it;
     scene: virtual objects rendered into every frame (VirtualScene), or None (Rendering 0);
-    folds: add the leave-one-map-out choice among the configurations (report "folds").
+    folds: add the leave-one-map-out choice among the configurations (report "folds");
+    overlap: frames through Pipeline.process_overlapped (FPS from the time between results).
     """
     from arlight.report import summarise
 
@@ -320,7 +338,14 @@ def run_benchmark(
                     flush=True,
                 )
             results.append(
-                run_config(bench, seqs, warmup, on_frame=lambda: bar.update(1), scene=scene)
+                run_config(
+                    bench,
+                    seqs,
+                    warmup,
+                    on_frame=lambda: bar.update(1),
+                    scene=scene,
+                    overlap=overlap,
+                )
             )
     finally:
         bar.close()

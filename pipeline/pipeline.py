@@ -16,7 +16,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import cast
@@ -162,6 +162,24 @@ class _Geometry:
     plane: SupportPlane | None
 
 
+@dataclass
+class _Front:
+    """What a frame's Input .. RadTransfer leave for its LightEst, probe and rendering."""
+
+    timestamp: float
+    full: ValidFrame  # the input frame at its own size (the composite's)
+    full_linear: np.ndarray  # (H, W, 3) its linear colour
+    color_linear: np.ndarray  # (h, w, 3) linear colour at the work resolution
+    pose: np.ndarray
+    aux_buffers: list
+    geometry: _Geometry
+    transfer: TransferSamples
+    labels: np.ndarray | None
+    render_light: RenderLight | None
+    timings: dict[str, float]
+    diagnostics: Diagnostics
+
+
 def _json_float(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
@@ -227,6 +245,7 @@ class Pipeline:
         self.pattern = make_sampling_pattern(config.transfer, config.seed)
         self.filter = TemporalFilter(config.temporal)
         self.frames_processed = 0
+        self._frames_begun = 0  # frames whose Reconstruct ran (the next may run ahead)
         self._volume = None
         if config.volume.use_volume:
             from arlight.pipeline.reconstruction import VolumeReconstruction
@@ -294,6 +313,45 @@ class Pipeline:
         session's state keeps what the finished stages did (the volume may hold the
         abandoned frame's depth)."""
         check = checkpoint or _no_checkpoint
+        return self._back(self._front(frame, render_light, check), check)
+
+    def process_overlapped(
+        self, frames: Iterable[FrameInput], render_light: RenderLight | None = None
+    ) -> Iterator[FrameResult]:
+        """`process` of each frame in turn, the next frame's Input .. RadTransfer running on
+        a thread of its own while this one's LightEst, probe and rendering run (LightEst
+        keeps one core busy, the stages before it two): more frames a second for a frame
+        of latency (docs/decisions/0042-overlapped-frames.md). The results differ from
+        `process`'s only in that a frame's auxiliary "light" buffer points where the frame
+        before last put the light, not the last. With compact sources (they read the volume
+        the next frame fuses) the frames run one at a time. FrameError is raised when the
+        bad frame's result is due."""
+        if self.config.estimation.compact_sources > 0:
+            for frame in frames:
+                yield self.process(frame, render_light)
+            return
+        with concurrent.futures.ThreadPoolExecutor(1, "arlight-front") as front_thread:
+            pending: concurrent.futures.Future[_Front] | None = None
+            try:
+                for frame in frames:
+                    ahead = front_thread.submit(self._front, frame, render_light, _no_checkpoint)
+                    if pending is not None:
+                        yield self._back(pending.result(), _no_checkpoint)
+                    pending = ahead
+                if pending is not None:
+                    yield self._back(pending.result(), _no_checkpoint)
+                    pending = None
+            finally:
+                if pending is not None:  # the consumer stopped early: let the frame finish
+                    concurrent.futures.wait([pending])
+
+    def _front(
+        self,
+        frame: FrameInput,
+        render_light: RenderLight | tuple | None,
+        check: Callable[[str], None],
+    ) -> _Front:
+        """Input, Reconstruct, Surface, DynGeo and RadTransfer (with the material segments)."""
         if render_light is not None and not isinstance(render_light, RenderLight):
             render_light = RenderLight(*render_light)
         if render_light is not None and not isinstance(
@@ -314,6 +372,7 @@ class Pipeline:
             color_linear = work.color_linear
         check("Reconstruct")
         pose, depth_volume, aux_buffers, tracked = self._reconstruct(valid, timings, diagnostics)
+        self._frames_begun += 1
         check("DynGeo")
         with _stage(timings, "DynGeo"):  # the test of a still camera costs ~1 ms
             reused = (
@@ -334,14 +393,33 @@ class Pipeline:
             )
             self._last_transfer = (geometry, transfer)
             self._still.did_work(pose, valid.depth_m)
+        return _Front(
+            float(frame.timestamp),
+            full,
+            full_linear,
+            color_linear,
+            pose,
+            aux_buffers,
+            geometry,
+            transfer,
+            labels,
+            render_light,
+            timings,
+            diagnostics,
+        )
+
+    def _back(self, front: _Front, check: Callable[[str], None]) -> FrameResult:
+        """LightEst (with the compact sources and the temporal filter), Probe, Rendering."""
+        geometry, transfer, pose = front.geometry, front.transfer, front.pose
+        timings, diagnostics = front.timings, front.diagnostics
         check("LightEst")
         with _stage(timings, "LightEst"):
             plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
             estimate = self._estimate(
                 transfer,
-                color_linear,
-                labels,
+                front.color_linear,
+                front.labels,
                 up_world,
                 below_horizon_unseen=self.config.transfer.rt_horizon,
                 checkpoint=lambda: check("LightEst"),
@@ -369,7 +447,13 @@ class Pipeline:
         check("Probe")
         with _stage(timings, "Probe"):
             probe = self._make_probe(
-                color_linear, geometry, pose, coeffs, estimate, render_light, diagnostics
+                front.color_linear,
+                geometry,
+                pose,
+                coeffs,
+                estimate,
+                front.render_light,
+                diagnostics,
             )
         if self.scene is None:
             timings["Rendering"] = 0.0
@@ -377,14 +461,14 @@ class Pipeline:
             check("Rendering")
             with _stage(timings, "Rendering"):
                 composite = self._render(
-                    full,
-                    full_linear,
+                    front.full,
+                    front.full_linear,
                     geometry,
                     pose,
-                    aux_buffers,
+                    front.aux_buffers,
                     coeffs,
                     estimate,
-                    render_light,
+                    front.render_light,
                     probe,
                 )
         self.frames_processed += 1
@@ -393,7 +477,7 @@ class Pipeline:
         )
         rotation = pose[:3, :3]
         return FrameResult(
-            timestamp=float(frame.timestamp),
+            timestamp=front.timestamp,
             sh=coeffs,
             sh_camera=sh.rotate(coeffs, rotation.T),
             dominant_direction_world=direction_world,
@@ -688,7 +772,7 @@ class Pipeline:
         depth_volume, aux_buffers = None, []
         if self._volume is None:
             timings["Reconstruct"] = timings["Surface"] = 0.0
-            tracked = valid.pose is not None or self.frames_processed == 0
+            tracked = valid.pose is not None or self._frames_begun == 0
             pose = valid.pose if valid.pose is not None else self._pose
             tracking: TrackingDiagnostics = {
                 "ok": tracked,

@@ -162,3 +162,23 @@ def test_size_sweep_needs_the_built_in_scene(tmp_path):
             overrides={},
             progress=False,
         )
+
+
+def test_overlapped_frames_report_their_rate():
+    """--overlap: the frames through Pipeline.process_overlapped, FPS from the time between
+    results (not from one frame's stages, which then run beside the next frame's)."""
+    report = run_benchmark(
+        ["synthetic"],
+        ["fast"],
+        [],
+        frames=4,
+        warmup=1,
+        overrides={},
+        progress=False,
+        size=(160, 120),
+        overlap=True,
+    )
+    fast = report["configs"]["fast"]
+    assert fast["overlapped"] is True
+    assert fast["fps"] > 0 and fast["total_ms"]["median"] > 0
+    assert fast["accuracy"]["angle_upper_deg"]["median_of_medians"] < 45

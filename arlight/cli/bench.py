@@ -91,6 +91,13 @@ def add_parser(sub) -> None:
         "a configuration generalises to unseen lighting",
     )
     bench.add_argument(
+        "--overlap",
+        action="store_true",
+        help="process each sequence with the next frame's Input..RadTransfer beside this "
+        "frame's LightEst, probe and rendering (Pipeline.process_overlapped): FPS is then "
+        "the rate results come out, and 'total' a frame's latency",
+    )
+    bench.add_argument(
         "--scene",
         metavar="FILE",
         help="render these virtual objects into every frame, so the Rendering "
@@ -124,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
             progress=sys.stderr.isatty(),
             scene=load_scene(args),
             folds=args.folds,
+            overlap=args.overlap,
         )
     except BenchError as exc:
         raise BadInput(str(exc)) from None
