@@ -566,7 +566,9 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
         # and its 25 cm blocks need a smaller hash map to start with (it grows when full):
         # 16 MB held from the start, every error as with 40000 blocks (156 MB)
         # (`arlight bench ... --presets mobile --sweep block_count=40000,4000`)
+        # and analysed at 320 pixels wide as fast (docs/decisions/0041-work-resolution.md)
         return {
+            "work_width": 320,
             "volume_resolution": 64,
             "denoise": False,
             "rt_subsample": 4,
