@@ -84,9 +84,11 @@ def check_rigid(matrix: Any, field: str, tolerance: float = RIGID_TOLERANCE) -> 
     if not np.all(np.isfinite(m)):
         raise CheckError(field, "must be finite (NaN or inf found)")
     r = m[:3, :3]
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: inf, refused below
+        deviation = float(np.abs(r.T @ r - np.eye(3)).max())
     if (
         np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > tolerance
-        or np.abs(r.T @ r - np.eye(3)).max() > tolerance
+        or not deviation <= tolerance
         or np.linalg.det(r) <= 0
     ):
         raise CheckError(
