@@ -422,3 +422,21 @@ class TestViewAndSteadiness:
         none = Confidence(reason="no valid depth")
         out = le.with_view_and_steadiness(none, 0.5, 10.0)
         assert out.value == 0.0 and out.reason == "no valid depth"
+
+
+def test_segment_grams_equal_the_direct_product():
+    """SegmentGrams: sum_g a_g^2 G_g plus the down-weighted samples is A^T diag(w a^2) A."""
+    from arlight.pipeline.light_estimation import SegmentGrams
+
+    rng = np.random.default_rng(3)
+    design = rng.normal(size=(2000, 17))
+    labels = rng.integers(0, 9, 2000)
+    labels[labels == 4] = 5  # a segment with no sample
+    segment_albedo = rng.uniform(0.2, 2.0, 9)
+    weights = np.where(rng.uniform(size=2000) < 0.3, rng.uniform(0.05, 1.0, 2000), 1.0)
+    direct = design.T @ (design * (weights * segment_albedo[labels] ** 2)[:, None])
+    np.testing.assert_allclose(
+        SegmentGrams(design, labels)(segment_albedo, weights), direct, rtol=1e-10, atol=1e-9
+    )
+    plain = SegmentGrams(design, None)(np.ones(1), np.ones(2000))
+    np.testing.assert_allclose(plain, design.T @ design, rtol=1e-12, atol=1e-9)
