@@ -313,7 +313,7 @@ class Pipeline:
         session's state keeps what the finished stages did (the volume may hold the
         abandoned frame's depth)."""
         check = checkpoint or _no_checkpoint
-        return self._back(self._front(frame, render_light, check), check)
+        return self._back(self._front(frame, render_light, check, self._light_world), check)
 
     def process_overlapped(
         self, frames: Iterable[FrameInput], render_light: RenderLight | None = None
@@ -334,7 +334,11 @@ class Pipeline:
             pending: concurrent.futures.Future[_Front] | None = None
             try:
                 for frame in frames:
-                    ahead = front_thread.submit(self._front, frame, render_light, _no_checkpoint)
+                    # the light as it stands now (before this frame's back half): the same
+                    # whatever the threads' timing
+                    ahead = front_thread.submit(
+                        self._front, frame, render_light, _no_checkpoint, self._light_world
+                    )
                     if pending is not None:
                         yield self._back(pending.result(), _no_checkpoint)
                     pending = ahead
@@ -350,8 +354,10 @@ class Pipeline:
         frame: FrameInput,
         render_light: RenderLight | tuple | None,
         check: Callable[[str], None],
+        light_world: np.ndarray | None,
     ) -> _Front:
-        """Input, Reconstruct, Surface, DynGeo and RadTransfer (with the material segments)."""
+        """Input, Reconstruct, Surface, DynGeo and RadTransfer (with the material segments);
+        light_world: towards the light (world) that the auxiliary "light" buffer faces."""
         if render_light is not None and not isinstance(render_light, RenderLight):
             render_light = RenderLight(*render_light)
         if render_light is not None and not isinstance(
@@ -371,7 +377,9 @@ class Pipeline:
             intensity = intensity_from_rgb(valid.color)
             color_linear = work.color_linear
         check("Reconstruct")
-        pose, depth_volume, aux_buffers, tracked = self._reconstruct(valid, timings, diagnostics)
+        pose, depth_volume, aux_buffers, tracked = self._reconstruct(
+            valid, timings, diagnostics, light_world
+        )
         self._frames_begun += 1
         check("DynGeo")
         with _stage(timings, "DynGeo"):  # the test of a still camera costs ~1 ms
@@ -764,10 +772,12 @@ class Pipeline:
         valid: ValidFrame,
         timings: dict[str, float],
         diagnostics: Diagnostics,
+        light_world: np.ndarray | None,
     ) -> tuple[np.ndarray, np.ndarray | None, list, bool]:
         """Reconstruct + Surface: (pose, D_v or None, aux buffers, tracked: the frame was
         tracked or its pose given, else the last pose is kept); tracking diagnostics and
-        `reused` ({stage: bool}: a still camera's stage outputs taken from an earlier frame)."""
+        `reused` ({stage: bool}: a still camera's stage outputs taken from an earlier frame);
+        the "light" aux buffer faces light_world."""
         diagnostics["reused"] = {"Surface": False, "DynGeo": False, "RadTransfer": False}
         depth_volume, aux_buffers = None, []
         if self._volume is None:
@@ -781,7 +791,7 @@ class Pipeline:
                 else "no volume (use_volume false) and no pose: the last pose is kept",
             }
         else:
-            surface = self._volume.process_validated(valid.depth_m, valid.pose, self._light_world)
+            surface = self._volume.process_validated(valid.depth_m, valid.pose, light_world)
             timings["Reconstruct"] = surface.timings_ms.get("Reconstruct", 0.0)
             timings["Surface"] = surface.timings_ms.get("Surface", 0.0)
             pose, depth_volume, aux_buffers = (

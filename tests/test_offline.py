@@ -187,3 +187,22 @@ class TestFrameNotes:
         assert not has_usable_depth(FrameInput(color, np.zeros((2, 2), np.uint16)))
         assert not has_usable_depth(FrameInput(color, np.full((2, 2), np.nan, np.float32)))
         assert has_usable_depth(FrameInput(color, np.array([[0, 0], [0, 1200]], np.uint16)))
+
+
+def test_overlapped_estimate_yields_every_frame_with_its_input():
+    """estimate_frames(overlap=True): each frame's result beside that frame, in order."""
+    seq = make_sequence(num_frames=4, width=96, height=72)
+    done = list(
+        estimate_frames(Pipeline(Config.from_preset("fast"), seq.camera), seq.frames, (), True)
+    )
+    assert [d.index for d in done] == [0, 1, 2, 3]
+    for d, frame in zip(done, seq.frames, strict=True):
+        assert d.frame is frame and d.result.timestamp == frame.timestamp
+        assert d.process_ms >= 0.0
+
+
+def test_estimate_overlap_flag_runs(tmp_path):
+    out = tmp_path / "light.jsonl"
+    rc = main(["estimate", "--preset", "fast", "--max-frames", "3", "--overlap", "--out", str(out)])
+    assert rc == 0
+    assert len(out.read_text().splitlines()) == 3

@@ -63,6 +63,13 @@ def add_parser(sub) -> None:
     est.add_argument("--rgb", action="store_true", help="also estimate one SH per RGB channel")
     est.add_argument("--out", metavar="FILE", help="write results as JSON lines to FILE")
     est.add_argument(
+        "--overlap",
+        action="store_true",
+        help="process the next frame's reconstruction beside this frame's light fit: more "
+        "frames a second on 2+ cores, a frame's latency longer (docs/decisions/"
+        "0042-overlapped-frames.md); the ms printed per frame is then the time between results",
+    )
+    est.add_argument(
         "--max-frames",
         type=positive_int,
         metavar="N",
@@ -197,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
     notes = FrameNotes()
     try:
         for done in estimate_frames(
-            pipeline, (frames[i] for i in range(n)), tuple(args.export or ())
+            pipeline, (frames[i] for i in range(n)), tuple(args.export or ()), args.overlap
         ):
             i, result, record = done.index, done.result, done.record
             d = result.dominant_direction_camera
