@@ -60,6 +60,7 @@ from arlight.protocols import (
     received_record,
 )
 from arlight.protocols.curve import ClientKeys
+from arlight.protocols.probe import probe_summary
 
 if TYPE_CHECKING:  # imported when their flags ask for them (foxglove, the web server)
     from arlight.client.foxglove_sinks import LiveSink
@@ -304,6 +305,8 @@ class DisplayClient:
                     source,
                 ),
             }
+        if result.probe is not None:  # what came, never the texels (output-record.md)
+            record["probe"] = probe_summary(result.probe)
         now_m = got.receive_time_mono
         s.results += 1
         s.first_receive = now_m if s.first_receive is None else s.first_receive

@@ -257,6 +257,20 @@ class ProbeCube:
         return PendingProbe(cls(point, [], roughness, encoding), size, count, payload, decode)
 
 
+def probe_summary(probe: ProbeCube | None) -> dict | None:
+    """What an output record says of a Result's probe, never its texels: None when it
+    carried none, else its size (texels a face of level 0), levels, roughness per level
+    and point (world, metres)."""
+    if probe is None:
+        return None
+    return {
+        "size": int(probe.size),
+        "levels": len(probe.levels),
+        "roughness": [float(r) for r in probe.roughness],
+        "point_world": [float(x) for x in probe.point_world],
+    }
+
+
 @dataclass
 class PendingProbe:
     """A Result's probe read from the header, its payload not yet decoded."""

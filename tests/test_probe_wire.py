@@ -425,6 +425,11 @@ def test_the_clients_ask_for_and_decode_the_probe(make_server, tmp_path):
     lines = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
     assert [line["frame"] for line in lines] == [0, 1]
     assert all(line["diagnostics"]["probe"]["size"] == 32 for line in lines)
+    # what came, never the texels (output-record.md)
+    assert all(
+        line["probe"] == {"size": 32, "levels": 1, "roughness": [0.0], "point_world": [0, 0, 1]}
+        for line in lines
+    )
 
 
 def test_a_server_with_a_compute_step_refuses_a_probe(make_server):

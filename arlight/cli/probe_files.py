@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from arlight.protocols.probe import probe_summary
+
 PROBE_LAYOUTS = ("world", "filament", "threejs")
 
 PROBE_LAYOUT_HELP = (
@@ -85,13 +87,11 @@ def probe_record(probe, stem: str | Path | None, layout: str = "world") -> dict 
     face of level 0), levels, roughness per level, point (world, metres) and, when
     --probe-out wrote it, `files` (the JSON and the faces' name pattern) and their layout;
     never the texels."""
-    if probe is None:
+    summary = probe_summary(probe)
+    if summary is None:
         return None
     return {
-        "size": int(probe.size),
-        "levels": len(probe.levels),
-        "roughness": [float(r) for r in probe.roughness],
-        "point_world": [float(x) for x in probe.point_world],
+        **summary,
         "files": None
         if stem is None
         else {"json": f"{stem}.json", "faces": f"{stem}{FACES_PATTERN}", "layout": layout},
