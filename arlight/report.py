@@ -281,6 +281,7 @@ def summarise(
             "total_ms": total,
             "fps": 1000.0 / rate_ms if rate_ms else None,
             "overlapped": r.overlapped,
+            "period_ms": _spread(r.period_ms),  # between consecutive results
             "accuracy": _accuracy(r.per_sequence, r.env_maps, r.layouts),
         }
         if configs_used is not None:
@@ -338,6 +339,12 @@ def speed_table(report: dict) -> str:
     rows.append(
         "| total | " + " | ".join(_ms(report["configs"][n]["total_ms"]) for n in names) + " |"
     )
+    if any(report["configs"][n].get("overlapped") for n in names):  # bench --overlap
+        rows.append(
+            "| ms between results | "
+            + " | ".join(_ms(report["configs"][n]["period_ms"]) for n in names)
+            + " |"
+        )
     rows.append(
         "| FPS | " + " | ".join(_num(report["configs"][n]["fps"], ".2f") for n in names) + " |"
     )

@@ -14,7 +14,7 @@ from arlight import evaluation
 from arlight.bench import BenchError, parse_sweep, run_benchmark
 from arlight.pipeline import sh
 from arlight.pipeline.pipeline import STAGES
-from arlight.report import markdown, write_report
+from arlight.report import markdown, speed_table, write_report
 from arlight.sources.synthetic import make_sequence
 
 SEQUENCE = DATA / "synthetic" / "dev_a_static_venice"
@@ -181,4 +181,6 @@ def test_overlapped_frames_report_their_rate():
     fast = report["configs"]["fast"]
     assert fast["overlapped"] is True
     assert fast["fps"] > 0 and fast["total_ms"]["median"] > 0
+    assert fast["fps"] == pytest.approx(1000.0 / fast["period_ms"]["median"])
+    assert "| ms between results |" in speed_table(report)
     assert fast["accuracy"]["angle_upper_deg"]["median_of_medians"] < 45

@@ -95,7 +95,7 @@ def add_parser(sub) -> None:
         action="store_true",
         help="process each sequence with the next frame's Input..RadTransfer beside this "
         "frame's LightEst, probe and rendering (Pipeline.process_overlapped): FPS is then "
-        "the rate results come out, and 'total' a frame's latency",
+        "the rate results come out ('ms between results'), and 'total' a frame's latency",
     )
     bench.add_argument(
         "--scene",
