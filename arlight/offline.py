@@ -99,8 +99,7 @@ def estimate_frames(
     results = pipeline.process_overlapped(take()) if overlap else map(pipeline.process, take())
     t0 = time.perf_counter()
     for index, result in enumerate(results):
-        now = time.perf_counter()
-        process_ms, t0 = (now - t0) * 1e3, now
+        process_ms = (time.perf_counter() - t0) * 1e3
         frame = taken.popleft()
         yield EstimatedFrame(index, frame, result, frame_record(result, index, exports), process_ms)
         t0 = time.perf_counter()  # the caller's time with a result is not the pipeline's

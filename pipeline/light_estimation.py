@@ -128,8 +128,9 @@ def solve_regularised(
     an extra quadratic prior on l, relative to the mean diagonal of the normal matrix.
     """
     design = _design(transfer, bands, bounce)
+    gram = design.T @ (design * weights[:, None])
     return _solve_weighted(
-        design, weights, weights * target, bands, regularization, bounce is not None, prior
+        design, gram, weights * target, bands, regularization, bounce is not None, prior
     )
 
 
@@ -185,22 +186,18 @@ class SegmentGrams:
 
 def _solve_weighted(
     design: np.ndarray,
-    gram_weights: np.ndarray,
+    gram: np.ndarray,
     rhs_weights: np.ndarray,
     bands: int,
     regularization: float,
     with_bounce: bool,
     prior: np.ndarray | None,
-    gram: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float]:
     """The normal equations of `solve_regularised` from A = `design`: (A^T diag(g) A) x =
-    A^T r with g = gram_weights, r = rhs_weights (a model I = a (T l + beta B) with robust
-    weights w has g = w a^2, r = w a I: no scaled copy of A is made); `gram`: A^T diag(g) A
-    when the caller has it (SegmentGrams). beta < 0 (more bounce than the data supports):
-    the light alone is solved, from the same matrices."""
+    A^T r, `gram` = A^T diag(g) A and r = rhs_weights (a model I = a (T l + beta B) with
+    robust weights w has g = w a^2, r = w a I: SegmentGrams). beta < 0 (more bounce than
+    the data supports): the light alone is solved, from the same matrices."""
     n = bands * bands
-    if gram is None:
-        gram = design.T @ (design * gram_weights[:, None])
     rhs = design.T @ rhs_weights
     full = penalty_matrix(bands, regularization, prior, with_bounce)
     penalty = full[:n, :n]
@@ -486,13 +483,12 @@ def _alternate(
     def solve() -> tuple[np.ndarray, float]:
         return _solve_weighted(
             design,
-            weights * albedo * albedo,
+            grams(segment_albedo, weights),
             weights * albedo * lum,
             bands,
             params.regularization,
             b is not None,
             prior,
-            gram=grams(segment_albedo, weights),
         )
 
     def shading() -> np.ndarray:

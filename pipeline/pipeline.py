@@ -330,24 +330,20 @@ class Pipeline:
             for frame in frames:
                 yield self.process(frame, render_light)
             return
+        # leaving the block (also when the consumer stops early) waits for a running front
         with concurrent.futures.ThreadPoolExecutor(1, "arlight-front") as front_thread:
             pending: concurrent.futures.Future[_Front] | None = None
-            try:
-                for frame in frames:
-                    # the light as it stands now (before this frame's back half): the same
-                    # whatever the threads' timing
-                    ahead = front_thread.submit(
-                        self._front, frame, render_light, _no_checkpoint, self._light_world
-                    )
-                    if pending is not None:
-                        yield self._back(pending.result(), _no_checkpoint)
-                    pending = ahead
+            for frame in frames:
+                # the light as it stands now (before this frame's back half): the same
+                # whatever the threads' timing
+                ahead = front_thread.submit(
+                    self._front, frame, render_light, _no_checkpoint, self._light_world
+                )
                 if pending is not None:
                     yield self._back(pending.result(), _no_checkpoint)
-                    pending = None
-            finally:
-                if pending is not None:  # the consumer stopped early: let the frame finish
-                    concurrent.futures.wait([pending])
+                pending = ahead
+            if pending is not None:
+                yield self._back(pending.result(), _no_checkpoint)
 
     def _front(
         self,

@@ -108,6 +108,12 @@ def upsample_depth(coarse: np.ndarray, factor: int, shape: tuple[int, int]) -> n
     return np.where(smooth, bilinear, own).astype(np.float32)
 
 
+def upsample_normals(coarse: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W, 3) normals from (h, w, 3) ones over factor x factor blocks: each block's own."""
+    enlarged = np.repeat(np.repeat(coarse, factor, 0), factor, 1)
+    return np.ascontiguousarray(enlarged[: shape[0], : shape[1]])
+
+
 def _padded(size: int) -> int:
     """`size` rounded up to a multiple of RANGE_MAP_DOWN_FACTOR.
 
@@ -324,7 +330,7 @@ class TsdfVolume:
         depth, normals = self._cast(cam, world_from_cam)
         if subsample > 1:
             depth = upsample_depth(depth, subsample, (h, w))
-            normals = np.repeat(np.repeat(normals, subsample, 0), subsample, 1)[:h, :w]
+            normals = upsample_normals(normals, subsample, (h, w))
         return np.ascontiguousarray(depth), np.ascontiguousarray(normals)
 
     def _cast(

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from arlight.pipeline.volume import upsample_depth
+from arlight.pipeline.volume import upsample_depth, upsample_normals
 
 # a block's measured depths agree when they spread by less than this share of the nearest
 DEPTH_AGREEMENT = 0.03
@@ -88,6 +88,4 @@ def enlarge_geometry(
     (`volume.upsample_depth`), normals the block's."""
     if scale == 1:
         return depth_m, normals
-    depth = upsample_depth(depth_m, scale, shape)
-    enlarged = np.repeat(np.repeat(normals, scale, 0), scale, 1)[: shape[0], : shape[1]]
-    return depth, np.ascontiguousarray(enlarged)
+    return upsample_depth(depth_m, scale, shape), upsample_normals(normals, scale, shape)
