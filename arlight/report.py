@@ -31,7 +31,8 @@ from arlight.pipeline.pipeline import STAGES
 LIBRARIES = ("numpy", "open3d", "numba", "scipy", "opencv-contrib-python-headless", "pyzmq")
 
 
-def _commit() -> str:
+def commit() -> str:
+    """The checkout's short commit hash ("unknown" outside a git checkout)."""
     try:
         return (
             subprocess.run(
@@ -296,7 +297,7 @@ def summarise(
     )
     report = {
         "arlight": __version__,
-        "commit": _commit(),
+        "commit": commit(),
         "machine": platform.machine(),
         "cpus": os.cpu_count(),
         "python": sys.version.split()[0],

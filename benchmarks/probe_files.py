@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ import numpy as np
 from arlight.cli.client_options import probe_size
 from arlight.cli.probe_files import write_probe_files
 from arlight.protocols.probe import ProbeCube, num_levels
+from arlight.report import commit as git_commit
 
 
 def tilted_pose() -> np.ndarray:
@@ -82,9 +82,7 @@ def main(argv=None) -> int:
                     f"{p50:.1f} ({p10:.1f}-{p90:.1f}) |",
                     flush=True,
                 )
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
-    ).stdout.strip()
+    commit = git_commit()
     print(
         f"\ncommit {commit}, {platform.processor() or platform.machine()}, {os.cpu_count()} "
         f"cores, load average {load_before[0]:.1f} before / {os.getloadavg()[0]:.1f} after"

@@ -19,7 +19,6 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ from arlight.pipeline.config import Config
 from arlight.pipeline.pipeline import Pipeline
 from arlight.pipeline.probe import DistantLight, ProbeSettings, ProbeStage
 from arlight.pipeline.runtime import configure_process
+from arlight.report import commit as git_commit
 from arlight.sources.sequence import open_sequence
 from arlight.sources.virtual_scene_file import load_virtual_scene
 
@@ -116,9 +116,7 @@ def main(argv=None) -> int:
         ]
         print(f"| {size} | " + " | ".join(cells) + " |")
     print("ms: median (p10-p90) over", args.repeat, "repeats; load average", load_before[0])
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
-    ).stdout.strip()
+    commit = git_commit()
     record = {
         "sequence": str(args.sequence),
         "preset": args.preset,

@@ -19,7 +19,6 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -37,6 +36,7 @@ from arlight.protocols.probe import (
     ProbeCube,
     rgb9e5_decode,
 )
+from arlight.report import commit as git_commit
 from arlight.sources.sequence import open_sequence
 from arlight.sources.virtual_scene_file import load_virtual_scene
 
@@ -172,9 +172,7 @@ def main(argv=None) -> int:
         "texel's brightest channel (above 1e-6): "
         + ", ".join(f"{name} {err:.4f}" for name, err in worst.items())
     )
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
-    ).stdout.strip()
+    commit = git_commit()
     record = {
         "sequence": str(args.sequence),
         "frames": args.frames,
