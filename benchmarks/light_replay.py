@@ -196,6 +196,7 @@ def _with_compact_source(
         "rays": tester.rays,
         "contrast": fit.contrast,
         "radius": fit.radius_deg,
+        "edge": fit.edge_step,
     }
     if fit.sources:
         info.update(
@@ -286,6 +287,7 @@ def replay(
                     "gain": info.get("gain"),
                     "contrast": info.get("contrast"),
                     "radius": info.get("radius"),
+                    "edge": info.get("edge"),
                     **_compact_truth(m, rotations, i, maps_dir, info),
                     "filtered": _error(filtered, up_seen, r, truth),
                     "confidence": est.confidence.value,
@@ -353,6 +355,7 @@ COMPACT_KEYS = (
     "search_samples",
     "min_gain",
     "min_contrast",
+    "min_edge_step",
     "max_radius_deg",
     "min_pixels",
     "depth_mesh",

@@ -81,6 +81,7 @@ class CompactFit:
     rays: int = 0
     contrast: float = float("nan")
     radius_deg: float = float("nan")  # the angular radius whose soft shadow explains most
+    edge_step: float = 0.0  # ln step the image shows across its shadow edge (shadow_edge)
 
 
 def candidate_directions(up: np.ndarray | None, count: int) -> np.ndarray:
@@ -141,6 +142,7 @@ class ShadowTester:
             rot, origin = world_from_scene[:3, :3], world_from_scene[:3, 3]
             # world -> scene: x_s = R^T (x_w - o)
             self._scenes.append((scene, rot, ((origins - origin) @ rot).astype(np.float32)))
+        self.points = points
         self.normals = normals
         self.rays = 0
 
@@ -222,6 +224,58 @@ def _shadow_gain(
     return gain - _scores(system, bare)[0], k
 
 
+# the shadow edge's test (shadow_edge): pairs of fitted pixels this close (metres), both
+# facing the source at least this much, their normals this close (cosine)
+EDGE_RADIUS_M = 0.04
+EDGE_MIN_FACING = 0.3
+EDGE_MIN_NORMAL_COS = 0.95
+EDGE_MIN_PAIRS = 20
+EDGE_SAMPLES = 2000  # shadowed pixels tested at most (a seeded subset)
+
+
+def shadow_edge(
+    points: np.ndarray,
+    normals: np.ndarray,
+    albedo: np.ndarray,
+    lum: np.ndarray,
+    column: np.ndarray,
+    direction: np.ndarray,
+) -> float:
+    """The step the image shows across a source's predicted shadow edge: for each fitted
+    pixel in its shadow (`column`, V max(0, n . w), zero) the lit pixels of the same
+    material (equal albedo) within EDGE_RADIUS_M (world) whose normals agree; the mean
+    over shadowed pixels of ln(median lit luminance / its own). A real hard shadow where
+    the reconstruction puts it makes a clear step (0.2-1); a boundary drawn across smooth
+    shading (a soft light's contact darkening read as a shadow) about none. 0 with fewer
+    than EDGE_MIN_PAIRS pixels on the edge. points, normals: (M, 3) world; direction: w
+    (3,); the rest (M,). docs/decisions/0043-shadow-edge.md"""
+    from scipy.spatial import cKDTree
+
+    facing = normals @ direction > EDGE_MIN_FACING
+    lit = np.nonzero(facing & (column > 0.0) & (lum > 0.0))[0]
+    dark = np.nonzero(facing & (column == 0.0) & (lum > 0.0))[0]
+    if len(lit) < EDGE_MIN_PAIRS or len(dark) < EDGE_MIN_PAIRS:
+        return 0.0
+    if len(dark) > EDGE_SAMPLES:
+        dark = np.sort(np.random.default_rng(0).choice(dark, EDGE_SAMPLES, replace=False))
+    log_lum = np.log(lum)
+    steps = []
+    near_lit = cKDTree(points[lit]).query_ball_point(points[dark], EDGE_RADIUS_M)
+    for i, near in zip(dark, near_lit, strict=True):
+        if not near:
+            continue
+        j = lit[np.asarray(near)]
+        j = j[
+            (np.abs(albedo[j] - albedo[i]) <= 1e-9 * abs(albedo[i]))
+            & (normals[j] @ normals[i] > EDGE_MIN_NORMAL_COS)
+        ]
+        if len(j):
+            steps.append(float(np.median(log_lum[j])) - log_lum[i])
+    # the mean, not the median: a predicted edge a few cm off the real one leaves most
+    # pairs on one side of it (step 0) and the rest across it (the full step)
+    return float(np.mean(steps)) if len(steps) >= EDGE_MIN_PAIRS else 0.0
+
+
 def _solve_with(system: _System, column: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(x, k) of I = A x + k s for one column s (M,): x (n,) or (n, 3), k scalar or (3,)."""
     ws = system.w * column
@@ -253,6 +307,7 @@ def fit_compact_source(
     search_samples: int = 4000,
     min_gain: float = 0.05,
     min_contrast: float = 0.0,
+    min_edge_step: float = 0.0,
     max_radius_deg: float = math.inf,
     min_pixels: int = 50,
     angular_radius_deg: float = 0.27,
@@ -304,6 +359,7 @@ def fit_compact_source(
     cos = tester.normals @ best
     shadowed = int(np.sum((cos > MIN_FACING) & (column == 0.0)))
     x, k = _solve_with(system, column * albedo)
+    edge = shadow_edge(tester.points, tester.normals, albedo, lum, column, best)
     full_gain = float(
         _shadow_gain(system, (column * albedo)[:, None], (np.maximum(cos, 0.0) * albedo)[:, None])[
             0
@@ -333,6 +389,7 @@ def fit_compact_source(
     if (
         full_gain < min_gain
         or contrast < min_contrast
+        or edge < min_edge_step
         or radius > max_radius_deg
         or lit < min_pixels
         or shadowed < min_pixels
@@ -341,11 +398,14 @@ def fit_compact_source(
         why = (
             f"none: the best direction ({where}) explains {full_gain:.1%} of the residual "
             f"(needs {min_gain:.0%}), {contrast:.0%} more than its mirror (needs "
-            f"{min_contrast:.0%}), its shadows those of a {radius:g}-degree disc (at most "
+            f"{min_contrast:.0%}), a step of {edge:.2f} across its shadow's edge (needs "
+            f"{min_edge_step:g}), its shadows those of a {radius:g}-degree disc (at most "
             f"{max_radius_deg:g}), {lit} pixels lit and {shadowed} in its shadow "
             f"(needs {min_pixels} each)"
         )
-        return CompactFit((), base[:n_sh], none_rgb, why, tested, tester.rays, contrast, radius)
+        return CompactFit(
+            (), base[:n_sh], none_rgb, why, tested, tester.rays, contrast, radius, edge
+        )
     ambient = x[:n_sh]
     k_rgb = None
     ambient_rgb = None
@@ -360,10 +420,13 @@ def fit_compact_source(
     share = float(k) / max(float(k) + ambient_irradiance, 1e-30)
     source = CompactSource(best, float(k), k_rgb, angular_radius_deg, share, full_gain)
     why = (
-        f"1 compact source ({where}): it explains {full_gain:.1%} of the residual, "
+        f"1 compact source ({where}): it explains {full_gain:.1%} of the residual, the image "
+        f"steps by {edge:.2f} across its shadow's edge, "
         f"{lit} pixels lit and {shadowed} in its shadow"
     )
-    return CompactFit((source,), ambient, ambient_rgb, why, tested, tester.rays, contrast, radius)
+    return CompactFit(
+        (source,), ambient, ambient_rgb, why, tested, tester.rays, contrast, radius, edge
+    )
 
 
 DEPTH_MESH_STRIDE = 2  # the current frame's depth mesh at every 2nd pixel (a quarter)

@@ -532,6 +532,7 @@ class Pipeline:
                 "search_samples": p.compact_search_samples,
                 "min_gain": p.compact_min_gain,
                 "min_contrast": p.compact_min_contrast,
+                "min_edge_step": p.compact_min_edge_step,
             },
             seed=self.config.seed,
             with_depth=p.compact_depth_mesh,
@@ -543,6 +544,7 @@ class Pipeline:
             # arrays of maps on the wire, SPEC.md "diagnostics")
             "kept": len(fit.sources),
             "gain": [float(s.gain) for s in fit.sources],
+            "edge_step": float(fit.edge_step),
         }
         return fit
 

@@ -9,7 +9,12 @@ import pytest
 
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import sh
-from arlight.pipeline.compact_light import ShadowTester, candidate_directions, fit_compact_source
+from arlight.pipeline.compact_light import (
+    ShadowTester,
+    candidate_directions,
+    fit_compact_source,
+    shadow_edge,
+)
 from arlight.pipeline.light_estimation import penalty_matrix
 from arlight.pipeline.object_space_transfer import OcclusionScene, SurfaceMesh
 
@@ -47,7 +52,7 @@ def _observe(points, normals, scene, sun, sun_power, ambient):
     return irr + sun_term
 
 
-def _fit(points, normals, scene, lum):
+def _fit(points, normals, scene, lum, min_edge_step=0.0):
     bands = 3
     per_coeff = np.repeat(sh.lambert_band_factors(bands), [2 * l + 1 for l in range(bands)])
     design = sh.sh_basis(normals, bands) * per_coeff  # unoccluded transfer
@@ -64,6 +69,7 @@ def _fit(points, normals, scene, lum):
         tester,
         UP,
         search_samples=3000,
+        min_edge_step=min_edge_step,
     )
 
 
@@ -102,6 +108,36 @@ def test_no_source_under_an_overcast_sky():
     fit = _fit(points, normals, scene, lum)
     assert fit.sources == ()
     assert fit.reason.startswith("none")
+
+
+def test_the_image_steps_across_a_real_shadow_edge_and_not_across_smooth_shading():
+    """A sun's hard shadow makes a step across the edge the reconstruction predicts
+    (ln((ambient + sun) / ambient) on the white ground); the same predicted edge drawn over
+    smooth shading (a soft light's gradual darkening) shows about none."""
+    points, normals, scene = _scene()
+    ambient = _ambient()
+    sun = _sun(35.0, 20.0)
+    column = ShadowTester([(scene, np.eye(4))], points, normals).shading(sun[None])[:, 0]
+    ones = np.ones(len(points))
+    hard = _observe(points, normals, scene, sun, 2.0, ambient)
+    expected = math.log((0.3 * math.pi + 2.0 * math.sin(math.radians(35.0))) / (0.3 * math.pi))
+    assert shadow_edge(points, normals, ones, hard, column, sun) == pytest.approx(expected, rel=0.1)
+    # darker towards the boxes, smoothly (half as bright at 1 m)
+    smooth = 0.3 * math.pi * (0.5 + 0.5 * np.minimum(np.hypot(points[:, 0], points[:, 2]), 1.0))
+    assert abs(shadow_edge(points, normals, ones, smooth, column, sun)) < 0.03
+    # no pixels on the edge of another material: nothing to compare
+    other = np.where(column > 0.0, 1.0, 2.0)
+    assert shadow_edge(points, normals, other, hard, column, sun) == 0.0
+
+
+def test_a_source_without_a_step_at_its_shadow_edge_is_dropped():
+    points, normals, scene = _scene()
+    lum = _observe(points, normals, scene, _sun(35.0, 20.0), 2.0, _ambient())
+    kept = _fit(points, normals, scene, lum, min_edge_step=0.03)
+    assert len(kept.sources) == 1 and "steps by" in kept.reason
+    dropped = _fit(points, normals, scene, lum, min_edge_step=2.0 * kept.edge_step)
+    assert dropped.sources == ()
+    assert "across its shadow's edge (needs" in dropped.reason
 
 
 def test_candidates_cover_the_upper_hemisphere_only():
