@@ -48,7 +48,7 @@ from arlight.pipeline.light_estimation import (
     side_share,
     with_view_and_steadiness,
 )
-from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer
+from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer, OcclusionScene
 from arlight.pipeline.probe import (
     DistantLight,
     ProbeResult,
@@ -178,6 +178,9 @@ class _Front:
     render_light: RenderLight | None
     timings: dict[str, float]
     diagnostics: Diagnostics
+    # the reconstruction the compact sources' shadows are tested and drawn against, taken
+    # right after this frame's fusion (None without compact sources): `_back` reads no volume
+    occluder: OcclusionScene | None = None
 
 
 def _json_float(x: float) -> float | None:
@@ -323,13 +326,9 @@ class Pipeline:
         keeps one core busy, the stages before it two): more frames a second for a frame
         of latency (docs/decisions/0042-overlapped-frames.md). The results differ from
         `process`'s only in that a frame's auxiliary "light" buffer points where the frame
-        before last put the light, not the last. With compact sources (they read the volume
-        the next frame fuses) the frames run one at a time. FrameError is raised when the
-        bad frame's result is due."""
-        if self.config.estimation.compact_sources > 0:
-            for frame in frames:
-                yield self.process(frame, render_light)
-            return
+        before last put the light, not the last. The back half reads no volume: the compact
+        sources' occluder is taken in the front half, after the frame's fusion. FrameError
+        is raised when the bad frame's result is due."""
         # leaving the block (also when the consumer stops early) waits for a running front
         with concurrent.futures.ThreadPoolExecutor(1, "arlight-front") as front_thread:
             pending: concurrent.futures.Future[_Front] | None = None
@@ -397,6 +396,11 @@ class Pipeline:
             )
             self._last_transfer = (geometry, transfer)
             self._still.did_work(pose, valid.depth_m)
+        occluder = None
+        if self.config.estimation.compact_sources > 0:
+            check("LightEst")
+            with _stage(timings, "LightEst"):  # the compact sources' part, timed as theirs
+                occluder = self._compact().occluder(geometry.points, self._volume)
         return _Front(
             float(frame.timestamp),
             full,
@@ -410,7 +414,17 @@ class Pipeline:
             render_light,
             timings,
             diagnostics,
+            occluder,
         )
+
+    def _compact(self) -> CompactLightStage:
+        """The session's compact-source stage (made on first use; with rt_method raycast the
+        transfer's scene of the volume serves it too)."""
+        if self._compact_stage is None:
+            self._compact_stage = CompactLightStage(
+                self.config.aux.aux_update_interval, self._raycaster
+            )
+        return self._compact_stage
 
     def _back(self, front: _Front, check: Callable[[str], None]) -> FrameResult:
         """LightEst (with the compact sources and the temporal filter), Probe, Rendering."""
@@ -429,7 +443,7 @@ class Pipeline:
                 checkpoint=lambda: check("LightEst"),
             )
             self.last_compact = self._compact_sources(
-                estimate, geometry, transfer, pose, up_world, diagnostics
+                estimate, geometry, transfer, pose, up_world, front.occluder, diagnostics
             )
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:
@@ -474,6 +488,7 @@ class Pipeline:
                     estimate,
                     front.render_light,
                     probe,
+                    front.occluder,
                 )
         self.frames_processed += 1
         diagnostics.update(
@@ -505,20 +520,17 @@ class Pipeline:
         transfer: TransferSamples,
         pose: np.ndarray,
         up_world: np.ndarray | None,
+        occluder: OcclusionScene | None,
         diagnostics: Diagnostics,
     ) -> CompactFit | None:
         """Compact sources beside the SH (compact_sources > 0): found from the shadows the
-        reconstruction casts (pipeline/compact_light.py); what was found, and why, to
-        diagnostics["compact"]."""
+        reconstruction (`occluder`, taken by `_front`) casts (pipeline/compact_light.py);
+        what was found, and why, to diagnostics["compact"]."""
         p = self.config.estimation
-        if p.compact_sources <= 0 or estimate.fit is None:
+        if p.compact_sources <= 0 or estimate.fit is None or occluder is None:
             return None
-        if self._compact_stage is None:
-            # with rt_method raycast, the transfer's scene of the volume serves here too
-            self._compact_stage = CompactLightStage(
-                self.config.aux.aux_update_interval, self._raycaster
-            )
-        fit, rays = self._compact_stage.fit(
+        fit, rays = self._compact().fit_against(
+            occluder,
             estimate.fit,
             geometry.points,
             geometry.normals,
@@ -526,7 +538,6 @@ class Pipeline:
             transfer.pixel_u,
             pose,
             up_world if up_world is not None else self._up_world,
-            self._volume,
             {
                 "candidates": p.compact_candidates,
                 "search_samples": p.compact_search_samples,
@@ -608,10 +619,12 @@ class Pipeline:
         estimate: LightEstimate,
         render_light: RenderLight | None = None,
         probe: ProbeResult | None = None,
+        occluder: OcclusionScene | None = None,
     ) -> np.ndarray | None:
         """Rendering: the composite (H, W, 3) uint8 of the placed virtual objects, or None
         (the input) while none is placed. The estimate knows albedo x light only (its mean
-        albedo is 1): the light is scaled by pi / render_real_albedo into image units."""
+        albedo is 1): the light is scaled by pi / render_real_albedo into image units;
+        occluder: the reconstruction that shadows the compact sources (`_Front.occluder`)."""
         if self._renderer is None:
             self._place_anchored(geometry, pose)
             if self._renderer is None:
@@ -637,7 +650,7 @@ class Pipeline:
             environment,
             probe,
         )
-        drawn = self._with_compact_sources(inputs, geometry) if render_light is None else inputs
+        drawn = self._with_compact_sources(inputs, occluder) if render_light is None else inputs
         output = self._renderer.render(drawn)
         self.last_render = (inputs, output)  # the frame's light as the SH holds it
         return output.composite
@@ -650,14 +663,16 @@ class Pipeline:
         fit = self.last_compact
         return fit.sources[0] if fit is not None and fit.sources else None
 
-    def _with_compact_sources(self, inputs: RenderInputs, geometry: _Geometry) -> RenderInputs:
+    def _with_compact_sources(
+        self, inputs: RenderInputs, occluder: OcclusionScene | None
+    ) -> RenderInputs:
         """The inputs that draw the frame's compact sources with their shadows
         (compact_render): the light fitted beside them as light_sh, the sources, and the
-        reconstruction that shadows them; `inputs` itself where there is none."""
+        reconstruction that shadows them (`occluder`, taken by `_front`); `inputs` itself
+        where there is none."""
         fit = self.last_compact
         if fit is None or not fit.sources or not self.config.estimation.compact_render:
             return inputs
-        assert self._compact_stage is not None  # it made `fit`
         scale = math.pi / self.config.render.render_real_albedo
         # the light fitted beside the sources (this frame's: the filter holds the SH's)
         ambient = np.zeros(len(inputs.light_sh))
@@ -671,7 +686,7 @@ class Pipeline:
             inputs,
             light_sh=ambient,
             sources=sources,
-            real_occluder=self._compact_stage.occluder(geometry.points, self._volume),
+            real_occluder=occluder,
         )
 
     def _render_light(

@@ -46,14 +46,6 @@ def test_a_bad_frame_raises_when_its_result_is_due(scene):
         next(results)
 
 
-def test_with_compact_sources_the_frames_run_one_at_a_time(scene):
-    config = Config.from_preset("fast", compact_sources=1, **SMALL)
-    serial = [r.sh for r in map(Pipeline(config, scene.camera).process, scene.frames[:3])]
-    overlapped = [r.sh for r in Pipeline(config, scene.camera).process_overlapped(scene.frames[:3])]
-    for a, b in zip(overlapped, serial, strict=True):
-        np.testing.assert_array_equal(a, b)
-
-
 def test_overlapped_results_do_not_depend_on_the_threads_timing(scene):
     """The light the next frame's aux buffer faces is taken when it is submitted: two runs
     give the same results bit for bit."""
