@@ -337,8 +337,9 @@ class EstimationParams:
     compact_sources: int = 0
     compact_min_gain: float = 0.03  # of the SH fit's residual its shadow must explain (0035)
     compact_min_contrast: float = 0.0  # its gain over its mirrored direction's (0 = off)
-    # ln step the image must show across its shadow's edge (0 = off; decision 0043)
-    compact_min_edge_step: float = 0.03
+    # ln step the image must show across its shadow's edge (0 = off: held out by map it did
+    # not beat a gain threshold alone, docs/decisions/0043-shadow-edge.md)
+    compact_min_edge_step: float = 0.0
     compact_candidates: int = 256  # directions tested over the upper hemisphere
     compact_search_samples: int = 4000  # fitted pixels whose shadows are tested per direction
     compact_render: bool = True  # draw them with hard shadows both ways (pipeline/sun_shadows.py)
