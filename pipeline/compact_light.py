@@ -26,12 +26,15 @@ gets none, and `CompactFit.reason` says why.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from arlight.core.frames import Confidence
 from arlight.pipeline import sh
+from arlight.pipeline.light_estimation import LOW_CONFIDENCE
 from arlight.pipeline.sun_shadows import disc_directions, perpendicular_basis
 
 # rays start this far above the surface (metres, along its normal) and count hits from
@@ -274,6 +277,31 @@ def shadow_edge(
     # the mean, not the median: a predicted edge a few cm off the real one leaves most
     # pairs on one side of it (step 0) and the rest across it (the full step)
     return float(np.mean(steps)) if len(steps) >= EDGE_MIN_PAIRS else 0.0
+
+
+# the ln step across a source's shadow edge that counts as a clear shadow (lit 1.65 times
+# the shadowed): confidence 1 from here on (decision 0043; the ranking does not depend on it)
+EDGE_STEP_FULL = 0.5
+
+
+def source_confidence(conf: Confidence, edge_step: float) -> Confidence:
+    """The confidence of a frame whose reported direction is a kept compact source's: how
+    clear the step across its shadow's edge is, min(1, edge_step / EDGE_STEP_FULL), in
+    place of the SH fit's value (which judges the normals' spread, not shadows). Over the
+    kept sources of the corpus and the shared set it ranks the source's error at Spearman
+    -0.51 where the SH fit's confidence reaches -0.15 (decision 0043). The other fields of
+    `conf` are kept."""
+    value = float(np.clip(edge_step / EDGE_STEP_FULL, 0.0, 1.0))
+    reason = (
+        ""
+        if value >= LOW_CONFIDENCE
+        else (
+            f"the direction is a compact source's, and the image steps by only "
+            f"{max(edge_step, 0.0):.2f} across its shadow's edge ({EDGE_STEP_FULL} is a "
+            "clear shadow)"
+        )
+    )
+    return dataclasses.replace(conf, value=value, reason=reason)
 
 
 def _solve_with(system: _System, column: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from arlight.core.frames import Confidence
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import sh
 from arlight.pipeline.compact_light import (
@@ -14,6 +15,7 @@ from arlight.pipeline.compact_light import (
     candidate_directions,
     fit_compact_source,
     shadow_edge,
+    source_confidence,
 )
 from arlight.pipeline.light_estimation import penalty_matrix
 from arlight.pipeline.object_space_transfer import OcclusionScene, SurfaceMesh
@@ -168,3 +170,13 @@ def test_shadows_from_either_mesh():
     moved = OcclusionScene(SurfaceMesh(*_box((-2.0, 0.5, 0.0), (0.1, 0.1, 0.1)), in_world=False))
     tester = ShadowTester([(first, np.eye(4)), (moved, pose)], points, normals)
     assert np.allclose(tester.shading(up)[:, 0], [0.0, 0.0, 1.0])
+
+
+def test_a_source_is_as_trusted_as_its_shadow_edge_is_clear():
+    conf = Confidence(samples=1000, condition_number=30.0, bands_estimated=3, value=0.05)
+    clear = source_confidence(conf, 0.8)
+    assert clear.value == 1.0 and clear.reason == "" and clear.samples == 1000
+    faint = source_confidence(conf, 0.05)
+    assert faint.value == pytest.approx(0.1)
+    assert "compact source" in faint.reason and "0.05" in faint.reason
+    assert source_confidence(conf, -0.2).value == 0.0
