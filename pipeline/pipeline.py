@@ -180,6 +180,7 @@ class _Front:
     diagnostics: Diagnostics
     # the reconstruction the compact sources' shadows are tested and drawn against, taken
     # right after this frame's fusion (None without compact sources): `_back` reads no volume
+    # (what overlapping then gains: docs/results/speed.md, "compact sources on")
     occluder: OcclusionScene | None = None
 
 
