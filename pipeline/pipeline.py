@@ -37,7 +37,12 @@ from arlight.core.frames import (
 )
 from arlight.pipeline import sh
 from arlight.pipeline.color import intensity_from_rgb, luminance, srgb_to_linear
-from arlight.pipeline.compact_light import CompactFit, CompactLightStage, CompactSource
+from arlight.pipeline.compact_light import (
+    CompactFit,
+    CompactLightStage,
+    CompactSource,
+    source_confidence,
+)
 from arlight.pipeline.config import Config, RtMethod
 from arlight.pipeline.depth_filter import backend_for_device, filter_depth, normals_from_depth
 from arlight.pipeline.horizon import SupportPlane, support_plane
@@ -454,7 +459,7 @@ class Pipeline:
                 self._light_direction(estimate.sh) if source is None else source.direction
             )
             confidence = self._reported_confidence(
-                estimate, raw_direction, transfer, geometry, pose
+                estimate, raw_direction, transfer, geometry, pose, source is not None
             )
             direction_world = (
                 self._light_direction(coeffs) if source is None else source.direction.copy()
@@ -567,19 +572,26 @@ class Pipeline:
         transfer: TransferSamples,
         geometry: _Geometry,
         pose: np.ndarray,
+        from_source: bool = False,
     ) -> Confidence:
         """The estimate's confidence times what one fit cannot know of itself
         (`light_estimation.with_view_and_steadiness`): the share of side-facing normals
         among the fitted pixels (against this frame's support plane, or the last one seen)
         and the jump of this frame's direction `raw` (world, before the filter) from the
         filtered one before it (called
-        before `_light_world` takes this frame's)."""
+        before `_light_world` takes this frame's). from_source: `raw` is a kept compact
+        source's direction, found from shadows, not from the normals: its confidence is how
+        clear the step across its shadow's edge is (`compact_light.source_confidence`), and
+        the view of side-facing normals does not count."""
         up = self._up_world
         normals = geometry.normals[transfer.pixel_v, transfer.pixel_u].astype(np.float64)
         side = side_share(normals @ pose[:3, :3].T, up)
         jump = 0.0
         if self._light_world is not None and np.any(raw):
             jump = math.degrees(math.acos(float(np.clip(raw @ self._light_world, -1.0, 1.0))))
+        if from_source and self.last_compact is not None:
+            base = source_confidence(estimate.confidence, self.last_compact.edge_step)
+            return with_view_and_steadiness(base, None, jump)
         return with_view_and_steadiness(estimate.confidence, side, jump)
 
     def _geometry_and_transfer(

@@ -23,7 +23,7 @@ from conftest import (
 from arlight.core.frames import CompactLight, FrameResult, compact_lights
 from arlight.offline import frame_record
 from arlight.pipeline import sh
-from arlight.pipeline.compact_light import CompactSource
+from arlight.pipeline.compact_light import EDGE_STEP_FULL, CompactSource
 from arlight.pipeline.config import Config
 from arlight.pipeline.engine_export import main_source_from_wire
 from arlight.pipeline.pipeline import Pipeline
@@ -90,6 +90,16 @@ class TestFrameResult:
                 np.testing.assert_allclose(got.dominant_direction_world, light.direction_world)
                 assert _angle_deg(light.direction_world, sun) < 10.0
         assert kept == 2, "the sunny scene keeps a source in each frame"
+
+    def test_a_source_frame_is_as_confident_as_its_shadow_edge_is_clear(self, sunny):
+        """The reported direction is the source's, found from shadows: the confidence is the
+        step across its shadow's edge (times the steadiness), not the SH fit's normals."""
+        first, fit, _ = sunny[0]
+        assert fit.sources and fit.edge_step > 0.0
+        assert first.confidence.value == pytest.approx(min(1.0, fit.edge_step / EDGE_STEP_FULL))
+        assert first.confidence.side_share is None  # the view of side-facing normals: no factor
+        for got, fit, _ in sunny[1:]:
+            assert got.confidence.value <= min(1.0, fit.edge_step / EDGE_STEP_FULL) + 1e-12
 
     def test_none_without_compact_sources(self):
         seq = make_sequence(num_frames=1, width=96, height=72, seed=1, sensor_noise=False)
