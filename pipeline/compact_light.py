@@ -492,38 +492,6 @@ class CompactLightStage:
         """The reconstruction as an OcclusionScene (cached: see the class docstring)."""
         return self._scenes.scene(points_cam, volume)
 
-    def fit(
-        self,
-        fit_state,
-        points_cam: np.ndarray,
-        normals_cam: np.ndarray,
-        pixel_v: np.ndarray,
-        pixel_u: np.ndarray,
-        pose: np.ndarray,
-        up_world: np.ndarray | None,
-        volume,
-        options: dict,
-        seed: int = 0,
-        with_depth: bool = False,
-    ) -> tuple[CompactFit, int]:
-        """(the fit, rays cast) for an estimate's FitState; points_cam, normals_cam: (H, W, 3)
-        the frame's filtered geometry (camera frame); pixel_v, pixel_u: the fitted samples'
-        pixels (FitState.rows index them); pose: world_from_cam (4, 4); with_depth: test
-        against the current frame's depth mesh as well (`occluders`)."""
-        return self.fit_against(
-            self.occluder(points_cam, volume),
-            fit_state,
-            points_cam,
-            normals_cam,
-            pixel_v,
-            pixel_u,
-            pose,
-            up_world,
-            options,
-            seed,
-            with_depth,
-        )
-
     def fit_against(
         self,
         occluder,
@@ -538,9 +506,13 @@ class CompactLightStage:
         seed: int = 0,
         with_depth: bool = False,
     ) -> tuple[CompactFit, int]:
-        """`fit` against an occluder taken earlier (`occluder`, e.g. right after the frame's
-        fusion, the volume having fused the next frame since: Pipeline.process_overlapped);
-        it reads no volume."""
+        """(the fit, rays cast) for an estimate's FitState against an occluder taken earlier
+        (`occluder`, e.g. right after the frame's fusion, the volume having fused the next
+        frame since: Pipeline.process_overlapped); it reads no volume. points_cam,
+        normals_cam: (H, W, 3) the frame's filtered geometry (camera frame); pixel_v,
+        pixel_u: the fitted samples' pixels (FitState.rows index them); pose: world_from_cam
+        (4, 4); with_depth: test against the current frame's depth mesh as well
+        (`occluders`)."""
         scenes = occluders(occluder, points_cam, pose, with_depth)
         v, u = pixel_v[fit_state.rows], pixel_u[fit_state.rows]
         rot, origin = pose[:3, :3], pose[:3, 3]
