@@ -44,6 +44,7 @@ import numpy as np
 import zmq
 
 from arlight.client.connection import Received, open_dealer, receive_message
+from arlight.client.stop_signals import uninterrupted
 from arlight.protocols import (
     PROTOCOL_VERSION,
     Bye,
@@ -322,12 +323,13 @@ class DisplayClient:
         for k, v in result.timings_ms.items():
             s.timings_ms.setdefault(k, []).append(v)
         self._window.append((now_m, latency))
-        if self._jsonl is not None:
-            self._jsonl.write(json.dumps(record) + "\n")
-            self._jsonl.flush()
-        self._write_composite(result)
-        if self.recorder is not None:
-            self.recorder.write_result(result, record, parts=got.parts or None)
+        with uninterrupted():  # a stop signal waits: every file holds this Result or none does
+            if self._jsonl is not None:
+                self._jsonl.write(json.dumps(record) + "\n")
+                self._jsonl.flush()
+            self._write_composite(result)
+            if self.recorder is not None:
+                self.recorder.write_result(result, record, parts=got.parts or None)
         if self.foxglove is not None:
             from arlight.client.foxglove_sinks import publish_result
 
