@@ -7,7 +7,9 @@ distinct names in 0.5 s and held them by saying Hello again every minute.
   until they close or expire);
 - a client's Hellos are rate-limited: a bucket of `HELLO_BURST` refilled at
   `hellos_per_client_s` a second; a Hello takes one token, and one more per
-  HELLO_TRIANGLES_PER_TOKEN triangles of its virtual scene.
+  HELLO_TRIANGLES_PER_TOKEN triangles of its virtual scene, up front; once handled, the time it
+  held the I/O thread is charged beyond that (`HelloLimiter.settle`), so a client's Hellos hold
+  the I/O thread at most HELLO_IO_SHARE of the time on a machine of any speed.
 
 Local peers (loopback, ipc) without keys share one address, so each of their connections is a
 client of its own: a local program that opens many connections is held only by
@@ -54,6 +56,10 @@ def _local(address: str) -> bool:
 # it takes one token more per HELLO_TRIANGLES_PER_TOKEN triangles, so a client's large scenes
 # keep the I/O thread busy at most about 40 % of the time.
 HELLO_TRIANGLES_PER_TOKEN = 200_000
+# The most of the I/O thread's time a client's Hellos may take: a token stands for
+# HELLO_IO_SHARE / rate seconds of it. The triangle count above is only the up-front estimate:
+# CI's two busy cores took about twice the development machine's 0.9 s (docs/reliability.md).
+HELLO_IO_SHARE = 0.4
 
 
 def hello_cost(triangles: int) -> float:
@@ -81,12 +87,28 @@ class HelloLimiter:
         bucket = self._buckets.get(client)
         if bucket is None:
             bucket = self._buckets[client] = Bucket(float(self.burst), now)
-        bucket.tokens = min(self.burst, bucket.tokens + (now - bucket.stamp) * self.rate_per_s)
-        bucket.stamp = now
+        self._refill(bucket, now)
         if bucket.tokens < cost:
             return False
         bucket.tokens -= cost
         return True
+
+    def settle(self, client: str, now: float, cost: float, busy_s: float) -> None:
+        """Charge a Hello that `allow` let in for `cost` tokens with the `busy_s` seconds it then
+        held the I/O thread, beyond that cost: the bucket may fall below zero (down to -burst),
+        and the client's next Hellos are refused until it has refilled."""
+        bucket = self._buckets.get(client)
+        if bucket is None or self.rate_per_s <= 0:
+            return
+        self._refill(bucket, now)
+        owed = busy_s * self.rate_per_s / HELLO_IO_SHARE - cost
+        if owed > 0:
+            bucket.tokens = max(-float(self.burst), bucket.tokens - owed)
+
+    def _refill(self, bucket: Bucket, now: float) -> None:
+        elapsed = max(0.0, now - bucket.stamp)
+        bucket.tokens = min(self.burst, bucket.tokens + elapsed * self.rate_per_s)
+        bucket.stamp = max(bucket.stamp, now)
 
     def forget_idle(self, now: float) -> None:
         """Drop the buckets of clients silent long enough to be full again (housekeeping)."""

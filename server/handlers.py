@@ -8,6 +8,7 @@ Every refusal is an Error to the peer; a bad message never stops the server.
 from __future__ import annotations
 
 import logging
+import time
 from typing import TYPE_CHECKING
 
 from arlight.protocols import (
@@ -27,7 +28,7 @@ from arlight.protocols import (
 )
 from arlight.protocols.fields import MAX_INT as MAX_SEQ  # a Frame's seq: 0..2^63-1
 from arlight.server.admission import capture_session, display_admitted
-from arlight.server.clients import HELLO_TRIANGLES_PER_TOKEN, hello_cost
+from arlight.server.clients import HELLO_IO_SHARE, HELLO_TRIANGLES_PER_TOKEN, hello_cost
 from arlight.server.frame_queue import Job, Offer
 from arlight.server.housekeeping import close_session, detach_peer
 from arlight.server.logtext import printable
@@ -77,7 +78,8 @@ def handle_message(
     if isinstance(message, Hello):
         scene = message.config.scene
         triangles = 0 if scene is None else sum(len(o.triangles) for o in scene.objects)
-        if not server.hellos.allow(client, now, hello_cost(triangles)):
+        cost = hello_cost(triangles)
+        if not server.hellos.allow(client, now, cost):
             server._send_error(
                 identity,
                 Error(
@@ -86,12 +88,14 @@ def handle_message(
                     retryable=False,
                     message=f"more than {server.options.hellos_per_client_s:g} Hellos a second "
                     "from this client (`arlight serve --hellos-per-client`; a scene's every "
-                    f"{HELLO_TRIANGLES_PER_TOKEN} triangles count as one more); wait and say "
+                    f"{HELLO_TRIANGLES_PER_TOKEN} triangles count as one more, and Hellos may "
+                    f"hold the server at most {HELLO_IO_SHARE:.0%} of the time); wait and say "
                     "Hello again",
                 ),
             )
             return
         on_hello(server, identity, message, now, client)
+        server.hellos.settle(client, time.monotonic(), cost, busy_s=time.monotonic() - now)
     elif isinstance(message, Heartbeat):
         if peer is None:  # e.g. after a server restart: tell the client to say Hello again
             server._send_error(

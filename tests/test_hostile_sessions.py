@@ -116,6 +116,35 @@ def test_hellos_are_rate_limited_per_client(make_server):
     peer.close()
 
 
+def test_a_slow_hello_is_charged_its_time_on_the_io_thread():
+    """Priced by triangles, two 2 M-triangle Hellos fit the burst on a machine of any speed; on
+    a slow one (2 s each, not 0.9 s) the measured time takes the rest of the bucket."""
+    from arlight.server.clients import HELLO_IO_SHARE, HelloLimiter, hello_cost
+
+    cost = hello_cost(1_990_000)
+    fast, slow = HelloLimiter(5.0), HelloLimiter(5.0)
+    for limiter, busy_s in ((fast, 0.9), (slow, 2.0)):
+        assert limiter.allow("c", 0.0, cost)
+        limiter.settle("c", busy_s, cost, busy_s)
+    assert fast.allow("c", 0.9, cost)  # 0.9 s at 40 %: what the triangle price says
+    assert not slow.allow("c", 2.0, cost)
+    # 20 - cost, + 10 refilled in the 2 s, - (2 s x 5 / HELLO_IO_SHARE - cost) owed: 5 left
+    left = min(20.0, 20.0 - cost + 2.0 * 5.0) - (2.0 * 5.0 / HELLO_IO_SHARE - cost)
+    wait_s = (cost - left) / 5.0
+    assert not slow.allow("c", 2.0 + wait_s - 0.1, cost)
+    assert slow.allow("c", 2.0 + wait_s + 0.1, cost)
+
+
+def test_a_cheap_hello_is_not_charged_beyond_its_token():
+    from arlight.server.clients import HelloLimiter
+
+    limiter = HelloLimiter(2.0)
+    for _ in range(20):
+        assert limiter.allow("c", 0.0, 1.0)
+        limiter.settle("c", 0.0, 1.0, busy_s=0.002)
+    assert not limiter.allow("c", 0.0, 1.0)
+
+
 def test_a_key_is_one_client_across_its_connections(make_server, tmp_path):
     """Under CURVE the limit follows the key: new connections do not reset it."""
     import zmq.auth
