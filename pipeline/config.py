@@ -313,7 +313,9 @@ class EstimationParams:
     # both presets (docs/decisions/0002-regularisation-4e-3.md)
     regularization: float = 4e-3
     min_samples: int = 200  # fewer valid pixels: no estimate (confidence 0)
-    light_max_samples: int = 50000  # larger sets of usable pixels are randomly sub-sampled
+    # larger sets of usable pixels are randomly sub-sampled: 30000 (50000 until 2026-12-04) in
+    # every preset but mobile, held out by map: docs/decisions/0044-fewer-fit-samples.md
+    light_max_samples: int = 30000
     # weight of the prior holding radiance below the horizon of the surface the scene stands
     # on to that of a lit ground (0 = off); always on with rt_horizon (no pixel sees there),
     # otherwise only when the light comes out below that horizon
@@ -544,14 +546,6 @@ def _flat_overrides(changes: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-# fast fits the light to at most 30000 pixels (full: 50000; mobile below): on the 15 shared
-# sequences (all 210 frames, upper-hemisphere median of the per-sequence medians) fast with
-# 20000 / 30000 / 50000: 15.2 / 14.0 / 14.3 degrees at 198 / 201 / 232 ms per frame
-# (`arlight bench ../shared/data/synthetic --presets fast --sweep light_max_samples=...`):
-# differences of this size are the random choice of pixels, the time is not
-_SPEED_FIRST = {"light_max_samples": 30000}
-
-
 def _preset_overrides(preset: Preset) -> dict[str, Any]:
     if preset is Preset.FAST:
         # analysed at 320 pixels wide, segments at 160x120, a 128^3 volume (each held out by
@@ -562,7 +556,6 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             "work_width": 320,
             "segment_scale": 4,
             "volume_resolution": 128,
-            **_SPEED_FIRST,
         }
     if preset is Preset.MOBILE:
         # and, speed first, segments at quarter resolution on at most 10000 pixels (all
@@ -577,7 +570,6 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             "denoise": False,
             "rt_subsample": 4,
             "render_subsample": 4,
-            **_SPEED_FIRST,
             "segment_scale": 4,
             "light_max_samples": 10000,
             "block_count": 4000,
