@@ -29,6 +29,7 @@ from arlight.pipeline.pipeline import CANDIDATES_PER_SAMPLE
 from arlight.protocols import SessionConfig
 
 REFERENCE_PIXELS = 640 * 480
+REFERENCE_FIT_SAMPLES = 50000  # light_max_samples of the reference (decision 0044 lowered it)
 # ms per stage, `full` preset, 640 x 480 synthetic frames, warm, 1 Open3D thread, on the
 # 2-core development machine (benchmarks: `arlight bench`); Rendering: the demo scene
 REFERENCE_STAGE_MS = {
@@ -181,7 +182,8 @@ def _factors(
     """Per stage: setting -> its ratio of work to the reference (the product scales the
     stage's reference time). probe: the Hello asked for a reflection probe."""
     v, f, t, e, r, a = c.volume, c.filter, c.transfer, c.estimation, c.render, c.aux
-    ref = Config()
+    # the configuration REFERENCE_STAGE_MS were measured with (`full` fitted 50000 pixels then)
+    ref = Config().replace(light_max_samples=REFERENCE_FIT_SAMPLES)
     px = pixels / REFERENCE_PIXELS
 
     def window(k: int) -> float:

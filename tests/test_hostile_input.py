@@ -101,10 +101,17 @@ def test_image_payloads_with_endless_headers_are_refused_cheaply(make_server):
 def test_legitimate_images_still_decode(make_server):
     """The bounded header checks keep every image the encoders make."""
     server = make_server(identity_step())
+    codecs = (("jpeg", "png"), ("png", "zstd"), ("raw", "rvl"))
+    # encoded before the Hello: a first encoder's import (numba for RVL: seconds on a busy
+    # machine) between Hello and frames outlasted the fixture's 0.8 s silence limit
+    frames = [
+        frame_parts(seq, value=40 + seq, color_codec=color, depth_codec=depth)
+        for seq, (color, depth) in enumerate(codecs)
+    ]
     peer = RawPeer(server.connect_address)
     peer.hello("plain", mode="lossless")
-    for seq, (color, depth) in enumerate((("jpeg", "png"), ("png", "zstd"), ("raw", "rvl"))):
-        peer.send(frame_parts(seq, value=40 + seq, color_codec=color, depth_codec=depth))
+    for parts in frames:
+        peer.send(parts)
     got = [peer.receive(30) for _ in range(3)]
     assert [type(m).__name__ for m in got] == ["Result"] * 3
     wait_for(lambda: server.snapshot()["sessions"]["plain"]["frames_processed"] == 3, 10)
