@@ -14,13 +14,16 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from arlight.pipeline import light_estimation
 from arlight.pipeline.compact_light import ShadowTester, fit_compact_source
 from arlight.pipeline.config import Config
 from arlight.pipeline.object_space_transfer import OcclusionScene, SurfaceMesh
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run as a script
+from benchmarks.light_replay import estimate_recorded  # noqa: E402
 
 SETTINGS = ((256, 4000), (128, 2000), (64, 1000))
 
@@ -38,16 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"{args.recording}: not a light_replay recording ({exc})")
     frames = []
     for i, m in enumerate(meta[: args.frames]):
-        est = light_estimation.estimate_light(
-            data[f"{i}_transfer"],
-            data[f"{i}_color"],
-            params,
-            data[f"{i}_segments"] if f"{i}_segments" in data else None,
-            data[f"{i}_bounce"] if f"{i}_bounce" in data else None,
-            np.asarray(m["up"]),
-            m["below_horizon_unseen"],
-            seed=m["seed"],
-        )
+        est = estimate_recorded(data, i, m, params)
         mesh = SurfaceMesh(data[f"{i}_mesh_vertices"], data[f"{i}_mesh_triangles"], True)
         frames.append((i, m, est.fit, OcclusionScene(mesh)))
     for candidates, samples in SETTINGS:

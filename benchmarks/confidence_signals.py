@@ -20,11 +20,10 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import spearmanr
 
-from arlight.pipeline import light_estimation
 from arlight.pipeline.config import Config
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from benchmarks.light_replay import _error  # noqa: E402 - the replay's own error measure
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run as a script
+from benchmarks.light_replay import _error, estimate_recorded  # noqa: E402
 
 SIGNALS = ("confidence", "directional", "spread", "horizon", "condition", "residual")
 
@@ -39,16 +38,7 @@ def frame_signals(cache: Path) -> list[dict]:
         up_seen = None
         for i, m in enumerate(json.loads(str(data["meta"]))):
             up = None if m["up"] is None else np.asarray(m["up"])
-            est = light_estimation.estimate_light(
-                data[f"{i}_transfer"],
-                data[f"{i}_color"],
-                params,
-                data[f"{i}_segments"] if f"{i}_segments" in data else None,
-                data[f"{i}_bounce"] if f"{i}_bounce" in data else None,
-                up,
-                m["below_horizon_unseen"],
-                seed=m["seed"],
-            )
+            est = estimate_recorded(data, i, m, params)
             up_seen = up if up is not None else up_seen
             truth = np.asarray(m["truth_upper_camera"])
             c = est.confidence

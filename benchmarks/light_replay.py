@@ -222,6 +222,21 @@ def _frame_rotations(truth_dir: Path | None, sequence: str) -> list[float] | Non
     return [float(f.get("env_rotation_deg", 0.0)) for f in data["frames"]]
 
 
+def estimate_recorded(data, i: int, meta: dict, params) -> light_estimation.LightEstimate:
+    """`estimate_light` on frame i of a recorded sequence (`data`: its .npz, `meta`: that
+    frame's entry of data["meta"]) with EstimationParams `params`."""
+    return light_estimation.estimate_light(
+        data[f"{i}_transfer"],
+        data[f"{i}_color"],
+        params,
+        data[f"{i}_segments"] if f"{i}_segments" in data else None,
+        data[f"{i}_bounce"] if f"{i}_bounce" in data else None,
+        None if meta["up"] is None else np.asarray(meta["up"]),
+        meta["below_horizon_unseen"],
+        seed=meta["seed"],
+    )
+
+
 def replay(
     cache: Path,
     overrides: dict,
@@ -245,16 +260,7 @@ def replay(
             if hold_out_maps and m["env_map"]:
                 params = dataclasses.replace(params, light_prior_exclude=m["env_map"])
             up = None if m["up"] is None else np.asarray(m["up"])
-            est = light_estimation.estimate_light(
-                data[f"{i}_transfer"],
-                data[f"{i}_color"],
-                params,
-                data[f"{i}_segments"] if f"{i}_segments" in data else None,
-                data[f"{i}_bounce"] if f"{i}_bounce" in data else None,
-                up,
-                m["below_horizon_unseen"],
-                seed=m["seed"],
-            )
+            est = estimate_recorded(data, i, m, params)
             if up is not None:
                 up_seen = up
             light = est.sh
