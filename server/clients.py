@@ -53,8 +53,8 @@ def _local(address: str) -> bool:
 
 # A Hello with a virtual scene costs the I/O thread time with its triangles (checks, the cost
 # model's crowding count: 2 M triangles, 0.9 s on the development machine, docs/reliability.md);
-# it takes one token more per HELLO_TRIANGLES_PER_TOKEN triangles, so a client's large scenes
-# keep the I/O thread busy at most about 40 % of the time.
+# it takes one token more per HELLO_TRIANGLES_PER_TOKEN triangles up front, about what
+# HELLO_IO_SHARE allows there.
 HELLO_TRIANGLES_PER_TOKEN = 200_000
 # The most of the I/O thread's time a client's Hellos may take: a token stands for
 # HELLO_IO_SHARE / rate seconds of it. The triangle count above is only the up-front estimate:
@@ -98,7 +98,7 @@ class HelloLimiter:
         held the I/O thread, beyond that cost: the bucket may fall below zero (down to -burst),
         and the client's next Hellos are refused until it has refilled."""
         bucket = self._buckets.get(client)
-        if bucket is None or self.rate_per_s <= 0:
+        if bucket is None:
             return
         self._refill(bucket, now)
         owed = busy_s * self.rate_per_s / HELLO_IO_SHARE - cost

@@ -95,7 +95,8 @@ def handle_message(
             )
             return
         on_hello(server, identity, message, now, client)
-        server.hellos.settle(client, time.monotonic(), cost, busy_s=time.monotonic() - now)
+        done = time.monotonic()
+        server.hellos.settle(client, done, cost, busy_s=done - now)
     elif isinstance(message, Heartbeat):
         if peer is None:  # e.g. after a server restart: tell the client to say Hello again
             server._send_error(
