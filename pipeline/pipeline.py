@@ -85,7 +85,14 @@ from arlight.pipeline.segmentation import material_segments
 from arlight.pipeline.still import StillCamera
 from arlight.pipeline.sun_shadows import SourceLight
 from arlight.pipeline.virtual_scene import VirtualScene, resolve_anchors
-from arlight.pipeline.work_resolution import enlarge_geometry, reduce_frame, work_scale
+from arlight.pipeline.volume import upsample_depth
+from arlight.pipeline.work_resolution import (
+    enlarge_geometry,
+    reduce_depth,
+    reduce_frame,
+    reduce_image,
+    work_scale,
+)
 
 log = logging.getLogger(__name__)
 
@@ -840,9 +847,7 @@ class Pipeline:
         """DynGeo: the filter chain (eq. 1-5), normals, points and the support plane."""
         c = self.config
         windows = c.filter.at_width(self.work_camera.width)
-        depth_filtered, _ = filter_depth(
-            depth_m, depth_volume, intensity, windows, backend=backend_for_device(c.device)
-        )
+        depth_filtered = self._filtered_depth(depth_m, depth_volume, intensity)
         normals = normals_from_depth(
             smooth_depth_for_normals(depth_filtered, windows.normal_window), self.work_camera
         )
@@ -855,6 +860,27 @@ class Pipeline:
         ):
             plane = support_plane(normals, points)
         return _Geometry(depth_filtered, normals, points, plane)
+
+    def _filtered_depth(
+        self, depth_m: np.ndarray, depth_volume: np.ndarray | None, intensity: np.ndarray
+    ) -> np.ndarray:
+        """The filter chain's depth at the work resolution; with `filter_width` it runs on
+        the work image reduced (windows scaled to it) and its depth is enlarged back."""
+        c = self.config
+        scale = work_scale(self.work_camera.width, c.filter.filter_width)
+        if scale > 1:
+            depth_m = reduce_depth(depth_m, scale)
+            if depth_volume is not None:
+                depth_volume = reduce_depth(depth_volume, scale)
+            intensity = reduce_image(intensity, depth_m.shape)
+        windows = c.filter.at_width(-(-self.work_camera.width // scale))
+        filtered, _ = filter_depth(
+            depth_m, depth_volume, intensity, windows, backend=backend_for_device(c.device)
+        )
+        if scale == 1:
+            return filtered
+        shape = (self.work_camera.height, self.work_camera.width)
+        return upsample_depth(filtered, scale, shape)
 
     def _transfer(
         self, geometry: _Geometry, color_linear: np.ndarray, pose: np.ndarray, aux_buffers: list

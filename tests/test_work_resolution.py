@@ -6,7 +6,8 @@ import pytest
 from conftest import SMALL
 
 from arlight.core.camera import PinholeCamera
-from arlight.pipeline.color import srgb_to_linear
+from arlight.core.checks import depth_metres
+from arlight.pipeline.color import intensity_from_rgb, srgb_to_linear
 from arlight.pipeline.config import Config, FilterParams
 from arlight.pipeline.pipeline import Pipeline
 from arlight.pipeline.work_resolution import (
@@ -112,3 +113,26 @@ def test_fast_steps_the_same_grid_at_half_resolution():
     """rt_subsample is in input pixels: fast (4) steps 2 work pixels at 640x480."""
     pipeline = Pipeline(Config.from_preset("fast", **SMALL), PinholeCamera.kinect_v1(640, 480))
     assert pipeline.work_scale == 2 and pipeline._transfer_params.rt_subsample == 2
+
+
+def test_depth_filter_at_half_width(scene_160):
+    """filter_width 80 on a 160x120 work image: the filter runs at 80x60 and its depth comes
+    back at 160x120, on smooth surfaces within millimetres of the filter run at full size."""
+    frame = scene_160.frames[0]
+    depths = {}
+    for width in (0, 80):
+        config = Config.from_preset("full", filter_width=width, **SMALL)
+        pipeline = Pipeline(config, scene_160.camera)
+        intensity = intensity_from_rgb(frame.color)
+        depths[width] = pipeline._filtered_depth(depth_metres(frame.depth, frame.depth_scale), None, intensity)
+    full, half = depths[0], depths[80]
+    assert half.shape == full.shape == frame.depth.shape
+    both = (full > 0) & (half > 0)
+    assert both.mean() > 0.9 * (full > 0).mean()
+    assert np.median(np.abs(full[both] - half[both])) < 0.003
+
+
+def test_filter_width_rules():
+    with pytest.raises(ValueError, match="filter_width"):
+        FilterParams(filter_width=10)
+    assert FilterParams(filter_width=320).filter_width == 320
