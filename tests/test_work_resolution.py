@@ -124,7 +124,9 @@ def test_depth_filter_at_half_width(scene_160):
         config = Config.from_preset("full", filter_width=width, **SMALL)
         pipeline = Pipeline(config, scene_160.camera)
         intensity = intensity_from_rgb(frame.color)
-        depths[width] = pipeline._filtered_depth(depth_metres(frame.depth, frame.depth_scale), None, intensity)
+        depths[width] = pipeline._filtered_depth(
+            depth_metres(frame.depth, frame.depth_scale), None, intensity
+        )
     full, half = depths[0], depths[80]
     assert half.shape == full.shape == frame.depth.shape
     both = (full > 0) & (half > 0)
