@@ -210,9 +210,10 @@ class FilterParams:
     normal_window: int = 15  # box window (pixels) over depth before normals (1 = raw depth)
     # the filter chain runs on the work image reduced by the whole factor that keeps it at
     # least this wide, and its depth is enlarged back (0: at the work image's own size);
-    # normals and points stay at the work resolution. 320: `full` 16 % faster at the same
-    # error held out by map (docs/decisions/0046-filter-width.md)
-    filter_width: int = 320
+    # normals and points stay at the work resolution. 320 makes `full` 16 % faster at the
+    # same error held out by map but less steady on real 7-Scenes frames: opt-in
+    # (docs/decisions/0046-filter-width.md)
+    filter_width: int = 0
 
     def __post_init__(self) -> None:
         for key in ("merge_window", "smooth_window", "smooth_subsample", "denoise_window"):
