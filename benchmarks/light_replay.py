@@ -51,6 +51,7 @@ def record(data: list[str], preset: str, out: Path, frames: int | None, override
         *,
         seed=0,
         checkpoint=None,
+        clipped_fraction=None,
     ):
         t = np.asarray(transfer).reshape(-1, np.asarray(transfer).shape[-1])
         keep = _kept_rows(t, color_linear, bounce, segments, params, seed)
@@ -76,6 +77,7 @@ def record(data: list[str], preset: str, out: Path, frames: int | None, override
             below_horizon_unseen,
             seed=seed,
             checkpoint=checkpoint,
+            clipped_fraction=clipped_fraction,
         )
 
     pipeline_module.estimate_light = spy

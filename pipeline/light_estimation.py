@@ -221,6 +221,7 @@ def estimate_light(
     *,
     seed: int = 0,
     checkpoint: Callable[[], None] | None = None,
+    clipped_fraction: float | None = None,
 ) -> LightEstimate:
     """Solve T l = I_c for the distant light (section 5.2, made robust: module docstring).
 
@@ -241,6 +242,8 @@ def estimate_light(
     (Confidence.reason says why, as it does whenever the confidence is low).
     checkpoint: optional, called before each robust iteration; whatever it raises ends the
     fit there (a server's per-frame deadline).
+    clipped_fraction: the share of the scene's pixels that are clipped, when the caller
+    chose the pixels among unclipped ones (`fittable_colour`); else the share among these.
     """
     t = np.asarray(transfer)  # float64 only for the rows used (below): exact either way
     if not np.issubdtype(t.dtype, np.floating):
@@ -296,7 +299,7 @@ def estimate_light(
         normal_spread(t),
         horizon_disagreement_deg(full, up),
         residual,
-        samples.clipped_fraction,
+        samples.clipped_fraction if clipped_fraction is None else clipped_fraction,
     )
     value = _confidence_value(evidence)
     reason = _low_confidence_reason(evidence, max_bands, value)
@@ -365,6 +368,25 @@ class _Samples:
     rows: np.ndarray | None = None  # (M,) indices of these pixels among the inputs' rows
 
 
+def _colour_tests(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of linear RGB (N, 3): luminance, finite, clipped, too dark."""
+    lum = rgb @ LUMA.astype(rgb.dtype, copy=False)
+    with np.errstate(invalid="ignore"):
+        return lum, np.isfinite(lum), rgb.max(axis=1) >= CLIP_LEVEL, ~(lum > DARK_LEVEL)
+
+
+def fittable_colour(color_linear: np.ndarray, among: np.ndarray) -> tuple[np.ndarray, float]:
+    """Which pixels of a linear image (H, W, 3) the fit may use by their colour alone (finite,
+    neither clipped nor near-black), (H, W) bool, and the share of the pixels `among` (H, W)
+    bool that are clipped (for the confidence's reason: emitters, highlights)."""
+    rgb = np.asarray(color_linear).reshape(-1, 3)
+    _, finite, clipped, dark = _colour_tests(rgb)
+    usable = (finite & ~clipped & ~dark).reshape(color_linear.shape[:2])
+    counted = np.asarray(among).reshape(-1)
+    share = float(clipped[counted].mean()) if counted.any() else 0.0
+    return usable, share
+
+
 def _usable_samples(
     t: np.ndarray,
     color_linear: np.ndarray,
@@ -379,11 +401,9 @@ def _usable_samples(
     The tests run in the inputs' own precision over every pixel; only the rows kept are
     converted to float64 (the fit's precision)."""
     rgb_all = np.asarray(color_linear).reshape(-1, 3)
-    lum_all = rgb_all @ LUMA.astype(rgb_all.dtype, copy=False)
+    lum_all, finite, clipped, dark = _colour_tests(rgb_all)
     with np.errstate(invalid="ignore"):
-        finite = np.isfinite(lum_all) & np.isfinite(t).all(axis=1)
-        clipped = rgb_all.max(axis=1) >= CLIP_LEVEL
-        dark = ~(lum_all > DARK_LEVEL)
+        finite &= np.isfinite(t).all(axis=1)
         no_transfer = ~(t[:, 0] > 1e-6)
     usable = finite & ~clipped & ~dark & ~no_transfer
     keep = np.flatnonzero(usable)

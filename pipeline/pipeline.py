@@ -50,6 +50,7 @@ from arlight.pipeline.light_estimation import (
     LightEstimate,
     TemporalFilter,
     estimate_light,
+    fittable_colour,
     side_share,
     with_view_and_steadiness,
 )
@@ -110,6 +111,9 @@ STAGES = (
 # LightEst may use (light_max_samples): a margin for the clipped, dark and transfer-less ones
 # it then leaves out (typically under 10 %)
 CANDIDATES_PER_SAMPLE = 1.25
+# the exact transfer (rt_subsample 1) is computed only at pixels whose colour the fit can
+# use, so its margin is for the few fully occluded ones (docs/decisions/0047-fittable-pixels.md)
+EXACT_CANDIDATES_PER_SAMPLE = 1.05
 
 
 class FrameError(CheckError):
@@ -940,14 +944,19 @@ class Pipeline:
             )
         else:
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
-            if p.rt_subsample == 1:
-                vs, us = random_pixels(has_geometry, budget, seed)
+            if p.rt_subsample == 1:  # exact: only at pixels whose colour the fit can use
+                fittable, clipped = fittable_colour(color_linear, has_geometry)
+                exact_budget = int(
+                    EXACT_CANDIDATES_PER_SAMPLE * self.config.estimation.light_max_samples
+                )
+                vs, us = random_pixels(has_geometry & fittable, exact_budget, seed)
                 t, b, ok = at_pixels(us, vs)
                 return TransferSamples(
                     vs[ok],
                     us[ok],
                     t[ok].astype(np.float32),
                     None if lum is None else b[ok, 0].astype(np.float32),
+                    clipped,
                 )
             grid = compute_transfer(
                 geometry.points,
@@ -1021,6 +1030,7 @@ class Pipeline:
             below_horizon_unseen,
             seed=self.config.seed,
             checkpoint=checkpoint,
+            clipped_fraction=samples.clipped_fraction,
         )
 
     def _estimate_diagnostics(

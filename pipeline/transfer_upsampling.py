@@ -65,12 +65,15 @@ def upsample_transfer(result: TransferResult, valid_full: np.ndarray) -> Transfe
 @dataclass
 class TransferSamples:
     """The transfer at a list of pixels: pixel_v, pixel_u (K,) int64 full-resolution
-    coordinates; transfer (K, C) float32; bounce (K,) float32 or None."""
+    coordinates; transfer (K, C) float32; bounce (K,) float32 or None; clipped_fraction:
+    the share of the pixels with geometry that are clipped, when the pixels were chosen
+    among unclipped ones only (None: they were not)."""
 
     pixel_v: np.ndarray
     pixel_u: np.ndarray
     transfer: np.ndarray
     bounce: np.ndarray | None
+    clipped_fraction: float | None = None
 
 
 def random_pixels(mask: np.ndarray, max_pixels: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -231,3 +231,21 @@ class TestDiagnostics:
         with pytest.raises(FrameError, match="depth_scale"):
             pipe.process(dataclasses.replace(f, depth=raw, depth_scale=-1.0))
         assert issubclass(FrameError, CheckError)
+
+
+def test_exact_transfer_only_where_the_colour_is_fittable(clean_sequence):
+    """`full` (rt_subsample 1) computes the transfer only at pixels whose colour the fit can
+    use: none clipped or black among them, and the clipped share of the pixels with geometry
+    still reaches the confidence's reason."""
+    frame = clean_sequence.frames[0]
+    color = frame.color.copy()
+    color[:, : color.shape[1] // 3] = 255  # a third of the image clipped (a window)
+    color[-10:] = 0  # and a black strip
+    pipe = Pipeline(Config.from_preset("full", **SMALL), clean_sequence.camera)
+    result = pipe.process(dataclasses.replace(frame, color=color))
+    _, samples = pipe._last_transfer
+    assert len(samples.pixel_v) > 1000
+    brightest = color[samples.pixel_v, samples.pixel_u].max(axis=1)
+    assert brightest.max() < 253 and brightest.min() > 0  # 253: linear 0.98, CLIP_LEVEL
+    assert 0.25 < samples.clipped_fraction < 0.4
+    assert "clipped" in result.confidence.reason
