@@ -945,11 +945,17 @@ class Pipeline:
         else:
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
             if p.rt_subsample == 1:  # exact: only at pixels whose colour the fit can use
-                fittable, clipped = fittable_colour(color_linear, has_geometry)
+                fittable, clipped_share = fittable_colour(color_linear, has_geometry)
+                clipped: float | None = clipped_share
+                candidates: np.ndarray = has_geometry & fittable
                 exact_budget = int(
                     EXACT_CANDIDATES_PER_SAMPLE * self.config.estimation.light_max_samples
                 )
-                vs, us = random_pixels(has_geometry & fittable, exact_budget, seed)
+                if np.count_nonzero(candidates) < self.config.estimation.min_samples:
+                    # too few to fit: from all, so that the fit's reason names the clipped
+                    # and dark pixels (an all-black or saturated frame), not "no depth"
+                    candidates, clipped = has_geometry, None
+                vs, us = random_pixels(candidates, exact_budget, seed)
                 t, b, ok = at_pixels(us, vs)
                 return TransferSamples(
                     vs[ok],
