@@ -28,6 +28,19 @@ def map_medians(path: Path) -> dict[str, float]:
     return {m: float(v["median"]) for m, v in config["accuracy"]["by_map"]["maps"].items()}
 
 
+def held_out(variants: list[dict[str, float]]) -> tuple[list[float], list[int]]:
+    """For each map (sorted), the index of the variant with the lowest median over the OTHER
+    maps, and that variant's error on the map: (held-out errors, chosen indices)."""
+    names = sorted(variants[0])
+    held, chosen = [], []
+    for m in names:
+        others = [np.median([v[k] for k in names if k != m]) for v in variants]
+        best = int(np.argmin(others))
+        chosen.append(best)
+        held.append(variants[best][m])
+    return held, chosen
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("reports", nargs="+", type=Path, help="report.json files, oldest first")
@@ -36,12 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     names = sorted(variants[0])
     if any(sorted(v) != names for v in variants):
         raise SystemExit("the reports cover different maps: run them on the same sequences")
-    held, chosen = [], []
-    for m in names:
-        others = [np.median([v[k] for k in names if k != m]) for v in variants]
-        best = int(np.argmin(others))
-        chosen.append(best)
-        held.append(variants[best][m])
+    held, chosen = held_out(variants)
     for path, v in zip(args.reports, variants, strict=True):
         values = [v[k] for k in names]
         print(f"{path}: median over maps {np.median(values):.1f}, mean {np.mean(values):.2f}")

@@ -31,3 +31,25 @@ def test_reports_over_different_maps_are_refused(tmp_path):
     after = _report(tmp_path, "after", {"a": 9, "c": 11})
     with pytest.raises(SystemExit, match="different maps"):
         main([str(before), str(after)])
+
+
+def _replay(tmp_path, name, rows):
+    path = tmp_path / f"{name}.json"
+    path.write_text(json.dumps({"rows": [{"map": m, "raw": r, "filtered": f} for m, r, f in rows]}))
+    return str(path)
+
+
+def test_replays_pool_a_map_over_both_sets(tmp_path, capsys):
+    """A map lighting sequences of both caches is one map: its frames are pooled."""
+    from benchmarks.held_out_replays import main as replays_main
+
+    a_shared = _replay(tmp_path, "a1", [("m1", 10, 9), ("m2", 20, 19)])
+    a_corpus = _replay(tmp_path, "a2", [("m1", 30, 29), ("m3", 5, 4)])
+    b_shared = _replay(tmp_path, "b1", [("m1", 11, 10), ("m2", 21, 20)])
+    b_corpus = _replay(tmp_path, "b2", [("m1", 31, 30), ("m3", 6, 5)])
+    assert replays_main([f"a={a_shared},{a_corpus}", f"b={b_shared},{b_corpus}"]) == 0
+    out = capsys.readouterr().out
+    # m1 pools 10 and 30 (median 20): variant a is 20 / 20 / 5 over maps, b 21 / 21 / 6
+    assert (
+        "raw (3 maps):" in out and "held out: median over maps 20.0, chosen {'a': 3, 'b': 0}" in out
+    )
