@@ -28,13 +28,20 @@ def map_medians(path: Path) -> dict[str, float]:
     return {m: float(v["median"]) for m, v in config["accuracy"]["by_map"]["maps"].items()}
 
 
-def held_out(variants: list[dict[str, float]]) -> tuple[list[float], list[int]]:
-    """For each map (sorted), the index of the variant with the lowest median over the OTHER
-    maps, and that variant's error on the map: (held-out errors, chosen indices)."""
+def held_out(
+    variants: list[dict[str, float]], criterion: str = "median"
+) -> tuple[list[float], list[int]]:
+    """For each map (sorted), the index of the variant with the lowest median (or mean:
+    `criterion`) over the OTHER maps, and that variant's error on the map: (held-out
+    errors, chosen indices)."""
+
+    def summary(values: list[float]) -> float:
+        return float(np.median(values) if criterion == "median" else np.mean(values))
+
     names = sorted(variants[0])
     held, chosen = [], []
     for m in names:
-        others = [np.median([v[k] for k in names if k != m]) for v in variants]
+        others = [summary([v[k] for k in names if k != m]) for v in variants]
         best = int(np.argmin(others))
         chosen.append(best)
         held.append(variants[best][m])
