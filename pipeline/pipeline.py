@@ -116,6 +116,15 @@ CANDIDATES_PER_SAMPLE = 1.25
 EXACT_CANDIDATES_PER_SAMPLE = 1.05
 
 
+def transfer_pixels(config: Config) -> int:
+    """The most pixels RadTransfer gives a transfer (computed or interpolated) for the fit:
+    a margin over light_max_samples, small where the exact transfer is computed only at
+    pixels whose colour the fit can use (SSDO at every pixel)."""
+    exact = config.transfer.rt_subsample == 1 and config.transfer.rt_method is not RtMethod.RAYCAST
+    margin = EXACT_CANDIDATES_PER_SAMPLE if exact else CANDIDATES_PER_SAMPLE
+    return int(margin * config.estimation.light_max_samples)
+
+
 class FrameError(CheckError):
     """A frame that cannot be processed; the message names the field and the limit."""
 
@@ -877,7 +886,7 @@ class Pipeline:
             if depth_volume is not None:
                 depth_volume = reduce_depth(depth_volume, scale)
             intensity = reduce_image(intensity, depth_m.shape)
-        windows = c.filter.at_width(-(-self.work_camera.width // scale))
+        windows = c.filter.at_width(depth_m.shape[1])
         filtered, _ = filter_depth(
             depth_m, depth_volume, intensity, windows, backend=backend_for_device(c.device)
         )
@@ -910,7 +919,7 @@ class Pipeline:
         p = self._transfer_params
         lum = luminance(color_linear) if p.rt_bounce else None
         plane = geometry.plane if p.rt_horizon else None
-        budget = int(CANDIDATES_PER_SAMPLE * self.config.estimation.light_max_samples)
+        budget = transfer_pixels(self.config)
         seed = self.config.seed
         has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
 
@@ -945,24 +954,19 @@ class Pipeline:
         else:
             aux = AuxBufferArrays.from_buffers(aux_buffers, pose) if aux_buffers else None
             if p.rt_subsample == 1:  # exact: only at pixels whose colour the fit can use
-                fittable, clipped_share = fittable_colour(color_linear, has_geometry)
-                clipped: float | None = clipped_share
-                candidates: np.ndarray = has_geometry & fittable
-                exact_budget = int(
-                    EXACT_CANDIDATES_PER_SAMPLE * self.config.estimation.light_max_samples
-                )
-                if np.count_nonzero(candidates) < self.config.estimation.min_samples:
-                    # too few to fit: from all, so that the fit's reason names the clipped
-                    # and dark pixels (an all-black or saturated frame), not "no depth"
-                    candidates, clipped = has_geometry, None
-                vs, us = random_pixels(candidates, exact_budget, seed)
+                fittable, clipped = fittable_colour(color_linear, has_geometry)
+                candidates = has_geometry & fittable
+                # too few to fit (an all-black or saturated frame): drawn from all, so that
+                # the fit's reason names the clipped and dark pixels, not "no depth"
+                enough = np.count_nonzero(candidates) >= self.config.estimation.min_samples
+                vs, us = random_pixels(candidates if enough else has_geometry, budget, seed)
                 t, b, ok = at_pixels(us, vs)
                 return TransferSamples(
                     vs[ok],
                     us[ok],
                     t[ok].astype(np.float32),
                     None if lum is None else b[ok, 0].astype(np.float32),
-                    clipped,
+                    clipped if enough else None,
                 )
             grid = compute_transfer(
                 geometry.points,

@@ -25,7 +25,7 @@ import numpy as np
 
 from arlight.core.camera import PinholeCamera
 from arlight.pipeline.config import Config, RtMethod
-from arlight.pipeline.pipeline import CANDIDATES_PER_SAMPLE
+from arlight.pipeline.pipeline import CANDIDATES_PER_SAMPLE, transfer_pixels
 from arlight.protocols import SessionConfig
 
 REFERENCE_PIXELS = 640 * 480
@@ -204,13 +204,10 @@ def _factors(
     ref_steps = ref.volume.depth_max_m / ref.volume.voxel_size_m
     aux = a.aux_resolution**2 / a.aux_update_interval if a.aux_buffers else 0.0
     ref_aux = ref.aux.aux_resolution**2 / ref.aux.aux_update_interval
-    # RadTransfer: at the sampled pixels (rt_subsample 1) or on the sub-sampled grid
+    # RadTransfer: at the sampled pixels (rt_subsample 1) or on the sub-sampled grid; the
+    # reference drew 1.25 x its fit's pixels (decision 0047 lowered that)
     ref_samples = min(REFERENCE_PIXELS, CANDIDATES_PER_SAMPLE * ref.estimation.light_max_samples)
-    samples = (
-        min(pixels, CANDIDATES_PER_SAMPLE * e.light_max_samples)
-        if t.rt_subsample == 1
-        else pixels / t.rt_subsample**2
-    )
+    samples = min(pixels, transfer_pixels(c)) if t.rt_subsample == 1 else pixels / t.rt_subsample**2
     coefficients = t.sh_bands**2 * (4 if e.estimate_rgb else 1)
     ref_coefficients = ref.transfer.sh_bands**2
     fit_samples = min(pixels, e.light_max_samples)
@@ -377,9 +374,7 @@ def check_cost(
             c.aux.aux_resolution**2 * AUX_BYTES_PER_PIXEL if c.aux.aux_buffers and camera else 0.0
         ),
         "light_max_samples": (
-            min(pixels, CANDIDATES_PER_SAMPLE * c.estimation.light_max_samples)
-            * c.transfer.sh_bands**2
-            * SAMPLE_BYTES_PER_COEFFICIENT
+            min(pixels, transfer_pixels(c)) * c.transfer.sh_bands**2 * SAMPLE_BYTES_PER_COEFFICIENT
         ),
         # the reflection probe's room grid (pipeline/probe_grid.py: linear RGB and a weight,
         # float32, per cell), held while virtual objects may reflect (priced for any object)
