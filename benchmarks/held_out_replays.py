@@ -31,9 +31,14 @@ def per_map(paths: list[Path], kind: str) -> tuple[dict[str, float], list[float]
     by_map: dict[str, list[float]] = {}
     frames: list[float] = []
     for path in paths:
-        for row in json.loads(path.read_text())["rows"]:
-            by_map.setdefault(row["map"], []).append(float(row[kind]))
-            frames.append(float(row[kind]))
+        try:
+            for row in json.loads(path.read_text())["rows"]:
+                by_map.setdefault(row["map"], []).append(float(row[kind]))
+                frames.append(float(row[kind]))
+        except (OSError, KeyError, TypeError, ValueError) as e:
+            raise ValueError(
+                f"{path}: not a `light_replay.py replay --json` report ({type(e).__name__}: {e})"
+            ) from None
     return {m: float(np.median(v)) for m, v in by_map.items()}, frames
 
 
@@ -56,10 +61,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     for kind in ("raw", "filtered"):
-        tables = [(name, *per_map(paths, kind)) for name, paths in args.variants]
+        try:
+            tables = [(name, *per_map(paths, kind)) for name, paths in args.variants]
+        except ValueError as e:
+            parser.error(f"variants: {e}")
         maps = sorted(tables[0][1])
         if any(sorted(t[1]) != maps for t in tables):
-            raise SystemExit("the variants cover different maps: replay the same caches")
+            parser.error("the variants cover different maps: replay the same caches")
         print(f"{kind} ({len(maps)} maps):")
         for name, medians, frames in tables:
             values = [medians[m] for m in maps]

@@ -20,12 +20,20 @@ import numpy as np
 
 
 def map_medians(path: Path) -> dict[str, float]:
-    """{environment map: median error (degrees)} of the report's only configuration."""
-    configs = json.loads(path.read_text())["configs"]
-    if len(configs) != 1:
-        raise SystemExit(f"{path}: {len(configs)} configurations; give reports of one each")
-    config = next(iter(configs.values()))
-    return {m: float(v["median"]) for m, v in config["accuracy"]["by_map"]["maps"].items()}
+    """{environment map: median error (degrees)} of the report's only configuration.
+    ValueError names the file when it is not such a report."""
+    try:
+        configs = json.loads(path.read_text())["configs"]
+        if len(configs) != 1:
+            raise ValueError(f"{len(configs)} configurations; give reports of one each")
+        config = next(iter(configs.values()))
+        maps = config["accuracy"]["by_map"]["maps"]
+        return {m: float(v["median"]) for m, v in maps.items()}
+    except (OSError, KeyError, TypeError, ValueError) as e:
+        raise ValueError(
+            f"{path}: not an `arlight bench --out DIR` report.json of sequences with "
+            f"ground truth ({type(e).__name__}: {e})"
+        ) from None
 
 
 def held_out(
@@ -52,10 +60,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("reports", nargs="+", type=Path, help="report.json files, oldest first")
     args = parser.parse_args(argv)
-    variants = [map_medians(p) for p in args.reports]
+    try:
+        variants = [map_medians(p) for p in args.reports]
+    except ValueError as e:
+        parser.error(f"reports: {e}")
     names = sorted(variants[0])
     if any(sorted(v) != names for v in variants):
-        raise SystemExit("the reports cover different maps: run them on the same sequences")
+        parser.error("the reports cover different maps: run them on the same sequences")
     held, chosen = held_out(variants)
     for path, v in zip(args.reports, variants, strict=True):
         values = [v[k] for k in names]

@@ -26,11 +26,28 @@ def test_each_map_is_judged_by_the_choice_made_without_it(tmp_path, capsys):
     assert "median -1.00, mean +4.25; better on 3, worse on 1" in out
 
 
-def test_reports_over_different_maps_are_refused(tmp_path):
+def test_reports_over_different_maps_are_refused(tmp_path, capsys):
     before = _report(tmp_path, "before", {"a": 10, "b": 12})
     after = _report(tmp_path, "after", {"a": 9, "c": 11})
-    with pytest.raises(SystemExit, match="different maps"):
+    with pytest.raises(SystemExit) as exit_info:
         main([str(before), str(after)])
+    assert exit_info.value.code == 2 and "different maps" in capsys.readouterr().err
+
+
+def test_a_missing_or_foreign_file_is_named_without_a_traceback(tmp_path, capsys):
+    from benchmarks.held_out_replays import main as replays_main
+
+    foreign = tmp_path / "foreign.json"
+    foreign.write_text('{"rows": 3}')
+    for run, args in (
+        (main, [str(tmp_path / "missing.json")]),
+        (main, [str(foreign)]),
+        (replays_main, [f"a={foreign}"]),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            run(args)
+        err = capsys.readouterr().err
+        assert exit_info.value.code == 2 and "json" in err and "Traceback" not in err
 
 
 def _replay(tmp_path, name, rows):
