@@ -26,6 +26,7 @@ import numpy as np
 
 from arlight import evaluation
 from arlight.core.checks import depth_metres
+from arlight.pipeline.channels import any_nonzero
 from arlight.pipeline.config import Config
 from arlight.pipeline.depth_filter import normals_from_depth
 from arlight.pipeline.pipeline import STAGES, Pipeline, smooth_depth_for_normals
@@ -198,7 +199,7 @@ def observed_normals_world(frame, camera, rng: np.random.Generator) -> np.ndarra
     """Up to NORMAL_SAMPLES unit normals (N, 3), world frame, of the frame's valid depth."""
     depth = depth_metres(frame.depth, frame.depth_scale)
     normals = normals_from_depth(smooth_depth_for_normals(depth, NORMAL_WINDOW), camera)
-    valid = np.any(normals != 0, axis=2)
+    valid = any_nonzero(normals)
     n = normals[valid].astype(np.float64)
     if len(n) > NORMAL_SAMPLES:
         n = n[rng.choice(len(n), NORMAL_SAMPLES, replace=False)]

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from arlight.pipeline.channels import any_nonzero
+
 MIN_FACING_UP = 0.5  # cos of the largest tilt of a candidate normal from the image's "up"
 CLUSTER_COS = np.cos(np.radians(15.0))  # normals within 15 degrees form the plane's cluster
 MIN_FRACTION = 0.1  # the plane must hold this fraction of all known normals
@@ -26,7 +28,7 @@ def support_plane_up(normals_cam: np.ndarray, stride: int = 4) -> np.ndarray | N
     zeros where unknown. Every `stride`-th pixel is used.
     """
     n = np.asarray(normals_cam, dtype=np.float64)[::stride, ::stride].reshape(-1, 3)
-    n = n[np.any(n != 0.0, axis=1)]
+    n = n[any_nonzero(n)]
     if len(n) == 0:
         return None
     candidates = n[-n[:, 1] > MIN_FACING_UP]

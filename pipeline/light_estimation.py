@@ -29,6 +29,7 @@ import numpy as np
 
 from arlight.core.frames import Confidence
 from arlight.pipeline import sh
+from arlight.pipeline.channels import channel_max, vector_length
 from arlight.pipeline.color import LUMA
 from arlight.pipeline.config import EstimationParams, TemporalParams
 
@@ -372,7 +373,7 @@ def _colour_tests(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     """Per row of linear RGB (N, 3): luminance, finite, clipped, too dark."""
     lum = rgb @ LUMA.astype(rgb.dtype, copy=False)
     with np.errstate(invalid="ignore"):
-        return lum, np.isfinite(lum), rgb.max(axis=1) >= CLIP_LEVEL, ~(lum > DARK_LEVEL)
+        return lum, np.isfinite(lum), channel_max(rgb) >= CLIP_LEVEL, ~(lum > DARK_LEVEL)
 
 
 def fittable_colour(color_linear: np.ndarray, among: np.ndarray) -> tuple[np.ndarray, float]:
@@ -638,12 +639,12 @@ def side_share(normals_world: np.ndarray, up_world: np.ndarray | None) -> float 
     """Share (0..1) of unit normals (K, 3) that face sideways (|n . up| < SIDE_COS) with
     respect to the support plane's up (world frame); None without an up or normals."""
     n = np.asarray(normals_world, np.float64).reshape(-1, 3)
-    length = np.linalg.norm(n, axis=1)
+    length = vector_length(n)
     n = n[length > 0.5]
     if up_world is None or not len(n):
         return None
     up = np.asarray(up_world, np.float64) / max(float(np.linalg.norm(up_world)), 1e-12)
-    return float(np.mean(np.abs(n @ up) / np.linalg.norm(n, axis=1) < SIDE_COS))
+    return float(np.mean(np.abs(n @ up) / vector_length(n) < SIDE_COS))
 
 
 def with_view_and_steadiness(conf: Confidence, side: float | None, jump_deg: float) -> Confidence:

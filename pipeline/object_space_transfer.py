@@ -52,6 +52,7 @@ import open3d.core as o3c
 
 from arlight.core.camera import PinholeCamera
 from arlight.pipeline import sh
+from arlight.pipeline.channels import any_nonzero
 from arlight.pipeline.config import TransferParams
 from arlight.pipeline.horizon import SupportPlane
 from arlight.pipeline.radiance_transfer import (
@@ -178,7 +179,7 @@ def object_space_transfer(
     v = np.minimum(np.arange(hs) * step + step // 2, h - 1)
     pts = np.asarray(points_cam, np.float32)[np.ix_(v, u)].reshape(-1, 3).astype(np.float64)
     nrm = np.asarray(normals_cam, np.float32)[np.ix_(v, u)].reshape(-1, 3).astype(np.float64)
-    valid = (pts[:, 2] > 0.0) & np.any(nrm != 0.0, axis=1)
+    valid = (pts[:, 2] > 0.0) & any_nonzero(nrm)
     world_from_cam = np.asarray(world_from_cam, np.float64)
     dirs = np.ascontiguousarray(pattern.directions, np.float64)  # (N, 3), camera frame
     ysh = sh.sh_basis(dirs @ world_from_cam[:3, :3].T, params.sh_bands)  # world-frame basis

@@ -36,6 +36,7 @@ from arlight.core.frames import (
     compact_lights,
 )
 from arlight.pipeline import sh
+from arlight.pipeline.channels import any_nonzero
 from arlight.pipeline.color import intensity_from_rgb, luminance, srgb_to_linear
 from arlight.pipeline.compact_light import (
     CompactFit,
@@ -921,7 +922,7 @@ class Pipeline:
         plane = geometry.plane if p.rt_horizon else None
         budget = transfer_pixels(self.config)
         seed = self.config.seed
-        has_geometry = (geometry.depth_m > 0) & np.any(geometry.normals != 0, axis=2)
+        has_geometry = (geometry.depth_m > 0) & any_nonzero(geometry.normals)
 
         def at_pixels(us: np.ndarray, vs: np.ndarray) -> tuple:
             """transfer_at_pixels of this frame (SSDO; `aux` is set below before a call)."""

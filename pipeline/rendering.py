@@ -39,6 +39,7 @@ import numpy as np
 from arlight.core.camera import PinholeCamera
 from arlight.pipeline import sh
 from arlight.pipeline.aux_buffers import OrthoBuffer
+from arlight.pipeline.channels import any_nonzero
 from arlight.pipeline.color import LUMA
 from arlight.pipeline.config import Config, DiffMode
 from arlight.pipeline.glossy import MipPyramid, specular
@@ -270,7 +271,7 @@ class DifferentialRenderer:
         if step == 1:
             # denoising only among the pixels the objects changed, and only there: nothing
             # bleeds onto surfaces they do not touch (a hand in front, the far side of an edge)
-            touched = (ratio_grid != 1.0) | np.any(delta_grid != 0.0, axis=2)
+            touched = (ratio_grid != 1.0) | any_nonzero(delta_grid)
             weight = weight * touched
         ratio_full, delta_full = self._upsample(
             ratio_grid,
@@ -294,7 +295,7 @@ class DifferentialRenderer:
                 self._probe_reflecting(frame.probe, g, vv_all, uu_all, e_v, pose, virtual_rgb)
         else:
             virtual_rgb = self._reflecting(frame.environment, g, vv_all, uu_all, e_v, pose)
-        changed = (ratio_full != 1.0) | np.any(delta_full != 0, axis=2)
+        changed = (ratio_full != 1.0) | any_nonzero(delta_full)
         out[virtual[v0:v1, u0:u1]] = 0.0
         block = composite[v0:v1, u0:u1]
         block[changed] = linear_to_srgb_u8(out[changed])

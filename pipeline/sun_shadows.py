@@ -24,6 +24,7 @@ import open3d as o3d
 import open3d.core as o3c
 
 from arlight.pipeline import sh
+from arlight.pipeline.channels import any_nonzero
 from arlight.pipeline.color import srgb_to_linear
 
 RAY_OFFSET_M = 0.01  # rays start this far along the normal (metres)
@@ -191,7 +192,7 @@ class CompactSourceShading:
 
         changed = np.zeros(virtual.shape, bool)
         rot, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
-        real = ~virtual & (real_points_cam[..., 2] > 0) & np.any(real_normals_cam != 0, axis=2)
+        real = ~virtual & (real_points_cam[..., 2] > 0) & any_nonzero(real_normals_cam)
         for source in sources:
             d = np.asarray(source.direction, np.float64)
             colour = np.asarray(source.rgb, np.float64) * np.asarray(light_rgb, np.float64)

@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 from arlight.pipeline import sh
+from arlight.pipeline.channels import vector_length
 from arlight.pipeline.transfer_sampling import SamplingPattern
 from arlight.pipeline.transfer_upsampling import TransferSamples, _remap_channels
 
@@ -89,7 +90,7 @@ def with_exact_unoccluded(
     if not len(samples.pixel_v):
         return samples
     n = np.asarray(normals_cam[samples.pixel_v, samples.pixel_u], np.float64)
-    ok = np.linalg.norm(n, axis=1) > 1e-6
+    ok = vector_length(n) > 1e-6
     size = table.shape[0]
     map_x, map_y = _octahedral_uv(n[ok], size)
     # edge texels held (not blended with zero), and the lookups laid out as rows of 256
