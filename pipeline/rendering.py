@@ -13,7 +13,8 @@ Real pixels (render_mode "ratio", default): I = I_c R'_d / R_d, exact for a Lamb
 surface; "paper": eq. 13, I_d = I_c (1 + T(R'_d) - T(R_d)), T Reinhard's operator keyed on
 each buffer's mean; "paste" is the baseline that only pastes the objects, shaded by the
 unshadowed light. Virtual pixels: albedo / pi times R'_d (their own SSDO visibility), whose
-unoccluded part is made exact (`unoccluded_quadrature_error`, a control variate).
+unoccluded part is made exact (`unoccluded_correction`, a control variate, looked up in
+the renderer's table of its own sampling pattern).
 Indirect light (eq. 10-12, 14): the one bounce that SSDO gathers where a direction is
 blocked, from the radiance of the blocking surface: the observed image for real surfaces,
 the virtual albedo under the estimated light for virtual ones; only the change that the
@@ -29,11 +30,13 @@ units, so that a Lambertian surface of albedo rho with transfer T shows rho / pi
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import cv2
+import numba
 import numpy as np
 
 from arlight.core.camera import PinholeCamera
@@ -49,10 +52,11 @@ from arlight.pipeline.probe_shading import Glossiness, glossiness_of, shade
 from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
     make_sampling_pattern,
+    quadrature_error_table,
     transfer_at_pixels,
-    unoccluded_quadrature_error,
 )
 from arlight.pipeline.sun_shadows import CompactSourceShading, RealOccluder, SourceLight
+from arlight.pipeline.transfer_quadrature import unoccluded_correction
 from arlight.pipeline.virtual_gbuffer import VirtualGBuffer, VirtualRaycaster
 from arlight.pipeline.virtual_scene import VirtualScene
 
@@ -121,10 +125,26 @@ class RenderOutput:
 
 
 def linear_to_srgb_u8(linear: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] -> 8-bit sRGB (IEC 61966-2-1), clipped, rounded to nearest."""
-    c = np.clip(linear, 0.0, 1.0)
-    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
-    return (s * 255.0 + 0.5).astype(np.uint8)
+    """Linear [0, 1] -> 8-bit sRGB (IEC 61966-2-1), clipped, rounded to nearest; NaN -> 0.
+    Computed in float64 whatever the input's precision."""
+    c = np.ascontiguousarray(linear, np.float64)
+    out = np.empty(c.shape, np.uint8)
+    _srgb_u8(c.reshape(-1), out.reshape(-1))
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _srgb_u8(linear, out):
+    """out[i] = the 8-bit sRGB code of linear[i] (both flat); NumPy's power took 3/4 of a
+    composite's encoding (docs/results/speed.md, "Rendering")."""
+    for i in numba.prange(linear.shape[0]):
+        c = linear[i]
+        if not c > 0.0:  # NaN included
+            c = 0.0
+        elif c > 1.0:
+            c = 1.0
+        s = 12.92 * c if c <= 0.0031308 else 1.055 * c ** (1 / 2.4) - 0.055
+        out[i] = np.uint8(s * 255.0 + 0.5)
 
 
 def reinhard(x: np.ndarray, mean: float, key: float) -> np.ndarray:
@@ -153,6 +173,12 @@ class DifferentialRenderer:
         # per object, made when an environment map first lights them
         self._shadings: list[Shading] | None = None
         self._looks: list[Glossiness] | None = None  # per object, for the probe's shading
+
+    @functools.cached_property
+    def _quadrature_table(self) -> np.ndarray:
+        """`quadrature_error_table` of the renderer's pattern (fixed in the camera frame):
+        made on first use, once."""
+        return quadrature_error_table(self.pattern, self.transfer_params.sh_bands)
 
     def render(self, frame: RenderInputs) -> RenderOutput:
         """The composite of one frame (see the module docstring), with the compact
@@ -190,7 +216,8 @@ class DifferentialRenderer:
         if rect is None:
             return RenderOutput(composite, virtual, region, g)
         depth_c = np.where(virtual, g.depth_m, real_depth).astype(np.float32)
-        normals_c = np.where(virtual[..., None], g.normals_cam, frame.normals_cam)
+        normals_c = np.array(frame.normals_cam, copy=True)
+        normals_c[virtual] = g.normals_cam[virtual]
         points_r = cam.unproject(real_depth)
         points_c = cam.unproject(depth_c)
         aux_r = AuxBufferArrays.from_buffers(frame.aux_buffers, pose) if frame.aux_buffers else None
@@ -250,11 +277,7 @@ class DifferentialRenderer:
         # virtual pixels are shaded absolutely: their unoccluded transfer made exact (real
         # pixels take a ratio of two transfers of the same directions, whose errors cancel)
         t_c[k:] += (
-            unoccluded_quadrature_error(
-                g.normals_cam[vv_all, uu_all] @ pose[:3, :3].T,
-                self.pattern.directions @ pose[:3, :3].T,
-                p.sh_bands,
-            )
+            unoccluded_correction(g.normals_cam[vv_all, uu_all], pose, self._quadrature_table)
             * ok_c[k:, None]
         )
         e_r = t_r @ frame.light_sh
@@ -474,13 +497,14 @@ class DifferentialRenderer:
         up = stack if step == 1 else cv2.resize(stack, size, interpolation=cv2.INTER_CUBIC)
         if blur_radius > 0:
             up = cv2.GaussianBlur(up, (2 * blur_radius + 1, 2 * blur_radius + 1), 0)
-        up = up[: v1 - v0, : u1 - u0].astype(np.float64)
+        up = up[: v1 - v0, : u1 - u0]
         w = up[..., 4]
         keep = w > 1e-3
-        ratio_full = np.where(keep, up[..., 0] / np.where(keep, w, 1.0), 1.0)
-        delta_full = np.where(
-            keep[..., None], up[..., 1:4] / np.where(keep, w, 1.0)[..., None], 0.0
-        )
+        inverse = np.zeros_like(w)
+        np.divide(1.0, w, out=inverse, where=keep)
+        ratio_full = up[..., 0] * inverse
+        ratio_full[~keep] = 1.0
+        delta_full = up[..., 1:4] * inverse[..., None]  # 0 where not kept
         # far from every object the grid was exactly 1 / 0: keep it exact there
         ratio_full[np.abs(ratio_full - 1.0) < 1e-6] = 1.0
         delta_full[np.abs(delta_full) < 1e-9] = 0.0

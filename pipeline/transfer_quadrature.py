@@ -85,12 +85,26 @@ def with_exact_unoccluded(
     control variate, TransferParams.rt_exact_unoccluded): the unoccluded part of each
     vector becomes the exact clamped-cosine transfer; blocked directions keep their SSDO
     estimate. normals_cam: (H, W, 3) camera frame (the samples' pixels index it); table:
-    `quadrature_error_table` of the session's pattern, looked up bilinearly at each normal
-    (camera frame) and rotated into the world frame of the transfer."""
+    `quadrature_error_table` of the session's pattern (`unoccluded_correction`)."""
     if not len(samples.pixel_v):
         return samples
-    n = np.asarray(normals_cam[samples.pixel_v, samples.pixel_u], np.float64)
+    n = normals_cam[samples.pixel_v, samples.pixel_u]
+    transfer = np.array(samples.transfer, copy=True)
+    transfer += unoccluded_correction(n, world_from_cam, table)
+    return dataclasses.replace(samples, transfer=transfer)
+
+
+def unoccluded_correction(
+    normals_cam: np.ndarray, world_from_cam: np.ndarray, table: np.ndarray
+) -> np.ndarray:
+    """(K, C) float32: `unoccluded_quadrature_error` of unit normals (K, 3), camera frame,
+    looked up bilinearly in `table` (`quadrature_error_table` of the pattern, camera frame)
+    and rotated into the world frame of `world_from_cam`; zero rows for zero normals."""
+    n = np.asarray(normals_cam, np.float64).reshape(-1, 3)
     ok = vector_length(n) > 1e-6
+    out = np.zeros((len(n), table.shape[2]), np.float32)
+    if not ok.any():
+        return out
     size = table.shape[0]
     map_x, map_y = _octahedral_uv(n[ok], size)
     # edge texels held (not blended with zero), and the lookups laid out as rows of 256
@@ -105,6 +119,5 @@ def with_exact_unoccluded(
     rotation = sh.rotation_matrix(
         np.asarray(world_from_cam, np.float64)[:3, :3], sh.bands_of(table.shape[2])
     ).astype(np.float32)
-    transfer = np.array(samples.transfer, copy=True)
-    transfer[ok] += correction_cam @ rotation.T
-    return dataclasses.replace(samples, transfer=transfer)
+    out[ok] = correction_cam @ rotation.T
+    return out
