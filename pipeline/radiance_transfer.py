@@ -16,7 +16,9 @@ light solved from it) is in world coordinates. Random sample distances r_j are d
 position in a 2 x 2 pixel block (interleaved sampling), seeded from the config.
 
 The per-pixel logic is written once (`register_jitable`) and driven by a parallel CPU
-loop, here; the rest lives beside it and is re-exported from this module:
+loop, here. It evaluates one scene, or two at once (`transfer_pair_at_pixels`: the
+renderer's real pixels without and with the virtual objects share each sample's
+projections and every surface the two scenes have in common); the rest lives beside it and is re-exported from this module:
 `transfer_sampling.py` (the directions, radii and chi), `transfer_types.py` (the kernels'
 packed inputs, their result and the depth-test constants), `transfer_upsampling.py` (grid to
 pixels), `transfer_quadrature.py` (the exact unoccluded part) and `transfer_oracle.py` (the
@@ -93,6 +95,7 @@ __all__ = [
     "quadrature_error_table",
     "random_pixels",
     "transfer_at_pixels",
+    "transfer_pair_at_pixels",
     "transfer_reference",
     "transfer_samples",
     "unoccluded_quadrature_error",
@@ -114,7 +117,57 @@ def _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi):
     return min(chi, 1.0 - cos_tw) / chi if chi > 0.0 else 1.0
 
 
-@register_jitable
+@register_jitable(inline="always")
+def _main_occlusion(
+    px, py, pz, yx, yy, yz, wx, wy, wz, u, v, sz, fx, fy, cx, cy, chi, bias, thickness
+):
+    """K of the main buffer's surface at pixel (u, v), depth sz, for the sample y of x
+    towards w; 1 where that surface is not in front of y (bias: metres)."""
+    if sz > 0.0 and sz < yz - bias and sz > yz - thickness:
+        sx = (u - cx) / fx * sz
+        sy = (v - cy) / fy * sz
+        return _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi)
+    return 1.0
+
+
+@register_jitable(inline="always")
+def _aux_occlusion(
+    px,
+    py,
+    pz,
+    yx,
+    yy,
+    yz,
+    wx,
+    wy,
+    wz,
+    m,
+    ub,
+    vb,
+    half,
+    pix,
+    bz,
+    sd,
+    chi,
+    bias_abs,
+    bias_rel,
+    thickness,
+):
+    """K of an auxiliary buffer's surface at texel (ub, vb), depth sd along its +z, for the
+    sample y (bz: y's depth in the buffer); m (3, 4): buffer_from_cam; 1 where not in front."""
+    if sd > 0.0 and sd < bz - (bias_abs + bias_rel * 0.5 * sd) and sd > bz - thickness:
+        # surface point in the buffer frame -> camera frame (inverse of a rigid map)
+        qx = (ub - half) * pix - m[0, 3]
+        qy = (vb - half) * pix - m[1, 3]
+        qz = sd - m[2, 3]
+        sx = m[0, 0] * qx + m[1, 0] * qy + m[2, 0] * qz
+        sy = m[0, 1] * qx + m[1, 1] * qy + m[2, 1] * qz
+        sz = m[0, 2] * qx + m[1, 2] * qy + m[2, 2] * qz
+        return _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi)
+    return 1.0
+
+
+@register_jitable(inline="always")
 def _visibility(
     px,
     py,
@@ -136,40 +189,111 @@ def _visibility(
     bias_rel,
     thickness,
 ):
-    """Continuous visibility K in [0, 1] of one sample y = x + radius * w."""
+    """Continuous visibility K in [0, 1] of one sample y = x + radius * w, against each
+    configuration's buffers: depth (S, H, W), aux_depth (S, B, R, R), S = 1 or 2 (the
+    second: the same scene with the virtual objects in). Returns (K of the first, K of the
+    second or 1); a surface both configurations share is tested once."""
     yx, yy, yz = px + radius * wx, py + radius * wy, pz + radius * wz
-    k = 1.0
-    h, w = depth.shape
+    k0 = 1.0
+    k1 = 1.0
+    two = depth.shape[0] > 1
+    h, w = depth.shape[1], depth.shape[2]
     if yz > 1e-6:
         u = int(round(fx * yx / yz + cx))
         v = int(round(fy * yy / yz + cy))
         if 0 <= u < w and 0 <= v < h:
-            sz = depth[v, u]
-            if sz > 0.0 and sz < yz - (bias_abs + bias_rel * yz) and sz > yz - thickness:
-                sx = (u - cx) / fx * sz
-                sy = (v - cy) / fy * sz
-                k = min(k, _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi))
-    for b in range(aux_depth.shape[0]):
+            bias = bias_abs + bias_rel * yz
+            sz = depth[0, v, u]
+            o = _main_occlusion(
+                px, py, pz, yx, yy, yz, wx, wy, wz, u, v, sz, fx, fy, cx, cy, chi, bias, thickness
+            )
+            k0 = min(k0, o)
+            if two:
+                sz1 = depth[1, v, u]
+                if sz1 != sz:
+                    o = _main_occlusion(
+                        px,
+                        py,
+                        pz,
+                        yx,
+                        yy,
+                        yz,
+                        wx,
+                        wy,
+                        wz,
+                        u,
+                        v,
+                        sz1,
+                        fx,
+                        fy,
+                        cx,
+                        cy,
+                        chi,
+                        bias,
+                        thickness,
+                    )
+                k1 = min(k1, o)
+    r = aux_depth.shape[2]
+    half = 0.5 * (r - 1)
+    for b in range(aux_depth.shape[1]):
         m = aux_from_cam[b]
         bx = m[0, 0] * yx + m[0, 1] * yy + m[0, 2] * yz + m[0, 3]
         by = m[1, 0] * yx + m[1, 1] * yy + m[1, 2] * yz + m[1, 3]
         bz = m[2, 0] * yx + m[2, 1] * yy + m[2, 2] * yz + m[2, 3]
-        r = aux_depth.shape[1]
-        half = 0.5 * (r - 1)
         ub = int(round(bx / aux_pix[b] + half))
         vb = int(round(by / aux_pix[b] + half))
         if 0 <= ub < r and 0 <= vb < r:
-            sd = aux_depth[b, vb, ub]
-            if sd > 0.0 and sd < bz - (bias_abs + bias_rel * 0.5 * sd) and sd > bz - thickness:
-                # surface point in the buffer frame -> camera frame (inverse of a rigid map)
-                qx = (ub - half) * aux_pix[b] - m[0, 3]
-                qy = (vb - half) * aux_pix[b] - m[1, 3]
-                qz = sd - m[2, 3]
-                sx = m[0, 0] * qx + m[1, 0] * qy + m[2, 0] * qz
-                sy = m[0, 1] * qx + m[1, 1] * qy + m[2, 1] * qz
-                sz = m[0, 2] * qx + m[1, 2] * qy + m[2, 2] * qz
-                k = min(k, _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi))
-    return k
+            sd = aux_depth[0, b, vb, ub]
+            o = _aux_occlusion(
+                px,
+                py,
+                pz,
+                yx,
+                yy,
+                yz,
+                wx,
+                wy,
+                wz,
+                m,
+                ub,
+                vb,
+                half,
+                aux_pix[b],
+                bz,
+                sd,
+                chi,
+                bias_abs,
+                bias_rel,
+                thickness,
+            )
+            k0 = min(k0, o)
+            if two:
+                sd1 = aux_depth[1, b, vb, ub]
+                if sd1 != sd:
+                    o = _aux_occlusion(
+                        px,
+                        py,
+                        pz,
+                        yx,
+                        yy,
+                        yz,
+                        wx,
+                        wy,
+                        wz,
+                        m,
+                        ub,
+                        vb,
+                        half,
+                        aux_pix[b],
+                        bz,
+                        sd1,
+                        chi,
+                        bias_abs,
+                        bias_rel,
+                        thickness,
+                    )
+                k1 = min(k1, o)
+    return k0, k1
 
 
 @register_jitable
@@ -215,29 +339,31 @@ def _transfer_pixel(
     out,
     bounce,
 ):
-    """Fill out (C,) with the SH transfer vector of pixel (ui, vi) and bounce (B,) with
+    """Fill out (S, C) with the SH transfer vector of pixel (ui, vi) and bounce (S, B) with
     sum_j (1 - K_j) max(0, w_j . n) I(s_j) 4 pi / N, the one-bounce light from the occluders,
-    I(s_j) the radiance image (H, W, B) where the blocking sample projects (no bounce when
-    radiance is not image-sized, e.g. (1, 1, B)). Returns False where the pixel has no
-    geometry (out and bounce zero).
+    I(s_j) the radiance image where the blocking sample projects (no bounce when radiance is
+    not image-sized, e.g. (S, 1, 1, B)), for each of S = 1 or 2 configurations of the
+    buffers: depth (S, H, W), aux_depth (S, B', R, R), radiance (S, H, W, B), ground (S, B)
+    (the renderer's real scene, and the same with the virtual objects in, at a real pixel:
+    its point and normal, from points and normals, are the same in both). Returns False
+    where the pixel has no geometry (out and bounce zero).
 
     plane (4,): (up, offset) of the support plane, camera frame, or zeros (none): for a
     point above it, a direction below its horizon meets the ground, so it adds the ground's
-    radiance (where the ray hits it, if seen there, else `ground` (B,)) to the bounce and
+    radiance (where the ray hits it, if seen there, else `ground`) to the bounce and
     nothing to the transfer.
     """
-    for c in range(out.shape[0]):
-        out[c] = 0.0
-    for c in range(bounce.shape[0]):
-        bounce[c] = 0.0
+    out[:] = 0.0
+    bounce[:] = 0.0
     pz = points[vi, ui, 2]
     nx, ny, nz = normals[vi, ui, 0], normals[vi, ui, 1], normals[vi, ui, 2]
     if not (pz > 0.0) or (nx == 0.0 and ny == 0.0 and nz == 0.0):
         return False
     px, py = points[vi, ui, 0], points[vi, ui, 1]
-    h, w = depth.shape
-    with_bounce = radiance.shape[0] == h and radiance.shape[1] == w
-    nb = bounce.shape[0]
+    h, w = depth.shape[1], depth.shape[2]
+    with_bounce = radiance.shape[1] == h and radiance.shape[2] == w
+    scenes = depth.shape[0]
+    nb = bounce.shape[1]
     ux, uy, uz = plane[0], plane[1], plane[2]
     height = ux * px + uy * py + uz * pz + plane[3]
     # points clearly under the plane (a floor seen past a table's edge) are not shadowed by it
@@ -250,12 +376,14 @@ def _transfer_pixel(
         cos_n = wx * nx + wy * ny + wz * nz
         if cos_n <= 0.0:
             continue
-        k = 1.0
-        blocker = 0.0
+        k0 = 1.0
+        k1 = 1.0
+        blocker0 = 0.0
+        blocker1 = 0.0
         if use_visibility:
             for s in range(steps):
                 radius = radii[vi % 2, ui % 2, j, s]
-                ks = _visibility(
+                ks0, ks1 = _visibility(
                     px,
                     py,
                     pz,
@@ -276,29 +404,36 @@ def _transfer_pixel(
                     bias_rel,
                     thickness,
                 )
-                if ks < k:
-                    k = ks
-                    blocker = radius
-        f = k * cos_n * weight
+                if ks0 < k0:
+                    k0 = ks0
+                    blocker0 = radius
+                if ks1 < k1:
+                    k1 = ks1
+                    blocker1 = radius
         cos_up = wx * ux + wy * uy + wz * uz
-        if use_plane and cos_up < 0.0:
-            if with_bounce and f > 0.0:
-                gu, gv = _ground_pixel(
-                    px, py, pz, wx, wy, wz, max(height, 0.0) / -cos_up, depth, fx, fy, cx, cy
-                )
-                for c in range(nb):
-                    bounce[c] += f * (radiance[gv, gu, c] if gu >= 0 else ground[c])
-        elif f > 0.0:
-            for c in range(out.shape[0]):
-                out[c] += f * ysh[j, c]
-        if with_bounce and k < 1.0:
-            yz = pz + blocker * wz
-            if yz > 1e-6:
-                u = int(round(fx * (px + blocker * wx) / yz + cx))
-                v = int(round(fy * (py + blocker * wy) / yz + cy))
-                if 0 <= u < w and 0 <= v < h:
-                    for c in range(nb):
-                        bounce[c] += (1.0 - k) * cos_n * weight * radiance[v, u, c]
+        plane_part = use_plane and cos_up < 0.0
+        for c in range(scenes):
+            k = k0 if c == 0 else k1
+            blocker = blocker0 if c == 0 else blocker1
+            f = k * cos_n * weight
+            if plane_part:
+                if with_bounce and f > 0.0:
+                    gu, gv = _ground_pixel(
+                        px, py, pz, wx, wy, wz, max(height, 0.0) / -cos_up, depth[c], fx, fy, cx, cy
+                    )
+                    for i in range(nb):
+                        bounce[c, i] += f * (radiance[c, gv, gu, i] if gu >= 0 else ground[c, i])
+            elif f > 0.0:
+                for i in range(out.shape[1]):
+                    out[c, i] += f * ysh[j, i]
+            if with_bounce and k < 1.0:
+                yz = pz + blocker * wz
+                if yz > 1e-6:
+                    u = int(round(fx * (px + blocker * wx) / yz + cx))
+                    v = int(round(fy * (py + blocker * wy) / yz + cy))
+                    if 0 <= u < w and 0 <= v < h:
+                        for i in range(nb):
+                            bounce[c, i] += (1.0 - k) * cos_n * weight * radiance[c, v, u, i]
     return True
 
 
@@ -331,7 +466,7 @@ def _transfer_cpu(
     valid,
 ):
     hs, ws = valid.shape
-    h, w = depth.shape
+    h, w = depth.shape[1], depth.shape[2]
     for i in numba.prange(hs):
         vi = min(i * step + step // 2, h - 1)
         for jj in range(ws):
@@ -453,10 +588,11 @@ def compute_transfer(
     k = _KernelInputs.make(
         points_cam, normals_cam, world_from_cam, pattern, aux, params, luminance, plane
     )
-    transfer = np.zeros((hs, ws, k.ysh.shape[1]), np.float64)
+    transfer = np.zeros((hs, ws, 1, k.ysh.shape[1]), np.float64)
     valid = np.zeros((hs, ws), np.bool_)
-    bounce = np.zeros((hs, ws, 1), np.float64)
+    bounce = np.zeros((hs, ws, 1, 1), np.float64)
     _transfer_cpu(*k.args(camera, params, pattern), step, transfer, bounce, valid)
+    transfer, bounce = transfer[:, :, 0], bounce[:, :, 0]
     u = np.minimum(np.arange(ws) * step + step // 2, w - 1)
     v = np.minimum(np.arange(hs) * step + step // 2, h - 1)
     return TransferResult(
@@ -485,18 +621,75 @@ def transfer_at_pixels(
     region around the virtual objects): (transfer (K, C) float64, bounce (K, B) float64,
     valid (K,) bool). radiance: optional (H, W, B) linear image whose light the occluders
     bounce (B channels, e.g. RGB); without it bounce is (K, 0)."""
-    us = np.ascontiguousarray(pixels_u, dtype=np.int64)
-    vs = np.ascontiguousarray(pixels_v, dtype=np.int64)
     k = _KernelInputs.make(
         points_cam, normals_cam, world_from_cam, pattern, aux, params, radiance, plane
     )
-    channels = 0 if radiance is None else radiance.shape[2]
-    transfer = np.zeros((len(us), k.ysh.shape[1]), np.float64)
-    bounce = np.zeros((len(us), max(channels, 1)), np.float64)
+    transfer, bounce, valid = _listed(k, None, camera, params, pattern, pixels_u, pixels_v)
+    return transfer[:, 0], bounce[:, 0], valid
+
+
+def transfer_pair_at_pixels(
+    points_cam: np.ndarray,
+    points_second: np.ndarray,
+    normals_cam: np.ndarray,
+    camera: PinholeCamera,
+    world_from_cam: np.ndarray,
+    pattern: SamplingPattern,
+    aux: AuxBufferArrays | None,
+    aux_second: AuxBufferArrays | None,
+    params: TransferParams,
+    pixels_u: np.ndarray,
+    pixels_v: np.ndarray,
+    radiance: np.ndarray | None = None,
+    radiance_second: np.ndarray | None = None,
+    plane: SupportPlane | None = None,
+) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """`transfer_at_pixels` of two scenes at once, at pixels where both have the same
+    point and normal (the renderer's real pixels, without and with the virtual objects):
+    the second scene's depth from points_second (H, W, 3), its own auxiliary buffers (the
+    same count, size and frames as `aux`) and radiance image (as `radiance`). Each sample's
+    projections are computed once and a surface both scenes share is tested once.
+    Returns ((transfer, bounce) of the first, (transfer, bounce) of the second, valid):
+    the same arrays as two `transfer_at_pixels` calls."""
+    first = _KernelInputs.make(
+        points_cam, normals_cam, world_from_cam, pattern, aux, params, radiance, plane
+    )
+    second = _KernelInputs.make(
+        points_second,
+        normals_cam,
+        world_from_cam,
+        pattern,
+        aux_second,
+        params,
+        radiance_second,
+        plane,
+    )
+    transfer, bounce, valid = _listed(first, second, camera, params, pattern, pixels_u, pixels_v)
+    return (transfer[:, 0], bounce[:, 0]), (transfer[:, 1], bounce[:, 1]), valid
+
+
+def _listed(
+    first: _KernelInputs,
+    second: _KernelInputs | None,
+    camera: PinholeCamera,
+    params: TransferParams,
+    pattern: SamplingPattern,
+    pixels_u: np.ndarray,
+    pixels_v: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The list kernel over one or two scenes: transfer (K, S, C), bounce (K, S, B)
+    (B = 0 without radiance), valid (K,)."""
+    us = np.ascontiguousarray(pixels_u, dtype=np.int64)
+    vs = np.ascontiguousarray(pixels_v, dtype=np.int64)
+    scenes = 1 if second is None else 2
+    channels = first.radiance.shape[2] if first.with_radiance else 0
+    transfer = np.zeros((len(us), scenes, first.ysh.shape[1]), np.float64)
+    bounce = np.zeros((len(us), scenes, max(channels, 1)), np.float64)
     valid = np.zeros(len(us), np.bool_)
     if len(us):
-        _transfer_list_cpu(*k.args(camera, params, pattern), us, vs, transfer, bounce, valid)
-    return transfer, bounce[:, :channels], valid
+        args = first.args(camera, params, pattern, second)
+        _transfer_list_cpu(*args, us, vs, transfer, bounce, valid)
+    return transfer, bounce[:, :, :channels], valid
 
 
 @dataclass
@@ -511,6 +704,7 @@ class _KernelInputs:
     radiance: np.ndarray
     plane: np.ndarray
     ground: np.ndarray
+    with_radiance: bool
 
     @classmethod
     def make(
@@ -533,15 +727,30 @@ class _KernelInputs:
             rad,
             plane_arr,
             np.broadcast_to(np.asarray(ground, np.float64), (rad.shape[2],)).copy(),
+            radiance is not None,
         )
 
     def args(
-        self, camera: PinholeCamera, params: TransferParams, pattern: SamplingPattern
+        self,
+        camera: PinholeCamera,
+        params: TransferParams,
+        pattern: SamplingPattern,
+        second: _KernelInputs | None = None,
     ) -> tuple:
+        """The kernels' arguments; with `second`, its depth, auxiliary depth, radiance and
+        ground stacked after this one's (the kernels' two scenes)."""
+
+        def stacked(name: str, attr=lambda k, n: getattr(k, n)):
+            mine = attr(self, name)
+            if second is None:
+                return mine[None]
+            return np.stack([mine, attr(second, name)])
+
+        aux_depth = stacked("depth", lambda k, n: k.aux.depth)
         return (
             self.points,
             self.normals,
-            self.depth,
+            stacked("depth"),
             camera.fx,
             camera.fy,
             camera.cx,
@@ -549,7 +758,7 @@ class _KernelInputs:
             pattern.directions,
             self.ysh,
             pattern.radii,
-            self.aux.depth,
+            aux_depth,
             self.aux.buffer_from_cam,
             self.aux.pixel_size,
             visibility_ramp(pattern, params),
@@ -557,9 +766,9 @@ class _KernelInputs:
             BIAS_REL,
             params.rt_thickness_m,
             params.visibility,
-            self.radiance,
+            stacked("radiance"),
             self.plane,
-            self.ground,
+            stacked("ground"),
         )
 
 

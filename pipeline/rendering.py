@@ -54,6 +54,7 @@ from arlight.pipeline.radiance_transfer import (
     make_sampling_pattern,
     quadrature_error_table,
     transfer_at_pixels,
+    transfer_pair_at_pixels,
 )
 from arlight.pipeline.sun_shadows import CompactSourceShading, RealOccluder, SourceLight
 from arlight.pipeline.transfer_quadrature import unoccluded_correction
@@ -245,20 +246,25 @@ class DifferentialRenderer:
         vv_all, uu_all = np.nonzero(virtual)
         p = self.transfer_params
         plane = frame.plane if p.rt_horizon else None
-        t_r, b_r, ok_r = transfer_at_pixels(
+        # the real pixels in both scenes at once (their point and normal are the same in
+        # both), the virtual pixels in the scene with the objects
+        (t_r, b_r), (t_cr, b_cr), ok_r = transfer_pair_at_pixels(
             points_r,
+            points_c,
             frame.normals_cam,
             cam,
             pose,
             self.pattern,
             aux_r,
+            aux_c,
             p,
             ru,
             rv,
             radiance_r,
+            radiance_c,
             plane,
         )
-        t_c, b_c, ok_c = transfer_at_pixels(
+        t_cv, b_cv, ok_cv = transfer_at_pixels(
             points_c,
             normals_c,
             cam,
@@ -266,11 +272,13 @@ class DifferentialRenderer:
             self.pattern,
             aux_c,
             p,
-            np.concatenate([ru, uu_all]),
-            np.concatenate([rv, vv_all]),
+            uu_all,
+            vv_all,
             radiance_c,
             plane,
         )
+        t_c, b_c = np.concatenate([t_cr, t_cv]), np.concatenate([b_cr, b_cv])
+        ok_c = np.concatenate([ok_r, ok_cv])
         if not r.render_indirect:
             b_r, b_c = np.zeros_like(b_r), np.zeros_like(b_c)
         k = len(ru)

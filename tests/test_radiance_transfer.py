@@ -203,6 +203,76 @@ class TestKernelAgainstReference:
         assert np.all(dc_drop >= -1e-6) and dc_drop.mean() > 0.05
 
 
+class TestTwoScenesAtOnce:
+    """transfer_pair_at_pixels (the renderer's real pixels without and with the virtual
+    objects) gives exactly what two transfer_at_pixels calls give."""
+
+    @pytest.mark.parametrize(
+        "seed, steps, with_plane", [(0, 1, False), (1, 2, True), (2, 2, False)]
+    )
+    def test_pair_equals_two_calls(self, seed, steps, with_plane):
+        camera, points, normals, world_from_cam = _random_scene(seed, w=24, h=18)
+        rng = np.random.default_rng(seed + 10)
+        # the second scene: a "virtual" block in front of the left third of the image,
+        # and in the auxiliary buffers' middle texels
+        depth_second = points[..., 2].copy()
+        block = np.zeros(depth_second.shape, bool)
+        block[4:14, 2:8] = True
+        depth_second[block] = 0.7
+        points_second = camera.unproject(depth_second)
+        aux = _hand_made_aux(seed)
+        aux_second = rt.AuxBufferArrays(aux.depth.copy(), aux.buffer_from_cam, aux.pixel_size)
+        aux_second.depth[:, 6:10, 6:10] = 0.9
+        radiance = rng.uniform(0.1, 1.0, (*depth_second.shape, 3)).astype(np.float32)
+        radiance_second = radiance.copy()
+        radiance_second[block] = (0.9, 0.1, 0.1)
+        plane = None
+        if with_plane:
+            up = np.array([0.0, -1.0, 0.0])
+            plane = SupportPlane(up, 1.2, np.zeros(depth_second.shape, bool))
+        tp = Config().replace(rt_directions=32, rt_steps=steps, seed=seed).transfer
+        pattern = rt.make_sampling_pattern(tp, seed)
+        vs, us = np.nonzero(~block & (points[..., 2] > 0))
+        first = rt.transfer_at_pixels(
+            points, normals, camera, world_from_cam, pattern, aux, tp, us, vs, radiance, plane
+        )
+        second = rt.transfer_at_pixels(
+            points_second,
+            normals,
+            camera,
+            world_from_cam,
+            pattern,
+            aux_second,
+            tp,
+            us,
+            vs,
+            radiance_second,
+            plane,
+        )
+        (t1, b1), (t2, b2), valid = rt.transfer_pair_at_pixels(
+            points,
+            points_second,
+            normals,
+            camera,
+            world_from_cam,
+            pattern,
+            aux,
+            aux_second,
+            tp,
+            us,
+            vs,
+            radiance,
+            radiance_second,
+            plane,
+        )
+        np.testing.assert_array_equal(valid, first[2])
+        np.testing.assert_array_equal(valid, second[2])
+        for got, want in ((t1, first[0]), (b1, first[1]), (t2, second[0]), (b2, second[1])):
+            np.testing.assert_array_equal(got, want)
+        # the scenes really differ: the block and its aux texels shadow some pixels
+        assert np.abs(t1 - t2).max() > 0.05 and np.abs(b1 - b2).max() > 0.01
+
+
 def _plane_facing_camera(seed):
     """A 12x9 plane at 1 m facing the camera, seen from a random camera pose: camera,
     points, normals (camera frame), world_from_cam."""
