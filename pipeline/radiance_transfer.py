@@ -18,7 +18,8 @@ position in a 2 x 2 pixel block (interleaved sampling), seeded from the config.
 The per-pixel logic is written once (`register_jitable`) and driven by a parallel CPU
 loop, here. It evaluates one scene, or two at once (`transfer_pair_at_pixels`: the
 renderer's real pixels without and with the virtual objects share each sample's
-projections and every surface the two scenes have in common); the rest lives beside it and is re-exported from this module:
+projections and every surface the two scenes have in common). The rest lives beside it
+and is re-exported from this module:
 `transfer_sampling.py` (the directions, radii and chi), `transfer_types.py` (the kernels'
 packed inputs, their result and the depth-test constants), `transfer_upsampling.py` (grid to
 pixels), `transfer_quadrature.py` (the exact unoccluded part) and `transfer_oracle.py` (the
