@@ -65,6 +65,9 @@ if TYPE_CHECKING:  # ibl_render imports this module
     from arlight.pipeline.ibl_render import Shading
 
 NEAR_BLOCK_PX = 4  # tile side of `within_reach` (grid pixels)
+# a pixel whose depth differs from its grid neighbourhood's by more than this share is on
+# another surface: the grid's shading change is not carried onto it (decision 0049)
+UPSAMPLE_MAX_RELATIVE_JUMP = 0.05
 MIN_SHADING = 1e-6  # R_d below this (linear image units): the ratio is left at 1
 # a virtual surface within this of the real depth counts as in front (contact with the ground)
 DEPTH_TEST_BIAS_M = 0.005
@@ -311,6 +314,7 @@ class DifferentialRenderer:
             rect,
             step,
             r.render_blur_radius_px if step > 1 else r.render_denoise_px,
+            (real_depth[gvv, guu], real_depth[v0:v1, u0:u1]),
         )
         if step == 1:
             ratio_full = np.where(touched, ratio_full, 1.0)
@@ -491,17 +495,26 @@ class DifferentialRenderer:
         rect: tuple[int, int, int, int],
         step: int,
         blur_radius: int,
+        depths: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Grid buffers -> every pixel of the rect: bicubic, then a Gaussian of the given
         radius, normalised by the up-sampled weights (virtual pixels carry none); at step 1
-        only the Gaussian (identity with radius 0)."""
+        only the Gaussian (identity with radius 0).
+
+        depths: (the grid points' depth, the rect's depth) in metres. On a grid (step > 1)
+        a pixel keeps no change where the grid's depth, up-sampled the same way, differs
+        from its own by more than UPSAMPLE_MAX_RELATIVE_JUMP: it lies on another surface
+        than the grid points around it (a hand in front of an object), and the blend would
+        carry their shading change onto it."""
         u0, v0, u1, v1 = rect
         if step == 1 and blur_radius == 0:
             return ratio, delta
         size = (ratio.shape[1] * step, ratio.shape[0] * step)
-        stack = np.concatenate(
-            [(ratio * weight)[..., None], delta * weight[..., None], weight[..., None]], axis=2
-        ).astype(np.float32)
+        layers = [(ratio * weight)[..., None], delta * weight[..., None], weight[..., None]]
+        edge_test = depths is not None and step > 1
+        if edge_test:
+            layers.append((depths[0] * weight)[..., None])
+        stack = np.concatenate(layers, axis=2).astype(np.float32)
         up = stack if step == 1 else cv2.resize(stack, size, interpolation=cv2.INTER_CUBIC)
         if blur_radius > 0:
             up = cv2.GaussianBlur(up, (2 * blur_radius + 1, 2 * blur_radius + 1), 0)
@@ -516,6 +529,13 @@ class DifferentialRenderer:
         # far from every object the grid was exactly 1 / 0: keep it exact there
         ratio_full[np.abs(ratio_full - 1.0) < 1e-6] = 1.0
         delta_full[np.abs(delta_full) < 1e-9] = 0.0
+        if edge_test:
+            z = depths[1]
+            other = (
+                (z > 0) & keep & (np.abs(up[..., 5] * inverse - z) > UPSAMPLE_MAX_RELATIVE_JUMP * z)
+            )
+            ratio_full[other] = 1.0
+            delta_full[other] = 0.0
         return ratio_full, delta_full
 
 

@@ -296,13 +296,20 @@ class TestShadowPosition:
 
 # ------------------------------------------------------------------ 2. real occluder
 class TestRealOccluder:
-    def test_hand_in_front_hides_the_covered_part_of_the_sphere(self, view):
+    @pytest.mark.parametrize("subsample, blur, levels", [(1, 2, 0), (2, 4, 1), (4, 8, 0)])
+    def test_hand_in_front_hides_the_covered_part_of_the_sphere(
+        self, view, subsample, blur, levels
+    ):
         """A real 'hand' (a patch 0.5 m from the camera, facing it) over the left half of
         the sphere's pixels: no pixel of it is virtual, and it keeps its input colour bit
         for bit (the sphere is 0.4 m behind it and the light comes from the camera's side of
-        it, so nothing there changes); the uncovered half of the sphere is still rendered."""
+        it, so nothing there changes); the uncovered half of the sphere is still rendered.
+        Also on full's 2x2 and fast's 4x4 grids, whose up-sampling must not carry the
+        ground's shadow across the hand's edge (before the depth test it changed 7 % and
+        18 % of the hand's pixels, by up to 5 levels): at most `levels` on 1 % of them."""
         coeffs = light_sh(light_direction(+1))
-        _, bare, _ = render(view, coeffs, [sphere()])
+        grid = {"render_subsample": subsample, "render_blur_radius_px": blur}
+        _, bare, _ = render(view, coeffs, [sphere()], **grid)
         rows, cols = np.nonzero(bare.virtual_mask)
         hand = np.zeros(view.depth_m.shape, bool)
         base_u = int(round(view.project([0.0, SPHERE_RADIUS_M, 0.0])[0][0]))
@@ -321,9 +328,10 @@ class TestRealOccluder:
             depth_m=depth,
             normals_cam=normals,
         )
-        _, out, _ = render(view, coeffs, [sphere()], inputs=inputs)
+        _, out, _ = render(view, coeffs, [sphere()], inputs=inputs, **grid)
         assert not np.any(out.virtual_mask[hand])
-        np.testing.assert_array_equal(out.composite[hand], color[hand])
+        change = np.abs(out.composite[hand].astype(int) - color[hand]).max(axis=1)
+        assert change.max() <= levels and np.mean(change > 0) <= 0.01
         uncovered = bare.virtual_mask & ~hand
         assert uncovered.sum() > 0.3 * bare.virtual_mask.sum()
         np.testing.assert_array_equal(out.virtual_mask, uncovered)
@@ -368,11 +376,14 @@ class TestNothingToRender:
         assert result.composite is not None
         assert np.array_equal(result.composite, frame.color)
 
-    def test_pixels_outside_the_region_are_the_input(self, view, lit_from_plus_x):
-        """In a normal render, every pixel outside RenderOutput.region is the input bit for
-        bit, the region is a minority of the frame, and it holds only virtual pixels and
-        real ones within rt_radius_m of the object (1 cm slack for the mesh)."""
-        inputs, out, renderer = lit_from_plus_x
+    def test_pixels_outside_the_region_are_the_input(self, view):
+        """In a render at every pixel (the paper's Ours), every pixel outside
+        RenderOutput.region is the input bit for bit, the region is a minority of the frame,
+        and it holds only virtual pixels and real ones within rt_radius_m of the object (1 cm
+        slack for the mesh). The grids: TestFastPath."""
+        inputs, out, renderer = render(
+            view, light_sh(light_direction(+1)), [sphere()], render_subsample=1
+        )
         outside = ~out.region
         assert outside.sum() > 0.5 * outside.size
         assert np.array_equal(out.composite[outside], inputs.color[outside])
@@ -483,11 +494,21 @@ class TestBadInput:
 
 # ------------------------------------------------------------------ 6. fast path
 class TestFastPath:
-    def test_subsampled_shadow_within_tolerance_and_input_outside_region(self, view):
-        """render_subsample 4 (OursFast): the shadow centroid keeps the tolerance of the
-        full render, and pixels outside the region are still the input bit for bit."""
+    @pytest.mark.parametrize("subsample, blur", [(2, 4), (4, 8)])  # full's and fast's grids
+    def test_subsampled_shadow_within_tolerance_and_input_outside_region(
+        self, view, subsample, blur
+    ):
+        """render_subsample 2 (full) and 4 (OursFast): the shadow centroid keeps the
+        tolerance of the per-pixel render, and pixels outside the region are still the input
+        bit for bit."""
         direction = light_direction(+1)
-        inputs, out, renderer = render(view, light_sh(direction), [sphere()], render_subsample=4)
+        inputs, out, renderer = render(
+            view,
+            light_sh(direction),
+            [sphere()],
+            render_subsample=subsample,
+            render_blur_radius_px=blur,
+        )
         expected, tolerance = shadow_prediction(
             view, direction, renderer.config.transfer.rt_directions
         )
