@@ -511,9 +511,9 @@ class DifferentialRenderer:
             return ratio, delta
         size = (ratio.shape[1] * step, ratio.shape[0] * step)
         layers = [(ratio * weight)[..., None], delta * weight[..., None], weight[..., None]]
-        edge_test = depths is not None and step > 1
-        if edge_test:
-            layers.append((depths[0] * weight)[..., None])
+        edge = depths if step > 1 else None  # the depth test's inputs, on a grid only
+        if edge is not None:
+            layers.append((edge[0] * weight)[..., None])
         stack = np.concatenate(layers, axis=2).astype(np.float32)
         up = stack if step == 1 else cv2.resize(stack, size, interpolation=cv2.INTER_CUBIC)
         if blur_radius > 0:
@@ -529,8 +529,8 @@ class DifferentialRenderer:
         # far from every object the grid was exactly 1 / 0: keep it exact there
         ratio_full[np.abs(ratio_full - 1.0) < 1e-6] = 1.0
         delta_full[np.abs(delta_full) < 1e-9] = 0.0
-        if edge_test:
-            z = depths[1]
+        if edge is not None:
+            z = edge[1]
             other = (
                 (z > 0) & keep & (np.abs(up[..., 5] * inverse - z) > UPSAMPLE_MAX_RELATIVE_JUMP * z)
             )
