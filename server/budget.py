@@ -182,8 +182,11 @@ def _factors(
     """Per stage: setting -> its ratio of work to the reference (the product scales the
     stage's reference time). probe: the Hello asked for a reflection probe."""
     v, f, t, e, r, a = c.volume, c.filter, c.transfer, c.estimation, c.render, c.aux
-    # the configuration REFERENCE_STAGE_MS were measured with (`full` fitted 50000 pixels then)
-    ref = Config().replace(light_max_samples=REFERENCE_FIT_SAMPLES)
+    # the configuration REFERENCE_STAGE_MS were measured with (`full` fitted 50000 pixels
+    # then, and rendered at every pixel: decisions 0044 and 0049 changed both)
+    ref = Config().replace(
+        light_max_samples=REFERENCE_FIT_SAMPLES, render_subsample=1, render_blur_radius_px=8
+    )
     px = pixels / REFERENCE_PIXELS
 
     def window(k: int) -> float:
