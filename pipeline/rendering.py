@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numba
 import numpy as np
+from numba.extending import register_jitable
 
 from arlight.core.camera import PinholeCamera
 from arlight.pipeline import sh
@@ -137,18 +138,39 @@ def linear_to_srgb_u8(linear: np.ndarray) -> np.ndarray:
     return out
 
 
+def encode_where(linear: np.ndarray, where: np.ndarray, image: np.ndarray) -> None:
+    """image[where] = linear_to_srgb_u8(linear[where]), in place, without gathering the
+    pixels first. linear (H, W, C) float64, where (H, W) bool, image (H, W, C) uint8 (a
+    view is fine: the rect of a composite)."""
+    _encode_where(np.ascontiguousarray(linear, np.float64), where, image)
+
+
+@register_jitable
+def _srgb_code(c):
+    """The 8-bit sRGB code of a linear value (clipped to [0, 1]; NaN -> 0)."""
+    if not c > 0.0:  # NaN included
+        c = 0.0
+    elif c > 1.0:
+        c = 1.0
+    s = 12.92 * c if c <= 0.0031308 else 1.055 * c ** (1 / 2.4) - 0.055
+    return np.uint8(s * 255.0 + 0.5)
+
+
 @numba.njit(parallel=True, cache=True)
 def _srgb_u8(linear, out):
     """out[i] = the 8-bit sRGB code of linear[i] (both flat); NumPy's power took 3/4 of a
     composite's encoding (docs/results/speed.md, "Rendering")."""
     for i in numba.prange(linear.shape[0]):
-        c = linear[i]
-        if not c > 0.0:  # NaN included
-            c = 0.0
-        elif c > 1.0:
-            c = 1.0
-        s = 12.92 * c if c <= 0.0031308 else 1.055 * c ** (1 / 2.4) - 0.055
-        out[i] = np.uint8(s * 255.0 + 0.5)
+        out[i] = _srgb_code(linear[i])
+
+
+@numba.njit(parallel=True, cache=True)
+def _encode_where(linear, where, image):
+    for y in numba.prange(where.shape[0]):
+        for x in range(where.shape[1]):
+            if where[y, x]:
+                for c in range(image.shape[2]):
+                    image[y, x, c] = _srgb_code(linear[y, x, c])
 
 
 def reinhard(x: np.ndarray, mean: float, key: float) -> np.ndarray:
@@ -333,7 +355,7 @@ class DifferentialRenderer:
         changed = (ratio_full != 1.0) | any_nonzero(delta_full)
         out[virtual[v0:v1, u0:u1]] = 0.0
         block = composite[v0:v1, u0:u1]
-        block[changed] = linear_to_srgb_u8(out[changed])
+        encode_where(out, changed, block)
         composite[vv_all, uu_all] = linear_to_srgb_u8(virtual_rgb)
         region[v0:v1, u0:u1] = changed
         region |= virtual
@@ -583,6 +605,7 @@ __all__ = [
     "EnvironmentMap",
     "RenderInputs",
     "RenderOutput",
+    "encode_where",
     "linear_to_srgb_u8",
     "luminance_light_rgb",
     "reinhard",

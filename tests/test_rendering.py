@@ -37,6 +37,7 @@ from arlight.pipeline.rendering import (
     DifferentialRenderer,
     RenderInputs,
     RenderOutput,
+    encode_where,
     linear_to_srgb_u8,
 )
 from arlight.pipeline.virtual_gbuffer import VirtualRaycaster
@@ -292,6 +293,21 @@ class TestShadowPosition:
             offset = predicted - base_u
             assert (found[side] - base_u) / offset > 0.5
         assert found[+1] < base_u < found[-1]
+
+
+def test_encode_where_is_the_gathered_encoding_in_place():
+    """encode_where writes linear_to_srgb_u8 of the chosen pixels into a view of the
+    composite, and nothing else (NaN -> 0, clipped at 0 and 1)."""
+    rng = np.random.default_rng(0)
+    linear = rng.random((30, 40, 3)) * 1.2 - 0.1
+    linear[5, 5, 1] = np.nan
+    where = rng.random((30, 40)) < 0.6
+    composite = np.full((50, 60, 3), 7, np.uint8)
+    expected = composite.copy()
+    expected[10:40, 5:45][where] = linear_to_srgb_u8(linear[where])
+    encode_where(linear, where, composite[10:40, 5:45])
+    np.testing.assert_array_equal(composite, expected)
+    assert composite[15, 10, 1] == 0 and np.any(composite != 7)
 
 
 # ------------------------------------------------------------------ 2. real occluder
