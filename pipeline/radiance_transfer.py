@@ -29,6 +29,7 @@ plain NumPy version, `transfer_reference`, kept as the test oracle).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba
@@ -119,11 +120,12 @@ def _occlusion(px, py, pz, yx, yy, yz, sx, sy, sz, wx, wy, wz, chi):
 
 
 @register_jitable(inline="always")
-def _main_occlusion(
-    px, py, pz, yx, yy, yz, wx, wy, wz, u, v, sz, fx, fy, cx, cy, chi, bias, thickness
-):
-    """K of the main buffer's surface at pixel (u, v), depth sz, for the sample y of x
-    towards w; 1 where that surface is not in front of y (bias: metres)."""
+def _main_occlusion(sample, u, v, sz, fx, fy, cx, cy, bias, test):
+    """K of the main buffer's surface at pixel (u, v), depth sz, for sample = (x, y, w) (9
+    floats: the point, the sample, the direction) of x towards w; 1 where that surface is
+    not in front of y. bias: metres; test: (chi, bias_abs, bias_rel, thickness)."""
+    px, py, pz, yx, yy, yz, wx, wy, wz = sample
+    chi, thickness = test[0], test[3]
     if sz > 0.0 and sz < yz - bias and sz > yz - thickness:
         sx = (u - cx) / fx * sz
         sy = (v - cy) / fy * sz
@@ -132,30 +134,12 @@ def _main_occlusion(
 
 
 @register_jitable(inline="always")
-def _aux_occlusion(
-    px,
-    py,
-    pz,
-    yx,
-    yy,
-    yz,
-    wx,
-    wy,
-    wz,
-    m,
-    ub,
-    vb,
-    half,
-    pix,
-    bz,
-    sd,
-    chi,
-    bias_abs,
-    bias_rel,
-    thickness,
-):
+def _aux_occlusion(sample, m, ub, vb, half, pix, bz, sd, test):
     """K of an auxiliary buffer's surface at texel (ub, vb), depth sd along its +z, for the
-    sample y (bz: y's depth in the buffer); m (3, 4): buffer_from_cam; 1 where not in front."""
+    sample (as `_main_occlusion`; bz: y's depth in the buffer); m (3, 4): buffer_from_cam;
+    pix: metres per texel; 1 where that surface is not in front of y."""
+    px, py, pz, yx, yy, yz, wx, wy, wz = sample
+    chi, bias_abs, bias_rel, thickness = test
     if sd > 0.0 and sd < bz - (bias_abs + bias_rel * 0.5 * sd) and sd > bz - thickness:
         # surface point in the buffer frame -> camera frame (inverse of a rigid map)
         qx = (ub - half) * pix - m[0, 3]
@@ -195,6 +179,8 @@ def _visibility(
     second: the same scene with the virtual objects in). Returns (K of the first, K of the
     second or 1); a surface both configurations share is tested once."""
     yx, yy, yz = px + radius * wx, py + radius * wy, pz + radius * wz
+    sample = (px, py, pz, yx, yy, yz, wx, wy, wz)
+    test = (chi, bias_abs, bias_rel, thickness)
     k0 = 1.0
     k1 = 1.0
     two = depth.shape[0] > 1
@@ -205,34 +191,11 @@ def _visibility(
         if 0 <= u < w and 0 <= v < h:
             bias = bias_abs + bias_rel * yz
             sz = depth[0, v, u]
-            o = _main_occlusion(
-                px, py, pz, yx, yy, yz, wx, wy, wz, u, v, sz, fx, fy, cx, cy, chi, bias, thickness
-            )
+            o = _main_occlusion(sample, u, v, sz, fx, fy, cx, cy, bias, test)
             k0 = min(k0, o)
             if two:
-                sz1 = depth[1, v, u]
-                if sz1 != sz:
-                    o = _main_occlusion(
-                        px,
-                        py,
-                        pz,
-                        yx,
-                        yy,
-                        yz,
-                        wx,
-                        wy,
-                        wz,
-                        u,
-                        v,
-                        sz1,
-                        fx,
-                        fy,
-                        cx,
-                        cy,
-                        chi,
-                        bias,
-                        thickness,
-                    )
+                if depth[1, v, u] != sz:  # else the surface both scenes share: tested once
+                    o = _main_occlusion(sample, u, v, depth[1, v, u], fx, fy, cx, cy, bias, test)
                 k1 = min(k1, o)
     r = aux_depth.shape[2]
     half = 0.5 * (r - 1)
@@ -245,54 +208,12 @@ def _visibility(
         vb = int(round(by / aux_pix[b] + half))
         if 0 <= ub < r and 0 <= vb < r:
             sd = aux_depth[0, b, vb, ub]
-            o = _aux_occlusion(
-                px,
-                py,
-                pz,
-                yx,
-                yy,
-                yz,
-                wx,
-                wy,
-                wz,
-                m,
-                ub,
-                vb,
-                half,
-                aux_pix[b],
-                bz,
-                sd,
-                chi,
-                bias_abs,
-                bias_rel,
-                thickness,
-            )
+            o = _aux_occlusion(sample, m, ub, vb, half, aux_pix[b], bz, sd, test)
             k0 = min(k0, o)
             if two:
                 sd1 = aux_depth[1, b, vb, ub]
                 if sd1 != sd:
-                    o = _aux_occlusion(
-                        px,
-                        py,
-                        pz,
-                        yx,
-                        yy,
-                        yz,
-                        wx,
-                        wy,
-                        wz,
-                        m,
-                        ub,
-                        vb,
-                        half,
-                        aux_pix[b],
-                        bz,
-                        sd1,
-                        chi,
-                        bias_abs,
-                        bias_rel,
-                        thickness,
-                    )
+                    o = _aux_occlusion(sample, m, ub, vb, half, aux_pix[b], bz, sd1, test)
                 k1 = min(k1, o)
     return k0, k1
 
@@ -741,17 +662,15 @@ class _KernelInputs:
         """The kernels' arguments; with `second`, its depth, auxiliary depth, radiance and
         ground stacked after this one's (the kernels' two scenes)."""
 
-        def stacked(name: str, attr=lambda k, n: getattr(k, n)):
-            mine = attr(self, name)
-            if second is None:
-                return mine[None]
-            return np.stack([mine, attr(second, name)])
+        def stacked(get: Callable[[_KernelInputs], np.ndarray]) -> np.ndarray:
+            """(S, ...) of one array per scene; a view of this one's alone."""
+            mine = get(self)
+            return mine[None] if second is None else np.stack([mine, get(second)])
 
-        aux_depth = stacked("depth", lambda k, n: k.aux.depth)
         return (
             self.points,
             self.normals,
-            stacked("depth"),
+            stacked(lambda k: k.depth),
             camera.fx,
             camera.fy,
             camera.cx,
@@ -759,7 +678,7 @@ class _KernelInputs:
             pattern.directions,
             self.ysh,
             pattern.radii,
-            aux_depth,
+            stacked(lambda k: k.aux.depth),
             self.aux.buffer_from_cam,
             self.aux.pixel_size,
             visibility_ramp(pattern, params),
@@ -767,9 +686,9 @@ class _KernelInputs:
             BIAS_REL,
             params.rt_thickness_m,
             params.visibility,
-            stacked("radiance"),
+            stacked(lambda k: k.radiance),
             self.plane,
-            stacked("ground"),
+            stacked(lambda k: k.ground),
         )
 
 
