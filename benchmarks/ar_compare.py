@@ -25,21 +25,28 @@ COLUMNS = [
 
 
 def _load(path: str) -> dict[tuple[str, str, int], dict]:
+    """The report's rows by (sequence, preset, frame); ValueError naming the file."""
     try:
-        rows = json.loads(open(path).read())["rows"]
-    except (OSError, ValueError, KeyError) as exc:
-        sys.exit(f"ar_compare: {path}: not an ar_truth.py report.json ({exc})")
-    return {(r["sequence"], r["preset"], r["frame"]): r for r in rows}
+        with open(path) as f:
+            rows = json.load(f)["rows"]
+        return {(r["sequence"], r["preset"], r["frame"]): r for r in rows}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: not an ar_truth.py report.json ({exc})") from None
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("reports", nargs="+", help="report.json files of ar_truth.py")
     args = parser.parse_args(argv)
-    loaded = [_load(p) for p in args.reports]
+    try:
+        loaded = [_load(p) for p in args.reports]
+    except ValueError as exc:
+        parser.error(f"reports: {exc}")
     pairs = sorted(set.intersection(*(set(r) for r in loaded)))
     if not pairs:
-        sys.exit("ar_compare: the reports share no AR pair (sequence, preset, frame)")
+        parser.error(
+            "the reports share no AR pair (sequence, preset, frame): run them on the same sequences"
+        )
     names = [c.replace("_psnr_", " ") for c in COLUMNS]
     print(f"{len(pairs)} pairs; PSNR dB, median over pairs")
     print("| report | " + " | ".join(names) + " | Rendering ms |")
