@@ -34,6 +34,7 @@ from arlight.cli.common import (
 )
 from arlight.cli.probe_files import probe_record, write_probe_files
 from arlight.cli.stop_signals import finalised_on_sigterm
+from arlight.client.stop_signals import uninterrupted
 from arlight.pipeline.inverse_tone import OPERATORS
 from arlight.protocols import received_record
 from arlight.protocols.records import pipeline_ms
@@ -240,13 +241,14 @@ def run(args: argparse.Namespace) -> int:
             record = received_record(result, receive_time_wall)  # with the server's exports
             if options.probe is not None:  # what came, where it went; never the texels
                 record["probe"] = probe_record(result.probe, stem, args.probe_layout)
-        if recorder is not None:  # the Foxglove channels of the Result beside the frames
-            recorder.write_result(result, record)
-        if live is not None:
-            live.write_result(result, record, time.time_ns())
-        if out:
-            out.write(json.dumps(record) + "\n")
-            out.flush()  # a line per Result as it arrives: a killed or hours-long stream keeps them
+        with uninterrupted():  # a stop signal waits: every file holds this Result or none does
+            if recorder is not None:  # the Foxglove channels of the Result beside the frames
+                recorder.write_result(result, record)
+            if live is not None:
+                live.write_result(result, record, time.time_ns())
+            if out:
+                out.write(json.dumps(record) + "\n")
+                out.flush()  # a line per Result as it arrives: a killed stream keeps them
 
     sinks = recorder if live is None else Recorders(recorder, live)
     client = CaptureClient(source, options, on_result=on_result, recorder=sinks)
