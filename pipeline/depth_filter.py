@@ -40,14 +40,17 @@ asking for CUDA where :func:`cuda_available` is False raises ``RuntimeError`` (n
 fallback). Both backends select the same float32 samples with the same float32 comparisons,
 so the depth passes agree bit for bit; normals agree to float32 rounding (~1e-6).
 
-Medians inside the kernels use a scratch buffer (``np.empty`` per row on the CPU,
-``cuda.local.array`` per thread on the GPU): up to 32 samples (D''': 4, D'': up to 25) the
-one whose count of smaller samples is <= k < its count of smaller-or-equal ones (O(n^2)
-compares without branches: D'' in half the time of Wirth's selection), Wirth's in-place
-selection above (a D' hole: up to k*k = 400; O(n) on average, no recursion). A D'
-hole skips the rows of its window that hold no measured depth (an integral image of D_c > 0
-counts them) and stops as soon as the volume-agreeing majority is certain, whatever the
-samples left may hold; a hole with no measured depth in its window is answered at once.
+On the CPU, D'' and D''' with up to 32 candidates a pixel run a row of pixels at a time
+through a selection network (:mod:`arlight.pipeline.median_network`), bit for bit the per-
+pixel kernel's result. Medians inside the per-pixel kernels use a scratch buffer
+(``np.empty`` per row on the CPU, ``cuda.local.array`` per thread on the GPU): up to 32
+samples (D''': 4, D'': up to 25) the one whose count of smaller samples is <= k < its count
+of smaller-or-equal ones (O(n^2) compares without branches: D'' in half the time of Wirth's
+selection), Wirth's in-place selection above (a D' hole: up to k*k = 400; O(n) on average,
+no recursion). A D' hole skips the rows of its window that hold no measured depth (an
+integral image of D_c > 0 counts them) and stops as soon as the volume-agreeing majority is
+certain, whatever the samples left may hold; a hole with no measured depth in its window is
+answered at once.
 
 Slow NumPy references (``_*_reference``) mirror each kernel and serve as test oracles only.
 """
@@ -66,6 +69,11 @@ from numba.extending import register_jitable
 from arlight.core.camera import PinholeCamera
 from arlight.core.checks import CheckError, check_image
 from arlight.pipeline.config import MAX_WINDOW, FilterParams
+from arlight.pipeline.median_network import (
+    MAX_NETWORK_INPUTS,
+    median_network,
+    support_median_rows,
+)
 
 __all__ = [
     "BACKENDS",
@@ -468,6 +476,10 @@ def _run_support_median(depth, inten, offsets, lam_i, gate, backend):
         return _cuda_launch(
             1, offsets.size**2, depth.shape, depth, inten, offsets, lam_i, gate, out
         )
+    if offsets.size**2 <= MAX_NETWORK_INPUTS:  # 3-12x faster: speed page, "Depth filter"
+        threshold = lam_i if gate else np.float32(np.inf)
+        support_median_rows(depth, inten, offsets, threshold, median_network(offsets.size**2), out)
+        return out
     _support_median_cpu(depth, inten, offsets, lam_i, gate, out)
     return out
 
