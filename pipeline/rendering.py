@@ -36,9 +36,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import cv2
-import numba
 import numpy as np
-from numba.extending import register_jitable
 
 from arlight.core.camera import PinholeCamera
 from arlight.pipeline import sh
@@ -57,6 +55,7 @@ from arlight.pipeline.radiance_transfer import (
     transfer_at_pixels,
     transfer_pair_at_pixels,
 )
+from arlight.pipeline.srgb_encoding import encode_where, linear_to_srgb_u8
 from arlight.pipeline.sun_shadows import CompactSourceShading, RealOccluder, SourceLight
 from arlight.pipeline.transfer_quadrature import unoccluded_correction
 from arlight.pipeline.virtual_gbuffer import VirtualGBuffer, VirtualRaycaster
@@ -127,50 +126,6 @@ class RenderOutput:
     virtual_mask: np.ndarray
     region: np.ndarray
     gbuffer: VirtualGBuffer
-
-
-def linear_to_srgb_u8(linear: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] -> 8-bit sRGB (IEC 61966-2-1), clipped, rounded to nearest; NaN -> 0.
-    Computed in float64 whatever the input's precision."""
-    c = np.ascontiguousarray(linear, np.float64)
-    out = np.empty(c.shape, np.uint8)
-    _srgb_u8(c.reshape(-1), out.reshape(-1))
-    return out
-
-
-def encode_where(linear: np.ndarray, where: np.ndarray, image: np.ndarray) -> None:
-    """image[where] = linear_to_srgb_u8(linear[where]), in place, without gathering the
-    pixels first. linear (H, W, C) float64, where (H, W) bool, image (H, W, C) uint8 (a
-    view is fine: the rect of a composite)."""
-    _encode_where(np.ascontiguousarray(linear, np.float64), where, image)
-
-
-@register_jitable
-def _srgb_code(c):
-    """The 8-bit sRGB code of a linear value (clipped to [0, 1]; NaN -> 0)."""
-    if not c > 0.0:  # NaN included
-        c = 0.0
-    elif c > 1.0:
-        c = 1.0
-    s = 12.92 * c if c <= 0.0031308 else 1.055 * c ** (1 / 2.4) - 0.055
-    return np.uint8(s * 255.0 + 0.5)
-
-
-@numba.njit(parallel=True, cache=True)
-def _srgb_u8(linear, out):
-    """out[i] = the 8-bit sRGB code of linear[i] (both flat); NumPy's power took 3/4 of a
-    composite's encoding (docs/results/speed.md, "Rendering")."""
-    for i in numba.prange(linear.shape[0]):
-        out[i] = _srgb_code(linear[i])
-
-
-@numba.njit(parallel=True, cache=True)
-def _encode_where(linear, where, image):
-    for y in numba.prange(where.shape[0]):
-        for x in range(where.shape[1]):
-            if where[y, x]:
-                for c in range(image.shape[2]):
-                    image[y, x, c] = _srgb_code(linear[y, x, c])
 
 
 def reinhard(x: np.ndarray, mean: float, key: float) -> np.ndarray:
