@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numba
 import numpy as np
 
 from arlight.pipeline import sh
@@ -40,16 +41,29 @@ QUADRATURE_TABLE_SIZE = 128  # texels per side of the octahedral table of the co
 def _octahedral_uv(n: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     """Texel coordinates (float32) of unit vectors (K, 3) in a size x size octahedral map
     of -n (so normals facing a camera, z < 0, fill the map's centre, away from its seams)."""
-    m = -np.asarray(n, np.float64)
-    m = m / np.maximum(np.abs(m).sum(axis=1, keepdims=True), 1e-12)
-    x, y = m[:, 0], m[:, 1]
-    lower = m[:, 2] < 0.0
-    fx = np.where(lower, (1.0 - np.abs(y)) * np.where(x >= 0, 1.0, -1.0), x)
-    fy = np.where(lower, (1.0 - np.abs(x)) * np.where(y >= 0, 1.0, -1.0), y)
-    return (
-        ((fx + 1.0) * 0.5 * size - 0.5).astype(np.float32),
-        ((fy + 1.0) * 0.5 * size - 0.5).astype(np.float32),
-    )
+    m = np.ascontiguousarray(n, np.float64).reshape(-1, 3)
+    map_x = np.empty(len(m), np.float32)
+    map_y = np.empty(len(m), np.float32)
+    _octahedral_uv_kernel(m, float(size), map_x, map_y)
+    return map_x, map_y
+
+
+@numba.njit(parallel=True, cache=True)
+def _octahedral_uv_kernel(n, size, map_x, map_y):
+    """`_octahedral_uv` one vector at a time (NumPy's whole-array passes took 4 ms a frame
+    for 30000 normals); the same float64 operations in the same order."""
+    for i in numba.prange(n.shape[0]):
+        mx, my, mz = -n[i, 0], -n[i, 1], -n[i, 2]
+        norm = abs(mx) + abs(my) + abs(mz)
+        norm = norm if norm > 1e-12 else 1e-12
+        x, y = mx / norm, my / norm
+        if mz / norm < 0.0:
+            fx = (1.0 - abs(y)) * (1.0 if x >= 0 else -1.0)
+            fy = (1.0 - abs(x)) * (1.0 if y >= 0 else -1.0)
+        else:
+            fx, fy = x, y
+        map_x[i] = np.float32((fx + 1.0) * 0.5 * size - 0.5)
+        map_y[i] = np.float32((fy + 1.0) * 0.5 * size - 0.5)
 
 
 def _octahedral_directions(size: int) -> np.ndarray:
