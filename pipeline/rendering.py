@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import cv2
+import numba
 import numpy as np
 
 from arlight.core.camera import PinholeCamera
@@ -495,25 +496,41 @@ class DifferentialRenderer:
         up = stack if step == 1 else cv2.resize(stack, size, interpolation=cv2.INTER_CUBIC)
         if blur_radius > 0:
             up = cv2.GaussianBlur(up, (2 * blur_radius + 1, 2 * blur_radius + 1), 0)
-        up = up[: v1 - v0, : u1 - u0]
-        w = up[..., 4]
-        keep = w > 1e-3
-        inverse = np.zeros_like(w)
-        np.divide(1.0, w, out=inverse, where=keep)
-        ratio_full = up[..., 0] * inverse
-        ratio_full[~keep] = 1.0
-        delta_full = up[..., 1:4] * inverse[..., None]  # 0 where not kept
-        # far from every object the grid was exactly 1 / 0: keep it exact there
-        ratio_full[np.abs(ratio_full - 1.0) < 1e-6] = 1.0
-        delta_full[np.abs(delta_full) < 1e-9] = 0.0
-        if edge is not None:
-            z = edge[1]
-            other = (
-                (z > 0) & keep & (np.abs(up[..., 5] * inverse - z) > UPSAMPLE_MAX_RELATIVE_JUMP * z)
-            )
-            ratio_full[other] = 1.0
-            delta_full[other] = 0.0
+        up = np.ascontiguousarray(up[: v1 - v0, : u1 - u0])
+        ratio_full = np.empty(up.shape[:2], np.float32)
+        delta_full = np.empty((*up.shape[:2], 3), np.float32)
+        z = np.zeros((0, 0), np.float32) if edge is None else np.ascontiguousarray(edge[1])
+        jump = z.dtype.type(UPSAMPLE_MAX_RELATIVE_JUMP)
+        _normalised(up, z, jump, ratio_full, delta_full)
         return ratio_full, delta_full
+
+
+@numba.njit(parallel=True, cache=True)
+def _normalised(up, z, jump, ratio, delta):
+    """`_upsample`'s last step, one pass over the rect: ratio = up[0] / w and delta = up[1:4]
+    / w where w = up[4] > 1e-3 (else 1 and 0); a ratio within 1e-6 of 1 and a delta within
+    1e-9 of 0 made exact; with z (the rect's depth; (0, 0): no test) no change where the
+    up-sampled grid depth up[5] / w is more than jump * z off z. The same float32 (and z's
+    precision) operations as the NumPy expressions it replaced, so the same values."""
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    with_depth = z.shape[0] > 0
+    for y in numba.prange(up.shape[0]):
+        for x in range(up.shape[1]):
+            w = up[y, x, 4]
+            keep = w > np.float32(1e-3)
+            inverse = one / w if keep else zero
+            r = up[y, x, 0] * inverse if keep else one
+            if abs(r - one) < np.float32(1e-6):
+                r = one
+            other = False
+            if with_depth:
+                d = z[y, x]
+                other = d > 0 and keep and abs(up[y, x, 5] * inverse - d) > jump * d
+            ratio[y, x] = one if other else r
+            for c in range(3):
+                v = up[y, x, 1 + c] * inverse
+                delta[y, x, c] = zero if other or abs(v) < np.float32(1e-9) else v
 
 
 def within_reach(
