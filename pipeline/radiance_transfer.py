@@ -185,8 +185,8 @@ def _visibility(
     second: the same scene with the virtual objects in). aux_point (B, 3): x in each
     buffer as (texel u, texel v, depth); aux_dir (B, N, 3): the N directions there (texels,
     texels, metres), w = direction j, so that y's texel and depth in buffer b are
-    aux_point[b] + radius * aux_dir[b, j]. Returns (K of the first,
-    K of the second or 1); a surface both configurations share is tested once."""
+    aux_point[b] + radius * aux_dir[b, j]. Returns (K of the first, K of the second or 1);
+    a surface both configurations share is tested once."""
     yx, yy, yz = px + radius * wx, py + radius * wy, pz + radius * wz
     sample = (px, py, pz, yx, yy, yz, wx, wy, wz)
     test = (chi, bias_abs, bias_rel, thickness)
