@@ -343,7 +343,9 @@ class EstimationParams:
     segment_features: SegmentFeatures = SegmentFeatures.INVARIANT
     segment_illuminant_weight: float = 4.0  # "invariant": weight of the sun/sky colour axis
     segment_split_ground: bool = True  # the support plane's pixels never share a segment
-    segment_scale: int = 2  # the segmentation runs at 1/segment_scale of the input's size
+    # the segmentation runs at 1/segment_scale of the input's size: 160x120 of 640x480, in
+    # every preset (docs/decisions/0050-segments-at-160x120.md)
+    segment_scale: int = 4
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
     # compact sources (a sun, a lamp) fitted beside the SH from the shadows the reconstruction
     # casts (pipeline/compact_light.py): at most this many (0 = off; 1 today). Off by default:
@@ -563,22 +565,22 @@ def _flat_overrides(changes: dict[str, Any]) -> dict[str, Any]:
 
 def _preset_overrides(preset: Preset) -> dict[str, Any]:
     if preset is Preset.FAST:
-        # analysed at 320 pixels wide, segments at 160x120, a 128^3 volume (each held out by
-        # map over the shared set and the corpus: docs/decisions/0041-work-resolution.md)
+        # analysed at 320 pixels wide, a 128^3 volume (each held out by map over the shared
+        # set and the corpus: docs/decisions/0041-work-resolution.md)
         return {
             "rt_subsample": 4,
             "render_subsample": 4,
             "render_blur_radius_px": 8,
             "work_width": 320,
-            "segment_scale": 4,
             "volume_resolution": 128,
             # the light fitted to 20000 pixels: 10 % of the frame's time, the same error held
             # out by map (docs/decisions/0045-fast-fit-samples.md)
             "light_max_samples": 20000,
         }
     if preset is Preset.MOBILE:
-        # and, speed first, segments at quarter resolution on at most 10000 pixels (all
-        # frames: median 20.1 -> 19.1 and 20.1, p90 32.8 -> 34.1 and 33.2)
+        # and, speed first, the light fitted to at most 10000 pixels (all frames, with the
+        # segments at quarter resolution then only mobile's: median 20.1 -> 19.1 and 20.1,
+        # p90 32.8 -> 34.1 and 33.2)
         # and its 25 cm blocks need a smaller hash map to start with (it grows when full):
         # 16 MB held from the start, every error as with 40000 blocks (156 MB)
         # (`arlight bench ... --presets mobile --sweep block_count=40000,4000`)
@@ -590,7 +592,6 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             "rt_subsample": 4,
             "render_subsample": 4,
             "render_blur_radius_px": 8,
-            "segment_scale": 4,
             "light_max_samples": 10000,
             "block_count": 4000,
         }

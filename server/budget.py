@@ -183,9 +183,12 @@ def _factors(
     stage's reference time). probe: the Hello asked for a reflection probe."""
     v, f, t, e, r, a = c.volume, c.filter, c.transfer, c.estimation, c.render, c.aux
     # the configuration REFERENCE_STAGE_MS were measured with (`full` fitted 50000 pixels
-    # then, and rendered at every pixel: decisions 0044 and 0049 changed both)
+    # then, rendered at every pixel and segmented at 320x240: decisions 0044, 0049 and 0050)
     ref = Config().replace(
-        light_max_samples=REFERENCE_FIT_SAMPLES, render_subsample=1, render_blur_radius_px=8
+        light_max_samples=REFERENCE_FIT_SAMPLES,
+        render_subsample=1,
+        render_blur_radius_px=8,
+        segment_scale=2,
     )
     px = pixels / REFERENCE_PIXELS
 
