@@ -8,12 +8,14 @@ fixed selection network runs across the row: each comparator is a min / max over
 at once, which LLVM vectorises.
 
 A network needs m values at every pixel, so a missing or gated-out candidate becomes -inf
-or +inf: with ``a = (m - 1) // 2 - (n - 1) // 2`` of them -inf and the rest +inf, the
-network's middle output (rank ``(m - 1) // 2``) is the valid samples' rank ``(n - 1) // 2``.
-The network is Batcher's odd-even merge sort for the next power of two, its comparators
-beyond m dropped (+inf there never moves) and those that cannot reach the middle output
-pruned (m = 25: 115 comparators). A network only moves samples, so the result is the
-per-pixel kernel's bit for bit (tested); depth must be finite (the filter's checks).
+or +inf. A pixel's missing candidates alternate, -inf first for odd m and +inf first for
+even m; that makes ``(m - 1) // 2 - (n - 1) // 2`` of them -inf and the rest +inf, so the
+network's middle output (rank ``(m - 1) // 2``) is the valid samples' rank ``(n - 1) // 2``
+(and -inf, reported as 0, when n = 0). The network is Batcher's odd-even merge sort for the
+next power of two, its comparators beyond m dropped (+inf there never moves) and those
+that cannot reach the middle output pruned (m = 25: 113 comparators). A network only
+moves samples, so the result is the per-pixel kernel's bit for bit (tested); depth must be
+finite (the filter's checks).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from numba import prange
 
 __all__ = ["MAX_NETWORK_INPUTS", "median_network", "support_median_rows"]
 
-MAX_NETWORK_INPUTS = 32  # above this a per-pixel selection is cheaper than the network
+MAX_NETWORK_INPUTS = 32  # larger windows keep the per-pixel selection (not measured there)
 
 
 def _odd_even_merge(lo: int, n: int, r: int) -> list[tuple[int, int]]:
