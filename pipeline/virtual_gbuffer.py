@@ -47,6 +47,18 @@ class VirtualGBuffer:
         return self.object_index >= 0
 
 
+def texel_origins(
+    world_from_buffer: np.ndarray, resolution: int, pixel_size_m: float
+) -> np.ndarray:
+    """(R * R, 3) world points of an orthographic buffer's texel centres on its image plane,
+    row-major (the layout of `aux_buffers.OrthoBuffer`); their rays run along its +z."""
+    half = (resolution - 1) / 2.0
+    coords = (np.arange(resolution) - half) * pixel_size_m
+    xx, yy = np.meshgrid(coords, coords)
+    local = np.stack([xx, yy, np.zeros_like(xx)], axis=-1).reshape(-1, 3)
+    return local @ world_from_buffer[:3, :3].T + world_from_buffer[:3, 3]
+
+
 class VirtualRaycaster:
     """Ray casting of one virtual scene (world frame), reused for every frame."""
 
@@ -169,12 +181,8 @@ class VirtualRaycaster:
     ) -> np.ndarray:
         """(R, R) float32 depth along the buffer's +z from its image plane to the first
         virtual surface (0 = none), in the layout of `aux_buffers.OrthoBuffer`."""
-        half = (resolution - 1) / 2.0
-        coords = (np.arange(resolution) - half) * pixel_size_m
-        xx, yy = np.meshgrid(coords, coords)
-        local = np.stack([xx, yy, np.zeros_like(xx)], axis=-1).reshape(-1, 3)
         rot, trans = world_from_buffer[:3, :3], world_from_buffer[:3, 3]
-        origins = local @ rot.T + trans
+        origins = texel_origins(world_from_buffer, resolution, pixel_size_m)
         out = np.zeros(resolution * resolution, np.float32)
         # only the texels whose ray can meet an object's bounding sphere are cast (a few of
         # the buffer's 4 m: 6 -> 1 ms a frame for 4 buffers); the rest see nothing

@@ -3,7 +3,7 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from arlight.pipeline.virtual_gbuffer import VirtualRaycaster
+from arlight.pipeline.virtual_gbuffer import VirtualRaycaster, texel_origins
 from arlight.pipeline.virtual_scene import demo_scene
 
 RESOLUTION = 128
@@ -12,13 +12,9 @@ PIXEL_M = 4.0 / RESOLUTION
 
 def _every_texel(raycaster: VirtualRaycaster, world_from_buffer: np.ndarray) -> np.ndarray:
     """The same buffer with a ray from every texel (what the rectangle must not change)."""
-    half = (RESOLUTION - 1) / 2.0
-    coords = (np.arange(RESOLUTION) - half) * PIXEL_M
-    xx, yy = np.meshgrid(coords, coords)
-    local = np.stack([xx, yy, np.zeros_like(xx)], axis=-1).reshape(-1, 3)
-    rot, trans = world_from_buffer[:3, :3], world_from_buffer[:3, 3]
-    origins = local @ rot.T + trans
-    t = raycaster._cast(origins, np.broadcast_to(rot[:, 2], origins.shape))["t_hit"].numpy()
+    origins = texel_origins(world_from_buffer, RESOLUTION, PIXEL_M)
+    along = np.broadcast_to(world_from_buffer[:3, 2], origins.shape)
+    t = raycaster._cast(origins, along)["t_hit"].numpy()
     return np.where(np.isfinite(t), t, 0.0).astype(np.float32).reshape(RESOLUTION, RESOLUTION)
 
 
