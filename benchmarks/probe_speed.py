@@ -93,7 +93,9 @@ def main(argv=None) -> int:
     parser.add_argument("--frames", type=int, default=3)
     parser.add_argument("--repeat", type=int, default=15)
     parser.add_argument("--preset", default="fast", choices=("full", "fast", "mobile"))
-    parser.add_argument("--json", type=Path, default=Path("probe_speed.json"))
+    parser.add_argument(
+        "--json", type=Path, default=None, help="also write the record to FILE (default: none)"
+    )
     args = parser.parse_args(argv)
     if not (args.sequence / "ar" / "virtual_scene.json").is_file():
         parser.error(f"{args.sequence} has no ar/virtual_scene.json (render one: arlight synth)")
@@ -125,8 +127,9 @@ def main(argv=None) -> int:
         "load_average_1min": [load_before[0], load_after[0]],
         "ms": {str(k): v for k, v in figures.items()},
     }
-    args.json.write_text(json.dumps(record, indent=1))
-    print(f"wrote {args.json}")
+    if args.json is not None:  # not into the working folder unasked (a checkout, often)
+        args.json.write_text(json.dumps(record, indent=1))
+        print(f"wrote {args.json}")
     return 0
 
 
