@@ -578,9 +578,9 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             "light_max_samples": 20000,
         }
     if preset is Preset.MOBILE:
-        # and, speed first, the light fitted to at most 10000 pixels (all frames, with the
-        # segments at quarter resolution then only mobile's: median 20.1 -> 19.1 and 20.1,
-        # p90 32.8 -> 34.1 and 33.2)
+        # and, speed first, the light fitted to at most 10000 pixels (measured together with
+        # the quarter-resolution segments every preset now has; all frames: median 20.1 ->
+        # 19.1 and 20.1, p90 32.8 -> 34.1 and 33.2)
         # and its 25 cm blocks need a smaller hash map to start with (it grows when full):
         # 16 MB held from the start, every error as with 40000 blocks (156 MB)
         # (`arlight bench ... --presets mobile --sweep block_count=40000,4000`)

@@ -476,7 +476,7 @@ def _run_support_median(depth, inten, offsets, lam_i, gate, backend):
         return _cuda_launch(
             1, offsets.size**2, depth.shape, depth, inten, offsets, lam_i, gate, out
         )
-    if offsets.size**2 <= MAX_NETWORK_INPUTS:  # 3-12x faster: speed page, "Depth filter"
+    if offsets.size**2 <= MAX_NETWORK_INPUTS:  # 3-12x faster (speed page, "Depth filter, ...")
         threshold = lam_i if gate else np.float32(np.inf)
         support_median_rows(depth, inten, offsets, threshold, median_network(offsets.size**2), out)
         return out
