@@ -10,7 +10,7 @@ irradiance, and the estimate is fitted so that this reproduces the real pixels):
 scale is needed for the two to agree. A direction that leaves the grid sees the distant
 light: the estimate's SH, Hanning-windowed against its ringing (`hanning`, probe_sh_window)
 and clamped at 0, times its colour, or the streamed panorama's HDR map when there is one.
-The mips are GGX-prefiltered (`probe_cube.prefilter`).
+The mips are GGX-prefiltered (`probe_cube.prefilter`) when first read.
 
 Bad input and fallbacks (each recorded in `ProbeResult.diagnostics`, which the pipeline puts
 under `FrameResult.diagnostics["probe"]`):
@@ -28,6 +28,7 @@ under `FrameResult.diagnostics["probe"]`):
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -90,18 +91,33 @@ class DistantLight:
 
 @dataclass
 class ProbeResult:
-    """One frame's probe. point_world: (3,) metres; mips: the prefiltered cube (linear image
-    units, world axes); grid: the room it was made from (for parallax-corrected lookups);
-    distant: the distant light as given (the misses see it windowed, `hanning`, and with
-    probe_sun its dominant part as a disc); hit_fraction: share of level-0 texels that met
-    the room; diagnostics: JSON-ready notes (see the module text)."""
+    """One frame's probe. point_world: (3,) metres; radiance: (6, n, n, 3) float32 level 0
+    (linear image units, world axes, `probe_cube` layout); grid: the room it was made from
+    (for parallax-corrected lookups); distant: the distant light as given (the misses see it
+    windowed, `hanning`, and with probe_sun its dominant part as a disc); hit_fraction:
+    share of level-0 texels that met the room; diagnostics: JSON-ready notes (see the
+    module text).
+
+    `mirror` is level 0 alone; `mips` every GGX-prefiltered level, made on first use (11 ms
+    at 64 texels on 2 cores): a frame whose objects are all mirrors and that nobody asks the
+    mips of does not pay for them (docs/results/speed.md, "The probe's mips on demand")."""
 
     point_world: np.ndarray
-    mips: CubeMips
+    radiance: np.ndarray
     grid: RoomGrid | None
     distant: DistantLight
     hit_fraction: float
     diagnostics: dict[str, Any]
+
+    @functools.cached_property
+    def mirror(self) -> CubeMips:
+        """Level 0 only (roughness 0): what a mirror reads."""
+        return CubeMips([np.ascontiguousarray(self.radiance, np.float32)], np.zeros(1))
+
+    @functools.cached_property
+    def mips(self) -> CubeMips:
+        """Level 0 and its GGX-prefiltered levels (`probe_cube.prefilter`)."""
+        return probe_cube.prefilter(self.radiance)
 
 
 class ProbeStage:
@@ -189,8 +205,8 @@ class ProbeStage:
             radiance[hit] = rgb[hit]
             hit_fraction = float(hit.mean())
         diagnostics["hit_fraction"] = round(hit_fraction, 4)
-        mips = probe_cube.prefilter(radiance.reshape(6, s.size, s.size, 3))
-        return ProbeResult(point, mips, grid, light, hit_fraction, diagnostics)
+        cube = radiance.reshape(6, s.size, s.size, 3)
+        return ProbeResult(point, cube, grid, light, hit_fraction, diagnostics)
 
 
 SUN_RADIUS_RAD = math.radians(2.0)  # the disc the dominant light is drawn as

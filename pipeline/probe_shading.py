@@ -106,8 +106,10 @@ def shade(
     rough = np.array([g.roughness for g in looks])[object_index]
     f0 = np.stack([g.f0 for g in looks])[object_index]
     diffuse = np.stack([g.diffuse_rgb for g in looks])[object_index]
-    lods = probe.mips.lod_of(np.where(kinds == 1, 0.0, rough))
-    seen = probe_cube.sample(probe.mips, lookup, lods).astype(np.float64)
+    # mirrors read level 0 alone, so a scene of mirrors never makes the prefiltered levels
+    cube = probe.mirror if np.all(kinds == 1) else probe.mips
+    lods = cube.lod_of(np.where(kinds == 1, 0.0, rough))
+    seen = probe_cube.sample(cube, lookup, lods).astype(np.float64)
     if raycaster is not None:
         t_virtual, other, other_n = raycaster.first_hits(start, r)
         blocked = np.isfinite(t_virtual) & (t_virtual < t_room)

@@ -121,11 +121,11 @@ def result_message(
 def probe_to_wire(probe: ProbeResult, mips: bool) -> ProbeCube:
     """A pipeline ProbeResult as Result.probe carries it: its point (world, metres), level 0
     (the radiance) or every GGX-prefiltered level, and each level's perceptual roughness."""
-    count = len(probe.mips.levels) if mips else 1
+    cube = probe.mips if mips else probe.mirror
     return ProbeCube(
         point_world=[float(x) for x in probe.point_world],
-        levels=list(probe.mips.levels[:count]),
-        roughness=[float(r) for r in probe.mips.roughness[:count]],
+        levels=list(cube.levels),
+        roughness=[float(r) for r in cube.roughness],
     )
 
 

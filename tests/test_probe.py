@@ -448,6 +448,24 @@ class TestPipeline:
         assert notes["size"] == 64 and notes["memory"] == "frames"
         assert pipe.last_probe is not None and pipe.last_probe.mips.size == 64
 
+    def test_mirrors_alone_leave_the_mips_unmade_and_read_what_the_mips_hold(self, tiny_sequence):
+        scene = ball_in_view(tiny_sequence, Material((0.9,) * 3, mirror=True))
+        pipe = Pipeline(Config.from_preset("full", **SMALL), tiny_sequence.camera, scene)
+        pipe.process(tiny_sequence.frames[0])
+        probe = pipe.last_probe
+        assert probe is not None and "mips" not in vars(probe)  # not prefiltered
+        dirs = np.random.default_rng(3).normal(size=(500, 3))
+        np.testing.assert_array_equal(
+            probe_cube.sample(probe.mirror, dirs), probe_cube.sample(probe.mips, dirs)
+        )
+        assert len(probe.mips.levels) == probe_cube.num_levels(64)
+
+    def test_a_glossy_object_makes_the_mips(self, tiny_sequence):
+        scene = ball_in_view(tiny_sequence, Material((0.9,) * 3, roughness=0.3, metalness=1.0))
+        pipe = Pipeline(Config.from_preset("full", **SMALL), tiny_sequence.camera, scene)
+        pipe.process(tiny_sequence.frames[0])
+        assert pipe.last_probe is not None and "mips" in vars(pipe.last_probe)
+
     def test_a_diffuse_object_is_rendered_as_before(self, tiny_sequence):
         scene = ball_in_view(tiny_sequence, Material((0.6,) * 3))
         results = []
