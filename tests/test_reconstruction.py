@@ -696,3 +696,23 @@ def test_upsample_depth_interpolates_smooth_surfaces_and_keeps_edges():
     hole = step.copy()
     hole[2, 2] = 0.0
     assert upsample_depth(hole, 2, (12, 16))[4, 4] == 0.0  # its own block: missing
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_upsample_depth_kernel_equals_its_numpy_oracle(seed):
+    """The parallel pass gives the NumPy expressions' float32 values bit for bit: smooth
+    ramps, random depths with holes, factors 1-4, shapes not a multiple of the factor."""
+    from arlight.pipeline.volume import upsample_depth, upsample_depth_numpy
+
+    rng = np.random.default_rng(seed)
+    factor = int(rng.integers(1, 5))
+    hc, wc = (int(n) for n in rng.integers(1, 40, 2))
+    if seed % 2:
+        coarse = (1.0 + np.cumsum(np.full((hc, wc), 0.004), axis=1)).astype(np.float32)
+    else:
+        coarse = (rng.random((hc, wc)) * 3.0 + 0.5).astype(np.float32)
+    coarse[rng.random((hc, wc)) < 0.1] = 0.0
+    shape = (hc * factor - int(rng.integers(0, factor)), wc * factor - int(rng.integers(0, factor)))
+    np.testing.assert_array_equal(
+        upsample_depth(coarse, factor, shape), upsample_depth_numpy(coarse, factor, shape)
+    )
