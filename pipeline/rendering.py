@@ -371,7 +371,7 @@ class DifferentialRenderer:
             self._looks = [glossiness_of(o.material) for o in self.scene.objects]
         looks = self._looks
         index = g.object_index[vs, us]
-        sel = np.flatnonzero(np.array([looks[i].kind != 0 for i in index], bool))
+        sel = np.flatnonzero(np.array([look.kind != 0 for look in looks], bool)[index])
         if not len(sel):
             return
         vs, us, index = vs[sel], us[sel], index[sel]
@@ -543,22 +543,33 @@ def within_reach(
     points to (K,) distances to a set (1-Lipschitz: it changes by at most the distance
     moved). Evaluated first at each block x block tile's top-left point (if a candidate);
     a candidate whose distance from that anchor is d_q +/- |p - q| entirely on one side of
-    reach needs no evaluation of its own; the rest, and tiles without an anchor, are
-    evaluated. Returns (number of candidates,) bool, in candidates' row-major order.
+    reach needs no evaluation of its own. The candidates left open are tried again with
+    tiles half the size (their new anchors evaluated), down to tiles of 2; the rest, and
+    tiles without an anchor, are evaluated. Returns (number of candidates,) bool, in
+    candidates' row-major order.
     """
     rows, cols = np.nonzero(candidates)
     if len(rows) < 4 * block * block:  # too few for the anchors to pay
         return distance(points[rows, cols]) <= reach
-    anchored = candidates[::block, ::block]  # per tile: is its top-left point a candidate
-    d_tile = np.full(anchored.shape, np.nan)
-    d_tile[anchored] = distance(points[::block, ::block][anchored])
-    d_q = d_tile[rows // block, cols // block]
-    moved = np.linalg.norm(
-        points[rows, cols] - points[rows // block * block, cols // block * block], axis=1
-    )
-    result = d_q + moved <= reach
-    open_ = ~(result | (d_q - moved > reach))  # includes NaN: no anchor
-    result[open_] = distance(points[rows[open_], cols[open_]]) <= reach
+    known = np.full(candidates.shape, np.nan)  # distance where evaluated
+    result = np.zeros(len(rows), bool)
+    open_ = np.arange(len(rows))
+    while block > 1 and len(open_):
+        r, c = rows[open_], cols[open_]
+        ar, ac = r // block * block, c // block * block
+        new = candidates[ar, ac] & np.isnan(known[ar, ac])
+        if np.any(new):
+            flat = np.unique(ar[new] * candidates.shape[1] + ac[new])
+            qr, qc = np.divmod(flat, candidates.shape[1])
+            known[qr, qc] = distance(points[qr, qc])
+        d_q = known[ar, ac]
+        moved = np.linalg.norm(points[r, c] - points[ar, ac], axis=1)
+        inside = d_q + moved <= reach
+        result[open_[inside]] = True
+        open_ = open_[~(inside | (d_q - moved > reach))]  # includes NaN: no anchor
+        block //= 2
+    if len(open_):
+        result[open_] = distance(points[rows[open_], cols[open_]]) <= reach
     return result
 
 
