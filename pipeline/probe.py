@@ -98,9 +98,9 @@ class ProbeResult:
     share of level-0 texels that met the room; diagnostics: JSON-ready notes (see the
     module text).
 
-    `mirror` is level 0 alone; `mips` every GGX-prefiltered level, made on first use (11 ms
+    `mirror` is level 0 alone; `mips` every GGX-prefiltered level, made on first use (10 ms
     at 64 texels on 2 cores): a frame whose objects are all mirrors and that nobody asks the
-    mips of does not pay for them (docs/results/speed.md, "The probe's mips on demand")."""
+    mips of does not pay for them (docs/results/probe.md, "The mips on demand")."""
 
     point_world: np.ndarray
     radiance: np.ndarray
