@@ -1,6 +1,7 @@
 """The light's error by where the light stands relative to the view: back-lit views.
 
-    python benchmarks/error_by_view.py SEQ [SEQ ...] [--preset fast] [--json FILE]
+    python benchmarks/error_by_view.py SEQ [SEQ ...] [--preset fast] [--set KEY=VALUE]
+        [--json FILE]
 
 For each ground-truth sequence (lighting_gt.json with `dominant_dir_upper_world`; sequences
 whose truth is a probe inside a room are skipped), the Pipeline runs every frame with the
@@ -70,7 +71,7 @@ def binned(rows: list[dict], key: str, bins) -> list[tuple[str, int, float, floa
     return out
 
 
-def measure(folders: list[Path], preset: str) -> list[dict]:
+def measure(folders: list[Path], preset: str, overrides: dict | None = None) -> list[dict]:
     """Every frame's `frame_row`, with its sequence and index."""
     from arlight.pipeline.config import Config
     from arlight.pipeline.pipeline import Pipeline
@@ -82,7 +83,7 @@ def measure(folders: list[Path], preset: str) -> list[dict]:
         if truth.get("truth_reference") == "probe":
             continue
         seq = open_sequence(folder, use_poses=True)
-        pipeline = Pipeline(Config.from_preset(preset), seq.camera)
+        pipeline = Pipeline(Config.from_preset(preset, **(overrides or {})), seq.camera)
         for index, frame in enumerate(seq.frames):
             result = pipeline.process(frame)
             forward = np.asarray(result.pose)[:3, :3] @ np.array([0.0, 0.0, 1.0])
@@ -99,15 +100,25 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("sequences", nargs="+", type=Path, metavar="SEQ")
     parser.add_argument("--preset", default="fast", choices=("full", "fast", "mobile"))
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows to FILE")
     args = parser.parse_args(argv)
+    from arlight.pipeline.config import Config
+
+    overrides = {}
+    for kv in args.set:
+        key, _, value = kv.partition("=")
+        try:
+            overrides[key] = Config.parse_flat_value(key, value)
+        except ValueError as exc:
+            parser.error(f"--set {kv}: {exc}")
     missing = [str(s) for s in args.sequences if not (s / "lighting_gt.json").is_file()]
     if missing:
         parser.error(f"no lighting_gt.json in {', '.join(missing)}")
     from arlight.pipeline.runtime import configure_process
 
     configure_process()
-    rows = measure(args.sequences, args.preset)
+    rows = measure(args.sequences, args.preset, overrides)
     if not rows:
         parser.error("no sequence with a distant-light truth")
     bias = np.array([r["elevation_bias"] for r in rows])

@@ -44,3 +44,10 @@ def test_a_folder_without_truth_is_a_usage_error(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main([str(tmp_path)])
     assert exit_info.value.code == 2 and "lighting_gt.json" in capsys.readouterr().err
+
+
+def test_an_unknown_key_names_the_flag(tmp_path, capsys):
+    (tmp_path / "lighting_gt.json").write_text("{}")
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(tmp_path), "--set", "no_such_key=1"])
+    assert exit_info.value.code == 2 and "--set no_such_key=1" in capsys.readouterr().err
