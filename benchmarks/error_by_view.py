@@ -92,7 +92,16 @@ def measure(folders: list[Path], preset: str, overrides: dict | None = None) -> 
                 np.asarray(truth["frames"][index]["dominant_dir_upper_world"], np.float64),
                 forward,
             )
-            rows.append({"sequence": folder.name, "frame": index, **row})
+            rows.append(
+                {
+                    "sequence": folder.name,
+                    "frame": index,
+                    "env_map": truth["frames"][index].get("env_map"),
+                    "estimate_world": [float(x) for x in result.dominant_direction_world],
+                    "forward_world": [float(x) for x in forward],
+                    **row,
+                }
+            )
     return rows
 
 
