@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from arlight.cli.common import config_override
+
 VIEW_BINS = ((0, 45), (45, 90), (90, 135), (135, 181))
 ELEVATION_BINS = ((0, 30), (30, 50), (50, 70), (70, 91))
 
@@ -109,18 +111,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("sequences", nargs="+", type=Path, metavar="SEQ")
     parser.add_argument("--preset", default="fast", choices=("full", "fast", "mobile"))
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument(
+        "--set", action="append", default=[], type=config_override, metavar="KEY=VALUE"
+    )
     parser.add_argument("--json", type=Path, default=None, help="also write the rows to FILE")
     args = parser.parse_args(argv)
-    from arlight.pipeline.config import Config
-
-    overrides = {}
-    for kv in args.set:
-        key, _, value = kv.partition("=")
-        try:
-            overrides[key] = Config.parse_flat_value(key, value)
-        except ValueError as exc:
-            parser.error(f"--set {kv}: {exc}")
+    overrides = dict(args.set)
     missing = [str(s) for s in args.sequences if not (s / "lighting_gt.json").is_file()]
     if missing:
         parser.error(f"no lighting_gt.json in {', '.join(missing)}")

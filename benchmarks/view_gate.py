@@ -27,15 +27,13 @@ import numpy as np
 from arlight.folds import leave_one_map_out
 
 try:
+    from benchmarks.ar_folds import DEFAULT_DATA
     from benchmarks.error_by_view import azimuth_deg, wrapped
 except ModuleNotFoundError:  # run as `python benchmarks/view_gate.py` from the checkout
+    from ar_folds import DEFAULT_DATA  # type: ignore[import-not-found,no-redef]
     from error_by_view import azimuth_deg, wrapped  # type: ignore[import-not-found,no-redef]
 
 THRESHOLDS = (0, 30, 45, 60, 90, 135, 181)
-DEFAULT_DATA = [
-    Path.home() / ".cache" / "arlight" / "corpus",
-    Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic",
-]
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
