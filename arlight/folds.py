@@ -14,6 +14,7 @@ upper-hemisphere truth, degrees).
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -60,6 +61,11 @@ class Folds:
     def as_dict(self) -> dict:
         """Plain JSON values (report.json's "folds")."""
         return asdict(self)
+
+    def choices_text(self) -> str:
+        """How often each candidate was chosen, most often first: "a x3, b x1"."""
+        counts = Counter(f.chosen for f in self.folds)
+        return ", ".join(f"{name} x{n}" for name, n in counts.most_common())
 
 
 def _argmin(scores: dict[str, float]) -> str:

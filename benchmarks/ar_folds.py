@@ -85,10 +85,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"ar_folds: {region}: {exc}", file=sys.stderr)
             return 2
         fixed = "  ".join(f"{k} {-v:.2f}" for k, v in folds.fixed_median.items())
-        chosen = Counter(f.chosen for f in folds.folds)
         print(
             f"{region:9s} median over maps: {fixed} | held out {-folds.held_out_median:.2f} "
-            f"(chosen: {', '.join(f'{k} x{n}' for k, n in chosen.most_common())})"
+            f"(chosen: {folds.choices_text()})"
         )
     return 0
 

@@ -19,7 +19,7 @@ import argparse
 import json
 import math
 import sys
-from collections import Counter, defaultdict
+from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -103,11 +103,7 @@ def main(argv: list[str] | None = None) -> int:
             f"| {name} | {folds.fixed_median[name]:.1f} | {np.median(pooled):.1f} / "
             f"{np.percentile(pooled, 90):.1f} | {max(per_map[name].values()):.1f} |"
         )
-    chosen = Counter(f.chosen for f in folds.folds)
-    print(
-        f"held out by map: {folds.held_out_median:.1f} "
-        f"(chosen: {', '.join(f'{k} x{n}' for k, n in chosen.most_common())})"
-    )
+    print(f"held out by map: {folds.held_out_median:.1f} (chosen: {folds.choices_text()})")
     return 0
 
 

@@ -294,3 +294,11 @@ def test_report_of_two_shared_sequences_groups_by_map(tmp_path):
         "venice_sunset_1k",
     }
     assert "| venice_sunset_1k | static | 2 |" in (tmp_path / "report.md").read_text()
+
+
+def test_the_folds_say_how_often_each_candidate_was_chosen():
+    folds = leave_one_map_out(
+        {"a": {"m1": 1.0, "m2": 1.0, "m3": 9.0}, "b": {"m1": 2.0, "m2": 2.0, "m3": 2.0}}
+    )
+    # m1 or m2 held out: a scores 5 on the others against b's 2 -> b; m3 held out: a (1 < 2)
+    assert folds.choices_text() == "b x2, a x1"
