@@ -48,13 +48,18 @@ class VirtualGBuffer:
 
 
 def texel_origins(
-    world_from_buffer: np.ndarray, resolution: int, pixel_size_m: float
+    world_from_buffer: np.ndarray,
+    resolution: int,
+    pixel_size_m: float,
+    rows: slice = slice(None),
+    cols: slice = slice(None),
 ) -> np.ndarray:
-    """(R * R, 3) world points of an orthographic buffer's texel centres on its image plane,
-    row-major (the layout of `aux_buffers.OrthoBuffer`); their rays run along its +z."""
+    """(K, 3) world points of an orthographic buffer's texel centres on its image plane,
+    row-major (the layout of `aux_buffers.OrthoBuffer`), of the texels in rows x cols (all
+    R * R by default); their rays run along its +z."""
     half = (resolution - 1) / 2.0
     coords = (np.arange(resolution) - half) * pixel_size_m
-    xx, yy = np.meshgrid(coords, coords)
+    xx, yy = np.meshgrid(coords[cols], coords[rows])
     local = np.stack([xx, yy, np.zeros_like(xx)], axis=-1).reshape(-1, 3)
     return local @ world_from_buffer[:3, :3].T + world_from_buffer[:3, 3]
 
@@ -182,18 +187,16 @@ class VirtualRaycaster:
         """(R, R) float32 depth along the buffer's +z from its image plane to the first
         virtual surface (0 = none), in the layout of `aux_buffers.OrthoBuffer`."""
         rot, trans = world_from_buffer[:3, :3], world_from_buffer[:3, 3]
-        origins = texel_origins(world_from_buffer, resolution, pixel_size_m)
-        out = np.zeros(resolution * resolution, np.float32)
+        out = np.zeros((resolution, resolution), np.float32)
         # only the texels whose ray can meet an object's bounding sphere are cast (a few of
         # the buffer's 4 m: 6 -> 1 ms a frame for 4 buffers); the rest see nothing
         rows, cols = self._texels_near_objects(rot, trans, resolution, pixel_size_m)
         if rows.stop > rows.start and cols.stop > cols.start:
-            near = np.arange(resolution * resolution).reshape(resolution, resolution)[rows, cols]
-            near = near.reshape(-1)
-            directions = np.broadcast_to(rot[:, 2], (len(near), 3))
-            t = self._cast(origins[near], directions)["t_hit"].numpy()
-            out[near] = np.where(np.isfinite(t), t, 0.0)
-        return out.reshape(resolution, resolution)
+            origins = texel_origins(world_from_buffer, resolution, pixel_size_m, rows, cols)
+            directions = np.broadcast_to(rot[:, 2], origins.shape)
+            t = self._cast(origins, directions)["t_hit"].numpy()
+            out[rows, cols] = np.where(np.isfinite(t), t, 0.0).reshape(out[rows, cols].shape)
+        return out
 
     def _texels_near_objects(
         self, rot: np.ndarray, trans: np.ndarray, resolution: int, pixel_size_m: float
