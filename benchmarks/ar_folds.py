@@ -38,14 +38,19 @@ def _labelled(text: str) -> tuple[str, Path]:
     return label, Path(path)
 
 
-def env_maps(sequence: str, data: list[Path]) -> list[str]:
-    """The env_map of every frame of a sequence, from the first --data folder holding it."""
+def truth_frames(sequence: str, data: list[Path]) -> list[dict]:
+    """The frames of a sequence's lighting_gt.json, from the first --data folder holding it;
+    ValueError naming --data when none does."""
     for root in data:
         truth = root / sequence / "lighting_gt.json"
         if truth.is_file():
-            frames = json.loads(truth.read_text())["frames"]
-            return [str(f.get("env_map")) for f in frames]
+            return json.loads(truth.read_text())["frames"]
     raise ValueError(f"{sequence}: no lighting_gt.json under {', '.join(map(str, data))} (--data)")
+
+
+def env_maps(sequence: str, data: list[Path]) -> list[str]:
+    """The env_map of every frame of a sequence (`truth_frames`)."""
+    return [str(f.get("env_map")) for f in truth_frames(sequence, data)]
 
 
 def per_map_psnr(rows: list[dict], column: str, maps_of: dict[str, list[str]]) -> dict[str, float]:

@@ -27,10 +27,10 @@ import numpy as np
 from arlight.folds import leave_one_map_out
 
 try:
-    from benchmarks.ar_folds import DEFAULT_DATA
+    from benchmarks.ar_folds import DEFAULT_DATA, truth_frames
     from benchmarks.error_by_view import azimuth_deg, wrapped
 except ModuleNotFoundError:  # run as `python benchmarks/view_gate.py` from the checkout
-    from ar_folds import DEFAULT_DATA  # type: ignore[import-not-found,no-redef]
+    from ar_folds import DEFAULT_DATA, truth_frames  # type: ignore[import-not-found,no-redef]
     from error_by_view import azimuth_deg, wrapped  # type: ignore[import-not-found,no-redef]
 
 THRESHOLDS = (0, 30, 45, 60, 90, 135, 181)
@@ -62,17 +62,13 @@ def gated_errors(
 
 def load_truth(rows: list[dict], data: list[Path]) -> dict:
     """(sequence, frame) -> dominant_dir_upper_world of its lighting_gt.json under data."""
-    files: dict[str, list] = {}
-    out = {}
-    for row in rows:
-        name = row["sequence"]
-        if name not in files:
-            found = [d / name / "lighting_gt.json" for d in data if (d / name).is_dir()]
-            if not found:
-                raise ValueError(f"{name}: no lighting_gt.json under {', '.join(map(str, data))}")
-            files[name] = json.loads(found[0].read_text())["frames"]
-        out[(name, row["frame"])] = files[name][row["frame"]]["dominant_dir_upper_world"]
-    return out
+    frames = {name: truth_frames(name, data) for name in {row["sequence"] for row in rows}}
+    return {
+        (row["sequence"], row["frame"]): frames[row["sequence"]][row["frame"]][
+            "dominant_dir_upper_world"
+        ]
+        for row in rows
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
