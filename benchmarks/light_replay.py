@@ -30,6 +30,11 @@ from arlight.pipeline import light_estimation, sh
 from arlight.pipeline.config import Config
 from arlight.pipeline.light_estimation import TemporalFilter
 
+try:
+    from benchmarks.error_by_view import azimuth_deg, wrapped
+except ModuleNotFoundError:  # run as `python benchmarks/light_replay.py` from the checkout
+    from error_by_view import azimuth_deg, wrapped  # type: ignore[import-not-found,no-redef]
+
 
 def record(data: list[str], preset: str, out: Path, frames: int | None, overrides: dict) -> None:
     import arlight.pipeline.pipeline as pipeline_module
@@ -299,6 +304,7 @@ def replay(
                     **_compact_truth(m, rotations, i, maps_dir, info),
                     "filtered": _error(filtered, up_seen, r, truth),
                     "confidence": est.confidence.value,
+                    "light_from_view": _light_from_view(r, truth),
                 }
             )
     return summarise(rows)
@@ -326,6 +332,13 @@ def _error(
     """Degrees between the reported direction (above the horizon of `up`) and the truth."""
     d = sh.dominant_direction(coeffs) if up is None else sh.above_horizon_direction(coeffs, up)
     return evaluation.angular_error_deg(world_from_cam_rot.T @ d, truth_camera)
+
+
+def _light_from_view(world_from_cam_rot: np.ndarray, truth_camera: np.ndarray) -> float:
+    """Degrees of azimuth (about world +Y, the generator's up) between the true light and
+    the camera's view direction: 0 is a back-lit view (error_by_view.py)."""
+    truth_world = world_from_cam_rot @ truth_camera
+    return abs(wrapped(azimuth_deg(truth_world) - azimuth_deg(world_from_cam_rot[:, 2])))
 
 
 def summarise(rows: list[dict]) -> dict:

@@ -317,13 +317,10 @@ class EstimationParams:
 
     # Tikhonov weight, relative to the mean diagonal of T^T T, times (l(l+1))^2 per band.
     # It damps what the normals leave unconstrained, and biases what they do constrain
-    # towards an ambient light (too high an elevation). With rt_exact_unoccluded, on the 15
-    # shared sequences (median of the per-sequence medians, upper field; full / fast):
-    # 1e-2 12.2 / 13.5, 7e-3 11.1 / 10.9, 4e-3 10.1 / 10.3, 2e-3 11.4 / 9.4 degrees. Chosen
-    # leaving one category out: the value picked on four categories (2e-3..4e-3 full,
-    # 2e-3..7e-3 fast) beat 1e-2 without the control variate on the fifth in all 5 folds of
-    # both presets (docs/decisions/0002-regularisation-4e-3.md)
-    regularization: float = 4e-3
+    # towards an ambient light (too high an elevation). 4e-3 with 8 Huber passes
+    # (docs/decisions/0002-regularisation-4e-3.md); 2e-3 since the alternation runs to its
+    # fixed point, chosen held out by map over 22 maps (decision 0052)
+    regularization: float = 2e-3
     min_samples: int = 200  # fewer valid pixels: no estimate (confidence 0)
     # larger sets of usable pixels are randomly sub-sampled: 30000 (50000 until 2026-12-04) in
     # every preset but mobile, held out by map: docs/decisions/0044-fewer-fit-samples.md
@@ -338,7 +335,11 @@ class EstimationParams:
     light_prior: float = 0.0
     # maps left out of that prior, comma-separated names (leave-one-map-out evaluation)
     light_prior_exclude: str = ""
-    robust_iterations: int = 8  # IRLS / albedo alternation passes (0 = plain least squares)
+    # albedo alternation (and re-weighting) passes, 0 = plain least squares; and Huber's
+    # threshold in robust standard deviations, 0 = no re-weighting: held out by map,
+    # 24 passes without it beat 8 with it (docs/decisions/0052-no-huber-24-passes.md)
+    robust_iterations: int = 24
+    robust_threshold: float = 0.0
     albedo_segments: bool = True  # one unknown albedo per material segment (beyond the paper)
     segment_features: SegmentFeatures = SegmentFeatures.INVARIANT
     segment_illuminant_weight: float = 4.0  # "invariant": weight of the sun/sky colour axis
@@ -384,6 +385,7 @@ class EstimationParams:
                 f"{_hint('light_prior_exclude', 'NAME,NAME')}"
             )
         _check_int(self, "robust_iterations", 0)
+        _check_float(self, "robust_threshold", 0.0)
         _check_bool(self, "albedo_segments")
         _check_enum(self, "segment_features", SegmentFeatures)
         _check_float(self, "segment_illuminant_weight", 0.0)

@@ -13,9 +13,13 @@ luminance. Beyond the paper's plain least squares:
   the number of bands is also cut back while the column-scaled normal matrix is too
   ill-conditioned, and the conditioning is reported;
 * one unknown albedo per material segment (the pipeline never lets the ground share one
-  with what stands on it), solved by alternation with the light;
-* iteratively re-weighted least squares (Huber weights on the relative residual) so
-  that pixels whose albedo or geometry breaks the model do not pull the solution.
+  with what stands on it), solved by alternation with the light (24 passes: the
+  alternation converges slowly, and held out by map 24 beat 8;
+  docs/decisions/0052-no-huber-24-passes.md);
+* optionally, iteratively re-weighted least squares (Huber weights on the relative
+  residual, `robust_threshold` > 0). Off by default: held out by map the fit is better
+  without it, most of all in back-lit views, whose pixels darker than predicted it
+  down-weights (decision 0052).
 """
 
 from __future__ import annotations
@@ -492,8 +496,9 @@ def _alternate(
     prior: np.ndarray | None,
     checkpoint: Callable[[], None] | None = None,
 ) -> _Fit:
-    """Regularised solve, then `robust_iterations` rounds of per-segment albedo and Huber
-    re-weighting (relative residuals), each followed by a new solve."""
+    """Regularised solve, then `robust_iterations` rounds of per-segment albedo (and, with
+    `robust_threshold` > 0, Huber re-weighting of relative residuals), each followed by a
+    new solve."""
     n = bands * bands
     design = _design(t, bands, b)
     weights = np.ones(len(lum))
@@ -517,19 +522,22 @@ def _alternate(
         return s + beta * b if b is not None else s
 
     coeffs, beta = solve()
+    if labels is None and params.robust_threshold <= 0.0:
+        return _Fit(coeffs, beta, albedo, weights, shading(), design)  # nothing to alternate
     for _ in range(params.robust_iterations):
         if checkpoint is not None:
             checkpoint()
         shade = shading()
         if labels is not None:
             albedo, segment_albedo = _segment_albedo(shade, lum, labels, weights)
-        pred = albedo * shade
-        # relative to the prediction, not the observation: a wrongly bright patch then has
-        # a large residual and a correct dark pixel a small one
-        rel = (pred - lum) / np.maximum(pred, DARK_LEVEL)
-        sigma = 1.4826 * np.median(np.abs(rel - np.median(rel))) + 1e-6
-        a = np.abs(rel) / (1.345 * sigma)
-        weights = np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))  # Huber
+        if params.robust_threshold > 0.0:
+            # relative to the prediction, not the observation: a wrongly bright patch then
+            # has a large residual and a correct dark pixel a small one
+            pred = albedo * shade
+            rel = (pred - lum) / np.maximum(pred, DARK_LEVEL)
+            sigma = 1.4826 * np.median(np.abs(rel - np.median(rel))) + 1e-6
+            a = np.abs(rel) / (params.robust_threshold * sigma)
+            weights = np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))  # Huber
         coeffs, beta = solve()
     return _Fit(coeffs, beta, albedo, weights, shading(), design)
 

@@ -24,6 +24,10 @@ LIGHT_DIR = (0.3, -0.8, 0.5)
 # the direction (docs/results/accuracy.md), on the ideal point lights of these tests it costs a
 # few per cent of band-1 magnitude. Tests of exact recovery use a weak one.
 WEAK = EstimationParams(regularization=1e-3)
+# the alternation run to its fixed point under a regularisation too weak to bias it
+CONVERGED = EstimationParams(regularization=1e-4)
+# the Huber re-weighting of the relative residual (off by default: decision 0052)
+HUBER = EstimationParams(robust_threshold=1.345, robust_iterations=8)
 
 
 def _unit(v):
@@ -123,8 +127,8 @@ class TestAlbedoSegments:
         light = _light()
         segments = np.digitize(n[:, 2], [-1 / 3, 1 / 3])
         color = _grey((t @ light) * self.ALBEDO[segments])
-        with_segments = le.estimate_light(t, color, WEAK, segments=segments)
-        without = le.estimate_light(t, color, WEAK)
+        with_segments = le.estimate_light(t, color, CONVERGED, segments=segments)
+        without = le.estimate_light(t, color, CONVERGED)
         assert _angle_deg(with_segments.sh, light) < 3.0
         assert _angle_deg(without.sh, light) > 10.0
         assert with_segments.residual_rel < without.residual_rel
@@ -146,16 +150,31 @@ class TestAlbedoSegments:
         est = le.estimate_light(t, color, cfg, segments=segments)
         assert _angle_deg(est.sh, light) < 0.5
 
+    def test_default_passes_reach_the_fixed_point(self):
+        # the alternation converges slowly; the default's passes get where many more do
+        n, t = _synthetic()
+        light = _light()
+        segments = np.digitize(np.arctan2(n[:, 1], n[:, 0]), [-1.05, 1.05])
+        color = _grey((t @ light) * self.ALBEDO[segments])
+        default = le.estimate_light(t, color, EstimationParams(), segments=segments)
+        many = le.estimate_light(
+            t, color, EstimationParams(robust_iterations=200), segments=segments
+        )
+        short = le.estimate_light(
+            t, color, EstimationParams(robust_iterations=4), segments=segments
+        )
+        assert _angle_deg(default.sh, many.sh) < 0.5
+        assert _angle_deg(short.sh, many.sh) > 2.0  # so the passes matter here
+
     @pytest.mark.xfail(
         strict=True,
-        reason="known limitation: with the default 8 alternations "
-        "and regularisation the albedo alternation stops (or converges) "
-        "several degrees off for some segment layouts",
+        reason="known limitation: at its fixed point the alternation under the default "
+        "regularisation is biased by it, 11-13 degrees for segments split by latitude or x",
     )
     def test_default_config_any_layout(self):
         n, t = _synthetic()
         light = _light()
-        segments = np.digitize(np.arctan2(n[:, 1], n[:, 0]), [-1.05, 1.05])
+        segments = np.digitize(n[:, 2], [-1 / 3, 1 / 3])
         color = _grey((t @ light) * self.ALBEDO[segments])
         est = le.estimate_light(t, color, EstimationParams(), segments=segments)
         assert _angle_deg(est.sh, light) < 3.0
@@ -173,7 +192,7 @@ class TestOutliers:
         idx = np.random.default_rng(3).choice(len(bad), len(bad) // 10, replace=False)
         bad[idx] *= 3.0
         assert bad.max() < le.CLIP_LEVEL  # the outliers are not simply clipped away
-        robust = le.estimate_light(t, _grey(bad), EstimationParams())
+        robust = le.estimate_light(t, _grey(bad), HUBER)
         plain = le.estimate_light(t, _grey(bad), EstimationParams(robust_iterations=0))
         assert robust.confidence.samples == plain.confidence.samples == len(bad)
         e_robust, e_plain = _angle_deg(robust.sh, light), _angle_deg(plain.sh, light)
@@ -188,9 +207,25 @@ class TestOutliers:
         bad = clean.copy()
         idx = np.argsort(-(n @ _unit([-0.6, 0.2, 0.3])))[: len(bad) // 10]  # one bright patch
         bad[idx] *= 3.0
-        robust = le.estimate_light(t, _grey(bad), EstimationParams())
+        robust = le.estimate_light(t, _grey(bad), HUBER)
         plain = le.estimate_light(t, _grey(bad), EstimationParams(robust_iterations=0))
         assert _angle_deg(robust.sh, light) < _angle_deg(plain.sh, light)
+
+    def test_default_keeps_every_weight(self):
+        """Off by default, the re-weighting leaves every sample its weight; on, it lowers
+        the outliers' (and only theirs, mostly)."""
+        _, t, _, clean = self._data()
+        bad = clean.copy()
+        idx = np.random.default_rng(3).choice(len(bad), len(bad) // 10, replace=False)
+        bad[idx] *= 3.0
+        default = le.estimate_light(t, _grey(bad), EstimationParams())
+        huber = le.estimate_light(t, _grey(bad), HUBER)
+        assert default.fit is not None and huber.fit is not None
+        np.testing.assert_array_equal(default.fit.weights, 1.0)
+        outlier = np.zeros(len(bad), bool)
+        outlier[idx] = True
+        assert np.median(huber.fit.weights[outlier]) < 0.5
+        assert np.median(huber.fit.weights[~outlier]) == 1.0
 
 
 class TestDegenerate:
