@@ -335,10 +335,11 @@ class EstimationParams:
     light_prior: float = 0.0
     # maps left out of that prior, comma-separated names (leave-one-map-out evaluation)
     light_prior_exclude: str = ""
-    # albedo alternation (and re-weighting) passes, 0 = plain least squares; and Huber's
-    # threshold in robust standard deviations, 0 = no re-weighting: held out by map,
-    # 24 passes without it beat 8 with it (docs/decisions/0052-no-huber-24-passes.md)
+    # albedo alternation (and re-weighting) passes, 0 = plain least squares; held out by
+    # map, 24 converge where 8 stopped short (docs/decisions/0052-no-huber-24-passes.md)
     robust_iterations: int = 24
+    # Huber's threshold in robust standard deviations for re-weighting the pixels (0 = off;
+    # 1.345 until decision 0052: held out by map the fit is better without it)
     robust_threshold: float = 0.0
     albedo_segments: bool = True  # one unknown albedo per material segment (beyond the paper)
     segment_features: SegmentFeatures = SegmentFeatures.INVARIANT
