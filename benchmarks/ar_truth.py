@@ -8,8 +8,14 @@ composite against `ar/real_virtual/NNNNNN.png`, as PSNR (dB) and SSIM inside
 objects themselves (`mask_virtual`), for
   (a) "estimated": the light the pipeline estimated (what users get),
   (b) "gt_light": the same frame re-rendered with the ground-truth light (lighting_gt.json,
-      exposure applied): rendering error without light-estimation error,
-  (c) "paste": the objects shaded by the estimated light and pasted, no shadows or bounce;
+      exposure applied; in a room, whose light the distant map does not describe, the
+      light at the anchor, `probe`): rendering error without light-estimation error; its
+      reflection probe is made anew from that light,
+  (c) "gt_sun": the true light as SH plus the map's brightest compact region as a source
+      drawn with hard shadows (arlight.synth.environment.brightest_compact_region),
+  (d) "gt_full": gt_sun, its mirror and glossy objects reflecting a probe whose distant part
+      is the true HDR map (what a streamed 360-degree panorama gives) instead of 4 SH bands,
+  (e) "paste": the objects shaded by the estimated light and pasted, no shadows or bounce;
 and "input" (the frame without objects) for scale. It writes side-by-side images (input,
 ours, truth, 4x difference) of each sequence's first pair to --out, with report.json.
 
@@ -35,8 +41,10 @@ from arlight.pipeline import sh
 from arlight.pipeline.color import LUMA
 from arlight.pipeline.compact_light import CompactLightStage
 from arlight.pipeline.config import Config, DiffMode
+from arlight.pipeline.glossy import mip_pyramid
 from arlight.pipeline.pipeline import Pipeline
-from arlight.pipeline.rendering import DifferentialRenderer
+from arlight.pipeline.probe import DistantLight, ProbeResult
+from arlight.pipeline.rendering import DifferentialRenderer, EnvironmentMap
 from arlight.pipeline.runtime import configure_process
 from arlight.pipeline.sun_shadows import SourceLight
 from arlight.sources.sequence import open_sequence
@@ -44,7 +52,7 @@ from arlight.sources.virtual_scene_file import load_virtual_scene
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "synthetic"
 MAPS = DATA.parent / "hdri"
-VARIANTS = ("input", "estimated", "gt_light", "gt_sun", "paste")
+VARIANTS = ("input", "estimated", "gt_light", "gt_sun", "gt_full", "paste")
 
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
@@ -70,10 +78,14 @@ def ssim_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return s.mean(axis=2)
 
 
-def truth_light(frame_truth: dict, exposure: float) -> tuple[np.ndarray, np.ndarray]:
-    """(luminance SH in linear image units, our basis, world; per-channel factor (3,))."""
-    l_gt = sh.toggle_condon_shortley(np.asarray(frame_truth["sh_lum_world"])) * exposure
-    rgb = frame_truth["sh_rgb_world"]
+def truth_light(
+    frame_truth: dict, exposure: float, reference: str = "distant"
+) -> tuple[np.ndarray, np.ndarray]:
+    """(luminance SH in linear image units, our basis, world; per-channel factor (3,)).
+    reference: the file's truth_reference; "probe": the light at the anchor (a room)."""
+    source = frame_truth["probe"] if reference == "probe" else frame_truth
+    l_gt = sh.toggle_condon_shortley(np.asarray(source["sh_lum_world"])) * exposure
+    rgb = source["sh_rgb_world"]
     dc = np.maximum(np.asarray(json.loads(rgb) if isinstance(rgb, str) else rgb)[:, 0], 0.0)
     return l_gt, dc / max(float(LUMA @ dc), 1e-12)
 
@@ -94,6 +106,25 @@ def truth_sun(
     ambient = l_gt - sh.directional_light(region.direction, power, bands)
     radius = math.degrees(math.acos(max(-1.0, 1.0 - region.solid_angle_sr / (2 * math.pi))))
     return ambient, [SourceLight(region.direction, power, np.ones(3), radius)]
+
+
+def truth_environment(frame_truth: dict, exposure: float, maps_dir: Path) -> EnvironmentMap:
+    """The frame's true HDR map in linear image units, as a streamed panorama would give it
+    (map_from_world: the inverse of the generator's rotation about world +Y)."""
+    from arlight.synth.environment import rotation_y
+
+    hdr = _load_map(maps_dir / f"{frame_truth['env_map']}.hdr") * exposure
+    return EnvironmentMap(
+        mip_pyramid(hdr.astype(np.float32)), rotation_y(float(frame_truth["env_rotation_deg"])).T
+    )
+
+
+def true_probe(pipeline: Pipeline, inputs, distant: DistantLight) -> ProbeResult | None:
+    """The frame's reflection probe made anew (same room, same point) with `distant` as the
+    light beyond the room; None where the frame had no probe."""
+    if inputs.probe is None or pipeline._probe is None:
+        return None
+    return pipeline._probe.probe(inputs.probe.point_world, inputs.world_from_cam, distant)
 
 
 @functools.lru_cache(maxsize=1)  # a sequence's frames share their map
@@ -133,33 +164,41 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
         if index not in pairs:
             continue
         inputs, output = pipeline.last_render
-        l_gt, rgb_gt = truth_light(truth["frames"][index], truth["exposure_scale"])
+        frame_truth, exposure = truth["frames"][index], truth["exposure_scale"]
+        in_room = truth.get("truth_reference") == "probe"
+        l_gt, rgb_gt = truth_light(frame_truth, exposure, truth.get("truth_reference", "distant"))
+        gt_inputs = dataclasses.replace(
+            inputs,
+            light_sh=l_gt,
+            light_rgb=rgb_gt,
+            probe=true_probe(pipeline, inputs, DistantLight(l_gt, rgb_gt)),
+        )
         t0 = time.perf_counter()
-        with_gt = pipeline._renderer.render(
-            dataclasses.replace(inputs, light_sh=l_gt, light_rgb=rgb_gt)
-        ).composite
+        with_gt = pipeline._renderer.render(gt_inputs).composite
         gt_ms = 1e3 * (time.perf_counter() - t0)
-        with_sun = with_gt
-        if "env_map" in truth["frames"][index] and MAPS.is_dir():
-            ambient, sources = truth_sun(
-                truth["frames"][index], truth["exposure_scale"], l_gt, MAPS
-            )
+        with_sun = with_full = with_gt
+        if "env_map" in frame_truth and MAPS.is_dir() and not in_room:
+            # (a room: the map's sun is outside it, its light at the anchor is the probe's)
+            ambient, sources = truth_sun(frame_truth, exposure, l_gt, MAPS)
             stage = pipeline._compact_stage or CompactLightStage(config.aux.aux_update_interval)
             occluder = stage.occluder(seq.camera.unproject(inputs.depth_m), pipeline._volume)
-            with_sun = pipeline._renderer.render(
-                dataclasses.replace(
-                    inputs,
-                    light_sh=ambient,
-                    light_rgb=rgb_gt,
-                    sources=sources,
-                    real_occluder=occluder,
-                )
+            sun_inputs = dataclasses.replace(
+                gt_inputs, light_sh=ambient, sources=sources, real_occluder=occluder
+            )
+            with_sun = pipeline._renderer.render(sun_inputs).composite
+            environment = truth_environment(frame_truth, exposure, MAPS)
+            full_probe = true_probe(
+                pipeline, inputs, DistantLight(l_gt, rgb_gt, environment=environment)
+            )
+            with_full = pipeline._renderer.render(
+                dataclasses.replace(sun_inputs, probe=full_probe)
             ).composite
         images = {
             "input": inputs.color,
             "estimated": output.composite,
             "gt_light": with_gt,
             "gt_sun": with_sun,
+            "gt_full": with_full,
             "paste": paste.render(inputs).composite,
         }
         name = f"{index:06d}.png"
@@ -192,12 +231,12 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
             cv2.imwrite(
                 str(out / f"{folder.name}_{preset}_{name}"),
                 side_by_side(
-                    [inputs.color, output.composite, with_gt, with_sun, real_virtual, diff],
+                    [inputs.color, output.composite, with_gt, with_full, real_virtual, diff],
                     [
                         "input",
                         "ours (estimated light)",
                         "ours (true SH)",
-                        "ours (true SH + sun)",
+                        "ours (true SH + sun + map)",
                         "path-traced truth",
                         "4x |ours - truth|",
                     ],
@@ -234,7 +273,9 @@ def summary_table(rows: list[dict]) -> str:
                 cells.append(f"{p:.1f} dB / {s:.3f}")
             lines.append(f"| {seq} | {preset} | {region} | " + " | ".join(cells) + " |")
         ms = np.median([r["rendering_ms"] for r in sel])
-        lines.append(f"| {seq} | {preset} | Rendering ms (median) | {ms:.0f} |" + " |" * 3)
+        lines.append(
+            f"| {seq} | {preset} | Rendering ms (median) | {ms:.0f} |" + " |" * (len(VARIANTS) - 1)
+        )
     return "\n".join(lines)
 
 
