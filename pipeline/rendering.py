@@ -57,7 +57,12 @@ from arlight.pipeline.radiance_transfer import (
     transfer_pair_at_pixels,
 )
 from arlight.pipeline.srgb_encoding import encode_where, linear_to_srgb_u8
-from arlight.pipeline.sun_shadows import CompactSourceShading, RealOccluder, SourceLight
+from arlight.pipeline.sun_shadows import (
+    AmbientChange,
+    CompactSourceShading,
+    RealOccluder,
+    SourceLight,
+)
 from arlight.pipeline.transfer_quadrature import unoccluded_correction
 from arlight.pipeline.virtual_gbuffer import VirtualGBuffer, VirtualRaycaster
 from arlight.pipeline.virtual_scene import VirtualScene
@@ -165,8 +170,9 @@ class DifferentialRenderer:
     def render(self, frame: RenderInputs) -> RenderOutput:
         """The composite of one frame (see the module docstring), with the compact
         sources' hard shadows (frame.sources) drawn on it."""
-        out = self._render_sh(frame)
-        if not frame.sources or self.config.render.render_mode is DiffMode.PASTE:
+        with_sources = bool(frame.sources) and self.config.render.render_mode is not DiffMode.PASTE
+        out, ambient_change = self._render_sh(frame, keep_change=with_sources)
+        if not with_sources:
             return out
         g = out.gbuffer
         changed = self._compact.apply(
@@ -182,11 +188,17 @@ class DifferentialRenderer:
             frame.light_rgb,
             frame.sources,
             frame.real_occluder,
+            frame.color_linear,
+            ambient_change,
         )
         return RenderOutput(out.composite, out.virtual_mask, out.region | changed, g)
 
-    def _render_sh(self, frame: RenderInputs) -> RenderOutput:
-        """The composite lit by frame.light_sh (see the module docstring)."""
+    def _render_sh(
+        self, frame: RenderInputs, keep_change: bool = False
+    ) -> tuple[RenderOutput, AmbientChange | None]:
+        """The composite lit by frame.light_sh (see the module docstring); with keep_change,
+        also what it did to the real pixels (for the compact sources' share of their light;
+        None where it changed none)."""
         cam, pose = self.camera, frame.world_from_cam
         r = self.config.render
         g = self.raycaster.camera_gbuffer(cam, pose)
@@ -196,7 +208,7 @@ class DifferentialRenderer:
         rect = self.raycaster.screen_rect(cam, pose, margin_m=self.transfer_params.rt_radius_m)
         region = np.zeros(real_depth.shape, bool)
         if rect is None:
-            return RenderOutput(composite, virtual, region, g)
+            return RenderOutput(composite, virtual, region, g), None
         depth_c = np.where(virtual, g.depth_m, real_depth).astype(np.float32)
         normals_c = np.array(frame.normals_cam, copy=True)
         normals_c[virtual] = g.normals_cam[virtual]
@@ -215,7 +227,7 @@ class DifferentialRenderer:
             radiance_c[virtual] = g.albedo[virtual] / math.pi * e[:, None] * light_rgb
         if r.render_mode is DiffMode.PASTE:
             composite[virtual] = linear_to_srgb_u8(radiance_c[virtual])
-            return RenderOutput(composite, virtual, virtual.copy(), g)
+            return RenderOutput(composite, virtual, virtual.copy(), g), None
         u0, v0, u1, v1 = rect
         step = r.render_subsample
         gu = np.minimum(np.arange(u0, u1, step) + step // 2, u1 - 1)
@@ -315,7 +327,15 @@ class DifferentialRenderer:
         composite[vv_all, uu_all] = linear_to_srgb_u8(virtual_rgb)
         region[v0:v1, u0:u1] = changed
         region |= virtual
-        return RenderOutput(composite, virtual, region, g)
+        ambient_change = None
+        if keep_change:
+            ratio_img = np.ones(real_depth.shape, np.float32)
+            delta_img = np.zeros((*real_depth.shape, 3), np.float32)
+            real_changed = changed & ~virtual[v0:v1, u0:u1]
+            ratio_img[v0:v1, u0:u1] = np.where(real_changed, ratio_full, 1.0)
+            delta_img[v0:v1, u0:u1] = np.where(real_changed[..., None], delta_full, 0.0)
+            ambient_change = AmbientChange(ratio_img, delta_img)
+        return RenderOutput(composite, virtual, region, g), ambient_change
 
     def _reflecting(
         self,

@@ -99,19 +99,20 @@ class MeshOccluder:
 
 def real_surface_factor(
     ambient_irradiance: np.ndarray,
-    source_irradiance: np.ndarray,
-    visible_virtual: np.ndarray,
-    visible_real: np.ndarray,
+    source_before: np.ndarray,
+    source_after: np.ndarray,
+    ambient_ratio: np.ndarray | float = 1.0,
 ) -> np.ndarray:
     """(N,) the factor that takes a real surface's observed colour to its colour with the
-    virtual objects' shadow: (E + S V_v V_r) / (E + S V_r), with E the ambient irradiance,
-    S = k max(0, n . w) the source's unshadowed irradiance, V_v, V_r the visibility of the
-    source past the virtual and the real geometry. 1 where nothing changes."""
+    virtual objects: (rho E + S_after) / (E + S_before), with E the ambient irradiance, rho
+    the objects' change of it (SSDO's R'_d / R_d), S_before = k max(0, n . w) V_r the
+    source's irradiance past the real geometry and S_after = S_before V_v past the virtual
+    objects too. rho where the surface gets no light at all."""
     e = np.maximum(ambient_irradiance, 0.0)
-    s = np.maximum(source_irradiance, 0.0)
-    before = e + s * visible_real
-    after = e + s * visible_real * visible_virtual
-    return np.where(before > 1e-12, after / np.maximum(before, 1e-12), 1.0)
+    rho = np.broadcast_to(np.asarray(ambient_ratio, np.float64), e.shape)
+    before = e + np.maximum(source_before, 0.0)
+    after = rho * e + np.maximum(source_after, 0.0)
+    return np.where(before > 1e-12, after / np.maximum(before, 1e-12), rho)
 
 
 @dataclass(frozen=True)
@@ -159,13 +160,27 @@ def real_visibility(
     return (~occluder.blocked(rays, 2.0 * RAY_OFFSET_M, 100.0)).astype(np.float64)
 
 
+@dataclass(frozen=True)
+class AmbientChange:
+    """What the SH part of the differential rendering did to the real pixels: ratio (H, W),
+    the factor R'_d / R_d on the observed colour (1 where unchanged); delta (H, W, 3), the
+    linear RGB it added (the indirect change; 0 where unchanged)."""
+
+    ratio: np.ndarray
+    delta: np.ndarray
+
+
 class CompactSourceShading:
     """A virtual scene's shadows from compact sources, both ways, on a composite.
 
-    Virtual pixels gain albedo / pi * S V_virtual V_real (S = irradiance max(0, n . w));
-    real pixels facing the source are scaled by `real_surface_factor` where a virtual
-    object blocks it. Rays: every real pixel facing the source at the disc's centre, then
-    `samples` over the disc for those near a blocked one (the penumbra)."""
+    Virtual pixels gain albedo / pi * S V_virtual V_real (S = irradiance max(0, n . w)).
+    A real pixel's observed colour is lit by the ambient part E and the source S V_real;
+    the virtual objects change the first by the SH renderer's ratio rho (SSDO, `AmbientChange`)
+    and the second by V_virtual, so its colour is scaled by
+    (rho E + S V_real V_virtual) / (E + S V_real) (`real_surface_factor`): the SSDO ratio
+    weighs only the ambient share of the pixel's light, not the source's.
+    Rays: every real pixel facing the source at the disc's centre, then `samples` over the
+    disc for those near a blocked one (the penumbra); V_real for the pixels that change."""
 
     def __init__(self, meshes: list[tuple[np.ndarray, np.ndarray]], samples: int = 8):
         self.virtual = MeshOccluder(meshes)
@@ -185,9 +200,15 @@ class CompactSourceShading:
         light_rgb: np.ndarray,
         sources: list[SourceLight],
         real_occluder: RealOccluder | None,
+        color_linear: np.ndarray | None = None,
+        ambient_change: AmbientChange | None = None,
     ) -> np.ndarray:
         """Shade `composite` ((H, W, 3) uint8 sRGB, in place); returns the (H, W) bool mask
-        of the pixels changed. Points and normals: camera frame (zeros: none)."""
+        of the pixels changed. Points and normals: camera frame (zeros: none).
+        color_linear: (H, W, 3) the observed frame, linear, and ambient_change: what the SH
+        part did to the real pixels; with both, a real pixel the SH part changed is made
+        anew from its observed colour with the source's share of its light taken out of
+        the SSDO ratio (class docstring); without, the ratio is taken as 1."""
         from arlight.pipeline.rendering import linear_to_srgb_u8  # (it imports this module)
 
         changed = np.zeros(virtual.shape, bool)
@@ -209,39 +230,74 @@ class CompactSourceShading:
                 linear = srgb_to_linear(composite[vv, vu]).astype(np.float64)
                 composite[vv, vu] = linear_to_srgb_u8(linear + albedo / math.pi * add)
                 changed[vv, vu] = True
-            # real pixels facing the source: the virtual objects' shadow
-            if self.virtual.empty:
-                continue
-            rv, ru = np.nonzero(real)
-            p = real_points_cam[rv, ru].astype(np.float64) @ rot.T + t
-            n = real_normals_cam[rv, ru].astype(np.float64) @ rot.T
+        if self.virtual.empty or not sources:
+            return changed
+        # real pixels: the source's light before and after the objects, summed over sources
+        use_change = ambient_change is not None and color_linear is not None
+        rv, ru = np.nonzero(real)
+        p = real_points_cam[rv, ru].astype(np.float64) @ rot.T + t
+        n = real_normals_cam[rv, ru].astype(np.float64) @ rot.T
+        if use_change:
+            assert ambient_change is not None
+            rho = ambient_change.ratio[rv, ru].astype(np.float64)
+            delta = ambient_change.delta[rv, ru].astype(np.float64)
+            touched = (rho != 1.0) | any_nonzero(delta)
+        else:
+            rho, delta = np.ones(len(rv)), np.zeros((len(rv), 3))
+            touched = np.zeros(len(rv), bool)
+        before, after = np.zeros(len(rv)), np.zeros(len(rv))
+        for source in sources:
+            d = np.asarray(source.direction, np.float64)
             cos = n @ d
-            facing = cos > 0.0
-            rv, ru, p, n, cos = rv[facing], ru[facing], p[facing], n[facing], cos[facing]
-            seen = self.virtual.visibility(p, n, d, 0.0, 1)
-            near = _near_blocked(seen < 1.0, rv, ru, virtual.shape)
+            idx = np.flatnonzero(cos > 0.0)
+            seen = self.virtual.visibility(p[idx], n[idx], d, 0.0, 1)
+            near = _near_blocked(seen < 1.0, rv[idx], ru[idx], virtual.shape)
             if np.any(near):
                 seen[near] = self.virtual.visibility(
-                    p[near], n[near], d, source.angular_radius_deg, self.samples
+                    p[idx[near]], n[idx[near]], d, source.angular_radius_deg, self.samples
                 )
-            shadowed = seen < 1.0
-            if not np.any(shadowed):
-                continue
-            rv, ru, p, n, cos, seen = (
-                rv[shadowed],
-                ru[shadowed],
-                p[shadowed],
-                n[shadowed],
-                cos[shadowed],
-                seen[shadowed],
+            keep = (seen < 1.0) | touched[idx]
+            idx, seen = idx[keep], seen[keep]
+            lit = source.irradiance * cos[idx]
+            lit *= real_visibility(real_occluder, p[idx], n[idx], d, world_from_cam)
+            before[idx] += lit
+            after[idx] += lit * seen
+        work = np.flatnonzero((after < before) | touched)
+        if not len(work):
+            return changed
+        rv, ru, n = rv[work], ru[work], n[work]
+        ambient = sh.evaluate(sh.irradiance_from_radiance(ambient_sh), n)
+        factor = real_surface_factor(ambient, before[work], after[work], rho[work])
+        if use_change:
+            assert color_linear is not None
+            observed = color_linear[rv, ru].astype(np.float64)
+            linear = observed * factor[:, None] + _indirect_with_source(
+                delta[work], observed, ambient, before[work], light_rgb
             )
-            ambient = np.maximum(sh.evaluate(sh.irradiance_from_radiance(ambient_sh), n), 0.0)
-            real_seen = real_visibility(real_occluder, p, n, d, world_from_cam)
-            factor = real_surface_factor(ambient, source.irradiance * cos, seen, real_seen)
-            linear = srgb_to_linear(composite[rv, ru]).astype(np.float64)
-            composite[rv, ru] = linear_to_srgb_u8(linear * factor[:, None])
-            changed[rv, ru] |= factor != 1.0
+        else:
+            linear = srgb_to_linear(composite[rv, ru]).astype(np.float64) * factor[:, None]
+        composite[rv, ru] = linear_to_srgb_u8(linear)
+        changed[rv, ru] |= (factor != 1.0) | any_nonzero(delta[work])
         return changed
+
+
+def _indirect_with_source(
+    delta: np.ndarray,
+    observed: np.ndarray,
+    ambient: np.ndarray,
+    source: np.ndarray,
+    light_rgb: np.ndarray,
+) -> np.ndarray:
+    """(N, 3) the SH renderer's indirect change `delta` with the real surface's albedo
+    taken from all of its light: it read rho / pi = observed / (E rgb) (at most 1 / pi),
+    which a source's share of the light inflates; rescaled to observed / ((E + S) rgb).
+    observed: (N, 3) linear; ambient E, source S: (N,) irradiance (E stands in for the
+    SSDO shading the renderer divided by)."""
+    rgb = np.asarray(light_rgb, np.float64)
+    e = np.maximum(ambient, 1e-12)[:, None] * rgb
+    before = np.minimum(observed / np.maximum(e, 1e-12), 1.0 / math.pi)
+    after = np.minimum(observed / np.maximum(e + source[:, None] * rgb, 1e-12), 1.0 / math.pi)
+    return np.where(before > 1e-12, delta * after / np.maximum(before, 1e-12), delta)
 
 
 def _near_blocked(

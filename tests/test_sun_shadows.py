@@ -89,10 +89,19 @@ def test_real_surface_factor() -> None:
     source = np.array([3.0, 3.0, 3.0, 0.0])
     visible_virtual = np.array([1.0, 0.0, 0.0, 0.0])
     visible_real = np.array([1.0, 1.0, 0.0, 1.0])
-    f = real_surface_factor(ambient, source, visible_virtual, visible_real)
+    before = source * visible_real
+    f = real_surface_factor(ambient, before, before * visible_virtual)
     # unshadowed: no change; virtual shadow on a lit surface: the ambient's share remains;
     # already in a real shadow: no change; no light at all: no change
     assert np.allclose(f, [1.0, 0.25, 1.0, 1.0])
+
+
+def test_the_ambient_ratio_weighs_only_the_ambient_share() -> None:
+    # SSDO halves the ambient near an object; in the sun it halves only the ambient's share
+    # (1 of 4), in a real shadow all of the light, and in the object's shadow both go
+    ambient, sun = np.full(3, 1.0), np.array([3.0, 0.0, 3.0])
+    f = real_surface_factor(ambient, sun, sun * np.array([1.0, 1.0, 0.0]), 0.5)
+    assert np.allclose(f, [(0.5 + 3.0) / 4.0, 0.5, 0.5 / 4.0])
 
 
 def test_empty_occluder_sees_everything() -> None:
@@ -156,3 +165,58 @@ def test_virtual_pole_shadow_in_the_composite(azimuth: float) -> None:
     if len(vv):
         p = view.world_from_cam[:3, 3] + view.rays_world[vv, uu] * view.depth_m[vv, uu, None]
         assert (p[:, [0, 2]] @ away).max() < 0.5 * expected
+
+
+def test_the_objects_ambient_occlusion_does_not_dim_the_sunlit_ground() -> None:
+    """A 0.2 m wide virtual box on the ground, lit 95 % by a sun: the ground beside it on
+    the sun's side keeps its sunlight, so SSDO's occlusion of the sky there may take only
+    the ambient's share (at most 5 %); in the box's shadow only that share remains."""
+    from test_rendering import UP, frame_inputs, ground_view, luminance
+
+    from arlight.pipeline import sh
+    from arlight.pipeline.color import srgb_to_linear
+    from arlight.pipeline.config import Config
+    from arlight.pipeline.rendering import DifferentialRenderer
+    from arlight.pipeline.sun_shadows import SourceLight
+
+    half, elevation, azimuth = 0.1, 35.0, 0.0
+    view = ground_view(320, 240, distance_m=1.2, tilt_deg=60.0)
+    sun = _sun(elevation, azimuth)
+    ambient = np.zeros(16)
+    ambient[0] = 0.1 / sh.sh_basis(UP, 1)[0]  # radiance 0.1: irradiance 0.1 pi on the ground
+    source = 19.0 * 0.1 * math.pi / math.sin(math.radians(elevation))  # 95 % of its light
+    renderer = DifferentialRenderer(_pole_scene(0.2, half), view.camera, Config())
+    inputs = frame_inputs(view, ambient + sh.directional_light(sun, source, 4))
+    out = renderer.render(
+        dataclasses.replace(
+            inputs, light_sh=ambient, sources=[SourceLight(sun, source, np.ones(3), 0.27)]
+        )
+    )
+    ratio = luminance(srgb_to_linear(out.composite)) / np.maximum(
+        luminance(inputs.color_linear), 1e-9
+    )
+    points = view.world_from_cam[:3, 3] + view.rays_world * view.depth_m[..., None]
+    x, z = points[..., 0], points[..., 2]
+    beside = ~out.virtual_mask & (view.depth_m > 0) & (np.abs(z) < 0.05)
+    toward = -np.array([sun[0], sun[2]]) / np.hypot(sun[0], sun[2])  # where the shadow falls
+    sunny_side = (
+        beside & (x * toward[0] < 0) & (np.abs(x) > half + 0.01) & (np.abs(x) < half + 0.04)
+    )
+    shadow = beside & (x * toward[0] > 0) & (np.abs(x) > half + 0.03) & (np.abs(x) < half + 0.08)
+    assert sunny_side.sum() > 20 and shadow.sum() > 20
+    assert np.median(ratio[sunny_side]) > 0.96
+    assert np.median(ratio[shadow]) < 0.08
+
+
+def test_the_indirect_change_takes_the_albedo_from_all_the_light() -> None:
+    """A sunlit grey surface (albedo 0.5: observed 0.5 / pi (E + S)) read against the ambient
+    alone looks brighter than white and was clamped at 1 / pi; against all its light it is
+    0.5 / pi again, so the bounce it gets or loses is scaled by 0.5."""
+    from arlight.pipeline.sun_shadows import _indirect_with_source
+
+    ambient, source = np.array([1.0, 1.0]), np.array([3.0, 0.0])
+    observed = 0.5 / math.pi * (ambient + source)[:, None] * np.ones(3)
+    delta = np.full((2, 3), -0.02)
+    out = _indirect_with_source(delta, observed, ambient, source, np.ones(3))
+    assert np.allclose(out[0], -0.02 * 0.5)  # was read as 1 / pi, is 0.5 / pi
+    assert np.allclose(out[1], -0.02)  # no source: as the SH renderer read it
