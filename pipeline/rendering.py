@@ -62,6 +62,7 @@ from arlight.pipeline.sun_shadows import (
     CompactSourceShading,
     RealOccluder,
     SourceLight,
+    touched_by,
 )
 from arlight.pipeline.transfer_quadrature import unoccluded_correction
 from arlight.pipeline.virtual_gbuffer import VirtualGBuffer, VirtualRaycaster
@@ -331,10 +332,12 @@ class DifferentialRenderer:
         if keep_change:
             ratio_img = np.ones(real_depth.shape, np.float32)
             delta_img = np.zeros((*real_depth.shape, 3), np.float32)
+            touched = np.zeros(real_depth.shape, bool)
             real_changed = changed & ~virtual[v0:v1, u0:u1]
             ratio_img[v0:v1, u0:u1] = np.where(real_changed, ratio_full, 1.0)
             delta_img[v0:v1, u0:u1] = np.where(real_changed[..., None], delta_full, 0.0)
-            ambient_change = AmbientChange(ratio_img, delta_img)
+            touched[v0:v1, u0:u1] = real_changed & touched_by(ratio_full, delta_full)
+            ambient_change = AmbientChange(ratio_img, delta_img, touched)
         return RenderOutput(composite, virtual, region, g), ambient_change
 
     def _reflecting(

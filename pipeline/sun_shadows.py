@@ -28,6 +28,10 @@ from arlight.pipeline.channels import any_nonzero
 from arlight.pipeline.color import srgb_to_linear
 
 RAY_OFFSET_M = 0.01  # rays start this far along the normal (metres)
+# the SH part's change of a real pixel below both of these (its ratio's distance from 1, its
+# added linear RGB) is left as the SH part drew it (far under an 8-bit step): no rays there
+RATIO_CHANGE = 1e-3
+INDIRECT_CHANGE = 1e-4
 RAY_TNEAR_M = 0.002
 
 
@@ -164,10 +168,18 @@ def real_visibility(
 class AmbientChange:
     """What the SH part of the differential rendering did to the real pixels: ratio (H, W),
     the factor R'_d / R_d on the observed colour (1 where unchanged); delta (H, W, 3), the
-    linear RGB it added (the indirect change; 0 where unchanged)."""
+    linear RGB it added (the indirect change; 0 where unchanged); touched: where either
+    changed enough to matter (`touched_by`)."""
 
     ratio: np.ndarray
     delta: np.ndarray
+    touched: np.ndarray  # (H, W) bool: changed by more than RATIO_CHANGE / INDIRECT_CHANGE
+
+
+def touched_by(ratio: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """(...) bool: where the SH part's ratio (...) or added RGB (..., 3) changed a real
+    pixel by more than RATIO_CHANGE / INDIRECT_CHANGE."""
+    return (np.abs(ratio - 1.0) > RATIO_CHANGE) | (np.abs(delta).max(axis=-1) > INDIRECT_CHANGE)
 
 
 class CompactSourceShading:
@@ -234,21 +246,19 @@ class CompactSourceShading:
             return changed
         # real pixels: the source's light before and after the objects, summed over sources
         use_change = ambient_change is not None and color_linear is not None
-        rv, ru = np.nonzero(real)
-        p = real_points_cam[rv, ru].astype(np.float64) @ rot.T + t
-        n = real_normals_cam[rv, ru].astype(np.float64) @ rot.T
+        touched_img = np.zeros(virtual.shape, bool)
         if use_change:
             assert ambient_change is not None
-            rho = ambient_change.ratio[rv, ru].astype(np.float64)
-            delta = ambient_change.delta[rv, ru].astype(np.float64)
-            touched = (rho != 1.0) | any_nonzero(delta)
-        else:
-            rho, delta = np.ones(len(rv)), np.zeros((len(rv), 3))
-            touched = np.zeros(len(rv), bool)
+            touched_img = real & ambient_change.touched
+        rv, ru = np.nonzero(real)  # (boolean masks below gather in this same order)
+        rot32 = np.ascontiguousarray(rot.T, np.float32)
+        p = real_points_cam[real] @ rot32 + t.astype(np.float32)  # float32: ray origins
+        n = real_normals_cam[real] @ rot32
+        touched = touched_img[real]
         before, after = np.zeros(len(rv)), np.zeros(len(rv))
         for source in sources:
             d = np.asarray(source.direction, np.float64)
-            cos = n @ d
+            cos = n @ d.astype(np.float32)
             idx = np.flatnonzero(cos > 0.0)
             seen = self.virtual.visibility(p[idx], n[idx], d, 0.0, 1)
             near = _near_blocked(seen < 1.0, rv[idx], ru[idx], virtual.shape)
@@ -266,18 +276,24 @@ class CompactSourceShading:
         if not len(work):
             return changed
         rv, ru, n = rv[work], ru[work], n[work]
-        ambient = sh.evaluate(sh.irradiance_from_radiance(ambient_sh), n)
-        factor = real_surface_factor(ambient, before[work], after[work], rho[work])
+        rho, delta = np.ones(len(work)), np.zeros((len(work), 3))
+        if use_change:
+            assert ambient_change is not None
+            rho = ambient_change.ratio[rv, ru].astype(np.float64)
+            delta = ambient_change.delta[rv, ru].astype(np.float64)
+        # (bands 0..2: the clamped cosine leaves band 3 of the irradiance at zero)
+        ambient = sh.evaluate(sh.irradiance_from_radiance(ambient_sh)[:9], n)
+        factor = real_surface_factor(ambient, before[work], after[work], rho)
         if use_change:
             assert color_linear is not None
             observed = color_linear[rv, ru].astype(np.float64)
             linear = observed * factor[:, None] + _indirect_with_source(
-                delta[work], observed, ambient, before[work], light_rgb
+                delta, observed, ambient, before[work], light_rgb
             )
         else:
             linear = srgb_to_linear(composite[rv, ru]).astype(np.float64) * factor[:, None]
         composite[rv, ru] = linear_to_srgb_u8(linear)
-        changed[rv, ru] |= (factor != 1.0) | any_nonzero(delta[work])
+        changed[rv, ru] |= (factor != 1.0) | any_nonzero(delta)
         return changed
 
 
