@@ -92,9 +92,10 @@ def truth_light(
 
 def truth_sun(
     frame_truth: dict, exposure: float, l_gt: np.ndarray, maps_dir: Path
-) -> tuple[np.ndarray, list[SourceLight]]:
+) -> tuple[np.ndarray, np.ndarray, list[SourceLight]]:
     """The true light as the renderer's ambient SH plus the map's brightest compact region
-    as a source (arlight.synth.environment.brightest_compact_region): (ambient, [source])."""
+    as a source (arlight.synth.environment.brightest_compact_region), each with its own
+    colour (a warm sun under a blue sky): (ambient, its per-channel factor (3,), [source])."""
     from arlight.synth.environment import brightest_compact_region
 
     name = frame_truth["env_map"]
@@ -104,8 +105,14 @@ def truth_sun(
     power = region.power * exposure
     bands = math.isqrt(len(l_gt))
     ambient = l_gt - sh.directional_light(region.direction, power, bands)
+    rgb = frame_truth["sh_rgb_world"]
+    dc = np.asarray(json.loads(rgb) if isinstance(rgb, str) else rgb)[:, 0]
+    # the region's share of each channel's band 0 (a delta of integrated radiance P: P Y00)
+    dc_ambient = np.maximum(dc - region.rgb * sh.sh_basis(region.direction, 1)[0], 0.0)
+    ambient_rgb = dc_ambient / max(float(LUMA @ dc_ambient), 1e-12)
+    source_rgb = region.rgb / max(region.power, 1e-12) / np.maximum(ambient_rgb, 1e-6)
     radius = math.degrees(math.acos(max(-1.0, 1.0 - region.solid_angle_sr / (2 * math.pi))))
-    return ambient, [SourceLight(region.direction, power, np.ones(3), radius)]
+    return ambient, ambient_rgb, [SourceLight(region.direction, power, source_rgb, radius)]
 
 
 def truth_environment(frame_truth: dict, exposure: float, maps_dir: Path) -> EnvironmentMap:
@@ -179,11 +186,15 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
         with_sun = with_full = with_gt
         if "env_map" in frame_truth and MAPS.is_dir() and not in_room:
             # (a room: the map's sun is outside it, its light at the anchor is the probe's)
-            ambient, sources = truth_sun(frame_truth, exposure, l_gt, MAPS)
+            ambient, ambient_rgb, sources = truth_sun(frame_truth, exposure, l_gt, MAPS)
             stage = pipeline._compact_stage or CompactLightStage(config.aux.aux_update_interval)
             occluder = stage.occluder(seq.camera.unproject(inputs.depth_m), pipeline._volume)
             sun_inputs = dataclasses.replace(
-                gt_inputs, light_sh=ambient, sources=sources, real_occluder=occluder
+                gt_inputs,
+                light_sh=ambient,
+                light_rgb=ambient_rgb,
+                sources=sources,
+                real_occluder=occluder,
             )
             with_sun = pipeline._renderer.render(sun_inputs).composite
             environment = truth_environment(frame_truth, exposure, MAPS)

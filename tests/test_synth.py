@@ -140,6 +140,27 @@ class TestTruth:
                     atol=0.01 * abs(frame["sh_lum_world"][0]),
                 )
 
+    def test_compact_region_of_a_coloured_sun(self):
+        """A warm disc on a blue sky: the region holds the disc, its colour is the disc's
+        (rgb / power has luminance 1), and its power is the disc's integrated luminance."""
+        from arlight.pipeline.color import LUMA
+
+        h, w = 64, 128
+        radiance = np.zeros((h, w, 3), np.float32)
+        radiance[..., 2] = 0.2  # sky, blue
+        dirs, solid = env.texel_directions(h, w)
+        sun = np.array([0.0, math.sin(math.radians(40)), -math.cos(math.radians(40))])
+        disc = dirs @ sun > math.cos(math.radians(3.0))
+        radiance[disc] = (50.0, 35.0, 20.0)
+        region = env.brightest_compact_region(radiance, 0.0)
+        assert angular_error_deg(region.direction, sun) < 2.0
+        colour = region.rgb / region.power
+        assert abs(float(LUMA @ colour) - 1.0) < 1e-9
+        np.testing.assert_allclose(colour / colour[0], (1.0, 0.7, 0.4), rtol=1e-6)
+        weights = np.repeat(solid[:, None], w, axis=1)[disc]
+        expected = float(np.sum(weights) * (LUMA @ np.array((50.0, 35.0, 20.0))))
+        assert abs(region.power - expected) < 1e-3 * expected
+
 
 class TestFiles:
     def test_layout_of_the_shared_set(self, tiny):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -140,12 +140,13 @@ class CompactRegion:
     luminance-weighted mean of its texels; solid_angle_sr; share: its part of the irradiance
     on a surface facing it from the upper hemisphere (world y > 0); power: its luminance
     integrated over its solid angle (the map's units; the irradiance it brings to a surface
-    facing it)."""
+    facing it); rgb: (3,) the same per linear channel (its colour: rgb / power)."""
 
     direction: np.ndarray
     solid_angle_sr: float
     share: float
     power: float = 0.0
+    rgb: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 # a compact source: texels within this angle of the brightest one, at least this fraction of
@@ -170,4 +171,5 @@ def brightest_compact_region(radiance: np.ndarray, rotation_deg: float) -> Compa
     cos = np.maximum(world @ direction, 0.0)
     total = float(np.sum(lum_upper * weights * cos))
     share = float(np.sum(power * cos[region])) / max(total, 1e-30)
-    return CompactRegion(direction, float(weights[region].sum()), share, float(power.sum()))
+    rgb = (radiance.reshape(-1, 3)[region].astype(np.float64) * weights[region, None]).sum(axis=0)
+    return CompactRegion(direction, float(weights[region].sum()), share, float(power.sum()), rgb)
