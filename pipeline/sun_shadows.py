@@ -7,10 +7,12 @@ directions spread over the disc (a fixed, seeded pattern: the penumbra's width f
 r and the occluder's distance), each blocked or not by a mesh at any distance.
 
 For the composite (rendering.DifferentialRenderer): a real pixel lit by the source loses
-k max(0, n . w) (1 - V_virtual) of its irradiance where a virtual object blocks it, so its
-colour is scaled by (E_rest + k cos V_virtual V_real) / (E_rest + k cos V_real); a virtual
-pixel gains k cos V_virtual V_real (its own shadow and the real scene's). E_rest is the
-rest of the light (the ambient SH's irradiance).
+k max(0, n . w) (1 - V_virtual) of its irradiance where a virtual object blocks it, and the
+SH part (SSDO) changes the rest of its light, E_rest (the ambient SH's irradiance), by
+rho = R'_d / R_d; so its observed colour is scaled by
+(rho E_rest + k cos V_virtual V_real) / (E_rest + k cos V_real) in one step (decision 0053:
+rho scales the ambient's share of the pixel's light, not the source's). A virtual pixel
+gains k cos V_virtual V_real (its own shadow and the real scene's).
 """
 
 from __future__ import annotations
