@@ -44,7 +44,7 @@ from arlight.pipeline.config import Config, DiffMode
 from arlight.pipeline.glossy import mip_pyramid
 from arlight.pipeline.pipeline import Pipeline
 from arlight.pipeline.probe import DistantLight, ProbeResult
-from arlight.pipeline.rendering import DifferentialRenderer, EnvironmentMap
+from arlight.pipeline.rendering import DifferentialRenderer, EnvironmentMap, RenderInputs
 from arlight.pipeline.runtime import configure_process
 from arlight.pipeline.sun_shadows import SourceLight
 from arlight.sources.sequence import open_sequence
@@ -126,7 +126,9 @@ def truth_environment(frame_truth: dict, exposure: float, maps_dir: Path) -> Env
     )
 
 
-def true_probe(pipeline: Pipeline, inputs, distant: DistantLight) -> ProbeResult | None:
+def true_probe(
+    pipeline: Pipeline, inputs: RenderInputs, distant: DistantLight
+) -> ProbeResult | None:
     """The frame's reflection probe made anew (same room, same point) with `distant` as the
     light beyond the room; None where the frame had no probe."""
     if inputs.probe is None or pipeline._probe is None:
