@@ -274,7 +274,8 @@ class CompactSourceShading:
             lit *= real_visibility(real_occluder, p[idx], n[idx], d, world_from_cam)
             before[idx] += lit
             after[idx] += lit * seen
-        work = np.flatnonzero((after < before) | touched)
+        # (a touched pixel no source reaches keeps the SH part's colour: its factor is rho)
+        work = np.flatnonzero((after < before) | (touched & (before > 0.0)))
         if not len(work):
             return changed
         rv, ru, n = rv[work], ru[work], n[work]
