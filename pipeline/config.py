@@ -351,9 +351,12 @@ class EstimationParams:
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
     # compact sources (a sun, a lamp) fitted beside the SH from the shadows the reconstruction
     # casts (pipeline/compact_light.py): at most this many (0 = off; 1 today). Off by default:
-    # right under a sun, wrong under some soft skies (docs/decisions/0035-compact-sources.md)
+    # its fit costs ~200 ms a frame (held out by map it lowers full's median over 22 maps
+    # 14.5 -> 11.4: docs/decisions/0054-compact-gain-0.08.md, 0035-compact-sources.md)
     compact_sources: int = 0
-    compact_min_gain: float = 0.03  # of the SH fit's residual its shadow must explain (0035)
+    # of the SH fit's residual its shadow must explain: 0.08, chosen leaving maps out over
+    # the fit of decision 0052 (0.03 in decision 0035; docs/decisions/0054-compact-gain-0.08.md)
+    compact_min_gain: float = 0.08
     compact_min_contrast: float = 0.0  # its gain over its mirrored direction's (0 = off)
     # ln step the image must show across its shadow's edge (0 = off: held out by map it did
     # not beat a gain threshold alone, docs/decisions/0043-shadow-edge.md)
