@@ -43,9 +43,12 @@ def compact_share(env_map: str, rotation_deg: float) -> float:
 
 def sphere_material(folder: Path) -> str:
     """The first virtual object's material as the generator names it ("mirror", "glossy0.1",
-    "diffuse"; "diffuse" when the file does not say)."""
-    info = json.loads((folder / "ar" / "virtual_scene.json").read_text())
-    return str(info.get("virtual_material", "diffuse"))
+    "diffuse"; "diffuse" when the file does not say, "unknown" without a readable file)."""
+    try:
+        info = json.loads((folder / "ar" / "virtual_scene.json").read_text())
+    except (OSError, ValueError):
+        return "unknown"
+    return str(info.get("virtual_material", "diffuse")) if isinstance(info, dict) else "unknown"
 
 
 def pair_groups(row: dict, folder: Path, sunny_share: float) -> tuple[str, str, str]:

@@ -69,3 +69,9 @@ def test_a_sequence_not_found_exits_2_naming_the_flag(tmp_path, capsys):
     assert main([str(report), "--data", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "gone" in err and "--data" in err
+
+
+def test_a_sequence_without_its_scene_file_has_an_unknown_material(tmp_path):
+    folder = _sequence(tmp_path, "room", "no_such_map_1k", reference="probe")
+    (folder / "ar" / "virtual_scene.json").unlink()
+    assert pair_groups(_row("room", 1, 20.0), folder, 0.3)[2] == "unknown"
