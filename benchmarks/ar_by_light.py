@@ -51,9 +51,14 @@ def sphere_material(folder: Path) -> str:
     return str(info.get("virtual_material", "diffuse")) if isinstance(info, dict) else "unknown"
 
 
+@functools.lru_cache(maxsize=64)  # a sequence's pairs share its truth file
+def _truth(folder: Path) -> dict:
+    return json.loads((folder / "lighting_gt.json").read_text())
+
+
 def pair_groups(row: dict, folder: Path, sunny_share: float) -> tuple[str, str, str]:
     """(light group, map, material) of one report row."""
-    truth = json.loads((folder / "lighting_gt.json").read_text())
+    truth = _truth(folder)
     frame = truth["frames"][row["frame"]]
     if truth.get("truth_reference") == "probe":
         light = "room"
@@ -109,7 +114,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         rows = json.loads(args.report.read_text())["rows"]
-    except (OSError, ValueError, KeyError) as exc:
+        if not all(isinstance(r["sequence"], str) and isinstance(r["frame"], int) for r in rows):
+            raise ValueError("a row without its sequence and frame")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
         print(f"{args.report}: not an ar_truth.py report.json ({exc})", file=sys.stderr)
         return 2
     if not MAPS.is_dir():
@@ -125,7 +132,13 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
             return 2
-        light, env_map, material = pair_groups(r, folder, args.sunny_share)
+        try:
+            light, env_map, material = pair_groups(r, folder, args.sunny_share)
+        except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
+            print(
+                f"{folder}: its truth does not describe frame {r['frame']} ({exc})", file=sys.stderr
+            )
+            return 2
         annotated.append({**r, "light": light, "map": env_map, "material": material})
     print("PSNR (dB) median over pairs, affected / shadow / objects\n")
     print(table(annotated, "light") + "\n")

@@ -75,3 +75,11 @@ def test_a_sequence_without_its_scene_file_has_an_unknown_material(tmp_path):
     folder = _sequence(tmp_path, "room", "no_such_map_1k", reference="probe")
     (folder / "ar" / "virtual_scene.json").unlink()
     assert pair_groups(_row("room", 1, 20.0), folder, 0.3)[2] == "unknown"
+
+
+@pytest.mark.parametrize("content", ['{"rows": [{"x": 1}]}', "[1, 2]", "{}"])
+def test_a_foreign_report_exits_2_naming_it(tmp_path, capsys, content):
+    report = tmp_path / "report.json"
+    report.write_text(content)
+    assert main([str(report), "--data", str(tmp_path)]) == 2
+    assert "report.json: not an ar_truth.py report.json" in capsys.readouterr().err
