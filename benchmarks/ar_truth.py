@@ -85,9 +85,14 @@ def truth_light(
     reference: the file's truth_reference; "probe": the light at the anchor (a room)."""
     source = frame_truth["probe"] if reference == "probe" else frame_truth
     l_gt = sh.toggle_condon_shortley(np.asarray(source["sh_lum_world"])) * exposure
-    rgb = source["sh_rgb_world"]
-    dc = np.maximum(np.asarray(json.loads(rgb) if isinstance(rgb, str) else rgb)[:, 0], 0.0)
+    dc = np.maximum(_band0_rgb(source), 0.0)
     return l_gt, dc / max(float(LUMA @ dc), 1e-12)
+
+
+def _band0_rgb(truth: dict) -> np.ndarray:
+    """(3,) band 0 of a truth entry's `sh_rgb_world` (a list, or JSON text of one)."""
+    rgb = truth["sh_rgb_world"]
+    return np.asarray(json.loads(rgb) if isinstance(rgb, str) else rgb, np.float64)[:, 0]
 
 
 def truth_sun(
@@ -105,8 +110,7 @@ def truth_sun(
     power = region.power * exposure
     bands = math.isqrt(len(l_gt))
     ambient = l_gt - sh.directional_light(region.direction, power, bands)
-    rgb = frame_truth["sh_rgb_world"]
-    dc = np.asarray(json.loads(rgb) if isinstance(rgb, str) else rgb)[:, 0]
+    dc = _band0_rgb(frame_truth)
     # the region's share of each channel's band 0 (a delta of integrated radiance P: P Y00)
     dc_ambient = np.maximum(dc - region.rgb * sh.sh_basis(region.direction, 1)[0], 0.0)
     ambient_rgb = dc_ambient / max(float(LUMA @ dc_ambient), 1e-12)
