@@ -330,14 +330,15 @@ class DifferentialRenderer:
         region |= virtual
         ambient_change = None
         if keep_change:
-            ratio_img = np.ones(real_depth.shape, np.float32)
-            delta_img = np.zeros((*real_depth.shape, 3), np.float32)
-            touched = np.zeros(real_depth.shape, bool)
             real_changed = changed & ~virtual[v0:v1, u0:u1]
-            ratio_img[v0:v1, u0:u1] = np.where(real_changed, ratio_full, 1.0)
-            delta_img[v0:v1, u0:u1] = np.where(real_changed[..., None], delta_full, 0.0)
+            touched = np.zeros(real_depth.shape, bool)
             touched[v0:v1, u0:u1] = real_changed & touched_by(ratio_full, delta_full)
-            ambient_change = AmbientChange(ratio_img, delta_img, touched)
+            ambient_change = AmbientChange(
+                (v0, u0),
+                np.where(real_changed, ratio_full, 1.0),
+                np.where(real_changed[..., None], delta_full, 0.0),
+                touched,
+            )
         return RenderOutput(composite, virtual, region, g), ambient_change
 
     def _reflecting(

@@ -168,14 +168,27 @@ def real_visibility(
 
 @dataclass(frozen=True)
 class AmbientChange:
-    """What the SH part of the differential rendering did to the real pixels: ratio (H, W),
-    the factor R'_d / R_d on the observed colour (1 where unchanged); delta (H, W, 3), the
-    linear RGB it added (the indirect change; 0 where unchanged); touched: where either
-    changed enough to matter (`touched_by`)."""
+    """What the SH part of the differential rendering did to the real pixels of the
+    rectangle it worked in, rows v0.. and columns u0.. (`origin` (v0, u0)): ratio (h, w), the
+    factor R'_d / R_d on the observed colour (1 where unchanged); delta (h, w, 3), the linear
+    RGB it added (the indirect change; 0 where unchanged); touched (H, W), the whole frame:
+    where either changed enough to matter (`touched_by`)."""
 
+    origin: tuple[int, int]
     ratio: np.ndarray
     delta: np.ndarray
-    touched: np.ndarray  # (H, W) bool: changed by more than RATIO_CHANGE / INDIRECT_CHANGE
+    touched: np.ndarray
+
+    def at(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(ratio (N,), delta (N, 3)) float64 at the pixels (rows, cols); 1 and 0 outside
+        the rectangle."""
+        r, c = rows - self.origin[0], cols - self.origin[1]
+        h, w = self.ratio.shape
+        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        ratio, delta = np.ones(len(rows)), np.zeros((len(rows), 3))
+        ratio[inside] = self.ratio[r[inside], c[inside]]
+        delta[inside] = self.delta[r[inside], c[inside]]
+        return ratio, delta
 
 
 def touched_by(ratio: np.ndarray, delta: np.ndarray) -> np.ndarray:
@@ -214,15 +227,15 @@ class CompactSourceShading:
         light_rgb: np.ndarray,
         sources: list[SourceLight],
         real_occluder: RealOccluder | None,
-        color_linear: np.ndarray | None = None,
-        ambient_change: AmbientChange | None = None,
+        color_linear: np.ndarray,
+        ambient_change: AmbientChange | None,
     ) -> np.ndarray:
         """Shade `composite` ((H, W, 3) uint8 sRGB, in place); returns the (H, W) bool mask
         of the pixels changed. Points and normals: camera frame (zeros: none).
-        color_linear: (H, W, 3) the observed frame, linear, and ambient_change: what the SH
-        part did to the real pixels; with both, a real pixel the SH part changed is made
-        anew from its observed colour with the source's share of its light taken out of
-        the SSDO ratio (class docstring); without, the ratio is taken as 1."""
+        color_linear: (H, W, 3) the observed frame, linear; ambient_change: what the SH part
+        did to the real pixels (None: nothing). A real pixel the source's shadow or the SH
+        part changed is made anew from its observed colour, the SSDO ratio weighing only
+        the ambient's share of its light (class docstring)."""
         from arlight.pipeline.rendering import linear_to_srgb_u8  # (it imports this module)
 
         changed = np.zeros(virtual.shape, bool)
@@ -247,11 +260,11 @@ class CompactSourceShading:
         if self.virtual.empty or not sources:
             return changed
         # real pixels: the source's light before and after the objects, summed over sources
-        use_change = ambient_change is not None and color_linear is not None
-        touched_img = np.zeros(virtual.shape, bool)
-        if use_change:
-            assert ambient_change is not None
-            touched_img = real & ambient_change.touched
+        touched_img = (
+            real & ambient_change.touched
+            if ambient_change is not None
+            else np.zeros(virtual.shape, bool)
+        )
         rv, ru = np.nonzero(real)  # (boolean masks below gather in this same order)
         rot32 = np.ascontiguousarray(rot.T, np.float32)
         p = real_points_cam[real] @ rot32 + t.astype(np.float32)  # float32: ray origins
@@ -279,22 +292,18 @@ class CompactSourceShading:
         if not len(work):
             return changed
         rv, ru, n = rv[work], ru[work], n[work]
-        rho, delta = np.ones(len(work)), np.zeros((len(work), 3))
-        if use_change:
-            assert ambient_change is not None
-            rho = ambient_change.ratio[rv, ru].astype(np.float64)
-            delta = ambient_change.delta[rv, ru].astype(np.float64)
+        rho, delta = (
+            ambient_change.at(rv, ru)
+            if ambient_change is not None
+            else (np.ones(len(work)), np.zeros((len(work), 3)))
+        )
         # (bands 0..2: the clamped cosine leaves band 3 of the irradiance at zero)
         ambient = sh.evaluate(sh.irradiance_from_radiance(ambient_sh)[:9], n)
         factor = real_surface_factor(ambient, before[work], after[work], rho)
-        if use_change:
-            assert color_linear is not None
-            observed = color_linear[rv, ru].astype(np.float64)
-            linear = observed * factor[:, None] + _indirect_with_source(
-                delta, observed, ambient, before[work], light_rgb
-            )
-        else:
-            linear = srgb_to_linear(composite[rv, ru]).astype(np.float64) * factor[:, None]
+        observed = color_linear[rv, ru].astype(np.float64)
+        linear = observed * factor[:, None] + _indirect_with_source(
+            delta, observed, ambient, before[work], light_rgb
+        )
         composite[rv, ru] = linear_to_srgb_u8(linear)
         changed[rv, ru] |= (factor != 1.0) | any_nonzero(delta)
         return changed
