@@ -96,27 +96,41 @@ def _band0_rgb(truth: dict) -> np.ndarray:
 
 
 def truth_sun(
-    frame_truth: dict, exposure: float, l_gt: np.ndarray, maps_dir: Path
+    frame_truth: dict,
+    exposure: float,
+    l_gt: np.ndarray,
+    maps_dir: Path,
+    max_sources: int = 1,
+    min_share: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, list[SourceLight]]:
-    """The true light as the renderer's ambient SH plus the map's brightest compact region
-    as a source (arlight.synth.environment.brightest_compact_region), each with its own
-    colour (a warm sun under a blue sky): (ambient, its per-channel factor (3,), [source])."""
-    from arlight.synth.environment import brightest_compact_region
+    """The true light as the renderer's ambient SH plus the map's compact regions as sources
+    (arlight.synth.environment.compact_regions: the brightest, then up to `max_sources` in
+    all while each carries `min_share` of the irradiance facing it), each with its own
+    colour (a warm sun under a blue sky): (ambient, its per-channel factor (3,), sources)."""
+    from arlight.synth.environment import compact_regions
 
     name = frame_truth["env_map"]
-    region = brightest_compact_region(
-        _load_map(maps_dir / f"{name}.hdr"), float(frame_truth["env_rotation_deg"])
+    regions = compact_regions(
+        _load_map(maps_dir / f"{name}.hdr"),
+        float(frame_truth["env_rotation_deg"]),
+        max_sources,
+        min_share,
     )
-    power = region.power * exposure
     bands = math.isqrt(len(l_gt))
-    ambient = l_gt - sh.directional_light(region.direction, power, bands)
-    dc = _band0_rgb(frame_truth)
-    # the region's share of each channel's band 0 (a delta of integrated radiance P: P Y00)
-    dc_ambient = np.maximum(dc - region.rgb * sh.sh_basis(region.direction, 1)[0], 0.0)
+    ambient = np.array(l_gt, np.float64)
+    dc_ambient = _band0_rgb(frame_truth)
+    for region in regions:
+        ambient -= sh.directional_light(region.direction, region.power * exposure, bands)
+        # the region's share of each channel's band 0 (a delta of integrated radiance P: P Y00)
+        dc_ambient = dc_ambient - region.rgb * sh.sh_basis(region.direction, 1)[0]
+    dc_ambient = np.maximum(dc_ambient, 0.0)
     ambient_rgb = dc_ambient / max(float(LUMA @ dc_ambient), 1e-12)
-    source_rgb = region.rgb / max(region.power, 1e-12) / np.maximum(ambient_rgb, 1e-6)
-    radius = math.degrees(math.acos(max(-1.0, 1.0 - region.solid_angle_sr / (2 * math.pi))))
-    return ambient, ambient_rgb, [SourceLight(region.direction, power, source_rgb, radius)]
+    sources = []
+    for region in regions:
+        source_rgb = region.rgb / max(region.power, 1e-12) / np.maximum(ambient_rgb, 1e-6)
+        radius = math.degrees(math.acos(max(-1.0, 1.0 - region.solid_angle_sr / (2 * math.pi))))
+        sources.append(SourceLight(region.direction, region.power * exposure, source_rgb, radius))
+    return ambient, ambient_rgb, sources
 
 
 def truth_environment(frame_truth: dict, exposure: float, maps_dir: Path) -> EnvironmentMap:
@@ -159,8 +173,15 @@ def side_by_side(images: list[np.ndarray], names: list[str]) -> np.ndarray:
     return np.concatenate(tiles, axis=1)
 
 
-def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> list[dict]:
-    """One row per frame with a pair: PSNR/SSIM of every variant in both masks."""
+def evaluate(
+    folder: Path,
+    preset: str,
+    overrides: dict,
+    out: Path | None,
+    true_sources: tuple[int, float] = (1, 0.0),
+) -> list[dict]:
+    """One row per frame with a pair: PSNR/SSIM of every variant in both masks.
+    true_sources: (most sources, least share) of the true light's compact sources."""
     ar = folder / "ar"
     info = json.loads((ar / "virtual_scene.json").read_text())
     truth = json.loads((folder / "lighting_gt.json").read_text())
@@ -192,7 +213,9 @@ def evaluate(folder: Path, preset: str, overrides: dict, out: Path | None) -> li
         with_sun = with_full = with_gt
         if "env_map" in frame_truth and MAPS.is_dir() and not in_room:
             # (a room: the map's sun is outside it, its light at the anchor is the probe's)
-            ambient, ambient_rgb, sources = truth_sun(frame_truth, exposure, l_gt, MAPS)
+            ambient, ambient_rgb, sources = truth_sun(
+                frame_truth, exposure, l_gt, MAPS, *true_sources
+            )
             stage = pipeline._compact_stage or CompactLightStage(config.aux.aux_update_interval)
             occluder = stage.occluder(seq.camera.unproject(inputs.depth_m), pipeline._volume)
             sun_inputs = dataclasses.replace(
@@ -321,6 +344,22 @@ def main(argv=None) -> int:
         help="folder for report.json, report.md and the side-by-side images "
         "(default ar_truth_report/)",
     )
+    parser.add_argument(
+        "--true-sources",
+        type=int,
+        default=1,
+        metavar="N",
+        help="the true light's compact sources (gt_sun, gt_full): the map's brightest region "
+        "and up to N in all (default 1)",
+    )
+    parser.add_argument(
+        "--true-source-share",
+        type=float,
+        default=0.1,
+        metavar="S",
+        help="a region after the first is a source while it carries this share of the "
+        "irradiance facing it (default 0.1)",
+    )
     args = parser.parse_args(argv)
     configure_process()
     overrides = {}
@@ -346,10 +385,25 @@ def main(argv=None) -> int:
     rows = []
     for folder in folders:
         for preset in args.presets:
-            rows.extend(evaluate(folder, preset, overrides, args.out))
+            rows.extend(
+                evaluate(
+                    folder,
+                    preset,
+                    overrides,
+                    args.out,
+                    (args.true_sources, args.true_source_share),
+                )
+            )
     table = summary_table(rows)
     (args.out / "report.json").write_text(
-        json.dumps({"rows": rows, "overrides": {k: str(v) for k, v in overrides.items()}}, indent=1)
+        json.dumps(
+            {
+                "rows": rows,
+                "overrides": {k: str(v) for k, v in overrides.items()},
+                "true_sources": [args.true_sources, args.true_source_share],
+            },
+            indent=1,
+        )
     )
     (args.out / "report.md").write_text(
         "PSNR / SSIM against ar/real_virtual (median over "

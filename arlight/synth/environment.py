@@ -158,18 +158,41 @@ REGION_LEVEL = 0.1
 def brightest_compact_region(radiance: np.ndarray, rotation_deg: float) -> CompactRegion:
     """The compact region around the brightest texel above the horizon of an (H, W, 3) map
     rotated by `rotation_deg` about world +Y (the truth a compact light source is judged by)."""
+    return compact_regions(radiance, rotation_deg, 1)[0]
+
+
+def compact_regions(
+    radiance: np.ndarray, rotation_deg: float, max_regions: int, min_share: float = 0.0
+) -> list[CompactRegion]:
+    """Up to `max_regions` compact regions of an (H, W, 3) map rotated by `rotation_deg`
+    about world +Y, brightest peak first: each is the first's rule (REGION_RADIUS_DEG,
+    REGION_LEVEL) around the brightest texel above the horizon not within REGION_RADIUS_DEG
+    of an earlier peak; the list stops at the first whose share is below `min_share` (the
+    lamps of a night square, the panels of a studio's softbox)."""
     world, weights = world_texels(radiance.shape, rotation_deg)
-    lum = radiance.reshape(-1, 3).astype(np.float64) @ np.asarray(LUMA, float)
+    rgb = radiance.reshape(-1, 3).astype(np.float64)
+    lum = rgb @ np.asarray(LUMA, float)
     upper = world[:, 1] > 0
     lum_upper = np.where(upper, lum, 0.0)
-    peak = int(np.argmax(lum_upper))
-    near = world @ world[peak] > math.cos(math.radians(REGION_RADIUS_DEG))
-    region = near & upper & (lum >= REGION_LEVEL * lum[peak])
-    power = lum[region] * weights[region]
-    direction = (world[region] * power[:, None]).sum(axis=0)
-    direction /= np.linalg.norm(direction)
-    cos = np.maximum(world @ direction, 0.0)
-    total = float(np.sum(lum_upper * weights * cos))
-    share = float(np.sum(power * cos[region])) / max(total, 1e-30)
-    rgb = (radiance.reshape(-1, 3)[region].astype(np.float64) * weights[region, None]).sum(axis=0)
-    return CompactRegion(direction, float(weights[region].sum()), share, float(power.sum()), rgb)
+    free = upper.copy()
+    regions: list[CompactRegion] = []
+    while len(regions) < max_regions and np.any(free):
+        peak = int(np.argmax(np.where(free, lum_upper, -1.0)))
+        near = world @ world[peak] > math.cos(math.radians(REGION_RADIUS_DEG))
+        region = near & free & (lum >= REGION_LEVEL * lum[peak])
+        free &= ~near
+        power = lum[region] * weights[region]
+        direction = (world[region] * power[:, None]).sum(axis=0)
+        direction /= max(float(np.linalg.norm(direction)), 1e-30)
+        cos = np.maximum(world @ direction, 0.0)
+        total = float(np.sum(lum_upper * weights * cos))
+        share = float(np.sum(power * cos[region])) / max(total, 1e-30)
+        if regions and share < min_share:
+            break
+        colour = (rgb[region] * weights[region, None]).sum(axis=0)
+        regions.append(
+            CompactRegion(
+                direction, float(weights[region].sum()), share, float(power.sum()), colour
+            )
+        )
+    return regions
