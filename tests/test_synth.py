@@ -161,6 +161,30 @@ class TestTruth:
         expected = float(np.sum(weights) * (LUMA @ np.array((50.0, 35.0, 20.0))))
         assert abs(region.power - expected) < 1e-3 * expected
 
+    def test_compact_regions_of_two_lamps(self):
+        """Two lamps 60 degrees apart: both are found, the brighter first, each at its
+        disc; a share above the dimmer one's keeps only the first; the first region is the
+        brightest_compact_region."""
+        h, w = 64, 128
+        radiance = np.full((h, w, 3), 0.05, np.float32)
+        dirs, _ = env.texel_directions(h, w)
+        lamps = []
+        for elevation, azimuth, level in ((40.0, 0.0, 60.0), (30.0, 60.0, 20.0)):
+            e, a = math.radians(elevation), math.radians(azimuth)
+            lamp = np.array([math.cos(e) * math.sin(a), math.sin(e), -math.cos(e) * math.cos(a)])
+            radiance[dirs @ lamp > math.cos(math.radians(3.0))] = level
+            lamps.append(lamp)
+        regions = env.compact_regions(radiance, 0.0, 4, 0.05)
+        assert len(regions) == 2
+        for region, lamp in zip(regions, lamps, strict=True):
+            assert angular_error_deg(region.direction, lamp) < 2.0
+        assert regions[0].power > 2.5 * regions[1].power
+        first = env.brightest_compact_region(radiance, 0.0)
+        np.testing.assert_allclose(first.direction, regions[0].direction)
+        assert first.share == regions[0].share
+        only = env.compact_regions(radiance, 0.0, 4, regions[1].share + 0.01)
+        assert len(only) == 1
+
 
 class TestFiles:
     def test_layout_of_the_shared_set(self, tiny):
