@@ -48,7 +48,12 @@ from arlight.pipeline.config import Config, DiffMode
 from arlight.pipeline.glossy import MipPyramid, specular
 from arlight.pipeline.horizon import SupportPlane
 from arlight.pipeline.probe import ProbeResult
-from arlight.pipeline.probe_shading import Glossiness, glossiness_of, shade
+from arlight.pipeline.probe_shading import (
+    Glossiness,
+    glossiness_of,
+    principled_diffuse_weight,
+    shade,
+)
 from arlight.pipeline.radiance_transfer import (
     AuxBufferArrays,
     make_sampling_pattern,
@@ -176,12 +181,15 @@ class DifferentialRenderer:
         if not with_sources:
             return out
         g = out.gbuffer
+        virtual_points = self.camera.unproject(
+            np.where(out.virtual_mask, g.depth_m, 0.0).astype(np.float32)
+        )
         changed = self._compact.apply(
             out.composite,
             out.virtual_mask,
             g.normals_cam,
-            g.albedo,
-            self.camera.unproject(np.where(out.virtual_mask, g.depth_m, 0.0).astype(np.float32)),
+            self._source_albedo(frame, g, out.virtual_mask, virtual_points),
+            virtual_points,
             self.camera.unproject(frame.depth_m),
             frame.normals_cam,
             frame.world_from_cam,
@@ -193,6 +201,34 @@ class DifferentialRenderer:
             ambient_change,
         )
         return RenderOutput(out.composite, out.virtual_mask, out.region | changed, g)
+
+    def _source_albedo(
+        self, frame: RenderInputs, g: VirtualGBuffer, virtual: np.ndarray, points_cam: np.ndarray
+    ) -> np.ndarray:
+        """(H, W, 3) the albedo a compact source's light is shaded with on the virtual pixels:
+        the diffuse part the SH part drew them with. Where a probe or a panorama reflects the
+        light (the source is in what a mirror or glossy object reflects), a mirror has none
+        and a metal (1 - metalness) of its albedo, times the principled diffuse weight for a
+        glossy object shaded from a probe (`probe_shading.shade`); the plain albedo without
+        either. points_cam: (H, W, 3) the virtual pixels' points (camera frame)."""
+        if frame.probe is None and frame.environment is None:
+            return g.albedo
+        materials = [o.material for o in self.scene.objects]
+        fraction = np.array(
+            [0.0 if m.mirror else 1.0 - min(max(m.metalness, 0.0), 1.0) for m in materials]
+        )
+        vv, uu = np.nonzero(virtual)
+        index = g.object_index[vv, uu]
+        factor = fraction[index]
+        if frame.environment is None:
+            glossy = np.array([glossiness_of(m).kind == 2 for m in materials])[index]
+            p = points_cam[vv, uu].astype(np.float64)
+            view = p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-12)
+            n_dot_v = np.abs(np.sum(view * g.normals_cam[vv, uu], axis=1))
+            factor = np.where(glossy, factor * principled_diffuse_weight(n_dot_v), factor)
+        albedo = g.albedo.copy()
+        albedo[vv, uu] *= factor[:, None].astype(albedo.dtype)
+        return albedo
 
     def _render_sh(
         self, frame: RenderInputs, keep_change: bool = False

@@ -220,3 +220,50 @@ def test_the_indirect_change_takes_the_albedo_from_all_the_light() -> None:
     out = _indirect_with_source(delta, observed, ambient, source, np.ones(3))
     assert np.allclose(out[0], -0.02 * 0.5)  # was read as 1 / pi, is 0.5 / pi
     assert np.allclose(out[1], -0.02)  # no source: as the SH renderer read it
+
+
+def test_a_mirror_takes_the_source_only_from_what_it_reflects() -> None:
+    """A mirror pole and a diffuse pole under a sun, a panorama reflected: the source adds
+    its diffuse light to the diffuse pole's pixels and none to the mirror's, whose
+    reflection holds the light already (it was lit twice: the mirror drew the source's
+    albedo / pi S on top of its reflection)."""
+    import open3d as o3d
+    from test_rendering import UP, frame_inputs, ground_view
+
+    from arlight.pipeline import sh
+    from arlight.pipeline.config import Config
+    from arlight.pipeline.glossy import mip_pyramid
+    from arlight.pipeline.rendering import DifferentialRenderer, EnvironmentMap
+    from arlight.pipeline.sun_shadows import SourceLight
+    from arlight.pipeline.virtual_scene import Material, VirtualScene, object_from_open3d
+
+    objects = []
+    for name, x, material in (
+        ("mirror", -0.15, Material((0.9,) * 3, mirror=True)),
+        ("diffuse", 0.15, Material((0.6,) * 3)),
+    ):
+        box = o3d.geometry.TriangleMesh.create_box(0.1, 0.3, 0.1)
+        box.translate((x - 0.05, 0.0, -0.05))
+        box.compute_vertex_normals()
+        objects.append(object_from_open3d(name, box, np.eye(4), material))
+    view = ground_view(320, 240, distance_m=1.2, tilt_deg=40.0)
+    sun = _sun(35.0, 90.0)  # towards the camera's side (+z): the poles' fronts face it
+    ambient = np.zeros(16)
+    ambient[0] = 0.1 / sh.sh_basis(UP, 1)[0]
+    renderer = DifferentialRenderer(VirtualScene(tuple(objects)), view.camera, Config())
+    panorama = EnvironmentMap(mip_pyramid(np.full((16, 32, 3), 0.1, np.float32)), np.eye(3))
+    inputs = dataclasses.replace(
+        frame_inputs(view, ambient + sh.directional_light(sun, 2.0, 4)),
+        light_sh=ambient,
+        environment=panorama,
+    )
+    without = renderer.render(inputs)
+    lit = renderer.render(
+        dataclasses.replace(inputs, sources=[SourceLight(sun, 2.0, np.ones(3), 0.27)])
+    )
+    index = without.gbuffer.object_index
+    mirror, diffuse = index == 0, index == 1
+    assert mirror.sum() > 200 and diffuse.sum() > 200
+    gain = lit.composite.astype(int) - without.composite.astype(int)
+    assert np.all(gain[mirror] == 0)
+    assert np.median(gain[diffuse]) > 10
