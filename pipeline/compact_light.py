@@ -47,6 +47,14 @@ MIN_ELEVATION_DEG = 3.0  # candidates below this elevation above the support pla
 REFINE_STEPS_DEG = (4.0, 2.0, 1.0)
 
 
+def refine_steps(candidates: int) -> tuple[float, ...]:
+    """The refinement's steps (degrees) after a grid of `candidates` directions over the
+    hemisphere: REFINE_STEPS_DEG, led by 8 degrees where half the grid's spacing exceeds it
+    (a coarse grid's best lies up to half a spacing from the optimum)."""
+    spacing_deg = math.degrees(math.sqrt(2.0 * math.pi / max(candidates, 1)))
+    return ((8.0,) if spacing_deg / 2.0 > 8.0 else ()) + REFINE_STEPS_DEG
+
+
 @dataclass(frozen=True)
 class CompactSource:
     """A distant light of small angular size (world frame).
@@ -331,8 +339,8 @@ def fit_compact_source(
     tester: ShadowTester,
     up: np.ndarray | None,
     *,
-    candidates: int = 256,
-    search_samples: int = 4000,
+    candidates: int = 64,
+    search_samples: int = 2000,
     min_gain: float = 0.05,
     min_contrast: float = 0.0,
     min_edge_step: float = 0.0,
@@ -374,7 +382,7 @@ def fit_compact_source(
         return CompactFit((), base[:n_sh], none_rgb, "no candidate direction", 0, tester.rays)
     gain, _ = score(dirs)
     best = dirs[int(np.argmax(gain))]
-    for step in REFINE_STEPS_DEG:
+    for step in refine_steps(candidates):
         around = _neighbours(best, step)
         if up is not None:
             around = around[around @ up > math.sin(math.radians(MIN_ELEVATION_DEG))]

@@ -361,8 +361,11 @@ class EstimationParams:
     # ln step the image must show across its shadow's edge (0 = off: held out by map it did
     # not beat a gain threshold alone, docs/decisions/0043-shadow-edge.md)
     compact_min_edge_step: float = 0.0
-    compact_candidates: int = 256  # directions tested over the upper hemisphere
-    compact_search_samples: int = 4000  # fitted pixels whose shadows are tested per direction
+    # directions tested over the upper hemisphere (then refined from 8 degrees down), and
+    # fitted pixels whose shadows are tested per direction: 64 and 2000 find the source as
+    # well as 256 and 4000 held out by map (docs/decisions/0055-compact-search-64-2000.md)
+    compact_candidates: int = 64
+    compact_search_samples: int = 2000
     compact_render: bool = True  # draw them with hard shadows both ways (pipeline/sun_shadows.py)
     # test their shadows against the current frame's depth mesh too (no gain: decision 0035)
     compact_depth_mesh: bool = False

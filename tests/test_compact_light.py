@@ -14,6 +14,7 @@ from arlight.pipeline.compact_light import (
     ShadowTester,
     candidate_directions,
     fit_compact_source,
+    refine_steps,
     shadow_edge,
     source_confidence,
 )
@@ -150,6 +151,18 @@ def test_candidates_cover_the_upper_hemisphere_only():
     probe = probe[probe @ UP > math.sin(math.radians(10))]
     nearest = np.degrees(np.arccos(np.clip((probe @ dirs.T).max(axis=1), -1, 1)))
     assert nearest.max() < 9.0
+
+
+def test_a_coarse_grid_is_refined_from_half_its_spacing():
+    """64 candidates lie up to ~18 degrees apart: the refinement starts at 8 degrees so
+    that the best candidate's neighbourhood reaches the optimum; 256 start at 4."""
+    dirs = candidate_directions(UP, 64)
+    probe = sh.fibonacci_sphere(2000)
+    probe = probe[probe @ UP > math.sin(math.radians(10))]
+    nearest = np.degrees(np.arccos(np.clip((probe @ dirs.T).max(axis=1), -1, 1)))
+    steps = refine_steps(64)
+    assert steps[0] == 8.0 and nearest.max() < sum(steps)  # reachable in the steps
+    assert refine_steps(256) == (4.0, 2.0, 1.0)
 
 
 def test_shadows_from_either_mesh():
