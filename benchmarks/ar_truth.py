@@ -11,8 +11,10 @@ objects themselves (`mask_virtual`), for
       exposure applied; in a room, whose light the distant map does not describe, the
       light at the anchor, `probe`): rendering error without light-estimation error; its
       reflection probe is made anew from that light,
-  (c) "gt_sun": the true light as SH plus the map's brightest compact region as a source
-      drawn with hard shadows (arlight.synth.environment.brightest_compact_region),
+  (c) "gt_sun": the true light as SH plus the map's compact regions as sources drawn with
+      hard shadows: the brightest, and up to --true-sources in all while each carries
+      --true-source-share of the irradiance facing it (arlight.synth.environment.
+      compact_regions; a night square's lamps, a softbox's panels),
   (d) "gt_full": gt_sun, its mirror and glossy objects reflecting a probe whose distant part
       is the true HDR map (what a streamed 360-degree panorama gives) instead of 4 SH bands,
   (e) "paste": the objects shaded by the estimated light and pasted, no shadows or bounce;
@@ -178,7 +180,7 @@ def evaluate(
     preset: str,
     overrides: dict,
     out: Path | None,
-    true_sources: tuple[int, float] = (1, 0.0),
+    true_sources: tuple[int, float] = (4, 0.1),
 ) -> list[dict]:
     """One row per frame with a pair: PSNR/SSIM of every variant in both masks.
     true_sources: (most sources, least share) of the true light's compact sources."""
@@ -347,10 +349,10 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--true-sources",
         type=int,
-        default=1,
+        default=4,
         metavar="N",
         help="the true light's compact sources (gt_sun, gt_full): the map's brightest region "
-        "and up to N in all (default 1)",
+        "and up to N in all (default 4; 1: the brightest alone)",
     )
     parser.add_argument(
         "--true-source-share",
