@@ -93,6 +93,8 @@ class CompactFit:
     contrast: float = float("nan")
     radius_deg: float = float("nan")  # the angular radius whose soft shadow explains most
     edge_step: float = 0.0  # ln step the image shows across its shadow edge (shadow_edge)
+    direction: np.ndarray | None = None  # the best direction found, kept or not (world)
+    gain: float = 0.0  # the share of the residual that direction's shadow explains
 
 
 def candidate_directions(up: np.ndarray | None, count: int) -> np.ndarray:
@@ -348,6 +350,7 @@ def fit_compact_source(
     min_pixels: int = 50,
     angular_radius_deg: float = 0.27,
     seed: int = 0,
+    track: CompactFit | None = None,
 ) -> CompactFit:
     """The SH fit's light split into an ambient SH and at most one compact source.
 
@@ -355,7 +358,9 @@ def fit_compact_source(
     its per-pixel albedo and robust weights; lum: (M,) linear luminance; rgb: (M, 3) or
     None; penalty: (n, n) its regulariser (relative to the mean diagonal); tester: the
     visibility of the same M pixels (world frame). Returns the SH-only solution as ambient
-    (and no source) where no direction explains `min_gain` of the residual."""
+    (and no source) where no direction explains `min_gain` of the residual.
+    track: an earlier frame's fit whose best direction and radius to start from (the grid of
+    `candidates` and the radius search are skipped; the refinement reaches 7 degrees)."""
     n_sh = bands * bands
     a_design = design * albedo[:, None]
     system = _system(a_design, weights, lum, penalty)
@@ -376,20 +381,30 @@ def fit_compact_source(
         bare = np.maximum(tester.normals[rows] @ dirs.T, 0.0)
         return _shadow_gain(sub, tester.shading(dirs, rows) * a, bare * a)
 
-    dirs = candidate_directions(up, candidates)
-    tested = len(dirs)
-    if not tested:
-        return CompactFit((), base[:n_sh], none_rgb, "no candidate direction", 0, tester.rays)
-    gain, _ = score(dirs)
-    best = dirs[int(np.argmax(gain))]
-    for step in refine_steps(candidates):
+    start = None if track is None else track.direction
+    steps: tuple[float, ...] = REFINE_STEPS_DEG
+    if start is not None:
+        best, tested = np.asarray(start, np.float64), 0
+    else:
+        dirs = candidate_directions(up, candidates)
+        tested = len(dirs)
+        if not tested:
+            return CompactFit((), base[:n_sh], none_rgb, "no candidate direction", 0, tester.rays)
+        gain, _ = score(dirs)
+        best, steps = dirs[int(np.argmax(gain))], refine_steps(candidates)
+    for step in steps:
         around = _neighbours(best, step)
         if up is not None:
             around = around[around @ up > math.sin(math.radians(MIN_ELEVATION_DEG))]
+        if not len(around):
+            break
         g, _ = score(around)
         tested += len(around)
         best = around[int(np.argmax(g))]
-    radius = _best_radius(tester, sub, rows, albedo, best)
+    known_radius = float("nan") if track is None or start is None else float(track.radius_deg)
+    radius = (
+        known_radius if np.isfinite(known_radius) else _best_radius(tester, sub, rows, albedo, best)
+    )
     column = tester.shading(best[None])[:, 0]
     lit = int(np.sum(column > MIN_FACING))
     cos = tester.normals @ best
@@ -440,7 +455,17 @@ def fit_compact_source(
             f"(needs {min_pixels} each)"
         )
         return CompactFit(
-            (), base[:n_sh], none_rgb, why, tested, tester.rays, contrast, radius, edge
+            (),
+            base[:n_sh],
+            none_rgb,
+            why,
+            tested,
+            tester.rays,
+            contrast,
+            radius,
+            edge,
+            best,
+            full_gain,
         )
     ambient = x[:n_sh]
     k_rgb = None
@@ -461,7 +486,17 @@ def fit_compact_source(
         f"{lit} pixels lit and {shadowed} in its shadow"
     )
     return CompactFit(
-        (source,), ambient, ambient_rgb, why, tested, tester.rays, contrast, radius, edge
+        (source,),
+        ambient,
+        ambient_rgb,
+        why,
+        tested,
+        tester.rays,
+        contrast,
+        radius,
+        edge,
+        best,
+        full_gain,
     )
 
 
@@ -484,17 +519,33 @@ def occluders(
     return out
 
 
+# a tracked frame whose best direction explains less than this part of the gain found by
+# the last full search starts a full search at once (the light changed)
+TRACK_KEEP_GAIN = 0.5
+
+
 class CompactLightStage:
     """Per session: compact sources beside each frame's SH fit, against the volume's mesh
     (rebuilt as object_space_transfer's scene is: every `update_interval` fused frames),
-    else the current depth image's mesh."""
+    else the current depth image's mesh.
 
-    def __init__(self, update_interval: int, scenes=None):
+    With `search_interval` N > 1 the full search (the grid of candidates, the radius) runs
+    on one frame in N; the frames between refine the last best direction within 7 degrees
+    and keep its radius (a sun moves 0.25 degrees a minute), and search in full at once
+    where that direction's gain falls below TRACK_KEEP_GAIN of the last search's."""
+
+    def __init__(self, update_interval: int, scenes=None, search_interval: int = 1):
         """scenes: an ObjectSpaceTransfer whose cached scene to share (the session's
         rt_method raycast one), else one of this stage's own."""
         from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer
 
         self._scenes = scenes if scenes is not None else ObjectSpaceTransfer(update_interval)
+        self.search_interval = max(1, int(search_interval))
+        self._searched: CompactFit | None = None  # the last full search's fit
+        self._last: CompactFit | None = None
+        self._since_search = 0
+        self.searches = 0  # full searches run (the rest tracked)
+        self.last_searched = False  # whether the last frame's fit was a full search
 
     def occluder(self, points_cam: np.ndarray, volume):
         """The reconstruction as an OcclusionScene (cached: see the class docstring)."""
@@ -527,17 +578,37 @@ class CompactLightStage:
         points = points_cam[v, u].astype(np.float64) @ rot.T + origin
         normals = normals_cam[v, u].astype(np.float64) @ rot.T
         tester = ShadowTester(scenes, points, normals)
-        fit = fit_compact_source(
-            fit_state.design,
-            fit_state.albedo,
-            fit_state.weights,
-            fit_state.lum,
-            fit_state.rgb,
-            fit_state.penalty,
-            fit_state.bands,
-            tester,
-            up_world,
-            seed=seed,
-            **options,
+
+        def fit(track: CompactFit | None) -> CompactFit:
+            return fit_compact_source(
+                fit_state.design,
+                fit_state.albedo,
+                fit_state.weights,
+                fit_state.lum,
+                fit_state.rgb,
+                fit_state.penalty,
+                fit_state.bands,
+                tester,
+                up_world,
+                seed=seed,
+                track=track,
+                **options,
+            )
+
+        searched = self._searched
+        tracking = (
+            searched is not None
+            and self._last is not None
+            and self._since_search < self.search_interval - 1
         )
-        return fit, tester.rays
+        result = fit(self._last) if tracking else None
+        if result is None or searched is None or result.gain < TRACK_KEEP_GAIN * searched.gain:
+            result = fit(None)
+            self._searched, self._since_search = result, 0
+            self.searches += 1
+            self.last_searched = True
+        else:
+            self._since_search += 1
+            self.last_searched = False
+        self._last = result
+        return result, tester.rays

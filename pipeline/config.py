@@ -366,6 +366,9 @@ class EstimationParams:
     # well as 256 and 4000 held out by map (docs/decisions/0055-compact-search-64-2000.md)
     compact_candidates: int = 64
     compact_search_samples: int = 2000
+    # the full search on one frame in this many, the frames between refining the last best
+    # direction (1 = every frame; compact_light.CompactLightStage)
+    compact_search_interval: int = 1
     compact_render: bool = True  # draw them with hard shadows both ways (pipeline/sun_shadows.py)
     # test their shadows against the current frame's depth mesh too (no gain: decision 0035)
     compact_depth_mesh: bool = False
@@ -405,6 +408,7 @@ class EstimationParams:
         _check_float(self, "compact_min_edge_step", 0.0)
         _check_int(self, "compact_candidates", 8, 4096)
         _check_int(self, "compact_search_samples", 100)
+        _check_int(self, "compact_search_interval", 1, 1000)
         _check_bool(self, "compact_render")
         _check_bool(self, "compact_depth_mesh")
 

@@ -449,7 +449,9 @@ class Pipeline:
         transfer's scene of the volume serves it too)."""
         if self._compact_stage is None:
             self._compact_stage = CompactLightStage(
-                self.config.aux.aux_update_interval, self._raycaster
+                self.config.aux.aux_update_interval,
+                self._raycaster,
+                self.config.estimation.compact_search_interval,
             )
         return self._compact_stage
 
@@ -583,6 +585,7 @@ class Pipeline:
             "kept": len(fit.sources),
             "gain": [float(s.gain) for s in fit.sources],
             "edge_step": float(fit.edge_step),
+            "searched": self._compact().last_searched,
         }
         return fit
 

@@ -193,3 +193,49 @@ def test_a_source_is_as_trusted_as_its_shadow_edge_is_clear():
     assert faint.value == pytest.approx(0.1)
     assert "compact source" in faint.reason and "0.05" in faint.reason
     assert source_confidence(conf, -0.2).value == 0.0
+
+
+def test_tracking_refines_the_last_direction_and_searches_again_when_the_light_moves():
+    """A stage searching in full one frame in 5: the frames between start from the last
+    best direction (far fewer directions tested, the same sun within 2 degrees); when the sun
+    jumps 100 degrees the tracked direction explains little and the frame searches in full
+    at once, finding the new sun."""
+    from types import SimpleNamespace
+
+    from arlight.pipeline.compact_light import CompactLightStage
+
+    points, normals, scene = _scene()
+    bands = 3
+    per_coeff = np.repeat(sh.lambert_band_factors(bands), [2 * l + 1 for l in range(bands)])
+    n = len(points)
+    stage = CompactLightStage(5, search_interval=5)
+    found = []
+    for azimuth in (20.0, 20.0, 120.0):
+        sun = _sun(40.0, azimuth)
+        state = SimpleNamespace(  # the light fit's FitState: the fields the stage reads
+            design=sh.sh_basis(normals, bands) * per_coeff,
+            albedo=np.ones(n),
+            weights=np.ones(n),
+            lum=_observe(points, normals, scene, sun, 2.0, _ambient()),
+            rgb=None,
+            penalty=penalty_matrix(bands, 4e-3, None, False),
+            bands=bands,
+            rows=np.arange(n),
+        )
+        fit, _ = stage.fit_against(
+            scene,
+            state,
+            points[None].astype(np.float32),  # one row of "pixels", world = camera
+            normals[None].astype(np.float32),
+            np.zeros(n, int),
+            np.arange(n),
+            np.eye(4),
+            UP,
+            {"search_samples": 3000},
+        )
+        assert len(fit.sources) == 1, fit.reason
+        assert angular_error_deg(fit.sources[0].direction, sun) < 3.0
+        found.append((fit.tested, stage.searches))
+    (searched, one), (tracked, still_one), (_, two) = found
+    assert (one, still_one, two) == (1, 1, 2)
+    assert tracked < 40 < searched
