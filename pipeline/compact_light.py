@@ -519,8 +519,8 @@ def occluders(
     return out
 
 
-# a tracked frame whose best direction explains less than this part of the gain found by
-# the last full search starts a full search at once (the light changed)
+# a tracked frame whose best direction explains less than this part of the gain of the
+# source the last full search kept starts a full search at once (the light changed)
 TRACK_KEEP_GAIN = 0.5
 
 
@@ -532,7 +532,9 @@ class CompactLightStage:
     With `search_interval` N > 1 the full search (the grid of candidates, the radius) runs
     on one frame in N; the frames between refine the last best direction within 7 degrees
     and keep its radius (a sun moves 0.25 degrees a minute), and search in full at once
-    where that direction's gain falls below TRACK_KEEP_GAIN of the last search's."""
+    where the last search kept a source and the tracked direction's gain falls below
+    TRACK_KEEP_GAIN of its gain (a light that moved or went out; one that appears waits for
+    the next full search)."""
 
     def __init__(self, update_interval: int, scenes=None, search_interval: int = 1):
         """scenes: an ObjectSpaceTransfer whose cached scene to share (the session's
@@ -602,7 +604,13 @@ class CompactLightStage:
             and self._since_search < self.search_interval - 1
         )
         result = fit(self._last) if tracking else None
-        if result is None or searched is None or result.gain < TRACK_KEEP_GAIN * searched.gain:
+        lost = (
+            searched is not None
+            and bool(searched.sources)
+            and result is not None
+            and result.gain < TRACK_KEEP_GAIN * searched.gain
+        )
+        if result is None or lost:
             result = fit(None)
             self._searched, self._since_search = result, 0
             self.searches += 1
