@@ -536,7 +536,7 @@ class CompactLightStage:
     TRACK_KEEP_GAIN of its gain (a light that moved or went out; one that appears waits for
     the next full search)."""
 
-    def __init__(self, update_interval: int, scenes=None, search_interval: int = 1):
+    def __init__(self, update_interval: int, scenes=None, search_interval: int = 5):
         """scenes: an ObjectSpaceTransfer whose cached scene to share (the session's
         rt_method raycast one), else one of this stage's own."""
         from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer
