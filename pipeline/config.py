@@ -351,8 +351,8 @@ class EstimationParams:
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
     # compact sources (a sun, a lamp) fitted beside the SH from the shadows the reconstruction
     # casts (pipeline/compact_light.py): at most this many (0 = off; 1 today). Off by default:
-    # its fit costs 60-90 ms a frame (held out by map it lowers full's median over 22 maps
-    # 14.5 -> 11.4: docs/decisions/0055-compact-search-64-2000.md, 0054, 0035)
+    # it costs 35-60 ms a frame (held out by map it lowers full's median over 22 maps
+    # 14.5 -> 11.4, fast's 16.7 -> 12.7: docs/decisions/0056-compact-tracking.md, 0055, 0054)
     compact_sources: int = 0
     # of the SH fit's residual its shadow must explain: 0.08, chosen leaving maps out over
     # the fit of decision 0052 (0.03 in decision 0035; docs/decisions/0054-compact-gain-0.08.md)
