@@ -437,6 +437,23 @@ def fit_compact_source(
         else float("nan")
     )
     where = f"elevation {elevation:.0f} deg" if up is not None else "no support plane"
+
+    def searched(sources, ambient_sh, ambient_rgb_sh, why: str) -> CompactFit:
+        """The fit with what the search measured of the best direction."""
+        return CompactFit(
+            sources,
+            ambient_sh,
+            ambient_rgb_sh,
+            why,
+            tested,
+            tester.rays,
+            contrast,
+            radius,
+            edge,
+            best,
+            full_gain,
+        )
+
     if (
         full_gain < min_gain
         or contrast < min_contrast
@@ -454,19 +471,7 @@ def fit_compact_source(
             f"{max_radius_deg:g}), {lit} pixels lit and {shadowed} in its shadow "
             f"(needs {min_pixels} each)"
         )
-        return CompactFit(
-            (),
-            base[:n_sh],
-            none_rgb,
-            why,
-            tested,
-            tester.rays,
-            contrast,
-            radius,
-            edge,
-            best,
-            full_gain,
-        )
+        return searched((), base[:n_sh], none_rgb, why)
     ambient = x[:n_sh]
     k_rgb = None
     ambient_rgb = None
@@ -485,19 +490,7 @@ def fit_compact_source(
         f"steps by {edge:.2f} across its shadow's edge, "
         f"{lit} pixels lit and {shadowed} in its shadow"
     )
-    return CompactFit(
-        (source,),
-        ambient,
-        ambient_rgb,
-        why,
-        tested,
-        tester.rays,
-        contrast,
-        radius,
-        edge,
-        best,
-        full_gain,
-    )
+    return searched((source,), ambient, ambient_rgb, why)
 
 
 DEPTH_MESH_STRIDE = 2  # the current frame's depth mesh at every 2nd pixel (a quarter)
