@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from benchmarks.ar_compare import COLUMNS, main
+from benchmarks.ar_compare import COLUMNS, columns, main
 
 
 def _report(tmp_path, name, offset, frames=(1, 4)):
@@ -42,3 +42,35 @@ def test_reports_without_a_common_pair_are_refused(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main([str(base), str(other)])
     assert exit_info.value.code == 2 and "no AR pair" in capsys.readouterr().err
+
+
+def _report_with(tmp_path, name, fields):
+    rows = [
+        {"sequence": "s", "preset": "fast", "frame": f, "rendering_ms": 100.0} | fields(f)
+        for f in (1, 4)
+    ]
+    path = tmp_path / f"{name}.json"
+    path.write_text(json.dumps({"rows": rows, "overrides": {}}))
+    return path
+
+
+def test_other_lights_and_the_pairs_that_moved(tmp_path, capsys):
+    """--lights gt_full compares that variant; --changed lists the pairs whose affected
+    region moved by more than the given dB under it, and only those."""
+    full = columns(["gt_full"])
+    base = _report_with(tmp_path, "base", lambda f: {c: 30.0 for c in full})
+    new = _report_with(
+        tmp_path, "new", lambda f: {c: 30.0 + (2.0 if f == 4 else 0.1) for c in full}
+    )
+    assert main([str(base), str(new), "--lights", "gt_full", "--changed", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "gt_full affected" in out and "| 31.05 |" in out
+    assert "s fast frame 4: 30.00 -> 32.00" in out and "frame 1:" not in out
+
+
+def test_a_light_the_report_lacks_exits_2_naming_it(tmp_path, capsys):
+    old = _report(tmp_path, "old", 0.0)  # gt_light and estimated only
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(old), "--lights", "gt_full"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "old.json has no gt_full_psnr_affected" in err
