@@ -280,7 +280,7 @@ def evaluate(
                         "ours (true SH)",
                         "ours (true SH + sun + map)",
                         "path-traced truth",
-                        "4x |ours - truth|",
+                        "4x |estimated - truth|",
                     ],
                 ),
             )
