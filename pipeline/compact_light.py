@@ -45,6 +45,9 @@ RAY_TFAR_M = 100.0
 MIN_FACING = 0.1  # n . w below this: the pixel says nothing of the source's shadow
 MIN_ELEVATION_DEG = 3.0  # candidates below this elevation above the support plane: none
 REFINE_STEPS_DEG = (4.0, 2.0, 1.0)
+# a further source is searched at least this far from a kept one (two REGION_RADIUS_DEG of
+# the truth's regions: arlight.synth.environment)
+SEPARATION_DEG = 16.0
 
 
 def refine_steps(candidates: int) -> tuple[float, ...]:
@@ -79,7 +82,7 @@ class CompactSource:
 
 @dataclass(frozen=True)
 class CompactFit:
-    """sources: the kept sources (at most one today); ambient: (C,) the SH fitted beside
+    """sources: the kept sources (the brightest first); ambient: (C,) the SH fitted beside
     them (equal to the SH-only fit when none is kept); reason: why none or why this one;
     tested: candidate directions tested; rays: visibility rays cast; contrast: of the best
     direction's gain against its mirror's (module docstring), whether kept or not."""
@@ -351,8 +354,11 @@ def fit_compact_source(
     angular_radius_deg: float = 0.27,
     seed: int = 0,
     track: CompactFit | None = None,
+    max_sources: int = 1,
+    exclude: np.ndarray | None = None,
 ) -> CompactFit:
-    """The SH fit's light split into an ambient SH and at most one compact source.
+    """The SH fit's light split into an ambient SH and compact sources (at most
+    `max_sources`).
 
     design: (M, n) the SH fit's columns [T | B] (n = bands^2 [+ 1]); albedo, weights: (M,)
     its per-pixel albedo and robust weights; lum: (M,) linear luminance; rgb: (M, 3) or
@@ -360,7 +366,11 @@ def fit_compact_source(
     visibility of the same M pixels (world frame). Returns the SH-only solution as ambient
     (and no source) where no direction explains `min_gain` of the residual.
     track: an earlier frame's fit whose best direction and radius to start from (the grid of
-    `candidates` and the radius search are skipped; the refinement reaches 7 degrees)."""
+    `candidates` and the radius search are skipped; the refinement reaches 7 degrees).
+    max_sources > 1: after a kept source, the search runs again on what it leaves (its
+    shadowed shading a column of the fit, unpenalised), away from the kept directions
+    (exclude: (E, 3) world, none within SEPARATION_DEG), and every kept source's intensity
+    is solved jointly with the ambient SH (`_with_more_sources`)."""
     n_sh = bands * bands
     a_design = design * albedo[:, None]
     system = _system(a_design, weights, lum, penalty)
@@ -376,10 +386,17 @@ def fit_compact_source(
     sub = _system(system.design[rows], system.w[rows], lum[rows], penalty)
 
     def score(dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(shadow gain, k) of each direction on the search rows (`_shadow_gain`)."""
+        """(shadow gain, k) of each direction on the search rows (`_shadow_gain`); -inf
+        within SEPARATION_DEG of an excluded direction."""
         a = albedo[rows, None]
         bare = np.maximum(tester.normals[rows] @ dirs.T, 0.0)
-        return _shadow_gain(sub, tester.shading(dirs, rows) * a, bare * a)
+        gain, k = _shadow_gain(sub, tester.shading(dirs, rows) * a, bare * a)
+        if exclude is not None and len(exclude):
+            near = (dirs @ np.asarray(exclude, np.float64).T).max(axis=1) > math.cos(
+                math.radians(SEPARATION_DEG)
+            )
+            gain = np.where(near, -np.inf, gain)
+        return gain, k
 
     start = None if track is None else track.direction
     steps: tuple[float, ...] = REFINE_STEPS_DEG
@@ -490,7 +507,81 @@ def fit_compact_source(
         f"steps by {edge:.2f} across its shadow's edge, "
         f"{lit} pixels lit and {shadowed} in its shadow"
     )
-    return searched((source,), ambient, ambient_rgb, why)
+    one = searched((source,), ambient, ambient_rgb, why)
+    if max_sources <= 1 or track is not None:
+        return one
+    more = fit_compact_source(
+        np.column_stack([design, column]),
+        albedo,
+        weights,
+        lum,
+        rgb,
+        np.pad(penalty, ((0, 1), (0, 1))),
+        bands,
+        tester,
+        up,
+        candidates=candidates,
+        search_samples=search_samples,
+        min_gain=min_gain,
+        min_contrast=min_contrast,
+        min_edge_step=min_edge_step,
+        max_radius_deg=max_radius_deg,
+        min_pixels=min_pixels,
+        angular_radius_deg=angular_radius_deg,
+        seed=seed + 1,
+        max_sources=max_sources - 1,
+        exclude=best[None] if exclude is None else np.vstack([exclude, best]),
+    )
+    return _with_more_sources(one, more, design, albedo, weights, lum, rgb, penalty, bands, tester)
+
+
+def _with_more_sources(
+    one: CompactFit,
+    more: CompactFit,
+    design: np.ndarray,
+    albedo: np.ndarray,
+    weights: np.ndarray,
+    lum: np.ndarray,
+    rgb: np.ndarray | None,
+    penalty: np.ndarray,
+    bands: int,
+    tester: ShadowTester,
+) -> CompactFit:
+    """`one` (a fit that kept one source) joined with `more` (the search on what it left):
+    every kept source's intensity and the ambient SH solved together (the sources'
+    shadowed shading as unpenalised columns); `one` alone where `more` kept none or the
+    joint solution gives a source no light."""
+    if not more.sources:
+        return dataclasses.replace(one, reason=f"{one.reason}; no second: {more.reason}")
+    sources = list(one.sources) + list(more.sources)
+    n, n_sh = design.shape[1], bands * bands
+    columns = [tester.shading(s.direction[None])[:, 0] * albedo for s in sources]
+    a_design = np.column_stack([design * albedo[:, None], *columns])
+    wide = np.pad(penalty, ((0, len(columns)), (0, len(columns))))
+    system = _system(a_design, weights, lum, wide)
+    x = system.g_inv @ system.r
+    if np.any(x[n:] <= 0.0):
+        return dataclasses.replace(
+            one, reason=f"{one.reason}; a second found, but no light left for both"
+        )
+    ambient = x[:n_sh]
+    ambient_rgb, k_rgb = None, [None] * len(sources)
+    if rgb is not None:
+        rgb_system = _system(a_design, weights, rgb, wide)
+        x_rgb = rgb_system.g_inv @ rgb_system.r
+        ambient_rgb = x_rgb[:n_sh].T
+        k_rgb = [np.maximum(x_rgb[n + i], 0.0) for i in range(len(sources))]
+    irradiance = sh.irradiance_from_radiance(ambient)
+    joint = []
+    for i, s in enumerate(sources):
+        k = float(x[n + i])
+        e = max(float(sh.evaluate(irradiance, s.direction[None])[0]), 0.0)
+        joint.append(dataclasses.replace(s, intensity=k, rgb=k_rgb[i], share=k / max(k + e, 1e-30)))
+    first = one.reason.removeprefix("1 compact source ")
+    why = f"{len(joint)} compact sources: the first {first}; then {more.reason}"
+    return dataclasses.replace(
+        one, sources=tuple(joint), ambient=ambient, ambient_rgb=ambient_rgb, reason=why
+    )
 
 
 DEPTH_MESH_STRIDE = 2  # the current frame's depth mesh at every 2nd pixel (a quarter)

@@ -350,7 +350,8 @@ class EstimationParams:
     segment_scale: int = 4
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
     # compact sources (a sun, a lamp) fitted beside the SH from the shadows the reconstruction
-    # casts (pipeline/compact_light.py): at most this many (0 = off; 1 today). Off by default:
+    # casts (pipeline/compact_light.py): at most this many (0 = off; 2: a second searched on
+    # what the first leaves, experimental). Off by default:
     # it costs 35-60 ms a frame (held out by map it lowers full's median over 22 maps
     # 14.5 -> 11.4, fast's 16.7 -> 12.7: docs/decisions/0056-compact-tracking.md, 0055, 0054)
     compact_sources: int = 0
@@ -403,7 +404,7 @@ class EstimationParams:
         _check_bool(self, "segment_split_ground")
         _check_int(self, "segment_scale", 1, 16)
         _check_bool(self, "estimate_rgb")
-        _check_int(self, "compact_sources", 0, 1)
+        _check_int(self, "compact_sources", 0, 2)
         _check_float(self, "compact_min_gain", 0.0)
         _check_float(self, "compact_min_contrast", 0.0, 1.0)
         _check_float(self, "compact_min_edge_step", 0.0)

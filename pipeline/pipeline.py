@@ -573,6 +573,7 @@ class Pipeline:
                 "min_gain": p.compact_min_gain,
                 "min_contrast": p.compact_min_contrast,
                 "min_edge_step": p.compact_min_edge_step,
+                "max_sources": p.compact_sources,
             },
             seed=self.config.seed,
             with_depth=p.compact_depth_mesh,

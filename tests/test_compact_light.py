@@ -239,3 +239,42 @@ def test_tracking_refines_the_last_direction_and_searches_again_when_the_light_m
     (searched, one), (tracked, still_one), (_, two) = found
     assert (one, still_one, two) == (1, 1, 2)
     assert tracked < 40 < searched
+
+
+def test_two_lamps_are_both_found_and_one_sun_stays_one():
+    """Two suns 140 degrees apart in azimuth (2.0 and 1.2): with max_sources 2 both are
+    found, each within 3 degrees, the brighter first, their intensities within 20 %; under
+    one sun the second search keeps nothing and says so."""
+    points, normals, scene = _scene()
+    bands = 3
+    per_coeff = np.repeat(sh.lambert_band_factors(bands), [2 * l + 1 for l in range(bands)])
+    design = sh.sh_basis(normals, bands) * per_coeff
+    ones = np.ones(len(points))
+
+    def fit(lum):
+        return fit_compact_source(
+            design,
+            ones,
+            ones,
+            lum,
+            None,
+            penalty_matrix(bands, 4e-3, None, False),
+            bands,
+            ShadowTester([(scene, np.eye(4))], points, normals),
+            UP,
+            search_samples=3000,
+            max_sources=2,
+        )
+
+    first, second = _sun(40.0, 20.0), _sun(35.0, 160.0)
+    lum = _observe(points, normals, scene, first, 2.0, _ambient()) + _observe(
+        points, normals, scene, second, 1.2, np.zeros(9)
+    )
+    both = fit(lum)
+    assert len(both.sources) == 2, both.reason
+    for source, sun, power in zip(both.sources, (first, second), (2.0, 1.2), strict=True):
+        assert angular_error_deg(source.direction, sun) < 3.0
+        assert source.intensity == pytest.approx(power, rel=0.2)
+    assert both.reason.startswith("2 compact sources")
+    one = fit(_observe(points, normals, scene, first, 2.0, _ambient()))
+    assert len(one.sources) == 1 and "no second" in one.reason
