@@ -508,8 +508,13 @@ def fit_compact_source(
         f"{lit} pixels lit and {shadowed} in its shadow"
     )
     one = searched((source,), ambient, ambient_rgb, why)
-    if max_sources <= 1 or track is not None:
+    if max_sources <= 1:
         return one
+    follow = None  # a tracked frame refines the tracked fit's further sources
+    if track is not None:
+        if len(track.sources) < 2:
+            return one  # a further source waits for the next full search
+        follow = CompactFit((), track.ambient, None, "", direction=track.sources[1].direction)
     more = fit_compact_source(
         np.column_stack([design, column]),
         albedo,
@@ -529,6 +534,7 @@ def fit_compact_source(
         min_pixels=min_pixels,
         angular_radius_deg=angular_radius_deg,
         seed=seed + 1,
+        track=follow,
         max_sources=max_sources - 1,
         exclude=best[None] if exclude is None else np.vstack([exclude, best]),
     )

@@ -278,3 +278,47 @@ def test_two_lamps_are_both_found_and_one_sun_stays_one():
     assert both.reason.startswith("2 compact sources")
     one = fit(_observe(points, normals, scene, first, 2.0, _ambient()))
     assert len(one.sources) == 1 and "no second" in one.reason
+
+
+def test_a_tracked_frame_keeps_both_lamps():
+    """With a search one frame in five, the frame after a full search that kept two lamps
+    refines both and keeps both."""
+    from types import SimpleNamespace
+
+    from arlight.pipeline.compact_light import CompactLightStage
+
+    points, normals, scene = _scene()
+    bands = 3
+    per_coeff = np.repeat(sh.lambert_band_factors(bands), [2 * l + 1 for l in range(bands)])
+    n = len(points)
+    first, second = _sun(40.0, 20.0), _sun(35.0, 160.0)
+    lum = _observe(points, normals, scene, first, 2.0, _ambient()) + _observe(
+        points, normals, scene, second, 1.2, np.zeros(9)
+    )
+    state = SimpleNamespace(  # the light fit's FitState: the fields the stage reads
+        design=sh.sh_basis(normals, bands) * per_coeff,
+        albedo=np.ones(n),
+        weights=np.ones(n),
+        lum=lum,
+        rgb=None,
+        penalty=penalty_matrix(bands, 4e-3, None, False),
+        bands=bands,
+        rows=np.arange(n),
+    )
+    stage = CompactLightStage(5, search_interval=5)
+    for searched in (True, False):
+        fit, _ = stage.fit_against(
+            scene,
+            state,
+            points[None].astype(np.float32),
+            normals[None].astype(np.float32),
+            np.zeros(n, int),
+            np.arange(n),
+            np.eye(4),
+            UP,
+            {"search_samples": 3000, "max_sources": 2},
+        )
+        assert stage.last_searched is searched
+        assert len(fit.sources) == 2, fit.reason
+        for source, sun in zip(fit.sources, (first, second), strict=True):
+            assert angular_error_deg(source.direction, sun) < 3.0

@@ -121,9 +121,9 @@ class ReusedStages(TypedDict):
 
 class CompactDiagnostics(TypedDict):
     """Diagnostics["compact"]: why a source was kept (or none), the visibility rays cast to
-    find them, how many were kept (at most one) and each one's gain (the share of the SH
-    fit's residual its shadow explains), the step (ln luminance) the image shows across
-    the best direction's shadow edge, kept or not, and whether the frame searched every
+    find them, how many were kept (at most compact_sources) and each one's gain (the share
+    of the SH fit's residual its shadow explains), the step (ln luminance) the image shows
+    across the best direction's shadow edge, kept or not, and whether the frame searched every
     candidate direction (else it refined the last frame's: compact_search_interval); the
     sources themselves are FrameResult.compact_sources (the Result's `compact_sources`)."""
 
