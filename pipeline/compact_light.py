@@ -370,7 +370,7 @@ def fit_compact_source(
     max_sources > 1: after a kept source, the search runs again on what it leaves (its
     shadowed shading a column of the fit, unpenalised), away from the kept directions
     (exclude: (E, 3) world, none within SEPARATION_DEG), and every kept source's intensity
-    is solved jointly with the ambient SH (`_with_more_sources`)."""
+    is solved jointly with the ambient SH (`joined`)."""
     n_sh = bands * bands
     a_design = design * albedo[:, None]
     system = _system(a_design, weights, lum, penalty)
@@ -507,6 +507,46 @@ def fit_compact_source(
         f"steps by {edge:.2f} across its shadow's edge, "
         f"{lit} pixels lit and {shadowed} in its shadow"
     )
+
+    def joined(one: CompactFit, more: CompactFit) -> CompactFit:
+        """`one` (a fit that kept one source) joined with `more` (the search on what it left):
+        every kept source's intensity and the ambient SH solved together (the sources'
+        shadowed shading as unpenalised columns); `one` alone where `more` kept none or the
+        joint solution gives a source no light."""
+        if not more.sources:
+            return dataclasses.replace(one, reason=f"{one.reason}; no second: {more.reason}")
+        sources = list(one.sources) + list(more.sources)
+        n, n_sh = design.shape[1], bands * bands
+        columns = [tester.shading(s.direction[None])[:, 0] * albedo for s in sources]
+        a_design = np.column_stack([design * albedo[:, None], *columns])
+        wide = np.pad(penalty, ((0, len(columns)), (0, len(columns))))
+        system = _system(a_design, weights, lum, wide)
+        x = system.g_inv @ system.r
+        if np.any(x[n:] <= 0.0):
+            return dataclasses.replace(
+                one, reason=f"{one.reason}; a second found, but no light left for both"
+            )
+        ambient = x[:n_sh]
+        ambient_rgb, k_rgb = None, [None] * len(sources)
+        if rgb is not None:
+            rgb_system = _system(a_design, weights, rgb, wide)
+            x_rgb = rgb_system.g_inv @ rgb_system.r
+            ambient_rgb = x_rgb[:n_sh].T
+            k_rgb = [np.maximum(x_rgb[n + i], 0.0) for i in range(len(sources))]
+        irradiance = sh.irradiance_from_radiance(ambient)
+        joint = []
+        for i, s in enumerate(sources):
+            k = float(x[n + i])
+            e = max(float(sh.evaluate(irradiance, s.direction[None])[0]), 0.0)
+            joint.append(
+                dataclasses.replace(s, intensity=k, rgb=k_rgb[i], share=k / max(k + e, 1e-30))
+            )
+        first = one.reason.removeprefix("1 compact source ")
+        why = f"{len(joint)} compact sources: the first {first}; then {more.reason}"
+        return dataclasses.replace(
+            one, sources=tuple(joint), ambient=ambient, ambient_rgb=ambient_rgb, reason=why
+        )
+
     one = searched((source,), ambient, ambient_rgb, why)
     if max_sources <= 1:
         return one
@@ -538,56 +578,7 @@ def fit_compact_source(
         max_sources=max_sources - 1,
         exclude=best[None] if exclude is None else np.vstack([exclude, best]),
     )
-    return _with_more_sources(one, more, design, albedo, weights, lum, rgb, penalty, bands, tester)
-
-
-def _with_more_sources(
-    one: CompactFit,
-    more: CompactFit,
-    design: np.ndarray,
-    albedo: np.ndarray,
-    weights: np.ndarray,
-    lum: np.ndarray,
-    rgb: np.ndarray | None,
-    penalty: np.ndarray,
-    bands: int,
-    tester: ShadowTester,
-) -> CompactFit:
-    """`one` (a fit that kept one source) joined with `more` (the search on what it left):
-    every kept source's intensity and the ambient SH solved together (the sources'
-    shadowed shading as unpenalised columns); `one` alone where `more` kept none or the
-    joint solution gives a source no light."""
-    if not more.sources:
-        return dataclasses.replace(one, reason=f"{one.reason}; no second: {more.reason}")
-    sources = list(one.sources) + list(more.sources)
-    n, n_sh = design.shape[1], bands * bands
-    columns = [tester.shading(s.direction[None])[:, 0] * albedo for s in sources]
-    a_design = np.column_stack([design * albedo[:, None], *columns])
-    wide = np.pad(penalty, ((0, len(columns)), (0, len(columns))))
-    system = _system(a_design, weights, lum, wide)
-    x = system.g_inv @ system.r
-    if np.any(x[n:] <= 0.0):
-        return dataclasses.replace(
-            one, reason=f"{one.reason}; a second found, but no light left for both"
-        )
-    ambient = x[:n_sh]
-    ambient_rgb, k_rgb = None, [None] * len(sources)
-    if rgb is not None:
-        rgb_system = _system(a_design, weights, rgb, wide)
-        x_rgb = rgb_system.g_inv @ rgb_system.r
-        ambient_rgb = x_rgb[:n_sh].T
-        k_rgb = [np.maximum(x_rgb[n + i], 0.0) for i in range(len(sources))]
-    irradiance = sh.irradiance_from_radiance(ambient)
-    joint = []
-    for i, s in enumerate(sources):
-        k = float(x[n + i])
-        e = max(float(sh.evaluate(irradiance, s.direction[None])[0]), 0.0)
-        joint.append(dataclasses.replace(s, intensity=k, rgb=k_rgb[i], share=k / max(k + e, 1e-30)))
-    first = one.reason.removeprefix("1 compact source ")
-    why = f"{len(joint)} compact sources: the first {first}; then {more.reason}"
-    return dataclasses.replace(
-        one, sources=tuple(joint), ambient=ambient, ambient_rgb=ambient_rgb, reason=why
-    )
+    return joined(one, more)
 
 
 DEPTH_MESH_STRIDE = 2  # the current frame's depth mesh at every 2nd pixel (a quarter)

@@ -55,7 +55,7 @@ def _observe(points, normals, scene, sun, sun_power, ambient):
     return irr + sun_term
 
 
-def _fit(points, normals, scene, lum, min_edge_step=0.0):
+def _fit(points, normals, scene, lum, min_edge_step=0.0, max_sources=1):
     bands = 3
     per_coeff = np.repeat(sh.lambert_band_factors(bands), [2 * l + 1 for l in range(bands)])
     design = sh.sh_basis(normals, bands) * per_coeff  # unoccluded transfer
@@ -73,6 +73,7 @@ def _fit(points, normals, scene, lum, min_edge_step=0.0):
         UP,
         search_samples=3000,
         min_edge_step=min_edge_step,
+        max_sources=max_sources,
     )
 
 
@@ -246,25 +247,9 @@ def test_two_lamps_are_both_found_and_one_sun_stays_one():
     found, each within 3 degrees, the brighter first, their intensities within 20 %; under
     one sun the second search keeps nothing and says so."""
     points, normals, scene = _scene()
-    bands = 3
-    per_coeff = np.repeat(sh.lambert_band_factors(bands), [2 * l + 1 for l in range(bands)])
-    design = sh.sh_basis(normals, bands) * per_coeff
-    ones = np.ones(len(points))
 
     def fit(lum):
-        return fit_compact_source(
-            design,
-            ones,
-            ones,
-            lum,
-            None,
-            penalty_matrix(bands, 4e-3, None, False),
-            bands,
-            ShadowTester([(scene, np.eye(4))], points, normals),
-            UP,
-            search_samples=3000,
-            max_sources=2,
-        )
+        return _fit(points, normals, scene, lum, max_sources=2)
 
     first, second = _sun(40.0, 20.0), _sun(35.0, 160.0)
     lum = _observe(points, normals, scene, first, 2.0, _ambient()) + _observe(
