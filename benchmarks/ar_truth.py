@@ -363,6 +363,10 @@ def main(argv=None) -> int:
         "irradiance facing it (default 0.1)",
     )
     args = parser.parse_args(argv)
+    if args.true_sources < 1:
+        parser.error(f"--true-sources must be 1 or more, got {args.true_sources}")
+    if not 0.0 <= args.true_source_share <= 1.0:
+        parser.error(f"--true-source-share must be in 0..1, got {args.true_source_share:g}")
     configure_process()
     overrides = {}
     for kv in args.set:

@@ -517,7 +517,10 @@ def fit_compact_source(
             return dataclasses.replace(one, reason=f"{one.reason}; no second: {more.reason}")
         sources = list(one.sources) + list(more.sources)
         n, n_sh = design.shape[1], bands * bands
-        columns = [tester.shading(s.direction[None])[:, 0] * albedo for s in sources]
+        # the first source's shading is this fit's `column`; the others' are cast anew
+        columns = [column * albedo] + [
+            tester.shading(s.direction[None])[:, 0] * albedo for s in more.sources
+        ]
         a_design = np.column_stack([design * albedo[:, None], *columns])
         wide = np.pad(penalty, ((0, len(columns)), (0, len(columns))))
         system = _system(a_design, weights, lum, wide)

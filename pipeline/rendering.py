@@ -202,6 +202,17 @@ class DifferentialRenderer:
         )
         return RenderOutput(out.composite, out.virtual_mask, out.region | changed, g)
 
+    @functools.cached_property
+    def _diffuse_parts(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per scene object, made on first use: the share of its albedo that is diffuse (0
+        for a mirror, else 1 - metalness) and whether the probe shades it as glossy."""
+        looks = [glossiness_of(o.material) for o in self.scene.objects]
+        fraction = [
+            0.0 if look.kind == 1 else 1.0 - min(max(o.material.metalness, 0.0), 1.0)
+            for o, look in zip(self.scene.objects, looks, strict=True)
+        ]
+        return np.array(fraction), np.array([look.kind == 2 for look in looks])
+
     def _source_albedo(
         self, frame: RenderInputs, g: VirtualGBuffer, virtual: np.ndarray, points_cam: np.ndarray
     ) -> np.ndarray:
@@ -213,15 +224,12 @@ class DifferentialRenderer:
         either. points_cam: (H, W, 3) the virtual pixels' points (camera frame)."""
         if frame.probe is None and frame.environment is None:
             return g.albedo
-        materials = [o.material for o in self.scene.objects]
-        fraction = np.array(
-            [0.0 if m.mirror else 1.0 - min(max(m.metalness, 0.0), 1.0) for m in materials]
-        )
+        fraction, glossy_object = self._diffuse_parts
         vv, uu = np.nonzero(virtual)
         index = g.object_index[vv, uu]
         factor = fraction[index]
         if frame.environment is None:
-            glossy = np.array([glossiness_of(m).kind == 2 for m in materials])[index]
+            glossy = glossy_object[index]
             p = points_cam[vv, uu].astype(np.float64)
             view = p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-12)
             n_dot_v = np.abs(np.sum(view * g.normals_cam[vv, uu], axis=1))
