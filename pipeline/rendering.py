@@ -238,6 +238,17 @@ class DifferentialRenderer:
         albedo[vv, uu] *= factor[:, None].astype(albedo.dtype)
         return albedo
 
+    def _diffuse_shown(
+        self, frame: RenderInputs, g: VirtualGBuffer, vs: np.ndarray, us: np.ndarray
+    ) -> np.ndarray:
+        """(K,) bool: which of the virtual pixels (vs, us) show any diffuse light: all of
+        them unless a probe or a panorama reflects the light, else those of objects whose
+        diffuse share is above zero (not a mirror, metalness below 1)."""
+        if frame.probe is None and frame.environment is None:
+            return np.ones(len(vs), bool)
+        fraction, _ = self._diffuse_parts
+        return fraction[g.object_index[vs, us]] > 0.0
+
     def _render_sh(
         self, frame: RenderInputs, keep_change: bool = False
     ) -> tuple[RenderOutput, AmbientChange | None]:
@@ -302,7 +313,13 @@ class DifferentialRenderer:
             radiance_c,
             plane,
         )
-        t_cv, b_cv, ok_cv = transfer_at_pixels(
+        # a mirror (or a full metal) under a probe or a panorama shows no diffuse light:
+        # its pixels need no transfer (their irradiance is multiplied by zero)
+        lit = self._diffuse_shown(frame, g, vv_all, uu_all)
+        t_cv = np.zeros((len(uu_all), t_r.shape[1]))
+        b_cv = np.zeros((len(uu_all), b_r.shape[1]))
+        ok_cv = np.zeros(len(uu_all), bool)
+        t_cv[lit], b_cv[lit], ok_cv[lit] = transfer_at_pixels(
             points_c,
             normals_c,
             cam,
@@ -310,8 +327,8 @@ class DifferentialRenderer:
             self.pattern,
             aux_c,
             p,
-            uu_all,
-            vv_all,
+            uu_all[lit],
+            vv_all[lit],
             radiance_c,
             plane,
         )

@@ -702,6 +702,45 @@ class TestEnvironmentReflections:
         assert (expected.max(axis=1) < 0.1).sum() > 50  # the dark rest of the map
         np.testing.assert_allclose(got, np.clip(expected, 0, 1), atol=0.01)
 
+    def test_a_mirror_pays_no_transfer_and_shows_the_same(self, view, monkeypatch):
+        """Under a panorama, a mirror shows none of its diffuse light: the renderer skips its
+        pixels' SSDO transfer (the diffuse sphere beside it keeps its own), and the
+        composite is the one that computing them all gives."""
+        _, env = self._environment()
+        coeffs = light_sh(light_direction(+1))
+        objects = [
+            object_from_open3d(
+                "mirror",
+                sphere_mesh(SPHERE_RADIUS_M),
+                np.eye(4),
+                Material((0.9, 0.9, 0.9), mirror=True),
+            ),
+            sphere("matte", base_world=(0.25, 0.0, 0.0)),
+        ]
+        inputs = dataclasses.replace(frame_inputs(view, coeffs), environment=env)
+        listed = []
+        real_transfer = rendering.transfer_at_pixels
+
+        def counting(*args, **kwargs):
+            listed.append(len(args[7]))  # pixels_u
+            return real_transfer(*args, **kwargs)
+
+        monkeypatch.setattr(rendering, "transfer_at_pixels", counting)
+        _, skipping, _ = render(view, coeffs, objects, inputs)
+        index = skipping.gbuffer.object_index
+        mirror = skipping.virtual_mask & (index == 0)
+        matte = skipping.virtual_mask & (index == 1)
+        assert mirror.sum() > 100 and matte.sum() > 100
+        assert listed == [int(matte.sum())]
+        monkeypatch.setattr(
+            rendering.DifferentialRenderer,
+            "_diffuse_shown",
+            lambda self, frame, g, vs, us: np.ones(len(vs), bool),
+        )
+        _, every, _ = render(view, coeffs, objects, inputs)
+        assert listed[-1] == int(skipping.virtual_mask.sum())
+        np.testing.assert_array_equal(skipping.composite, every.composite)
+
     def test_diffuse_objects_ignore_the_environment(self, view):
         _, env = self._environment()
         coeffs = light_sh(light_direction(+1))
