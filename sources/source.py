@@ -24,7 +24,7 @@ from arlight.core.frames import FrameInput
 from arlight.protocols import CameraCalibration, SessionConfig
 from arlight.sources.recording import Recording
 from arlight.sources.sequence import open_sequence
-from arlight.sources.synthetic import LazyFrames
+from arlight.sources.synthetic import CLI_FRAMES, LazyFrames
 
 
 @dataclass
@@ -143,7 +143,7 @@ def open_source(
     max_frames: int | None = None,
     depth_encoding: str | None = None,
     synthetic_size: tuple[int, int] = (640, 480),
-    synthetic_frames: int = 12,
+    synthetic_frames: int = CLI_FRAMES,
     camera_fps: float = 30.0,
 ) -> Source:
     """A frame source: "synthetic", a data set folder (arlight.sources.sequence), FILE.mcap,
@@ -159,8 +159,11 @@ def open_source(
     if camera is not None:
         return open_camera(camera, max_frames=max_frames)
     if spec == "synthetic":
-        n = max_frames or synthetic_frames
-        frames = LazyFrames(n, synthetic_size[0], synthetic_size[1], use_poses=use_poses)
+        # the first max_frames of a synthetic_frames orbit (a longer one if they are more):
+        # a shorter orbit's steps may be too long to track
+        n = max(max_frames or 0, synthetic_frames)
+        w, h = synthetic_size
+        frames = LazyFrames(n, w, h, use_poses=use_poses, first=max_frames)
         return sequence_source("synthetic", frames.camera, frames, [])  # rendered as sent
     if spec.lower().endswith(".mcap"):
         return open_recording_source(spec, max_frames=max_frames)

@@ -155,6 +155,28 @@ def test_estimate_on_the_built_in_scene_compares_in_the_camera_frame(capsys):
     assert median < 45.0, text
 
 
+def test_estimate_tracks_the_first_frames_of_the_built_in_scene(tmp_path, capsys):
+    """`arlight estimate --max-frames 4` on the built-in scene takes the first 4 frames of its
+    orbit, steps that tracking follows: each tracked camera is within 3 cm of the truth (a
+    4-frame orbit, 25 degrees a step, was tracked 0.7-2.6 m off, every frame said "ok")."""
+    from arlight.sources.synthetic import CLI_FRAMES, make_sequence
+
+    out = tmp_path / "built_in.jsonl"
+    code, text = run_cli(
+        ["estimate", "--preset", "fast", "--max-frames", "4", "--out", str(out)], capsys
+    )
+    assert code == 0, text
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert len(records) == 4
+    truth = [np.asarray(f.pose) for f in make_sequence(num_frames=CLI_FRAMES).frames]
+    first_from_world = np.linalg.inv(truth[0])  # tracking's world is the first camera
+    off_m = [
+        float(np.linalg.norm((first_from_world @ pose)[:3, 3] - np.array(r["pose"])[:3, 3]))
+        for r, pose in zip(records, truth, strict=False)
+    ]
+    assert max(off_m) < 0.03, off_m
+
+
 class TestFrontDoor:
     """What `arlight --help`, `stream --help` and `estimate` tell a new user (issue 38)."""
 

@@ -109,7 +109,8 @@ def add_source_options(p: argparse.ArgumentParser) -> None:
         type=positive_int,
         metavar="N",
         help="only the first N frames "
-        "(with --loop: N frames in total); synthetic: the number of frames (12)",
+        "(with --loop: N frames in total); synthetic: the first N of its 12-frame orbit "
+        "(of an N-frame orbit where N is more)",
     )
     p.add_argument(
         "--depth-encoding",
@@ -427,6 +428,5 @@ def _open_rgbd_source(args: argparse.Namespace):
         max_frames=args.max_frames,
         depth_encoding=args.depth_encoding,
         synthetic_size=args.size,
-        synthetic_frames=args.max_frames or 12,
         camera_fps=args.fps,
     )

@@ -73,7 +73,8 @@ def add_parser(sub) -> None:
         "--max-frames",
         type=positive_int,
         metavar="N",
-        help="only the first N frames (synthetic: its length, default 12)",
+        help="only the first N frames (synthetic: of its 12-frame orbit, or of an N-frame "
+        "orbit where N is more)",
     )
     est.add_argument("--depth", metavar="FILE", help="depth image for a single colour image")
     est.add_argument(
@@ -309,11 +310,14 @@ def _open_source(args: argparse.Namespace):
     use_poses = args.poses == "groundtruth"
     if args.path == "synthetic":
         from arlight.evaluation import scene_truth
-        from arlight.sources.synthetic import make_sequence
+        from arlight.sources.synthetic import CLI_FRAMES, make_sequence
 
-        synthetic = make_sequence(num_frames=args.max_frames or 12)
-        frames = [f if use_poses else dataclasses.replace(f, pose=None) for f in synthetic.frames]
-        return synthetic.camera, frames, scene_truth(synthetic)
+        # the first N frames of the orbit (not an N-frame orbit, whose steps may be too long
+        # to track)
+        synthetic = make_sequence(num_frames=max(args.max_frames or 0, CLI_FRAMES))
+        first = synthetic.frames[: args.max_frames or CLI_FRAMES]
+        frames = [f if use_poses else dataclasses.replace(f, pose=None) for f in first]
+        return synthetic.camera, frames, scene_truth(synthetic)[: len(frames)]
     if args.depth:
         seq = without_poses(open_pair(args.path, args.depth, args.depth_encoding), use_poses)
     else:
