@@ -61,6 +61,7 @@ from arlight.pipeline.radiance_transfer import (
     transfer_at_pixels,
     transfer_pair_at_pixels,
 )
+from arlight.pipeline.render_refine import cells_to_refine, fine_of_coarse, grid_points
 from arlight.pipeline.srgb_encoding import encode_where, linear_to_srgb_u8
 from arlight.pipeline.sun_shadows import (
     AmbientChange,
@@ -126,6 +127,23 @@ class EnvironmentMap:
 
     pyramid: MipPyramid
     map_from_world: np.ndarray
+
+
+@dataclass(frozen=True)
+class _TwoScenes:
+    """One frame's real scene and the same with the virtual objects in, as the transfer
+    reads them: camera-frame points (H, W, 3) of each, their auxiliary buffers, the
+    radiance their blocking surfaces bounce (H, W, 3), the support plane (None unless
+    rt_horizon) and the light's colour (3,)."""
+
+    points_r: np.ndarray
+    points_c: np.ndarray
+    aux_r: AuxBufferArrays | None
+    aux_c: AuxBufferArrays | None
+    radiance_r: np.ndarray
+    radiance_c: np.ndarray
+    plane: SupportPlane | None
+    light_rgb: np.ndarray
 
 
 @dataclass
@@ -286,38 +304,31 @@ class DifferentialRenderer:
             return RenderOutput(composite, virtual, virtual.copy(), g), None
         u0, v0, u1, v1 = rect
         step = r.render_subsample
-        gu = np.minimum(np.arange(u0, u1, step) + step // 2, u1 - 1)
-        gv = np.minimum(np.arange(v0, v1, step) + step // 2, v1 - 1)
+        gu, gv = grid_points(u0, u1, step), grid_points(v0, v1, step)
         guu, gvv = np.meshgrid(gu, gv)
         near = self._near_objects(points_c[gvv, guu], pose)
         real_grid = near & ~virtual[gvv, guu] & (real_depth[gvv, guu] > 0)
-        ru, rv = guu[real_grid], gvv[real_grid]
         vv_all, uu_all = np.nonzero(virtual)
         p = self.transfer_params
-        plane = frame.plane if p.rt_horizon else None
-        # the real pixels in both scenes at once (their point and normal are the same in
-        # both), the virtual pixels in the scene with the objects
-        (t_r, b_r), (t_cr, b_cr), ok_r = transfer_pair_at_pixels(
+        scenes = _TwoScenes(
             points_r,
             points_c,
-            frame.normals_cam,
-            cam,
-            pose,
-            self.pattern,
             aux_r,
             aux_c,
-            p,
-            ru,
-            rv,
             radiance_r,
             radiance_c,
-            plane,
+            frame.plane if p.rt_horizon else None,
+            light_rgb,
         )
+        # the real pixels in both scenes at once (their point and normal are the same in
+        # both), the virtual pixels in the scene with the objects
+        ratio_grid, delta_grid, weight = self._grid_change(frame, scenes, guu, gvv, real_grid)
+        weight[virtual[gvv, guu]] = 0.0
         # a mirror (or a full metal) under a probe or a panorama shows no diffuse light:
         # its pixels need no transfer (their irradiance is multiplied by zero)
         lit = self._diffuse_shown(frame, g, vv_all, uu_all)
-        t_cv = np.zeros((len(uu_all), t_r.shape[1]))
-        b_cv = np.zeros((len(uu_all), b_r.shape[1]))
+        t_cv = np.zeros((len(uu_all), frame.light_sh.shape[0]))
+        b_cv = np.zeros((len(uu_all), radiance_c.shape[2]))
         ok_cv = np.zeros(len(uu_all), bool)
         t_cv[lit], b_cv[lit], ok_cv[lit] = transfer_at_pixels(
             points_c,
@@ -330,30 +341,17 @@ class DifferentialRenderer:
             uu_all[lit],
             vv_all[lit],
             radiance_c,
-            plane,
+            scenes.plane,
         )
-        t_c, b_c = np.concatenate([t_cr, t_cv]), np.concatenate([b_cr, b_cv])
-        ok_c = np.concatenate([ok_r, ok_cv])
         if not r.render_indirect:
-            b_r, b_c = np.zeros_like(b_r), np.zeros_like(b_c)
-        k = len(ru)
+            b_cv = np.zeros_like(b_cv)
         # virtual pixels are shaded absolutely: their unoccluded transfer made exact (real
         # pixels take a ratio of two transfers of the same directions, whose errors cancel)
-        t_c[k:] += (
+        t_cv += (
             unoccluded_correction(g.normals_cam[vv_all, uu_all], pose, self._quadrature_table)
-            * ok_c[k:, None]
+            * ok_cv[:, None]
         )
-        e_r = t_r @ frame.light_sh
-        e_c = t_c @ frame.light_sh
-        # real pixels: the direct change (ratio or eq. 13) and the indirect change (eq. 14)
-        ratio, delta = self._real_change(
-            frame, e_r, e_c[:k], b_r, b_c[:k], ok_r & ok_c[:k], ru, rv, light_rgb
-        )
-        ratio_grid = np.ones(guu.shape)
-        delta_grid = np.zeros((*guu.shape, 3))
-        weight = np.ones(guu.shape)
-        ratio_grid[real_grid], delta_grid[real_grid] = ratio, delta
-        weight[virtual[gvv, guu]] = 0.0
+        e_cv = t_cv @ frame.light_sh
         if step == 1:
             # denoising only among the pixels the objects changed, and only there: nothing
             # bleeds onto surfaces they do not touch (a hand in front, the far side of an edge)
@@ -371,11 +369,17 @@ class DifferentialRenderer:
         if step == 1:
             ratio_full = np.where(touched, ratio_full, 1.0)
             delta_full = np.where(touched[..., None], delta_full, 0.0)
+        elif r.render_refine > 0.0:
+            refine = cells_to_refine(ratio_grid, real_grid, r.render_refine)
+            if np.any(refine):
+                ratio_full, delta_full = self._refined(
+                    frame, scenes, refine, ratio_full, delta_full, rect, virtual
+                )
         linear = frame.color_linear[v0:v1, u0:u1].astype(np.float64)
         out = linear * ratio_full[..., None] + delta_full
         # virtual pixels: albedo / pi (direct with SSDO visibility + bounce from around)
-        e_v = np.maximum(e_c[k:], 0.0)[:, None] * light_rgb + b_c[k:]
-        e_v[~ok_c[k:]] = 0.0
+        e_v = np.maximum(e_cv, 0.0)[:, None] * light_rgb + b_cv
+        e_v[~ok_cv] = 0.0
         if frame.environment is None:
             virtual_rgb = g.albedo[vv_all, uu_all] / math.pi * e_v
             if frame.probe is not None:
@@ -401,6 +405,75 @@ class DifferentialRenderer:
                 touched,
             )
         return RenderOutput(composite, virtual, region, g), ambient_change
+
+    def _grid_change(
+        self,
+        frame: RenderInputs,
+        scenes: _TwoScenes,
+        grid_u: np.ndarray,
+        grid_v: np.ndarray,
+        real: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The change the objects bring to the real grid points (grid_u, grid_v: (gh, gw)
+        pixel coordinates) selected by `real`: (ratio (gh, gw), delta (gh, gw, 3), weight
+        (gh, gw) of ones); 1 and 0 at the others."""
+        us, vs = grid_u[real], grid_v[real]
+        (t_r, b_r), (t_c, b_c), ok = transfer_pair_at_pixels(
+            scenes.points_r,
+            scenes.points_c,
+            frame.normals_cam,
+            self.camera,
+            frame.world_from_cam,
+            self.pattern,
+            scenes.aux_r,
+            scenes.aux_c,
+            self.transfer_params,
+            us,
+            vs,
+            scenes.radiance_r,
+            scenes.radiance_c,
+            scenes.plane,
+        )
+        if not self.config.render.render_indirect:
+            b_r, b_c = np.zeros_like(b_r), np.zeros_like(b_c)
+        e_r, e_c = t_r @ frame.light_sh, t_c @ frame.light_sh
+        ratio, delta = self._real_change(frame, e_r, e_c, b_r, b_c, ok, us, vs, scenes.light_rgb)
+        ratio_grid = np.ones(grid_u.shape)
+        delta_grid = np.zeros((*grid_u.shape, 3))
+        ratio_grid[real], delta_grid[real] = ratio, delta
+        return ratio_grid, delta_grid, np.ones(grid_u.shape)
+
+    def _refined(
+        self,
+        frame: RenderInputs,
+        scenes: _TwoScenes,
+        refine: np.ndarray,
+        ratio_full: np.ndarray,
+        delta_full: np.ndarray,
+        rect: tuple[int, int, int, int],
+        virtual: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The rect's ratio and delta again from a grid of half the step (render_refine):
+        computed in the coarse cells `refine` (gh, gw) selects, the coarse result
+        (ratio_full, delta_full over the rect) sampled elsewhere, then up-sampled with
+        the blur scaled to the step."""
+        r = self.config.render
+        step = r.render_subsample
+        fine = step // 2
+        u0, v0, u1, v1 = rect
+        fu, fv = np.meshgrid(grid_points(u0, u1, fine), grid_points(v0, v1, fine))
+        depth = frame.depth_m
+        computed = (
+            fine_of_coarse(refine, fu.shape, fine, step) & ~virtual[fv, fu] & (depth[fv, fu] > 0)
+        )
+        ratio, delta, weight = self._grid_change(frame, scenes, fu, fv, computed)
+        ratio = np.where(computed, ratio, ratio_full[fv - v0, fu - u0])
+        delta = np.where(computed[..., None], delta, delta_full[fv - v0, fu - u0])
+        weight[virtual[fv, fu]] = 0.0
+        radius = round(r.render_blur_radius_px * fine / step)
+        return self._upsample(
+            ratio, delta, weight, rect, fine, radius, (depth[fv, fu], depth[v0:v1, u0:u1])
+        )
 
     def _reflecting(
         self,
