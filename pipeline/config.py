@@ -461,10 +461,6 @@ class RenderParams:
     # estimated light (docs/decisions/0049-full-render-subsample.md)
     render_subsample: int = 2
     render_blur_radius_px: int = 4  # Gaussian radius of the up-sampling (the paper: 8 at 4x4)
-    # render_subsample > 1: the cells whose shading ratio differs from a neighbour's by this
-    # much or more computed again on a grid of half the step (a shadow's edge; 0: off;
-    # pipeline/render_refine.py)
-    render_refine: float = 0.0
     # render_subsample 1: Gaussian radius against the sampling noise of the shadows (0: none);
     # 2 raised PSNR and SSIM on dev_a and dev_d alike (true light, affected: 31.2 -> 31.5 and
     # 29.4 -> 29.7 dB; shadow SSIM 0.866 -> 0.892 and 0.805 -> 0.824)
@@ -512,7 +508,6 @@ class RenderParams:
         _check_enum(self, "render_mode", DiffMode)
         _check_int(self, "render_subsample", 1)
         _check_int(self, "render_blur_radius_px", 0)
-        _check_float(self, "render_refine", 0.0, 1.0)
         _check_int(self, "render_denoise_px", 0)
         _check_int(self, "render_steps", 1)
         _check_bool(self, "render_indirect")

@@ -61,7 +61,6 @@ from arlight.pipeline.radiance_transfer import (
     transfer_at_pixels,
     transfer_pair_at_pixels,
 )
-from arlight.pipeline.render_refine import cells_to_refine, fine_of_coarse, grid_points
 from arlight.pipeline.srgb_encoding import encode_where, linear_to_srgb_u8
 from arlight.pipeline.sun_shadows import (
     AmbientChange,
@@ -304,7 +303,7 @@ class DifferentialRenderer:
             return RenderOutput(composite, virtual, virtual.copy(), g), None
         u0, v0, u1, v1 = rect
         step = r.render_subsample
-        gu, gv = grid_points(u0, u1, step), grid_points(v0, v1, step)
+        gu, gv = _grid_points(u0, u1, step), _grid_points(v0, v1, step)
         guu, gvv = np.meshgrid(gu, gv)
         near = self._near_objects(points_c[gvv, guu], pose)
         real_grid = near & ~virtual[gvv, guu] & (real_depth[gvv, guu] > 0)
@@ -369,12 +368,6 @@ class DifferentialRenderer:
         if step == 1:
             ratio_full = np.where(touched, ratio_full, 1.0)
             delta_full = np.where(touched[..., None], delta_full, 0.0)
-        elif r.render_refine > 0.0:
-            refine = cells_to_refine(ratio_grid, real_grid, r.render_refine)
-            if np.any(refine):
-                ratio_full, delta_full = self._refined(
-                    frame, scenes, refine, ratio_full, delta_full, rect, virtual
-                )
         linear = frame.color_linear[v0:v1, u0:u1].astype(np.float64)
         out = linear * ratio_full[..., None] + delta_full
         # virtual pixels: albedo / pi (direct with SSDO visibility + bounce from around)
@@ -442,38 +435,6 @@ class DifferentialRenderer:
         delta_grid = np.zeros((*grid_u.shape, 3))
         ratio_grid[real], delta_grid[real] = ratio, delta
         return ratio_grid, delta_grid, np.ones(grid_u.shape)
-
-    def _refined(
-        self,
-        frame: RenderInputs,
-        scenes: _TwoScenes,
-        refine: np.ndarray,
-        ratio_full: np.ndarray,
-        delta_full: np.ndarray,
-        rect: tuple[int, int, int, int],
-        virtual: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The rect's ratio and delta again from a grid of half the step (render_refine):
-        computed in the coarse cells `refine` (gh, gw) selects, the coarse result
-        (ratio_full, delta_full over the rect) sampled elsewhere, then up-sampled with
-        the blur scaled to the step."""
-        r = self.config.render
-        step = r.render_subsample
-        fine = step // 2
-        u0, v0, u1, v1 = rect
-        fu, fv = np.meshgrid(grid_points(u0, u1, fine), grid_points(v0, v1, fine))
-        depth = frame.depth_m
-        computed = (
-            fine_of_coarse(refine, fu.shape, fine, step) & ~virtual[fv, fu] & (depth[fv, fu] > 0)
-        )
-        ratio, delta, weight = self._grid_change(frame, scenes, fu, fv, computed)
-        ratio = np.where(computed, ratio, ratio_full[fv - v0, fu - u0])
-        delta = np.where(computed[..., None], delta, delta_full[fv - v0, fu - u0])
-        weight[virtual[fv, fu]] = 0.0
-        radius = round(r.render_blur_radius_px * fine / step)
-        return self._upsample(
-            ratio, delta, weight, rect, fine, radius, (depth[fv, fu], depth[v0:v1, u0:u1])
-        )
 
     def _reflecting(
         self,
@@ -689,6 +650,12 @@ def _normalised(up, z, jump, ratio, delta):
             for c in range(3):
                 v = up[y, x, 1 + c] * inverse
                 delta[y, x, c] = zero if other or abs(v) < np.float32(1e-9) else v
+
+
+def _grid_points(start: int, stop: int, step: int) -> np.ndarray:
+    """The sub-sampled grid's pixel coordinates along one axis of the rect [start, stop):
+    each step-wide cell's centre, the last clipped to the rect."""
+    return np.minimum(np.arange(start, stop, step) + step // 2, stop - 1)
 
 
 def within_reach(
