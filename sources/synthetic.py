@@ -78,14 +78,14 @@ UP = np.array([0.0, 1.0, 0.0])
 
 # orbit of the camera around the scene
 ORBIT_RADIUS_M = 2.0
-# the orbit the command-line tools render when not told otherwise; `--max-frames N` takes its
-# first N frames (a longer orbit for a larger N), never a coarser orbit: at 8 frames the
-# camera steps 11 degrees a frame, and tracking loses it from the second frame on
-CLI_FRAMES = 12
 ORBIT_HEIGHT_M = 1.0
 ORBIT_TARGET = np.array([0.0, 0.2, 0.0])
 ORBIT_SWEEP_RAD = math.radians(75.0)
 ORBIT_START_FROM_SUN_RAD = math.radians(70.0)  # side light first, then towards back light
+# the orbit the command-line tools render when not told otherwise; `--max-frames N` takes its
+# first N frames (a longer orbit for a larger N), never a coarser orbit: at 8 frames the
+# camera steps 11 degrees a frame, and tracking loses it from the second frame on
+CLI_FRAMES = 12
 
 # light
 SUN_ELEVATION_RANGE_RAD = (math.radians(30.0), math.radians(50.0))
