@@ -69,7 +69,6 @@ from arlight.pipeline.sun_shadows import (
     SourceLight,
     touched_by,
 )
-from arlight.pipeline.surface_samples import WithinReach
 from arlight.pipeline.transfer_quadrature import unoccluded_correction
 from arlight.pipeline.virtual_gbuffer import VirtualGBuffer, VirtualRaycaster
 from arlight.pipeline.virtual_scene import VirtualScene
@@ -77,6 +76,7 @@ from arlight.pipeline.virtual_scene import VirtualScene
 if TYPE_CHECKING:  # ibl_render imports this module
     from arlight.pipeline.ibl_render import Shading
 
+NEAR_BLOCK_PX = 4  # tile side of `within_reach` (grid pixels)
 # a pixel whose depth differs from its grid neighbourhood's by more than this share is on
 # another surface: the grid's shading change is not carried onto it (decision 0049)
 UPSAMPLE_MAX_RELATIVE_JUMP = 0.05
@@ -507,25 +507,19 @@ class DifferentialRenderer:
         )
 
     def _near_objects(self, points_cam: np.ndarray, pose: np.ndarray) -> np.ndarray:
-        """Grid pixels whose point is within rt_radius_m of a virtual object (a sample from
-        there can meet the object)."""
+        """Grid pixels whose point is within rt_radius_m of a virtual object's bounding
+        sphere (a sample from there can meet the object)."""
         shape = points_cam.shape[:2]
         pts = points_cam.reshape(-1, 3).astype(np.float64)
         world = pts @ pose[:3, :3].T + pose[:3, 3]
         reach = self.transfer_params.rt_radius_m
         near = (pts[:, 2] > 0) & (self.raycaster.distance_to_spheres(world) <= reach)
         # the exact distance to the meshes only for what the bounding spheres let through,
-        # and of those only where the surface samples' bound leaves it open
-        near[near] = self._within_reach.within(world[near], reach)
-        return near.reshape(shape)
-
-    @functools.cached_property
-    def _within_reach(self) -> WithinReach:
-        """The objects' surface samples (`surface_samples`), made on first use."""
-        return WithinReach(
-            [(o.world_vertices(), o.triangles) for o in self.scene.objects],
-            self.raycaster.distance_to_objects,
+        # and of those only where the distance at the block's first pixel leaves it open
+        near[near] = within_reach(
+            world.reshape(*shape, 3), near.reshape(shape), self.raycaster.distance_to_objects, reach
         )
+        return near.reshape(shape)
 
     def _aux_with_virtual(
         self, buffers: list[OrthoBuffer], pose: np.ndarray
@@ -662,6 +656,46 @@ def _grid_points(start: int, stop: int, step: int) -> np.ndarray:
     """The sub-sampled grid's pixel coordinates along one axis of the rect [start, stop):
     each step-wide cell's centre, the last clipped to the rect."""
     return np.minimum(np.arange(start, stop, step) + step // 2, stop - 1)
+
+
+def within_reach(
+    points: np.ndarray, candidates: np.ndarray, distance, reach: float, block: int = NEAR_BLOCK_PX
+) -> np.ndarray:
+    """For the candidate grid points, whether distance(point) <= reach, the same answer as
+    evaluating `distance` at every one of them, with fewer evaluations.
+
+    points: (H, W, 3) world points (metres); candidates: (H, W) bool; distance: maps (K, 3)
+    points to (K,) distances to a set (1-Lipschitz: it changes by at most the distance
+    moved). Evaluated first at each block x block tile's top-left point (if a candidate);
+    a candidate whose distance from that anchor is d_q +/- |p - q| entirely on one side of
+    reach needs no evaluation of its own. The candidates left open are tried again with
+    tiles half the size (their new anchors evaluated), down to tiles of 2; the rest, and
+    tiles without an anchor, are evaluated. Returns (number of candidates,) bool, in
+    candidates' row-major order.
+    """
+    rows, cols = np.nonzero(candidates)
+    if len(rows) < 4 * block * block:  # too few for the anchors to pay
+        return distance(points[rows, cols]) <= reach
+    known = np.full(candidates.shape, np.nan)  # distance where evaluated
+    result = np.zeros(len(rows), bool)
+    open_ = np.arange(len(rows))
+    while block > 1 and len(open_):
+        r, c = rows[open_], cols[open_]
+        ar, ac = r // block * block, c // block * block
+        new = candidates[ar, ac] & np.isnan(known[ar, ac])
+        if np.any(new):
+            flat = np.unique(ar[new] * candidates.shape[1] + ac[new])
+            qr, qc = np.divmod(flat, candidates.shape[1])
+            known[qr, qc] = distance(points[qr, qc])
+        d_q = known[ar, ac]
+        moved = np.linalg.norm(points[r, c] - points[ar, ac], axis=1)
+        inside = d_q + moved <= reach
+        result[open_[inside]] = True
+        open_ = open_[~(inside | (d_q - moved > reach))]  # includes NaN: no anchor
+        block //= 2
+    if len(open_):
+        result[open_] = distance(points[rows[open_], cols[open_]]) <= reach
+    return result
 
 
 def luminance_light_rgb(sh_rgb: np.ndarray | None) -> np.ndarray:

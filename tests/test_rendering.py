@@ -40,6 +40,7 @@ from arlight.pipeline.rendering import (
     encode_where,
     linear_to_srgb_u8,
 )
+from arlight.pipeline.virtual_gbuffer import VirtualRaycaster
 from arlight.pipeline.virtual_scene import (
     Anchor,
     Material,
@@ -749,3 +750,40 @@ class TestEnvironmentReflections:
             view, coeffs, [sphere()], dataclasses.replace(plain, environment=env)
         )
         np.testing.assert_array_equal(without.composite, with_env.composite)
+
+
+class TestWithinReach:
+    """`rendering.within_reach` (not this module's helper of that name) gives the
+    brute-force answer with fewer distance queries."""
+
+    @staticmethod
+    def _scene_and_points():
+        # a sphere of radius 0.2 m centred on the origin, its distance as the renderer asks it
+        raycaster = VirtualRaycaster(
+            VirtualScene((sphere(radius_m=0.2, base_world=(0.0, -0.2, 0.0)),))
+        )
+        # a 120 x 160 grid of ground points 4 mm apart with a 0.3 m step in height halfway
+        # (a depth edge: neighbours far apart in 3D)
+        v, u = np.mgrid[0:120, 0:160]
+        points = np.stack(
+            [(u - 80) * 0.004, np.where(u < 80, -0.25, 0.05), (v - 60) * 0.004], axis=-1
+        ).astype(np.float64)
+        calls = []
+
+        def distance(p):
+            calls.append(len(p))
+            return raycaster.distance_to_objects(p)
+
+        return points, distance, calls
+
+    @pytest.mark.parametrize("reach", [0.02, 0.05, 0.1])
+    def test_same_answer_as_every_point_with_fewer_queries(self, reach):
+        points, distance, calls = self._scene_and_points()
+        candidates = np.ones(points.shape[:2], bool)
+        candidates[::7, ::5] = False  # holes: some tiles lose their anchor
+        brute = distance(points[candidates]) <= reach
+        calls.clear()
+        fast = rendering.within_reach(points, candidates, distance, reach)
+        np.testing.assert_array_equal(fast, brute)
+        assert 0 < brute.sum() < len(brute)  # the boundary crosses the grid
+        assert sum(calls) < 0.5 * len(brute)
