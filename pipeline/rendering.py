@@ -182,7 +182,6 @@ class DifferentialRenderer:
         )
         # per object, made when an environment map first lights them
         self._shadings: list[Shading] | None = None
-        self._looks: list[Glossiness] | None = None  # per object, for the probe's shading
 
     @functools.cached_property
     def _quadrature_table(self) -> np.ndarray:
@@ -220,15 +219,19 @@ class DifferentialRenderer:
         return RenderOutput(out.composite, out.virtual_mask, out.region | changed, g)
 
     @functools.cached_property
+    def _looks(self) -> list[Glossiness]:
+        """Per scene object, made on first use: what the probe's shading does with it."""
+        return [glossiness_of(o.material) for o in self.scene.objects]
+
+    @functools.cached_property
     def _diffuse_parts(self) -> tuple[np.ndarray, np.ndarray]:
         """Per scene object, made on first use: the share of its albedo that is diffuse (0
         for a mirror, else 1 - metalness) and whether the probe shades it as glossy."""
-        looks = [glossiness_of(o.material) for o in self.scene.objects]
         fraction = [
             0.0 if look.kind == 1 else 1.0 - min(max(o.material.metalness, 0.0), 1.0)
-            for o, look in zip(self.scene.objects, looks, strict=True)
+            for o, look in zip(self.scene.objects, self._looks, strict=True)
         ]
-        return np.array(fraction), np.array([look.kind == 2 for look in looks])
+        return np.array(fraction), np.array([look.kind == 2 for look in self._looks])
 
     def _source_albedo(
         self, frame: RenderInputs, g: VirtualGBuffer, virtual: np.ndarray, points_cam: np.ndarray
@@ -321,8 +324,8 @@ class DifferentialRenderer:
         )
         # the real pixels in both scenes at once (their point and normal are the same in
         # both), the virtual pixels in the scene with the objects
-        ratio_grid, delta_grid, weight = self._grid_change(frame, scenes, guu, gvv, real_grid)
-        weight[virtual[gvv, guu]] = 0.0
+        ratio_grid, delta_grid = self._grid_change(frame, scenes, guu, gvv, real_grid)
+        weight = np.where(virtual[gvv, guu], 0.0, 1.0)
         # a mirror (or a full metal) under a probe or a panorama shows no diffuse light:
         # its pixels need no transfer (their irradiance is multiplied by zero)
         lit = self._diffuse_shown(frame, g, vv_all, uu_all)
@@ -406,10 +409,10 @@ class DifferentialRenderer:
         grid_u: np.ndarray,
         grid_v: np.ndarray,
         real: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The change the objects bring to the real grid points (grid_u, grid_v: (gh, gw)
-        pixel coordinates) selected by `real`: (ratio (gh, gw), delta (gh, gw, 3), weight
-        (gh, gw) of ones); 1 and 0 at the others."""
+        pixel coordinates) selected by `real`: (ratio (gh, gw), delta (gh, gw, 3)); 1 and 0
+        at the others."""
         us, vs = grid_u[real], grid_v[real]
         (t_r, b_r), (t_c, b_c), ok = transfer_pair_at_pixels(
             scenes.points_r,
@@ -434,7 +437,7 @@ class DifferentialRenderer:
         ratio_grid = np.ones(grid_u.shape)
         delta_grid = np.zeros((*grid_u.shape, 3))
         ratio_grid[real], delta_grid[real] = ratio, delta
-        return ratio_grid, delta_grid, np.ones(grid_u.shape)
+        return ratio_grid, delta_grid
 
     def _reflecting(
         self,
@@ -486,8 +489,6 @@ class DifferentialRenderer:
     ) -> None:
         """virtual_rgb (K, 3) of the pixels of mirror and glossy objects replaced, in place,
         by their shading from the probe (`probe_shading.shade`)."""
-        if self._looks is None:
-            self._looks = [glossiness_of(o.material) for o in self.scene.objects]
         looks = self._looks
         index = g.object_index[vs, us]
         sel = np.flatnonzero(np.array([look.kind != 0 for look in looks], bool)[index])
