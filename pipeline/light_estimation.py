@@ -173,10 +173,26 @@ class SegmentGrams:
         count = int(self.labels.max()) + 1 if len(design) else 1
         order = np.argsort(self.labels, kind="stable")
         bounds = np.searchsorted(self.labels[order], np.arange(count + 1))
+        self._order, self._bounds = order, bounds
+        self._sorted = design[order]  # the samples segment by segment
         self.grams = np.zeros((count, design.shape[1], design.shape[1]))
         for g in range(count):
-            rows = design[order[bounds[g] : bounds[g + 1]]]
+            rows = self._sorted[bounds[g] : bounds[g + 1]]
             self.grams[g] = rows.T @ rows
+
+    def moments(self, lum: np.ndarray) -> np.ndarray:
+        """(count, C): each segment's A_g^T I_g for the samples' luminance I (M,)."""
+        rows = self._sorted * lum[self._order, None]
+        starts = self._bounds[:-1]
+        filled = self._bounds[1:] > starts
+        out = np.zeros((len(self.grams), self.design.shape[1]))
+        if np.any(filled):
+            out[filled] = np.add.reduceat(rows, starts[filled], axis=0)
+        return out
+
+    def counts(self) -> np.ndarray:
+        """(count,): the samples in each segment."""
+        return np.diff(self._bounds)
 
     def __call__(self, segment_albedo: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """The Gram matrix for per-segment albedo (count,) and per-sample weights (M,)."""
@@ -202,8 +218,19 @@ def _solve_weighted(
     A^T r, `gram` = A^T diag(g) A and r = rhs_weights (a model I = a (T l + beta B) with
     robust weights w has g = w a^2, r = w a I: SegmentGrams). beta < 0 (more bounce than
     the data supports): the light alone is solved, from the same matrices."""
+    return _solve_normal(gram, design.T @ rhs_weights, bands, regularization, with_bounce, prior)
+
+
+def _solve_normal(
+    gram: np.ndarray,
+    rhs: np.ndarray,
+    bands: int,
+    regularization: float,
+    with_bounce: bool,
+    prior: np.ndarray | None,
+) -> tuple[np.ndarray, float]:
+    """`_solve_weighted` from its normal equations' two sides, gram (C, C) and rhs (C,)."""
     n = bands * bands
-    rhs = design.T @ rhs_weights
     full = penalty_matrix(bands, regularization, prior, with_bounce)
     penalty = full[:n, :n]
     if with_bounce:
@@ -524,6 +551,26 @@ def _alternate(
     coeffs, beta = solve()
     if labels is None and params.robust_threshold <= 0.0:
         return _Fit(coeffs, beta, albedo, weights, shading(), design)  # nothing to alternate
+    if params.robust_threshold <= 0.0:
+        # without re-weighting each pass needs only the segments' sums (the same sums as
+        # over the samples, to rounding): a pass costs microseconds, not milliseconds
+        moments, counts = grams.moments(lum), grams.counts()
+        for _ in range(params.robust_iterations):
+            if checkpoint is not None:
+                checkpoint()
+            x = coeffs if b is None else np.append(coeffs, beta)
+            num = moments @ x
+            den = np.einsum("i,gij,j->g", x, grams.grams, x)
+            segment_albedo = _normalised_albedo(num, den, counts)
+            coeffs, beta = _solve_normal(
+                grams(segment_albedo, weights),
+                segment_albedo @ moments,
+                bands,
+                params.regularization,
+                b is not None,
+                prior,
+            )
+        return _Fit(coeffs, beta, segment_albedo[labels], weights, shading(), design)
     for _ in range(params.robust_iterations):
         if checkpoint is not None:
             checkpoint()
@@ -550,10 +597,16 @@ def _segment_albedo(
     n = labels.max() + 1
     num = np.bincount(labels, weights * shading * lum, minlength=n)
     den = np.bincount(labels, weights * shading * shading, minlength=n)
+    a = _normalised_albedo(num, den, np.bincount(labels, minlength=n))
+    return a[labels], a
+
+
+def _normalised_albedo(num: np.ndarray, den: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(count,) per-segment albedo num / den (sum w s I / sum w s^2; 1 where den is 0),
+    at least 1e-3, normalised so that its mean over the samples (`counts` per segment) is 1."""
     a = np.where(den > 1e-12, num / np.maximum(den, 1e-12), 1.0)
     a = np.clip(a, 1e-3, None)
-    a = a / max(float(np.mean(a[labels])), 1e-6)
-    return a[labels], a
+    return a / max(float(counts @ a) / max(int(counts.sum()), 1), 1e-6)
 
 
 @dataclass(frozen=True)
