@@ -459,6 +459,27 @@ class TestViewAndSteadiness:
         assert out.value == 0.0 and out.reason == "no valid depth"
 
 
+def test_alternation_over_segment_sums_equals_the_per_sample_one():
+    """Without re-weighting the alternation runs on each segment's Gram matrix and moments;
+    a threshold too large to down-weight any sample runs the per-sample loop on the same
+    model: the light, the bounce scale and the albedos agree to rounding."""
+    n, t = _synthetic(4000, seed=5)
+    rng = np.random.default_rng(5)
+    segments = rng.integers(0, 12, len(n))
+    segments[segments == 7] = 8  # a segment with no sample
+    albedo = rng.uniform(0.1, 1.5, 12)
+    bounce = rng.uniform(0.0, 0.2, len(n))
+    color = _grey((t @ _light() + 0.4 * bounce) * albedo[segments])
+    segment_sums = EstimationParams()
+    per_sample = dataclasses.replace(segment_sums, robust_threshold=1e300)
+    for b in (None, bounce):
+        fast = le.estimate_light(t, color, segment_sums, segments=segments, bounce=b)
+        slow = le.estimate_light(t, color, per_sample, segments=segments, bounce=b)
+        np.testing.assert_allclose(fast.sh, slow.sh, rtol=1e-9, atol=1e-12)
+        assert fast.bounce_scale == pytest.approx(slow.bounce_scale, rel=1e-9, abs=1e-12)
+        np.testing.assert_allclose(fast.fit.albedo, slow.fit.albedo, rtol=1e-9, atol=1e-12)
+
+
 def test_segment_grams_equal_the_direct_product():
     """SegmentGrams: sum_g a_g^2 G_g plus the down-weighted samples is A^T diag(w a^2) A."""
     from arlight.pipeline.light_estimation import SegmentGrams
