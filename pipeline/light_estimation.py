@@ -86,9 +86,12 @@ def _condition(gram: np.ndarray) -> float:
     return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
 
 
-def choose_bands(transfer: np.ndarray, weights: np.ndarray, max_bands: int) -> tuple[int, float]:
-    """Largest band count whose (column-scaled) normal matrix has condition <= MAX_CONDITION."""
-    gram = (transfer * weights[:, None]).T @ transfer
+def choose_bands(
+    transfer: np.ndarray, weights: np.ndarray | None, max_bands: int
+) -> tuple[int, float]:
+    """Largest band count whose (column-scaled) normal matrix has condition <= MAX_CONDITION
+    (weights None: every row 1)."""
+    gram = (transfer if weights is None else transfer * weights[:, None]).T @ transfer
     cond = float("inf")
     for bands in range(max_bands, 0, -1):
         n = bands * bands
@@ -218,20 +221,16 @@ def _solve_weighted(
     A^T r, `gram` = A^T diag(g) A and r = rhs_weights (a model I = a (T l + beta B) with
     robust weights w has g = w a^2, r = w a I: SegmentGrams). beta < 0 (more bounce than
     the data supports): the light alone is solved, from the same matrices."""
-    return _solve_normal(gram, design.T @ rhs_weights, bands, regularization, with_bounce, prior)
+    full = penalty_matrix(bands, regularization, prior, with_bounce)
+    return _solve_normal(gram, design.T @ rhs_weights, bands, full, with_bounce)
 
 
 def _solve_normal(
-    gram: np.ndarray,
-    rhs: np.ndarray,
-    bands: int,
-    regularization: float,
-    with_bounce: bool,
-    prior: np.ndarray | None,
+    gram: np.ndarray, rhs: np.ndarray, bands: int, full: np.ndarray, with_bounce: bool
 ) -> tuple[np.ndarray, float]:
-    """`_solve_weighted` from its normal equations' two sides, gram (C, C) and rhs (C,)."""
+    """`_solve_weighted` from its normal equations' two sides, gram (C, C) and rhs (C,), and
+    its `penalty_matrix` `full` (C, C)."""
     n = bands * bands
-    full = penalty_matrix(bands, regularization, prior, with_bounce)
     penalty = full[:n, :n]
     if with_bounce:
         scale = float(np.mean(np.diag(gram))) or 1.0
@@ -303,7 +302,7 @@ def estimate_light(
         )
 
     max_bands = math.isqrt(n_coeffs)
-    bands, cond = choose_bands(t, np.ones(len(lum)), max_bands)
+    bands, cond = choose_bands(t, None, max_bands)
     fit, prior = _fit_light(t, lum, b, labels, bands, params, up, below_horizon_unseen, checkpoint)
     pred = fit.albedo * fit.shading
     residual = float(
@@ -555,6 +554,7 @@ def _alternate(
         # without re-weighting each pass needs only the segments' sums (the same sums as
         # over the samples, to rounding): a pass costs microseconds, not milliseconds
         moments, counts = grams.moments(lum), grams.counts()
+        penalty = penalty_matrix(bands, params.regularization, prior, b is not None)
         for _ in range(params.robust_iterations):
             if checkpoint is not None:
                 checkpoint()
@@ -566,9 +566,8 @@ def _alternate(
                 grams(segment_albedo, weights),
                 segment_albedo @ moments,
                 bands,
-                params.regularization,
+                penalty,
                 b is not None,
-                prior,
             )
         return _Fit(coeffs, beta, segment_albedo[labels], weights, shading(), design)
     for _ in range(params.robust_iterations):
