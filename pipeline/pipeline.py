@@ -83,7 +83,7 @@ from arlight.pipeline.rendering import (
     luminance_light_rgb,
 )
 from arlight.pipeline.runtime import require_device
-from arlight.pipeline.segmentation import material_segments
+from arlight.pipeline.segmentation import SEGMENT_K, SEGMENT_MIN_SIZE_PX, material_segments
 from arlight.pipeline.still import StillCamera
 from arlight.pipeline.sun_shadows import SourceLight
 from arlight.pipeline.virtual_scene import VirtualScene, resolve_anchors
@@ -1003,10 +1003,16 @@ class Pipeline:
         p = self.config.estimation
         if not p.albedo_segments:
             return None
+        # the scale, the threshold and the smallest segment are given in input pixels: a
+        # reduced work image draws the segments a full-size one would (before, `fast`'s were
+        # 4x larger: docs/decisions/0058-segments-in-input-pixels.md)
+        area = self.work_scale**2
         segments = material_segments(
             color_linear,
             geometry.depth_m,
-            scale=max(1, p.segment_scale // self.work_scale),  # given in input pixels
+            scale=max(1, p.segment_scale // self.work_scale),
+            k=SEGMENT_K / area,
+            min_size_px=max(1, round(SEGMENT_MIN_SIZE_PX / area)),
             features=p.segment_features.value,
             illuminant_weight=p.segment_illuminant_weight,
         )

@@ -27,13 +27,18 @@ _INVARIANT_SCALE = 80.0
 ILLUMINANT_WEIGHT = 4.0  # feature levels per unit of log chromaticity along it
 
 
+# the graph threshold (for scale 2) and the smallest segment, in pixels of a 640-wide image
+SEGMENT_K = 300.0
+SEGMENT_MIN_SIZE_PX = 200
+
+
 def material_segments(
     color_linear: np.ndarray,
     depth_m: np.ndarray,
     *,
     scale: int = 2,
-    k: float = 300.0,
-    min_size_px: int = 200,
+    k: float = SEGMENT_K,
+    min_size_px: int = SEGMENT_MIN_SIZE_PX,
     features: str = "invariant",
     illuminant_weight: float = ILLUMINANT_WEIGHT,
 ) -> np.ndarray:
