@@ -27,7 +27,7 @@ _INVARIANT_SCALE = 80.0
 ILLUMINANT_WEIGHT = 4.0  # feature levels per unit of log chromaticity along it
 
 
-# the graph threshold (for scale 2) and the smallest segment, in pixels of a 640-wide image
+# the graph threshold (given for scale 2) and the smallest segment, in pixels of the image given
 SEGMENT_K = 300.0
 SEGMENT_MIN_SIZE_PX = 200
 
