@@ -348,6 +348,10 @@ class EstimationParams:
     # the segmentation runs at 1/segment_scale of the input's size: 160x120 of 640x480, in
     # every preset (docs/decisions/0050-segments-at-160x120.md)
     segment_scale: int = 4
+    # the segments' graph threshold and smallest size, times the defaults
+    # (segmentation.SEGMENT_K, SEGMENT_MIN_SIZE_PX): below 1 finer segments, more albedos;
+    # `fast` 0.5 (docs/decisions/0059-finer-segments-in-fast.md)
+    segment_coarseness: float = 1.0
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
     # compact sources (a sun, a lamp) fitted beside the SH from the shadows the reconstruction
     # casts (pipeline/compact_light.py): at most this many (0 = off; 2: a second searched on
@@ -403,6 +407,7 @@ class EstimationParams:
         _check_float(self, "segment_illuminant_weight", 0.0)
         _check_bool(self, "segment_split_ground")
         _check_int(self, "segment_scale", 1, 16)
+        _check_float(self, "segment_coarseness", 0.0, 100.0, low_open=True)
         _check_bool(self, "estimate_rgb")
         _check_int(self, "compact_sources", 0, 2)
         _check_float(self, "compact_min_gain", 0.0)
@@ -590,6 +595,9 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             # the light fitted to 20000 pixels: 10 % of the frame's time, the same error held
             # out by map (docs/decisions/0045-fast-fit-samples.md)
             "light_max_samples": 20000,
+            # finer material segments: better held out by map in `fast` (not in `full`) and
+            # on real 7-Scenes frames (docs/decisions/0059-finer-segments-in-fast.md)
+            "segment_coarseness": 0.5,
         }
     if preset is Preset.MOBILE:
         # and, speed first, the light fitted to at most 10000 pixels (measured together with

@@ -1011,8 +1011,8 @@ class Pipeline:
             color_linear,
             geometry.depth_m,
             scale=max(1, p.segment_scale // self.work_scale),
-            k=SEGMENT_K / area,
-            min_size_px=max(1, round(SEGMENT_MIN_SIZE_PX / area)),
+            k=SEGMENT_K * p.segment_coarseness / area,
+            min_size_px=max(1, round(SEGMENT_MIN_SIZE_PX * p.segment_coarseness / area)),
             features=p.segment_features.value,
             illuminant_weight=p.segment_illuminant_weight,
         )

@@ -167,3 +167,26 @@ def test_a_reduced_work_image_draws_the_segments_of_the_full_one(shared_data):
         labels = pipeline._segments(reduce_image(linear, shape), geometry)
         counts[s] = len(np.unique(labels))
     assert counts[2] >= 0.7 * counts[1], counts
+
+
+def test_fast_draws_finer_segments_than_full(shared_data):
+    """`fast` sets segment_coarseness 0.5 (decision 0059): on the real 7-Scenes frame its
+    segments are finer than `full`'s, both analysed at the input's size."""
+    from types import SimpleNamespace
+
+    from arlight.sources.sequence import open_sequence
+
+    folder = shared_data / "real" / "7scenes_redkitchen"
+    if not folder.exists():
+        pytest.skip(f"no 7-Scenes frames at {folder}")
+    seq = open_sequence(folder)
+    frame = seq.frame(0)
+    linear = srgb_to_linear(frame.color)
+    geometry = SimpleNamespace(depth_m=depth_metres(frame.depth, frame.depth_scale), plane=None)
+    counts = {}
+    for preset in ("full", "fast"):
+        config = Config.from_preset(preset, work_width=0)
+        counts[preset] = len(np.unique(Pipeline(config, seq.camera)._segments(linear, geometry)))
+    assert counts["fast"] > 1.5 * counts["full"], counts
+    with pytest.raises(ValueError, match="--set segment_coarseness"):
+        Config.from_preset("fast", segment_coarseness=0)
