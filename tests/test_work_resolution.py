@@ -140,53 +140,60 @@ def test_filter_width_rules():
     assert FilterParams(filter_width=320).filter_width == 320
 
 
-def test_a_reduced_work_image_draws_the_segments_of_the_full_one(shared_data):
+def _segments_of(pipeline: Pipeline, linear: np.ndarray, depth: np.ndarray) -> int:
+    """How many material segments `pipeline` draws on a frame (linear colour, metres at the
+    input's size), reduced to its work image as the pipeline reduces it."""
+    from types import SimpleNamespace
+
+    from arlight.pipeline.work_resolution import reduce_image
+
+    s = pipeline.work_scale
+    shape = (-(-depth.shape[0] // s), -(-depth.shape[1] // s))
+    geometry = SimpleNamespace(depth_m=reduce_depth(depth, s), plane=None)
+    return len(np.unique(pipeline._segments(reduce_image(linear, shape), geometry)))
+
+
+@pytest.fixture
+def kitchen_frame(shared_data):
+    """(camera, linear colour, depth in metres) of the first real 7-Scenes frame."""
+    from arlight.sources.sequence import open_sequence
+
+    folder = shared_data / "real" / "7scenes_redkitchen"
+    if not folder.exists():
+        pytest.skip(f"no 7-Scenes frames at {folder}")
+    seq = open_sequence(folder)
+    frame = seq.frame(0)
+    return (
+        seq.camera,
+        srgb_to_linear(frame.color),
+        depth_metres(frame.depth, frame.depth_scale),
+    )
+
+
+def test_a_reduced_work_image_draws_the_segments_of_the_full_one(kitchen_frame):
     """The material segments' graph threshold and smallest segment are in input pixels: on a
     real 7-Scenes frame (many materials) the segments of the frame analysed at 320x240 are
     as fine as at 640x480 (107 segments against 109). Before, they were 4x larger in area
     (22 against 109), and `fast` wandered 30 degrees over the 100 frames instead of 13
     (decision 0058)."""
-    from types import SimpleNamespace
-
-    from arlight.pipeline.work_resolution import reduce_image
-    from arlight.sources.sequence import open_sequence
-
-    folder = shared_data / "real" / "7scenes_redkitchen"
-    if not folder.exists():
-        pytest.skip(f"no 7-Scenes frames at {folder}")
-    seq = open_sequence(folder)
-    frame = seq.frame(0)
-    linear = srgb_to_linear(frame.color)
-    depth = depth_metres(frame.depth, frame.depth_scale)
+    camera, linear, depth = kitchen_frame
     counts = {}
     for work_width in (0, 320):
-        pipeline = Pipeline(Config.from_preset("full", work_width=work_width), seq.camera)
-        s = pipeline.work_scale
-        shape = (-(-depth.shape[0] // s), -(-depth.shape[1] // s))
-        geometry = SimpleNamespace(depth_m=reduce_depth(depth, s), plane=None)
-        labels = pipeline._segments(reduce_image(linear, shape), geometry)
-        counts[s] = len(np.unique(labels))
+        pipeline = Pipeline(Config.from_preset("full", work_width=work_width), camera)
+        counts[pipeline.work_scale] = _segments_of(pipeline, linear, depth)
     assert counts[2] >= 0.7 * counts[1], counts
 
 
-def test_fast_draws_finer_segments_than_full(shared_data):
+def test_fast_draws_finer_segments_than_full(kitchen_frame):
     """`fast` sets segment_coarseness 0.5 (decision 0059): on the real 7-Scenes frame its
     segments are finer than `full`'s, both analysed at the input's size."""
-    from types import SimpleNamespace
-
-    from arlight.sources.sequence import open_sequence
-
-    folder = shared_data / "real" / "7scenes_redkitchen"
-    if not folder.exists():
-        pytest.skip(f"no 7-Scenes frames at {folder}")
-    seq = open_sequence(folder)
-    frame = seq.frame(0)
-    linear = srgb_to_linear(frame.color)
-    geometry = SimpleNamespace(depth_m=depth_metres(frame.depth, frame.depth_scale), plane=None)
-    counts = {}
-    for preset in ("full", "fast"):
-        config = Config.from_preset(preset, work_width=0)
-        counts[preset] = len(np.unique(Pipeline(config, seq.camera)._segments(linear, geometry)))
+    camera, linear, depth = kitchen_frame
+    counts = {
+        preset: _segments_of(
+            Pipeline(Config.from_preset(preset, work_width=0), camera), linear, depth
+        )
+        for preset in ("full", "fast")
+    }
     assert counts["fast"] > 1.5 * counts["full"], counts
     with pytest.raises(ValueError, match="--set segment_coarseness"):
         Config.from_preset("fast", segment_coarseness=0)
