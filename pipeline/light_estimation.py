@@ -86,12 +86,9 @@ def _condition(gram: np.ndarray) -> float:
     return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
 
 
-def choose_bands(
-    transfer: np.ndarray, weights: np.ndarray | None, max_bands: int
-) -> tuple[int, float]:
-    """Largest band count whose (column-scaled) normal matrix has condition <= MAX_CONDITION
-    (weights None: every row 1)."""
-    gram = (transfer if weights is None else transfer * weights[:, None]).T @ transfer
+def choose_bands(transfer: np.ndarray, max_bands: int) -> tuple[int, float]:
+    """Largest band count whose (column-scaled) normal matrix has condition <= MAX_CONDITION."""
+    gram = transfer.T @ transfer
     cond = float("inf")
     for bands in range(max_bands, 0, -1):
         n = bands * bands
@@ -197,9 +194,12 @@ class SegmentGrams:
         """(count,): the samples in each segment."""
         return np.diff(self._bounds)
 
-    def __call__(self, segment_albedo: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """The Gram matrix for per-segment albedo (count,) and per-sample weights (M,)."""
+    def __call__(self, segment_albedo: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+        """The Gram matrix for per-segment albedo (count,) and per-sample weights (M,; None:
+        every one 1)."""
         gram = np.tensordot(segment_albedo**2, self.grams, axes=1)
+        if weights is None:
+            return gram
         low = np.flatnonzero(weights < 1.0)
         if len(low):
             rows = self.design[low]
@@ -302,7 +302,7 @@ def estimate_light(
         )
 
     max_bands = math.isqrt(n_coeffs)
-    bands, cond = choose_bands(t, None, max_bands)
+    bands, cond = choose_bands(t, max_bands)
     fit, prior = _fit_light(t, lum, b, labels, bands, params, up, below_horizon_unseen, checkpoint)
     pred = fit.albedo * fit.shading
     residual = float(
@@ -563,7 +563,7 @@ def _alternate(
             den = np.einsum("i,gij,j->g", x, grams.grams, x)
             segment_albedo = _normalised_albedo(num, den, counts)
             coeffs, beta = _solve_normal(
-                grams(segment_albedo, weights),
+                grams(segment_albedo, None),
                 segment_albedo @ moments,
                 bands,
                 penalty,
