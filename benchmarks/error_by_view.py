@@ -101,6 +101,7 @@ def measure(folders: list[Path], preset: str, overrides: dict | None = None) -> 
                     "env_map": truth["frames"][index].get("env_map"),
                     "estimate_world": [float(x) for x in result.dominant_direction_world],
                     "forward_world": [float(x) for x in forward],
+                    "confidence": float(result.confidence.value),
                     **row,
                 }
             )
