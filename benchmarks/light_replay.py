@@ -175,16 +175,23 @@ def _with_compact_source(
     f = est.fit
     if f is None or f"{i}_points" not in data:
         return est.sh, {}
-    scene = OcclusionScene(
-        SurfaceMesh(data[f"{i}_mesh_vertices"], data[f"{i}_mesh_triangles"], in_world=True)
-    )
+    from arlight.pipeline.object_space_transfer import depth_mesh
+
     rows = f.rows
     options = dict(compact)
-    scenes = [(scene, np.eye(4))]
-    if options.pop("depth_mesh", 0) and f"{i}_depth_points" in data:
-        from arlight.pipeline.object_space_transfer import depth_mesh
-
-        scenes.append((OcclusionScene(depth_mesh(data[f"{i}_depth_points"])), pose))
+    # depth_only=S: the frame's depth mesh alone, at every S-th recorded point (the record
+    # keeps every 2nd pixel of the work image), in place of the volume's mesh
+    depth_only = int(options.pop("depth_only", 0))
+    scenes = []
+    if not depth_only:
+        scene = OcclusionScene(
+            SurfaceMesh(data[f"{i}_mesh_vertices"], data[f"{i}_mesh_triangles"], in_world=True)
+        )
+        scenes.append((scene, np.eye(4)))
+    if (options.pop("depth_mesh", 0) or depth_only) and f"{i}_depth_points" in data:
+        step = max(1, depth_only)
+        points = data[f"{i}_depth_points"][::step, ::step]
+        scenes.append((OcclusionScene(depth_mesh(np.ascontiguousarray(points))), pose))
     tester = ShadowTester(
         scenes,
         data[f"{i}_points"][rows].astype(np.float64),
@@ -380,6 +387,7 @@ COMPACT_KEYS = (
     "max_radius_deg",
     "min_pixels",
     "depth_mesh",
+    "depth_only",
 )
 
 

@@ -615,9 +615,10 @@ TRACK_KEEP_GAIN = 0.5
 
 
 class CompactLightStage:
-    """Per session: compact sources beside each frame's SH fit, against the volume's mesh
-    (rebuilt as object_space_transfer's scene is: every `update_interval` fused frames),
-    else the current depth image's mesh.
+    """Per session: compact sources beside each frame's SH fit, against the current depth
+    image's mesh at every `depth_stride`-th pixel (made each frame, a few ms); or, with
+    `depth_stride` None, against the volume's mesh (rebuilt as object_space_transfer's scene
+    is: every `update_interval` fused frames, 0.1-0.5 s each time), else the depth image's.
 
     With `search_interval` N > 1 the full search (the grid of candidates, the radius) runs
     on one frame in N; the frames between refine the last best direction within 7 degrees
@@ -626,12 +627,19 @@ class CompactLightStage:
     TRACK_KEEP_GAIN of its gain (a light that moved or went out; one that appears waits for
     the next full search)."""
 
-    def __init__(self, update_interval: int, scenes=None, search_interval: int = 5):
+    def __init__(
+        self,
+        update_interval: int,
+        scenes=None,
+        search_interval: int = 5,
+        depth_stride: int | None = None,
+    ):
         """scenes: an ObjectSpaceTransfer whose cached scene to share (the session's
-        rt_method raycast one), else one of this stage's own."""
+        rt_method raycast one), else one of this stage's own (volume's mesh only)."""
         from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer
 
         self._scenes = scenes if scenes is not None else ObjectSpaceTransfer(update_interval)
+        self.depth_stride = None if depth_stride is None else max(1, int(depth_stride))
         self.search_interval = max(1, int(search_interval))
         self._searched: CompactFit | None = None  # the last full search's fit
         self._last: CompactFit | None = None
@@ -640,7 +648,13 @@ class CompactLightStage:
         self.last_searched = False  # whether the last frame's fit was a full search
 
     def occluder(self, points_cam: np.ndarray, volume):
-        """The reconstruction as an OcclusionScene (cached: see the class docstring)."""
+        """The reconstruction as an OcclusionScene (see the class docstring); points_cam:
+        (H, W, 3) the frame's filtered geometry (camera frame)."""
+        if self.depth_stride is not None:
+            from arlight.pipeline.object_space_transfer import OcclusionScene, depth_mesh
+
+            step = self.depth_stride
+            return OcclusionScene(depth_mesh(np.ascontiguousarray(points_cam[::step, ::step])))
         return self._scenes.scene(points_cam, volume)
 
     def fit_against(

@@ -376,7 +376,13 @@ class EstimationParams:
     # out by map at 20-30 ms less a frame (docs/decisions/0056-compact-tracking.md)
     compact_search_interval: int = 5
     compact_render: bool = True  # draw them with hard shadows both ways (pipeline/sun_shadows.py)
-    # test their shadows against the current frame's depth mesh too (no gain: decision 0035)
+    # test their shadows against the volume's mesh (rebuilt every aux_update_interval fused
+    # frames, 0.1-0.5 s each time) instead of the current frame's depth mesh, 160 points
+    # wide: held out by map the depth mesh finds the sources better
+    # (docs/decisions/0060-compact-depth-mesh.md)
+    compact_volume_mesh: bool = False
+    # with the volume's mesh, test against the current frame's depth mesh too (no gain:
+    # decision 0035)
     compact_depth_mesh: bool = False
 
     def __post_init__(self) -> None:
@@ -417,6 +423,7 @@ class EstimationParams:
         _check_int(self, "compact_search_samples", 100)
         _check_int(self, "compact_search_interval", 1, 1000)
         _check_bool(self, "compact_render")
+        _check_bool(self, "compact_volume_mesh")
         _check_bool(self, "compact_depth_mesh")
 
 

@@ -126,6 +126,11 @@ def transfer_pixels(config: Config) -> int:
     return int(margin * config.estimation.light_max_samples)
 
 
+# the compact sources' occluder without the volume's mesh: the frame's depth mesh about this
+# many points wide, 160x120 of 640x480 (docs/decisions/0060-compact-depth-mesh.md)
+COMPACT_DEPTH_MESH_WIDTH = 160
+
+
 class FrameError(CheckError):
     """A frame that cannot be processed; the message names the field and the limit."""
 
@@ -448,10 +453,14 @@ class Pipeline:
         """The session's compact-source stage (made on first use; with rt_method raycast the
         transfer's scene of the volume serves it too)."""
         if self._compact_stage is None:
+            p = self.config.estimation
             self._compact_stage = CompactLightStage(
                 self.config.aux.aux_update_interval,
                 self._raycaster,
-                self.config.estimation.compact_search_interval,
+                p.compact_search_interval,
+                None
+                if p.compact_volume_mesh
+                else max(1, round(self.work_camera.width / COMPACT_DEPTH_MESH_WIDTH)),
             )
         return self._compact_stage
 

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from arlight.core.camera import PinholeCamera
 from arlight.core.frames import Confidence
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import sh
@@ -307,3 +308,48 @@ def test_a_tracked_frame_keeps_both_lamps():
         assert len(fit.sources) == 2, fit.reason
         for source, sun in zip(fit.sources, (first, second), strict=True):
             assert angular_error_deg(source.direction, sun) < 3.0
+
+
+def test_the_occluder_is_the_frame_s_depth_mesh_at_its_stride():
+    """By default (compact_volume_mesh off) the stage tests shadows against the current
+    frame's depth mesh at every `depth_stride`-th pixel, made anew each frame, in the camera
+    frame; it never reads the volume (no 0.1-0.5 s mesh build)."""
+    from arlight.pipeline.compact_light import CompactLightStage
+
+    class NoVolume:
+        def __getattr__(self, name):
+            raise AssertionError(f"the depth-mesh occluder read the volume ({name})")
+
+    h, w = 30, 40
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    wall = np.stack([(u - w / 2) / 40.0 * 2.0, (v - h / 2) / 40.0 * 2.0, np.full_like(u, 2.0)], -1)
+    stage = CompactLightStage(5, depth_stride=2)
+    scene = stage.occluder(wall, NoVolume())
+    assert not scene.in_world
+    assert len(scene.mesh.triangles) == 2 * (h // 2 - 1) * (w // 2 - 1)
+    # a ray from behind the wall towards the camera is blocked, one beside it is not
+    rays = np.array([[0.0, 0.0, 3.0, 0.0, 0.0, -1.0], [5.0, 0.0, 3.0, 0.0, 0.0, -1.0]], np.float32)
+    assert scene.blocked(rays, 0.0, 10.0).tolist() == [True, False]
+    # the next frame's geometry gives the next frame's mesh
+    assert stage.occluder(wall + np.float32([0.0, 0.0, 5.0]), NoVolume()) is not scene
+    # the presets' stride: a mesh about 160 points wide whatever the analysed resolution;
+    # the volume's mesh where asked for
+    from arlight.pipeline.config import Config
+    from arlight.pipeline.pipeline import Pipeline
+
+    camera = PinholeCamera(640, 480, 525.0, 525.0, 319.5, 239.5)
+    strides = {
+        (preset, volume): Pipeline(
+            Config.from_preset(preset, compact_sources=1, compact_volume_mesh=volume), camera
+        )
+        ._compact()
+        .depth_stride
+        for preset in ("full", "fast")
+        for volume in (False, True)
+    }
+    assert strides == {
+        ("full", False): 4,
+        ("fast", False): 2,
+        ("full", True): None,
+        ("fast", True): None,
+    }
