@@ -38,7 +38,8 @@ BUILT_IN = "synthetic"
 BUILT_IN_HELD = "synthetic-held"
 # configurations that are not presets: a preset and what they change in it
 COMPARATORS: dict[str, tuple[str, dict[str, Any]]] = {  # name -> (preset, overrides)
-    "baseline": ("full", {"visibility": False}),  # K = 1: no visibility at all
+    # K = 1: no visibility at all, and the SH alone (the paper's comparator)
+    "baseline": ("full", {"visibility": False, "compact_sources": 0}),
     # object-space visibility (GR12/GR14 style): rays against the volume's mesh; the
     # auxiliary buffers serve only SSDO, so they are not rendered for it
     "raycast": ("full", {"rt_method": "raycast", "aux_buffers": False}),

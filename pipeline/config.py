@@ -355,9 +355,7 @@ class EstimationParams:
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
     # compact sources (a sun, a lamp) fitted beside the SH from the shadows the reconstruction
     # casts (pipeline/compact_light.py): at most this many (0 = off; 2: a second searched on
-    # what the first leaves, experimental). Off by default:
-    # it costs 35-60 ms a frame (held out by map it lowers full's median over 22 maps
-    # 14.5 -> 11.4, fast's 16.7 -> 12.7: docs/decisions/0056-compact-tracking.md, 0055, 0054)
+    # what the first leaves, experimental). On in `full` (decision 0061), off in the others
     compact_sources: int = 0
     # of the SH fit's residual its shadow must explain: 0.08, chosen leaving maps out over
     # the fit of decision 0052 (0.03 in decision 0035; docs/decisions/0054-compact-gain-0.08.md)
@@ -624,6 +622,11 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             "light_max_samples": 10000,
             "block_count": 4000,
         }
+    # compact sources beside the SH (a sun, a lamp, where their shadows say so): held out by
+    # map 14.1 -> 11.1 degrees median over maps, at about 35 ms a frame
+    # (docs/decisions/0061-compact-sources-in-full.md); `fast` and `mobile` keep the SH alone
+    if preset is Preset.FULL:
+        return {"compact_sources": 1}
     return {}
 
 

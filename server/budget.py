@@ -365,8 +365,8 @@ def check_cost(
         raise BudgetError(
             setting,
             (
-                f"{setting}{value}: a frame{size} would take about {total:.0f} s "
-                f"({stage} {stage_s[stage]:.0f} s, by the server's cost model), over the "
+                f"{setting}{value}: a frame{size} would take about {total:.2g} s "
+                f"({stage} {stage_s[stage]:.2g} s, by the server's cost model), over the "
                 f"per-frame deadline of {budget.frame_deadline_s:g} s (`arlight serve "
                 f"--frame-deadline`); {advice}"
             ),

@@ -103,7 +103,7 @@ def test_report_of_the_built_in_scene(tmp_path):
         acc = c["accuracy"]
         assert 0 <= acc["angle_upper_deg"]["median_of_medians"] <= 180
         assert acc["sequences"]["synthetic"]["frames"] == 3  # warm-up frames are scored too
-    assert report["configs"]["baseline"]["overrides"] == {"visibility": False}
+    assert report["configs"]["baseline"]["overrides"] == {"visibility": False, "compact_sources": 0}
     assert report["configs"]["fast sh_bands=2"]["value"] == 2
     paths = write_report(report, tmp_path / "r")
     assert sorted(p.name for p in paths) == ["report.json", "report.md", "trade.png"]

@@ -23,7 +23,9 @@ from arlight.pipeline.config import (
 
 class TestFlatKeys:
     def test_presets(self):
-        assert Config() == Config.from_preset("full")
+        # `full` is the defaults with compact sources on (decision 0061)
+        assert Config().replace(compact_sources=1) == Config.from_preset("full")
+        assert Config.from_preset("fast").estimation.compact_sources == 0
         assert Config.from_preset("fast").transfer.rt_subsample == 4
         mobile = Config.from_preset("mobile")
         assert mobile.preset is Preset.MOBILE

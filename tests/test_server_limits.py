@@ -692,10 +692,10 @@ class TestCompactSourcePrice:
         budget = SessionBudget()
         camera = PinholeCamera.kinect_v1(640, 480)
         config = SessionConfig(session="s", role="capture", calibration=calibration_of(camera))
-        plain = budget.check(config, Config.from_preset("full"), camera, objects=0)
-        compact = budget.check(
-            config, Config.from_preset("full", compact_sources=1), camera, objects=0
+        plain = budget.check(
+            config, Config.from_preset("full", compact_sources=0), camera, objects=0
         )
+        compact = budget.check(config, Config.from_preset("full"), camera, objects=0)
         assert compact.stage_s["LightEst"] > 2.0 * plain.stage_s["LightEst"]
         assert compact.frame_s < budget.frame_deadline_s / 10  # the default fits easily
         huge = Config.from_preset(
