@@ -304,6 +304,11 @@ def replay(
                         else _error(est.sh, up_seen, r, truth)
                     ),
                     "share": info.get("share"),
+                    "source_elevation": (
+                        float(np.degrees(np.arcsin(np.clip(info["direction"] @ up, -1, 1))))
+                        if "direction" in info and up is not None
+                        else None
+                    ),
                     "gain": info.get("gain"),
                     "contrast": info.get("contrast"),
                     "radius": info.get("radius"),

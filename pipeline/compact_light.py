@@ -352,6 +352,7 @@ def fit_compact_source(
     min_contrast: float = 0.0,
     min_edge_step: float = 0.0,
     max_radius_deg: float = math.inf,
+    min_elevation_deg: float = 0.0,
     min_pixels: int = 50,
     angular_radius_deg: float = 0.27,
     seed: int = 0,
@@ -478,6 +479,7 @@ def fit_compact_source(
         or contrast < min_contrast  # False for nan: not asked for
         or edge < min_edge_step
         or radius > max_radius_deg
+        or elevation < min_elevation_deg  # False for nan: no support plane
         or lit < min_pixels
         or shadowed < min_pixels
         or float(k) <= 0.0
@@ -491,7 +493,8 @@ def fit_compact_source(
             f"none: the best direction ({where}) explains {full_gain:.1%} of the residual "
             f"(needs {min_gain:.0%}), {mirrored}a step of {edge:.2f} across its shadow's "
             f"edge (needs {min_edge_step:g}), its shadows those of a {radius:g}-degree disc "
-            f"(at most {max_radius_deg:g}), {lit} pixels lit and {shadowed} in its shadow "
+            f"(at most {max_radius_deg:g}), an elevation of at least {min_elevation_deg:g} "
+            f"deg, {lit} pixels lit and {shadowed} in its shadow "
             f"(needs {min_pixels} each)"
         )
         return searched((), base[:n_sh], none_rgb, why)
@@ -580,6 +583,7 @@ def fit_compact_source(
         min_contrast=min_contrast,
         min_edge_step=min_edge_step,
         max_radius_deg=max_radius_deg,
+        min_elevation_deg=min_elevation_deg,
         min_pixels=min_pixels,
         angular_radius_deg=angular_radius_deg,
         seed=seed + 1,

@@ -364,6 +364,10 @@ class EstimationParams:
     # ln step the image must show across its shadow's edge (0 = off: held out by map it did
     # not beat a gain threshold alone, docs/decisions/0043-shadow-edge.md)
     compact_min_edge_step: float = 0.0
+    # degrees above the support plane's horizon a kept source must stand: lower ones were
+    # rooms' walls and windows; chosen leaving maps out
+    # (docs/decisions/0061-compact-sources-in-full.md)
+    compact_min_elevation_deg: float = 20.0
     # directions tested over the upper hemisphere (then refined from 8 degrees down), and
     # fitted pixels whose shadows are tested per direction: 64 and 2000 find the source as
     # well as 256 and 4000 held out by map (docs/decisions/0055-compact-search-64-2000.md)
@@ -417,6 +421,7 @@ class EstimationParams:
         _check_float(self, "compact_min_gain", 0.0)
         _check_float(self, "compact_min_contrast", 0.0, 1.0)
         _check_float(self, "compact_min_edge_step", 0.0)
+        _check_float(self, "compact_min_elevation_deg", 0.0, 90.0)
         _check_int(self, "compact_candidates", 8, 4096)
         _check_int(self, "compact_search_samples", 100)
         _check_int(self, "compact_search_interval", 1, 1000)

@@ -582,6 +582,7 @@ class Pipeline:
                 "min_gain": p.compact_min_gain,
                 "min_contrast": p.compact_min_contrast,
                 "min_edge_step": p.compact_min_edge_step,
+                "min_elevation_deg": p.compact_min_elevation_deg,
                 "max_sources": p.compact_sources,
             },
             seed=self.config.seed,

@@ -56,7 +56,7 @@ def _observe(points, normals, scene, sun, sun_power, ambient):
     return irr + sun_term
 
 
-def _fit(points, normals, scene, lum, min_edge_step=0.0, max_sources=1):
+def _fit(points, normals, scene, lum, min_edge_step=0.0, max_sources=1, min_elevation_deg=0.0):
     bands = 3
     per_coeff = np.repeat(sh.lambert_band_factors(bands), [2 * l + 1 for l in range(bands)])
     design = sh.sh_basis(normals, bands) * per_coeff  # unoccluded transfer
@@ -75,6 +75,7 @@ def _fit(points, normals, scene, lum, min_edge_step=0.0, max_sources=1):
         search_samples=3000,
         min_edge_step=min_edge_step,
         max_sources=max_sources,
+        min_elevation_deg=min_elevation_deg,
     )
 
 
@@ -101,6 +102,22 @@ def test_a_sun_is_found_where_the_shadows_say(elevation, azimuth):
     assert source.intensity == pytest.approx(2.0, rel=0.15)
     assert source.share > 0.6
     assert "1 compact source" in fit.reason
+
+
+def test_a_source_low_over_the_horizon_is_found_but_not_kept():
+    """`compact_min_elevation_deg` (20 in every preset): a 12-degree light is found where its
+    shadows say, but not kept (in rooms such sources were walls and windows); the reason
+    says why, and a 35-degree sun is still kept."""
+    points, normals, scene = _scene()
+    low = _sun(12.0, 40.0)
+    lum = _observe(points, normals, scene, low, 2.0, _ambient())
+    assert len(_fit(points, normals, scene, lum).sources) == 1
+    gated = _fit(points, normals, scene, lum, min_elevation_deg=20.0)
+    assert gated.sources == ()
+    assert angular_error_deg(gated.direction, low) < 3.0
+    assert "an elevation of at least 20 deg" in gated.reason
+    high = _observe(points, normals, scene, _sun(35.0, 40.0), 2.0, _ambient())
+    assert len(_fit(points, normals, scene, high, min_elevation_deg=20.0).sources) == 1
 
 
 def test_no_source_under_an_overcast_sky():
