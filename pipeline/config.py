@@ -628,7 +628,7 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             "block_count": 4000,
         }
     # compact sources beside the SH (a sun, a lamp, where their shadows say so): held out by
-    # map 14.1 -> 11.1 degrees median over maps, at about 35 ms a frame
+    # map 16.1 -> 11.2 degrees median over 22 maps, at about 35 ms a frame
     # (docs/decisions/0061-compact-sources-in-full.md); `fast` and `mobile` keep the SH alone
     if preset is Preset.FULL:
         return {"compact_sources": 1}

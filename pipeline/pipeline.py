@@ -450,8 +450,9 @@ class Pipeline:
         )
 
     def _compact(self) -> CompactLightStage:
-        """The session's compact-source stage (made on first use; with rt_method raycast the
-        transfer's scene of the volume serves it too)."""
+        """The session's compact-source stage (made on first use): against the frame's depth
+        mesh, or with compact_volume_mesh the volume's (with rt_method raycast, the
+        transfer's scene of it)."""
         if self._compact_stage is None:
             p = self.config.estimation
             self._compact_stage = CompactLightStage(
