@@ -284,10 +284,10 @@ def shadow_edge(
     same = (np.abs(albedo[j] - albedo[i]) <= 1e-9 * np.abs(albedo[i])) & (
         np.einsum("kc,kc->k", normals[j], normals[i]) > EDGE_MIN_NORMAL_COS
     )
-    i, j = i[same], j[same]
+    i, lit_log_lum = i[same], log_lum[j[same]]
     # the median lit ln luminance per shadowed pixel: sorted by pixel, then by value
-    order = np.lexsort((log_lum[j], i))
-    i, values = i[order], log_lum[j][order]
+    order = np.lexsort((lit_log_lum, i))
+    i, values = i[order], lit_log_lum[order]
     shadowed, start, count = np.unique(i, return_index=True, return_counts=True)
     median = (values[start + (count - 1) // 2] + values[start + count // 2]) / 2
     steps = median.astype(np.float64) - log_lum[shadowed]
