@@ -19,7 +19,7 @@ from arlight.pipeline.compact_light import (
     shadow_edge,
     source_confidence,
 )
-from arlight.pipeline.light_estimation import penalty_matrix
+from arlight.pipeline.light_estimation import MIN_FACTOR, penalty_matrix
 from arlight.pipeline.object_space_transfer import OcclusionScene, SurfaceMesh
 
 UP = np.array([0.0, 1.0, 0.0])
@@ -211,7 +211,9 @@ def test_a_source_is_as_trusted_as_its_shadow_edge_is_clear():
     faint = source_confidence(conf, 0.05)
     assert faint.value == pytest.approx(0.1)
     assert "compact source" in faint.reason and "0.05" in faint.reason
-    assert source_confidence(conf, -0.2).value == 0.0
+    # no step at all: the lowest confidence an estimate has, never 0 (which means none)
+    flat = source_confidence(conf, -0.2)
+    assert flat.value == MIN_FACTOR and "0.00" in flat.reason
 
 
 def test_tracking_refines_the_last_direction_and_searches_again_when_the_light_moves():
