@@ -7,7 +7,8 @@ composites and a virtual scene (a sphere and a torus anchored on the detected gr
 composites: the objects rendered in with their shadows),
 `results.jsonl`, and `summary.json` (frames per second, latencies, median per-stage
 timings, the angular error of the dominant light against the light that can reach the
-scene, its upper hemisphere).
+scene, its upper hemisphere, and, on frames that kept a compact source, that source's
+angle from the scene's sun).
 The server, the display and the capture client talk over real TCP sockets, exactly as they
 would across machines.
 """
@@ -63,20 +64,35 @@ def run_demo(
 
     # the light that can reach the scene (its upper hemisphere), camera frame
     truth = [t.dominant_upper_camera for t in scene_truth(scene)]
+    # the scene's sun, camera frame: what a kept compact source is (its first moment, the
+    # truth above, stands apart from it where the sky outshines the sun)
+    sun = [
+        np.asarray(f.pose, float)[:3, :3].T @ np.asarray(s, float)
+        for f, s in zip(scene.frames, scene.sun_direction_world, strict=True)
+    ]
     errors: dict[int, float] = {}
+    sun_errors: dict[int, float] = {}
     pipeline_ms: list[float] = []
     notes = FrameNotes()  # why a confidence is low, printed where the reason changes
 
     def on_result(result, record) -> None:
         err = _angle_deg(result.dominant_direction_camera, truth[result.seq])
         errors[result.seq] = err
+        sources = result.compact_sources or []
+        if sources:
+            sun_errors[result.seq] = _angle_deg(sources[0]["direction_camera"], sun[result.seq])
         pipeline_ms.append(record["pipeline_ms"])
         d = result.dominant_direction_camera
         e2e = record["end_to_end_ms"]
+        source_note = (
+            f"(a compact source, {sun_errors[result.seq]:4.1f} deg from the sun)  "
+            if sources
+            else ""
+        )
         printer(
             f"[{result.seq + 1:>3}/{frames}] light(cam)=({d[0]:+.2f}, {d[1]:+.2f}, "
             f"{d[2]:+.2f})  conf={result.confidence.value:.2f}  "
-            f"error={f'{err:5.1f}' if np.isfinite(err) else '  -  '} deg  "
+            f"error={f'{err:5.1f}' if np.isfinite(err) else '  -  '} deg  {source_note}"
             f"pipeline {record['pipeline_ms']:6.0f} ms  "
             f"in server {record['in_server_ms']:6.0f} ms (incl. queue)  end-to-end "
             + ("-" if e2e is None else f"{e2e:6.0f} ms")
@@ -134,6 +150,7 @@ def run_demo(
         display.summary.to_dict(),
         stream,
         errors,
+        sun_errors,
         pipeline_ms,
         frames,
         size,
@@ -172,13 +189,16 @@ def _summary(
     shown: dict,
     stream,
     errors: dict[int, float],
+    sun_errors: dict[int, float],
     pipeline_ms: list[float],
     frames: int,
     size: tuple[int, int],
     preset: str,
     wall_time_s: float,
 ) -> dict:
-    """summary.json: what the display received, the capture client's counts, the errors.
+    """summary.json: what the display received, the capture client's counts, the errors
+    (of the dominant light against the upper hemisphere's first moment; of the kept compact
+    sources against the scene's sun).
 
     fps is what the service delivered: results per second of streaming (first frame sent to
     last result, JIT compilation of a first run included); pipeline_fps is 1000 / the median
@@ -208,6 +228,10 @@ def _summary(
         "angular_error_deg": {
             "median": round(float(np.median(valid_errors)), 3) if valid_errors else None,
             "p90": round(float(np.percentile(valid_errors, 90)), 3) if valid_errors else None,
+        },
+        "compact_source_to_sun_deg": {
+            "frames": len(sun_errors),
+            "median": round(float(np.median(list(sun_errors.values()))), 3) if sun_errors else None,
         },
         "frames_dropped": shown["frames_dropped"],
         "reconnects": stream.reconnects,

@@ -608,6 +608,9 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             # finer material segments: better held out by map in `fast` (not in `full`) and
             # on real 7-Scenes frames (docs/decisions/0059-finer-segments-in-fast.md)
             "segment_coarseness": 0.5,
+            # compact sources as in `full`: held out by map 16.5 -> 12.2 degrees median
+            # over 22 maps, at about 40 ms a frame (docs/decisions/0062-compact-sources-in-fast.md)
+            "compact_sources": 1,
         }
     if preset is Preset.MOBILE:
         # and, speed first, the light fitted to at most 10000 pixels (measured together with
@@ -629,7 +632,7 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
         }
     # compact sources beside the SH (a sun, a lamp, where their shadows say so): held out by
     # map 16.1 -> 11.2 degrees median over 22 maps, at about 35 ms a frame
-    # (docs/decisions/0061-compact-sources-in-full.md); `fast` and `mobile` keep the SH alone
+    # (docs/decisions/0061-compact-sources-in-full.md); `mobile` keeps the SH alone
     if preset is Preset.FULL:
         return {"compact_sources": 1}
     return {}

@@ -413,6 +413,10 @@ class TestCommands:
         assert summary["latency_ms"]["median"] > 0 and summary["fps"] > 0
         assert len(list((out / "frames").glob("*.png"))) == 3
         assert len((out / "results.jsonl").read_text().splitlines()) == 3
+        # `fast` keeps a compact source where the shadows show one (decision 0062): the
+        # scene's sun, found within a few degrees
+        sun = summary["compact_source_to_sun_deg"]
+        assert 1 <= sun["frames"] <= 3 and sun["median"] < 10.0
 
     def test_stream_record_and_bit_exact_replay(self, make_server, tmp_path, capsys):
         server = make_server(process=identity_step())

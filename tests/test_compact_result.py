@@ -103,7 +103,7 @@ class TestFrameResult:
 
     def test_none_without_compact_sources(self):
         seq = make_sequence(num_frames=1, width=96, height=72, seed=1, sensor_noise=False)
-        pipeline = Pipeline(Config.from_preset("fast"), seq.camera)
+        pipeline = Pipeline(Config.from_preset("fast", compact_sources=0), seq.camera)
         got = pipeline.process(seq.frames[0])
         assert got.compact_sources == () and pipeline.last_compact is None
         assert "compact_sources" not in msgpack.unpackb(as_bytes(encode(_message(got)))[0])

@@ -23,9 +23,11 @@ from arlight.pipeline.config import (
 
 class TestFlatKeys:
     def test_presets(self):
-        # `full` is the defaults with compact sources on (decision 0061)
+        # `full` is the defaults with compact sources on (decision 0061); `fast` has them
+        # too (decision 0062), `mobile` not
         assert Config().replace(compact_sources=1) == Config.from_preset("full")
-        assert Config.from_preset("fast").estimation.compact_sources == 0
+        assert Config.from_preset("fast").estimation.compact_sources == 1
+        assert Config.from_preset("mobile").estimation.compact_sources == 0
         assert Config.from_preset("fast").transfer.rt_subsample == 4
         mobile = Config.from_preset("mobile")
         assert mobile.preset is Preset.MOBILE

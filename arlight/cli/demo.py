@@ -53,6 +53,13 @@ def run(args: argparse.Namespace) -> int:
         return 1
     lat = summary["latency_ms"]
     err = summary["angular_error_deg"]
+    sun = summary["compact_source_to_sun_deg"]
+    sun_text = (
+        f"; a compact source on {sun['frames']} of {summary['results']} frames, median "
+        f"{figure(sun['median'], '.1f')} deg from the scene's sun"
+        if sun["frames"]
+        else ""
+    )
     stages = ", ".join(f"{k} {v:.0f}" for k, v in summary["timings_ms_median"].items())
     print(
         f"arlight demo: {summary['results']}/{summary['frames_sent']} results, "
@@ -61,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
         f"{figure(summary['pipeline_fps'], '.1f')} fps); end-to-end latency median "
         f"{figure(lat['median'], '.0f')} ms (p95 {figure(lat['p95'], '.0f')}, lossless: "
         f"includes queueing); median stage ms: {stages}; dominant light error median "
-        f"{figure(err['median'], '.1f')} deg",
+        f"{figure(err['median'], '.1f')} deg (against the first moment of the light above "
+        f"the horizon){sun_text}",
         file=sys.stderr,
     )
     plot = Path(args.out) / "latency.png"
