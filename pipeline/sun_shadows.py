@@ -67,6 +67,7 @@ class MeshOccluder:
         """meshes: (vertices (N, 3) metres, triangles (M, 3) indices) per mesh, world frame."""
         self._scene = o3d.t.geometry.RaycastingScene()
         self.empty = True
+        used = []
         for vertices, triangles in meshes:
             if len(triangles):
                 self._scene.add_triangles(
@@ -74,6 +75,37 @@ class MeshOccluder:
                     o3c.Tensor(np.ascontiguousarray(triangles).astype(np.uint32)),
                 )
                 self.empty = False
+                used.append(np.asarray(vertices, np.float64)[np.unique(triangles)])
+        # a sphere holding every triangle (world frame): rays that miss it hit nothing
+        points = np.concatenate(used) if used else np.zeros((1, 3))
+        self.centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
+        self.radius = float(np.linalg.norm(points - self.centre, axis=1).max())
+
+    def may_block(
+        self,
+        points: np.ndarray,
+        direction: np.ndarray,
+        angular_radius_deg: float,
+        centre: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """(N,) bool: False where no ray from `points` (N, 3) within `angular_radius_deg` of
+        unit `direction` can meet the meshes (it misses their bounding sphere, grown by the
+        rays' offset); True where one may. `centre`: the sphere's centre in the frame of
+        `points` and `direction` (default: world, the meshes' frame)."""
+        c = self.centre if centre is None else np.asarray(centre, np.float64)
+        radius = self.radius + 2.0 * RAY_OFFSET_M
+        v = c.astype(np.float32) - np.asarray(points, np.float32)
+        dist = np.sqrt(np.einsum("ij,ij->i", v, v))
+        along = v @ np.asarray(direction, np.float32)  # dist times the cosine to the centre
+        # the cone of the disc's rays (half-angle a) meets the sphere where the angle to its
+        # centre is at most a + b, b = asin(radius / dist) the sphere's angular radius:
+        # cos(angle) >= cos(a + b) = cos a cos b - sin a sin b, all times dist
+        a = math.radians(angular_radius_deg)
+        sin_b_dist = np.float32(radius)
+        cos_b_dist = np.sqrt(np.maximum(dist * dist - np.float32(radius * radius), 0.0))
+        reach = np.float32(math.cos(a)) * cos_b_dist - np.float32(math.sin(a)) * sin_b_dist
+        # (a margin of a millimetre over float32's rounding)
+        return (dist <= radius + 1e-3) | (along >= reach - np.float32(1e-3))
 
     def visibility(
         self,
@@ -194,7 +226,10 @@ class AmbientChange:
 def touched_by(ratio: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """(...) bool: where the SH part's ratio (...) or added RGB (..., 3) changed a real
     pixel by more than RATIO_CHANGE / INDIRECT_CHANGE."""
-    return (np.abs(ratio - 1.0) > RATIO_CHANGE) | (np.abs(delta).max(axis=-1) > INDIRECT_CHANGE)
+    out = np.abs(ratio - 1.0) > RATIO_CHANGE
+    for channel in range(delta.shape[-1]):  # (a max over the short last axis is slow)
+        out |= np.abs(delta[..., channel]) > INDIRECT_CHANGE
+    return out
 
 
 class CompactSourceShading:
@@ -265,6 +300,15 @@ class CompactSourceShading:
             if ambient_change is not None
             else np.zeros(virtual.shape, bool)
         )
+        # only pixels the SH part touched or whose rays may meet the objects can change
+        centre_cam = (self.virtual.centre - t) @ rot
+        reach = np.zeros(virtual.shape, bool)
+        for source in sources:
+            d_cam = np.asarray(source.direction, np.float64) @ rot
+            reach[real] |= self.virtual.may_block(
+                real_points_cam[real], d_cam, source.angular_radius_deg, centre_cam
+            )
+        real &= reach | touched_img
         rv, ru = np.nonzero(real)  # (boolean masks below gather in this same order)
         rot32 = np.ascontiguousarray(rot.T, np.float32)
         p = real_points_cam[real] @ rot32 + t.astype(np.float32)  # float32: ray origins

@@ -267,3 +267,44 @@ def test_a_mirror_takes_the_source_only_from_what_it_reflects() -> None:
     gain = lit.composite.astype(int) - without.composite.astype(int)
     assert np.all(gain[mirror] == 0)
     assert np.median(gain[diffuse]) > 10
+
+
+def test_rays_that_miss_the_bounding_sphere_are_never_blocked() -> None:
+    """`may_block` is conservative: every ground point a pole's disc of rays reaches is
+    kept, for a point sun and a wide disc, and most of the ground is left out."""
+    pole = MeshOccluder([_box((0.0, 0.25, 0.0), (0.01, 0.25, 0.01))])
+    points, normals = _ground(extent=1.0, step=0.01)
+    for radius in (0.27, 5.0):
+        sun = _sun(35.0, 60.0)
+        seen = pole.visibility(points, normals, sun, angular_radius_deg=radius, samples=16)
+        may = pole.may_block(points, sun, radius)
+        assert np.all(may[seen < 1.0])
+        assert may.mean() < 0.25
+
+
+def test_the_composite_is_the_same_without_the_bounding_sphere(monkeypatch) -> None:
+    """The real pixels tested for the objects' shadow are culled by the objects' bounding
+    sphere; with every pixel tested instead the composite is identical, bit for bit."""
+    from test_rendering import UP, frame_inputs, ground_view
+
+    from arlight.pipeline import sh
+    from arlight.pipeline.config import Config
+    from arlight.pipeline.rendering import DifferentialRenderer
+    from arlight.pipeline.sun_shadows import SourceLight
+
+    view = ground_view(320, 240, distance_m=1.6, tilt_deg=60.0)
+    sun = _sun(30.0, 120.0)
+    ambient = np.zeros(16)
+    ambient[0] = 0.1 / sh.sh_basis(UP, 1)[0]
+    renderer = DifferentialRenderer(_pole_scene(0.3, 0.05), view.camera, Config())
+    inputs = dataclasses.replace(
+        frame_inputs(view, ambient + sh.directional_light(sun, 2.0, 4)),
+        light_sh=ambient,
+        sources=[SourceLight(sun, 2.0, np.ones(3), 3.0)],
+    )
+    culled = renderer.render(inputs).composite.copy()
+    assert np.any(culled != renderer.render(dataclasses.replace(inputs, sources=[])).composite)
+    monkeypatch.setattr(
+        MeshOccluder, "may_block", lambda self, points, *args, **kw: np.ones(len(points), bool)
+    )
+    np.testing.assert_array_equal(renderer.render(inputs).composite, culled)
