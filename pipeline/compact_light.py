@@ -199,11 +199,19 @@ class _System:
     sse: float  # weighted residual of the SH-only solution (luminance)
 
 
-def _system(design: np.ndarray, w: np.ndarray, target: np.ndarray, penalty: np.ndarray) -> _System:
-    gram = design.T @ (design * w[:, None])
-    scale = float(np.mean(np.diag(gram))) or 1.0
-    g = gram + scale * penalty
-    g_inv = np.linalg.inv(g)
+def _system(
+    design: np.ndarray,
+    w: np.ndarray,
+    target: np.ndarray,
+    penalty: np.ndarray,
+    g_inv: np.ndarray | None = None,
+) -> _System:
+    """The penalised normal equations of I = A x for `target`; `g_inv`: their inverse
+    matrix from another target with the same design, weights and penalty (reused)."""
+    if g_inv is None:
+        gram = design.T @ (design * w[:, None])
+        scale = float(np.mean(np.diag(gram))) or 1.0
+        g_inv = np.linalg.inv(gram + scale * penalty)
     r = design.T @ (w[:, None] * target if target.ndim == 2 else w * target)
     x = g_inv @ r
     lum = target if target.ndim == 1 else target[:, 0]
@@ -381,7 +389,7 @@ def fit_compact_source(
     base = system.g_inv @ system.r
     none_rgb = None
     if rgb is not None:
-        rgb_system = _system(a_design, weights, rgb, penalty)
+        rgb_system = _system(a_design, weights, rgb, penalty, system.g_inv)
         none_rgb = (rgb_system.g_inv @ rgb_system.r)[:n_sh].T
     rng = np.random.default_rng(seed)
     m = len(lum)
@@ -542,7 +550,7 @@ def fit_compact_source(
         ambient = x[:n_sh]
         ambient_rgb, k_rgb = None, [None] * len(sources)
         if rgb is not None:
-            rgb_system = _system(a_design, weights, rgb, wide)
+            rgb_system = _system(a_design, weights, rgb, wide, system.g_inv)
             x_rgb = rgb_system.g_inv @ rgb_system.r
             ambient_rgb = x_rgb[:n_sh].T
             k_rgb = [np.maximum(x_rgb[n + i], 0.0) for i in range(len(sources))]
