@@ -609,7 +609,7 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             # on real 7-Scenes frames (docs/decisions/0059-finer-segments-in-fast.md)
             "segment_coarseness": 0.5,
             # compact sources as in `full`: held out by map 16.5 -> 12.2 degrees median
-            # over 22 maps, at about 40 ms a frame (docs/decisions/0062-compact-sources-in-fast.md)
+            # over 22 maps, at about 30 ms a frame (docs/decisions/0062-compact-sources-in-fast.md)
             "compact_sources": 1,
         }
     if preset is Preset.MOBILE:
