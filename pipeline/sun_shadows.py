@@ -121,17 +121,18 @@ class MeshOccluder:
         n = len(points)
         if self.empty or n == 0:
             return np.ones(n)
-        dirs = disc_directions(direction, angular_radius_deg, samples)
+        dirs = disc_directions(direction, angular_radius_deg, samples).astype(np.float32)
         origins = (points + RAY_OFFSET_M * normals).astype(np.float32)
+        # every direction's rays in one call: (directions, points) rays
+        rays = np.empty((len(dirs), n, 6), np.float32)
+        rays[:, :, :3] = origins
+        rays[:, :, 3:] = dirs[:, None, :]
+        blocked = self._scene.test_occlusions(
+            o3c.Tensor.from_numpy(rays.reshape(-1, 6)), tnear=RAY_TNEAR_M, tfar=np.inf
+        ).numpy()
         seen = np.zeros(n)
-        for d in dirs:
-            rays = np.empty((n, 6), np.float32)
-            rays[:, :3] = origins
-            rays[:, 3:] = d
-            blocked = self._scene.test_occlusions(
-                o3c.Tensor.from_numpy(rays), tnear=RAY_TNEAR_M, tfar=np.inf
-            ).numpy()
-            seen += ~blocked
+        for row in (~blocked).reshape(len(dirs), n):  # summed in the same order as before
+            seen += row
         return seen / len(dirs)
 
 
@@ -302,13 +303,13 @@ class CompactSourceShading:
         )
         # only pixels the SH part touched or whose rays may meet the objects can change
         centre_cam = (self.virtual.centre - t) @ rot
-        reach = np.zeros(virtual.shape, bool)
-        for source in sources:
+        reach = touched_img.copy()
+        for source in sources:  # (over every pixel: cheaper than gathering the real ones)
             d_cam = np.asarray(source.direction, np.float64) @ rot
-            reach[real] |= self.virtual.may_block(
-                real_points_cam[real], d_cam, source.angular_radius_deg, centre_cam
-            )
-        real &= reach | touched_img
+            reach |= self.virtual.may_block(
+                real_points_cam.reshape(-1, 3), d_cam, source.angular_radius_deg, centre_cam
+            ).reshape(virtual.shape)
+        real &= reach
         rv, ru = np.nonzero(real)  # (boolean masks below gather in this same order)
         rot32 = np.ascontiguousarray(rot.T, np.float32)
         p = real_points_cam[real] @ rot32 + t.astype(np.float32)  # float32: ray origins
