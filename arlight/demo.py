@@ -63,13 +63,9 @@ def run_demo(
     from arlight.offline import FrameNotes
 
     # the light that can reach the scene (its upper hemisphere), camera frame
-    truth = [t.dominant_upper_camera for t in scene_truth(scene)]
-    # the scene's sun, camera frame: what a kept compact source is (its first moment, the
-    # truth above, stands apart from it where the sky outshines the sun)
-    sun = [
-        np.asarray(f.pose, float)[:3, :3].T @ np.asarray(s, float)
-        for f, s in zip(scene.frames, scene.sun_direction_world, strict=True)
-    ]
+    truths = scene_truth(scene)
+    truth = [t.dominant_upper_camera for t in truths]
+    sun = [t.sun_camera for t in truths]  # what a kept compact source is
     errors: dict[int, float] = {}
     sun_errors: dict[int, float] = {}
     pipeline_ms: list[float] = []

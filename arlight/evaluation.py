@@ -59,7 +59,10 @@ class FrameTruth:
     env_map: name of the environment map that lit this frame (e.g. "venice_sunset_1k"), None
     when unknown (the built-in scene). layout: the sequence's scene layout ("static", "room",
     ...; from its "category" where the file has no "layout"), None when unknown.
-    reference: "distant" (the environment map's own fields) or "probe".
+    reference: "distant" (the environment map's own fields) or "probe". sun_camera: (3,)
+    unit, towards the built-in scene's sun, camera frame (what a kept compact source is:
+    where the sky outshines the sun, the first moment above stands apart from it); None
+    where the truth names no single sun.
     """
 
     dominant_camera: np.ndarray
@@ -68,6 +71,7 @@ class FrameTruth:
     env_map: str | None = None
     layout: str | None = None
     reference: str = "distant"
+    sun_camera: np.ndarray | None = None
 
 
 def has_ground_truth(folder: str | Path) -> bool:
@@ -167,6 +171,7 @@ def scene_truth(scene) -> list[FrameTruth]:
                 dominant_camera=cam_from_world @ sh.dominant_direction(whole),
                 dominant_upper_camera=cam_from_world @ sh.dominant_direction(upper),
                 sh_upper_world=upper,
+                sun_camera=cam_from_world @ lighting.sun_direction,
             )
         )
     return truths

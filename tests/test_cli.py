@@ -153,6 +153,24 @@ def test_estimate_on_the_built_in_scene_compares_in_the_camera_frame(capsys):
     # 80 when the frames differ; the estimator itself is 15-35 deg off on this scene's first
     # frames (its sky below the horizon is not a ground's uniform glow: docs/results/accuracy.md)
     assert median < 45.0, text
+    # `fast` keeps a compact source there (decision 0062): the scene's sun, in the same frame
+    sun = text.split("a compact source on ")[1]
+    assert float(sun.split(" median ")[1].split()[0]) < 15.0, text
+
+
+def test_the_built_in_scene_s_truth_names_its_sun():
+    """scene_truth's sun_camera is the scene's sun turned into each frame's camera frame, 14
+    degrees below the first moment of the light above the horizon on the first frame."""
+    from arlight.evaluation import angular_error_deg, scene_truth
+    from arlight.sources.synthetic import make_sequence
+
+    scene = make_sequence(num_frames=3, width=64, height=48)
+    for frame, sun, truth in zip(
+        scene.frames, scene.sun_direction_world, scene_truth(scene), strict=True
+    ):
+        np.testing.assert_allclose(np.asarray(frame.pose)[:3, :3] @ truth.sun_camera, sun)
+    first = scene_truth(scene)[0]
+    assert 10.0 < angular_error_deg(first.sun_camera, first.dominant_upper_camera) < 20.0
 
 
 def test_estimate_tracks_the_first_frames_of_the_built_in_scene(tmp_path, capsys):

@@ -201,7 +201,7 @@ def run(args: argparse.Namespace) -> int:
     if args.cubemap and environments is None:
         raise BadInput("--cubemap writes faces beside the --env-exr maps: give --env-exr DIR")
     out = open(args.out, "w") if args.out else None  # noqa: SIM115
-    errors = []
+    errors, sun_errors = [], []
     notes = FrameNotes()
     try:
         for done in estimate_frames(
@@ -223,6 +223,13 @@ def run(args: argparse.Namespace) -> int:
                 errors.append(err)
                 record["angular_error_deg"] = err
                 line += f"  error={err:.1f} deg"
+                if result.compact_sources and truth[i].sun_camera is not None:
+                    # the kept source against the scene's sun, what it is (arlight demo)
+                    sun_err = _angle_deg(
+                        result.compact_sources[0].direction_camera, truth[i].sun_camera
+                    )
+                    sun_errors.append(sun_err)
+                    line += f" (a compact source, {sun_err:.1f} deg from the sun)"
             print(line, flush=True)
             note = notes.note(
                 result.confidence.value, result.confidence.reason, has_usable_depth(done.frame)
@@ -251,7 +258,14 @@ def run(args: argparse.Namespace) -> int:
     if errors:
         print(
             f"median angular error of the dominant light: {np.nanmedian(errors):.1f} deg "
-            f"(90th percentile {np.nanpercentile(errors, 90):.1f})",
+            f"(90th percentile {np.nanpercentile(errors, 90):.1f}; against the first moment "
+            "of the light above the horizon)",
+            file=sys.stderr,
+        )
+    if sun_errors:
+        print(
+            f"a compact source on {len(sun_errors)} of {count(n, 'frame')}, median "
+            f"{np.nanmedian(sun_errors):.1f} deg from the scene's sun",
             file=sys.stderr,
         )
     if args.out:
