@@ -325,6 +325,9 @@ class EstimationParams:
     # larger sets of usable pixels are randomly sub-sampled: 30000 (50000 until 2026-12-04) in
     # every preset but mobile, held out by map: docs/decisions/0044-fewer-fit-samples.md
     light_max_samples: int = 30000
+    # fit only the sampled pixels within this many metres of the point the camera looks at
+    # (pipeline/fit_region.py; 0 = every pixel)
+    fit_radius_m: float = 0.0
     # weight of the prior holding radiance below the horizon of the surface the scene stands
     # on to that of a lit ground (0 = off); always on with rt_horizon (no pixel sees there),
     # otherwise only when the light comes out below that horizon
@@ -408,6 +411,7 @@ class EstimationParams:
                 "light_prior_exclude must be map names separated by commas "
                 f"{_hint('light_prior_exclude', 'NAME,NAME')}"
             )
+        _check_float(self, "fit_radius_m", 0.0)
         _check_int(self, "robust_iterations", 0)
         _check_float(self, "robust_threshold", 0.0)
         _check_bool(self, "albedo_segments")

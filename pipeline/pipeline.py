@@ -46,6 +46,7 @@ from arlight.pipeline.compact_light import (
 )
 from arlight.pipeline.config import Config, RtMethod
 from arlight.pipeline.depth_filter import backend_for_device, filter_depth, normals_from_depth
+from arlight.pipeline.fit_region import near_look_at
 from arlight.pipeline.horizon import SupportPlane, support_plane
 from arlight.pipeline.light_estimation import (
     LightEstimate,
@@ -473,6 +474,8 @@ class Pipeline:
         with _stage(timings, "LightEst"):
             plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
+            # the pixels near where the camera looks (fit_radius_m; every one when 0)
+            transfer = near_look_at(transfer, geometry.points, self.config.estimation.fit_radius_m)
             estimate = self._estimate(
                 transfer,
                 front.color_linear,
