@@ -615,6 +615,10 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             # compact sources as in `full`: held out by map 16.5 -> 12.2 degrees median
             # over 22 maps, at about 30 ms a frame (docs/decisions/0062-compact-sources-in-fast.md)
             "compact_sources": 1,
+            # the light fitted to the pixels within 1 m of the look-at point: held out by map
+            # 12.2 / 15.5 -> 11.6 / 12.7 degrees median / mean over 22 maps
+            # (docs/decisions/0063-fit-near-the-look-at-point.md)
+            "fit_radius_m": 1.0,
         }
     if preset is Preset.MOBILE:
         # and, speed first, the light fitted to at most 10000 pixels (measured together with

@@ -235,7 +235,9 @@ def test_sh_bands_1_to_8(scene_160, sh_bands):
     finite, bands_estimated <= sh_bands, and the bands the normals support (4 at 160x120)
     are the same whatever is asked above them."""
     f = scene_160.frames[0]
-    cfg = Config.from_preset("fast", sh_bands=sh_bands, **SMALL)
+    # every pixel of the frame (fit_radius_m 0): what its normals support, not the look-at
+    # point's neighbourhood (decision 0063)
+    cfg = Config.from_preset("fast", sh_bands=sh_bands, fit_radius_m=0.0, **SMALL)
     result = Pipeline(cfg, scene_160.camera).process(f)
     _assert_finite_and_honest(result, sh_bands)
     c = result.confidence

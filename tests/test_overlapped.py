@@ -21,7 +21,10 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def test_overlapped_results_follow_the_serial_ones(scene):
-    config = Config.from_preset("fast", **SMALL)
+    # every pixel fitted (fit_radius_m 0): near the look-at point alone (decision 0063) the
+    # fit has a few thousand pixels at this size, and the aux buffer's frame-late direction
+    # turns it by up to 4 degrees; the mechanism is the same
+    config = Config.from_preset("fast", fit_radius_m=0.0, **SMALL)
     pipeline = Pipeline(config, scene.camera)
     serial = [pipeline.process(f) for f in scene.frames]
     overlapped = list(Pipeline(config, scene.camera).process_overlapped(scene.frames))
