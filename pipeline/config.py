@@ -358,7 +358,8 @@ class EstimationParams:
     estimate_rgb: bool = False  # also solve one SH per linear RGB channel
     # compact sources (a sun, a lamp) fitted beside the SH from the shadows the reconstruction
     # casts (pipeline/compact_light.py): at most this many (0 = off; 2: a second searched on
-    # what the first leaves, experimental). On in `full` (decision 0061), off in the others
+    # what the first leaves, experimental). On in `full` and `fast` (decisions 0061, 0062),
+    # off in `mobile`
     compact_sources: int = 0
     # of the SH fit's residual its shadow must explain: 0.08, chosen leaving maps out over
     # the fit of decision 0052 (0.03 in decision 0035; docs/decisions/0054-compact-gain-0.08.md)
