@@ -328,6 +328,9 @@ class EstimationParams:
     # fit only the sampled pixels within this many metres of the point the camera looks at
     # (pipeline/fit_region.py; 0 = every pixel)
     fit_radius_m: float = 0.0
+    # with fit_radius_m, search the compact sources on every sampled pixel (a second fit of
+    # the SH there), not only on those near the look-at point: a sun's shadows fall anywhere
+    fit_radius_sources_everywhere: bool = False
     # weight of the prior holding radiance below the horizon of the surface the scene stands
     # on to that of a lit ground (0 = off); always on with rt_horizon (no pixel sees there),
     # otherwise only when the light comes out below that horizon
@@ -413,6 +416,7 @@ class EstimationParams:
                 f"{_hint('light_prior_exclude', 'NAME,NAME')}"
             )
         _check_float(self, "fit_radius_m", 0.0)
+        _check_bool(self, "fit_radius_sources_everywhere")
         _check_int(self, "robust_iterations", 0)
         _check_float(self, "robust_threshold", 0.0)
         _check_bool(self, "albedo_segments")

@@ -474,18 +474,31 @@ class Pipeline:
         with _stage(timings, "LightEst"):
             plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
+            p = self.config.estimation
             # the pixels near where the camera looks (fit_radius_m; every one when 0)
-            transfer = near_look_at(transfer, geometry.points, self.config.estimation.fit_radius_m)
-            estimate = self._estimate(
-                transfer,
-                front.color_linear,
-                front.labels,
-                up_world,
-                below_horizon_unseen=self.config.transfer.rt_horizon,
-                checkpoint=lambda: check("LightEst"),
-            )
+            every_pixel = transfer
+            transfer = near_look_at(transfer, geometry.points, p.fit_radius_m)
+
+            def fitted(samples: TransferSamples) -> LightEstimate:
+                return self._estimate(
+                    samples,
+                    front.color_linear,
+                    front.labels,
+                    up_world,
+                    below_horizon_unseen=self.config.transfer.rt_horizon,
+                    checkpoint=lambda: check("LightEst"),
+                )
+
+            estimate = fitted(transfer)
+            searched, search_estimate = transfer, estimate
+            if (
+                p.fit_radius_sources_everywhere
+                and p.compact_sources > 0
+                and transfer is not every_pixel
+            ):
+                searched, search_estimate = every_pixel, fitted(every_pixel)
             self.last_compact = self._compact_sources(
-                estimate, geometry, transfer, pose, up_world, front.occluder, diagnostics
+                search_estimate, geometry, searched, pose, up_world, front.occluder, diagnostics
             )
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:

@@ -12,6 +12,7 @@ from arlight.core.checks import CheckError
 from arlight.core.frames import FrameInput
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline.config import Config
+from arlight.pipeline.fit_region import near_look_at
 from arlight.pipeline.pipeline import STAGES, FrameError, Pipeline
 from arlight.sources.synthetic import make_sequence
 
@@ -251,3 +252,27 @@ def test_exact_transfer_only_where_the_colour_is_fittable(clean_sequence):
     assert brightest.max() < 253 and brightest.min() > 0  # 253: linear 0.98, CLIP_LEVEL
     assert 0.25 < samples.clipped_fraction < 0.4
     assert "clipped" in result.confidence.reason
+
+
+@pytest.mark.parametrize("everywhere", [False, True])
+def test_the_sources_are_searched_on_every_pixel_when_asked(clean_sequence, everywhere):
+    """fit_radius_sources_everywhere: the SH is fitted near the look-at point, the compact
+    sources searched on every sampled pixel (decision 0064); otherwise both near it."""
+    config = Config.from_preset(
+        "full", fit_radius_m=1.0, fit_radius_sources_everywhere=everywhere, **SMALL
+    )
+    pipe = Pipeline(config, clean_sequence.camera)
+    searched: list[int] = []
+    real = pipe._compact_sources
+
+    def spy(estimate, geometry, transfer, *rest):
+        searched.append(len(transfer.pixel_v))
+        assert estimate.fit is not None and len(estimate.fit.rows) <= len(transfer.pixel_v)
+        return real(estimate, geometry, transfer, *rest)
+
+    pipe._compact_sources = spy  # type: ignore[method-assign]
+    pipe.process(clean_sequence.frames[0])
+    _, every = pipe._last_transfer
+    near = near_look_at(every, pipe._last_transfer[0].points, 1.0)
+    assert len(near.pixel_v) < len(every.pixel_v)  # the radius leaves pixels out here
+    assert searched == [len(every.pixel_v) if everywhere else len(near.pixel_v)]
