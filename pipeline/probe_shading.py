@@ -143,7 +143,7 @@ def _lambertian(
     irradiance at their normal (turned towards the ray's origin)."""
     nn = np.where(np.sum(normals * ray, axis=1, keepdims=True) > 0, -normals, normals)
     albedo = np.stack([g.diffuse_rgb + g.f0 for g in looks])[index]
-    e = np.maximum(sh.evaluate(sh.irradiance_from_radiance(probe.distant.sh), nn), 0.0)
+    e = np.maximum(sh.irradiance_at(probe.distant.sh, nn), 0.0)
     return albedo / math.pi * e[:, None] * np.asarray(probe.distant.rgb, np.float64)
 
 

@@ -299,7 +299,7 @@ class DifferentialRenderer:
         radiance_c = radiance_r.copy()
         if np.any(virtual):
             n_world = g.normals_cam[virtual].astype(np.float64) @ pose[:3, :3].T
-            e = np.maximum(sh.evaluate(sh.irradiance_from_radiance(frame.light_sh), n_world), 0.0)
+            e = np.maximum(sh.irradiance_at(frame.light_sh, n_world), 0.0)
             radiance_c[virtual] = g.albedo[virtual] / math.pi * e[:, None] * light_rgb
         if r.render_mode is DiffMode.PASTE:
             composite[virtual] = linear_to_srgb_u8(radiance_c[virtual])

@@ -342,8 +342,7 @@ class CompactSourceShading:
             if ambient_change is not None
             else (np.ones(len(work)), np.zeros((len(work), 3)))
         )
-        # (bands 0..2: the clamped cosine leaves band 3 of the irradiance at zero)
-        ambient = sh.evaluate(sh.irradiance_from_radiance(ambient_sh)[:9], n)
+        ambient = sh.irradiance_at(ambient_sh, n)
         factor = real_surface_factor(ambient, before[work], after[work], rho)
         observed = color_linear[rv, ru].astype(np.float64)
         linear = observed * factor[:, None] + _indirect_with_source(

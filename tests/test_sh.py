@@ -208,3 +208,16 @@ class TestAboveHorizonDirection:
             sh.above_horizon_direction(np.r_[1.0, np.zeros(8)], np.array([0, 1.0, 0]))
         )
         assert not np.any(sh.above_horizon_direction(np.zeros(16), np.array([0, 1.0, 0])))
+
+
+@pytest.mark.parametrize("count", [1, 4, 9, 16, 25])
+def test_irradiance_as_a_quadratic_form_is_the_basis_sum(count):
+    rng = np.random.default_rng(count)
+    coeffs = rng.normal(size=count)
+    normals = rng.normal(size=(500, 3)).astype(np.float32)
+    want = sh.evaluate(sh.irradiance_from_radiance(coeffs), normals)
+    np.testing.assert_allclose(sh.irradiance_at(coeffs, normals), want, atol=1e-12)
+    # a sky from straight up: E(n) = pi / 4 (1 + cos)^2-like, brightest facing up
+    sky = sh.project(lambda d: (d[:, 2] > 0).astype(float), 4)
+    up, down = sh.irradiance_at(sky, np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]))
+    assert up > 2.5 and abs(down) < 0.2
