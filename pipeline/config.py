@@ -331,6 +331,8 @@ class EstimationParams:
     # with fit_radius_m, search the compact sources on every sampled pixel (a second fit of
     # the SH there), not only on those near the look-at point: a sun's shadows fall anywhere
     fit_radius_sources_everywhere: bool = False
+    # that second fit's most samples (0: light_max_samples)
+    fit_radius_sources_samples: int = 0
     # weight of the prior holding radiance below the horizon of the surface the scene stands
     # on to that of a lit ground (0 = off); always on with rt_horizon (no pixel sees there),
     # otherwise only when the light comes out below that horizon
@@ -417,6 +419,7 @@ class EstimationParams:
             )
         _check_float(self, "fit_radius_m", 0.0)
         _check_bool(self, "fit_radius_sources_everywhere")
+        _check_int(self, "fit_radius_sources_samples", 0)
         _check_int(self, "robust_iterations", 0)
         _check_float(self, "robust_threshold", 0.0)
         _check_bool(self, "albedo_segments")
@@ -624,6 +627,11 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             # 12.2 / 15.5 -> 11.6 / 12.7 degrees median / mean over 22 maps
             # (docs/decisions/0063-fit-near-the-look-at-point.md)
             "fit_radius_m": 1.0,
+            # the compact sources searched over the whole view all the same, on a second fit
+            # of 5000 pixels: held out by map 11.6 / 12.7 -> 10.3 / 12.3 degrees median / mean
+            # (docs/decisions/0064-sources-over-the-whole-view.md)
+            "fit_radius_sources_everywhere": True,
+            "fit_radius_sources_samples": 5000,
         }
     if preset is Preset.MOBILE:
         # and, speed first, the light fitted to at most 10000 pixels (measured together with
@@ -645,9 +653,17 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
         }
     # compact sources beside the SH (a sun, a lamp, where their shadows say so): held out by
     # map 16.1 -> 11.2 degrees median over 22 maps, at about 35 ms a frame
-    # (docs/decisions/0061-compact-sources-in-full.md); `mobile` keeps the SH alone
+    # (docs/decisions/0061-compact-sources-in-full.md); `mobile` keeps the SH alone.
+    # The SH fitted within 1 m of the look-at point, the sources searched over the whole
+    # view: held out by map 11.2 / 17.0 -> 10.5 / 13.0 degrees median / mean, 7-Scenes
+    # 11.7 -> 6.0 (docs/decisions/0064-sources-over-the-whole-view.md)
     if preset is Preset.FULL:
-        return {"compact_sources": 1}
+        return {
+            "compact_sources": 1,
+            "fit_radius_m": 1.0,
+            "fit_radius_sources_everywhere": True,
+            "fit_radius_sources_samples": 5000,
+        }
     return {}
 
 

@@ -707,16 +707,22 @@ def side_share(normals_world: np.ndarray, up_world: np.ndarray | None) -> float 
     return float(np.mean(np.abs(n @ up) / vector_length(n) < SIDE_COS))
 
 
-def with_view_and_steadiness(conf: Confidence, side: float | None, jump_deg: float) -> Confidence:
+def with_view_and_steadiness(
+    conf: Confidence, side: float | None, jump_deg: float, disagreement_deg: float = 0.0
+) -> Confidence:
     """`conf` times the "view" factor (min(1, side / SIDE_SHARE_FULL); 1 when side is
     None) and the "steadiness" factor (exp(-jump_deg / JUMP_SCALE_DEG); jump_deg: degrees
     between this frame's direction and the filtered one before it, 0 on a first frame), each
-    floored at MIN_FACTOR; a low value's reason names them when they are weak."""
+    floored at MIN_FACTOR; a low value's reason names them when they are weak.
+    disagreement_deg: degrees between the directions of two fits of the same frame (near
+    the look-at point and over the whole view, fit_radius_sources_everywhere), counted as
+    a jump is (the "agreement" factor, exp(-disagreement / JUMP_SCALE_DEG))."""
     if conf.value <= 0.0:
         return dataclasses.replace(conf, side_share=side, jump_deg=jump_deg)
     factors = {
         "view": 1.0 if side is None else max(MIN_FACTOR, min(1.0, side / SIDE_SHARE_FULL)),
         "steadiness": max(MIN_FACTOR, math.exp(-jump_deg / JUMP_SCALE_DEG)),
+        "agreement": max(MIN_FACTOR, math.exp(-disagreement_deg / JUMP_SCALE_DEG)),
     }
     value = float(np.clip(conf.value * math.prod(factors.values()), 0.0, 1.0))
     reason = conf.reason
@@ -727,6 +733,8 @@ def with_view_and_steadiness(conf: Confidence, side: float | None, jump_deg: flo
             "stands)",
             "steadiness": f"the estimate jumped {jump_deg:.0f} deg from the last frames' "
             "(the light changed, or this frame is unreliable)",
+            "agreement": f"the light fitted near the look-at point is {disagreement_deg:.0f} "
+            "deg from the one fitted over the whole view (the view is lit unevenly)",
         }
         weak = [name for name, v in factors.items() if v < WEAK_FACTOR]
         if not reason and not weak:

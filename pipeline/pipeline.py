@@ -479,7 +479,7 @@ class Pipeline:
             every_pixel = transfer
             transfer = near_look_at(transfer, geometry.points, p.fit_radius_m)
 
-            def fitted(samples: TransferSamples) -> LightEstimate:
+            def fitted(samples: TransferSamples, max_samples: int = 0) -> LightEstimate:
                 return self._estimate(
                     samples,
                     front.color_linear,
@@ -487,6 +487,7 @@ class Pipeline:
                     up_world,
                     below_horizon_unseen=self.config.transfer.rt_horizon,
                     checkpoint=lambda: check("LightEst"),
+                    max_samples=max_samples,
                 )
 
             estimate = fitted(transfer)
@@ -496,7 +497,8 @@ class Pipeline:
                 and p.compact_sources > 0
                 and transfer is not every_pixel
             ):
-                searched, search_estimate = every_pixel, fitted(every_pixel)
+                searched = every_pixel
+                search_estimate = fitted(every_pixel, p.fit_radius_sources_samples)
             self.last_compact = self._compact_sources(
                 search_estimate, geometry, searched, pose, up_world, front.occluder, diagnostics
             )
@@ -507,8 +509,17 @@ class Pipeline:
             raw_direction = (  # before the filter
                 self._light_direction(estimate.sh) if source is None else source.direction
             )
+            disagreement = 0.0  # of the fit near the look-at point with the whole view's
+            if search_estimate is not estimate and all(
+                np.any(e.sh[1:4]) for e in (estimate, search_estimate)
+            ):
+                whole = self._light_direction(search_estimate.sh)
+                near_direction = self._light_direction(estimate.sh)
+                disagreement = math.degrees(
+                    math.acos(float(np.clip(whole @ near_direction, -1.0, 1.0)))
+                )
             confidence = self._reported_confidence(
-                estimate, raw_direction, transfer, geometry, pose, source is not None
+                estimate, raw_direction, transfer, geometry, pose, source is not None, disagreement
             )
             direction_world = (
                 self._light_direction(coeffs) if source is None else source.direction.copy()
@@ -625,6 +636,7 @@ class Pipeline:
         geometry: _Geometry,
         pose: np.ndarray,
         from_source: bool = False,
+        disagreement_deg: float = 0.0,
     ) -> Confidence:
         """The estimate's confidence times what one fit cannot know of itself
         (`light_estimation.with_view_and_steadiness`): the share of side-facing normals
@@ -634,7 +646,8 @@ class Pipeline:
         before `_light_world` takes this frame's). from_source: `raw` is a kept compact
         source's direction, found from shadows, not from the normals: its confidence is how
         clear the step across its shadow's edge is (`compact_light.source_confidence`), and
-        the view of side-facing normals does not count."""
+        the view of side-facing normals does not count. disagreement_deg: between the SH fits
+        near the look-at point and over the whole view (0 with one fit)."""
         up = self._up_world
         normals = geometry.normals[transfer.pixel_v, transfer.pixel_u].astype(np.float64)
         side = side_share(normals @ pose[:3, :3].T, up)
@@ -644,7 +657,7 @@ class Pipeline:
         if from_source and self.last_compact is not None:
             base = source_confidence(estimate.confidence, self.last_compact.edge_step)
             return with_view_and_steadiness(base, None, jump)
-        return with_view_and_steadiness(estimate.confidence, side, jump)
+        return with_view_and_steadiness(estimate.confidence, side, jump, disagreement_deg)
 
     def _geometry_and_transfer(
         self,
@@ -1056,10 +1069,14 @@ class Pipeline:
         up_world: np.ndarray | None = None,
         below_horizon_unseen: bool = False,
         checkpoint: Callable[[], None] | None = None,
+        max_samples: int = 0,
     ) -> LightEstimate:
         """LightEst (T l = I_c, section 5.2) on the sampled pixels; albedo per segment
-        (segments: (H, W) labels or None)."""
+        (segments: (H, W) labels or None); at most max_samples of them (0: the config's
+        light_max_samples)."""
         p = self.config.estimation
+        if max_samples > 0:
+            p = dataclasses.replace(p, light_max_samples=max_samples)
         n = samples.transfer.shape[-1]
         if not len(samples.pixel_v):
             return LightEstimate(

@@ -280,7 +280,6 @@ def irradiance_from_radiance(coeffs: np.ndarray) -> np.ndarray:
     return c * per_coeff
 
 
-
 @lru_cache(maxsize=1)
 def _quadratic_weights() -> np.ndarray:
     """(9, 10) the first nine basis functions as weights of the monomials x^2, y^2, z^2, xy,
@@ -309,9 +308,12 @@ def irradiance_at(radiance: np.ndarray, normals: np.ndarray) -> np.ndarray:
     n = np.asarray(normals, np.float64)
     n = n / np.maximum(np.sqrt(np.einsum("ij,ij->i", n, n)), 1e-300)[:, None]
     x, y, z = n[:, 0], n[:, 1], n[:, 2]
-    return x * (w[0] * x + w[3] * y + w[5] * z + w[6]) + y * (w[1] * y + w[4] * z + w[7]) + z * (
-        w[2] * z + w[8]
-    ) + w[9]
+    return (
+        x * (w[0] * x + w[3] * y + w[5] * z + w[6])
+        + y * (w[1] * y + w[4] * z + w[7])
+        + z * (w[2] * z + w[8])
+        + w[9]
+    )
 
 
 # OpenCV camera axes (x right, y down, z forward) -> OpenGL/ARCore/ARKit camera axes

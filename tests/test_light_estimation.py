@@ -452,6 +452,10 @@ class TestViewAndSteadiness:
         assert "jumped 60 deg" in jumped.reason and "side-facing" not in jumped.reason
         unknown = le.with_view_and_steadiness(conf, None, 0.0)  # no plane yet: no view factor
         assert unknown.value == pytest.approx(0.8) and unknown.to_dict()["side_share"] is None
+        # two fits of one frame (near the look-at point, the whole view) that disagree
+        split = le.with_view_and_steadiness(conf, 0.5, 0.0, 45.0)
+        assert split.value == pytest.approx(0.8 * math.exp(-45.0 / le.JUMP_SCALE_DEG))
+        assert "45 deg from the one fitted over the whole view" in split.reason
 
     def test_no_estimate_stays_no_estimate(self):
         none = Confidence(reason="no valid depth")
