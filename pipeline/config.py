@@ -333,6 +333,9 @@ class EstimationParams:
     fit_radius_sources_everywhere: bool = False
     # that second fit's most samples (0: light_max_samples)
     fit_radius_sources_samples: int = 0
+    # where that second fit's direction lies within this many degrees of the near fit's,
+    # the second fit's SH is the one reported (0 = never)
+    fit_radius_agree_deg: float = 0.0
     # weight of the prior holding radiance below the horizon of the surface the scene stands
     # on to that of a lit ground (0 = off); always on with rt_horizon (no pixel sees there),
     # otherwise only when the light comes out below that horizon
@@ -420,6 +423,7 @@ class EstimationParams:
         _check_float(self, "fit_radius_m", 0.0)
         _check_bool(self, "fit_radius_sources_everywhere")
         _check_int(self, "fit_radius_sources_samples", 0)
+        _check_float(self, "fit_radius_agree_deg", 0.0, 180.0)
         _check_int(self, "robust_iterations", 0)
         _check_float(self, "robust_threshold", 0.0)
         _check_bool(self, "albedo_segments")

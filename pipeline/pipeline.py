@@ -502,13 +502,8 @@ class Pipeline:
             self.last_compact = self._compact_sources(
                 search_estimate, geometry, searched, pose, up_world, front.occluder, diagnostics
             )
-            coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             if up_world is not None:
                 self._up_world = up_world
-            source = self._kept_source()
-            raw_direction = (  # before the filter
-                self._light_direction(estimate.sh) if source is None else source.direction
-            )
             disagreement = 0.0  # of the fit near the look-at point with the whole view's
             if search_estimate is not estimate and all(
                 np.any(e.sh[1:4]) for e in (estimate, search_estimate)
@@ -518,6 +513,13 @@ class Pipeline:
                 disagreement = math.degrees(
                     math.acos(float(np.clip(whole @ near_direction, -1.0, 1.0)))
                 )
+                if disagreement < p.fit_radius_agree_deg:
+                    estimate = search_estimate
+            coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
+            source = self._kept_source()
+            raw_direction = (  # before the filter
+                self._light_direction(estimate.sh) if source is None else source.direction
+            )
             confidence = self._reported_confidence(
                 estimate, raw_direction, transfer, geometry, pose, source is not None, disagreement
             )
