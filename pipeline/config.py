@@ -632,10 +632,10 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             # (docs/decisions/0063-fit-near-the-look-at-point.md)
             "fit_radius_m": 1.0,
             # the compact sources searched over the whole view all the same, on a second fit
-            # of 5000 pixels: held out by map 11.6 / 12.7 -> 10.3 / 12.3 degrees median / mean
+            # of 10000 pixels: held out by map 11.6 / 12.7 -> 10.3 / 12.3 degrees median / mean
             # (docs/decisions/0064-sources-over-the-whole-view.md)
             "fit_radius_sources_everywhere": True,
-            "fit_radius_sources_samples": 5000,
+            "fit_radius_sources_samples": 10000,
         }
     if preset is Preset.MOBILE:
         # and, speed first, the light fitted to at most 10000 pixels (measured together with
@@ -666,7 +666,7 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             "compact_sources": 1,
             "fit_radius_m": 1.0,
             "fit_radius_sources_everywhere": True,
-            "fit_radius_sources_samples": 5000,
+            "fit_radius_sources_samples": 10000,
         }
     return {}
 

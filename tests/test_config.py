@@ -23,9 +23,17 @@ from arlight.pipeline.config import (
 
 class TestFlatKeys:
     def test_presets(self):
-        # `full` is the defaults with compact sources on (decision 0061); `fast` has them
-        # too (decision 0062), `mobile` not
-        assert Config().replace(compact_sources=1) == Config.from_preset("full")
+        # `full` is the defaults with compact sources on (decision 0061) and its SH fitted
+        # near the look-at point, the sources searched over the whole view (decision 0064);
+        # `fast` has them too (decisions 0062-0064), `mobile` not
+        assert Config().replace(
+            compact_sources=1,
+            fit_radius_m=1.0,
+            fit_radius_sources_everywhere=True,
+            fit_radius_sources_samples=10000,
+        ) == Config.from_preset("full")
+        fast = Config.from_preset("fast").estimation
+        assert (fast.fit_radius_m, fast.fit_radius_sources_everywhere) == (1.0, True)
         assert Config.from_preset("fast").estimation.compact_sources == 1
         assert Config.from_preset("mobile").estimation.compact_sources == 0
         assert Config.from_preset("fast").transfer.rt_subsample == 4
