@@ -276,3 +276,30 @@ def test_the_sources_are_searched_on_every_pixel_when_asked(clean_sequence, ever
     near = near_look_at(every, pipe._last_transfer[0].points, 1.0)
     assert len(near.pixel_v) < len(every.pixel_v)  # the radius leaves pixels out here
     assert searched == [len(every.pixel_v) if everywhere else len(near.pixel_v)]
+
+
+@pytest.mark.parametrize("agree_deg", [0.0, 180.0])
+def test_the_whole_view_fit_is_reported_only_where_asked(clean_sequence, agree_deg):
+    """fit_radius_agree_deg: within it of the near fit's direction, the whole view's SH is
+    the one reported (180: always); 0 (the presets): the fit near the look-at point."""
+    config = Config.from_preset(
+        "full",
+        fit_radius_m=1.0,
+        fit_radius_sources_everywhere=True,
+        fit_radius_agree_deg=agree_deg,
+        **SMALL,
+    )
+    pipe = Pipeline(config, clean_sequence.camera)
+    fitted: list[np.ndarray] = []
+    real = pipe._estimate
+
+    def spy(samples, *args, **kwargs):
+        estimate = real(samples, *args, **kwargs)
+        fitted.append(estimate.sh)
+        return estimate
+
+    pipe._estimate = spy  # type: ignore[method-assign]
+    result = pipe.process(clean_sequence.frames[0])  # a first frame: the filter passes it on
+    near, whole = fitted
+    assert not np.allclose(near, whole)
+    np.testing.assert_allclose(result.sh, whole if agree_deg else near)
