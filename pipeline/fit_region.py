@@ -24,13 +24,17 @@ def look_at_point(points_cam: np.ndarray) -> np.ndarray | None:
     """(3,) camera frame: the median of the valid points (z > 0) of `points_cam` (H, W, 3)
     within LOOK_AT_DEG of the optical axis (+z); of every valid point when none is; None
     without any valid point."""
-    p = points_cam.reshape(-1, 3)
-    valid = p[p[:, 2] > 0.0]
-    if not len(valid):
+    # over the image in place, one gather at the end: a quarter of the time of gathering
+    # the valid points first, the same values (the same float32 sums as np.linalg.norm's)
+    x, y, z = points_cam[..., 0], points_cam[..., 1], points_cam[..., 2]
+    valid = z > 0.0
+    cos = z / np.maximum(np.sqrt((x * x + y * y) + z * z), np.float32(1e-12))
+    near = valid & (cos > math.cos(math.radians(LOOK_AT_DEG)))
+    if np.any(near):
+        return np.median(points_cam[near], axis=0).astype(np.float64)
+    if not np.any(valid):
         return None
-    cos = valid[:, 2] / np.maximum(np.linalg.norm(valid, axis=1), 1e-12)
-    near = valid[cos > math.cos(math.radians(LOOK_AT_DEG))]
-    return np.median(near if len(near) else valid, axis=0).astype(np.float64)
+    return np.median(points_cam[valid], axis=0).astype(np.float64)
 
 
 def near_look_at(
