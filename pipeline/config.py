@@ -326,15 +326,18 @@ class EstimationParams:
     # every preset but mobile, held out by map: docs/decisions/0044-fewer-fit-samples.md
     light_max_samples: int = 30000
     # fit only the sampled pixels within this many metres of the point the camera looks at
-    # (pipeline/fit_region.py; 0 = every pixel)
+    # (pipeline/fit_region.py; 0 = every pixel); 1.0 in `full` and `fast` (decisions 0063,
+    # 0064)
     fit_radius_m: float = 0.0
     # with fit_radius_m, search the compact sources on every sampled pixel (a second fit of
-    # the SH there), not only on those near the look-at point: a sun's shadows fall anywhere
+    # the SH there), not only on those near the look-at point: a sun's shadows fall
+    # anywhere. On in `full` and `fast` (docs/decisions/0064-sources-over-the-whole-view.md)
     fit_radius_sources_everywhere: bool = False
-    # that second fit's most samples (0: light_max_samples)
+    # that second fit's most samples (0: light_max_samples); 10000 in `full` and `fast`:
+    # 5000 leaves too few pixel pairs across a shadow's edge for the source's confidence
     fit_radius_sources_samples: int = 0
     # where that second fit's direction lies within this many degrees of the near fit's,
-    # the second fit's SH is the one reported (0 = never)
+    # the second fit's SH is the one reported (0 = never; held out by map it lost: 0064)
     fit_radius_agree_deg: float = 0.0
     # weight of the prior holding radiance below the horizon of the surface the scene stands
     # on to that of a lit ground (0 = off); always on with rt_horizon (no pixel sees there),
