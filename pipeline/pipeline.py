@@ -450,6 +450,45 @@ class Pipeline:
             occluder,
         )
 
+    def _fits(
+        self,
+        transfer: TransferSamples,
+        front: _Front,
+        up_world: np.ndarray | None,
+        check: Callable[[str], None],
+    ) -> tuple[TransferSamples, LightEstimate, TransferSamples, LightEstimate]:
+        """LightEst's SH fits: to the samples near the look-at point (fit_radius_m; every one
+        when 0) and, with fit_radius_sources_everywhere, to every sample for the compact
+        sources' search (at most fit_radius_sources_samples; decision 0064). Returns (the
+        near samples, their estimate, the samples searched, their estimate): one fit twice
+        when there is no second."""
+        p = self.config.estimation
+        near = near_look_at(transfer, front.geometry.points, p.fit_radius_m)
+
+        def fitted(samples: TransferSamples, max_samples: int = 0) -> LightEstimate:
+            return self._estimate(
+                samples,
+                front.color_linear,
+                front.labels,
+                up_world,
+                below_horizon_unseen=self.config.transfer.rt_horizon,
+                checkpoint=lambda: check("LightEst"),
+                max_samples=max_samples,
+            )
+
+        estimate = fitted(near)
+        if p.fit_radius_sources_everywhere and p.compact_sources > 0 and near is not transfer:
+            return near, estimate, transfer, fitted(transfer, p.fit_radius_sources_samples)
+        return near, estimate, near, estimate
+
+    def _disagreement_deg(self, near: LightEstimate, whole: LightEstimate) -> float:
+        """Degrees between the reported directions of the fit near the look-at point and the
+        whole view's (0 when they are one fit, or either has no first band)."""
+        if whole is near or not all(np.any(e.sh[1:4]) for e in (near, whole)):
+            return 0.0
+        cos = float(self._light_direction(whole.sh) @ self._light_direction(near.sh))
+        return math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0))))
+
     def _compact(self) -> CompactLightStage:
         """The session's compact-source stage (made on first use): against the frame's depth
         mesh, or with compact_volume_mesh the volume's (with rt_method raycast, the
@@ -474,54 +513,22 @@ class Pipeline:
         with _stage(timings, "LightEst"):
             plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
-            p = self.config.estimation
-            # the pixels near where the camera looks (fit_radius_m; every one when 0)
-            every_pixel = transfer
-            transfer = near_look_at(transfer, geometry.points, p.fit_radius_m)
-
-            def fitted(samples: TransferSamples, max_samples: int = 0) -> LightEstimate:
-                return self._estimate(
-                    samples,
-                    front.color_linear,
-                    front.labels,
-                    up_world,
-                    below_horizon_unseen=self.config.transfer.rt_horizon,
-                    checkpoint=lambda: check("LightEst"),
-                    max_samples=max_samples,
-                )
-
-            estimate = fitted(transfer)
-            searched, search_estimate = transfer, estimate
-            if (
-                p.fit_radius_sources_everywhere
-                and p.compact_sources > 0
-                and transfer is not every_pixel
-            ):
-                searched = every_pixel
-                search_estimate = fitted(every_pixel, p.fit_radius_sources_samples)
+            near, estimate, searched, search_estimate = self._fits(transfer, front, up_world, check)
             self.last_compact = self._compact_sources(
                 search_estimate, geometry, searched, pose, up_world, front.occluder, diagnostics
             )
             if up_world is not None:
                 self._up_world = up_world
-            disagreement = 0.0  # of the fit near the look-at point with the whole view's
-            if search_estimate is not estimate and all(
-                np.any(e.sh[1:4]) for e in (estimate, search_estimate)
-            ):
-                whole = self._light_direction(search_estimate.sh)
-                near_direction = self._light_direction(estimate.sh)
-                disagreement = math.degrees(
-                    math.acos(float(np.clip(whole @ near_direction, -1.0, 1.0)))
-                )
-                if disagreement < p.fit_radius_agree_deg:
-                    estimate = search_estimate
+            disagreement = self._disagreement_deg(estimate, search_estimate)
+            if disagreement < self.config.estimation.fit_radius_agree_deg:
+                estimate = search_estimate
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             source = self._kept_source()
             raw_direction = (  # before the filter
                 self._light_direction(estimate.sh) if source is None else source.direction
             )
             confidence = self._reported_confidence(
-                estimate, raw_direction, transfer, geometry, pose, source is not None, disagreement
+                estimate, raw_direction, near, geometry, pose, source is not None, disagreement
             )
             direction_world = (
                 self._light_direction(coeffs) if source is None else source.direction.copy()
