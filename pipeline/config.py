@@ -329,9 +329,6 @@ class EstimationParams:
     # (pipeline/fit_region.py; 0 = every pixel); 1.0 in `full` and `fast` (decisions 0063,
     # 0064)
     fit_radius_m: float = 0.0
-    # with fit_radius_m > 0: the radius is this times the look-at point's distance from the
-    # camera instead (0 = fit_radius_m itself)
-    fit_radius_per_m: float = 0.0
     # with fit_radius_m, search the compact sources on every sampled pixel (a second fit of
     # the SH there), not only on those near the look-at point: a sun's shadows fall
     # anywhere. On in `full` and `fast` (docs/decisions/0064-sources-over-the-whole-view.md)
@@ -427,7 +424,6 @@ class EstimationParams:
                 f"{_hint('light_prior_exclude', 'NAME,NAME')}"
             )
         _check_float(self, "fit_radius_m", 0.0)
-        _check_float(self, "fit_radius_per_m", 0.0)
         _check_bool(self, "fit_radius_sources_everywhere")
         _check_int(self, "fit_radius_sources_samples", 0)
         _check_float(self, "fit_radius_agree_deg", 0.0, 180.0)

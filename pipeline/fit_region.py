@@ -38,19 +38,16 @@ def look_at_point(points_cam: np.ndarray) -> np.ndarray | None:
 
 
 def near_look_at(
-    samples: TransferSamples, points_cam: np.ndarray, radius_m: float, per_metre: float = 0.0
+    samples: TransferSamples, points_cam: np.ndarray, radius_m: float
 ) -> TransferSamples:
     """The samples whose points (points_cam (H, W, 3), camera frame, metres) lie within
-    `radius_m` of `look_at_point` (per_metre > 0: within per_metre times the look-at point's
-    distance from the camera instead); all of them when radius_m <= 0, when there is no
-    look-at point or when fewer than MIN_KEPT would be left."""
+    `radius_m` of `look_at_point`; all of them when radius_m <= 0, when there is no look-at
+    point or when fewer than MIN_KEPT would be left."""
     if radius_m <= 0.0 or not len(samples.pixel_v):
         return samples
     centre = look_at_point(points_cam)
     if centre is None:
         return samples
-    if per_metre > 0.0:
-        radius_m = per_metre * float(np.linalg.norm(centre))
     p = points_cam[samples.pixel_v, samples.pixel_u].astype(np.float64)
     keep = np.flatnonzero(np.linalg.norm(p - centre, axis=1) < radius_m)
     if len(keep) < MIN_KEPT or len(keep) == len(samples.pixel_v):

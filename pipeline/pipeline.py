@@ -463,7 +463,7 @@ class Pipeline:
         near samples, their estimate, the samples searched, their estimate): one fit twice
         when there is no second."""
         p = self.config.estimation
-        near = near_look_at(transfer, front.geometry.points, p.fit_radius_m, p.fit_radius_per_m)
+        near = near_look_at(transfer, front.geometry.points, p.fit_radius_m)
 
         def fitted(samples: TransferSamples, max_samples: int = 0) -> LightEstimate:
             return self._estimate(

@@ -53,14 +53,3 @@ def test_every_sample_is_kept_when_off_or_when_too_few_would_be_left() -> None:
     samples = _samples(points)
     assert near_look_at(samples, points, 0.0) is samples
     assert near_look_at(samples, points, 0.01) is samples  # a few pixels within 1 cm
-
-
-def test_a_radius_per_metre_scales_with_the_look_at_distance() -> None:
-    """per_metre: the radius is that times the look-at point's distance (1.5 m here)."""
-    points = _room()
-    samples = _samples(points)
-    fixed = near_look_at(samples, points, 1.0)
-    scaled = near_look_at(samples, points, 1.0, per_metre=1.0 / 1.5)
-    np.testing.assert_array_equal(scaled.pixel_v, fixed.pixel_v)  # 1 m either way
-    wide = near_look_at(samples, points, 1.0, per_metre=4.0)  # 6 m: the far wall too
-    assert len(wide.pixel_v) == len(samples.pixel_v)
