@@ -662,8 +662,9 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
     # map 16.1 -> 11.2 degrees median over 22 maps, at about 35 ms a frame
     # (docs/decisions/0061-compact-sources-in-full.md); `mobile` keeps the SH alone.
     # The SH fitted within 1 m of the look-at point, the sources searched over the whole
-    # view: held out by map 11.2 / 17.0 -> 10.5 / 13.0 degrees median / mean, 7-Scenes
-    # 11.7 -> 6.0 (docs/decisions/0064-sources-over-the-whole-view.md)
+    # view: over 22 maps 11.2 / 17.0 -> 10.5 / 13.0 degrees median / mean (13.0 / 14.1 held
+    # out with the radius chosen per fold), 7-Scenes 11.7 -> 6.4
+    # (docs/decisions/0064-sources-over-the-whole-view.md)
     if preset is Preset.FULL:
         return {
             "compact_sources": 1,
