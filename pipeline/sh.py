@@ -289,6 +289,7 @@ def _quadratic_weights() -> np.ndarray:
 
 
 def _monomials(d: np.ndarray) -> np.ndarray:
+    """(K, 10) the monomials of `_quadratic_weights` at directions d (K, 3)."""
     x, y, z = d[:, 0], d[:, 1], d[:, 2]
     return np.stack([x * x, y * y, z * z, x * y, y * z, z * x, x, y, z, np.ones_like(x)], 1)
 
@@ -303,8 +304,7 @@ def irradiance_at(radiance: np.ndarray, normals: np.ndarray) -> np.ndarray:
     if len(c) > 16:  # band 4 and up: the cosine keeps the even ones
         return evaluate(irradiance_from_radiance(c), np.asarray(normals, np.float64))
     e = irradiance_from_radiance(c[:9])
-    w = np.zeros(10)
-    w[:] = e @ _quadratic_weights()[: len(e)]
+    w = e @ _quadratic_weights()[: len(e)]  # (10,) the monomials' weights
     n = np.asarray(normals, np.float64)
     n = n / np.maximum(np.sqrt(np.einsum("ij,ij->i", n, n)), 1e-300)[:, None]
     x, y, z = n[:, 0], n[:, 1], n[:, 2]
