@@ -16,7 +16,14 @@ import numba
 import numpy as np
 from numba.extending import register_jitable
 
-__all__ = ["THRESHOLDS", "encode_where", "linear_to_srgb_u8"]
+__all__ = [
+    "TABLE_BASE",
+    "TABLE_NEXT",
+    "THRESHOLDS",
+    "counted_code",
+    "encode_where",
+    "linear_to_srgb_u8",
+]
 
 
 @register_jitable
@@ -56,12 +63,12 @@ def _thresholds() -> np.ndarray:
 
 THRESHOLDS = _thresholds()
 _BINS = 4096  # bins of [0, 1) narrow enough that a code changes at most once in one (tested)
-_TABLE_BASE = np.array([_srgb_code(b / _BINS) for b in range(_BINS)], np.int64)
-_TABLE_NEXT = np.append(THRESHOLDS, np.inf)  # 256: the next step of any code (none for 255)
+TABLE_BASE = np.array([_srgb_code(b / _BINS) for b in range(_BINS)], np.int64)
+TABLE_NEXT = np.append(THRESHOLDS, np.inf)  # 256: the next step of any code (none for 255)
 
 
 @register_jitable(inline="always")
-def _counted_code(c, base, next_step):
+def counted_code(c, base, next_step):
     """`_srgb_code(c)`: the code at the start of c's bin, plus one where c has reached the
     next step (a comparison, not a power; NaN -> 0)."""
     if not c > 0.0:
@@ -75,7 +82,7 @@ def _counted_code(c, base, next_step):
 @numba.njit(parallel=True, cache=True)
 def _srgb_u8(linear, base, next_step, out):
     for i in numba.prange(linear.shape[0]):
-        out[i] = _counted_code(linear[i], base, next_step)
+        out[i] = counted_code(linear[i], base, next_step)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -84,7 +91,7 @@ def _encode_where(linear, where, base, next_step, image):
         for x in range(where.shape[1]):
             if where[y, x]:
                 for c in range(image.shape[2]):
-                    image[y, x, c] = _counted_code(linear[y, x, c], base, next_step)
+                    image[y, x, c] = counted_code(linear[y, x, c], base, next_step)
 
 
 def linear_to_srgb_u8(linear: np.ndarray) -> np.ndarray:
@@ -92,7 +99,7 @@ def linear_to_srgb_u8(linear: np.ndarray) -> np.ndarray:
     Computed in float64 whatever the input's precision."""
     c = np.ascontiguousarray(linear, np.float64)
     out = np.empty(c.shape, np.uint8)
-    _srgb_u8(c.reshape(-1), _TABLE_BASE, _TABLE_NEXT, out.reshape(-1))
+    _srgb_u8(c.reshape(-1), TABLE_BASE, TABLE_NEXT, out.reshape(-1))
     return out
 
 
@@ -101,4 +108,4 @@ def encode_where(linear: np.ndarray, where: np.ndarray, image: np.ndarray) -> No
     pixels first. linear (H, W, C) float64, where (H, W) bool, image (H, W, C) uint8 (a
     view is fine: the rect of a composite)."""
     linear = np.ascontiguousarray(linear, np.float64)
-    _encode_where(linear, where, _TABLE_BASE, _TABLE_NEXT, image)
+    _encode_where(linear, where, TABLE_BASE, TABLE_NEXT, image)

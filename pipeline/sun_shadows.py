@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass
 from typing import Protocol
 
+import numba
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
@@ -28,6 +29,7 @@ import open3d.core as o3c
 from arlight.pipeline import sh
 from arlight.pipeline.channels import any_nonzero
 from arlight.pipeline.color import srgb_to_linear
+from arlight.pipeline.srgb_encoding import TABLE_BASE, TABLE_NEXT, counted_code
 
 RAY_OFFSET_M = 0.01  # rays start this far along the normal (metres)
 # the SH part's change of a real pixel below both of these (its ratio's distance from 1, its
@@ -93,19 +95,18 @@ class MeshOccluder:
         rays' offset); True where one may. `centre`: the sphere's centre in the frame of
         `points` and `direction` (default: world, the meshes' frame)."""
         c = self.centre if centre is None else np.asarray(centre, np.float64)
-        radius = self.radius + 2.0 * RAY_OFFSET_M
-        v = c.astype(np.float32) - np.asarray(points, np.float32)
-        dist = np.sqrt(np.einsum("ij,ij->i", v, v))
-        along = v @ np.asarray(direction, np.float32)  # dist times the cosine to the centre
-        # the cone of the disc's rays (half-angle a) meets the sphere where the angle to its
-        # centre is at most a + b, b = asin(radius / dist) the sphere's angular radius:
-        # cos(angle) >= cos(a + b) = cos a cos b - sin a sin b, all times dist
         a = math.radians(angular_radius_deg)
-        sin_b_dist = np.float32(radius)
-        cos_b_dist = np.sqrt(np.maximum(dist * dist - np.float32(radius * radius), 0.0))
-        reach = np.float32(math.cos(a)) * cos_b_dist - np.float32(math.sin(a)) * sin_b_dist
-        # (a margin of a millimetre over float32's rounding)
-        return (dist <= radius + 1e-3) | (along >= reach - np.float32(1e-3))
+        out = np.empty(len(points), bool)
+        _may_block_kernel(
+            np.ascontiguousarray(points, np.float32),
+            c.astype(np.float32),
+            np.asarray(direction, np.float32),
+            np.float32(self.radius + 2.0 * RAY_OFFSET_M),
+            np.float32(math.cos(a)),
+            np.float32(math.sin(a)),
+            out,
+        )
+        return out
 
     def visibility(
         self,
@@ -132,6 +133,25 @@ class MeshOccluder:
         ).numpy()
         # (counts of unblocked rays: exact in any order of summation)
         return (~blocked).reshape(len(dirs), n).sum(axis=0, dtype=np.float64) / len(dirs)
+
+
+@numba.njit(parallel=True, cache=True)
+def _may_block_kernel(points, centre, direction, radius, cos_a, sin_a, out):
+    """`MeshOccluder.may_block` per point, in float32: the cone of the disc's rays (half-angle
+    a) meets the sphere (centre, radius) where the angle to its centre is at most a + b,
+    b = asin(radius / dist) the sphere's angular radius: cos(angle) >= cos(a + b) =
+    cos a cos b - sin a sin b, all times dist; a millimetre's margin over the rounding."""
+    margin = np.float32(1e-3)
+    for i in numba.prange(points.shape[0]):
+        vx = centre[0] - points[i, 0]
+        vy = centre[1] - points[i, 1]
+        vz = centre[2] - points[i, 2]
+        dist_sq = vx * vx + vy * vy + vz * vz
+        dist = np.sqrt(dist_sq)
+        along = vx * direction[0] + vy * direction[1] + vz * direction[2]  # dist cos(angle)
+        cos_b_dist = np.sqrt(max(dist_sq - radius * radius, np.float32(0.0)))
+        reach = cos_a * cos_b_dist - sin_a * radius
+        out[i] = dist <= radius + margin or along >= reach - margin
 
 
 def real_surface_factor(
@@ -334,21 +354,64 @@ class CompactSourceShading:
         work = np.flatnonzero((after < before) | (touched & (before > 0.0)))
         if not len(work):
             return changed
-        rv, ru, n = rv[work], ru[work], n[work]
-        rho, delta = (
-            ambient_change.at(rv, ru)
+        # (no change of the SH part: an empty rectangle, ratio 1 and nothing added outside it)
+        origin, ratio, delta = (
+            (ambient_change.origin, ambient_change.ratio, ambient_change.delta)
             if ambient_change is not None
-            else (np.ones(len(work)), np.zeros((len(work), 3)))
+            else ((0, 0), np.ones((0, 0)), np.zeros((0, 0, 3)))
         )
-        ambient = sh.irradiance_at(ambient_sh, n)
-        factor = real_surface_factor(ambient, before[work], after[work], rho)
-        observed = color_linear[rv, ru].astype(np.float64)
-        linear = observed * factor[:, None] + _indirect_with_source(
-            delta, observed, ambient, before[work], light_rgb
+        _shade_real_pixels(  # `real_surface_factor` and `_indirect_with_source`, per pixel
+            rv[work],
+            ru[work],
+            sh.irradiance_at(ambient_sh, n[work]),
+            before[work],
+            after[work],
+            origin,
+            ratio,
+            delta,
+            color_linear,
+            np.asarray(light_rgb, np.float64),
+            composite,
+            changed,
+            TABLE_BASE,
+            TABLE_NEXT,
         )
-        composite[rv, ru] = linear_to_srgb_u8(linear)
-        changed[rv, ru] |= (factor != 1.0) | any_nonzero(delta)
         return changed
+
+
+@numba.njit(cache=True)
+def _shade_real_pixels(
+    rows, cols, ambient, before, after, origin, ratio, delta, color_linear, rgb, composite,
+    changed, code_base, code_next
+):  # fmt: skip
+    """composite[rows, cols] = the observed colour times `real_surface_factor` plus the SH
+    part's indirect change as `_indirect_with_source` rescales it, encoded; `changed` set
+    where either is not the identity. The same float64 operations as those two functions,
+    in the same order, on one pixel at a time (no (N, 3) temporaries)."""
+    v0, u0 = origin
+    h, w = ratio.shape
+    for i in range(len(rows)):
+        r, c = rows[i] - v0, cols[i] - u0
+        inside = 0 <= r < h and 0 <= c < w
+        rho = ratio[r, c] if inside else 1.0
+        e = max(ambient[i], 0.0)
+        lit_before = e + max(before[i], 0.0)
+        lit_after = rho * e + max(after[i], 0.0)
+        factor = lit_after / max(lit_before, 1e-12) if lit_before > 1e-12 else rho
+        any_delta = False
+        for k in range(3):
+            d = delta[r, c, k] if inside else 0.0
+            any_delta |= d != 0.0
+            observed = np.float64(color_linear[rows[i], cols[i], k])
+            e_k = max(ambient[i], 1e-12) * rgb[k]
+            albedo_before = min(observed / max(e_k, 1e-12), 1.0 / math.pi)
+            albedo_after = min(observed / max(e_k + before[i] * rgb[k], 1e-12), 1.0 / math.pi)
+            if albedo_before > 1e-12:
+                d = d * albedo_after / max(albedo_before, 1e-12)
+            composite[rows[i], cols[i], k] = counted_code(
+                observed * factor + d, code_base, code_next
+            )
+        changed[rows[i], cols[i]] |= factor != 1.0 or any_delta
 
 
 def _indirect_with_source(

@@ -22,7 +22,7 @@ def test_thresholds_are_the_steps_of_the_definition():
 
 def test_every_bin_holds_at_most_one_step():
     edges = np.arange(1, se._BINS + 1) / se._BINS
-    assert np.all(np.searchsorted(se.THRESHOLDS, edges) - se._TABLE_BASE <= 1)
+    assert np.all(np.searchsorted(se.THRESHOLDS, edges) - se.TABLE_BASE <= 1)
 
 
 def test_codes_equal_the_definition_at_the_edges_and_at_random():

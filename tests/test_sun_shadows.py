@@ -222,6 +222,51 @@ def test_the_indirect_change_takes_the_albedo_from_all_the_light() -> None:
     assert np.allclose(out[1], -0.02)  # no source: as the SH renderer read it
 
 
+@pytest.mark.parametrize("with_change", [True, False])
+def test_the_real_pixels_kernel_is_the_two_definitions(with_change: bool) -> None:
+    """`_shade_real_pixels` (one pixel at a time) gives the codes and the changed mask of
+    `real_surface_factor` and `_indirect_with_source` over gathered arrays, bit for bit:
+    pixels inside and outside the SH part's rectangle, unlit ones, sunlit bright ones."""
+    from arlight.pipeline.srgb_encoding import TABLE_BASE, TABLE_NEXT, linear_to_srgb_u8
+    from arlight.pipeline.sun_shadows import _indirect_with_source, _shade_real_pixels
+
+    rng = np.random.default_rng(3)
+    h, w, n = 40, 50, 600
+    colour = rng.uniform(0.0, 0.6, (h, w, 3)).astype(np.float32)
+    flat = rng.choice(h * w, n, replace=False)
+    rows, cols = flat // w, flat % w
+    ambient = rng.uniform(-0.1, 2.0, n)
+    ambient[:20] = 0.0  # no light at all on some
+    before = rng.uniform(0.0, 3.0, n) * (rng.random(n) < 0.7)
+    after = before * rng.uniform(0.0, 1.0, n)
+    origin, ratio = (5, 7), rng.uniform(0.5, 1.2, (20, 30))
+    ratio[ratio > 1.1] = 1.0
+    delta = rng.normal(0.0, 0.01, (20, 30, 3)) * (rng.random((20, 30, 1)) < 0.5)
+    if not with_change:
+        ratio, delta = np.ones((0, 0)), np.zeros((0, 0, 3))
+    rgb = np.array([1.1, 1.0, 0.8])
+    # the definitions, over gathered arrays
+    r, c = rows - origin[0], cols - origin[1]
+    inside = (r >= 0) & (r < ratio.shape[0]) & (c >= 0) & (c < ratio.shape[1])
+    rho, added = np.ones(n), np.zeros((n, 3))
+    rho[inside], added[inside] = ratio[r[inside], c[inside]], delta[r[inside], c[inside]]
+    factor = real_surface_factor(ambient, before, after, rho)
+    observed = colour[rows, cols].astype(np.float64)
+    linear = observed * factor[:, None] + _indirect_with_source(
+        added, observed, ambient, before, rgb
+    )
+    composite = np.zeros((h, w, 3), np.uint8)
+    changed = np.zeros((h, w), bool)
+    _shade_real_pixels(
+        rows, cols, ambient, before, after, origin, ratio, delta, colour, rgb, composite,
+        changed, TABLE_BASE, TABLE_NEXT
+    )  # fmt: skip
+    np.testing.assert_array_equal(composite[rows, cols], linear_to_srgb_u8(linear))
+    expected = (factor != 1.0) | np.any(added != 0.0, axis=1)
+    np.testing.assert_array_equal(changed[rows, cols], expected)
+    assert 0 < expected.sum() < n and changed.sum() == expected.sum()
+
+
 def test_a_mirror_takes_the_source_only_from_what_it_reflects() -> None:
     """A mirror pole and a diffuse pole under a sun, a panorama reflected: the source adds
     its diffuse light to the diffuse pole's pixels and none to the mirror's, whose
