@@ -61,7 +61,7 @@ from arlight.pipeline.radiance_transfer import (
     transfer_at_pixels,
     transfer_pair_at_pixels,
 )
-from arlight.pipeline.srgb_encoding import encode_where, linear_to_srgb_u8
+from arlight.pipeline.srgb_encoding import encode_scaled_where, encode_where, linear_to_srgb_u8
 from arlight.pipeline.sun_shadows import (
     AmbientChange,
     CompactSourceShading,
@@ -193,20 +193,23 @@ class DifferentialRenderer:
         """The composite of one frame (see the module docstring), with the compact
         sources' hard shadows (frame.sources) drawn on it."""
         with_sources = bool(frame.sources) and self.config.render.render_mode is not DiffMode.PASTE
-        out, ambient_change = self._render_sh(frame, keep_change=with_sources)
+        out, ambient_change, points = self._render_sh(frame, keep_change=with_sources)
         if not with_sources:
             return out
         g = out.gbuffer
-        virtual_points = self.camera.unproject(
-            np.where(out.virtual_mask, g.depth_m, 0.0).astype(np.float32)
-        )
+        if points is None:
+            points = self.camera.unproject(frame.depth_m), self.camera.unproject(
+                np.where(out.virtual_mask, g.depth_m, frame.depth_m).astype(np.float32)
+            )
+        real_points, points_with_objects = points
+        virtual_points = np.where(out.virtual_mask[..., None], points_with_objects, 0.0)
         changed = self._compact.apply(
             out.composite,
             out.virtual_mask,
             g.normals_cam,
             self._source_albedo(frame, g, out.virtual_mask, virtual_points),
             virtual_points,
-            self.camera.unproject(frame.depth_m),
+            real_points,
             frame.normals_cam,
             frame.world_from_cam,
             frame.light_sh,
@@ -271,10 +274,11 @@ class DifferentialRenderer:
 
     def _render_sh(
         self, frame: RenderInputs, keep_change: bool = False
-    ) -> tuple[RenderOutput, AmbientChange | None]:
+    ) -> tuple[RenderOutput, AmbientChange | None, tuple[np.ndarray, np.ndarray] | None]:
         """The composite lit by frame.light_sh (see the module docstring); with keep_change,
         also what it did to the real pixels (for the compact sources' share of their light;
-        None where it changed none)."""
+        None where it changed none); and the camera-frame points (H, W, 3) of the real
+        scene and of the scene with the objects, where it made them (else None)."""
         cam, pose = self.camera, frame.world_from_cam
         r = self.config.render
         g = self.raycaster.camera_gbuffer(cam, pose)
@@ -284,7 +288,7 @@ class DifferentialRenderer:
         rect = self.raycaster.screen_rect(cam, pose, margin_m=self.transfer_params.rt_radius_m)
         region = np.zeros(real_depth.shape, bool)
         if rect is None:
-            return RenderOutput(composite, virtual, region, g), None
+            return RenderOutput(composite, virtual, region, g), None, None
         depth_c = np.where(virtual, g.depth_m, real_depth).astype(np.float32)
         normals_c = np.array(frame.normals_cam, copy=True)
         normals_c[virtual] = g.normals_cam[virtual]
@@ -303,7 +307,7 @@ class DifferentialRenderer:
             radiance_c[virtual] = g.albedo[virtual] / math.pi * e[:, None] * light_rgb
         if r.render_mode is DiffMode.PASTE:
             composite[virtual] = linear_to_srgb_u8(radiance_c[virtual])
-            return RenderOutput(composite, virtual, virtual.copy(), g), None
+            return RenderOutput(composite, virtual, virtual.copy(), g), None, None
         u0, v0, u1, v1 = rect
         step = r.render_subsample
         gu, gv = _grid_points(u0, u1, step), _grid_points(v0, v1, step)
@@ -371,8 +375,6 @@ class DifferentialRenderer:
         if step == 1:
             ratio_full = np.where(touched, ratio_full, 1.0)
             delta_full = np.where(touched[..., None], delta_full, 0.0)
-        linear = frame.color_linear[v0:v1, u0:u1].astype(np.float64)
-        out = linear * ratio_full[..., None] + delta_full
         # virtual pixels: albedo / pi (direct with SSDO visibility + bounce from around)
         e_v = np.maximum(e_cv, 0.0)[:, None] * light_rgb + b_cv
         e_v[~ok_cv] = 0.0
@@ -383,9 +385,14 @@ class DifferentialRenderer:
         else:
             virtual_rgb = self._reflecting(frame.environment, g, vv_all, uu_all, e_v, pose)
         changed = (ratio_full != 1.0) | any_nonzero(delta_full)
-        out[virtual[v0:v1, u0:u1]] = 0.0
-        block = composite[v0:v1, u0:u1]
-        encode_where(out, changed, block)
+        # real pixels: I_c R'_d / R_d plus the indirect change (the virtual ones drawn next)
+        encode_scaled_where(
+            frame.color_linear[v0:v1, u0:u1],
+            ratio_full,
+            delta_full,
+            changed & ~virtual[v0:v1, u0:u1],
+            composite[v0:v1, u0:u1],
+        )
         composite[vv_all, uu_all] = linear_to_srgb_u8(virtual_rgb)
         region[v0:v1, u0:u1] = changed
         region |= virtual
@@ -400,7 +407,7 @@ class DifferentialRenderer:
                 np.where(real_changed[..., None], delta_full, 0.0),
                 touched,
             )
-        return RenderOutput(composite, virtual, region, g), ambient_change
+        return RenderOutput(composite, virtual, region, g), ambient_change, (points_r, points_c)
 
     def _grid_change(
         self,

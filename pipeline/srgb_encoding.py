@@ -21,6 +21,7 @@ __all__ = [
     "TABLE_NEXT",
     "THRESHOLDS",
     "counted_code",
+    "encode_scaled_where",
     "encode_where",
     "linear_to_srgb_u8",
 ]
@@ -94,6 +95,16 @@ def _encode_where(linear, where, base, next_step, image):
                     image[y, x, c] = counted_code(linear[y, x, c], base, next_step)
 
 
+@numba.njit(parallel=True, cache=True)
+def _encode_scaled_where(linear, ratio, delta, where, base, next_step, image):
+    for y in numba.prange(where.shape[0]):
+        for x in range(where.shape[1]):
+            if where[y, x]:
+                for c in range(image.shape[2]):
+                    value = np.float64(linear[y, x, c]) * ratio[y, x] + delta[y, x, c]
+                    image[y, x, c] = counted_code(value, base, next_step)
+
+
 def linear_to_srgb_u8(linear: np.ndarray) -> np.ndarray:
     """Linear [0, 1] -> 8-bit sRGB (IEC 61966-2-1), clipped, rounded to nearest; NaN -> 0.
     Computed in float64 whatever the input's precision."""
@@ -109,3 +120,21 @@ def encode_where(linear: np.ndarray, where: np.ndarray, image: np.ndarray) -> No
     view is fine: the rect of a composite)."""
     linear = np.ascontiguousarray(linear, np.float64)
     _encode_where(linear, where, TABLE_BASE, TABLE_NEXT, image)
+
+
+def encode_scaled_where(
+    linear: np.ndarray, ratio: np.ndarray, delta: np.ndarray, where: np.ndarray, image: np.ndarray
+) -> None:
+    """image[where] = linear_to_srgb_u8(linear * ratio[..., None] + delta)[where], in place,
+    the sum made only where it is encoded (in float64, as numpy would). linear (H, W, C)
+    float32 or float64, ratio (H, W) and delta (H, W, C) float64, where (H, W) bool, image
+    (H, W, C) uint8 (a view is fine)."""
+    _encode_scaled_where(
+        np.ascontiguousarray(linear),
+        np.ascontiguousarray(ratio, np.float64),
+        np.ascontiguousarray(delta, np.float64),
+        where,
+        TABLE_BASE,
+        TABLE_NEXT,
+        image,
+    )

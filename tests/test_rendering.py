@@ -310,6 +310,25 @@ def test_encode_where_is_the_gathered_encoding_in_place():
     assert composite[15, 10, 1] == 0 and np.any(composite != 7)
 
 
+def test_encode_scaled_where_is_numpys_sum_encoded_in_place():
+    """encode_scaled_where writes the codes of linear * ratio + delta (float64, as numpy
+    makes it) at the chosen pixels of a view, from float32 colours, and nothing else."""
+    from arlight.pipeline.srgb_encoding import encode_scaled_where
+
+    rng = np.random.default_rng(1)
+    linear = rng.random((30, 40, 3)).astype(np.float32)
+    ratio = rng.uniform(0.3, 1.5, (30, 40))
+    delta = rng.normal(0.0, 0.02, (30, 40, 3))
+    where = rng.random((30, 40)) < 0.6
+    composite = np.full((50, 60, 3), 7, np.uint8)
+    expected = composite.copy()
+    summed = linear.astype(np.float64) * ratio[..., None] + delta
+    expected[10:40, 5:45][where] = linear_to_srgb_u8(summed[where])
+    encode_scaled_where(linear, ratio, delta, where, composite[10:40, 5:45])
+    np.testing.assert_array_equal(composite, expected)
+    assert np.any(composite != 7)
+
+
 # ------------------------------------------------------------------ 2. real occluder
 class TestRealOccluder:
     @pytest.mark.parametrize("subsample, blur, levels", [(1, 2, 0), (2, 4, 1), (4, 8, 0)])

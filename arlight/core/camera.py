@@ -86,7 +86,11 @@ class PinholeCamera:
         u = (np.arange(w, dtype=np.float32) - np.float32(self.cx)) / np.float32(self.fx)
         v = (np.arange(h, dtype=np.float32) - np.float32(self.cy)) / np.float32(self.fy)
         z = depth_m.astype(np.float32, copy=False)
-        return np.stack([z * u[None, :], z * v[:, None], z], axis=-1)
+        out = np.empty((h, w, 3), np.float32)  # (each channel written in place: no stack)
+        np.multiply(z, u[None, :], out=out[..., 0])
+        np.multiply(z, v[:, None], out=out[..., 1])
+        out[..., 2] = z
+        return out
 
     def project(self, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel coordinates (..., 2) as (u, v) and depth z (...,) of camera points (..., 3)."""
