@@ -321,25 +321,31 @@ class CompactSourceShading:
         )
         # only pixels the SH part touched or whose rays may meet the objects can change
         centre_cam = (self.virtual.centre - t) @ rot
-        reach = touched_img.copy()
-        for source in sources:  # (over every pixel: cheaper than gathering the real ones)
-            d_cam = np.asarray(source.direction, np.float64) @ rot
-            reach |= self.virtual.may_block(
-                real_points_cam.reshape(-1, 3), d_cam, source.angular_radius_deg, centre_cam
+        may_block = [  # per source (over every pixel: cheaper than gathering the real ones)
+            self.virtual.may_block(
+                real_points_cam.reshape(-1, 3),
+                np.asarray(source.direction, np.float64) @ rot,
+                source.angular_radius_deg,
+                centre_cam,
             ).reshape(virtual.shape)
-        real &= reach
+            for source in sources
+        ]
+        real &= np.logical_or.reduce([touched_img, *may_block])
         rv, ru = np.nonzero(real)  # (boolean masks below gather in this same order)
         rot32 = np.ascontiguousarray(rot.T, np.float32)
         p = real_points_cam[real] @ rot32 + t.astype(np.float32)  # float32: ray origins
         n = real_normals_cam[real] @ rot32
         touched = touched_img[real]
         before, after = np.zeros(len(rv)), np.zeros(len(rv))
-        for source in sources:
+        for source, may in zip(sources, may_block, strict=True):
             d = np.asarray(source.direction, np.float64)
             cos = n @ d.astype(np.float32)
             idx = np.flatnonzero(cos > 0.0)
-            seen = self.virtual.visibility(p[idx], n[idx], d, 0.0, 1)
-            near = _near_blocked(seen < 1.0, rv[idx], ru[idx], virtual.shape)
+            # rays only where they may meet the objects (elsewhere none is blocked)
+            tested = may[rv[idx], ru[idx]]
+            seen = np.ones(len(idx))
+            seen[tested] = self.virtual.visibility(p[idx[tested]], n[idx[tested]], d, 0.0, 1)
+            near = _near_blocked(seen < 1.0, rv[idx], ru[idx], virtual.shape) & tested
             if np.any(near):
                 seen[near] = self.virtual.visibility(
                     p[idx[near]], n[idx[near]], d, source.angular_radius_deg, self.samples
