@@ -198,8 +198,11 @@ class DifferentialRenderer:
             return out
         g = out.gbuffer
         if points is None:
-            points = self.camera.unproject(frame.depth_m), self.camera.unproject(
-                np.where(out.virtual_mask, g.depth_m, frame.depth_m).astype(np.float32)
+            points = (
+                self.camera.unproject(frame.depth_m),
+                self.camera.unproject(
+                    np.where(out.virtual_mask, g.depth_m, frame.depth_m).astype(np.float32)
+                ),
             )
         real_points, points_with_objects = points
         virtual_points = np.where(out.virtual_mask[..., None], points_with_objects, 0.0)

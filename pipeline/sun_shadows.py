@@ -230,17 +230,6 @@ class AmbientChange:
     delta: np.ndarray
     touched: np.ndarray
 
-    def at(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(ratio (N,), delta (N, 3)) float64 at the pixels (rows, cols); 1 and 0 outside
-        the rectangle."""
-        r, c = rows - self.origin[0], cols - self.origin[1]
-        h, w = self.ratio.shape
-        inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-        ratio, delta = np.ones(len(rows)), np.zeros((len(rows), 3))
-        ratio[inside] = self.ratio[r[inside], c[inside]]
-        delta[inside] = self.delta[r[inside], c[inside]]
-        return ratio, delta
-
 
 def touched_by(ratio: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """(...) bool: where the SH part's ratio (...) or added RGB (..., 3) changed a real
