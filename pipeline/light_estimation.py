@@ -622,6 +622,11 @@ class _Evidence:
 
 
 NORMAL_SPREAD_FULL = 0.3  # spread at which the normals factor reaches 1
+# the conditioning factor (COND_GOOD / cond) ** COND_POWER, at most 1: fits have condition
+# numbers of 1e3-1e5, over which 1 / (1 + log10(cond) / 5) fell only from 0.62 to 0.50;
+# chosen leaving maps out (docs/decisions/0065-confidence-conditioning.md)
+COND_GOOD = 1e3
+COND_POWER = 0.8
 HORIZON_SCALE_DEG = 40.0  # horizon factor exp(-disagreement / this)
 MIN_FACTOR = 0.02  # a factor's floor: a weak estimate is still an estimate (value 0: none)
 
@@ -634,11 +639,17 @@ def _confidence_factors(e: _Evidence) -> dict[str, float]:
     """
     return {
         "samples": min(1.0, e.samples / 5000.0),
-        "conditioning": 1.0 / (1.0 + math.log10(max(e.cond, 1.0)) / 5.0),
+        "conditioning": conditioning_factor(e.cond),
         "bands": 1.0 if e.bands >= 2 else 0.3,  # without band 1 there is no direction
         "normals": max(MIN_FACTOR, min(1.0, e.normal_spread / NORMAL_SPREAD_FULL)),
         "horizon": max(MIN_FACTOR, math.exp(-e.horizon_deg / HORIZON_SCALE_DEG)),
     }
+
+
+def conditioning_factor(condition_number: float) -> float:
+    """The confidence's conditioning factor, (COND_GOOD / cond) ** COND_POWER in [MIN_FACTOR,
+    1]: 1 at a condition number of 1e3 or less, 0.16 at 1e4, 0.025 at 1e5."""
+    return max(MIN_FACTOR, min(1.0, (COND_GOOD / max(condition_number, 1.0)) ** COND_POWER))
 
 
 def _confidence_value(e: _Evidence) -> float:

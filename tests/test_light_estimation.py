@@ -416,6 +416,16 @@ class TestConfidenceEvidence:
         d = low.confidence.to_dict()
         assert d["normal_spread"] > 0.9 and d["horizon_disagreement_deg"] > 10.0
 
+    def test_the_conditioning_factor_falls_over_the_range_fits_have(self):
+        """Fits have condition numbers of 1e3-1e5 (decision 0065): the factor is 1 at 1e3
+        and below, falls by 10^0.8 a decade, and stops at the floor."""
+        f = le.conditioning_factor
+        assert f(1.0) == f(1e3) == 1.0
+        assert f(1e4) == pytest.approx(10**-0.8) and f(1e5) == pytest.approx(10**-1.6)
+        assert f(1e9) == le.MIN_FACTOR
+        values = [f(c) for c in np.logspace(3, 5, 9)]
+        assert all(a > b for a, b in zip(values, values[1:]))  # strictly falling there
+
     def test_clipped_pixels_are_named(self):
         normals, t = _synthetic(40000)
         tf = t[normals[:, 1] < -0.95]
