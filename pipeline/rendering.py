@@ -204,14 +204,13 @@ class DifferentialRenderer:
                     np.where(out.virtual_mask, g.depth_m, frame.depth_m).astype(np.float32)
                 ),
             )
-        real_points, points_with_objects = points
-        virtual_points = np.where(out.virtual_mask[..., None], points_with_objects, 0.0)
+        real_points, points_with_objects = points  # (read at the virtual pixels only)
         changed = self._compact.apply(
             out.composite,
             out.virtual_mask,
             g.normals_cam,
-            self._source_albedo(frame, g, out.virtual_mask, virtual_points),
-            virtual_points,
+            self._source_albedo(frame, g, out.virtual_mask, points_with_objects),
+            points_with_objects,
             real_points,
             frame.normals_cam,
             frame.world_from_cam,
@@ -247,7 +246,7 @@ class DifferentialRenderer:
         light (the source is in what a mirror or glossy object reflects), a mirror has none
         and a metal (1 - metalness) of its albedo, times the principled diffuse weight for a
         glossy object shaded from a probe (`probe_shading.shade`); the plain albedo without
-        either. points_cam: (H, W, 3) the virtual pixels' points (camera frame)."""
+        either. points_cam: (H, W, 3) points (camera frame), read at `virtual` only."""
         if frame.probe is None and frame.environment is None:
             return g.albedo
         fraction, glossy_object = self._diffuse_parts
@@ -293,8 +292,7 @@ class DifferentialRenderer:
         if rect is None:
             return RenderOutput(composite, virtual, region, g), None, None
         depth_c = np.where(virtual, g.depth_m, real_depth).astype(np.float32)
-        normals_c = np.array(frame.normals_cam, copy=True)
-        normals_c[virtual] = g.normals_cam[virtual]
+        normals_c = np.where(virtual[..., None], g.normals_cam, frame.normals_cam)
         points_r = cam.unproject(real_depth)
         points_c = cam.unproject(depth_c)
         aux_r = AuxBufferArrays.from_buffers(frame.aux_buffers, pose) if frame.aux_buffers else None
@@ -404,12 +402,8 @@ class DifferentialRenderer:
             real_changed = changed & ~virtual[v0:v1, u0:u1]
             touched = np.zeros(real_depth.shape, bool)
             touched[v0:v1, u0:u1] = real_changed & touched_by(ratio_full, delta_full)
-            ambient_change = AmbientChange(
-                (v0, u0),
-                np.where(real_changed, ratio_full, 1.0),
-                np.where(real_changed[..., None], delta_full, 0.0),
-                touched,
-            )
+            # (a real pixel it left unchanged has ratio 1 and delta 0 exactly: `changed`)
+            ambient_change = AmbientChange((v0, u0), ratio_full, delta_full, touched)
         return RenderOutput(composite, virtual, region, g), ambient_change, (points_r, points_c)
 
     def _grid_change(

@@ -27,7 +27,6 @@ import open3d as o3d
 import open3d.core as o3c
 
 from arlight.pipeline import sh
-from arlight.pipeline.channels import any_nonzero
 from arlight.pipeline.color import srgb_to_linear
 from arlight.pipeline.srgb_encoding import TABLE_BASE, TABLE_NEXT, counted_code
 
@@ -136,6 +135,19 @@ class MeshOccluder:
 
 
 @numba.njit(parallel=True, cache=True)
+def _real_pixels(virtual, points, normals, out):
+    """out = ~virtual & (z > 0) & a normal (any component not zero, NaN counting as one),
+    (H, W), in one pass."""
+    for y in numba.prange(virtual.shape[0]):
+        for x in range(virtual.shape[1]):
+            out[y, x] = (
+                not virtual[y, x]
+                and points[y, x, 2] > 0
+                and (normals[y, x, 0] != 0 or normals[y, x, 1] != 0 or normals[y, x, 2] != 0)
+            )
+
+
+@numba.njit(parallel=True, cache=True)
 def _may_block_kernel(points, centre, direction, radius, cos_a, sin_a, out):
     """`MeshOccluder.may_block` per point, in float32: the cone of the disc's rays (half-angle
     a) meets the sphere (centre, radius) where the angle to its centre is at most a + b,
@@ -222,8 +234,9 @@ class AmbientChange:
     """What the SH part of the differential rendering did to the real pixels of the
     rectangle it worked in, rows v0.. and columns u0.. (`origin` (v0, u0)): ratio (h, w), the
     factor R'_d / R_d on the observed colour (1 where unchanged); delta (h, w, 3), the linear
-    RGB it added (the indirect change; 0 where unchanged); touched (H, W), the whole frame:
-    where either changed enough to matter (`touched_by`)."""
+    RGB it added (the indirect change; 0 where unchanged); both read at real pixels only
+    (a virtual pixel's are not defined); touched (H, W), the whole frame: real pixels where
+    either changed enough to matter (`touched_by`)."""
 
     origin: tuple[int, int]
     ratio: np.ndarray
@@ -274,7 +287,8 @@ class CompactSourceShading:
         ambient_change: AmbientChange | None,
     ) -> np.ndarray:
         """Shade `composite` ((H, W, 3) uint8 sRGB, in place); returns the (H, W) bool mask
-        of the pixels changed. Points and normals: camera frame (zeros: none).
+        of the pixels changed. Points and normals: camera frame (zeros: none);
+        virtual_points_cam and the virtual normals and albedo are read at `virtual` only.
         color_linear: (H, W, 3) the observed frame, linear; ambient_change: what the SH part
         did to the real pixels (None: nothing). A real pixel the source's shadow or the SH
         part changed is made anew from its observed colour, the SSDO ratio weighing only
@@ -283,7 +297,8 @@ class CompactSourceShading:
 
         changed = np.zeros(virtual.shape, bool)
         rot, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
-        real = ~virtual & (real_points_cam[..., 2] > 0) & any_nonzero(real_normals_cam)
+        real = np.empty(virtual.shape, bool)
+        _real_pixels(virtual, real_points_cam, real_normals_cam, real)
         for source in sources:
             d = np.asarray(source.direction, np.float64)
             colour = np.asarray(source.rgb, np.float64) * np.asarray(light_rgb, np.float64)

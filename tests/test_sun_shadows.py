@@ -267,6 +267,25 @@ def test_the_real_pixels_kernel_is_the_two_definitions(with_change: bool) -> Non
     assert 0 < expected.sum() < n and changed.sum() == expected.sum()
 
 
+def test_real_pixels_in_one_pass_are_the_masks_expression() -> None:
+    """`_real_pixels` is ~virtual & (z > 0) & any_nonzero(normals), NaN normals counting
+    as normals and NaN depth as none."""
+    from arlight.pipeline.channels import any_nonzero
+    from arlight.pipeline.sun_shadows import _real_pixels
+
+    rng = np.random.default_rng(4)
+    virtual = rng.random((30, 40)) < 0.2
+    points = rng.normal(0.5, 1.0, (30, 40, 3)).astype(np.float32)
+    normals = rng.normal(0.0, 1.0, (30, 40, 3)).astype(np.float32)
+    normals[rng.random((30, 40)) < 0.3] = 0.0
+    normals[3, 4, 1], points[5, 6, 2] = np.nan, np.nan
+    out = np.empty((30, 40), bool)
+    _real_pixels(virtual, points, normals, out)
+    expected = ~virtual & (points[..., 2] > 0) & any_nonzero(normals)
+    np.testing.assert_array_equal(out, expected)
+    assert 0 < out.sum() < out.size
+
+
 def test_a_mirror_takes_the_source_only_from_what_it_reflects() -> None:
     """A mirror pole and a diffuse pole under a sun, a panorama reflected: the source adds
     its diffuse light to the diffuse pole's pixels and none to the mirror's, whose
