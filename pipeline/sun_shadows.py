@@ -308,8 +308,11 @@ class CompactSourceShading:
                 p = virtual_points_cam[vv, vu].astype(np.float64) @ rot.T + t
                 n = virtual_normals_cam[vv, vu].astype(np.float64) @ rot.T
                 cos = np.maximum(n @ d, 0.0)
-                seen = self.virtual.visibility(p, n, d, source.angular_radius_deg, self.samples)
-                seen *= real_visibility(real_occluder, p, n, d, world_from_cam)
+                lit = cos > 0.0  # rays only from pixels facing the source (else no light)
+                seen = np.ones(len(vv))
+                seen[lit] = self.virtual.visibility(
+                    p[lit], n[lit], d, source.angular_radius_deg, self.samples
+                ) * real_visibility(real_occluder, p[lit], n[lit], d, world_from_cam)
                 add = (source.irradiance * cos * seen)[:, None] * colour
                 albedo = virtual_albedo[vv, vu].astype(np.float64)
                 linear = srgb_to_linear(composite[vv, vu]).astype(np.float64)
