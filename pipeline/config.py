@@ -453,12 +453,12 @@ class EstimationParams:
 class TemporalParams:
     """The temporal filter of the world-frame SH (exponential, reset on a light change)."""
 
-    temporal_half_life_frames: float = 2.0  # light changes pass in ~3 frames
+    temporal_half_life_frames: float = 2.0  # light changes pass in ~3 frames; 0: no filter
     # a jump of the dominant direction larger than this resets the filter (35 degrees)
     change_reset_rad: float = math.radians(35.0)
 
     def __post_init__(self) -> None:
-        _check_float(self, "temporal_half_life_frames", 0.0, low_open=True)
+        _check_float(self, "temporal_half_life_frames", 0.0)
         _check_float(self, "change_reset_rad", 0.0, math.pi, low_open=True)
 
 

@@ -763,6 +763,9 @@ class TemporalFilter:
     """
 
     def __init__(self, params: TemporalParams) -> None:
+        # half-life 0: no smoothing, each frame's own estimate (a tiny half-life still
+        # blends a frame of confidence below 0.5 with the last: its weight is scaled down)
+        self.off = params.temporal_half_life_frames == 0.0
         self.alpha = 1.0 - 0.5 ** (1.0 / max(params.temporal_half_life_frames, 1e-6))
         self.reset_cos = math.cos(params.change_reset_rad)
         self.state: np.ndarray | None = None
@@ -772,7 +775,7 @@ class TemporalFilter:
         c = np.asarray(coeffs, dtype=np.float64)
         if confidence <= 0.0:
             return self.state.copy() if self.state is not None else c
-        if self.state is None:
+        if self.state is None or self.off:
             self.state = c.copy()
             return self.state.copy()
         d_new, d_old = sh.dominant_direction(c), sh.dominant_direction(self.state)

@@ -121,7 +121,7 @@ class TestValidation:
             ("aux_update_interval", 0, "aux_update_interval must be >= 1"),
             ("light_max_samples", 10, r"light_max_samples must be >= min_samples \(200\)"),
             ("horizon_ground_albedo", 1.5, "horizon_ground_albedo must be <= 1"),
-            ("temporal_half_life_frames", 0.0, "temporal_half_life_frames must be > 0"),
+            ("temporal_half_life_frames", -1.0, "temporal_half_life_frames must be >= 0"),
             ("change_reset_rad", 4.0, "change_reset_rad must be <="),
             ("device", "GPU", "device must be 'CPU:0' or 'CUDA:0'"),
             ("seed", -1, "seed must be >= 0"),

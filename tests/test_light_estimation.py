@@ -349,6 +349,19 @@ class TestTemporalFilter:
         assert f.state[0] != 123.0
 
 
+    def test_half_life_zero_is_no_filter(self):
+        """Half-life 0 reports each frame's own estimate, whatever its confidence (a frame
+        without one keeps the last); a tiny half-life still blends a frame of confidence
+        below 0.5 with the last (its weight is scaled by the confidence)."""
+        off = le.TemporalFilter(TemporalParams(temporal_half_life_frames=0.0))
+        tiny = le.TemporalFilter(TemporalParams(temporal_half_life_frames=0.001))
+        for f in (off, tiny):
+            f.update(self.OLD, 0.8)
+        np.testing.assert_array_equal(off.update(self.NEW, 0.05), self.NEW)
+        np.testing.assert_array_equal(off.update(self.OLD, 0.0), self.NEW)  # no estimate
+        blended = tiny.update(self.NEW, 0.05)
+        assert 20.0 < _angle_deg(blended, self.NEW) < 70.0
+
 class TestBounceTerm:
     def test_light_and_bounce_scale_recovered(self):
         _, t = _synthetic()
