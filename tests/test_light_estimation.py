@@ -348,7 +348,6 @@ class TestTemporalFilter:
         kept[0] = 123.0  # a copy is returned, the state is not aliased
         assert f.state[0] != 123.0
 
-
     def test_half_life_zero_is_no_filter(self):
         """Half-life 0 reports each frame's own estimate, whatever its confidence (a frame
         without one keeps the last); a tiny half-life still blends a frame of confidence
@@ -361,6 +360,7 @@ class TestTemporalFilter:
         np.testing.assert_array_equal(off.update(self.OLD, 0.0), self.NEW)  # no estimate
         blended = tiny.update(self.NEW, 0.05)
         assert 20.0 < _angle_deg(blended, self.NEW) < 70.0
+
 
 class TestBounceTerm:
     def test_light_and_bounce_scale_recovered(self):
