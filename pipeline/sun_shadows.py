@@ -262,8 +262,10 @@ class CompactSourceShading:
     and the second by V_virtual, so its colour is scaled by
     (rho E + S V_real V_virtual) / (E + S V_real) (`real_surface_factor`): the SSDO ratio
     weighs only the ambient share of the pixel's light, not the source's.
-    Rays: every real pixel facing the source at the disc's centre, then `samples` over the
-    disc for those near a blocked one (the penumbra); V_real for the pixels that change."""
+    Rays: from every real pixel facing the source whose cone of rays may meet the objects
+    (`MeshOccluder.may_block`), at the disc's centre, then `samples` over the disc for those
+    near a blocked one (the penumbra); V_real for the pixels that change; from every
+    virtual pixel facing the source, `samples` over the disc and V_real."""
 
     def __init__(self, meshes: list[tuple[np.ndarray, np.ndarray]], samples: int = 8):
         self.virtual = MeshOccluder(meshes)
