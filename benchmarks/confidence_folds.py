@@ -81,6 +81,9 @@ def record(sequences: list[str], preset: str, out: Path) -> None:
 
 def _rows(path: Path) -> dict[str, np.ndarray]:
     rows = [json.loads(line) for line in path.read_text().splitlines() if line]
+    keys = {"map", "error_deg", "confidence", "condition_number", "conditioning", "from_source"}
+    if not rows or any(not isinstance(r, dict) or not keys <= r.keys() for r in rows):
+        raise ValueError(f"{path}: not rows written by `record` (each needs {sorted(keys)})")
     rows = [r for r in rows if r["confidence"] > 0 and r["condition_number"] is not None]
     return {
         "map": np.array([r["map"] for r in rows]),
@@ -145,10 +148,14 @@ def main(argv: list[str] | None = None) -> int:
     fold = sub.add_parser("folds", help="the conditioning factor's shapes, leaving maps out")
     fold.add_argument("rows", nargs="+", type=Path, help="files written by `record`")
     args = parser.parse_args(argv)
-    if args.command == "record":
-        record(args.sequences, args.preset, args.out)
-    else:
-        folds(args.rows)
+    try:
+        if args.command == "record":
+            record(args.sequences, args.preset, args.out)
+        else:
+            folds(args.rows)
+    except (OSError, ValueError, KeyError, bench.BenchError) as exc:
+        print(f"confidence_folds.py {args.command}: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 
