@@ -287,12 +287,15 @@ class CompactSourceShading:
         real_occluder: RealOccluder | None,
         color_linear: np.ndarray,
         ambient_change: AmbientChange | None,
+        virtual_linear: np.ndarray | None = None,
     ) -> np.ndarray:
         """Shade `composite` ((H, W, 3) uint8 sRGB, in place); returns the (H, W) bool mask
         of the pixels changed. Points and normals: camera frame (zeros: none);
         virtual_points_cam and the virtual normals and albedo are read at `virtual` only.
         color_linear: (H, W, 3) the observed frame, linear; ambient_change: what the SH part
-        did to the real pixels (None: nothing). A real pixel the source's shadow or the SH
+        did to the real pixels (None: nothing); virtual_linear: (K, 3) the linear RGB it drew
+        the virtual pixels with, in np.nonzero(virtual)'s order (None: read back from
+        `composite`, through its 8 bits). A real pixel the source's shadow or the SH
         part changed is made anew from its observed colour, the SSDO ratio weighing only
         the ambient's share of its light (class docstring)."""
         from arlight.pipeline.rendering import linear_to_srgb_u8  # (it imports this module)
@@ -301,14 +304,21 @@ class CompactSourceShading:
         rot, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
         real = np.empty(virtual.shape, bool)
         _real_pixels(virtual, real_points_cam, real_normals_cam, real)
-        for source in sources:
-            d = np.asarray(source.direction, np.float64)
-            colour = np.asarray(source.rgb, np.float64) * np.asarray(light_rgb, np.float64)
-            # virtual pixels: the source's light past their own and the real scene's shadow
-            vv, vu = np.nonzero(virtual)
-            if len(vv):
-                p = virtual_points_cam[vv, vu].astype(np.float64) @ rot.T + t
-                n = virtual_normals_cam[vv, vu].astype(np.float64) @ rot.T
+        # virtual pixels: each source's light past their own and the real scene's shadow,
+        # added to the SH part's linear colour, encoded once
+        vv, vu = np.nonzero(virtual)
+        if len(vv) and sources:
+            linear = (
+                srgb_to_linear(composite[vv, vu]).astype(np.float64)
+                if virtual_linear is None
+                else np.array(virtual_linear, np.float64)
+            )
+            p = virtual_points_cam[vv, vu].astype(np.float64) @ rot.T + t
+            n = virtual_normals_cam[vv, vu].astype(np.float64) @ rot.T
+            albedo = virtual_albedo[vv, vu].astype(np.float64)
+            for source in sources:
+                d = np.asarray(source.direction, np.float64)
+                colour = np.asarray(source.rgb, np.float64) * np.asarray(light_rgb, np.float64)
                 cos = np.maximum(n @ d, 0.0)
                 lit = cos > 0.0  # rays only from pixels facing the source (else no light)
                 seen = np.ones(len(vv))
@@ -316,10 +326,9 @@ class CompactSourceShading:
                     p[lit], n[lit], d, source.angular_radius_deg, self.samples
                 ) * real_visibility(real_occluder, p[lit], n[lit], d, world_from_cam)
                 add = (source.irradiance * cos * seen)[:, None] * colour
-                albedo = virtual_albedo[vv, vu].astype(np.float64)
-                linear = srgb_to_linear(composite[vv, vu]).astype(np.float64)
-                composite[vv, vu] = linear_to_srgb_u8(linear + albedo / math.pi * add)
-                changed[vv, vu] = True
+                linear += albedo / math.pi * add
+            composite[vv, vu] = linear_to_srgb_u8(linear)
+            changed[vv, vu] = True
         if self.virtual.empty or not sources:
             return changed
         # real pixels: the source's light before and after the objects, summed over sources
