@@ -33,7 +33,7 @@ import dataclasses
 import functools
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import cv2
 import numba
@@ -157,6 +157,18 @@ class RenderOutput:
     gbuffer: VirtualGBuffer
 
 
+class _ShPass(NamedTuple):
+    """What `DifferentialRenderer._render_sh` made: the output; with keep_change, what it
+    did to the real pixels (None where it changed none); the camera-frame points (H, W, 3)
+    of the real scene and of the scene with the objects, and the (K, 3) linear RGB it drew
+    the virtual pixels with (np.nonzero(virtual_mask)'s order), where it made them."""
+
+    output: RenderOutput
+    ambient_change: AmbientChange | None = None
+    points: tuple[np.ndarray, np.ndarray] | None = None
+    virtual_linear: np.ndarray | None = None
+
+
 def reinhard(x: np.ndarray, mean: float, key: float) -> np.ndarray:
     """Reinhard's global operator: x scaled so that `mean` maps to `key`, then x / (1 + x)."""
     scaled = x * (key / max(mean, 1e-12))
@@ -193,7 +205,8 @@ class DifferentialRenderer:
         """The composite of one frame (see the module docstring), with the compact
         sources' hard shadows (frame.sources) drawn on it."""
         with_sources = bool(frame.sources) and self.config.render.render_mode is not DiffMode.PASTE
-        out, ambient_change, points = self._render_sh(frame, keep_change=with_sources)
+        drawn = self._render_sh(frame, keep_change=with_sources)
+        out, ambient_change, points = drawn.output, drawn.ambient_change, drawn.points
         if not with_sources:
             return out
         g = out.gbuffer
@@ -220,6 +233,7 @@ class DifferentialRenderer:
             frame.real_occluder,
             frame.color_linear,
             ambient_change,
+            drawn.virtual_linear,
         )
         return RenderOutput(out.composite, out.virtual_mask, out.region | changed, g)
 
@@ -274,13 +288,9 @@ class DifferentialRenderer:
         fraction, _ = self._diffuse_parts
         return fraction[g.object_index[vs, us]] > 0.0
 
-    def _render_sh(
-        self, frame: RenderInputs, keep_change: bool = False
-    ) -> tuple[RenderOutput, AmbientChange | None, tuple[np.ndarray, np.ndarray] | None]:
-        """The composite lit by frame.light_sh (see the module docstring); with keep_change,
-        also what it did to the real pixels (for the compact sources' share of their light;
-        None where it changed none); and the camera-frame points (H, W, 3) of the real
-        scene and of the scene with the objects, where it made them (else None)."""
+    def _render_sh(self, frame: RenderInputs, keep_change: bool = False) -> _ShPass:
+        """The composite lit by frame.light_sh (see the module docstring) and, for the
+        compact sources drawn after it, what else it made (`_ShPass`)."""
         cam, pose = self.camera, frame.world_from_cam
         r = self.config.render
         g = self.raycaster.camera_gbuffer(cam, pose)
@@ -290,7 +300,7 @@ class DifferentialRenderer:
         rect = self.raycaster.screen_rect(cam, pose, margin_m=self.transfer_params.rt_radius_m)
         region = np.zeros(real_depth.shape, bool)
         if rect is None:
-            return RenderOutput(composite, virtual, region, g), None, None
+            return _ShPass(RenderOutput(composite, virtual, region, g))
         depth_c = np.where(virtual, g.depth_m, real_depth).astype(np.float32)
         normals_c = np.where(virtual[..., None], g.normals_cam, frame.normals_cam)
         points_r = cam.unproject(real_depth)
@@ -308,7 +318,7 @@ class DifferentialRenderer:
             radiance_c[virtual] = g.albedo[virtual] / math.pi * e[:, None] * light_rgb
         if r.render_mode is DiffMode.PASTE:
             composite[virtual] = linear_to_srgb_u8(radiance_c[virtual])
-            return RenderOutput(composite, virtual, virtual.copy(), g), None, None
+            return _ShPass(RenderOutput(composite, virtual, virtual.copy(), g))
         u0, v0, u1, v1 = rect
         step = r.render_subsample
         gu, gv = _grid_points(u0, u1, step), _grid_points(v0, v1, step)
@@ -404,7 +414,12 @@ class DifferentialRenderer:
             touched[v0:v1, u0:u1] = real_changed & touched_by(ratio_full, delta_full)
             # (a real pixel it left unchanged has ratio 1 and delta 0 exactly: `changed`)
             ambient_change = AmbientChange((v0, u0), ratio_full, delta_full, touched)
-        return RenderOutput(composite, virtual, region, g), ambient_change, (points_r, points_c)
+        return _ShPass(
+            RenderOutput(composite, virtual, region, g),
+            ambient_change,
+            (points_r, points_c),
+            virtual_rgb,
+        )
 
     def _grid_change(
         self,
