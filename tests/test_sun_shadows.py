@@ -286,6 +286,36 @@ def test_real_pixels_in_one_pass_are_the_masks_expression() -> None:
     assert 0 < out.sum() < out.size
 
 
+def test_the_objects_pixels_take_the_sh_parts_linear_colour() -> None:
+    """Given the SH part's linear colour of the virtual pixels, `apply` adds the source's
+    light to it and encodes once; without it, it reads the composite's 8 bits back."""
+    from arlight.pipeline.srgb_encoding import linear_to_srgb_u8
+    from arlight.pipeline.sun_shadows import CompactSourceShading, SourceLight
+
+    h, w = 12, 16
+    shading = CompactSourceShading([_box((0.0, 0.0, 5.0), (0.2, 0.2, 0.2))])
+    virtual = np.zeros((h, w), bool)
+    virtual[4:8, 5:9] = True
+    normals = np.zeros((h, w, 3), np.float32)
+    normals[virtual] = (0.0, 0.0, -1.0)  # facing the camera and the source
+    points = np.zeros((h, w, 3), np.float32)
+    points[virtual] = (0.0, 0.0, 4.0)  # in front of the box: nothing blocks them
+    albedo = np.full((h, w, 3), 0.5, np.float32)
+    source = SourceLight(np.array([0.0, 0.0, -1.0]), 0.3, np.ones(3), 0.5)
+    linear = np.full((int(virtual.sum()), 3), 0.2)
+    for given in (linear, None):
+        composite = np.zeros((h, w, 3), np.uint8)
+        changed = shading.apply(
+            composite, virtual, normals, albedo, points, np.zeros((h, w, 3), np.float32),
+            np.zeros((h, w, 3), np.float32), np.eye(4), np.zeros(9), np.ones(3), [source],
+            None, np.zeros((h, w, 3), np.float32), None, given,
+        )  # fmt: skip
+        base = 0.2 if given is not None else 0.0
+        expected = linear_to_srgb_u8(np.array([base + 0.5 / math.pi * 0.3]))[0]
+        assert np.all(composite[virtual] == expected) and np.all(composite[~virtual] == 0)
+        assert np.array_equal(changed, virtual)
+
+
 def test_a_mirror_takes_the_source_only_from_what_it_reflects() -> None:
     """A mirror pole and a diffuse pole under a sun, a panorama reflected: the source adds
     its diffuse light to the diffuse pole's pixels and none to the mirror's, whose
