@@ -217,7 +217,7 @@ class DifferentialRenderer:
                     np.where(out.virtual_mask, g.depth_m, frame.depth_m).astype(np.float32)
                 ),
             )
-        real_points, points_with_objects = points  # (read at the virtual pixels only)
+        real_points, points_with_objects = points  # (the second read at virtual pixels only)
         changed = self._compact.apply(
             out.composite,
             out.virtual_mask,
