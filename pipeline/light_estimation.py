@@ -759,7 +759,8 @@ class TemporalFilter:
 
     Each frame blends in the new estimate with weight 1 - 0.5^(1 / half_life) (scaled by
     its confidence); when the dominant direction jumps by more than `change_reset_rad` for
-    two frames in a row, the filter restarts from the new light (a switched lamp).
+    two frames in a row, the filter restarts from the new light (a switched lamp). Half-life
+    0: off, each frame's own estimate (a frame without one keeps the last).
     """
 
     def __init__(self, params: TemporalParams) -> None:
