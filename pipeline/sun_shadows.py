@@ -28,7 +28,12 @@ import open3d.core as o3c
 
 from arlight.pipeline import sh
 from arlight.pipeline.color import srgb_to_linear
-from arlight.pipeline.srgb_encoding import TABLE_BASE, TABLE_NEXT, counted_code
+from arlight.pipeline.srgb_encoding import (
+    TABLE_BASE,
+    TABLE_NEXT,
+    counted_code,
+    linear_to_srgb_u8,
+)
 
 RAY_OFFSET_M = 0.01  # rays start this far along the normal (metres)
 # the SH part's change of a real pixel below both of these (its ratio's distance from 1, its
@@ -298,8 +303,6 @@ class CompactSourceShading:
         `composite`, through its 8 bits). A real pixel the source's shadow or the SH
         part changed is made anew from its observed colour, the SSDO ratio weighing only
         the ambient's share of its light (class docstring)."""
-        from arlight.pipeline.rendering import linear_to_srgb_u8  # (it imports this module)
-
         changed = np.zeros(virtual.shape, bool)
         rot, t = world_from_cam[:3, :3], world_from_cam[:3, 3]
         real = np.empty(virtual.shape, bool)
