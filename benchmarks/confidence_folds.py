@@ -6,7 +6,8 @@
 `record` runs the pipeline over sequences with ground truth (as `arlight bench` does, poses
 from the data) and writes one row per frame: its map, the upper-hemisphere error of the
 reported direction (degrees), the reported confidence, the fit's condition number, the
-conditioning factor in that value, and whether the direction is a kept compact source's.
+conditioning factor in that value, whether the direction is a kept compact source's, and
+the other factors' inputs (for benchmarks/confidence_factors.py).
 
 `folds` re-scores each frame with other shapes of the conditioning factor,
 min(1, (10^c0 / cond)^power) floored at MIN_FACTOR (the other factors as recorded; a
@@ -74,6 +75,15 @@ def record(sequences: list[str], preset: str, out: Path) -> None:
                     else None,
                     "conditioning": conditioning_factor(c.condition_number),
                     "from_source": bool(result.compact_sources),
+                    # the other factors' inputs (benchmarks/confidence_factors.py)
+                    "samples": int(c.samples),
+                    "bands": int(c.bands_estimated),
+                    "normal_spread": float(c.normal_spread),
+                    "horizon_deg": float(c.horizon_disagreement_deg),
+                    "side_share": c.side_share,
+                    "jump_deg": float(c.jump_deg),
+                    "disagreement_deg": float(result.diagnostics.get("fit_disagreement_deg", 0.0)),
+                    "edge_step": float(result.diagnostics.get("compact", {}).get("edge_step", 0.0)),
                 }
                 fh.write(json.dumps(row) + "\n")
             print(f"{seq.name}: {len(seq.frames)} frames", flush=True)

@@ -621,7 +621,9 @@ class _Evidence:
     clipped_fraction: float = 0.0  # named in the reason, not a factor (no data to rank it)
 
 
-NORMAL_SPREAD_FULL = 0.3  # spread at which the normals factor reaches 1
+# spread at which the normals factor reaches 1: views near one plane only (0.3 ranked the error
+# worse on held-out maps; docs/decisions/0066-confidence-view-normals-jump.md)
+NORMAL_SPREAD_FULL = 0.1
 # the conditioning factor (COND_GOOD / cond) ** COND_POWER, at most 1: fits have condition
 # numbers of 1e3-1e5, over which 1 / (1 + log10(cond) / 5) fell only from 0.62 to 0.50;
 # chosen leaving maps out (docs/decisions/0065-confidence-conditioning.md)
@@ -702,8 +704,11 @@ CLIPPED_NOTE = 0.05  # a clipped fraction above this is named in a low confidenc
 # constrain where the light stands, and a jump from the last frames' estimate is a light
 # change or an unreliable frame (docs/decisions/0004-confidence-view-and-steadiness.md).
 SIDE_COS = 0.7  # |n . up| below this: a side-facing normal (over ~45 degrees off vertical)
-SIDE_SHARE_FULL = 0.2  # share of side-facing normals at which the "view" factor reaches 1
-JUMP_SCALE_DEG = 20.0  # "steadiness" factor exp(-jump / this)
+# share of side-facing normals at which the "view" factor reaches 1, and the "steadiness"
+# factor's exp(-jump / JUMP_SCALE_DEG): chosen leaving maps out (decision 0066)
+SIDE_SHARE_FULL = 0.05
+JUMP_SCALE_DEG = 15.0
+AGREE_SCALE_DEG = 20.0  # "agreement" factor exp(-disagreement / this)
 
 
 def side_share(normals_world: np.ndarray, up_world: np.ndarray | None) -> float | None:
@@ -727,13 +732,13 @@ def with_view_and_steadiness(
     floored at MIN_FACTOR; a low value's reason names them when they are weak.
     disagreement_deg: degrees between the directions of two fits of the same frame (near
     the look-at point and over the whole view, fit_radius_sources_everywhere), counted as
-    a jump is (the "agreement" factor, exp(-disagreement / JUMP_SCALE_DEG))."""
+    a jump is (the "agreement" factor, exp(-disagreement / AGREE_SCALE_DEG))."""
     if conf.value <= 0.0:
         return dataclasses.replace(conf, side_share=side, jump_deg=jump_deg)
     factors = {
         "view": 1.0 if side is None else max(MIN_FACTOR, min(1.0, side / SIDE_SHARE_FULL)),
         "steadiness": max(MIN_FACTOR, math.exp(-jump_deg / JUMP_SCALE_DEG)),
-        "agreement": max(MIN_FACTOR, math.exp(-disagreement_deg / JUMP_SCALE_DEG)),
+        "agreement": max(MIN_FACTOR, math.exp(-disagreement_deg / AGREE_SCALE_DEG)),
     }
     value = float(np.clip(conf.value * math.prod(factors.values()), 0.0, 1.0))
     reason = conf.reason

@@ -567,7 +567,7 @@ class Pipeline:
                 )
         self.frames_processed += 1
         diagnostics.update(
-            self._estimate_diagnostics(estimate, up_world, confidence, raw_direction)
+            self._estimate_diagnostics(estimate, up_world, confidence, raw_direction, disagreement)
         )
         rotation = pose[:3, :3]
         return FrameResult(
@@ -1113,8 +1113,11 @@ class Pipeline:
         up_world: np.ndarray | None,
         confidence: Confidence,
         raw_direction: np.ndarray,
+        disagreement_deg: float,
     ) -> Diagnostics:
-        """Plain JSON types (the wire carries them): what the light estimate did and why."""
+        """Plain JSON types (the wire carries them): what the light estimate did and why;
+        fit_disagreement_deg: degrees between the fits near the look-at point and over the
+        whole view (the confidence's "agreement" factor; 0 with one fit)."""
         return {
             "residual_rel": _json_float(estimate.residual_rel),
             "bounce_scale": float(estimate.bounce_scale),
@@ -1124,4 +1127,5 @@ class Pipeline:
             "bands_requested": int(self.config.transfer.sh_bands),
             "bands_estimated": int(estimate.confidence.bands_estimated),
             "confidence_reason": confidence.reason,  # the reported one
+            "fit_disagreement_deg": float(disagreement_deg),
         }

@@ -467,17 +467,17 @@ class TestViewAndSteadiness:
         same = le.with_view_and_steadiness(conf, 0.5, 0.0)
         assert same.value == pytest.approx(0.8) and same.reason == ""
         assert same.to_dict()["side_share"] == 0.5
-        ground = le.with_view_and_steadiness(conf, 0.02, 0.0)
-        assert ground.value == pytest.approx(0.8 * 0.02 / le.SIDE_SHARE_FULL)
+        ground = le.with_view_and_steadiness(conf, 0.01, 0.0)
+        assert ground.value == pytest.approx(0.8 * 0.01 / le.SIDE_SHARE_FULL)
         assert "side-facing" in ground.reason
-        jumped = le.with_view_and_steadiness(conf, 0.5, 60.0)
-        assert jumped.value == pytest.approx(0.8 * math.exp(-60.0 / le.JUMP_SCALE_DEG))
-        assert "jumped 60 deg" in jumped.reason and "side-facing" not in jumped.reason
+        jumped = le.with_view_and_steadiness(conf, 0.5, 30.0)
+        assert jumped.value == pytest.approx(0.8 * math.exp(-30.0 / le.JUMP_SCALE_DEG))
+        assert "jumped 30 deg" in jumped.reason and "side-facing" not in jumped.reason
         unknown = le.with_view_and_steadiness(conf, None, 0.0)  # no plane yet: no view factor
         assert unknown.value == pytest.approx(0.8) and unknown.to_dict()["side_share"] is None
         # two fits of one frame (near the look-at point, the whole view) that disagree
         split = le.with_view_and_steadiness(conf, 0.5, 0.0, 45.0)
-        assert split.value == pytest.approx(0.8 * math.exp(-45.0 / le.JUMP_SCALE_DEG))
+        assert split.value == pytest.approx(0.8 * math.exp(-45.0 / le.AGREE_SCALE_DEG))
         assert "45 deg from the one fitted over the whole view" in split.reason
 
     def test_no_estimate_stays_no_estimate(self):
