@@ -30,6 +30,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from arlight.core.frames import Confidence
@@ -169,21 +170,60 @@ class ShadowTester:
         normals = self.normals if rows is None else self.normals[rows]
         cos = np.maximum(normals @ directions.T, 0.0)
         out = np.zeros_like(cos)
+        if not self._scenes or not np.any(cos > 0.0):
+            return cos if not self._scenes else out
+        rows_at = np.arange(len(normals)) if rows is None else np.asarray(rows, np.int64)
         # one batch of every (pixel, direction) pair that faces the source: Embree's cost
         # per call outweighs a few thousand rays
-        pix, j = np.nonzero(cos > 0.0)
-        if not len(pix):
-            return out
-        blocked = np.zeros(len(pix), bool)
+        blocked = None
         for scene, rot, all_origins in self._scenes:
-            origins = all_origins if rows is None else all_origins[rows]
-            rays = np.empty((len(pix), 6), np.float32)
-            rays[:, :3] = origins[pix]
-            rays[:, 3:] = (directions @ rot).astype(np.float32)[j]
-            blocked |= scene.blocked(rays, RAY_TNEAR_M, RAY_TFAR_M)
+            rays, pix, j = _facing_rays(
+                all_origins, rows_at, (directions @ rot).astype(np.float32), cos
+            )
+            hit = scene.blocked(rays, RAY_TNEAR_M, RAY_TFAR_M)
+            blocked = hit if blocked is None else blocked | hit
             self.rays += len(pix)
-        out[pix, j] = np.where(blocked, 0.0, cos[pix, j])
+        _unblocked_into(out, cos, pix, j, blocked)
         return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _facing_rays(
+    origins: np.ndarray, rows: np.ndarray, directions: np.ndarray, cos: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rays of every (i, j) with cos[i, j] > 0, in np.nonzero's order: (P, 6) float32
+    (origins[rows[i]], directions[j]), and each pair's i and j (P,)."""
+    m, k = cos.shape
+    count = 0
+    for i in range(m):
+        for j in range(k):
+            if cos[i, j] > 0.0:
+                count += 1
+    rays = np.empty((count, 6), np.float32)
+    pix = np.empty(count, np.int64)
+    col = np.empty(count, np.int64)
+    p = 0
+    for i in range(m):
+        row = rows[i]
+        for j in range(k):
+            if cos[i, j] > 0.0:
+                for c in range(3):
+                    rays[p, c] = origins[row, c]
+                    rays[p, 3 + c] = directions[j, c]
+                pix[p] = i
+                col[p] = j
+                p += 1
+    return rays, pix, col
+
+
+@numba.njit(cache=True, nogil=True)
+def _unblocked_into(
+    out: np.ndarray, cos: np.ndarray, pix: np.ndarray, col: np.ndarray, blocked: np.ndarray
+) -> None:
+    """out[pix, col] = cos there where the ray is not blocked (out is zero elsewhere)."""
+    for p in range(len(pix)):
+        if not blocked[p]:
+            out[pix[p], col[p]] = cos[pix[p], col[p]]
 
 
 @dataclass

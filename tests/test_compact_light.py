@@ -184,6 +184,34 @@ def test_a_coarse_grid_is_refined_from_half_its_spacing():
     assert refine_steps(256) == (4.0, 2.0, 1.0)
 
 
+def test_the_shading_of_many_directions_is_each_pair_s_own_ray():
+    """ShadowTester.shading batches every (pixel, direction) pair that faces the direction
+    into one call: each entry equals the definition, max(0, n . w) where the ray from the
+    pixel (offset along its normal) towards w leaves the scene, and 0 elsewhere; only
+    the facing pairs are cast, for all rows or a subset of them."""
+    points, _, scene = _scene()
+    rng = np.random.default_rng(3)
+    normals = rng.normal(size=points.shape) + 2.0 * UP  # mostly up, some facing away
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    dirs = np.array([_sun(e, a) for e, a in [(35.0, 20.0), (10.0, 200.0), (60.0, -90.0)]])
+    rows = np.sort(rng.choice(len(points), 700, replace=False))
+    origins = (points + 0.02 * normals).astype(np.float32)
+    for subset in (None, rows):
+        tester = ShadowTester([(scene, np.eye(4))], points, normals)
+        got = tester.shading(dirs, subset)
+        at = np.arange(len(points)) if subset is None else subset
+        cos = np.maximum(normals[at] @ dirs.T, 0.0)
+        want = np.zeros_like(cos)
+        for j, w in enumerate(dirs):
+            facing = np.nonzero(cos[:, j] > 0.0)[0]
+            rays = np.hstack([origins[at][facing], np.tile(w.astype(np.float32), (len(facing), 1))])
+            blocked = scene.blocked(rays.astype(np.float32), 0.01, 100.0)
+            want[facing, j] = np.where(blocked, 0.0, cos[facing, j])
+        assert np.array_equal(got, want)
+        assert tester.rays == int(np.sum(cos > 0.0))
+        assert 0 < np.sum((cos > 0.0) & (got == 0.0)) < np.sum(cos > 0.0)  # some shadowed
+
+
 def test_shadows_from_either_mesh():
     """Two meshes (the volume's and the current frame's): a ray is blocked where either
     blocks it, so a mover the volume has not fused still casts its shadow."""
