@@ -175,15 +175,14 @@ class ShadowTester:
         rows_at = np.arange(len(normals)) if rows is None else np.asarray(rows, np.int64)
         # one batch of every (pixel, direction) pair that faces the source: Embree's cost
         # per call outweighs a few thousand rays
-        blocked = None
+        blocked = []
         for scene, rot, all_origins in self._scenes:
             rays, pix, j = _facing_rays(
                 all_origins, rows_at, (directions @ rot).astype(np.float32), cos
             )
-            hit = scene.blocked(rays, RAY_TNEAR_M, RAY_TFAR_M)
-            blocked = hit if blocked is None else blocked | hit
+            blocked.append(scene.blocked(rays, RAY_TNEAR_M, RAY_TFAR_M))
             self.rays += len(pix)
-        _unblocked_into(out, cos, pix, j, blocked)
+        _unblocked_into(out, cos, pix, j, np.logical_or.reduce(blocked))
         return out
 
 

@@ -153,6 +153,7 @@ class Diagnostics(TypedDict, total=False):
     bands_requested: int
     bands_estimated: int
     confidence_reason: str  # Confidence.reason as reported
+    fit_disagreement_deg: float  # between the fits near the look-at point and of the whole view
     compact: CompactDiagnostics  # compact sources beside the SH (compact_sources > 0)
     light_source: str  # the server, a session with a panorama: "rgbd" or "panorama"
     panorama_operator: str  # the server: the inverse tone mapping operator used
