@@ -24,6 +24,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import spearmanr
 
 from arlight import __version__
 
@@ -36,6 +37,17 @@ def _angle_deg(a, b) -> float:
     if na == 0 or nb == 0:
         return float("nan")
     return math.degrees(math.acos(float(np.clip(a @ b / (na * nb), -1.0, 1.0))))
+
+
+def _spearman(confidences: dict[int, float], errors: dict[int, float]) -> float | None:
+    """Spearman's rank correlation of the confidence with the error over the frames that have
+    both (negative: the confidence falls as the error grows); None where it is undefined."""
+    frames = [k for k, e in errors.items() if np.isfinite(e) and k in confidences]
+    conf = [confidences[k] for k in frames]
+    err = [errors[k] for k in frames]
+    if len(frames) < 3 or len(set(conf)) < 2 or len(set(err)) < 2:
+        return None
+    return round(float(spearmanr(conf, err).statistic), 3)
 
 
 def run_demo(
@@ -68,12 +80,14 @@ def run_demo(
     sun = [t.sun_camera for t in truths]  # what a kept compact source is
     errors: dict[int, float] = {}
     sun_errors: dict[int, float] = {}
+    confidences: dict[int, float] = {}
     pipeline_ms: list[float] = []
     notes = FrameNotes()  # why a confidence is low, printed where the reason changes
 
     def on_result(result, record) -> None:
         err = _angle_deg(result.dominant_direction_camera, truth[result.seq])
         errors[result.seq] = err
+        confidences[result.seq] = float(result.confidence.value)
         sources = result.compact_sources or []
         if sources:
             sun_errors[result.seq] = _angle_deg(sources[0]["direction_camera"], sun[result.seq])
@@ -147,6 +161,7 @@ def run_demo(
         stream,
         errors,
         sun_errors,
+        confidences,
         pipeline_ms,
         frames,
         size,
@@ -186,6 +201,7 @@ def _summary(
     stream,
     errors: dict[int, float],
     sun_errors: dict[int, float],
+    confidences: dict[int, float],
     pipeline_ms: list[float],
     frames: int,
     size: tuple[int, int],
@@ -194,7 +210,8 @@ def _summary(
 ) -> dict:
     """summary.json: what the display received, the capture client's counts, the errors
     (of the dominant light against the upper hemisphere's first moment; of the kept compact
-    sources against the scene's sun).
+    sources against the scene's sun), and how the confidence ranks each (Spearman over the
+    frames; None with fewer than 3 frames or a constant column).
 
     fps is what the service delivered: results per second of streaming (first frame sent to
     last result, JIT compilation of a first run included); pipeline_fps is 1000 / the median
@@ -228,6 +245,10 @@ def _summary(
         "compact_source_to_sun_deg": {
             "frames": len(sun_errors),
             "median": round(float(np.median(list(sun_errors.values()))), 3) if sun_errors else None,
+        },
+        "confidence_vs_error_spearman": {
+            "first_moment": _spearman(confidences, errors),
+            "source_to_sun": _spearman(confidences, sun_errors),
         },
         "frames_dropped": shown["frames_dropped"],
         "reconnects": stream.reconnects,

@@ -417,6 +417,18 @@ class TestCommands:
         # scene's sun, found within a few degrees
         sun = summary["compact_source_to_sun_deg"]
         assert 1 <= sun["frames"] <= 3 and sun["median"] < 10.0
+        rho = summary["confidence_vs_error_spearman"]
+        assert set(rho) == {"first_moment", "source_to_sun"}
+        assert all(v is None or -1.0 <= v <= 1.0 for v in rho.values())
+
+    def test_the_demo_s_spearman_ranks_confidence_against_error(self):
+        from arlight.demo import _spearman
+
+        conf = {0: 0.9, 1: 0.5, 2: 0.1, 3: 0.3}
+        assert _spearman(conf, {0: 2.0, 1: 5.0, 2: 20.0, 3: 9.0}) == -1.0
+        assert _spearman(conf, {0: 20.0, 1: 9.0, 2: 2.0, 3: 5.0}) == 1.0
+        assert _spearman(conf, {0: 2.0, 1: float("nan"), 2: 20.0}) is None  # two frames
+        assert _spearman({0: 0.5, 1: 0.5, 2: 0.5}, {0: 1.0, 1: 2.0, 2: 3.0}) is None
 
     def test_stream_record_and_bit_exact_replay(self, make_server, tmp_path, capsys):
         server = make_server(process=identity_step())

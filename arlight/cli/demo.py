@@ -60,6 +60,20 @@ def run(args: argparse.Namespace) -> int:
         if sun["frames"]
         else ""
     )
+    rho = summary["confidence_vs_error_spearman"]
+    rho_text = (
+        "; the confidence against the error (Spearman): "
+        + ", ".join(
+            f"{figure(value, '+.2f')} ({name})"
+            for name, value in (
+                ("first moment", rho["first_moment"]),
+                ("the source against the sun", rho["source_to_sun"]),
+            )
+            if value is not None
+        )
+        if any(v is not None for v in rho.values())
+        else ""
+    )
     stages = ", ".join(f"{k} {v:.0f}" for k, v in summary["timings_ms_median"].items())
     print(
         f"arlight demo: {summary['results']}/{summary['frames_sent']} results, "
@@ -69,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         f"{figure(lat['median'], '.0f')} ms (p95 {figure(lat['p95'], '.0f')}, lossless: "
         f"includes queueing); median stage ms: {stages}; dominant light error median "
         f"{figure(err['median'], '.1f')} deg (against the first moment of the light above "
-        f"the horizon){sun_text}",
+        f"the horizon){sun_text}{rho_text}",
         file=sys.stderr,
     )
     plot = Path(args.out) / "latency.png"
