@@ -169,9 +169,11 @@ class ShadowTester:
         (K, 3) world."""
         normals = self.normals if rows is None else self.normals[rows]
         cos = np.maximum(normals @ directions.T, 0.0)
+        if not self._scenes:  # nothing blocks a ray
+            return cos
         out = np.zeros_like(cos)
-        if not self._scenes or not np.any(cos > 0.0):
-            return cos if not self._scenes else out
+        if not np.any(cos > 0.0):
+            return out
         rows_at = np.arange(len(normals)) if rows is None else np.asarray(rows, np.int64)
         # one batch of every (pixel, direction) pair that faces the source: Embree's cost
         # per call outweighs a few thousand rays
