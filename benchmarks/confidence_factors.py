@@ -52,7 +52,7 @@ OFF = float("inf")  # a scale at which its factor is 1 everywhere
 def code_scales() -> dict[str, float]:
     """The scales as the code has them."""
     return {
-        "samples": 5000.0,
+        "samples": float(le.SAMPLES_FULL),
         "normals": le.NORMAL_SPREAD_FULL,
         "view": le.SIDE_SHARE_FULL,
         "steadiness_deg": le.JUMP_SCALE_DEG,
@@ -107,7 +107,7 @@ def scored(rows: dict[str, np.ndarray], scales: dict[str, float]) -> np.ndarray:
     fit = (
         np.minimum(1.0, rows["samples"] / scales["samples"])
         * conditioning
-        * np.where(rows["bands"] >= 2, 1.0, 0.3)
+        * np.where(rows["bands"] >= 2, 1.0, le.NO_DIRECTION_FACTOR)
         * _ramp(rows["normal_spread"], scales["normals"])
         * np.maximum(le.MIN_FACTOR, np.exp(-rows["horizon_deg"] / le.HORIZON_SCALE_DEG))
     )

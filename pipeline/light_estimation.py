@@ -630,6 +630,8 @@ NORMAL_SPREAD_FULL = 0.1
 COND_GOOD = 1e3
 COND_POWER = 0.8
 HORIZON_SCALE_DEG = 40.0  # horizon factor exp(-disagreement / this)
+SAMPLES_FULL = 5000  # fitted pixels at which the samples factor reaches 1
+NO_DIRECTION_FACTOR = 0.3  # the bands factor without band 1 (no direction estimated)
 MIN_FACTOR = 0.02  # a factor's floor: a weak estimate is still an estimate (value 0: none)
 
 
@@ -640,9 +642,9 @@ def _confidence_factors(e: _Evidence) -> dict[str, float]:
     docs/results/confidence.md and docs/decisions/0003-confidence-spread-and-horizon.md.
     """
     return {
-        "samples": min(1.0, e.samples / 5000.0),
+        "samples": min(1.0, e.samples / SAMPLES_FULL),
         "conditioning": conditioning_factor(e.cond),
-        "bands": 1.0 if e.bands >= 2 else 0.3,  # without band 1 there is no direction
+        "bands": 1.0 if e.bands >= 2 else NO_DIRECTION_FACTOR,
         "normals": max(MIN_FACTOR, min(1.0, e.normal_spread / NORMAL_SPREAD_FULL)),
         "horizon": max(MIN_FACTOR, math.exp(-e.horizon_deg / HORIZON_SCALE_DEG)),
     }
