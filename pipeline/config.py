@@ -339,6 +339,12 @@ class EstimationParams:
     # where that second fit's direction lies within this many degrees of the near fit's,
     # the second fit's SH is the one reported (0 = never; held out by map it lost: 0064)
     fit_radius_agree_deg: float = 0.0
+    # share of that second fit's SH in the reported one where the two fits' directions
+    # agree: (1 - s) near + s whole, s = fit_radius_blend * max(0, 1 - their angle /
+    # fit_radius_blend_deg) (0 = the near fit alone); 0.5 and 45 in `fast`, off in `full`,
+    # where it lost held out (docs/decisions/0067-the-two-fits-blended.md)
+    fit_radius_blend: float = 0.0
+    fit_radius_blend_deg: float = 30.0
     # weight of the prior holding radiance below the horizon of the surface the scene stands
     # on to that of a lit ground (0 = off); always on with rt_horizon (no pixel sees there),
     # otherwise only when the light comes out below that horizon
@@ -427,6 +433,8 @@ class EstimationParams:
         _check_bool(self, "fit_radius_sources_everywhere")
         _check_int(self, "fit_radius_sources_samples", 0)
         _check_float(self, "fit_radius_agree_deg", 0.0, 180.0)
+        _check_float(self, "fit_radius_blend", 0.0, 1.0)
+        _check_float(self, "fit_radius_blend_deg", 1.0, 180.0)
         _check_int(self, "robust_iterations", 0)
         _check_float(self, "robust_threshold", 0.0)
         _check_bool(self, "albedo_segments")
@@ -639,6 +647,10 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             # (docs/decisions/0064-sources-over-the-whole-view.md)
             "fit_radius_sources_everywhere": True,
             "fit_radius_sources_samples": 10000,
+            # the two fits blended where their directions agree: held out by map 10.3 / 12.2
+            # -> 9.5 / 12.2 degrees median / mean (docs/decisions/0067-the-two-fits-blended.md)
+            "fit_radius_blend": 0.5,
+            "fit_radius_blend_deg": 45.0,
         }
     if preset is Preset.MOBILE:
         # and, speed first, the light fitted to at most 10000 pixels (measured together with

@@ -5,6 +5,12 @@ lit otherwise: a room's far wall under a window's patch of sun, background lit b
 the objects never see. `near_look_at` keeps the sampled pixels within a radius (metres,
 any direction) of the point the camera looks at, the median of the valid points within
 LOOK_AT_DEG of the optical axis (docs/decisions/0063-fit-near-the-look-at-point.md).
+
+Where the light is also fitted over the whole view (for the compact sources' search,
+decision 0064), the two fits are estimates of one light from overlapping pixels: where
+their directions agree the reported SH is their blend, `blended` with `whole_view_share`;
+where they disagree (a closed room's walls lit otherwise than its floor) the fit near the
+look-at point alone (docs/decisions/0067-the-two-fits-blended.md).
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ import math
 
 import numpy as np
 
+from arlight.pipeline.light_estimation import LightEstimate
 from arlight.pipeline.transfer_upsampling import TransferSamples
 
 LOOK_AT_DEG = 10.0  # half-angle of the cone about the optical axis whose points it takes
@@ -59,3 +66,25 @@ def near_look_at(
         transfer=samples.transfer[keep],
         bounce=None if samples.bounce is None else samples.bounce[keep],
     )
+
+
+def whole_view_share(disagreement_deg: float, share: float, fade_deg: float) -> float:
+    """The whole view's share of the reported SH: `share` where the two fits' directions
+    agree, falling linearly to 0 at `fade_deg` degrees between them (and beyond)."""
+    return share * max(0.0, 1.0 - disagreement_deg / fade_deg)
+
+
+def blended(near: LightEstimate, whole: LightEstimate, share: float) -> LightEstimate:
+    """`near` with the bands both fits estimated of its SH (and RGB SH) replaced by
+    (1 - share) near + share whole; its other bands, confidence (bands_estimated included),
+    residual and fit state stay the near fit's."""
+    bands = min(near.confidence.bands_estimated, whole.confidence.bands_estimated)
+    n = bands * bands
+
+    def mix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        out = np.array(a, dtype=np.float64, copy=True)
+        out[..., :n] = (1.0 - share) * a[..., :n] + share * b[..., :n]
+        return out
+
+    sh_rgb = None if near.sh_rgb is None or whole.sh_rgb is None else mix(near.sh_rgb, whole.sh_rgb)
+    return dataclasses.replace(near, sh=mix(near.sh, whole.sh), sh_rgb=sh_rgb)

@@ -46,7 +46,7 @@ from arlight.pipeline.compact_light import (
 )
 from arlight.pipeline.config import Config, RtMethod
 from arlight.pipeline.depth_filter import backend_for_device, filter_depth, normals_from_depth
-from arlight.pipeline.fit_region import near_look_at
+from arlight.pipeline.fit_region import blended, near_look_at, whole_view_share
 from arlight.pipeline.horizon import SupportPlane, support_plane
 from arlight.pipeline.light_estimation import (
     LightEstimate,
@@ -522,6 +522,11 @@ class Pipeline:
             disagreement = self._disagreement_deg(estimate, search_estimate)
             if disagreement < self.config.estimation.fit_radius_agree_deg:
                 estimate = search_estimate
+            elif search_estimate is not estimate:
+                p = self.config.estimation
+                share = whole_view_share(disagreement, p.fit_radius_blend, p.fit_radius_blend_deg)
+                if share > 0.0:
+                    estimate = blended(estimate, search_estimate, share)
             coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
             source = self._kept_source()
             raw_direction = (  # before the filter

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from arlight.pipeline.fit_region import MIN_KEPT, look_at_point, near_look_at
+from arlight.core.contracts import Confidence
+from arlight.pipeline.fit_region import MIN_KEPT, blended, look_at_point, near_look_at
+from arlight.pipeline.light_estimation import LightEstimate
 from arlight.pipeline.transfer_upsampling import TransferSamples
 
 
@@ -53,3 +55,28 @@ def test_every_sample_is_kept_when_off_or_when_too_few_would_be_left() -> None:
     samples = _samples(points)
     assert near_look_at(samples, points, 0.0) is samples
     assert near_look_at(samples, points, 0.01) is samples  # a few pixels within 1 cm
+
+
+def _estimate(sh: np.ndarray, bands: int) -> LightEstimate:
+    return LightEstimate(
+        sh=sh,
+        confidence=Confidence(bands_estimated=bands, value=0.5),
+        sh_rgb=np.stack([sh, 2.0 * sh, 3.0 * sh]),
+    )
+
+
+def test_the_blend_mixes_only_the_bands_both_fits_estimated() -> None:
+    """blended: (1 - s) near + s whole over the bands both solved for; the near fit's other
+    bands (zero where it solved fewer) and its confidence stay."""
+    rng = np.random.default_rng(0)
+    whole = _estimate(rng.normal(size=16), 4)
+    near_sh = np.zeros(16)
+    near_sh[0] = 1.0
+    near = _estimate(near_sh, 1)  # band 0 alone: a flat view
+    out = blended(near, whole, 0.5)
+    assert out.sh[0] == 0.5 * 1.0 + 0.5 * whole.sh[0]
+    assert not np.any(out.sh[1:])  # nothing beyond the band the near fit estimated
+    assert out.confidence is near.confidence
+    np.testing.assert_allclose(out.sh_rgb, np.stack([out.sh, 2.0 * out.sh, 3.0 * out.sh]))
+    near4 = _estimate(rng.normal(size=16), 4)
+    np.testing.assert_allclose(blended(near4, whole, 0.25).sh, 0.75 * near4.sh + 0.25 * whole.sh)

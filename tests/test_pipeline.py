@@ -12,7 +12,7 @@ from arlight.core.checks import CheckError
 from arlight.core.frames import FrameInput
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline.config import Config
-from arlight.pipeline.fit_region import near_look_at
+from arlight.pipeline.fit_region import near_look_at, whole_view_share
 from arlight.pipeline.pipeline import STAGES, FrameError, Pipeline
 from arlight.sources.synthetic import make_sequence
 
@@ -278,6 +278,47 @@ def test_the_sources_are_searched_on_every_pixel_when_asked(clean_sequence, ever
     assert searched == [len(every.pixel_v) if everywhere else len(near.pixel_v)]
 
 
+@pytest.mark.parametrize("blend, fade_deg", [(0.0, 45.0), (0.5, 180.0), (0.5, 1.0)])
+def test_the_two_fits_are_blended_where_they_agree(clean_sequence, blend, fade_deg):
+    """fit_radius_blend b, fit_radius_blend_deg D: the reported SH is (1 - s) near + s whole
+    with s = b (1 - angle / D), 0 from D on (decision 0067); b = 0: the near fit alone."""
+    config = Config.from_preset(
+        "full",
+        fit_radius_m=1.0,
+        fit_radius_sources_everywhere=True,
+        fit_radius_blend=blend,
+        fit_radius_blend_deg=fade_deg,
+        **SMALL,
+    )
+    pipe = Pipeline(config, clean_sequence.camera)
+    fitted: list[np.ndarray] = []
+    real = pipe._estimate
+
+    def spy(samples, *args, **kwargs):
+        estimate = real(samples, *args, **kwargs)
+        fitted.append(estimate.sh)
+        return estimate
+
+    pipe._estimate = spy  # type: ignore[method-assign]
+    result = pipe.process(clean_sequence.frames[0])  # a first frame: the filter passes it on
+    near, whole = fitted
+    angle = result.diagnostics["fit_disagreement_deg"]
+    assert 1.0 < angle < 180.0  # the two fits differ here, by less than the widest fade
+    share = whole_view_share(angle, blend, fade_deg)
+    assert (share > 0.0) == (blend > 0.0 and fade_deg > angle)
+    np.testing.assert_allclose(result.sh, (1.0 - share) * near + share * whole, rtol=1e-12)
+    if share > 0.0:
+        assert not np.allclose(result.sh, near)
+
+
+def test_whole_view_share_fades_with_the_angle():
+    """The whole view's share: b at 0 degrees, half of it at D / 2, none from D on."""
+    assert whole_view_share(0.0, 0.5, 45.0) == 0.5
+    assert whole_view_share(22.5, 0.5, 45.0) == pytest.approx(0.25)
+    assert whole_view_share(45.0, 0.5, 45.0) == 0.0
+    assert whole_view_share(90.0, 0.5, 45.0) == 0.0
+
+
 @pytest.mark.parametrize("agree_deg", [0.0, 180.0])
 def test_the_whole_view_fit_is_reported_only_where_asked(clean_sequence, agree_deg):
     """fit_radius_agree_deg: within it of the near fit's direction, the whole view's SH is
@@ -287,6 +328,7 @@ def test_the_whole_view_fit_is_reported_only_where_asked(clean_sequence, agree_d
         fit_radius_m=1.0,
         fit_radius_sources_everywhere=True,
         fit_radius_agree_deg=agree_deg,
+        fit_radius_blend=0.0,
         **SMALL,
     )
     pipe = Pipeline(config, clean_sequence.camera)
