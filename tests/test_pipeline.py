@@ -278,6 +278,24 @@ def test_the_sources_are_searched_on_every_pixel_when_asked(clean_sequence, ever
     assert searched == [len(every.pixel_v) if everywhere else len(near.pixel_v)]
 
 
+def _first_frame_and_its_fits(config, sequence):
+    """The result of `sequence`'s first frame (the filter passes it on) and the SH of its two
+    fits, near the look-at point and over the whole view."""
+    pipe = Pipeline(config, sequence.camera)
+    fitted: list[np.ndarray] = []
+    real = pipe._estimate
+
+    def spy(samples, *args, **kwargs):
+        estimate = real(samples, *args, **kwargs)
+        fitted.append(estimate.sh)
+        return estimate
+
+    pipe._estimate = spy  # type: ignore[method-assign]
+    result = pipe.process(sequence.frames[0])
+    near, whole = fitted
+    return result, near, whole
+
+
 @pytest.mark.parametrize("blend, fade_deg", [(0.0, 45.0), (0.5, 180.0), (0.5, 1.0)])
 def test_the_two_fits_are_blended_where_they_agree(clean_sequence, blend, fade_deg):
     """fit_radius_blend b, fit_radius_blend_deg D: the reported SH is (1 - s) near + s whole
@@ -290,18 +308,7 @@ def test_the_two_fits_are_blended_where_they_agree(clean_sequence, blend, fade_d
         fit_radius_blend_deg=fade_deg,
         **SMALL,
     )
-    pipe = Pipeline(config, clean_sequence.camera)
-    fitted: list[np.ndarray] = []
-    real = pipe._estimate
-
-    def spy(samples, *args, **kwargs):
-        estimate = real(samples, *args, **kwargs)
-        fitted.append(estimate.sh)
-        return estimate
-
-    pipe._estimate = spy  # type: ignore[method-assign]
-    result = pipe.process(clean_sequence.frames[0])  # a first frame: the filter passes it on
-    near, whole = fitted
+    result, near, whole = _first_frame_and_its_fits(config, clean_sequence)
     angle = result.diagnostics["fit_disagreement_deg"]
     assert 1.0 < angle < 180.0  # the two fits differ here, by less than the widest fade
     share = whole_view_share(angle, blend, fade_deg)
@@ -331,17 +338,6 @@ def test_the_whole_view_fit_is_reported_only_where_asked(clean_sequence, agree_d
         fit_radius_blend=0.0,
         **SMALL,
     )
-    pipe = Pipeline(config, clean_sequence.camera)
-    fitted: list[np.ndarray] = []
-    real = pipe._estimate
-
-    def spy(samples, *args, **kwargs):
-        estimate = real(samples, *args, **kwargs)
-        fitted.append(estimate.sh)
-        return estimate
-
-    pipe._estimate = spy  # type: ignore[method-assign]
-    result = pipe.process(clean_sequence.frames[0])  # a first frame: the filter passes it on
-    near, whole = fitted
+    result, near, whole = _first_frame_and_its_fits(config, clean_sequence)
     assert not np.allclose(near, whole)
     np.testing.assert_allclose(result.sh, whole if agree_deg else near)
