@@ -341,10 +341,10 @@ class EstimationParams:
     fit_radius_agree_deg: float = 0.0
     # share of that second fit's SH in the reported one where the two fits' directions
     # agree: (1 - s) near + s whole, s = fit_radius_blend * max(0, 1 - their angle /
-    # fit_radius_blend_deg) (0 = the near fit alone); 0.5 and 45 in `fast`, off in `full`,
+    # fit_radius_blend_deg) (0 = the near fit alone); 0.5 in `fast`, off in `full`,
     # where it lost held out (docs/decisions/0067-the-two-fits-blended.md)
     fit_radius_blend: float = 0.0
-    fit_radius_blend_deg: float = 30.0
+    fit_radius_blend_deg: float = 45.0
     # weight of the prior holding radiance below the horizon of the surface the scene stands
     # on to that of a lit ground (0 = off); always on with rt_horizon (no pixel sees there),
     # otherwise only when the light comes out below that horizon
@@ -650,7 +650,6 @@ def _preset_overrides(preset: Preset) -> dict[str, Any]:
             # the two fits blended where their directions agree: held out by map 10.3 / 12.2
             # -> 9.5 / 12.2 degrees median / mean (docs/decisions/0067-the-two-fits-blended.md)
             "fit_radius_blend": 0.5,
-            "fit_radius_blend_deg": 45.0,
         }
     if preset is Preset.MOBILE:
         # and, speed first, the light fitted to at most 10000 pixels (measured together with
