@@ -24,7 +24,6 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import spearmanr
 
 from arlight import __version__
 
@@ -42,12 +41,10 @@ def _angle_deg(a, b) -> float:
 def _spearman(confidences: dict[int, float], errors: dict[int, float]) -> float | None:
     """Spearman's rank correlation of the confidence with the error over the frames that have
     both (negative: the confidence falls as the error grows); None where it is undefined."""
-    frames = [k for k, e in errors.items() if np.isfinite(e) and k in confidences]
-    conf = [confidences[k] for k in frames]
-    err = [errors[k] for k in frames]
-    if len(frames) < 3 or len(set(conf)) < 2 or len(set(err)) < 2:
-        return None
-    return round(float(spearmanr(conf, err).statistic), 3)
+    from arlight.report import spearman
+
+    rho = spearman([(confidences[k], e) for k, e in errors.items() if k in confidences])
+    return None if rho is None else round(rho, 3)
 
 
 def run_demo(

@@ -213,21 +213,28 @@ def fold_figures(configs: dict[str, dict]) -> dict:
     return {"metric": "angle_upper_deg", **folds.as_dict(), "note": None}
 
 
+def spearman(pairs: list[tuple[float, float]]) -> float | None:
+    """Spearman rank correlation of the finite (x, y) pairs; None when fewer than 3 are
+    left or either column is constant."""
+    from scipy.stats import spearmanr
+
+    kept = [(x, y) for x, y in pairs if math.isfinite(x) and math.isfinite(y)]
+    if len(kept) < 3 or len({x for x, _ in kept}) < 2 or len({y for _, y in kept}) < 2:
+        return None
+    return float(spearmanr(*zip(*kept, strict=True)).statistic)
+
+
 def confidence_spearman(per_sequence: dict[str, dict[str, list[float]]]) -> float | None:
     """Spearman rank correlation over all frames between confidence.value and the angular
     error against the upper hemisphere (negative: confidence falls as the error grows);
     None when fewer than 3 frames or either is constant."""
-    from scipy.stats import spearmanr
-
-    pairs = [
-        (c, e)
-        for s in per_sequence.values()
-        for c, e in zip(s.get("confidence", []), s["angle_upper_deg"], strict=False)
-        if math.isfinite(c) and math.isfinite(e)
-    ]
-    if len(pairs) < 3 or len({c for c, _ in pairs}) < 2 or len({e for _, e in pairs}) < 2:
-        return None
-    return float(spearmanr(*zip(*pairs, strict=True)).statistic)
+    return spearman(
+        [
+            (c, e)
+            for s in per_sequence.values()
+            for c, e in zip(s.get("confidence", []), s["angle_upper_deg"], strict=False)
+        ]
+    )
 
 
 def _model(result, config) -> dict:

@@ -75,9 +75,9 @@ def whole_view_share(disagreement_deg: float, share: float, fade_deg: float) -> 
 
 
 def blended(near: LightEstimate, whole: LightEstimate, share: float) -> LightEstimate:
-    """`near` with the bands both fits estimated of its SH (and RGB SH) replaced by
-    (1 - share) near + share whole; its other bands, confidence (bands_estimated included),
-    residual and fit state stay the near fit's."""
+    """`near` with the bands both fits estimated of its SH (and RGB SH, where both have one)
+    replaced by (1 - share) near + share whole; its other bands, confidence (bands_estimated
+    included), residual and fit state stay the near fit's."""
     bands = min(near.confidence.bands_estimated, whole.confidence.bands_estimated)
     n = bands * bands
 
@@ -86,5 +86,7 @@ def blended(near: LightEstimate, whole: LightEstimate, share: float) -> LightEst
         out[..., :n] = (1.0 - share) * a[..., :n] + share * b[..., :n]
         return out
 
-    sh_rgb = None if near.sh_rgb is None or whole.sh_rgb is None else mix(near.sh_rgb, whole.sh_rgb)
+    sh_rgb = near.sh_rgb
+    if near.sh_rgb is not None and whole.sh_rgb is not None:
+        sh_rgb = mix(near.sh_rgb, whole.sh_rgb)
     return dataclasses.replace(near, sh=mix(near.sh, whole.sh), sh_rgb=sh_rgb)

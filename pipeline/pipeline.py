@@ -520,10 +520,10 @@ class Pipeline:
             if up_world is not None:
                 self._up_world = up_world
             disagreement = self._disagreement_deg(estimate, search_estimate)
-            if disagreement < self.config.estimation.fit_radius_agree_deg:
+            p = self.config.estimation
+            if disagreement < p.fit_radius_agree_deg:
                 estimate = search_estimate
             elif search_estimate is not estimate:
-                p = self.config.estimation
                 share = whole_view_share(disagreement, p.fit_radius_blend, p.fit_radius_blend_deg)
                 if share > 0.0:
                     estimate = blended(estimate, search_estimate, share)
