@@ -218,7 +218,9 @@ def evaluate(
             ambient, ambient_rgb, sources = truth_sun(
                 frame_truth, exposure, l_gt, MAPS, *true_sources
             )
-            stage = pipeline._compact_stage or CompactLightStage(config.aux.aux_update_interval)
+            stage = pipeline.light.compact_stage or CompactLightStage(
+                config.aux.aux_update_interval
+            )
             occluder = stage.occluder(seq.camera.unproject(inputs.depth_m), pipeline._volume)
             sun_inputs = dataclasses.replace(
                 gt_inputs,

@@ -55,7 +55,7 @@ def measure(preset: str, frames: int, overrides: dict[str, Any]) -> dict[str, fl
     config = Config.from_preset(preset, compact_sources=1, **overrides)
     seq = make_sequence(num_frames=frames + WARMUP, width=640, height=480)
     pipeline = Pipeline(config, seq.camera)
-    stage = pipeline._compact()
+    stage = pipeline.light.compact()
     occluder_ms: list[tuple[float, float]] = []
     fit_ms: list[tuple[float, float]] = []
     builds: list[int] = []

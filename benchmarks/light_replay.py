@@ -37,13 +37,14 @@ except ModuleNotFoundError:  # run as `python benchmarks/light_replay.py` from t
 
 
 def record(data: list[str], preset: str, out: Path, frames: int | None, overrides: dict) -> None:
+    import arlight.pipeline.light_stage as light_stage_module
     import arlight.pipeline.pipeline as pipeline_module
     from arlight.bench import open_data
 
     out.mkdir(parents=True, exist_ok=True)
     config = Config.from_preset(preset, **overrides)
     captured: list[dict] = []
-    real = pipeline_module.estimate_light
+    real = light_stage_module.estimate_light
 
     def spy(
         transfer,
@@ -85,7 +86,7 @@ def record(data: list[str], preset: str, out: Path, frames: int | None, override
             clipped_fraction=clipped_fraction,
         )
 
-    pipeline_module.estimate_light = spy
+    light_stage_module.estimate_light = spy
     try:
         for seq in open_data(data, frames, 0):
             pipe = pipeline_module.Pipeline(config, seq.camera)
@@ -97,7 +98,7 @@ def record(data: list[str], preset: str, out: Path, frames: int | None, override
             _save(out / f"{seq.name}.npz", seq, captured, poses)
             print(f"recorded {seq.name}: {len(captured)} frames", file=sys.stderr, flush=True)
     finally:
-        pipeline_module.estimate_light = real
+        light_stage_module.estimate_light = real
     (out / "config.json").write_text(json.dumps({"preset": preset, "overrides": overrides}))
 
 

@@ -80,13 +80,13 @@ def sequence_figures(folder: Path, frames: int, preset: str) -> tuple[float, dic
     seq = open_sequence(folder, use_poses=True, max_frames=frames)
     pipeline = Pipeline(Config.from_preset(preset, estimate_rgb=True), seq.camera)
     fitted_rgb: list[np.ndarray] = []
-    original = pipeline._estimate
+    original = pipeline.light.estimate
 
     def recording_estimate(samples, color_linear, *args, **kwargs):
         fitted_rgb.append(color_linear[samples.pixel_v, samples.pixel_u].mean(axis=0))
         return original(samples, color_linear, *args, **kwargs)
 
-    pipeline._estimate = recording_estimate
+    pipeline.light.estimate = recording_estimate
     values, colour = [], {k: [] for k in COLOUR_CHOICES}
     for index, frame in enumerate(seq.frames):
         result = pipeline.process(frame)

@@ -28,7 +28,6 @@ from arlight.core.camera import PinholeCamera
 from arlight.core.checks import CheckError, check_finite, check_image, check_rigid, depth_metres
 from arlight.core.contracts import TrackingDiagnostics
 from arlight.core.frames import (
-    Confidence,
     Diagnostics,
     FrameInput,
     FrameResult,
@@ -38,24 +37,15 @@ from arlight.core.frames import (
 from arlight.pipeline import sh
 from arlight.pipeline.channels import any_nonzero
 from arlight.pipeline.color import intensity_from_rgb, luminance, srgb_to_linear
-from arlight.pipeline.compact_light import (
-    CompactFit,
-    CompactLightStage,
-    CompactSource,
-    source_confidence,
-)
+from arlight.pipeline.compact_light import CompactFit
 from arlight.pipeline.config import Config, RtMethod
 from arlight.pipeline.depth_filter import backend_for_device, filter_depth, normals_from_depth
-from arlight.pipeline.fit_region import blended, near_look_at, whole_view_share
 from arlight.pipeline.horizon import SupportPlane, support_plane
 from arlight.pipeline.light_estimation import (
     LightEstimate,
-    TemporalFilter,
-    estimate_light,
     fittable_colour,
-    side_share,
-    with_view_and_steadiness,
 )
+from arlight.pipeline.light_stage import LightFrame, LightStage
 from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer, OcclusionScene
 from arlight.pipeline.probe import (
     DistantLight,
@@ -125,11 +115,6 @@ def transfer_pixels(config: Config) -> int:
     exact = config.transfer.rt_subsample == 1 and config.transfer.rt_method is not RtMethod.RAYCAST
     margin = EXACT_CANDIDATES_PER_SAMPLE if exact else CANDIDATES_PER_SAMPLE
     return int(margin * config.estimation.light_max_samples)
-
-
-# the compact sources' occluder without the volume's mesh: the frame's depth mesh about this
-# many points wide, 160x120 of 640x480 (docs/decisions/0060-compact-depth-mesh.md)
-COMPACT_DEPTH_MESH_WIDTH = 160
 
 
 class FrameError(CheckError):
@@ -216,10 +201,6 @@ class _Front:
     occluder: OcclusionScene | None = None
 
 
-def _json_float(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
-
-
 def smooth_depth_for_normals(depth_m: np.ndarray, window: int) -> np.ndarray:
     """Validity-weighted box mean of depth over `window` pixels, for normals only.
 
@@ -279,7 +260,6 @@ class Pipeline:
             self._renderer = DifferentialRenderer(self.scene, camera, config)
         self.last_render: tuple[RenderInputs, RenderOutput] | None = None
         self.pattern = make_sampling_pattern(config.transfer, config.seed)
-        self.filter = TemporalFilter(config.temporal)
         self.frames_processed = 0
         self._frames_begun = 0  # frames whose Reconstruct ran (the next may run ahead)
         self._volume = None
@@ -295,8 +275,6 @@ class Pipeline:
                 config if aux_read else config.replace(aux_buffers=False), self.work_camera
             )
         self._pose = np.eye(4)
-        self._light_world: np.ndarray | None = None
-        self._up_world: np.ndarray | None = None  # of the support plane, last seen
         # rt_method raycast: the session's ray-casting scene, rebuilt as the volume grows
         self._raycaster = (
             ObjectSpaceTransfer(config.aux.aux_update_interval)
@@ -307,9 +285,9 @@ class Pipeline:
         # last frame that made them serve again (pipeline.still)
         self._still = StillCamera(config.reuse, with_depth=True)
         self._last_transfer: tuple[_Geometry, TransferSamples] | None = None
-        # compact sources beside the SH (compact_sources > 0): made on first use
-        self._compact_stage: CompactLightStage | None = None
-        self.last_compact: CompactFit | None = None
+        # LightEst's session state: the temporal filter, the support plane's up, the
+        # compact sources (pipeline/light_stage.py)
+        self.light = LightStage(config, self.work_camera.width, self._raycaster)
         # the reflection probe (pipeline/probe.py): made each frame for mirror and glossy
         # objects, or for every frame once probe_wanted is set (`arlight estimate
         # --probe-out`); probe_point: where (world, metres; None: the objects' centre)
@@ -323,6 +301,12 @@ class Pipeline:
         """The session's `quadrature_error_table` (rt_exact_unoccluded; its pattern is fixed
         in the camera frame: made on first use, once)."""
         return quadrature_error_table(self.pattern, self.config.transfer.sh_bands)
+
+    @property
+    def last_compact(self) -> CompactFit | None:
+        """The last frame's compact sources (None without compact sources or before a
+        frame): LightStage.last_compact."""
+        return self.light.last_compact
 
     @property
     def volume_blocks(self) -> int:
@@ -349,7 +333,7 @@ class Pipeline:
         session's state keeps what the finished stages did (the volume may hold the
         abandoned frame's depth)."""
         check = checkpoint or _no_checkpoint
-        return self._back(self._front(frame, render_light, check, self._light_world), check)
+        return self._back(self._front(frame, render_light, check, self.light.light_world), check)
 
     def process_overlapped(
         self, frames: Iterable[FrameInput], render_light: RenderLight | None = None
@@ -369,7 +353,7 @@ class Pipeline:
                 # the light as it stands now (before this frame's back half): the same
                 # whatever the threads' timing
                 ahead = front_thread.submit(
-                    self._front, frame, render_light, _no_checkpoint, self._light_world
+                    self._front, frame, render_light, _no_checkpoint, self.light.light_world
                 )
                 if pending is not None:
                     yield self._back(pending.result(), _no_checkpoint)
@@ -433,7 +417,7 @@ class Pipeline:
         if self.config.estimation.compact_sources > 0:
             check("LightEst")
             with _stage(timings, "LightEst"):  # the compact sources' part, timed as theirs
-                occluder = self._compact().occluder(geometry.points, self._volume)
+                occluder = self.light.compact().occluder(geometry.points, self._volume)
         return _Front(
             float(frame.timestamp),
             full,
@@ -450,61 +434,6 @@ class Pipeline:
             occluder,
         )
 
-    def _fits(
-        self,
-        transfer: TransferSamples,
-        front: _Front,
-        up_world: np.ndarray | None,
-        check: Callable[[str], None],
-    ) -> tuple[TransferSamples, LightEstimate, TransferSamples, LightEstimate]:
-        """LightEst's SH fits: to the samples near the look-at point (fit_radius_m; every one
-        when 0) and, with fit_radius_sources_everywhere, to every sample for the compact
-        sources' search (at most fit_radius_sources_samples; decision 0064). Returns (the
-        near samples, their estimate, the samples searched, their estimate): one fit twice
-        when there is no second."""
-        p = self.config.estimation
-        near = near_look_at(transfer, front.geometry.points, p.fit_radius_m)
-
-        def fitted(samples: TransferSamples, max_samples: int = 0) -> LightEstimate:
-            return self._estimate(
-                samples,
-                front.color_linear,
-                front.labels,
-                up_world,
-                below_horizon_unseen=self.config.transfer.rt_horizon,
-                checkpoint=lambda: check("LightEst"),
-                max_samples=max_samples,
-            )
-
-        estimate = fitted(near)
-        if p.fit_radius_sources_everywhere and p.compact_sources > 0 and near is not transfer:
-            return near, estimate, transfer, fitted(transfer, p.fit_radius_sources_samples)
-        return near, estimate, near, estimate
-
-    def _disagreement_deg(self, near: LightEstimate, whole: LightEstimate) -> float:
-        """Degrees between the reported directions of the fit near the look-at point and the
-        whole view's (0 when they are one fit, or either has no first band)."""
-        if whole is near or not all(np.any(e.sh[1:4]) for e in (near, whole)):
-            return 0.0
-        cos = float(self._light_direction(whole.sh) @ self._light_direction(near.sh))
-        return math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0))))
-
-    def _compact(self) -> CompactLightStage:
-        """The session's compact-source stage (made on first use): against the frame's depth
-        mesh, or with compact_volume_mesh the volume's (with rt_method raycast, the
-        transfer's scene of it)."""
-        if self._compact_stage is None:
-            p = self.config.estimation
-            self._compact_stage = CompactLightStage(
-                self.config.aux.aux_update_interval,
-                self._raycaster,
-                p.compact_search_interval,
-                None
-                if p.compact_volume_mesh
-                else max(1, round(self.work_camera.width / COMPACT_DEPTH_MESH_WIDTH)),
-            )
-        return self._compact_stage
-
     def _back(self, front: _Front, check: Callable[[str], None]) -> FrameResult:
         """LightEst (with the compact sources and the temporal filter), Probe, Rendering."""
         geometry, transfer, pose = front.geometry, front.transfer, front.pose
@@ -513,34 +442,21 @@ class Pipeline:
         with _stage(timings, "LightEst"):
             plane = geometry.plane
             up_world = pose[:3, :3] @ plane.up if plane is not None else None
-            near, estimate, searched, search_estimate = self._fits(transfer, front, up_world, check)
-            self.last_compact = self._compact_sources(
-                search_estimate, geometry, searched, pose, up_world, front.occluder, diagnostics
+            light = self.light.run(
+                LightFrame(
+                    transfer,
+                    geometry.points,
+                    geometry.normals,
+                    up_world,
+                    front.color_linear,
+                    front.labels,
+                    pose,
+                    front.occluder,
+                ),
+                check,
+                diagnostics,
             )
-            if up_world is not None:
-                self._up_world = up_world
-            disagreement = self._disagreement_deg(estimate, search_estimate)
-            p = self.config.estimation
-            if disagreement < p.fit_radius_agree_deg:
-                estimate = search_estimate
-            elif search_estimate is not estimate:
-                share = whole_view_share(disagreement, p.fit_radius_blend, p.fit_radius_blend_deg)
-                if share > 0.0:
-                    estimate = blended(estimate, search_estimate, share)
-            coeffs = self.filter.update(estimate.sh, estimate.confidence.value)
-            source = self._kept_source()
-            raw_direction = (  # before the filter
-                self._light_direction(estimate.sh) if source is None else source.direction
-            )
-            confidence = self._reported_confidence(
-                estimate, raw_direction, near, geometry, pose, source is not None, disagreement
-            )
-            direction_world = (
-                self._light_direction(coeffs) if source is None else source.direction.copy()
-            )
-            intensity_value = sh.intensity_along(coeffs, direction_world)
-            if np.any(direction_world):
-                self._light_world = direction_world
+            coeffs, estimate = light.coeffs, light.estimate
         composite = None
         check("Probe")
         with _stage(timings, "Probe"):
@@ -571,18 +487,16 @@ class Pipeline:
                     front.occluder,
                 )
         self.frames_processed += 1
-        diagnostics.update(
-            self._estimate_diagnostics(estimate, up_world, confidence, raw_direction, disagreement)
-        )
+        diagnostics.update(self.light.diagnostics_of(light, up_world))
         rotation = pose[:3, :3]
         return FrameResult(
             timestamp=front.timestamp,
             sh=coeffs,
             sh_camera=sh.rotate(coeffs, rotation.T),
-            dominant_direction_world=direction_world,
-            dominant_direction_camera=rotation.T @ direction_world,
-            intensity=intensity_value,
-            confidence=confidence,
+            dominant_direction_world=light.direction_world,
+            dominant_direction_camera=rotation.T @ light.direction_world,
+            intensity=light.intensity,
+            confidence=light.confidence,
             pose=pose.copy(),
             sh_rgb=estimate.sh_rgb,
             composite=composite,
@@ -592,86 +506,6 @@ class Pipeline:
                 () if self.last_compact is None else self.last_compact.sources, rotation
             ),
         )
-
-    def _compact_sources(
-        self,
-        estimate: LightEstimate,
-        geometry: _Geometry,
-        transfer: TransferSamples,
-        pose: np.ndarray,
-        up_world: np.ndarray | None,
-        occluder: OcclusionScene | None,
-        diagnostics: Diagnostics,
-    ) -> CompactFit | None:
-        """Compact sources beside the SH (compact_sources > 0): found from the shadows the
-        reconstruction (`occluder`, taken by `_front`) casts (pipeline/compact_light.py);
-        what was found, and why, to diagnostics["compact"]."""
-        p = self.config.estimation
-        if p.compact_sources <= 0 or estimate.fit is None or occluder is None:
-            return None
-        fit, rays = self._compact().fit_against(
-            occluder,
-            estimate.fit,
-            geometry.points,
-            geometry.normals,
-            transfer.pixel_v,
-            transfer.pixel_u,
-            pose,
-            up_world if up_world is not None else self._up_world,
-            {
-                "candidates": p.compact_candidates,
-                "search_samples": p.compact_search_samples,
-                "min_gain": p.compact_min_gain,
-                "min_contrast": p.compact_min_contrast,
-                "min_edge_step": p.compact_min_edge_step,
-                "min_elevation_deg": p.compact_min_elevation_deg,
-                "max_sources": p.compact_sources,
-            },
-            seed=self.config.seed,
-            with_depth=p.compact_depth_mesh,
-        )
-        diagnostics["compact"] = {
-            "reason": fit.reason,
-            "rays": int(rays),
-            # the sources themselves: FrameResult.compact_sources (diagnostics carry no
-            # arrays of maps on the wire, SPEC.md "diagnostics")
-            "kept": len(fit.sources),
-            "gain": [float(s.gain) for s in fit.sources],
-            "edge_step": float(fit.edge_step),
-            "searched": self._compact().last_searched,
-        }
-        return fit
-
-    def _reported_confidence(
-        self,
-        estimate: LightEstimate,
-        raw: np.ndarray,
-        transfer: TransferSamples,
-        geometry: _Geometry,
-        pose: np.ndarray,
-        from_source: bool = False,
-        disagreement_deg: float = 0.0,
-    ) -> Confidence:
-        """The estimate's confidence times what one fit cannot know of itself
-        (`light_estimation.with_view_and_steadiness`): the share of side-facing normals
-        among the fitted pixels (against this frame's support plane, or the last one seen)
-        and the jump of this frame's direction `raw` (world, before the filter) from the
-        filtered one before it (called
-        before `_light_world` takes this frame's). from_source: `raw` is a kept compact
-        source's direction, found from shadows, not from the normals: its confidence is how
-        clear the step across its shadow's edge is (`compact_light.source_confidence`), and
-        the view of side-facing normals does not count. disagreement_deg: between the SH fits
-        near the look-at point and over the whole view (0 with one fit)."""
-        up = self._up_world
-        normals = geometry.normals[transfer.pixel_v, transfer.pixel_u].astype(np.float64)
-        side = side_share(normals @ pose[:3, :3].T, up)
-        jump = 0.0
-        if self._light_world is not None and np.any(raw):
-            jump = math.degrees(math.acos(float(np.clip(raw @ self._light_world, -1.0, 1.0))))
-        if from_source and self.last_compact is not None:
-            base = source_confidence(estimate.confidence, self.last_compact.edge_step)
-            return with_view_and_steadiness(base, None, jump)
-        return with_view_and_steadiness(estimate.confidence, side, jump, disagreement_deg)
 
     def _geometry_and_transfer(
         self,
@@ -746,14 +580,6 @@ class Pipeline:
         output = self._renderer.render(drawn)
         self.last_render = (inputs, output)  # the frame's light as the SH holds it
         return output.composite
-
-    def _kept_source(self) -> CompactSource | None:
-        """This frame's compact source, when one was kept: the direction reported is then
-        its direction (the shadows the scene casts point there), not the SH's first
-        moment (far closer under a sun, not yet under soft light: opt-in,
-        docs/decisions/0035-compact-sources.md)."""
-        fit = self.last_compact
-        return fit.sources[0] if fit is not None and fit.sources else None
 
     def _with_compact_sources(
         self, inputs: RenderInputs, occluder: OcclusionScene | None
@@ -863,14 +689,6 @@ class Pipeline:
         self.scene = resolve_anchors(self.scene, plane.up, plane.offset, pose, self.camera)
         if not self.scene.anchored:
             self._renderer = DifferentialRenderer(self.scene, self.camera, self.config)
-
-    def _light_direction(self, coeffs: np.ndarray) -> np.ndarray:
-        """The dominant direction reported (world): of the light above the horizon of the
-        surface the scene stands on, once one has been seen (the estimate's glow from below
-        taken out, sh.above_horizon_direction), else of the whole sphere."""
-        if self._up_world is None:
-            return sh.dominant_direction(coeffs)
-        return sh.above_horizon_direction(coeffs, self._up_world)
 
     def _reconstruct(
         self,
@@ -1074,63 +892,3 @@ class Pipeline:
             # what stands on the ground is rarely made of the ground's material
             segments = segments * 2 + geometry.plane.on_plane
         return segments
-
-    def _estimate(
-        self,
-        samples: TransferSamples,
-        color_linear: np.ndarray,
-        segments: np.ndarray | None,
-        up_world: np.ndarray | None = None,
-        below_horizon_unseen: bool = False,
-        checkpoint: Callable[[], None] | None = None,
-        max_samples: int = 0,
-    ) -> LightEstimate:
-        """LightEst (T l = I_c, section 5.2) on the sampled pixels; albedo per segment
-        (segments: (H, W) labels or None); at most max_samples of them (0: the config's
-        light_max_samples)."""
-        p = self.config.estimation
-        if max_samples > 0:
-            p = dataclasses.replace(p, light_max_samples=max_samples)
-        n = samples.transfer.shape[-1]
-        if not len(samples.pixel_v):
-            return LightEstimate(
-                np.zeros(n),
-                Confidence(reason="no valid depth"),
-                np.zeros((3, n)) if p.estimate_rgb else None,
-            )
-        pixels = (samples.pixel_v, samples.pixel_u)
-        return estimate_light(
-            samples.transfer,
-            color_linear[pixels],
-            p,
-            None if segments is None else segments[pixels],
-            samples.bounce,
-            up_world,
-            below_horizon_unseen,
-            seed=self.config.seed,
-            checkpoint=checkpoint,
-            clipped_fraction=samples.clipped_fraction,
-        )
-
-    def _estimate_diagnostics(
-        self,
-        estimate: LightEstimate,
-        up_world: np.ndarray | None,
-        confidence: Confidence,
-        raw_direction: np.ndarray,
-        disagreement_deg: float,
-    ) -> Diagnostics:
-        """Plain JSON types (the wire carries them): what the light estimate did and why;
-        fit_disagreement_deg: degrees between the fits near the look-at point and over the
-        whole view (the confidence's "agreement" factor; 0 with one fit)."""
-        return {
-            "residual_rel": _json_float(estimate.residual_rel),
-            "bounce_scale": float(estimate.bounce_scale),
-            "horizon_prior_used": bool(estimate.horizon_prior_used),
-            "support_plane_up_world": (None if up_world is None else [float(x) for x in up_world]),
-            "raw_dominant_direction_world": [float(x) for x in raw_direction],
-            "bands_requested": int(self.config.transfer.sh_bands),
-            "bands_estimated": int(estimate.confidence.bands_estimated),
-            "confidence_reason": confidence.reason,  # the reported one
-            "fit_disagreement_deg": float(disagreement_deg),
-        }

@@ -389,7 +389,7 @@ def test_the_occluder_is_the_frame_s_depth_mesh_at_its_stride():
         (preset, volume): Pipeline(
             Config.from_preset(preset, compact_sources=1, compact_volume_mesh=volume), camera
         )
-        ._compact()
+        .light.compact()
         .depth_stride
         for preset in ("full", "fast")
         for volume in (False, True)

@@ -263,14 +263,14 @@ def test_the_sources_are_searched_on_every_pixel_when_asked(clean_sequence, ever
     )
     pipe = Pipeline(config, clean_sequence.camera)
     searched: list[int] = []
-    real = pipe._compact_sources
+    real = pipe.light._compact_sources
 
-    def spy(estimate, geometry, transfer, *rest):
+    def spy(estimate, frame, transfer, *rest):
         searched.append(len(transfer.pixel_v))
         assert estimate.fit is not None and len(estimate.fit.rows) <= len(transfer.pixel_v)
-        return real(estimate, geometry, transfer, *rest)
+        return real(estimate, frame, transfer, *rest)
 
-    pipe._compact_sources = spy  # type: ignore[method-assign]
+    pipe.light._compact_sources = spy  # type: ignore[method-assign]
     pipe.process(clean_sequence.frames[0])
     _, every = pipe._last_transfer
     near = near_look_at(every, pipe._last_transfer[0].points, 1.0)
@@ -283,14 +283,14 @@ def _first_frame_and_its_fits(config, sequence):
     fits, near the look-at point and over the whole view."""
     pipe = Pipeline(config, sequence.camera)
     fitted: list[np.ndarray] = []
-    real = pipe._estimate
+    real = pipe.light.estimate
 
     def spy(samples, *args, **kwargs):
         estimate = real(samples, *args, **kwargs)
         fitted.append(estimate.sh)
         return estimate
 
-    pipe._estimate = spy  # type: ignore[method-assign]
+    pipe.light.estimate = spy  # type: ignore[method-assign]
     result = pipe.process(sequence.frames[0])
     near, whole = fitted
     return result, near, whole
