@@ -77,6 +77,7 @@ def run_demo(
     sun = [t.sun_camera for t in truths]  # what a kept compact source is
     errors: dict[int, float] = {}
     sun_errors: dict[int, float] = {}
+    sh_errors: dict[int, float] = {}  # the SH's own direction, a source kept or not
     confidences: dict[int, float] = {}
     pipeline_ms: list[float] = []
     notes = FrameNotes()  # why a confidence is low, printed where the reason changes
@@ -85,6 +86,10 @@ def run_demo(
         err = _angle_deg(result.dominant_direction_camera, truth[result.seq])
         errors[result.seq] = err
         confidences[result.seq] = float(result.confidence.value)
+        sh_world = result.diagnostics.get("sh_direction_world")
+        if sh_world is not None:
+            rotation = np.asarray(result.pose, float).reshape(4, 4)[:3, :3]
+            sh_errors[result.seq] = _angle_deg(rotation.T @ np.asarray(sh_world), truth[result.seq])
         sources = result.compact_sources or []
         if sources:
             sun_errors[result.seq] = _angle_deg(sources[0]["direction_camera"], sun[result.seq])
@@ -158,6 +163,7 @@ def run_demo(
         stream,
         errors,
         sun_errors,
+        sh_errors,
         confidences,
         pipeline_ms,
         frames,
@@ -198,6 +204,7 @@ def _summary(
     stream,
     errors: dict[int, float],
     sun_errors: dict[int, float],
+    sh_errors: dict[int, float],
     confidences: dict[int, float],
     pipeline_ms: list[float],
     frames: int,
@@ -206,8 +213,9 @@ def _summary(
     wall_time_s: float,
 ) -> dict:
     """summary.json: what the display received, the capture client's counts, the errors
-    (of the dominant light against the upper hemisphere's first moment; of the kept compact
-    sources against the scene's sun), and how the confidence ranks each (Spearman over the
+    (of the dominant light against the upper hemisphere's first moment, and of the SH's own
+    direction, which a kept compact source's replaces as the dominant one; of the kept
+    compact sources against the scene's sun), and how the confidence ranks each (Spearman over the
     frames; None with fewer than 3 frames or a constant column).
 
     fps is what the service delivered: results per second of streaming (first frame sent to
@@ -215,6 +223,7 @@ def _summary(
     pipeline milliseconds per frame (the pipeline alone, no waiting).
     """
     valid_errors = [e for e in errors.values() if np.isfinite(e)]
+    valid_sh = [e for e in sh_errors.values() if np.isfinite(e)]
     median_pipeline_ms = float(np.median(pipeline_ms)) if pipeline_ms else None
     return {
         "arlight_version": __version__,
@@ -238,6 +247,10 @@ def _summary(
         "angular_error_deg": {
             "median": round(float(np.median(valid_errors)), 3) if valid_errors else None,
             "p90": round(float(np.percentile(valid_errors, 90)), 3) if valid_errors else None,
+        },
+        "sh_direction_error_deg": {
+            "median": round(float(np.median(valid_sh)), 3) if valid_sh else None,
+            "p90": round(float(np.percentile(valid_sh, 90)), 3) if valid_sh else None,
         },
         "compact_source_to_sun_deg": {
             "frames": len(sun_errors),

@@ -320,7 +320,9 @@ class LightStage:
         return with_view_and_steadiness(estimate.confidence, side, jump, disagreement_deg)
 
     def diagnostics_of(self, outcome: LightOutcome, up_world: np.ndarray | None) -> Diagnostics:
-        """Plain JSON types (the wire carries them): what the light estimate did and why;
+        """Plain JSON types (the wire carries them): what the light estimate did and why.
+        sh_direction_world: the filtered SH's direction (unit, world; zeros when it has
+        none), which a kept compact source's replaces as the reported one;
         fit_disagreement_deg: degrees between the fits near the look-at point and over the
         whole view (the confidence's "agreement" factor; 0 with one fit)."""
         estimate = outcome.estimate
@@ -331,6 +333,9 @@ class LightStage:
             "horizon_prior_used": bool(estimate.horizon_prior_used),
             "support_plane_up_world": (None if up_world is None else [float(x) for x in up_world]),
             "raw_dominant_direction_world": [float(x) for x in outcome.raw_direction],
+            # the filtered SH's own direction, a compact source kept or not (the first
+            # moment of its light above the horizon, as the ground truths define theirs)
+            "sh_direction_world": [float(x) for x in self.light_direction(outcome.coeffs)],
             "bands_requested": int(self.config.transfer.sh_bands),
             "bands_estimated": int(estimate.confidence.bands_estimated),
             "confidence_reason": outcome.confidence.reason,  # the reported one

@@ -417,6 +417,21 @@ class TestCommands:
         # scene's sun, found within a few degrees
         sun = summary["compact_source_to_sun_deg"]
         assert 1 <= sun["frames"] <= 3 and sun["median"] < 10.0
+        # the SH's own direction travels beside the reported one: the same where no source
+        # was kept, the source's replacing it where one was
+        kept = []
+        for line in (out / "results.jsonl").read_text().splitlines():
+            record = json.loads(line)
+            own, reported = (
+                np.asarray(record["diagnostics"]["sh_direction_world"]),
+                np.asarray(record["dominant_direction_world"]),
+            )
+            kept.append(record["diagnostics"]["compact"]["kept"] > 0)
+            assert abs(np.linalg.norm(own) - 1.0) < 1e-6
+            if not kept[-1]:
+                np.testing.assert_allclose(own, reported, atol=1e-9)
+        assert sum(kept) == sun["frames"]
+        assert 0.0 <= summary["sh_direction_error_deg"]["median"] < 30.0
         rho = summary["confidence_vs_error_spearman"]
         assert set(rho) == {"first_moment", "source_to_sun"}
         assert all(v is None or -1.0 <= v <= 1.0 for v in rho.values())

@@ -80,6 +80,7 @@ def test_one_frame_reports_the_light_above_the_horizon() -> None:
     notes = stage.diagnostics_of(out, UP)
     assert notes["support_plane_up_world"] == [0.0, 1.0, 0.0]
     assert notes["fit_disagreement_deg"] == 0.0
+    assert notes["sh_direction_world"] == [float(x) for x in out.direction_world]  # no source
     assert notes["bands_requested"] == 4
 
 

@@ -53,6 +53,12 @@ def run(args: argparse.Namespace) -> int:
         return 1
     lat = summary["latency_ms"]
     err = summary["angular_error_deg"]
+    sh_err = summary["sh_direction_error_deg"]
+    sh_text = (
+        f"; the SH's own direction {figure(sh_err['median'], '.1f')}"
+        if sh_err["median"] is not None
+        else ""
+    )
     sun = summary["compact_source_to_sun_deg"]
     sun_text = (
         f"; a compact source on {sun['frames']} of {summary['results']} frames, median "
@@ -83,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         f"{figure(lat['median'], '.0f')} ms (p95 {figure(lat['p95'], '.0f')}, lossless: "
         f"includes queueing); median stage ms: {stages}; dominant light error median "
         f"{figure(err['median'], '.1f')} deg (against the first moment of the light above "
-        f"the horizon){sun_text}{rho_text}",
+        f"the horizon{sh_text}){sun_text}{rho_text}",
         file=sys.stderr,
     )
     plot = Path(args.out) / "latency.png"

@@ -150,6 +150,7 @@ class Diagnostics(TypedDict, total=False):
     horizon_prior_used: bool
     support_plane_up_world: list[float] | None
     raw_dominant_direction_world: list[float]  # before the temporal filter
+    sh_direction_world: list[float]  # the filtered SH's own, whether a source is kept or not
     bands_requested: int
     bands_estimated: int
     confidence_reason: str  # Confidence.reason as reported
