@@ -215,8 +215,9 @@ def _summary(
     """summary.json: what the display received, the capture client's counts, the errors
     (of the dominant light against the upper hemisphere's first moment, and of the SH's own
     direction, which a kept compact source's replaces as the dominant one; of the kept
-    compact sources against the scene's sun), and how the confidence ranks each (Spearman over the
-    frames; None with fewer than 3 frames or a constant column).
+    compact sources against the scene's sun), and how the confidence ranks the first and
+    the last of these (Spearman over the frames; None with fewer than 3 frames or a constant
+    column).
 
     fps is what the service delivered: results per second of streaming (first frame sent to
     last result, JIT compilation of a first run included); pipeline_fps is 1000 / the median

@@ -72,7 +72,11 @@ class LightOutcome:
     towards the light (the kept compact source's, else the filtered SH's above the
     horizon; zeros when there is none); intensity: of the delta light along it that best
     fits `coeffs`; confidence: as reported; raw_direction: before the filter (world);
-    disagreement_deg: between the fits near the look-at point and over the whole view.
+    disagreement_deg: between the fits near the look-at point and over the whole view;
+    sh_direction_world: the filtered SH's own direction, which a kept source's replaces as
+    `direction_world` (above the support plane's horizon once one has been seen, else of
+    the whole sphere; zeros when there is none); up_world: this frame's support plane's
+    normal (world; None where none was found).
     """
 
     estimate: LightEstimate
@@ -82,6 +86,8 @@ class LightOutcome:
     confidence: Confidence
     raw_direction: np.ndarray
     disagreement_deg: float
+    sh_direction_world: np.ndarray
+    up_world: np.ndarray | None
 
 
 class LightStage:
@@ -145,14 +151,21 @@ class LightStage:
         confidence = self._reported_confidence(
             estimate, raw_direction, near, frame, source is not None, disagreement
         )
-        direction_world = (
-            self.light_direction(coeffs) if source is None else source.direction.copy()
-        )
+        sh_direction = self.light_direction(coeffs)
+        direction_world = sh_direction.copy() if source is None else source.direction.copy()
         intensity = sh.intensity_along(coeffs, direction_world)
         if np.any(direction_world):
             self.light_world = direction_world
         return LightOutcome(
-            estimate, coeffs, direction_world, intensity, confidence, raw_direction, disagreement
+            estimate,
+            coeffs,
+            direction_world,
+            intensity,
+            confidence,
+            raw_direction,
+            disagreement,
+            sh_direction,
+            up_world,
         )
 
     def fits(
@@ -319,23 +332,21 @@ class LightStage:
             return with_view_and_steadiness(base, None, jump)
         return with_view_and_steadiness(estimate.confidence, side, jump, disagreement_deg)
 
-    def diagnostics_of(self, outcome: LightOutcome, up_world: np.ndarray | None) -> Diagnostics:
-        """Plain JSON types (the wire carries them): what the light estimate did and why.
-        sh_direction_world: the filtered SH's direction (unit, world; zeros when it has
-        none), which a kept compact source's replaces as the reported one;
-        fit_disagreement_deg: degrees between the fits near the look-at point and over the
-        whole view (the confidence's "agreement" factor; 0 with one fit)."""
+    def diagnostics_of(self, outcome: LightOutcome) -> Diagnostics:
+        """Plain JSON types (the wire carries them): what the light estimate did and why
+        (LightOutcome's fields; fit_disagreement_deg is the confidence's "agreement"
+        factor's angle, 0 with one fit)."""
         estimate = outcome.estimate
         residual = estimate.residual_rel
         return {
             "residual_rel": float(residual) if math.isfinite(residual) else None,
             "bounce_scale": float(estimate.bounce_scale),
             "horizon_prior_used": bool(estimate.horizon_prior_used),
-            "support_plane_up_world": (None if up_world is None else [float(x) for x in up_world]),
+            "support_plane_up_world": (
+                None if outcome.up_world is None else [float(x) for x in outcome.up_world]
+            ),
             "raw_dominant_direction_world": [float(x) for x in outcome.raw_direction],
-            # the filtered SH's own direction, a compact source kept or not (the first
-            # moment of its light above the horizon, as the ground truths define theirs)
-            "sh_direction_world": [float(x) for x in self.light_direction(outcome.coeffs)],
+            "sh_direction_world": [float(x) for x in outcome.sh_direction_world],
             "bands_requested": int(self.config.transfer.sh_bands),
             "bands_estimated": int(estimate.confidence.bands_estimated),
             "confidence_reason": outcome.confidence.reason,  # the reported one

@@ -487,7 +487,7 @@ class Pipeline:
                     front.occluder,
                 )
         self.frames_processed += 1
-        diagnostics.update(self.light.diagnostics_of(light, up_world))
+        diagnostics.update(self.light.diagnostics_of(light))
         rotation = pose[:3, :3]
         return FrameResult(
             timestamp=front.timestamp,

@@ -16,9 +16,10 @@ import pytest
 from arlight.core.frames import Diagnostics
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import sh
+from arlight.pipeline.compact_light import CompactSource
 from arlight.pipeline.config import Config
 from arlight.pipeline.light_stage import LightFrame, LightStage
-from arlight.pipeline.transfer_upsampling import TransferSamples
+from arlight.pipeline.radiance_transfer import TransferSamples
 
 UP = np.array([0.0, 1.0, 0.0])  # world "up" (the pose is the identity: world = camera)
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
@@ -77,7 +78,7 @@ def test_one_frame_reports_the_light_above_the_horizon() -> None:
     # what the next frame and the aux buffer's light read
     assert stage.up_world is UP
     np.testing.assert_array_equal(stage.light_world, out.direction_world)
-    notes = stage.diagnostics_of(out, UP)
+    notes = stage.diagnostics_of(out)
     assert notes["support_plane_up_world"] == [0.0, 1.0, 0.0]
     assert notes["fit_disagreement_deg"] == 0.0
     assert notes["sh_direction_world"] == [float(x) for x in out.direction_world]  # no source
@@ -98,6 +99,26 @@ def test_the_filter_carries_the_light_from_frame_to_frame() -> None:
     assert angular_error_deg(lagging.direction_world, moved) > 10.0
     # the raw direction (before the filter) is this frame's own either way
     assert angular_error_deg(lagging.raw_direction, moved) < 5.0
+
+
+def test_a_kept_source_is_reported_and_the_sh_keeps_its_own_direction() -> None:
+    """With a compact source kept, the reported direction is the source's; the SH's own
+    (the filtered coefficients' direction) travels beside it in the diagnostics."""
+    light = _light((0.4, 0.8, 0.3))
+    stage = _stage()
+    sun = np.array([-0.6, 0.5, -0.62])
+    sun /= np.linalg.norm(sun)
+    source = CompactSource(sun, 0.5, None, 0.5, 0.6, 0.2)
+    stage.kept_source = lambda: source  # type: ignore[method-assign]
+    out = stage.run(_frame(light), _never_abandoned, {})
+    np.testing.assert_array_equal(out.direction_world, sun)
+    np.testing.assert_array_equal(out.raw_direction, sun)
+    np.testing.assert_allclose(out.sh_direction_world, stage.light_direction(out.coeffs))
+    assert angular_error_deg(out.sh_direction_world, sh.above_horizon_direction(light, UP)) < 5
+    assert angular_error_deg(out.sh_direction_world, out.direction_world) > 30.0
+    notes = stage.diagnostics_of(out)
+    assert notes["sh_direction_world"] == [float(x) for x in out.sh_direction_world]
+    assert notes["raw_dominant_direction_world"] == [float(x) for x in sun]
 
 
 def test_a_frame_without_samples_reports_no_direction() -> None:

@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     err = summary["angular_error_deg"]
     sh_err = summary["sh_direction_error_deg"]
     sh_text = (
-        f"; the SH's own direction {figure(sh_err['median'], '.1f')}"
+        f"; the SH's own direction {figure(sh_err['median'], '.1f')} deg"
         if sh_err["median"] is not None
         else ""
     )

@@ -53,7 +53,7 @@ def add_parser(sub) -> None:
         default="full",
         help="speed/accuracy preset (default: full, the paper's 'Ours', steadiest on real "
         "frames; fast takes half the time and is as accurate over the 22 maps of the "
-        "corpus; mobile is fastest, 4-8 degrees worse: docs, Results: accuracy)",
+        "corpus; mobile is fastest, 4-10 degrees worse: docs, Results: accuracy)",
     )
     est.add_argument(
         "--poses",

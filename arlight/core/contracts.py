@@ -139,7 +139,8 @@ class Diagnostics(TypedDict, total=False):
     """What the pipeline and the server report about one frame besides the estimate.
 
     Every key is optional (a panorama-only frame has only the last two); a client must not
-    fail on keys it does not know (SPEC.md, "diagnostics"). Directions are unit vectors.
+    fail on keys it does not know (SPEC.md, "diagnostics"). Directions are unit vectors, or zeros
+    where there is none.
     """
 
     tracking_ok: bool  # the frame was tracked (or its pose given): a record, not a switch
@@ -150,7 +151,7 @@ class Diagnostics(TypedDict, total=False):
     horizon_prior_used: bool
     support_plane_up_world: list[float] | None
     raw_dominant_direction_world: list[float]  # before the temporal filter
-    sh_direction_world: list[float]  # the filtered SH's own, whether a source is kept or not
+    sh_direction_world: list[float]  # the filtered SH's own, a source kept or not (LightOutcome)
     bands_requested: int
     bands_estimated: int
     confidence_reason: str  # Confidence.reason as reported
