@@ -15,6 +15,7 @@ report (report.json, report.md, trade.png) is written by arlight.report.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from dataclasses import dataclass, field
@@ -230,6 +231,7 @@ def run_config(
         pipeline = Pipeline(bench.config, seq.camera, scene)
         scores: dict[str, list[float]] = {
             "angle_upper_deg": [],
+            "sh_angle_upper_deg": [],
             "angle_deg": [],
             "sh_error": [],
             "shading_error": [],
@@ -281,6 +283,15 @@ def _score(
     )
     scores["angle_upper_deg"].append(
         evaluation.angular_error_deg(out.dominant_direction_camera, truth.dominant_upper_camera)
+    )
+    # the SH's own direction, which a kept compact source's replaces as the reported one
+    own = out.diagnostics.get("sh_direction_world")
+    scores["sh_angle_upper_deg"].append(
+        math.nan
+        if own is None
+        else evaluation.angular_error_deg(
+            np.asarray(out.pose)[:3, :3].T @ np.asarray(own), truth.dominant_upper_camera
+        )
     )
     scores["confidence"].append(float(out.confidence.value))
     if truth.sh_upper_world is not None:

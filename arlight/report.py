@@ -167,9 +167,9 @@ def _accuracy(
             m for m in env_maps.get(name, []) if m is not None
         )
         out["sequences"][name]["layout"] = layouts.get(name)
-    for key in ("angle_upper_deg", "angle_deg", "sh_error", "shading_error"):
-        medians = [m[key] for m in out["sequences"].values() if m[key] is not None]
-        every = [x for s in scored.values() for x in _finite(s[key])]
+    for key in ("angle_upper_deg", "sh_angle_upper_deg", "angle_deg", "sh_error", "shading_error"):
+        medians = [m[key] for m in out["sequences"].values() if m.get(key) is not None]
+        every = [x for s in scored.values() for x in _finite(s.get(key, []))]
         out[key] = {
             "median_of_medians": float(np.median(medians)) if medians else None,
             "p90_all_frames": float(np.percentile(every, 90)) if every else None,
@@ -179,6 +179,9 @@ def _accuracy(
     out["by_map"] = group_by_map(
         {n: s["angle_upper_deg"] for n, s in scored.items()}, env_maps, layouts
     )
+    # the SH's own direction (a kept compact source's replaces it as the reported one)
+    own = {n: s["sh_angle_upper_deg"] for n, s in scored.items() if s.get("sh_angle_upper_deg")}
+    out["by_map_sh"] = group_by_map(own, env_maps, layouts) if len(own) == len(scored) else None
     return out
 
 
@@ -368,6 +371,32 @@ def _by_map_cell(by_map: dict | None) -> str:
     if not by_map:
         return "-"
     return f"{by_map['median_over_maps']:.1f} / {by_map['p90_all_frames']:.1f} / {_worst(by_map)}"
+
+
+def sh_direction_line(report: dict) -> str:
+    """One sentence: each configuration's error of the SH's own direction (the reported
+    one wherever no compact source is kept), by map where the report has maps, else by
+    sequence; "" when no configuration has it."""
+    cells = []
+    for name, c in report["configs"].items():
+        a = c.get("accuracy") or {}
+        if a.get("by_map_sh"):
+            cells.append(f"{name} {_by_map_cell(a['by_map_sh'])}")
+        elif (a.get("sh_angle_upper_deg") or {}).get("median_of_medians") is not None:
+            own = a["sh_angle_upper_deg"]
+            cells.append(
+                f"{name} {_num(own['median_of_medians'])} / {_num(own['p90_all_frames'])} / "
+                f"{_num(own['worst_sequence_median'])}"
+            )
+    if not cells:
+        return ""
+    unit = "median over maps / p90 over frames / worst map"
+    if not any((c.get("accuracy") or {}).get("by_map_sh") for c in report["configs"].values()):
+        unit = "median of medians / p90 / worst sequence"
+    return (
+        "The SH's own direction, which a kept compact source's replaces as the reported one "
+        f"(upper hemisphere, {unit}): " + "; ".join(cells) + "."
+    )
 
 
 def accuracy_table(report: dict) -> str:
@@ -567,6 +596,9 @@ def markdown(report: dict) -> str:
             "",
             acc,
         ]
+        own = sh_direction_line(report)
+        if own:
+            parts += ["", own]
         seq = sequence_table(report)
         if seq:
             parts += ["", "## Per sequence (median degrees, upper hemisphere)", "", seq]

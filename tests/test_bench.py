@@ -104,6 +104,9 @@ def test_report_of_the_built_in_scene(tmp_path):
         assert 0 <= acc["angle_upper_deg"]["median_of_medians"] <= 180
         assert acc["sequences"]["synthetic"]["frames"] == 3  # warm-up frames are scored too
     assert report["configs"]["baseline"]["overrides"] == {"visibility": False, "compact_sources": 0}
+    # the SH's own direction is scored too: without compact sources it is the reported one
+    baseline = report["configs"]["baseline"]["accuracy"]
+    assert baseline["sh_angle_upper_deg"] == baseline["angle_upper_deg"]
     assert report["configs"]["fast sh_bands=2"]["value"] == 2
     paths = write_report(report, tmp_path / "r")
     assert sorted(p.name for p in paths) == ["report.json", "report.md", "trade.png"]
@@ -113,6 +116,7 @@ def test_report_of_the_built_in_scene(tmp_path):
     )
     text = markdown(report)
     assert "| RadTransfer |" in text and "| fast sh_bands=3 |" in text
+    assert "The SH's own direction" in text and "baseline " in text
 
 
 def test_a_held_camera_reports_its_reuse():
@@ -148,6 +152,8 @@ def test_report_of_a_ground_truth_sequence():
     assert acc["sequences"]["dev_a_static_venice"]["frames"] == 2
     # the full accuracy run gives ~7 degrees on this sequence: a gross error would be a bug
     assert acc["angle_upper_deg"]["median_of_medians"] < 30
+    own = acc["by_map_sh"]  # the SH's own direction, by the map that lit each frame
+    assert list(own["maps"]) == list(acc["by_map"]["maps"]) and own["median_over_maps"] < 30
     assert 0 <= acc["shading_error"]["median_of_medians"] < 1
 
 
