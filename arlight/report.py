@@ -377,22 +377,25 @@ def sh_direction_line(report: dict) -> str:
     """One sentence: each configuration's error of the SH's own direction (the reported
     one wherever no compact source is kept), by map where the report has maps, else by
     sequence; "" when no configuration has it."""
+    accs = {name: c.get("accuracy") or {} for name, c in report["configs"].items()}
+    by_map = any(a.get("by_map_sh") for a in accs.values())
     cells = []
-    for name, c in report["configs"].items():
-        a = c.get("accuracy") or {}
-        if a.get("by_map_sh"):
+    for name, a in accs.items():
+        own = a.get("sh_angle_upper_deg") or {}
+        if by_map and a.get("by_map_sh"):
             cells.append(f"{name} {_by_map_cell(a['by_map_sh'])}")
-        elif (a.get("sh_angle_upper_deg") or {}).get("median_of_medians") is not None:
-            own = a["sh_angle_upper_deg"]
+        elif not by_map and own.get("median_of_medians") is not None:
             cells.append(
                 f"{name} {_num(own['median_of_medians'])} / {_num(own['p90_all_frames'])} / "
                 f"{_num(own['worst_sequence_median'])}"
             )
     if not cells:
         return ""
-    unit = "median over maps / p90 over frames / worst map"
-    if not any((c.get("accuracy") or {}).get("by_map_sh") for c in report["configs"].values()):
-        unit = "median of medians / p90 / worst sequence"
+    unit = (
+        "median over maps / p90 over frames / worst map"
+        if by_map
+        else "median of medians / p90 / worst sequence"
+    )
     return (
         "The SH's own direction, which a kept compact source's replaces as the reported one "
         f"(upper hemisphere, {unit}): " + "; ".join(cells) + "."
