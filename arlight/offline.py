@@ -25,7 +25,7 @@ import numpy as np
 from arlight.core.camera import PinholeCamera
 from arlight.core.frames import FrameInput, FrameResult
 from arlight.pipeline.engine_export import camera_exports
-from arlight.pipeline.light_estimation import LOW_CONFIDENCE
+from arlight.pipeline.light_confidence import LOW_CONFIDENCE
 from arlight.protocols import plain_diagnostics
 from arlight.protocols.frame_result import compact_sources_to_wire
 

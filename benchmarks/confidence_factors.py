@@ -4,7 +4,7 @@
     python benchmarks/confidence_factors.py ROWS_fast.jsonl ROWS_full.jsonl
 
 Each recorded frame's confidence is re-scored with other scales of its factors
-(`light_estimation`: the normals' spread at which the "normals" factor reaches 1, the share
+(`light_confidence`: the normals' spread at which the "normals" factor reaches 1, the share
 of side-facing normals at which the "view" factor does, the steadiness and agreement
 factors' degrees, the samples' count; `compact_light.EDGE_STEP_FULL` for a kept source's),
 the conditioning factor as in the code. The re-scoring is checked first: with the code's
@@ -29,7 +29,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from arlight.pipeline import compact_light as cl
-from arlight.pipeline import light_estimation as le
+from arlight.pipeline import light_confidence as le
 
 FIELDS = (
     "map",
@@ -102,7 +102,7 @@ def _decay(deg: np.ndarray, scale: float) -> np.ndarray:
 
 
 def scored(rows: dict[str, np.ndarray], scales: dict[str, float]) -> np.ndarray:
-    """Each frame's reported confidence with these scales (light_estimation's factors)."""
+    """Each frame's reported confidence with these scales (light_confidence's factors)."""
     conditioning = np.array([le.conditioning_factor(c) for c in rows["condition_number"]])
     fit = (
         np.minimum(1.0, rows["samples"] / scales["samples"])

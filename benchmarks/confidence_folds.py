@@ -31,7 +31,7 @@ from scipy.stats import spearmanr
 
 from arlight import bench, evaluation
 from arlight.pipeline.config import Config
-from arlight.pipeline.light_estimation import MIN_FACTOR, conditioning_factor
+from arlight.pipeline.light_confidence import MIN_FACTOR, conditioning_factor
 from arlight.pipeline.pipeline import Pipeline
 from arlight.pipeline.runtime import configure_process
 

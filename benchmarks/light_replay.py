@@ -28,7 +28,7 @@ import numpy as np
 from arlight import evaluation
 from arlight.pipeline import light_estimation, sh
 from arlight.pipeline.config import Config
-from arlight.pipeline.light_estimation import TemporalFilter
+from arlight.pipeline.temporal_filter import TemporalFilter
 
 try:
     from benchmarks.error_by_view import azimuth_deg, wrapped

@@ -35,7 +35,7 @@ import numpy as np
 
 from arlight.core.frames import Confidence
 from arlight.pipeline import sh
-from arlight.pipeline.light_estimation import LOW_CONFIDENCE, MIN_FACTOR
+from arlight.pipeline.light_confidence import LOW_CONFIDENCE, MIN_FACTOR
 from arlight.pipeline.sun_shadows import disc_directions, perpendicular_basis
 
 # rays start this far above the surface (metres, along its normal) and count hits from
@@ -354,7 +354,7 @@ def source_confidence(conf: Confidence, edge_step: float) -> Confidence:
     place of the SH fit's value (which judges the normals' spread, not shadows). Over the
     kept sources of the corpus and the shared set it ranks the source's error at Spearman
     -0.51 where the SH fit's confidence reaches -0.15 (decision 0043). The other fields of
-    `conf` are kept. Floored at light_estimation.MIN_FACTOR: a source is an estimate, and
+    `conf` are kept. Floored at light_confidence.MIN_FACTOR: a source is an estimate, and
     a confidence of 0 means none."""
     value = float(np.clip(edge_step / EDGE_STEP_FULL, MIN_FACTOR, 1.0))
     reason = (

@@ -27,15 +27,11 @@ from arlight.pipeline.compact_light import (
 )
 from arlight.pipeline.config import Config
 from arlight.pipeline.fit_region import blended, near_look_at, whole_view_share
-from arlight.pipeline.light_estimation import (
-    LightEstimate,
-    TemporalFilter,
-    estimate_light,
-    side_share,
-    with_view_and_steadiness,
-)
+from arlight.pipeline.light_confidence import side_share, with_view_and_steadiness
+from arlight.pipeline.light_estimation import LightEstimate, estimate_light
 from arlight.pipeline.object_space_transfer import ObjectSpaceTransfer, OcclusionScene
 from arlight.pipeline.radiance_transfer import TransferSamples
+from arlight.pipeline.temporal_filter import TemporalFilter
 
 # the compact sources' occluder without the volume's mesh: the frame's depth mesh about this
 # many points wide, 160x120 of 640x480 (docs/decisions/0060-compact-depth-mesh.md)
@@ -313,7 +309,7 @@ class LightStage:
         disagreement_deg: float = 0.0,
     ) -> Confidence:
         """The estimate's confidence times what one fit cannot know of itself
-        (`light_estimation.with_view_and_steadiness`): the share of side-facing normals
+        (`light_confidence.with_view_and_steadiness`): the share of side-facing normals
         among the fitted pixels (against this frame's support plane, or the last one seen)
         and the jump of this frame's direction `raw` (world, before the filter) from the
         filtered one before it (called before `light_world` takes this frame's).

@@ -19,7 +19,8 @@ from arlight.pipeline.compact_light import (
     shadow_edge,
     source_confidence,
 )
-from arlight.pipeline.light_estimation import MIN_FACTOR, penalty_matrix
+from arlight.pipeline.light_confidence import MIN_FACTOR
+from arlight.pipeline.light_estimation import penalty_matrix
 from arlight.pipeline.object_space_transfer import OcclusionScene, SurfaceMesh
 
 UP = np.array([0.0, 1.0, 0.0])

@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 
-from arlight.pipeline.light_estimation import conditioning_factor
+from arlight.pipeline.light_confidence import conditioning_factor
 from benchmarks.confidence_folds import main
 
 

@@ -15,7 +15,7 @@ from conftest import SMALL
 from arlight.core.camera import PinholeCamera
 from arlight.core.frames import FrameInput
 from arlight.pipeline.config import Config
-from arlight.pipeline.light_estimation import LOW_CONFIDENCE
+from arlight.pipeline.light_confidence import LOW_CONFIDENCE
 from arlight.pipeline.pipeline import FrameError, Pipeline
 from arlight.sources.synthetic import make_sequence
 

@@ -15,8 +15,10 @@ import pytest
 from arlight.core.frames import Confidence
 from arlight.evaluation import angular_error_deg
 from arlight.pipeline import color, sh
+from arlight.pipeline import light_confidence as lc
 from arlight.pipeline import light_estimation as le
 from arlight.pipeline.config import EstimationParams, TemporalParams
+from arlight.pipeline.temporal_filter import TemporalFilter
 
 LAMBERT_PER_COEFF = np.repeat(sh.lambert_band_factors(4), [1, 3, 5, 7])
 LIGHT_DIR = (0.3, -0.8, 0.5)
@@ -309,7 +311,7 @@ class TestTemporalFilter:
     NEW = _light((1.0, 0.0, 0.0))  # 90 degrees away
 
     def _filter(self):
-        return le.TemporalFilter(TemporalParams())
+        return TemporalFilter(TemporalParams())
 
     def test_constant_input_converges_immediately(self):
         f = self._filter()
@@ -352,8 +354,8 @@ class TestTemporalFilter:
         """Half-life 0 reports each frame's own estimate, whatever its confidence (a frame
         without one keeps the last); a tiny half-life still blends a frame of confidence
         below 0.5 with the last (its weight is scaled by the confidence)."""
-        off = le.TemporalFilter(TemporalParams(temporal_half_life_frames=0.0))
-        tiny = le.TemporalFilter(TemporalParams(temporal_half_life_frames=0.001))
+        off = TemporalFilter(TemporalParams(temporal_half_life_frames=0.0))
+        tiny = TemporalFilter(TemporalParams(temporal_half_life_frames=0.001))
         for f in (off, tiny):
             f.update(self.OLD, 0.8)
         np.testing.assert_array_equal(off.update(self.NEW, 0.05), self.NEW)
@@ -416,12 +418,12 @@ class TestConfidenceEvidence:
         up = np.array([0.0, -1.0, 0.0])
         lit = _grey(t @ _light())
         wide = le.estimate_light(t, lit, WEAK, up=up)
-        assert wide.confidence.normal_spread > 0.9 and wide.confidence.value >= le.LOW_CONFIDENCE
+        assert wide.confidence.normal_spread > 0.9 and wide.confidence.value >= lc.LOW_CONFIDENCE
         floor = normals[normals[:, 1] < -0.95]  # normals within 18 deg of up
         tf = sh.sh_basis(floor, 4) * LAMBERT_PER_COEFF
         narrow = le.estimate_light(tf, _grey(tf @ _light()), WEAK, up=up)
         assert narrow.confidence.value < wide.confidence.value
-        assert narrow.confidence.value < le.LOW_CONFIDENCE
+        assert narrow.confidence.value < lc.LOW_CONFIDENCE
         assert "few normal directions" in narrow.confidence.reason
         low = le.estimate_light(t, _grey(t @ _light((0.2, 0.95, 0.2))), WEAK, up=up)
         assert low.confidence.horizon_disagreement_deg > 10.0
@@ -432,10 +434,10 @@ class TestConfidenceEvidence:
     def test_the_conditioning_factor_falls_over_the_range_fits_have(self):
         """Fits have condition numbers of 1e3-1e5 (decision 0065): the factor is 1 at 1e3
         and below, falls by 10^0.8 a decade, and stops at the floor."""
-        f = le.conditioning_factor
+        f = lc.conditioning_factor
         assert f(1.0) == f(1e3) == 1.0
         assert f(1e4) == pytest.approx(10**-0.8) and f(1e5) == pytest.approx(10**-1.6)
-        assert f(1e9) == le.MIN_FACTOR
+        assert f(1e9) == lc.MIN_FACTOR
         values = [f(c) for c in np.logspace(3, 5, 9)]
         assert np.all(np.diff(values) < 0)  # strictly falling there
 
@@ -445,7 +447,7 @@ class TestConfidenceEvidence:
         rgb = _grey(tf @ _light())
         rgb[: len(rgb) // 4] = 1.0  # a quarter of the view saturated
         est = le.estimate_light(tf, rgb, WEAK)
-        assert est.confidence.value < le.LOW_CONFIDENCE
+        assert est.confidence.value < lc.LOW_CONFIDENCE
         assert "clipped (emitters" in est.confidence.reason
 
 
@@ -457,32 +459,32 @@ class TestViewAndSteadiness:
         up = np.array([0.0, 1.0, 0.0])
         floor = np.tile(up, (30, 1))
         wall = np.tile([1.0, 0.0, 0.0], (10, 1))
-        assert le.side_share(floor, up) == 0.0
-        assert le.side_share(np.vstack([floor, wall]), up) == pytest.approx(0.25)
-        assert le.side_share(wall, None) is None
-        assert le.side_share(np.zeros((5, 3)), up) is None  # no normals
+        assert lc.side_share(floor, up) == 0.0
+        assert lc.side_share(np.vstack([floor, wall]), up) == pytest.approx(0.25)
+        assert lc.side_share(wall, None) is None
+        assert lc.side_share(np.zeros((5, 3)), up) is None  # no normals
 
     def test_factors_multiply_and_are_named_when_low(self):
         conf = Confidence(samples=5000, condition_number=10.0, bands_estimated=4, value=0.8)
-        same = le.with_view_and_steadiness(conf, 0.5, 0.0)
+        same = lc.with_view_and_steadiness(conf, 0.5, 0.0)
         assert same.value == pytest.approx(0.8) and same.reason == ""
         assert same.to_dict()["side_share"] == 0.5
-        ground = le.with_view_and_steadiness(conf, 0.01, 0.0)
-        assert ground.value == pytest.approx(0.8 * 0.01 / le.SIDE_SHARE_FULL)
+        ground = lc.with_view_and_steadiness(conf, 0.01, 0.0)
+        assert ground.value == pytest.approx(0.8 * 0.01 / lc.SIDE_SHARE_FULL)
         assert "side-facing" in ground.reason
-        jumped = le.with_view_and_steadiness(conf, 0.5, 30.0)
-        assert jumped.value == pytest.approx(0.8 * math.exp(-30.0 / le.JUMP_SCALE_DEG))
+        jumped = lc.with_view_and_steadiness(conf, 0.5, 30.0)
+        assert jumped.value == pytest.approx(0.8 * math.exp(-30.0 / lc.JUMP_SCALE_DEG))
         assert "jumped 30 deg" in jumped.reason and "side-facing" not in jumped.reason
-        unknown = le.with_view_and_steadiness(conf, None, 0.0)  # no plane yet: no view factor
+        unknown = lc.with_view_and_steadiness(conf, None, 0.0)  # no plane yet: no view factor
         assert unknown.value == pytest.approx(0.8) and unknown.to_dict()["side_share"] is None
         # two fits of one frame (near the look-at point, the whole view) that disagree
-        split = le.with_view_and_steadiness(conf, 0.5, 0.0, 45.0)
-        assert split.value == pytest.approx(0.8 * math.exp(-45.0 / le.AGREE_SCALE_DEG))
+        split = lc.with_view_and_steadiness(conf, 0.5, 0.0, 45.0)
+        assert split.value == pytest.approx(0.8 * math.exp(-45.0 / lc.AGREE_SCALE_DEG))
         assert "45 deg from the one fitted over the whole view" in split.reason
 
     def test_no_estimate_stays_no_estimate(self):
         none = Confidence(reason="no valid depth")
-        out = le.with_view_and_steadiness(none, 0.5, 10.0)
+        out = lc.with_view_and_steadiness(none, 0.5, 10.0)
         assert out.value == 0.0 and out.reason == "no valid depth"
 
 

@@ -17,7 +17,7 @@ from arlight.cli import main
 from arlight.core.frames import FrameInput
 from arlight.offline import FrameNotes, estimate_frames, has_usable_depth, open_recording
 from arlight.pipeline.config import Config
-from arlight.pipeline.light_estimation import LOW_CONFIDENCE
+from arlight.pipeline.light_confidence import LOW_CONFIDENCE
 from arlight.pipeline.pipeline import Pipeline
 from arlight.sources.recording import RecordingError
 from arlight.sources.sequence import open_sequence

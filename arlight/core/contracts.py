@@ -27,13 +27,13 @@ class Confidence:
     samples: pixels used in the least-squares fit; condition_number: of the (unregularised,
     column-scaled) normal matrix; bands_estimated: SH bands solved for (the rest are zero);
     value: overall confidence in [0, 1] (0 = no estimate possible); reason: why the value is
-    low (below light_estimation.LOW_CONFIDENCE, or 0), naming the cause ("" otherwise);
+    low (below light_confidence.LOW_CONFIDENCE, or 0), naming the cause ("" otherwise);
     normal_spread: 1 - |mean unit normal|^2 of the pixels fitted (0 = one plane);
     horizon_disagreement_deg: degrees between the whole-sphere direction and the one above
     the support plane's horizon (0 without a plane); side_share: share of the fitted
     pixels' normals facing sideways to the support plane (None: no plane seen yet);
     jump_deg: degrees between this frame's direction and the filtered one before it.
-    light_estimation says how each counts (the last two: `with_view_and_steadiness`).
+    light_confidence says how each counts (the last two: `with_view_and_steadiness`).
     """
 
     samples: int = 0
