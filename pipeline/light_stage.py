@@ -19,12 +19,8 @@ import numpy as np
 
 from arlight.core.frames import Confidence, Diagnostics
 from arlight.pipeline import sh
-from arlight.pipeline.compact_light import (
-    CompactFit,
-    CompactLightStage,
-    CompactSource,
-    source_confidence,
-)
+from arlight.pipeline.compact_light import CompactFit, CompactSource, source_confidence
+from arlight.pipeline.compact_stage import CompactLightStage
 from arlight.pipeline.config import Config
 from arlight.pipeline.fit_region import blended, near_look_at, whole_view_share
 from arlight.pipeline.light_confidence import side_share, with_view_and_steadiness

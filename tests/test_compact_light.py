@@ -252,7 +252,7 @@ def test_tracking_refines_the_last_direction_and_searches_again_when_the_light_m
     at once, finding the new sun."""
     from types import SimpleNamespace
 
-    from arlight.pipeline.compact_light import CompactLightStage
+    from arlight.pipeline.compact_stage import CompactLightStage
 
     points, normals, scene = _scene()
     bands = 3
@@ -319,7 +319,7 @@ def test_a_tracked_frame_keeps_both_lamps():
     refines both and keeps both."""
     from types import SimpleNamespace
 
-    from arlight.pipeline.compact_light import CompactLightStage
+    from arlight.pipeline.compact_stage import CompactLightStage
 
     points, normals, scene = _scene()
     bands = 3
@@ -362,7 +362,7 @@ def test_the_occluder_is_the_frame_s_depth_mesh_at_its_stride():
     """By default (compact_volume_mesh off) the stage tests shadows against the current
     frame's depth mesh at every `depth_stride`-th pixel, made anew each frame, in the camera
     frame; it never reads the volume (no 0.1-0.5 s mesh build)."""
-    from arlight.pipeline.compact_light import CompactLightStage
+    from arlight.pipeline.compact_stage import CompactLightStage
 
     class NoVolume:
         def __getattr__(self, name):
