@@ -29,7 +29,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from arlight.pipeline import compact_light as cl
-from arlight.pipeline import light_confidence as le
+from arlight.pipeline import light_confidence as lc
 
 FIELDS = (
     "map",
@@ -52,11 +52,11 @@ OFF = float("inf")  # a scale at which its factor is 1 everywhere
 def code_scales() -> dict[str, float]:
     """The scales as the code has them."""
     return {
-        "samples": float(le.SAMPLES_FULL),
-        "normals": le.NORMAL_SPREAD_FULL,
-        "view": le.SIDE_SHARE_FULL,
-        "steadiness_deg": le.JUMP_SCALE_DEG,
-        "agreement_deg": le.AGREE_SCALE_DEG,
+        "samples": float(lc.SAMPLES_FULL),
+        "normals": lc.NORMAL_SPREAD_FULL,
+        "view": lc.SIDE_SHARE_FULL,
+        "steadiness_deg": lc.JUMP_SCALE_DEG,
+        "agreement_deg": lc.AGREE_SCALE_DEG,
         "edge_step": cl.EDGE_STEP_FULL,
     }
 
@@ -94,22 +94,22 @@ def _ramp(x: np.ndarray, full: float) -> np.ndarray:
     """min(1, x / full) floored at MIN_FACTOR; 1 everywhere at a scale of 0 (no factor)."""
     if full <= 0.0:
         return np.ones_like(x)
-    return np.clip(x / full, le.MIN_FACTOR, 1.0)
+    return np.clip(x / full, lc.MIN_FACTOR, 1.0)
 
 
 def _decay(deg: np.ndarray, scale: float) -> np.ndarray:
-    return np.maximum(le.MIN_FACTOR, np.exp(-deg / scale))
+    return np.maximum(lc.MIN_FACTOR, np.exp(-deg / scale))
 
 
 def scored(rows: dict[str, np.ndarray], scales: dict[str, float]) -> np.ndarray:
     """Each frame's reported confidence with these scales (light_confidence's factors)."""
-    conditioning = np.array([le.conditioning_factor(c) for c in rows["condition_number"]])
+    conditioning = np.array([lc.conditioning_factor(c) for c in rows["condition_number"]])
     fit = (
         np.minimum(1.0, rows["samples"] / scales["samples"])
         * conditioning
-        * np.where(rows["bands"] >= 2, 1.0, le.NO_DIRECTION_FACTOR)
+        * np.where(rows["bands"] >= 2, 1.0, lc.NO_DIRECTION_FACTOR)
         * _ramp(rows["normal_spread"], scales["normals"])
-        * np.maximum(le.MIN_FACTOR, np.exp(-rows["horizon_deg"] / le.HORIZON_SCALE_DEG))
+        * np.maximum(lc.MIN_FACTOR, np.exp(-rows["horizon_deg"] / lc.HORIZON_SCALE_DEG))
     )
     side = rows["side_share"]
     view = np.where(np.isnan(side), 1.0, _ramp(np.nan_to_num(side), scales["view"]))
