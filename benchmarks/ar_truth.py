@@ -41,7 +41,7 @@ import numpy as np
 
 from arlight.pipeline import sh
 from arlight.pipeline.color import LUMA
-from arlight.pipeline.compact_light import CompactLightStage
+from arlight.pipeline.compact_stage import CompactLightStage
 from arlight.pipeline.config import Config, DiffMode
 from arlight.pipeline.glossy import mip_pyramid
 from arlight.pipeline.pipeline import Pipeline

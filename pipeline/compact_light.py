@@ -21,7 +21,8 @@ closed form (one Schur complement on the SH fit's normal matrix, its albedo and 
 weights held), and the direction that explains most of the residual wins; it is refined
 on finer grids. A source is kept only when it explains at least `compact_min_gain` of the
 SH fit's weighted residual and enough lit and shadowed pixels face it: an overcast scene
-gets none, and `CompactFit.reason` says why.
+gets none, and `CompactFit.reason` says why. What a session tests the rays against, and
+when it searches in full or follows the last source: compact_stage.py.
 """
 
 from __future__ import annotations

@@ -395,7 +395,7 @@ class EstimationParams:
     compact_candidates: int = 64
     compact_search_samples: int = 2000
     # the full search on one frame in this many, the frames between refining the last best
-    # direction (1 = every frame; compact_light.CompactLightStage): the same accuracy held
+    # direction (1 = every frame; compact_stage.CompactLightStage): the same accuracy held
     # out by map at 20-30 ms less a frame (docs/decisions/0056-compact-tracking.md)
     compact_search_interval: int = 5
     compact_render: bool = True  # draw them with hard shadows both ways (pipeline/sun_shadows.py)

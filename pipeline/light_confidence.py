@@ -29,8 +29,8 @@ class FitEvidence:
     samples: int
     cond: float
     bands: int
-    normal_spread: float  # normal_spread(), 0..1
-    horizon_deg: float  # horizon_disagreement_deg(), degrees
+    normal_spread: float  # light_estimation.normal_spread(), 0..1
+    horizon_deg: float  # light_estimation.horizon_disagreement_deg(), degrees
     residual_rel: float  # reported, not a factor (see confidence_factors)
     clipped_fraction: float = 0.0  # named in the reason, not a factor (no data to rank it)
 
