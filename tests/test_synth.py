@@ -213,6 +213,50 @@ class TestFiles:
         depth = cv2.imread(str(tiny / "depth_gt" / "000000.png"), cv2.IMREAD_UNCHANGED)
         assert depth.dtype == np.uint16 and depth.shape == (24, 32) and depth.max() > 0
 
+    def test_albedo_file_is_the_intrinsic_image(self, tiny):
+        """albedo/: 16-bit linear RGB, 0 where the environment is seen, a reflectance
+        (0.02-0.9, the generator's range) on the surfaces."""
+        for i in (0, 1):
+            albedo = cv2.imread(str(tiny / "albedo" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+            depth = cv2.imread(str(tiny / "depth_gt" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+            assert albedo.dtype == np.uint16 and albedo.shape == (24, 32, 3)
+            a = albedo.astype(np.float64) / 65535
+            # a pixel's albedo averages its footprint, the depth is its centre's: test
+            # pixels whose neighbours agree
+            environment = cv2.erode((depth == 0).astype(np.uint8), np.ones((3, 3))) > 0
+            assert environment.any() and np.all(a[environment] == 0.0)
+            inner = cv2.erode((depth > 0).astype(np.uint8), np.ones((3, 3))) > 0
+            assert inner.mean() > 0.3
+            assert np.all((a[inner] > 0.015) & (a[inner] < 0.91))
+
+    def test_albedo_is_each_surface_material(self, tmp_path):
+        """Every untextured surface in view shows its material's albedo (the aov renders the
+        reflectance the path tracer shades with, per pixel, under any light)."""
+        from arlight.synth import render
+
+        write_patch_map(tmp_path / "patch.hdr")
+        layout = build_layout("static", 2, 2)  # three plain materials in view at 64x48
+        shapes = layout.shapes_at(0)
+        camera = render.Camera(64, 48, 525.0 * 64 / 640, 525.0 * 64 / 640)
+        scene = render.SceneRenderer(shapes, tmp_path / "patch.hdr", 0.0)
+        try:
+            albedo = scene.render_albedo(camera, layout.poses[0], seed=0)
+        finally:
+            scene.close()
+        _, ids = render.GeometryCaster(shapes).cast(camera, layout.poses[0])
+        environment = cv2.erode((ids < 0).astype(np.uint8), np.ones((3, 3))) > 0
+        assert environment.any() and np.all(albedo[environment] == 0.0)
+        checked = 0
+        for k, shape in enumerate(shapes):
+            inner = cv2.erode((ids == k).astype(np.uint8), np.ones((3, 3))) > 0
+            if shape.material.textured or inner.sum() < 5:
+                continue
+            np.testing.assert_allclose(
+                np.median(albedo[inner], axis=0), shape.material.albedo_rgb, atol=0.01
+            )
+            checked += 1
+        assert checked == 3
+
     def test_depth_is_the_rendered_geometry(self, tiny):
         """Pixels the clean depth says hit nothing show the environment (no depth)."""
         depth = cv2.imread(str(tiny / "depth_gt" / "000000.png"), cv2.IMREAD_UNCHANGED)

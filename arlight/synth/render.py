@@ -136,6 +136,7 @@ class SceneRenderer:
                 "bsdf": _bsdf(mi, shape.material, cache),
             }
         self._scene = mi.load_dict(self._objects)
+        self._albedo_scene = None  # the same scene under Mitsuba's aov integrator (on first use)
 
     def close(self) -> None:
         self._tmp.cleanup()
@@ -149,12 +150,33 @@ class SceneRenderer:
         rfilter: str = "gaussian",
     ) -> np.ndarray:
         """(H, W, 3) float32 linear radiance seen through `camera` at `world_from_cam`."""
+        sensor = self._sensor(camera, world_from_cam, spp, rfilter)
+        image = self._mi.render(self._scene, sensor=sensor, seed=int(seed), spp=int(spp))
+        return np.asarray(image, np.float32)[..., :3]
+
+    def render_albedo(
+        self, camera: Camera, world_from_cam: np.ndarray, seed: int, spp: int = 4
+    ) -> np.ndarray:
+        """(H, W, 3) float32 linear albedo (diffuse reflectance, 0..1) of the first surface
+        each pixel sees, averaged over its footprint (box filter): the intrinsic image the
+        estimate's per-material albedos stand for; 0 where the pixel sees the environment."""
+        mi = self._mi
+        if self._albedo_scene is None:
+            objects = dict(self._objects)
+            objects["integrator"] = {"type": "aov", "aovs": "albedo:albedo"}
+            self._albedo_scene = mi.load_dict(objects)
+        sensor = self._sensor(camera, world_from_cam, spp, "box")
+        image = mi.render(self._albedo_scene, sensor=sensor, seed=int(seed), spp=int(spp))
+        return np.asarray(image, np.float32)[..., :3]
+
+    def _sensor(self, camera: Camera, world_from_cam: np.ndarray, spp: int, rfilter: str):
+        """Mitsuba's perspective sensor for `camera` at `world_from_cam` (OpenCV axes)."""
         mi = self._mi
         fov = math.degrees(2 * math.atan(camera.height / 2 / camera.fy))
         aspect_ok = abs(camera.fx - camera.fy) < 1e-9
         if not aspect_ok:
             raise ValueError("the generator's cameras have square pixels (fx == fy)")
-        sensor = mi.load_dict(
+        return mi.load_dict(
             {
                 "type": "perspective",
                 "fov": fov,
@@ -170,8 +192,6 @@ class SceneRenderer:
                 "sampler": {"type": "independent", "sample_count": int(spp)},
             }
         )
-        image = mi.render(self._scene, sensor=sensor, seed=int(seed), spp=int(spp))
-        return np.asarray(image, np.float32)[..., :3]
 
 
 # --------------------------------------------------------------------------- ray casting

@@ -89,3 +89,11 @@ def kinect_depth(depth_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 
 def clean_depth_16bit(depth_m: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(depth_m.astype(np.float64) * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+
+
+ALBEDO_SCALE = 65535  # albedo/*.png: linear albedo times this, 16-bit RGB
+
+
+def albedo_16bit(albedo: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint16: linear albedo (0..1) times ALBEDO_SCALE, no sRGB curve, no noise."""
+    return np.clip(np.rint(albedo.astype(np.float64) * ALBEDO_SCALE), 0, 65535).astype(np.uint16)

@@ -5,7 +5,7 @@ with ``lighting_gt.json`` is always whole. Rendered frames are kept in ``<out>/.
 (one ``.npz`` per frame) until the sequence is written, so an interrupted run resumes at the
 frame it stopped at. File layout and conventions: ``../shared/data/synthetic/README.md``;
 what this generator adds is written into ``lighting_gt.json`` itself (``layout``,
-``truth_reference`` and each frame's ``probe``).
+``truth_reference`` and each frame's ``probe``), and ``albedo/``: each frame's true albedo.
 """
 
 from __future__ import annotations
@@ -205,7 +205,8 @@ def _render_frame(
         scene, layout.probe_world, spec.probe_size, spec.probe_spp, seed * 8
     )
     depth, ids = caster.cast(camera, pose)
-    out = {"radiance": radiance, "depth": depth, "ids": ids, "probe": probe}
+    albedo = scene.render_albedo(camera, pose, seed)
+    out = {"radiance": radiance, "depth": depth, "ids": ids, "probe": probe, "albedo": albedo}
     if i in spec.ar_frames:
         with_virtual, caster_v = scenes.get(shapes + virtual, light, (moving, True))
         out["radiance_virtual"] = with_virtual.render(camera, pose, spec.spp, seed)
@@ -266,6 +267,9 @@ CONVENTIONS = {
     "env_rotation_deg, R_y = [[cos, 0, sin], [0, 1, 0], [-sin, 0, cos]].",
     "radiance_units": "Linear RGB radiance as stored in the map file; images are "
     "sRGB(clip(exposure_scale * radiance, 0, 1)) plus noise.",
+    "albedo": "albedo/NNNNNN.png: 16-bit RGB, linear diffuse albedo times 65535 of the first "
+    "surface each pixel sees (averaged over the pixel), 0 where it sees the environment; "
+    "no sRGB curve, no noise (the intrinsic image, for measuring albedo estimates).",
     "sh_basis": "Real orthonormal SH, bands 0..3, index l(l+1)+m, Sloan's polynomials WITH "
     "the Condon-Shortley phase (as ../shared/data/synthetic); negate indices 1, "
     "3, 5, 7, 9, 11, 13, 15 for the basis without it.",
@@ -315,6 +319,8 @@ def _write(
         _write_png(tmp / "rgb" / name, sensor.to_8bit(f["radiance"], exposure, rng))
         _write_png(tmp / "depth" / name, sensor.kinect_depth(f["depth"], rng))
         _write_png(tmp / "depth_gt" / name, sensor.clean_depth_16bit(f["depth"]))
+        if "albedo" in f:  # frames rendered before the generator wrote it have none
+            _write_png(tmp / "albedo" / name, sensor.albedo_16bit(f["albedo"]))
         pose = layout.poses[i]
         q = _quaternion(pose[:3, :3])
         poses_txt.append(
