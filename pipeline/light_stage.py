@@ -314,14 +314,14 @@ class LightStage:
         (`compact_light.source_confidence`), and the view of side-facing normals does not
         count. disagreement_deg: between the SH fits near the look-at point and over the
         whole view (0 with one fit)."""
-        normals = frame.normals[transfer.pixel_v, transfer.pixel_u].astype(np.float64)
-        side = side_share(normals @ frame.pose[:3, :3].T, self.up_world)
         jump = 0.0
         if self.light_world is not None and np.any(raw):
             jump = math.degrees(math.acos(float(np.clip(raw @ self.light_world, -1.0, 1.0))))
         if from_source and self.last_compact is not None:
             base = source_confidence(estimate.confidence, self.last_compact.edge_step)
             return with_view_and_steadiness(base, None, jump)
+        normals = frame.normals[transfer.pixel_v, transfer.pixel_u].astype(np.float64)
+        side = side_share(normals @ frame.pose[:3, :3].T, self.up_world)
         return with_view_and_steadiness(estimate.confidence, side, jump, disagreement_deg)
 
     def diagnostics_of(self, outcome: LightOutcome) -> Diagnostics:

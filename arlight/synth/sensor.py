@@ -87,8 +87,13 @@ def kinect_depth(depth_m: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.where(valid, np.rint(noisy * DEPTH_SCALE), 0).astype(np.uint16)
 
 
+def _uint16(values: np.ndarray, scale: float) -> np.ndarray:
+    """values times `scale`, rounded and clipped to 16 bits."""
+    return np.clip(np.rint(values.astype(np.float64) * scale), 0, 65535).astype(np.uint16)
+
+
 def clean_depth_16bit(depth_m: np.ndarray) -> np.ndarray:
-    return np.clip(np.rint(depth_m.astype(np.float64) * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+    return _uint16(depth_m, DEPTH_SCALE)
 
 
 ALBEDO_SCALE = 65535  # albedo/*.png: linear albedo times this, 16-bit RGB
@@ -96,4 +101,4 @@ ALBEDO_SCALE = 65535  # albedo/*.png: linear albedo times this, 16-bit RGB
 
 def albedo_16bit(albedo: np.ndarray) -> np.ndarray:
     """(H, W, 3) uint16: linear albedo (0..1) times ALBEDO_SCALE, no sRGB curve, no noise."""
-    return np.clip(np.rint(albedo.astype(np.float64) * ALBEDO_SCALE), 0, 65535).astype(np.uint16)
+    return _uint16(albedo, ALBEDO_SCALE)
